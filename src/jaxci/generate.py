@@ -1,0 +1,172 @@
+"""Structured box meshes and the seeded perturbation protocol used for the paper's test cases.
+
+The perturbation protocol (`perturb_box`): with grid spacing h = (hx, hy, hz) and amplitude a,
+
+- interior nodes move uniformly in [-a h_d, +a h_d] along each axis d;
+- surface nodes move the same way along the two axes of their face only (they stay on the face);
+- edge nodes move along their edge only;
+- the 8 box corners stay fixed.
+
+With ``which="interior"`` only interior nodes move (the boundary is exactly the grid). With
+``redraw_inverted=True`` (default) the nodes of any element that would get a corner with det <= 0 are drawn
+again (up to `max_redraws` rounds), so the result has no inverted element. Same arguments and seed, same mesh.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .errors import MeshError
+from .mesh import HexMesh, corner_determinants, hex_mesh
+
+
+def box(
+    nx: int,
+    ny: int | None = None,
+    nz: int | None = None,
+    *,
+    size: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> HexMesh:
+    """A structured box of ``nx * ny * nz`` right-handed hexahedra.
+
+    Node (i, j, k) has index ``i + (nx+1) * (j + (ny+1) * k)`` and lies at ``origin + (i hx, j hy, k hz)``.
+
+    **Arguments:** `nx`, `ny`, `nz` element counts per axis (`ny`, `nz` default to `nx`); `size` the box edge
+    lengths; `origin` its minimum corner.
+
+    **Returns:** a `HexMesh` with ``(nx+1)(ny+1)(nz+1)`` nodes and ``nx ny nz`` hexahedra.
+    """
+    ny = nx if ny is None else ny
+    nz = nx if nz is None else nz
+    for name, v in (("nx", nx), ("ny", ny), ("nz", nz)):
+        if int(v) != v or v < 1:
+            raise MeshError(f"box: {name} must be a positive integer, got {v!r}")
+    if any(s <= 0 for s in size):
+        raise MeshError(f"box: size must be positive, got {size}")
+    nx, ny, nz = int(nx), int(ny), int(nz)
+    xs = origin[0] + np.linspace(0.0, size[0], nx + 1)
+    ys = origin[1] + np.linspace(0.0, size[1], ny + 1)
+    zs = origin[2] + np.linspace(0.0, size[2], nz + 1)
+    z, y, x = np.meshgrid(zs, ys, xs, indexing="ij")
+    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+
+    def nid(i, j, k):
+        return i + (nx + 1) * (j + (ny + 1) * k)
+
+    k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    i, j, k = i.ravel(), j.ravel(), k.ravel()
+    hexes = np.stack(
+        [
+            nid(i, j, k),
+            nid(i + 1, j, k),
+            nid(i + 1, j + 1, k),
+            nid(i, j + 1, k),
+            nid(i, j, k + 1),
+            nid(i + 1, j, k + 1),
+            nid(i + 1, j + 1, k + 1),
+            nid(i, j + 1, k + 1),
+        ],
+        axis=1,
+    )
+    return hex_mesh(points, hexes)
+
+
+def box_free_axes(nx: int, ny: int, nz: int, which: str = "sliding") -> np.ndarray:
+    """Per node of `box(nx, ny, nz)`, which axes it may move along: a bool array of shape ``(n_nodes, 3)``.
+
+    ``which="sliding"``: interior nodes all three axes, face nodes the two tangent axes, edge nodes the edge axis,
+    corners none. ``which="interior"``: interior nodes only.
+    """
+    k, j, i = np.meshgrid(np.arange(nz + 1), np.arange(ny + 1), np.arange(nx + 1), indexing="ij")
+    inner = np.stack(
+        [(i > 0) & (i < nx), (j > 0) & (j < ny), (k > 0) & (k < nz)], axis=-1
+    ).reshape(-1, 3)
+    if which == "sliding":
+        return inner
+    if which == "interior":
+        return inner & inner.all(axis=1, keepdims=True)
+    raise MeshError(f"perturbation 'which' must be 'sliding' or 'interior', got {which!r}")
+
+
+def perturb_box(
+    nx: int,
+    ny: int | None = None,
+    nz: int | None = None,
+    *,
+    amplitude: float = 0.3,
+    seed: int = 0,
+    which: str = "sliding",
+    size: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    redraw_inverted: bool = True,
+    max_redraws: int = 1000,
+) -> HexMesh:
+    """A box mesh with its nodes perturbed by the seeded protocol of this module's docstring.
+
+    **Arguments:** `nx, ny, nz` and `size` as for `box`; `amplitude` a (fraction of the spacing, >= 0);
+    `seed` an integer seed of numpy's default generator; `which` ``"sliding"`` or ``"interior"``;
+    `redraw_inverted` redraw nodes of elements that would invert.
+
+    **Returns:** a `HexMesh`. Raises `MeshError` if no valid draw was found in `max_redraws` rounds.
+    """
+    ny = nx if ny is None else ny
+    nz = nx if nz is None else nz
+    if not amplitude >= 0:
+        raise MeshError(f"perturb_box: amplitude must be >= 0, got {amplitude}")
+    mesh = box(nx, ny, nz, size=size)
+    h = np.array([size[0] / nx, size[1] / ny, size[2] / nz])
+    free = box_free_axes(nx, ny, nz, which)
+    rng = np.random.default_rng(seed)
+    base = mesh.points
+
+    def draw(n):
+        return rng.uniform(-1.0, 1.0, size=(n, 3)) * amplitude * h
+
+    points = base + draw(len(base)) * free
+    hexes = mesh.hexes
+    if redraw_inverted:
+        for _ in range(max_redraws):
+            bad = (corner_determinants(points, hexes) <= 0).any(axis=1)
+            if not bad.any():
+                break
+            nodes = np.unique(hexes[bad])
+            points[nodes] = base[nodes] + draw(len(nodes)) * free[nodes]
+        else:
+            raise MeshError(
+                f"perturb_box: no perturbation without inverted elements after {max_redraws} redraws "
+                f"(amplitude {amplitude} is too large)"
+            )
+    return mesh.with_points(points)
+
+
+@dataclasses.dataclass(frozen=True)
+class PaperCase:
+    """One of the paper's cubes: `n` elements per axis and the perturbation that gives its 'before' quality."""
+
+    name: str
+    n: int
+    amplitude: float
+    which: str = "sliding"
+
+    def mesh(self, seed: int = 0) -> HexMesh:
+        return perturb_box(self.n, amplitude=self.amplitude, seed=seed, which=self.which)
+
+
+#: The paper's three cases (27, 64 and 729 hexahedra on the unit cube), by name. The amplitudes give 'before'
+#: max kappa/3 of the same order as the paper's Table 2 without inverted elements (see scripts/reproduce_paper.py).
+PAPER_CASES: dict[str, PaperCase] = {
+    "cube27": PaperCase("cube27", 3, 0.45),
+    "cube64": PaperCase("cube64", 4, 0.4),
+    "cube729": PaperCase("cube729", 9, 0.3),
+}
+
+
+def paper_case(name: str, seed: int = 0) -> HexMesh:
+    """The perturbed cube of the paper's case `name` (one of `PAPER_CASES`) for `seed`."""
+    try:
+        case = PAPER_CASES[name]
+    except KeyError:
+        raise MeshError(f"unknown paper case {name!r}; known: {', '.join(PAPER_CASES)}") from None
+    return case.mesh(seed)
