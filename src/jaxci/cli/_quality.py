@@ -1,0 +1,61 @@
+"""`jaxci quality MESH [--json]`: the mesh report of `jaxci.quality.quality_report`."""
+
+from __future__ import annotations
+
+import json
+import math
+
+
+def add_args(p) -> None:
+    p.add_argument("mesh", help="mesh file (.vtk, .vtu, .msh, .inp, .xdmf, ANSYS listing or .mac)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+
+
+def report_dict(mesh) -> dict:
+    """The quality keys of a mesh, as `jaxci quality --json` prints them."""
+    from ..quality import quality_report
+
+    return quality_report(mesh).to_dict()
+
+
+def format_table(d: dict, title: str = "") -> str:
+    def f(v, fmt=".6g"):
+        return "-" if v is None else format(v, fmt)
+
+    lines = [title] if title else []
+    lines += [
+        f"  nodes                 {d['n_nodes']}",
+        f"  hexahedra             {d['n_elements']}",
+    ]
+    if d.get("other_cells"):
+        lines.append("  other cells           " + ", ".join(f"{k} {v}" for k, v in d["other_cells"].items()))
+    lines += [
+        f"  inverted corners      {d['inverted_corners']}",
+        f"  inverted elements     {d['inverted_elements']}",
+        f"  max condition k/3     {f(d['max_condition'])}",
+        f"  mean condition k/3    {f(d['mean_condition'])}",
+        f"  objective F (Eq 3.1)  {f(d['objective'])}",
+        f"  min scaled Jacobian   {f(d['min_scaled_jacobian'])}",
+    ]
+    for key in ("corner_nodes", "edge_nodes", "surface_nodes", "interior_nodes"):
+        if key in d:
+            lines.append(f"  {key.replace('_', ' '):<22}{d[key]}")
+    lines.append("  corners by k/3:")
+    for b in d["histogram"]:
+        hi = "inf" if b["high"] is None or math.isinf(b["high"]) else f"{b['high']:g}"
+        lines.append(f"    [{b['low']:g}, {hi}){'':<{8 - len(hi)}}{b['count']}")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from ..io import read_mesh
+
+    mesh = read_mesh(args.mesh)
+    d = report_dict(mesh)
+    if args.json:
+        print(json.dumps(d))
+    else:
+        for note in mesh.notes:
+            print(f"note: {note}")
+        print(format_table(d, f"{args.mesh}"))
+    return 0

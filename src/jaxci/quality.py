@@ -1,0 +1,316 @@
+"""Corner Jacobians, condition numbers, scaled Jacobians and the paper's objective F, batched in JAX.
+
+Definitions (``shared/reference/metrics.md``, matching VTK/Verdict): at corner i of a hexahedron the matrix A_i
+has as columns the three edge vectors from node i to the nodes `jaxci.mesh.CORNER_NEIGHBOURS[i]`. With columns
+a, b, c:
+
+- det A = a . (b x c)  (> 0 for a valid corner; <= 0 is an inverted or degenerate corner);
+- kappa(A) = |A|_F |A^-1|_F = sqrt(|a|^2+|b|^2+|c|^2) sqrt(|b x c|^2+|c x a|^2+|a x b|^2) / det A, >= 3;
+  we report kappa/3, in [1, inf), 1 only for a corner with orthogonal columns of equal length;
+- corner scaled Jacobian = det A / (|a| |b| |c|), in [-1, 1];
+- element condition = max over its 8 corners of kappa/3 (VTK ``HexCondition``), element mean = mean over the
+  8 corners (VTK ``HexMedAspectFrobenius``);
+- the paper's Eq. 3.1: F = 1/(8N) sum_n sum_i (kappa(A_ni)/3)^2 - 1, 0 only for a mesh of perfect cubes.
+
+An inverted corner (det <= 0) has no meaningful condition number: the per-corner condition is ``inf`` there,
+the objective is ``inf`` for any mesh with an inverted corner (a barrier for the optimizers), and the report
+counts inverted corners separately and computes its figures over valid corners only.
+
+Fast path: the closed form above with every 3x3 entry as its own array (structure of arrays, one 1-D gather per
+component and local node). Reference path: `jnp.linalg.cond` on the stacked matrices (``"frobenius-cond"``:
+``cond(A, 'fro') / 3``, the same number; ``"2-norm"``: the SVD condition number, a different metric).
+
+Every public kernel takes `points` of shape ``(n, 3)`` or ``(C, n, 3)`` (C candidates of a cohort) and `hexes`
+of shape ``(N, 8)``, and returns arrays with the same leading candidate axis. Candidates are mapped with
+`jax.lax.map` around the mesh gather (a `vmap` of the gather is 10-40x slower on CPU, see ecosystem.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .mesh import CORNER_NEIGHBOURS, HexMesh
+
+#: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
+HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
+
+#: Names of the per-corner condition metrics `corner_condition` accepts.
+METRICS = ("frobenius", "frobenius-cond", "2-norm")
+
+_NB = tuple(tuple(int(v) for v in CORNER_NEIGHBOURS[:, j]) for j in range(3))
+
+
+# ---------------------------------------------------------------------------------------------- kernels
+def gather_corners(points, hexes):
+    """Node coordinates per local node, structure of arrays.
+
+    **Arguments:** `points` of shape ``(n, 3)``; `hexes` of shape ``(N, 8)``.
+
+    **Returns:** ``(X, Y, Z)``, each of shape ``(8, N)``: component of local node a of element e at ``[a, e]``.
+    """
+    comps = []
+    for d in range(3):
+        p = points[:, d]
+        comps.append(jnp.stack([p[hexes[:, a]] for a in range(8)]))
+    return tuple(comps)
+
+
+def corner_columns(X, Y, Z):
+    """The three columns of every corner matrix from `gather_corners` output.
+
+    **Returns:** a tuple of 9 arrays ``(ax, ay, az, bx, by, bz, cx, cy, cz)``, each of shape ``(8, N)``
+    (corner i of element e at ``[i, e]``).
+    """
+    out = []
+    for nb in _NB:
+        idx = np.array(nb)
+        out.extend([X[idx] - X, Y[idx] - Y, Z[idx] - Z])
+    return tuple(out)
+
+
+def corner_invariants(ax, ay, az, bx, by, bz, cx, cy, cz):
+    """det A, |A|_F^2 and |adj A|_F^2 of corner matrices given column by column (any common shape)."""
+    # b x c, c x a, a x b
+    ux, uy, uz = by * cz - bz * cy, bz * cx - bx * cz, bx * cy - by * cx
+    vx, vy, vz = cy * az - cz * ay, cz * ax - cx * az, cx * ay - cy * ax
+    wx, wy, wz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    det = ax * ux + ay * uy + az * uz
+    fro2 = ax * ax + ay * ay + az * az + bx * bx + by * by + bz * bz + cx * cx + cy * cy + cz * cz
+    adj2 = ux * ux + uy * uy + uz * uz + vx * vx + vy * vy + vz * vz + wx * wx + wy * wy + wz * wz
+    return det, fro2, adj2
+
+
+def condition_from_invariants(det, fro2, adj2):
+    """kappa/3 from `corner_invariants` output; ``inf`` where det <= 0."""
+    valid = det > 0
+    safe = jnp.where(valid, det, 1.0)
+    return jnp.where(valid, jnp.sqrt(fro2 * adj2) / (3.0 * safe), jnp.inf)
+
+
+def squared_condition_from_invariants(det, fro2, adj2):
+    """(kappa/3)^2 (the per-corner term of Eq. 3.1 plus 1) from `corner_invariants`; ``inf`` where det <= 0."""
+    valid = det > 0
+    safe = jnp.where(valid, det, 1.0)
+    return jnp.where(valid, fro2 * adj2 / (9.0 * safe * safe), jnp.inf)
+
+
+def _batched(fn):
+    """Make a kernel of ``(points (n,3), hexes)`` accept ``(C, n, 3)`` points too (lax.map over candidates)."""
+
+    @functools.wraps(fn)
+    def wrapper(points, hexes, *args):
+        if points.ndim == 3:
+            return jax.lax.map(lambda p: fn(p, hexes, *args), points)
+        if points.ndim != 2 or points.shape[-1] != 3:
+            raise ValueError(f"points must have shape (n, 3) or (C, n, 3), got {points.shape}")
+        return fn(points, hexes, *args)
+
+    return wrapper
+
+
+@jax.jit
+@_batched
+def _corner_kernel(points, hexes):
+    cols = corner_columns(*gather_corners(points, hexes))
+    det, fro2, adj2 = corner_invariants(*cols)
+    ax, ay, az, bx, by, bz, cx, cy, cz = cols
+    la = ax * ax + ay * ay + az * az
+    lb = bx * bx + by * by + bz * bz
+    lc = cx * cx + cy * cy + cz * cz
+    return det.T, fro2.T, adj2.T, (la * lb * lc).T
+
+
+def _as_points(points, dtype=None):
+    arr = jnp.asarray(points, dtype=dtype)
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        arr = arr.astype(jnp.result_type(float))
+    return arr
+
+
+# ---------------------------------------------------------------------------------------------- public API
+def corner_matrices(points, hexes):
+    """The corner matrices A_i, columns = edge vectors.
+
+    **Arguments:** `points` of shape ``(n, 3)`` or ``(C, n, 3)``; `hexes` of shape ``(N, 8)``.
+
+    **Returns:** shape ``(..., N, 8, 3, 3)``; ``A[..., e, i, :, j]`` is column j of corner i of element e.
+    """
+    pts = _as_points(points)
+    hx = jnp.asarray(hexes)
+    x = pts[..., hx, :]  # (..., N, 8, 3)
+    nb = jnp.asarray(CORNER_NEIGHBOURS)
+    cols = x[..., nb, :] - x[..., :, None, :]  # (..., N, 8, 3 columns, 3 components)
+    return jnp.swapaxes(cols, -1, -2)
+
+
+def corner_determinant(points, hexes):
+    """det A_i per corner, shape ``(..., N, 8)`` (<= 0: inverted or degenerate corner)."""
+    return _corner_kernel(_as_points(points), jnp.asarray(hexes))[0]
+
+
+def corner_condition(points, hexes, metric: str = "frobenius"):
+    """Per-corner condition number, shape ``(..., N, 8)``; ``inf`` at corners with det <= 0.
+
+    **Arguments:**
+
+    - `points`: shape ``(n, 3)`` or ``(C, n, 3)``; `hexes`: shape ``(N, 8)``.
+    - `metric`: ``"frobenius"`` (default): kappa/3 in closed form, the fast path, in [1, inf);
+      ``"frobenius-cond"``: ``jnp.linalg.cond(A, 'fro') / 3``, the same number by the reference route;
+      ``"2-norm"``: ``jnp.linalg.cond(A)``, the SVD (spectral) condition number, another metric in [1, inf).
+    """
+    pts, hx = _as_points(points), jnp.asarray(hexes)
+    if metric == "frobenius":
+        det, fro2, adj2, _ = _corner_kernel(pts, hx)
+        return condition_from_invariants(det, fro2, adj2)
+    if metric not in METRICS:
+        raise ValueError(f"unknown condition metric {metric!r}; choose one of {', '.join(METRICS)}")
+    return _reference_condition(pts, hx, metric == "2-norm")
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _reference_condition(points, hexes, two_norm: bool):
+    a = corner_matrices(points, hexes)
+    det = jnp.linalg.det(a)
+    k = jnp.linalg.cond(a) if two_norm else jnp.linalg.cond(a, "fro") / 3.0
+    return jnp.where(det > 0, k, jnp.inf)
+
+
+def corner_scaled_jacobian(points, hexes):
+    """det A_i / (|a||b||c|) per corner, shape ``(..., N, 8)``, in [-1, 1] (0 where an edge has length 0)."""
+    det, _, _, l2 = _corner_kernel(_as_points(points), jnp.asarray(hexes))
+    return jnp.where(l2 > 0, det / jnp.sqrt(jnp.where(l2 > 0, l2, 1.0)), 0.0)
+
+
+@jax.jit
+@_batched
+def _centre_scaled_jacobian(points, hexes):
+    X, Y, Z = gather_corners(points, hexes)
+
+    def axis(sign_pairs):
+        return tuple(sum(C[j] - C[i] for i, j in sign_pairs) for C in (X, Y, Z))
+
+    xi = axis(((0, 1), (3, 2), (4, 5), (7, 6)))
+    et = axis(((0, 3), (1, 2), (4, 7), (5, 6)))
+    ze = axis(((0, 4), (1, 5), (2, 6), (3, 7)))
+    det, _, _ = corner_invariants(*xi, *et, *ze)
+    l2 = (
+        (xi[0] ** 2 + xi[1] ** 2 + xi[2] ** 2)
+        * (et[0] ** 2 + et[1] ** 2 + et[2] ** 2)
+        * (ze[0] ** 2 + ze[1] ** 2 + ze[2] ** 2)
+    )
+    return jnp.where(l2 > 0, det / jnp.sqrt(jnp.where(l2 > 0, l2, 1.0)), 0.0)
+
+
+def element_scaled_jacobian(points, hexes):
+    """Verdict's ``hex_scaled_jacobian``: min over the 8 corners and the centre (principal axes), ``(..., N)``."""
+    return jnp.minimum(corner_scaled_jacobian(points, hexes).min(axis=-1), _centre_scaled_jacobian(
+        _as_points(points), jnp.asarray(hexes)))
+
+
+def element_condition(points, hexes, metric: str = "frobenius"):
+    """Max corner condition per element (VTK ``HexCondition`` for the default metric), ``(..., N)``."""
+    return corner_condition(points, hexes, metric).max(axis=-1)
+
+
+def element_mean_condition(points, hexes, metric: str = "frobenius"):
+    """Mean corner condition per element (VTK ``HexMedAspectFrobenius``), ``(..., N)``."""
+    return corner_condition(points, hexes, metric).mean(axis=-1)
+
+
+@jax.jit
+@_batched
+def _objective(points, hexes):
+    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(points, hexes)))
+    term = squared_condition_from_invariants(det, fro2, adj2)
+    return jnp.mean(jax.lax.optimization_barrier(term)) - 1.0
+
+
+def objective(points, hexes):
+    """The paper's objective F (Eq. 3.1): mean over all 8N corners of (kappa/3)^2, minus 1.
+
+    **Arguments:** `points` of shape ``(n, 3)`` or ``(C, n, 3)``; `hexes` of shape ``(N, 8)``.
+
+    **Returns:** a scalar, or shape ``(C,)``; >= 0, 0 only for perfect cubes, ``inf`` if any corner has
+    det <= 0 (so that no optimizer can accept an inverted mesh as an improvement).
+    """
+    return _objective(_as_points(points), jnp.asarray(hexes))
+
+
+# ---------------------------------------------------------------------------------------------- report
+@dataclasses.dataclass(frozen=True)
+class QualityReport:
+    """What `jaxci quality` prints: counts, inverted corners/elements, condition figures, Table 1 histogram.
+
+    Condition figures are kappa/3 (Frobenius, Verdict convention) over VALID corners and elements only;
+    `objective` is F (Eq. 3.1) over the valid corners, None if there are none.
+    """
+
+    n_nodes: int
+    n_elements: int
+    inverted_corners: int
+    inverted_elements: int
+    max_condition: float | None
+    mean_condition: float | None
+    objective: float | None
+    min_scaled_jacobian: float | None
+    histogram: tuple[tuple[float, float, int], ...]
+    worst_element: int | None = None
+    other_cells: dict | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON object of ``jaxci quality --json`` (histogram as a list of {low, high, count})."""
+        d = dataclasses.asdict(self)
+        d["histogram"] = [
+            {"low": lo, "high": (None if math.isinf(hi) else hi), "count": c} for lo, hi, c in self.histogram
+        ]
+        return d
+
+
+def corner_histogram(kappa3: np.ndarray) -> tuple[tuple[float, float, int], ...]:
+    """Counts of corner kappa/3 values (finite ones) in the paper's Table 1 bins `HISTOGRAM_EDGES`."""
+    k = np.asarray(kappa3, dtype=np.float64).ravel()
+    k = k[np.isfinite(k)]
+    edges = np.asarray(HISTOGRAM_EDGES)
+    # values a rounding error below 1 belong to the first bin
+    idx = np.clip(np.searchsorted(edges, k, side="right") - 1, 0, len(edges) - 2)
+    counts = np.bincount(idx, minlength=len(edges) - 1)
+    return tuple((float(edges[i]), float(edges[i + 1]), int(counts[i])) for i in range(len(edges) - 1))
+
+
+def quality_report(mesh: HexMesh, points=None) -> QualityReport:
+    """The quality report of `mesh` (or of `mesh` with node coordinates `points` of shape ``(n, 3)``).
+
+    Uses float64 when ``jax_enable_x64`` is on (the CLI turns it on), else float32.
+    """
+    pts = mesh.points if points is None else points
+    hexes = mesh.hexes
+    det, fro2, adj2, l2 = (np.asarray(a) for a in _corner_kernel(_as_points(pts), jnp.asarray(hexes)))
+    valid = det > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa3 = np.where(valid, np.sqrt(fro2 * adj2) / (3.0 * np.where(valid, det, 1.0)), np.inf)
+        sj = np.where(l2 > 0, det / np.sqrt(np.where(l2 > 0, l2, 1.0)), 0.0)
+    inv_el = ~valid.all(axis=1)
+    n_valid = int(valid.sum())
+    elem_max = kappa3.max(axis=1)
+    ok = ~inv_el
+    worst = int(np.argmax(np.where(ok, elem_max, -np.inf))) if ok.any() else None
+    return QualityReport(
+        n_nodes=mesh.n_nodes,
+        n_elements=mesh.n_hexes,
+        inverted_corners=int((~valid).sum()),
+        inverted_elements=int(inv_el.sum()),
+        max_condition=float(elem_max[ok].max()) if ok.any() else None,
+        mean_condition=float(kappa3[ok].mean()) if ok.any() else None,
+        objective=float(np.mean(kappa3[valid] ** 2) - 1.0) if n_valid else None,
+        min_scaled_jacobian=float(sj.min()),
+        histogram=corner_histogram(kappa3[valid]),
+        worst_element=worst,
+        other_cells={t: int(sum(len(b.data) for b in mesh.cells if b.type == t)) for t in mesh.other_cell_types}
+        or None,
+    )

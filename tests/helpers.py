@@ -1,0 +1,51 @@
+"""Shared test fixtures: where ../shared is, the real meshes and their published figures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+MESQUITE = SHARED / "data" / "mesquite"
+
+#: ../shared/data/mesquite/README.md: file -> (hexes, nodes, inverted corners, inverted elements, max k/3, F,
+#: min corner scaled Jacobian); None where the README gives '-' or 'inf'.
+MESQUITE_FIGURES = {
+    "single_hex.vtk": (1, 8, 0, 0, None, None, None),
+    "hexes_4by2by2.vtk": (16, 45, 0, 0, 1.203, 0.04164, 0.894),
+    "large_box_hex_1000.vtk": (1000, 1331, 0, 0, 1.101, 0.03362, 0.882),
+    "1000hex-block-internal-bias.vtk": (1000, 1331, 0, 0, 8.448, 5.868, 0.126),
+    "hex_5_tangled.vtk": (125, 216, 48, 36, None, None, -0.865),
+    "pave3.e.vtk": (1791, 2385, 258, 106, None, None, -0.854),
+}
+
+
+def unit_cube() -> np.ndarray:
+    """The 8 nodes of the unit cube in VTK order, shape (8, 3)."""
+    return np.array(
+        [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], dtype=float
+    )
+
+
+def random_valid_hexes(rng: np.random.Generator, n: int, amplitude: float = 0.25) -> np.ndarray:
+    """`n` random valid hexahedra (unit cube corners moved by up to `amplitude`, kept if all det > 0), (n, 8, 3)."""
+    from jaxci.mesh import corner_determinants
+
+    out = []
+    while len(out) < n:
+        x = unit_cube()[None] + rng.uniform(-amplitude, amplitude, size=(4 * n, 8, 3))
+        conn = np.arange(8)[None]
+        for h in x:
+            if (corner_determinants(h, conn) > 0).all():
+                out.append(h)
+    return np.array(out[:n])
+
+
+def read_vtk_hexes(path) -> tuple[np.ndarray, np.ndarray]:
+    """Points and hexahedra of a legacy VTK file, read by meshio directly (independent of jaxci.io)."""
+    import meshio
+
+    m = meshio.vtk.read(str(path))
+    return np.asarray(m.points, dtype=float), np.asarray(m.cells_dict["hexahedron"])
