@@ -47,18 +47,23 @@ _NB = tuple(tuple(int(v) for v in CORNER_NEIGHBOURS[:, j]) for j in range(3))
 
 
 # ---------------------------------------------------------------------------------------------- kernels
-def gather_corners(points, hexes):
+def gather_corners(points, conn):
     """Node coordinates per local node, structure of arrays.
 
-    **Arguments:** `points` of shape ``(n, 3)``; `hexes` of shape ``(N, 8)``.
+    **Arguments:** `points` of shape ``(n, 3)``; `conn` the TRANSPOSED connectivity, shape ``(8, N)``
+    (`hexes.T`: one contiguous row of node indices per local node, 2x faster to gather than ``(N, 8)``).
 
     **Returns:** ``(X, Y, Z)``, each of shape ``(8, N)``: component of local node a of element e at ``[a, e]``.
     """
-    comps = []
-    for d in range(3):
-        p = points[:, d]
-        comps.append(jnp.stack([p[hexes[:, a]] for a in range(8)]))
-    return tuple(comps)
+    pt = points.T
+    return tuple(jnp.stack([pt[d][conn[a]] for a in range(8)]) for d in range(3))
+
+
+def transposed(hexes):
+    """``(N, 8)`` hexahedra -> the ``(8, N)`` contiguous layout the kernels take (int32 unless x64 is on)."""
+    if isinstance(hexes, jax.Array):
+        return hexes.T
+    return jnp.asarray(np.ascontiguousarray(np.asarray(hexes).T))
 
 
 def corner_columns(X, Y, Z):
@@ -101,23 +106,23 @@ def squared_condition_from_invariants(det, fro2, adj2):
 
 
 def _batched(fn):
-    """Make a kernel of ``(points (n,3), hexes)`` accept ``(C, n, 3)`` points too (lax.map over candidates)."""
+    """Make a kernel of ``(points (n,3), conn (8,N))`` accept ``(C, n, 3)`` points too (lax.map over candidates)."""
 
     @functools.wraps(fn)
-    def wrapper(points, hexes, *args):
+    def wrapper(points, conn, *args):
         if points.ndim == 3:
-            return jax.lax.map(lambda p: fn(p, hexes, *args), points)
+            return jax.lax.map(lambda p: fn(p, conn, *args), points)
         if points.ndim != 2 or points.shape[-1] != 3:
             raise ValueError(f"points must have shape (n, 3) or (C, n, 3), got {points.shape}")
-        return fn(points, hexes, *args)
+        return fn(points, conn, *args)
 
     return wrapper
 
 
 @jax.jit
 @_batched
-def _corner_kernel(points, hexes):
-    cols = corner_columns(*gather_corners(points, hexes))
+def _corner_kernel(points, conn):
+    cols = corner_columns(*gather_corners(points, conn))
     det, fro2, adj2 = corner_invariants(*cols)
     ax, ay, az, bx, by, bz, cx, cy, cz = cols
     la = ax * ax + ay * ay + az * az
@@ -151,7 +156,7 @@ def corner_matrices(points, hexes):
 
 def corner_determinant(points, hexes):
     """det A_i per corner, shape ``(..., N, 8)`` (<= 0: inverted or degenerate corner)."""
-    return _corner_kernel(_as_points(points), jnp.asarray(hexes))[0]
+    return _corner_kernel(_as_points(points), transposed(hexes))[0]
 
 
 def corner_condition(points, hexes, metric: str = "frobenius"):
@@ -164,13 +169,13 @@ def corner_condition(points, hexes, metric: str = "frobenius"):
       ``"frobenius-cond"``: ``jnp.linalg.cond(A, 'fro') / 3``, the same number by the reference route;
       ``"2-norm"``: ``jnp.linalg.cond(A)``, the SVD (spectral) condition number, another metric in [1, inf).
     """
-    pts, hx = _as_points(points), jnp.asarray(hexes)
+    pts = _as_points(points)
     if metric == "frobenius":
-        det, fro2, adj2, _ = _corner_kernel(pts, hx)
+        det, fro2, adj2, _ = _corner_kernel(pts, transposed(hexes))
         return condition_from_invariants(det, fro2, adj2)
     if metric not in METRICS:
         raise ValueError(f"unknown condition metric {metric!r}; choose one of {', '.join(METRICS)}")
-    return _reference_condition(pts, hx, metric == "2-norm")
+    return _reference_condition(pts, jnp.asarray(hexes), metric == "2-norm")
 
 
 @functools.partial(jax.jit, static_argnums=2)
@@ -183,14 +188,14 @@ def _reference_condition(points, hexes, two_norm: bool):
 
 def corner_scaled_jacobian(points, hexes):
     """det A_i / (|a||b||c|) per corner, shape ``(..., N, 8)``, in [-1, 1] (0 where an edge has length 0)."""
-    det, _, _, l2 = _corner_kernel(_as_points(points), jnp.asarray(hexes))
+    det, _, _, l2 = _corner_kernel(_as_points(points), transposed(hexes))
     return jnp.where(l2 > 0, det / jnp.sqrt(jnp.where(l2 > 0, l2, 1.0)), 0.0)
 
 
 @jax.jit
 @_batched
-def _centre_scaled_jacobian(points, hexes):
-    X, Y, Z = gather_corners(points, hexes)
+def _centre_scaled_jacobian(points, conn):
+    X, Y, Z = gather_corners(points, conn)
 
     def axis(sign_pairs):
         return tuple(sum(C[j] - C[i] for i, j in sign_pairs) for C in (X, Y, Z))
@@ -209,8 +214,8 @@ def _centre_scaled_jacobian(points, hexes):
 
 def element_scaled_jacobian(points, hexes):
     """Verdict's ``hex_scaled_jacobian``: min over the 8 corners and the centre (principal axes), ``(..., N)``."""
-    return jnp.minimum(corner_scaled_jacobian(points, hexes).min(axis=-1), _centre_scaled_jacobian(
-        _as_points(points), jnp.asarray(hexes)))
+    centre = _centre_scaled_jacobian(_as_points(points), transposed(hexes))
+    return jnp.minimum(corner_scaled_jacobian(points, hexes).min(axis=-1), centre)
 
 
 def element_condition(points, hexes, metric: str = "frobenius"):
@@ -225,8 +230,9 @@ def element_mean_condition(points, hexes, metric: str = "frobenius"):
 
 @jax.jit
 @_batched
-def _objective(points, hexes):
-    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(points, hexes)))
+def objective_t(points, conn):
+    """`objective` on the transposed connectivity `conn` of shape ``(8, N)`` (jitted; what optimizers call)."""
+    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(points, conn)))
     term = squared_condition_from_invariants(det, fro2, adj2)
     return jnp.mean(jax.lax.optimization_barrier(term)) - 1.0
 
@@ -239,7 +245,7 @@ def objective(points, hexes):
     **Returns:** a scalar, or shape ``(C,)``; >= 0, 0 only for perfect cubes, ``inf`` if any corner has
     det <= 0 (so that no optimizer can accept an inverted mesh as an improvement).
     """
-    return _objective(_as_points(points), jnp.asarray(hexes))
+    return objective_t(_as_points(points), transposed(hexes))
 
 
 # ---------------------------------------------------------------------------------------------- report
@@ -290,7 +296,7 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
     """
     pts = mesh.points if points is None else points
     hexes = mesh.hexes
-    det, fro2, adj2, l2 = (np.asarray(a) for a in _corner_kernel(_as_points(pts), jnp.asarray(hexes)))
+    det, fro2, adj2, l2 = (np.asarray(a) for a in _corner_kernel(_as_points(pts), transposed(hexes)))
     valid = det > 0
     with np.errstate(divide="ignore", invalid="ignore"):
         kappa3 = np.where(valid, np.sqrt(fro2 * adj2) / (3.0 * np.where(valid, det, 1.0)), np.inf)
