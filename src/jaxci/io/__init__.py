@@ -1,0 +1,193 @@
+"""Reading and writing hexahedral meshes: the meshio formats that carry hexahedra, and ANSYS text.
+
+`read_mesh` / `write_mesh` pick the format from the file extension through `FORMATS` (or take
+``file_format=``, one of its values or ``"gmsh22"``). ANSYS NLIST/ELIST listings are read with
+`read_ansys_listing`, or with `read_mesh` given the pair ``(nlist, elist)`` or one ``.lis`` / ``.txt`` file
+holding both listings. `write_mesh` never overwrites the file a mesh was read from, writes atomically, and
+warns (`LossyWriteWarning`) about what a format cannot hold.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from ..errors import MeshReadError, MeshWriteError, UnsupportedFormatError
+from ..mesh import HexMesh
+from ._ansys_apdl import read_apdl, write_apdl
+from ._ansys_listing import read_ansys_listing as read_ansys_listing
+from ._meshio import LossyWriteWarning as LossyWriteWarning
+from ._meshio import read_meshio, write_meshio
+
+#: File extension (lower case) -> format name. ``.msh`` is Gmsh (written as 4.1; ``file_format="gmsh22"``
+#: writes 2.2), ``.inp`` is Abaqus, ``.mac``/``.apdl``/``.ans``/``.cdb`` are ANSYS APDL input files and
+#: archives (their NBLOCK/EBLOCK mesh), ``.lis``/``.txt`` are ANSYS NLIST + ELIST listings (read only).
+FORMATS: dict[str, str] = {
+    ".vtk": "vtk",
+    ".vtu": "vtu",
+    ".msh": "gmsh",
+    ".inp": "abaqus",
+    ".xdmf": "xdmf",
+    ".xmf": "xdmf",
+    ".mac": "apdl",
+    ".apdl": "apdl",
+    ".ans": "apdl",
+    ".cdb": "apdl",
+    ".lis": "ansys-listing",
+    ".txt": "ansys-listing",
+}
+
+_READERS = {
+    "vtk": lambda path: read_meshio(path, "vtk"),
+    "vtu": lambda path: read_meshio(path, "vtu"),
+    "gmsh": lambda path: read_meshio(path, "gmsh"),
+    "gmsh22": lambda path: read_meshio(path, "gmsh22"),
+    "abaqus": lambda path: read_meshio(path, "abaqus"),
+    "xdmf": lambda path: read_meshio(path, "xdmf"),
+    "apdl": read_apdl,
+    "ansys-listing": read_ansys_listing,
+}
+
+_WRITERS = {
+    "vtk": lambda mesh, path: write_meshio(mesh, path, "vtk"),
+    "vtu": lambda mesh, path: write_meshio(mesh, path, "vtu"),
+    "gmsh": lambda mesh, path: write_meshio(mesh, path, "gmsh"),
+    "gmsh22": lambda mesh, path: write_meshio(mesh, path, "gmsh22"),
+    "abaqus": lambda mesh, path: write_meshio(mesh, path, "abaqus"),
+    "xdmf": lambda mesh, path: write_meshio(mesh, path, "xdmf"),
+    "apdl": write_apdl,
+}
+
+
+def _format_of(path: Path, file_format: str | None, table: dict) -> str:
+    if file_format is not None:
+        if file_format not in table:
+            raise UnsupportedFormatError(
+                f"{path}: unknown file_format {file_format!r}; known: {', '.join(sorted(table))}"
+            )
+        return file_format
+    fmt = FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise UnsupportedFormatError(
+            f"{path}: unknown mesh file extension {path.suffix or '(none)'!r}; known: {', '.join(FORMATS)} "
+            f"(or pass file_format=)"
+        )
+    return fmt
+
+
+def read_mesh(path: str | os.PathLike | tuple, *, file_format: str | None = None) -> HexMesh:
+    """Read a hexahedral mesh file.
+
+    **Arguments:**
+
+    - `path`: the file; or a pair ``(nlist, elist)`` of ANSYS listing files. A single ``.lis`` / ``.txt`` file
+      may hold both the NLIST and the ELIST output (sections are found by their column headers).
+    - `file_format`: keyword only; a format name (a value of `FORMATS`, or ``"gmsh22"``) to use instead of
+      the one the extension says.
+
+    **Returns:** a `HexMesh` with ``source`` set to the file, carrying the file's other cell blocks, data,
+    sets and ids (see `write_mesh` for which format holds what).
+
+    Raises `MeshReadError` (missing, unreadable, truncated or corrupt file), `UnsupportedFormatError` (unknown
+    extension or format name) or `MeshError` (no hexahedra, non-finite coordinates, bad node index), each with
+    a one-line message naming the file.
+    """
+    if isinstance(path, tuple | list):
+        if len(path) != 2 or file_format not in (None, "ansys-listing"):
+            raise UnsupportedFormatError(
+                f"a pair of files is read as ANSYS (NLIST, ELIST) listings only, got {len(path)} paths and "
+                f"file_format={file_format!r}"
+            )
+        for p in path:
+            if not Path(p).is_file():
+                raise MeshReadError(f"{p}: no such file")
+        return read_ansys_listing(*path)
+    path = Path(path)
+    fmt = _format_of(path, file_format, _READERS)
+    if not path.exists():
+        raise MeshReadError(f"{path}: no such file")
+    if path.is_dir():
+        raise MeshReadError(f"{path}: is a folder, not a mesh file")
+    return _READERS[fmt](path)
+
+
+def _inputs(mesh: HexMesh) -> list[Path]:
+    """The files `mesh` was read from, with an XDMF file's HDF5 data file."""
+    if not mesh.source:
+        return []
+    paths = [Path(mesh.source)] if Path(mesh.source).exists() else [Path(s) for s in mesh.source.split(" + ")]
+    paths += [p.with_suffix(".h5") for p in paths if p.suffix.lower() in (".xdmf", ".xmf")]
+    return [p for p in paths if p.exists()]
+
+
+def _refuse_input(target: Path, inputs: list[Path]) -> None:
+    if target.exists() and any(os.path.samefile(target, p) for p in inputs):
+        raise MeshWriteError(
+            f"{target}: refusing to overwrite a file the mesh was read from (inputs are never overwritten); "
+            f"write to a new file"
+        )
+
+
+def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | None = None) -> None:
+    """Write a mesh file, atomically, never over the file the mesh was read from.
+
+    What each format keeps (coordinates are float64-exact except APDL; hexahedra keep their node order and
+    handedness: mirrored hexahedra, `HexMesh.hex_mirrored`, are mirrored back):
+
+    | format (extensions)          | point / cell data    | point / cell sets    | field data    | ids |
+    |------------------------------|----------------------|----------------------|---------------|-----|
+    | VTU (`.vtu`)                 | kept, with dtypes    | kept (1)             | dropped       | no  |
+    | legacy VTK (`.vtk`)          | kept, with dtypes    | kept (1)             | dropped       | no  |
+    | Gmsh 4.1 / 2.2 (`.msh`)      | kept, ints -> float64 | physical groups only | physical names | no |
+    | Abaqus (`.inp`)              | dropped              | kept                 | dropped       | no  |
+    | XDMF (`.xdmf`, `.xmf`) (2)   | kept, with dtypes    | kept (1)             | dropped       | no  |
+    | ANSYS APDL (`.mac`, `.apdl`, `.ans`, `.cdb`) | `ansys:*` only | dropped  | dropped       | yes |
+
+    (1) as 0/1 integer data named ``set:NAME``, turned back into sets on reading. (2) with a ``.h5`` data file
+    beside it; needs the h5py package.
+    APDL holds hexahedra, wedges, pyramids and tetrahedra only, with 14 significant digits per coordinate.
+    Details in the docstrings of `jaxci.io._meshio` and `jaxci.io._ansys_apdl`.
+
+    **Arguments:**
+
+    - `mesh`: the `HexMesh` to write.
+    - `path`: the file to write. The file is written under a temporary name in a new hidden folder beside it,
+      then moved into place with `os.replace`, so a failed write leaves nothing behind.
+    - `file_format`: keyword only; a format name to use instead of the one the extension says.
+
+    **Returns:** nothing. Issues a `LossyWriteWarning` when the format drops part of the mesh; raises
+    `MeshWriteError` when the target is the mesh's input file, or the write fails (unwritable folder, a mesh
+    the format cannot hold), and `UnsupportedFormatError` for an unknown extension.
+    """
+    path = Path(path)
+    if file_format == "ansys-listing" or (file_format is None and FORMATS.get(path.suffix.lower()) == "ansys-listing"):
+        raise UnsupportedFormatError(
+            f"{path}: ANSYS NLIST/ELIST listings are read only; write an APDL input file (.mac) instead"
+        )
+    fmt = _format_of(path, file_format, _WRITERS)
+    inputs = _inputs(mesh)
+    _refuse_input(path, inputs)
+    folder = path.parent
+    if not folder.is_dir():
+        raise MeshWriteError(f"{path}: folder {folder} does not exist")
+    if path.is_dir():
+        raise MeshWriteError(f"{path}: is a folder")
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder))
+    except OSError as exc:
+        raise MeshWriteError(f"{path}: cannot write in folder {folder} ({exc.strerror})") from exc
+    try:
+        _WRITERS[fmt](mesh, tmp / path.name)
+        produced = sorted(tmp.iterdir(), key=lambda p: p.name == path.name)  # companions first, the file last
+        for p in produced:
+            _refuse_input(folder / p.name, inputs)
+        for p in produced:
+            os.replace(p, folder / p.name)
+    except MeshWriteError:
+        raise
+    except OSError as exc:
+        raise MeshWriteError(f"{path}: cannot write ({exc.strerror or exc})") from exc
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,378 @@
+"""Mesh files through meshio: legacy VTK, VTU, Gmsh 2.2 / 4.1, Abaqus and XDMF.
+
+Each format is read with its own meshio reader (``meshio.vtu.read``, ``meshio.gmsh.read``, ...), never with
+``meshio.read``, which prints and calls ``sys.exit`` on a corrupt file. Every failure becomes a
+`jaxci.MeshReadError` / `jaxci.MeshWriteError` with a one-line message naming the file; whatever meshio would
+print is turned into a `warnings.warn`.
+
+The table of what each format keeps is in the docstring of `jaxci.io.write_mesh`. Details:
+
+- Hexahedra keep VTK node order in all of them: meshio reorders no linear cell for these formats (Abaqus C3D8
+  and Gmsh's hexahedron number their nodes as VTK does; the round-trip tests check it).
+- Legacy VTK is written as ASCII 4.2, float64 exact; binary legacy VTK files from other tools store big-endian
+  arrays, which are read back in native byte order.
+- ``file_format="gmsh"`` writes Gmsh 4.1, ``"gmsh22"`` writes 2.2, both binary. Integer point/cell data read
+  back as float64. Cell blocks without Gmsh tags get ``gmsh:physical`` 0 and ``gmsh:geometrical`` = block
+  number + 1 (and, for 4.1, ``gmsh:dim_tags`` point data), so those appear on reading back. ``gmsh:physical``
+  / ``gmsh:geometrical`` / ``gmsh:dim_tags`` read from a Gmsh file are ordinary cell / point data and are
+  kept; meshio's ``gmsh:bounding_entities`` is not a cell set and is dropped on reading. Gmsh 2.2 drops other
+  cell data of a mesh with several cell blocks (meshio 5.3.5 splits it wrongly on reading).
+- Abaqus keeps point and cell sets, drops all data, numbers nodes and elements 1..n, and writes hexahedra as
+  ``C3D8`` and quadrilaterals as ``S4`` (meshio's own choices are C3D8RH and CAX4P).
+- XDMF needs the ``h5py`` package, for reading and for writing; the heavy data go to a ``.h5`` file beside it.
+
+Sets in VTU, VTK and XDMF: a cell set ``NAME`` is written as integer cell data ``set:NAME`` (1 in the set, 0
+elsewhere) and a point set as point data ``set:NAME``; on reading, 0/1 integer data named ``set:...`` become
+sets again. Node ids (`HexMesh.node_ids`) and element ids (`CellBlock.ids`) are kept only by the ANSYS APDL
+format. Anything a format drops is reported with a `LossyWriteWarning`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+import warnings
+from pathlib import Path
+
+import meshio
+import numpy as np
+
+from ..errors import JaxciError, MeshReadError, MeshWriteError
+from ..mesh import MIRROR_HEX, CellBlock, HexMesh
+
+#: Prefix of the point / cell data that carry a point / cell set in formats without sets.
+SET_PREFIX = "set:"
+
+
+class LossyWriteWarning(UserWarning):
+    """`write_mesh` wrote a format that cannot hold part of the mesh (see the table in `jaxci.io.write_mesh`)."""
+
+
+#: meshio's own reader of each format (never ``meshio.read``: it calls ``sys.exit`` on a corrupt file).
+_READERS = {
+    "vtk": meshio.vtk.read,
+    "vtu": meshio.vtu.read,
+    "gmsh": meshio.gmsh.read,
+    "gmsh22": meshio.gmsh.read,
+    "abaqus": meshio.abaqus.read,
+    "xdmf": meshio.xdmf.read,
+}
+
+#: meshio's writer of each format, with jaxci's choices of variant.
+_WRITERS = {
+    "vtk": lambda path, m: meshio.vtk.write(path, m, "4.2", binary=False),
+    "vtu": lambda path, m: meshio.vtu.write(path, m, binary=True, compression="zlib"),
+    "gmsh": lambda path, m: meshio.gmsh.write(path, m, "4.1", binary=True),
+    "gmsh22": lambda path, m: meshio.gmsh.write(path, m, "2.2", binary=True),
+    "abaqus": meshio.abaqus.write,
+    "xdmf": meshio.xdmf.write,
+}
+
+#: What each format keeps: point/cell data (True, "float64" = integers become float64, False), sets ("data" =
+#: as ``set:NAME`` data, "physical" = cell sets only as Gmsh physical groups, True, False), field data.
+_KEEPS = {
+    "vtk": {"data": True, "sets": "data", "field_data": False},
+    "vtu": {"data": True, "sets": "data", "field_data": False},
+    "xdmf": {"data": True, "sets": "data", "field_data": False},
+    "gmsh": {"data": "float64", "sets": "physical", "field_data": "physical"},
+    "gmsh22": {"data": "float64", "sets": "physical", "field_data": "physical"},
+    "abaqus": {"data": False, "sets": True, "field_data": False},
+}
+
+#: Messages meshio prints that say nothing to a jaxci user (jaxci chose ASCII legacy VTK on purpose).
+_MESHIO_NOISE = ("VTK ASCII files are only meant for debugging",)
+
+#: Errors a meshio reader raises on a bad file.
+_READ_ERRORS = (
+    meshio.ReadError,
+    ValueError,
+    KeyError,
+    IndexError,
+    TypeError,
+    AttributeError,
+    AssertionError,
+    EOFError,
+    UnicodeDecodeError,
+    RuntimeError,
+    SyntaxError,  # xml.etree.ElementTree.ParseError
+)
+
+
+@contextlib.contextmanager
+def _meshio_output_as_warnings(category=UserWarning):
+    """Run meshio with its console output captured; re-issue each printed line as a warning."""
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(buf), contextlib.redirect_stdout(buf):
+            yield
+    finally:
+        for line in buf.getvalue().splitlines():
+            line = line.strip()
+            if line and not any(noise in line for noise in _MESHIO_NOISE):
+                warnings.warn(f"meshio: {line}", category, stacklevel=4)
+
+
+def _needs_h5py(path: Path, fmt: str, error) -> None:
+    if fmt == "xdmf" and importlib.util.find_spec("h5py") is None:
+        raise error(f"{path}: XDMF needs the h5py package, which is not installed (pip install h5py)")
+
+
+def _describe(exc: BaseException) -> str:
+    """A short reason from a reader's exception (meshio often raises a bare ``ReadError()``)."""
+    if isinstance(exc, UnicodeDecodeError):
+        return f"undecodable byte at offset {exc.start}"
+    text = " ".join(str(exc).split())
+    if isinstance(exc, KeyError | IndexError):
+        text = f"{type(exc).__name__} {text}".strip()
+    return text if len(text) < 160 else text[:160] + "..."
+
+
+#: Format names in messages.
+_TITLES = {"vtk": "legacy VTK", "vtu": "VTU", "gmsh": "Gmsh", "gmsh22": "Gmsh", "abaqus": "Abaqus", "xdmf": "XDMF"}
+
+
+def _native(a) -> np.ndarray:
+    a = np.asarray(a)
+    return a.astype(a.dtype.newbyteorder("="), copy=False) if a.dtype.byteorder not in "=|" else a
+
+
+def _set_mask(a) -> np.ndarray | None:
+    """The boolean mask of a ``set:NAME`` data array, or None if it is not 0/1 integer data."""
+    a = np.asarray(a)
+    if a.ndim != 1 or a.dtype.kind not in "iub" or not np.isin(a, (0, 1)).all():
+        return None
+    return a.astype(bool)
+
+
+# ---------------------------------------------------------------------------------------------------- reading
+def read_meshio(path: Path, fmt: str) -> HexMesh:
+    """Read `path` in meshio format `fmt` (a key of `_READERS`) into a `HexMesh` with ``source=str(path)``.
+
+    **Arguments:**
+
+    - `path`: an existing file.
+    - `fmt`: ``"vtk"``, ``"vtu"``, ``"gmsh"``, ``"gmsh22"``, ``"abaqus"`` or ``"xdmf"``.
+
+    **Returns:** a `HexMesh` carrying the file's point/cell data, point/cell sets and field data.
+    """
+    _needs_h5py(path, fmt, MeshReadError)
+    try:
+        with _meshio_output_as_warnings():
+            m = _READERS[fmt](path)
+    except OSError as exc:
+        if exc.errno is None:
+            raise MeshReadError(f"{path}: corrupt or truncated {_TITLES[fmt]} file ({_describe(exc)})") from exc
+        raise MeshReadError(f"{path}: cannot read ({exc.strerror})") from exc
+    except (*_READ_ERRORS, MemoryError) as exc:  # MemoryError: a corrupt header announcing billions of items
+        why = _describe(exc)
+        raise MeshReadError(f"{path}: corrupt or truncated {_TITLES[fmt]} file{f' ({why})' if why else ''}") from exc
+    try:
+        return _from_meshio(m, path)
+    except JaxciError:
+        raise
+    except (ValueError, TypeError, IndexError) as exc:
+        raise MeshReadError(f"{path}: inconsistent {_TITLES[fmt]} file ({_describe(exc)})") from exc
+
+
+def _from_meshio(m: meshio.Mesh, path: Path) -> HexMesh:
+    points = np.asarray(m.points)
+    n = len(points)
+    if n == 0:
+        raise MeshReadError(f"{path}: no nodes in the file (empty or truncated)")
+    if not any(len(c.data) for c in m.cells):
+        raise MeshReadError(f"{path}: {n} nodes but no cells (truncated file, or not a volume mesh)")
+    cells = tuple(CellBlock(c.type, np.asarray(c.data)) for c in m.cells)
+
+    point_data, point_sets = {}, {}
+    for name, a in m.point_data.items():
+        mask = _set_mask(a) if name.startswith(SET_PREFIX) and len(a) == n else None
+        if mask is None:
+            point_data[name] = _native(a)
+        else:
+            point_sets[name[len(SET_PREFIX) :]] = np.flatnonzero(mask)
+    for name, idx in m.point_sets.items():
+        point_sets[name] = np.asarray(idx, dtype=np.int64)
+
+    cell_data, cell_sets = {}, {}
+    for name, arrays in m.cell_data.items():
+        masks = [_set_mask(a) for a in arrays] if name.startswith(SET_PREFIX) else [None]
+        if any(mk is None for mk in masks):
+            cell_data[name] = [_native(a) for a in arrays]
+        else:
+            cell_sets[name[len(SET_PREFIX) :]] = [np.flatnonzero(mk) for mk in masks]
+    for name, per_block in m.cell_sets.items():
+        if name == "gmsh:bounding_entities":  # entity tags of the Gmsh geometry, not cell indices
+            continue
+        cell_sets[name] = [
+            np.zeros(0, np.int64) if idx is None else np.asarray(idx, dtype=np.int64) for idx in per_block
+        ]
+
+    return HexMesh(
+        np.asarray(points, dtype=np.float64),
+        cells,
+        point_data=point_data,
+        cell_data=cell_data,
+        point_sets=point_sets,
+        cell_sets=cell_sets,
+        field_data={k: _native(v) if isinstance(v, np.ndarray) else v for k, v in m.field_data.items()},
+        source=str(path),
+    )
+
+
+# ---------------------------------------------------------------------------------------------------- writing
+def file_cells(mesh: HexMesh) -> list[CellBlock]:
+    """The cell blocks as the file should hold them: hexahedra mirrored back when `mesh.hex_mirrored`."""
+    if not mesh.hex_mirrored:
+        return list(mesh.cells)
+    return [CellBlock(b.type, b.data[:, MIRROR_HEX], b.ids) if b.type == "hexahedron" else b for b in mesh.cells]
+
+
+def write_meshio(mesh: HexMesh, path: Path, fmt: str) -> None:
+    """Write `mesh` to `path` in meshio format `fmt` (a key of `_WRITERS`); `path` is written directly.
+
+    **Arguments:**
+
+    - `mesh`: the mesh; hexahedra are written in the file's own handedness (see `HexMesh.hex_mirrored`).
+    - `path`: the file to write (`jaxci.io.write_mesh` passes a temporary name and moves it into place).
+    - `fmt`: ``"vtk"``, ``"vtu"``, ``"gmsh"`` (4.1), ``"gmsh22"``, ``"abaqus"`` or ``"xdmf"``.
+
+    **Returns:** nothing. Issues one `LossyWriteWarning` listing what the format cannot hold, if anything.
+    """
+    _needs_h5py(path, fmt, MeshWriteError)
+    try:
+        m, lost = _to_meshio(mesh, fmt, path)
+    except (ValueError, KeyError, IndexError, TypeError) as exc:
+        if isinstance(exc, JaxciError):
+            raise
+        raise MeshWriteError(f"{path}: meshio cannot write this mesh as {_TITLES[fmt]} ({_describe(exc)})") from exc
+    if lost:
+        warnings.warn(f"{path.name}: {fmt} drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=4)
+    elsets = {}
+    if fmt == "abaqus":  # meshio 5.3.5 writes a set once per cell block and reads back only the last one
+        elsets, m.cell_sets = m.cell_sets, {}
+    try:
+        with _meshio_output_as_warnings(LossyWriteWarning):
+            _WRITERS[fmt](path, m)
+        if fmt == "abaqus":
+            _fix_abaqus(path, [len(c) for c in m.cells], elsets)
+    except OSError as exc:
+        raise MeshWriteError(f"{path}: cannot write ({exc.strerror or _describe(exc)})") from exc
+    except (meshio.WriteError, ValueError, KeyError, IndexError, TypeError) as exc:
+        raise MeshWriteError(f"{path}: meshio cannot write this mesh as {_TITLES[fmt]} ({_describe(exc)})") from exc
+
+
+def _to_meshio(mesh: HexMesh, fmt: str, path: Path) -> tuple[meshio.Mesh, list[str]]:
+    keeps = _KEEPS[fmt]
+    cells = file_cells(mesh)
+    point_data = {k: np.asarray(v) for k, v in mesh.point_data.items()}
+    cell_data = {k: [np.asarray(a) for a in v] for k, v in mesh.cell_data.items()}
+    point_sets = {k: np.asarray(v) for k, v in mesh.point_sets.items()}
+    cell_sets = {k: [np.asarray(a) for a in v] for k, v in mesh.cell_sets.items()}
+    field_data = dict(mesh.field_data)
+    lost = []
+
+    if keeps["sets"] == "data":
+        for name, idx in point_sets.items():
+            mask = np.zeros(mesh.n_nodes, np.int32)
+            mask[idx] = 1
+            point_data[SET_PREFIX + name] = mask
+        for name, per_block in cell_sets.items():
+            masks = [np.zeros(len(b.data), np.int32) for b in cells]
+            for mask, idx in zip(masks, per_block, strict=True):
+                mask[idx] = 1
+            cell_data[SET_PREFIX + name] = masks
+        point_sets, cell_sets = {}, {}
+    elif keeps["sets"] == "physical":
+        dropped = sorted(set(cell_sets) - set(field_data))
+        if dropped:
+            lost.append(f"cell sets {dropped} (only Gmsh physical groups are kept)")
+        if point_sets:
+            lost.append(f"point sets {sorted(point_sets)}")
+        point_sets, cell_sets = {}, {}
+
+    if fmt == "gmsh22" and len(cells) > 1:
+        data = sorted(k for k in cell_data if k not in ("gmsh:physical", "gmsh:geometrical"))
+        if data:  # meshio 5.3.5 splits Gmsh 2.2 ElementData wrongly over several blocks and cannot read it back
+            lost.append(f"cell data {data} (Gmsh 2.2 element data of several cell blocks does not read back)")
+            cell_data = {k: v for k, v in cell_data.items() if k not in data}
+    if not keeps["data"]:
+        lost += [f"{what} data {sorted(d)}" for what, d in (("point", point_data), ("cell", cell_data)) if d]
+        point_data, cell_data = {}, {}
+    elif keeps["data"] == "float64":
+        ints = [k for k, v in point_data.items() if k != "gmsh:dim_tags" and v.dtype.kind in "iub"]
+        ints += [k for k, v in cell_data.items() if not k.startswith("gmsh:") and v[0].dtype.kind in "iub"]
+        if ints:
+            lost.append(f"the integer dtype of {sorted(ints)} (read back as float64)")
+
+    if keeps["field_data"] == "physical":
+        bad = [k for k, v in field_data.items() if np.shape(v) != (2,) or np.asarray(v).dtype.kind not in "iu"]
+        if bad:
+            lost.append(f"field data {sorted(bad)} (only Gmsh physical names [tag, dim] are kept)")
+        field_data = {k: np.asarray(v) for k, v in field_data.items() if k not in bad}
+    elif not keeps["field_data"] and field_data:
+        lost.append(f"field data {sorted(field_data)}")
+        field_data = {}
+
+    if mesh.node_ids is not None or any(b.ids is not None for b in cells):
+        lost.append("node and element ids (nodes and elements are numbered from 1)")
+
+    if fmt in ("gmsh", "gmsh22"):
+        _add_gmsh_tags(cells, cell_data, point_data, mesh.n_nodes, fmt, path)
+    m = meshio.Mesh(
+        mesh.points,
+        [(b.type, b.data) for b in cells],
+        point_data=point_data,
+        cell_data=cell_data,
+        field_data=field_data,
+        point_sets=point_sets,
+        cell_sets=cell_sets,
+    )
+    return m, lost
+
+
+def _add_gmsh_tags(cells, cell_data, point_data, n_nodes: int, fmt: str, path: Path) -> None:
+    """Give every block Gmsh tags (physical 0, geometrical = block number + 1) and, for 4.1, node entities."""
+    if "gmsh:geometrical" not in cell_data:
+        cell_data["gmsh:geometrical"] = [np.full(len(b.data), i + 1, np.int32) for i, b in enumerate(cells)]
+    if "gmsh:physical" not in cell_data:
+        cell_data["gmsh:physical"] = [np.zeros(len(b.data), np.int32) for b in cells]
+    if fmt != "gmsh" or "gmsh:dim_tags" in point_data:
+        return
+    # Gmsh 4.1 groups nodes by geometric entity (dim, tag) and meshio needs every block's entity to own at least
+    # one node: all nodes go to the first block of highest dimension, then each other block claims one node.
+    dims = [meshio.CellBlock(b.type, b.data[:0]).dim for b in cells]
+    geo = [int(g[0]) if len(g) else i + 1 for i, g in enumerate(cell_data["gmsh:geometrical"])]
+    main = int(np.argmax(dims))
+    dim_tags = np.tile([dims[main], geo[main]], (n_nodes, 1))
+    free = np.ones(n_nodes, bool)
+    for i, b in enumerate(cells):
+        if (dims[i], geo[i]) == (dims[main], geo[main]):
+            continue
+        cand = b.data.ravel()[free[b.data.ravel()]]
+        if len(cand) == 0:
+            raise MeshWriteError(f"{path}: cannot give cell block {i} ({b.type}) a Gmsh 4.1 entity; use gmsh22")
+        dim_tags[cand[0]] = (dims[i], geo[i])
+        free[cand[0]] = False
+    if free.sum() == 0:
+        raise MeshWriteError(f"{path}: cannot assign Gmsh 4.1 node entities to this mesh; use gmsh22")
+    point_data["gmsh:dim_tags"] = dim_tags
+
+
+#: Element names meshio 5.3.5 picks that are odd for a plain 3-D mesh, and the plain Abaqus element jaxci writes.
+_ABAQUS_ELEMENTS = {"C3D8RH": "C3D8", "CAX4P": "S4"}
+
+
+def _fix_abaqus(path: Path, sizes: list[int], cell_sets: dict) -> None:
+    """Use plain element names, and write each cell set once over all blocks (meshio writes a set once per
+    block and reads back only the last one; it numbers elements 1..N in block order)."""
+    text = path.read_text()
+    for odd, plain in _ABAQUS_ELEMENTS.items():
+        text = text.replace(f"*ELEMENT, TYPE={odd}\n", f"*ELEMENT, TYPE={plain}\n")
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    for name, per_block in cell_sets.items():
+        ids = np.concatenate([np.asarray(idx, np.int64) + 1 + off for idx, off in zip(per_block, offsets, strict=True)])
+        if len(ids):
+            rows = (",".join(map(str, ids[i : i + 8].tolist())) for i in range(0, len(ids), 8))
+            text += f"*ELSET, ELSET={name}\n" + ",\n".join(rows) + "\n"
+    path.write_text(text)
