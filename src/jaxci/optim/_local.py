@@ -1,0 +1,164 @@
+"""Node stars: what the local (per-node, coloured) optimizers need to evaluate one node's move cheaply.
+
+Moving node v changes only the corners of the elements around v. We relabel every element around v by a
+rotation of the reference cube so that v sits in local slot 0 (`ROTATE_TO_SLOT`): the element is the same
+right-handed hexahedron, its 8 corner condition numbers are the same set, and the corners whose matrix contains
+node 0 are always corners 0, 1, 3 and 4 (`AFFECTED_CORNERS`). So a trial position of v costs 4 corner
+evaluations per incident element, with static indices.
+
+Nodes of one colour of a node colouring share no element, so all of them can move at once and the change of
+the mesh objective is the sum of their local changes: a move accepted because it lowers its local sum lowers
+the global objective F by exactly that amount.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..quality import corner_invariants, squared_condition_from_invariants
+
+#: ROTATE_TO_SLOT[a] relabels a VTK hexahedron (new local i = old local ROTATE_TO_SLOT[a][i]) by a proper
+#: rotation of the reference cube that brings old local node a to slot 0.
+ROTATE_TO_SLOT = np.array(
+    [
+        [0, 1, 2, 3, 4, 5, 6, 7],
+        [1, 0, 4, 5, 2, 3, 7, 6],
+        [2, 3, 0, 1, 6, 7, 4, 5],
+        [3, 2, 6, 7, 0, 1, 5, 4],
+        [4, 5, 1, 0, 7, 6, 2, 3],
+        [5, 4, 7, 6, 1, 0, 3, 2],
+        [6, 7, 3, 2, 5, 4, 0, 1],
+        [7, 6, 5, 4, 3, 2, 1, 0],
+    ],
+    dtype=np.int64,
+)
+
+#: The corners whose matrix involves local node 0, and their (base, column nodes) in VTK convention.
+AFFECTED_CORNERS = ((0, (1, 3, 4)), (1, (2, 0, 5)), (3, (0, 2, 7)), (4, (7, 5, 0)))
+
+
+@dataclasses.dataclass(frozen=True)
+class NodeStars:
+    """Elements around each node, relabelled so that the node is local slot 0 (numpy, built once per mesh).
+
+    - `star`: shape ``(n_nodes, K, 8)``, node indices of the K incident elements (padded rows repeat the node
+      itself; `mask` marks the real ones).
+    - `mask`: shape ``(n_nodes, K)`` bool.
+    - `valence`: shape ``(n_nodes,)``, number of incident elements.
+    """
+
+    star: np.ndarray
+    mask: np.ndarray
+    valence: np.ndarray
+
+
+def node_stars(hexes: np.ndarray, n_nodes: int) -> NodeStars:
+    """Build `NodeStars` for `hexes` of shape ``(N, 8)`` (vectorised; K = the maximum valence)."""
+    hexes = np.asarray(hexes, dtype=np.int64)
+    n_el = len(hexes)
+    node = hexes.ravel()  # (8N,) node of incidence (element e = i // 8, slot a = i % 8)
+    elem = np.repeat(np.arange(n_el), 8)
+    slot = np.tile(np.arange(8), n_el)
+    order = np.argsort(node, kind="stable")
+    node, elem, slot = node[order], elem[order], slot[order]
+    valence = np.bincount(node, minlength=n_nodes)
+    K = max(int(valence.max(initial=0)), 1)
+    start = np.concatenate([[0], np.cumsum(valence)[:-1]])
+    k = np.arange(len(node)) - start[node]
+    star = np.repeat(np.arange(n_nodes)[:, None, None], K, axis=1).repeat(8, axis=2)
+    star[node, k] = hexes[elem[:, None], ROTATE_TO_SLOT[slot]]
+    mask = np.zeros((n_nodes, K), bool)
+    mask[node, k] = True
+    return NodeStars(star=star, mask=mask, valence=valence)
+
+
+def gather_star(points, star):
+    """Coordinates of star nodes, structure of arrays: ``(X, Y, Z)`` each of shape ``star.shape``."""
+    return tuple(points[:, d][star] for d in range(3))
+
+
+def local_terms(E, smask, y):
+    """Sum of (kappa/3)^2 over the corners around node slot 0 when the node is at `y`.
+
+    **Arguments:**
+
+    - `E`: ``(X, Y, Z)`` from `gather_star`, each of shape ``(M, K, 8)`` (current coordinates; slot 0 is ignored).
+    - `smask`: shape ``(M, K)``, real incident elements.
+    - `y`: trial positions of shape ``(M, S, 3)`` (S trials per node).
+
+    **Returns:** shape ``(M, S)``: the local sum, ``inf`` where any affected corner has det <= 0.
+    """
+    X, Y, Z = (c[:, None] for c in E)  # (M, 1, K, 8)
+    y0 = [y[..., d][..., None] for d in range(3)]  # (M, S, 1)
+
+    def node(C, d, i):
+        return y0[d] if i == 0 else C[..., i]
+
+    total = 0.0
+    for base, cols in AFFECTED_CORNERS:
+        comps = []
+        for j in cols:
+            for d, C in enumerate((X, Y, Z)):
+                comps.append(node(C, d, j) - node(C, d, base))
+        term = squared_condition_from_invariants(*corner_invariants(*comps))  # (M, S, K)
+        total = total + jnp.where(smask[:, None, :], term, 0.0)
+    return jnp.sum(total, axis=-1)
+
+
+def chunked_local_terms(E, smask, y, chunk: int):
+    """`local_terms` over S trials in chunks of `chunk` trials (bounded memory on large meshes)."""
+    M, S, _ = y.shape
+    if chunk >= S:
+        return local_terms(E, smask, y)
+    n = -(-S // chunk)
+    pad = n * chunk - S
+    yp = jnp.concatenate([y, jnp.broadcast_to(y[:, :1], (M, pad, 3))], axis=1) if pad else y
+    yc = jnp.moveaxis(yp.reshape(M, n, chunk, 3), 1, 0)
+    out = jax.lax.map(lambda t: local_terms(E, smask, t), yc)  # (n, M, chunk)
+    return jnp.moveaxis(out, 0, 1).reshape(M, n * chunk)[:, :S]
+
+
+def local_length(E, smask):
+    """Mean length of the edges at slot 0 of the incident elements, shape ``(M,)`` (a local length scale)."""
+    X, Y, Z = E
+    tot = 0.0
+    for j in (1, 3, 4):
+        tot = tot + jnp.sqrt((X[..., j] - X[..., 0]) ** 2 + (Y[..., j] - Y[..., 0]) ** 2 + (Z[..., j] - Z[..., 0]) ** 2)
+    cnt = jnp.maximum(jnp.sum(smask, axis=-1), 1)
+    return jnp.sum(jnp.where(smask, tot, 0.0), axis=-1) / (3.0 * cnt)
+
+
+@dataclasses.dataclass(frozen=True)
+class ColourBatches:
+    """Movable nodes grouped by colour, padded to one size so every colour runs the same compiled code.
+
+    - `nodes`: shape ``(n_colours, M)`` node indices; padded entries hold `n_nodes` (out of range: writes to
+      them are dropped).
+    - `mask`: shape ``(n_colours, M)`` bool, real entries.
+    """
+
+    nodes: np.ndarray
+    mask: np.ndarray
+
+
+def colour_batches(colour: np.ndarray, movable: np.ndarray, n_nodes: int, colours=None) -> ColourBatches:
+    """Group `movable` nodes (bool, shape ``(n_nodes,)``) by `colour` (int per node) into `ColourBatches`.
+
+    `colours` lists the colour values to make rows for (default: those of the movable nodes); M may be 0.
+    """
+    ids = np.flatnonzero(movable)
+    cols = np.asarray(colour)[ids]
+    if colours is None:
+        colours = np.unique(cols)
+    groups = [ids[cols == c] for c in colours] or [np.zeros(0, np.int64)]
+    M = max((len(g) for g in groups), default=0)
+    nodes = np.full((len(groups), M), n_nodes, dtype=np.int64)
+    mask = np.zeros((len(groups), M), bool)
+    for i, g in enumerate(groups):
+        nodes[i, : len(g)] = g
+        mask[i, : len(g)] = True
+    return ColourBatches(nodes=nodes, mask=mask)

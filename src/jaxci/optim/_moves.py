@@ -1,0 +1,199 @@
+"""What the local optimizers share: per-node move bases, projected trial positions, coloured sweeps.
+
+A movable node v has a basis B_v of shape ``(3, 3)`` whose columns span its free directions: the identity for an
+INTERIOR node, the two surface tangents (third column 0) for a SURFACE node, the curve tangent (other columns
+0) for an EDGE node. A trial position is ``project(x_v + B_v u)`` for a 3-vector u whose unused entries are
+ignored, so every trial lies on the node's constraint. CORNER and fixed nodes never move.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..boundary import CORNER, EDGE, INTERIOR, SURFACE
+from ..projection import Constraints, _closest_on_segments, _closest_on_triangles, _nearest, _tol
+from ._local import ColourBatches, NodeStars, colour_batches, node_stars
+
+
+def node_bases(cons: Constraints) -> jnp.ndarray:
+    """Per-node move basis, shape ``(n_nodes, 3, 3)`` (columns = free directions; zeros for fixed ones)."""
+    cls = np.asarray(cons.node_class)
+    n = len(cls)
+    B = np.zeros((n, 3, 3))
+    B[cls == INTERIOR] = np.eye(3)
+    surf, edge = np.asarray(cons.surface_nodes), np.asarray(cons.edge_nodes)
+    if len(surf):
+        B[surf, :, 0] = np.asarray(cons.surface_basis)[:, 0]
+        B[surf, :, 1] = np.asarray(cons.surface_basis)[:, 1]
+    if len(edge):
+        B[edge, :, 0] = np.asarray(cons.edge_tangent)
+    return jnp.asarray(B, dtype=cons.x_orig.dtype)
+
+
+def free_dims(cons: Constraints) -> np.ndarray:
+    """Number of free coordinates per node (3/2/1/0 for interior/surface/edge/corner), shape ``(n_nodes,)``."""
+    return np.array([3, 2, 1, 0])[np.asarray(cons.node_class)]
+
+
+@dataclasses.dataclass(frozen=True)
+class ColouredStars:
+    """Per colour, padded: the movable nodes, their stars and bases, ready to pass into a jitted sweep.
+
+    Within a colour the nodes are laid out by class, in fixed slots: `n_interior` interior, then `n_surface`
+    surface, then `n_edge` edge nodes (the same slot sizes for every colour, padded), so that only surface
+    slots are projected onto triangles and only edge slots onto segments.
+
+    - `nodes` ``(n_colours, M)`` (padding: index n_nodes, dropped on write); `mask` ``(n_colours, M)``;
+    - `star` ``(n_colours, M, K, 8)``; `smask` ``(n_colours, M, K)``; `basis` ``(n_colours, M, 3, 3)``;
+    - `dims` ``(n_colours, M)`` free coordinates per node.
+    - `plane` ``(n_colours, M, 7)``: for a SURFACE node whose ring of boundary faces is planar, the original
+      position (3), the plane's unit normal (3) and the radius of the disk around the original position that
+      its ring of faces covers; radius 0 (never used) otherwise. Inside that disk, the orthogonal projection
+      onto the plane IS the nearest point of the patch, so the triangle search can be skipped (exactly).
+    """
+
+    nodes: jnp.ndarray
+    mask: jnp.ndarray
+    star: jnp.ndarray
+    smask: jnp.ndarray
+    basis: jnp.ndarray
+    dims: jnp.ndarray
+    plane: jnp.ndarray
+    n_interior: int
+    n_surface: int
+    n_edge: int
+
+
+jax.tree_util.register_dataclass(
+    ColouredStars,
+    data_fields=["nodes", "mask", "star", "smask", "basis", "dims", "plane"],
+    meta_fields=["n_interior", "n_surface", "n_edge"],
+)
+
+
+def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np.ndarray:
+    """Per node, ``(origin (3), normal (3), radius)`` of its planar ring of boundary faces, shape ``(n, 7)``.
+
+    The ring is the set of candidate faces the projection searches (the 2-ring of the node on its own patch,
+    `Constraints.surface_cand`); the radius is the distance from the node to the outer boundary of their union
+    (edges used by one face of the ring), so the ring covers that disk. The radius is 0 for nodes that are not
+    SURFACE nodes, or whose ring is not planar to 1e-12 relative.
+    """
+    n = len(points)
+    out = np.zeros((n, 7))
+    surf = np.asarray(cons.surface_nodes)
+    if len(surf) == 0 or len(faces) == 0:
+        return out
+    sb = np.asarray(cons.surface_basis, dtype=np.float64)
+    normal = np.cross(sb[:, 0], sb[:, 1])  # (ns, 3)
+    ring = np.sort(np.asarray(cons.surface_cand)[: len(surf)] // 4, axis=1)  # (ns, Kf) faces, repeats
+    first = np.ones(ring.shape, bool)
+    first[:, 1:] = ring[:, 1:] != ring[:, :-1]  # unique faces per row
+    quad = faces[ring]  # (ns, Kf, 4)
+    x0 = points[surf]
+    dev = np.abs(np.einsum("skcd,sd->skc", points[quad] - x0[:, None, None], normal)).max(axis=(1, 2))
+    a = quad
+    b = np.roll(quad, -1, axis=2)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    key = np.where(first[..., None], lo * n + hi, -1).reshape(len(surf), -1)  # (ns, 4Kf), -1 = duplicate face
+    order = np.argsort(key, axis=1)
+    ks = np.take_along_axis(key, order, axis=1)
+    single = np.ones(ks.shape, bool)
+    single[:, 1:] &= ks[:, 1:] != ks[:, :-1]
+    single[:, :-1] &= ks[:, :-1] != ks[:, 1:]
+    single &= ks >= 0
+    pa, pb = points[ks // n], points[ks % n]
+    d = pb - pa
+    rel = x0[:, None] - pa
+    t = np.clip(np.einsum("skd,skd->sk", rel, d) / np.maximum(np.einsum("skd,skd->sk", d, d), 1e-300), 0, 1)
+    dist = np.linalg.norm(rel - t[..., None] * d, axis=-1)
+    radius = np.where(single, dist, np.inf).min(axis=1)
+    planar = np.isfinite(radius) & (dev <= 1e-12 * np.maximum(radius, 1e-300))
+    out[surf[planar], :3] = x0[planar]
+    out[surf[planar], 3:6] = normal[planar]
+    out[surf[planar], 6] = radius[planar]
+    return out
+
+
+def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, faces: np.ndarray) -> ColouredStars:
+    """Group the movable nodes (class != CORNER) by `colour`, by class within a colour, with stars and bases.
+
+    `faces` are the boundary quadrilaterals (``BoundaryInfo.topology.faces``), for the planar-ring shortcut.
+    """
+    cls = np.asarray(cons.node_class)
+    n = len(cls)
+    colour = np.asarray(colour)
+    stars: NodeStars = node_stars(hexes, n)
+    colours = np.unique(colour[cls != CORNER]) if (cls != CORNER).any() else np.zeros(1, np.int64)
+    parts = []
+    for c in (INTERIOR, SURFACE, EDGE):
+        cb: ColourBatches = colour_batches(colour, cls == c, n, colours=colours)
+        parts.append(cb)
+    nodes = np.concatenate([p.nodes for p in parts], axis=1)
+    mask = np.concatenate([p.mask for p in parts], axis=1)
+    safe = np.minimum(nodes, n - 1)
+    B = np.asarray(node_bases(cons))
+    dims = free_dims(cons)
+    return ColouredStars(
+        nodes=jnp.asarray(nodes.astype(np.int32)),
+        mask=jnp.asarray(mask),
+        star=jnp.asarray(stars.star[safe].astype(np.int32)),
+        smask=jnp.asarray(stars.mask[safe] & mask[..., None]),
+        basis=jnp.asarray(B[safe], dtype=cons.x_orig.dtype),
+        dims=jnp.asarray(np.where(mask, dims[safe], 0).astype(np.int32)),
+        plane=jnp.asarray(planar_rings(np.asarray(cons.x_orig, np.float64), faces, cons)[safe] * mask[..., None],
+                          dtype=cons.x_orig.dtype),
+        n_interior=parts[0].nodes.shape[1],
+        n_surface=parts[1].nodes.shape[1],
+        n_edge=parts[2].nodes.shape[1],
+    )
+
+
+def colour_slice(cs: ColouredStars, i):
+    """The arrays of colour `i` (a traced index), as a `ColouredStars` without the colour axis."""
+    return jax.tree_util.tree_map(lambda a: a[i], cs)
+
+
+def project_trials(cons: Constraints, cs_i: ColouredStars, trials):
+    """Project trial positions of shape ``(M, S, 3)`` of the nodes of one colour onto their constraints.
+
+    Interior slots are returned unchanged; surface slots go to their patch, edge slots to their curve.
+    """
+    a, b = cs_i.n_interior, cs_i.n_interior + cs_i.n_surface
+    n = cons.x_orig.shape[0]
+    out = [trials[:a]]
+    for lo, hi, fn in ((a, b, project_surface_nodes), (b, trials.shape[0], project_edge_nodes)):
+        if hi > lo:
+            part = trials[lo:hi]
+            S = part.shape[1]
+            idx = jnp.broadcast_to(jnp.minimum(cs_i.nodes[lo:hi], n - 1)[:, None], part.shape[:2]).reshape(-1)
+
+            def full(part=part, idx=idx, fn=fn, S=S, lo=lo, hi=hi):
+                return fn(cons, idx, part.reshape(-1, 3)).reshape(hi - lo, S, 3)
+
+            if fn is project_surface_nodes:
+                pl = cs_i.plane[lo:hi, None]  # (m, 1, 7)
+                o, nrm, r = pl[..., :3], pl[..., 3:6], pl[..., 6]
+                flat = part - nrm * jnp.sum((part - o) * nrm, axis=-1, keepdims=True)
+                inside = jnp.sum((flat - o) ** 2, axis=-1) < (0.999 * r) ** 2
+                ok = jnp.all(inside | ~cs_i.mask[lo:hi, None])
+                out.append(jax.lax.cond(ok, lambda flat=flat: flat, full))
+            else:
+                out.append(full())
+    return jnp.concatenate(out, axis=0)
+
+
+def project_surface_nodes(cons: Constraints, idx, pts):
+    """Project positions `pts` ``(m, 3)`` of SURFACE nodes `idx` ``(m,)`` onto their candidate triangles."""
+    cand = cons.surface_cand[cons.row[idx]]
+    return _nearest(jnp, pts, cons.triangles.astype(pts.dtype), cand, _closest_on_triangles, _tol(pts.dtype))
+
+
+def project_edge_nodes(cons: Constraints, idx, pts):
+    """Project positions `pts` ``(m, 3)`` of EDGE nodes `idx` ``(m,)`` onto their candidate segments."""
+    cand = cons.edge_cand[cons.row[idx]]
+    return _nearest(jnp, pts, cons.segments.astype(pts.dtype), cand, _closest_on_segments, _tol(pts.dtype))

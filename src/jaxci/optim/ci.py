@@ -1,0 +1,295 @@
+"""Cohort Intelligence (CI) smoothing: the batched local form (default) and the paper's global form.
+
+The CI learning attempt (Kulkarni et al. 2013; ``shared/reference/cohort-intelligence.md``), for a cohort of
+C candidates with behaviours f_c (minimised):
+
+1. follow probabilities p_c = (1 / (g_c + delta)) / sum_k (1 / (g_k + delta)), with g_c = f_c - f_floor >= 0 the
+   behaviour above its floor (0 at a perfect mesh, so plain 1/f would be undefined there; delta > 0 keeps the
+   wheel defined: this is the documented choice);
+2. each candidate picks a candidate to follow: by roulette wheel on p (the paper's stage 1), or the best one
+   (stage 2, "follow best"); the first ``stage_switch`` fraction of the attempts use stage 1, the rest stage 2;
+3. it centres its sampling interval on the followed candidate, shrunk by the reduction factor r each attempt;
+4. it samples t variations uniformly in that interval (each projected onto the boundary constraints),
+   evaluates them all at once, and keeps the best if it improves on its own behaviour (greedy CI);
+5. it stops at saturation (every candidate's behaviour within `tol` of the best, and the best not improved by
+   more than that, for `patience` consecutive attempts) or after `attempts` attempts.
+
+**Local CI** (`local_ci`, beyond the paper, the one that scales): the nodes are coloured so that no two nodes of
+a colour share an element. For one colour, EVERY node of the colour runs its own cohort of C candidate
+positions at once, in its 3 (interior), 2 (surface) or 1 (edge) free coordinates; its behaviour is the local
+objective (the mean of (kappa/3)^2 - 1 over the corners it moves). All nodes, candidates and variations are
+one batched evaluation that computes only the corners a node touches. A node's best candidate replaces its
+position only if it lowers the local objective and inverts no corner; since nodes of a colour share no
+element, the mesh objective F decreases by the sum of the accepted decreases. Colours are swept in turn; each
+node keeps an interval width adapted to its last move (a trust region). Sweeps stop when F changes by less
+than `tol` relative, or F <= `ftol`, or after `max_sweeps`.
+
+**Global CI** (`global_ci`, faithful to the paper): each candidate is a whole mesh, a point in the space of all
+free coordinates (`jaxci.projection`'s parametrisation), of shape ``(C, n_free)``; its behaviour is F (Eq.
+3.1) evaluated for all C x t variations at once. Intervals are per coordinate, of initial width
+``init_width * h`` (h the local edge length).
+
+Both run under one `jax.jit` with `jax.lax` loops, seeded by an explicit `jax.random` key: same key, same
+result, bit for bit on CPU.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ConfigError
+from ..projection import Constraints, params_to_points
+from ..quality import condition_from_invariants, corner_columns, corner_invariants, gather_corners, objective_t
+from ._local import chunked_local_terms, gather_star, local_length
+from ._moves import ColouredStars, colour_slice, project_trials
+
+
+@dataclasses.dataclass(frozen=True)
+class CIParams:
+    """Hyperparameters of Cohort Intelligence (both forms). Validated on construction.
+
+    - `cohort`: C, candidates per cohort (default 6; >= 2).
+    - `variations`: t, variations sampled per candidate and attempt (default 8; >= 1).
+    - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.8).
+    - `delta`: > 0, regulariser of the follow probabilities 1/(g + delta) (default 1e-3).
+    - `attempts`: learning attempts per cohort run (local: per colour visit, default 8; global: total).
+    - `stage_switch`: fraction in [0, 1] of the attempts that follow by roulette (stage 1); the rest follow the
+      best (stage 2). Default 0.5.
+    - `init_width`: initial interval width as a fraction of the local edge length h (default 0.5).
+    - `min_width`: smallest interval width, fraction of h (default 1e-6).
+    - `max_sweeps`: local CI: maximum colour sweeps (default 200).
+    - `tol`: saturation: relative change of F per sweep (local) or spread of behaviours (global) (default 1e-6).
+    - `ftol`: stop when F <= ftol (default 1e-10).
+    - `patience`: global CI: saturation must hold for this many consecutive attempts (default 20).
+    """
+
+    cohort: int = 6
+    variations: int = 8
+    reduction: float = 0.8
+    delta: float = 1e-3
+    attempts: int = 8
+    stage_switch: float = 0.5
+    init_width: float = 0.5
+    min_width: float = 1e-6
+    max_sweeps: int = 200
+    tol: float = 1e-6
+    ftol: float = 1e-10
+    patience: int = 20
+
+    def __post_init__(self):
+        def need(ok, msg):
+            if not ok:
+                raise ConfigError(f"CI parameter {msg}")
+
+        need(int(self.cohort) == self.cohort and self.cohort >= 2, f"cohort must be an integer >= 2, got {self.cohort}")
+        need(int(self.variations) == self.variations and self.variations >= 1,
+             f"variations must be an integer >= 1, got {self.variations}")
+        need(0 < self.reduction < 1, f"reduction must be in (0, 1), got {self.reduction}")
+        need(self.delta > 0, f"delta must be > 0, got {self.delta}")
+        need(int(self.attempts) == self.attempts and self.attempts >= 1,
+             f"attempts must be an integer >= 1, got {self.attempts}")
+        need(0 <= self.stage_switch <= 1, f"stage_switch must be in [0, 1], got {self.stage_switch}")
+        need(self.init_width > 0, f"init_width must be > 0, got {self.init_width}")
+        need(0 < self.min_width <= self.init_width, f"min_width must be in (0, init_width], got {self.min_width}")
+        need(int(self.max_sweeps) == self.max_sweeps and self.max_sweeps >= 1,
+             f"max_sweeps must be an integer >= 1, got {self.max_sweeps}")
+        need(self.tol >= 0 and self.ftol >= 0, "tol and ftol must be >= 0")
+        need(int(self.patience) == self.patience and self.patience >= 1,
+             f"patience must be an integer >= 1, got {self.patience}")
+
+
+def _follow(key, g, delta, roulette):
+    """Index each candidate follows: roulette on 1/(g + delta), or the best. `g` has shape ``(..., C)``, >= 0."""
+    logits = -jnp.log(g + delta)  # g = inf (an inverted candidate) -> probability 0
+    wheel = jnp.broadcast_to(logits[..., None, :], (*g.shape, g.shape[-1]))
+    rou = jax.random.categorical(key, wheel, axis=-1)
+    best = jnp.broadcast_to(jnp.argmin(g, axis=-1)[..., None], g.shape)
+    return jnp.where(roulette, rou, best)
+
+
+def _max_condition(points, conn):
+    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(points, conn)))
+    return jnp.max(jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)))
+
+
+# ------------------------------------------------------------------------------------------------ local CI
+def _local_ci_colour(key, x, width, cs_i, cons: Constraints, p: CIParams, chunk: int):
+    """One cohort run for every node of one colour. Returns new points, new widths, number of moved nodes."""
+    nodes, mask, star, smask, basis, dims = (cs_i.nodes, cs_i.mask, cs_i.star, cs_i.smask, cs_i.basis, cs_i.dims)
+    M = nodes.shape[0]
+    C, t, T = p.cohort, p.variations, p.attempts
+    dtype = x.dtype
+    E = gather_star(x, star)
+    ncorner = jnp.maximum(4 * jnp.sum(smask, axis=-1), 1).astype(dtype)  # (M,)
+    safe_nodes = jnp.minimum(nodes, x.shape[0] - 1)
+    x0 = x[safe_nodes]  # (M, 3)
+    w0 = width[safe_nodes]
+    h = local_length(E, smask)
+    f0 = chunked_local_terms(E, smask, x0[:, None], chunk)[:, 0] / ncorner - 1.0  # (M,)
+    dim_mask = (jnp.arange(3)[None, :] < dims[:, None]).astype(dtype)  # (M, 3)
+    cand = jnp.broadcast_to(x0[:, None], (M, C, 3))
+    fc = jnp.broadcast_to(f0[:, None], (M, C))
+    n_roulette = int(round(p.stage_switch * T))
+
+    def attempt(a, carry):
+        key, cand, fc = carry
+        key, kf, ku = jax.random.split(key, 3)
+        follow = _follow(kf, fc, p.delta, a < n_roulette)  # (M, C)
+        centre = jnp.take_along_axis(cand, follow[..., None], axis=1)  # (M, C, 3)
+        w = w0 * p.reduction ** (a + 1).astype(dtype)  # (M,)
+        u = jax.random.uniform(ku, (M, C, t, 3), dtype, -0.5, 0.5) * (w[:, None, None, None] * dim_mask[:, None, None])
+        step = jnp.einsum("mij,mctj->mcti", basis, u)
+        trials = project_trials(cons, cs_i, (centre[:, :, None] + step).reshape(M, C * t, 3))
+        ft = chunked_local_terms(E, smask, trials, chunk) / ncorner[:, None] - 1.0
+        ft = ft.reshape(M, C, t)
+        j = jnp.argmin(ft, axis=-1)  # (M, C)
+        fb = jnp.take_along_axis(ft, j[..., None], axis=-1)[..., 0]
+        yb = jnp.take_along_axis(trials.reshape(M, C, t, 3), j[..., None, None], axis=2)[:, :, 0]
+        better = fb < fc
+        return key, jnp.where(better[..., None], yb, cand), jnp.where(better, fb, fc)
+
+    _, cand, fc = jax.lax.fori_loop(0, T, attempt, (key, cand, fc))
+    c = jnp.argmin(fc, axis=-1)
+    fbest = jnp.take_along_axis(fc, c[:, None], axis=-1)[:, 0]
+    ybest = jnp.take_along_axis(cand, c[:, None, None], axis=1)[:, 0]
+    accept = mask & (fbest < f0) & jnp.isfinite(fbest)
+    new_pos = jnp.where(accept[:, None], ybest, x0)
+    x = x.at[nodes].set(new_pos, mode="drop")
+    move = jnp.linalg.norm(new_pos - x0, axis=-1)
+    w_new = jnp.where(accept, 4.0 * move, 0.5 * w0)
+    w_new = jnp.clip(w_new, p.min_width * h, p.init_width * h)
+    width = width.at[nodes].set(w_new, mode="drop")
+    return x, width, jnp.sum(accept)
+
+
+@functools.partial(jax.jit, static_argnames=("p", "chunk"))
+def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, p: CIParams, chunk: int):
+    n_colours = cs.nodes.shape[0]
+    dtype = x.dtype
+    # initial widths: init_width * local edge length of every node
+    h_all = jnp.zeros(x.shape[0], dtype)
+
+    def h_colour(i, h_all):
+        cs_i = colour_slice(cs, i)
+        return h_all.at[cs_i.nodes].set(local_length(gather_star(x, cs_i.star), cs_i.smask), mode="drop")
+
+    h_all = jax.lax.fori_loop(0, n_colours, h_colour, h_all)
+    width = p.init_width * h_all
+    f_init = objective_t(x, conn)
+    hist_f = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(f_init)
+    hist_k = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(_max_condition(x, conn))
+    hist_m = jnp.zeros((p.max_sweeps + 1,), jnp.int32)
+
+    def sweep(carry):
+        key, x, width, s, f_prev, _, hf, hk, hm = carry
+        key, ks = jax.random.split(key)
+
+        def colour(i, c):
+            x, width, moved = c
+            x, width, m = _local_ci_colour(jax.random.fold_in(ks, i), x, width, colour_slice(cs, i), cons, p, chunk)
+            return x, width, moved + m
+
+        x, width, moved = jax.lax.fori_loop(0, n_colours, colour, (x, width, jnp.int32(0)))
+        f = objective_t(x, conn)
+        s = s + 1
+        hf, hk, hm = hf.at[s].set(f), hk.at[s].set(_max_condition(x, conn)), hm.at[s].set(moved)
+        done = (f <= p.ftol) | (f_prev - f <= p.tol * f_prev) | (moved == 0)
+        return key, x, width, s, f, done, hf, hk, hm
+
+    def cond(carry):
+        s, done = carry[3], carry[5]
+        return (s < p.max_sweeps) & ~done
+
+    init = (key, x, width, jnp.int32(0), f_init, f_init <= p.ftol, hist_f, hist_k, hist_m)
+    _, x, _, s, _, _, hf, hk, hm = jax.lax.while_loop(cond, sweep, init)
+    return x, s, hf, hk, hm
+
+
+def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
+    """Trials evaluated at once per node so that one batch holds about `budget` corner evaluations."""
+    M, K = cs.star.shape[1], cs.star.shape[2]
+    return int(max(1, min(p.cohort * p.variations, budget // max(1, M * K * 4))))
+
+
+def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams = CIParams()):
+    """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity.
+
+    **Returns:** ``(points, sweeps, history)``: the smoothed coordinates ``(n, 3)``, the number of sweeps, and a
+    dict of numpy arrays of length ``sweeps + 1`` (entry 0 = input): ``objective``, ``max_condition``,
+    ``moved`` (nodes moved in the sweep).
+    """
+    x, s, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, p, _auto_chunk(cs, p))
+    s = int(s)
+    return x, s, {"objective": np.asarray(hf[: s + 1]), "max_condition": np.asarray(hk[: s + 1]),
+                  "moved": np.asarray(hm[: s + 1])}
+
+
+# ------------------------------------------------------------------------------------------------ global CI
+@functools.partial(jax.jit, static_argnames=("p",))
+def _global_ci_run(key, x0, conn, cons: Constraints, scale, p: CIParams):
+    """Faithful global CI over the free coordinates u (shape ``(n_free,)``); `scale` is h per coordinate."""
+    C, t, T = p.cohort, p.variations, p.attempts
+    dtype = x0.dtype
+    nf = scale.shape[0]
+
+    def F(u):
+        return objective_t(params_to_points(cons, u, x0), conn)
+
+    def F_many(U):  # (S, nf) -> (S,)
+        return jax.lax.map(F, U)
+
+    u0 = jnp.zeros((nf,), dtype)
+    f0 = F(u0)
+    cand = jnp.zeros((C, nf), dtype)
+    fc = jnp.full((C,), f0)
+    hist = jnp.full((T + 1, 3), jnp.nan, dtype).at[0].set(jnp.stack([f0, f0, _max_condition(x0, conn)]))
+    n_roulette = int(round(p.stage_switch * T))
+
+    def attempt(carry):
+        key, cand, fc, a, hist, calm, _ = carry
+        best_before = jnp.min(fc)
+        key, kf, ku = jax.random.split(key, 3)
+        follow = _follow(kf, fc, p.delta, a < n_roulette)  # (C,)
+        centre = cand[follow]  # (C, nf)
+        w = p.init_width * scale * p.reduction ** (a + 1).astype(dtype)
+        U = centre[:, None] + jax.random.uniform(ku, (C, t, nf), dtype, -0.5, 0.5) * w
+        ft = F_many(U.reshape(C * t, nf)).reshape(C, t)
+        j = jnp.argmin(ft, axis=-1)
+        fb = ft[jnp.arange(C), j]
+        better = fb < fc
+        cand = jnp.where(better[:, None], U[jnp.arange(C), j], cand)
+        fc = jnp.where(better, fb, fc)
+        a = a + 1
+        kbest = _max_condition(params_to_points(cons, cand[jnp.argmin(fc)], x0), conn)
+        hist = hist.at[a].set(jnp.stack([jnp.min(fc), jnp.max(fc), kbest]))
+        scale_f = p.tol * jnp.maximum(jnp.min(fc), p.ftol)
+        still = (jnp.max(fc) - jnp.min(fc) <= scale_f) & (best_before - jnp.min(fc) <= scale_f)
+        calm = jnp.where(still, calm + 1, 0)
+        return key, cand, fc, a, hist, calm, (calm >= p.patience) | (jnp.min(fc) <= p.ftol)
+
+    def cond(carry):
+        return (carry[3] < T) & ~carry[6]
+
+    init = (key, cand, fc, jnp.int32(0), hist, jnp.int32(0), f0 <= p.ftol)
+    _, cand, fc, a, hist, _, _ = jax.lax.while_loop(cond, attempt, init)
+    best = jnp.argmin(fc)
+    x = params_to_points(cons, cand[best], x0)
+    return x, a, hist
+
+
+def global_ci(key, points, conn, cons: Constraints, scale, p: CIParams):
+    """Run the paper's global CI; `scale` is the local edge length per free coordinate, shape ``(n_free,)``.
+
+    **Returns:** ``(points, attempts, history)`` with history arrays ``objective`` and ``best`` (best behaviour
+    F of the cohort), ``worst`` (worst behaviour), ``max_condition`` (of the best candidate), per learning
+    attempt; entry 0 = input.
+    """
+    x, a, hist = _global_ci_run(key, points, conn, cons, scale, p)
+    a = int(a)
+    hist = np.asarray(hist[: a + 1])
+    return x, a, {"objective": hist[:, 0], "best": hist[:, 0], "worst": hist[:, 1], "max_condition": hist[:, 2]}

@@ -1,0 +1,225 @@
+"""`jaxci.smooth`: one interface for every smoothing method, one history record for all of them.
+
+Every method works on the same problem: minimise the paper's F (Eq. 3.1) by moving nodes, corner nodes fixed,
+edge nodes on their feature curve, surface nodes on their surface (`jaxci.boundary`, `jaxci.projection`).
+Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
+
+- no corner is inverted that was valid in the input, and F did not increase (else the input is returned, with
+  a note saying why);
+- every boundary node lies on the ORIGINAL boundary (a final exact float64 projection).
+
+A mesh with inverted elements cannot be smoothed by F (its objective is infinite): with ``untangle="auto"`` it
+goes through the untangling stage first where one is available, otherwise `InvertedMeshError` is raised.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .boundary import BoundaryInfo, classify_boundary
+from .errors import ConfigError, InvertedMeshError
+from .mesh import HexMesh, corner_determinants
+from .projection import Constraints, build_constraints, project_np
+from .quality import QualityReport, objective, quality_report, transposed
+from .topology import colour_nodes
+
+#: Method names accepted by `smooth` (and ``jaxci smooth --method``).
+METHODS = ("ci", "ci-global")
+
+_DTYPES = {"float32": np.float32, "float64": np.float64}
+
+
+@dataclasses.dataclass(frozen=True)
+class SmoothResult:
+    """What `smooth` returns.
+
+    - `mesh`: the smoothed `HexMesh` (same connectivity, data and ids; new coordinates).
+    - `history`: per iteration (sweep, learning attempt or solver step; entry 0 = input) ``objective`` and
+      ``max_condition`` lists, plus method-specific series (CI: ``best``, ``worst`` behaviour; ``moved``).
+    - `iterations`, `wall_time` (seconds, including compilation), `method`, `params` (all hyperparameters).
+    - `before`, `after`: `QualityReport` of input and output; `boundary`: node counts per class.
+    - `node_class`: class of every node (`jaxci.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
+    - `notes`: what a user should know (invariant fallbacks, untangling, ...).
+    """
+
+    mesh: HexMesh
+    history: dict
+    iterations: int
+    wall_time: float
+    method: str
+    params: dict
+    before: QualityReport
+    after: QualityReport
+    boundary: dict
+    node_class: np.ndarray | None = None
+    notes: tuple[str, ...] = ()
+
+    def summary(self) -> dict:
+        """JSON-ready summary: before/after quality keys, iterations, wall time, method and params."""
+        return {
+            "method": self.method,
+            "params": self.params,
+            "iterations": self.iterations,
+            "wall_time": self.wall_time,
+            "before": self.before.to_dict(),
+            "after": self.after.to_dict(),
+            "boundary": self.boundary,
+            "notes": list(self.notes),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """Everything a method needs, built once: constraints, colouring, transposed connectivity, dtype."""
+
+    mesh: HexMesh
+    info: BoundaryInfo
+    cons: Constraints
+    colour: np.ndarray
+    conn: jnp.ndarray
+    x0: jnp.ndarray
+    dtype: type
+
+
+def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.0, fix_boundary: bool = False,
+                  fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = ()) -> Problem:
+    """Classify the boundary, build the constraints and the colouring of `mesh` (call inside the dtype context)."""
+    info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary, fixed_nodes=fixed_nodes,
+                             fixed_sets=tuple(fixed_sets))
+    cons = build_constraints(mesh, info, dtype=dtype)
+    colour = colour_nodes(mesh.hexes, mesh.n_nodes).colour
+    return Problem(mesh, info, cons, np.asarray(colour), transposed(mesh.hexes), jnp.asarray(mesh.points, dtype),
+                   dtype)
+
+
+def _run_method(problem: Problem, method: str, key, params: dict):
+    """Dispatch to a method; returns (points, iterations, history, resolved params)."""
+    if method in ("ci", "ci-global"):
+        from .optim.ci import CIParams, global_ci, local_ci
+        from .optim._moves import coloured_stars
+
+        try:
+            p = CIParams(**params)
+        except TypeError as e:
+            raise ConfigError(f"unknown CI parameter: {e}") from None
+        if method == "ci":
+            cs = coloured_stars(problem.mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces)
+            x, it, hist = local_ci(key, problem.x0, problem.conn, cs, problem.cons, p)
+        else:
+            x, it, hist = global_ci(key, problem.x0, problem.conn, problem.cons, free_scale(problem), p)
+        return x, it, hist, dataclasses.asdict(p)
+    raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+
+
+def free_scale(problem: Problem) -> jnp.ndarray:
+    """Local edge length per free coordinate (the `jaxci.projection` layout), shape ``(n_free,)``."""
+    from .optim._local import gather_star, local_length, node_stars
+
+    st = node_stars(problem.mesh.hexes, problem.mesh.n_nodes)
+    h = np.asarray(local_length(gather_star(jnp.asarray(problem.mesh.points), jnp.asarray(st.star)),
+                                jnp.asarray(st.mask)))
+    c = problem.cons
+    parts = [np.repeat(h[np.asarray(c.interior_nodes)], 3), np.repeat(h[np.asarray(c.surface_nodes)], 2),
+             h[np.asarray(c.edge_nodes)]]
+    return jnp.asarray(np.concatenate(parts), problem.dtype)
+
+
+def smooth(
+    mesh: HexMesh,
+    method: str = "ci",
+    *,
+    seed: int = 0,
+    dtype: str = "float32",
+    feature_angle: float = 40.0,
+    fix_boundary: bool = False,
+    fixed_nodes: Sequence[int] | None = None,
+    fixed_sets: Sequence[str] = (),
+    untangle: str = "auto",
+    **params,
+) -> SmoothResult:
+    """Smooth the hexahedra of `mesh` by moving nodes; connectivity never changes.
+
+    **Arguments:**
+
+    - `mesh`: the input `HexMesh` (not modified).
+    - `method`: one of `METHODS`: ``"ci"`` batched local Cohort Intelligence (default), ``"ci-global"`` the
+      paper's global CI.
+    - `seed`: seed of the `jax.random` key of stochastic methods (same seed, same result).
+    - `dtype`: ``"float32"`` (default, fast) or ``"float64"``.
+    - `feature_angle`: degrees; boundary edges sharper than this are feature curves (nodes slide along them).
+    - `fix_boundary`: fix every boundary node; `fixed_nodes`: node indices to fix; `fixed_sets`: names of node
+      sets of the file to fix.
+    - `untangle`: ``"auto"`` (untangle first if the input has inverted elements), ``"always"``, ``"never"``
+      (refuse inverted input).
+    - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams` fields).
+
+    **Returns:** a `SmoothResult`.
+    """
+    if method not in METHODS:
+        raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if dtype not in _DTYPES:
+        raise ConfigError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    if untangle not in ("auto", "always", "never"):
+        raise ConfigError(f"untangle must be 'auto', 'always' or 'never', got {untangle!r}")
+    t0 = time.perf_counter()
+    notes: list[str] = []
+    with jax.enable_x64(True):
+        before = quality_report(mesh)
+    if before.inverted_corners:
+        where = f"{mesh.source}: " if mesh.source else ""
+        bad = np.flatnonzero((corner_determinants(mesh.points, mesh.hexes) <= 0).any(axis=1))
+        raise InvertedMeshError(
+            f"{where}the mesh has {before.inverted_elements} inverted elements ({before.inverted_corners} corners "
+            f"with det <= 0; first: element {mesh.hex_label(int(bad[0]))}); it must be untangled before it can "
+            f"be smoothed, and no untangling stage is available for method {method!r}"
+        )
+    np_dtype = _DTYPES[dtype]
+    with jax.enable_x64(dtype == "float64"):
+        problem = build_problem(mesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
+                                fixed_nodes=fixed_nodes, fixed_sets=fixed_sets)
+        x, iterations, history, resolved = _run_method(problem, method, jax.random.key(seed), params)
+        x = np.asarray(x, dtype=np.float64)
+    notes.extend(problem.info.notes)
+    with jax.enable_x64(True):
+        points, check_notes = _enforce_invariants(mesh, problem, x)
+        notes.extend(check_notes)
+        after = quality_report(mesh, points)
+    history = _standard_history(history)
+    out = mesh.with_points(points)
+    return SmoothResult(
+        mesh=out, history=history, iterations=int(iterations), wall_time=time.perf_counter() - t0, method=method,
+        params={**resolved, "seed": seed, "dtype": dtype, "feature_angle": feature_angle,
+                "fix_boundary": fix_boundary},
+        before=before, after=after, boundary=problem.info.counts, node_class=np.asarray(problem.info.node_class),
+        notes=tuple(notes),
+    )
+
+
+def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Exact float64 projection onto the original boundary, then the no-inversion / no-increase checks."""
+    cons64 = build_constraints(mesh, problem.info, dtype=np.float64)
+    x = project_np(cons64, x)
+    hexes = mesh.hexes
+    det0 = corner_determinants(mesh.points, hexes)
+    det1 = corner_determinants(x, hexes)
+    new_inv = int(((det1 <= 0) & (det0 > 0)).sum())
+    f0, f1 = float(objective(mesh.points, hexes)), float(objective(x, hexes))
+    if new_inv or not np.isfinite(f1):
+        return np.array(mesh.points), [f"the result had {new_inv} newly inverted corners; the input is returned"]
+    if f1 > f0:
+        return np.array(mesh.points), [f"the objective rose from {f0:.6g} to {f1:.6g}; the input is returned"]
+    return x, []
+
+
+def _standard_history(h: dict) -> dict:
+    """Every method's history with `objective` and `max_condition` lists (entry 0 = input)."""
+    out = {k: np.asarray(v).tolist() for k, v in h.items()}
+    if "objective" not in out and "best" in out:
+        out["objective"] = out["best"]
+    return out
