@@ -16,6 +16,8 @@ import warnings
 COMMANDS = {
     "quality": ("_quality", "report the quality of a hexahedral mesh"),
     "generate": ("_generate", "write a structured (optionally perturbed) box mesh"),
+    "smooth": ("_smooth", "smooth a mesh (move nodes, keep connectivity) and write it"),
+    "classify": ("_classify", "write the boundary node classes of a mesh as point data"),
 }
 
 
@@ -74,6 +76,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("jaxci: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:  # a bug of ours: one line, the traceback only with --debug
+        if args.debug:
+            raise
+        print(f"jaxci: internal error: {type(e).__name__}: {e} (run with --debug for the traceback)",
+              file=sys.stderr)
+        return 1
 
 
 def entry() -> None:  # pragma: no cover - console script

@@ -9,13 +9,18 @@ import math
 def add_args(p) -> None:
     p.add_argument("mesh", help="mesh file (.vtk, .vtu, .msh, .inp, .xdmf, ANSYS listing or .mac)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    p.add_argument("--feature-angle", type=float, default=40.0, help="for the node class counts (default 40)")
 
 
-def report_dict(mesh) -> dict:
-    """The quality keys of a mesh, as `jaxci quality --json` prints them."""
+def report_dict(mesh, feature_angle: float = 40.0) -> dict:
+    """The quality keys of a mesh, as `jaxci quality --json` prints them, with the node class counts."""
+    from ..boundary import classify_boundary
     from ..quality import quality_report
 
-    return quality_report(mesh).to_dict()
+    d = quality_report(mesh).to_dict()
+    counts = classify_boundary(mesh, feature_angle=feature_angle).counts
+    d.update({f"{k}_nodes": counts[k] for k in ("corner", "edge", "surface", "interior")})
+    return d
 
 
 def format_table(d: dict, title: str = "") -> str:
@@ -43,7 +48,8 @@ def format_table(d: dict, title: str = "") -> str:
     lines.append("  corners by k/3:")
     for b in d["histogram"]:
         hi = "inf" if b["high"] is None or math.isinf(b["high"]) else f"{b['high']:g}"
-        lines.append(f"    [{b['low']:g}, {hi}){'':<{8 - len(hi)}}{b['count']}")
+        label = f"[{b['low']:g}, {hi})"
+        lines.append(f"    {label:<12}{b['count']:>9}")
     return "\n".join(lines)
 
 
@@ -51,7 +57,7 @@ def run(args) -> int:
     from ..io import read_mesh
 
     mesh = read_mesh(args.mesh)
-    d = report_dict(mesh)
+    d = report_dict(mesh, args.feature_angle)
     if args.json:
         print(json.dumps(d))
     else:
