@@ -1,0 +1,5 @@
+"""`python -m jaxci ...` is the `jaxci` command."""
+
+from .cli import entry
+
+entry()

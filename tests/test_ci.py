@@ -1,0 +1,148 @@
+"""Cohort Intelligence: improvement, determinism, invariants (F never rises, no inversion, boundary kept)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import jaxci
+from jaxci import quality as q
+from jaxci.errors import ConfigError, InvertedMeshError
+from jaxci.generate import perturb_box
+from jaxci.mesh import corner_determinants
+from jaxci.optim.ci import CIParams
+from jaxci.projection import build_constraints, project_np
+from jaxci.shapes import annulus, l_block
+from jaxci.smooth import build_problem, smooth
+
+FAST = dict(max_sweeps=12)
+
+
+def boundary_error(mesh_in, mesh_out, **kw) -> float:
+    from jaxci.boundary import classify_boundary
+
+    cons = build_constraints(mesh_in, classify_boundary(mesh_in, **kw), dtype=np.float64)
+    x = np.asarray(mesh_out.points)
+    return float(np.abs(project_np(cons, x) - x).max())
+
+
+@pytest.mark.parametrize("case", ["cube27", "cube64"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_local_ci_improves_paper_cubes(case, seed):
+    mesh = jaxci.paper_case(case, seed=seed)
+    res = smooth(mesh, "ci", seed=seed, dtype="float64")
+    assert res.after.objective < 0.01 * res.before.objective
+    assert res.after.max_condition < min(res.before.max_condition, 1.001)  # the paper's worst: 1.0117, 1.2136
+    assert res.after.inverted_elements == 0
+    assert boundary_error(mesh, res.mesh) < 1e-12
+    hist = np.asarray(res.history["objective"])
+    assert np.all(np.diff(hist) <= 1e-12 * hist[0])  # F never rises, sweep after sweep
+
+
+@pytest.mark.parametrize("case", ["cube27", "cube64"])
+def test_global_ci_improves_paper_cubes(case):
+    mesh = jaxci.paper_case(case, seed=0)
+    res = smooth(mesh, "ci-global", init_width=0.05, reduction=0.99, attempts=300, cohort=5, variations=5)
+    assert res.after.objective < 0.5 * res.before.objective
+    assert res.after.max_condition < res.before.max_condition
+    assert res.after.inverted_elements == 0
+    best = np.asarray(res.history["best"])
+    assert np.all(np.diff(best) <= 0)  # greedy CI: the cohort's best never gets worse
+    assert np.all(np.asarray(res.history["worst"]) >= best - 1e-6)
+    assert boundary_error(mesh, res.mesh) < 1e-12
+
+
+def test_same_seed_same_result_bit_for_bit():
+    mesh = jaxci.paper_case("cube27", seed=3)
+    a = smooth(mesh, "ci", seed=7, **FAST)
+    b = smooth(mesh, "ci", seed=7, **FAST)
+    c = smooth(mesh, "ci", seed=8, **FAST)
+    np.testing.assert_array_equal(a.mesh.points, b.mesh.points)
+    assert a.history == b.history
+    assert not np.array_equal(a.mesh.points, c.mesh.points)
+    g1 = smooth(mesh, "ci-global", seed=1, attempts=30)
+    g2 = smooth(mesh, "ci-global", seed=1, attempts=30)
+    np.testing.assert_array_equal(g1.mesh.points, g2.mesh.points)
+
+
+@settings(max_examples=6, deadline=None)
+@given(
+    seed=st.integers(0, 10**6),
+    amplitude=st.floats(0.05, 0.45),
+    cohort=st.integers(2, 6),
+    variations=st.integers(1, 6),
+    reduction=st.floats(0.5, 0.95),
+    attempts=st.integers(1, 6),
+    stage_switch=st.floats(0, 1),
+)
+def test_invariants_hold_for_random_problems(seed, amplitude, cohort, variations, reduction, attempts, stage_switch):
+    mesh = perturb_box(3, 3, 2, amplitude=amplitude, seed=seed)
+    res = smooth(mesh, "ci", seed=seed, dtype="float64", cohort=cohort, variations=variations, reduction=reduction,
+                 attempts=attempts, stage_switch=stage_switch, max_sweeps=4)
+    hist = np.asarray(res.history["objective"])
+    assert np.all(np.diff(hist) <= 1e-12 * hist[0])
+    assert res.after.objective <= res.before.objective
+    assert (corner_determinants(res.mesh.points, mesh.hexes) > 0).all()
+    assert boundary_error(mesh, res.mesh) < 1e-12
+    assert not any("input is returned" in n for n in res.notes)  # the float64 checks agreed with the run
+
+
+def test_local_ci_on_l_block_and_annulus_keeps_boundary():
+    rng = np.random.default_rng(0)
+    for mesh0, corners in ((l_block(2), 12), (annulus(12, 2, 2), 0)):
+        # perturb interior nodes only (the boundary is the truth to keep)
+        from jaxci.boundary import INTERIOR, classify_boundary
+
+        info = classify_boundary(mesh0)
+        pts = mesh0.points.copy()
+        inner = np.asarray(info.node_class) == INTERIOR
+        h = 0.1 * np.ptp(pts, axis=0).min()
+        pts[inner] += rng.uniform(-h, h, size=(inner.sum(), 3))
+        mesh = mesh0.with_points(pts)
+        for method, params in (("ci", FAST), ("ci-global", dict(attempts=60, init_width=0.05))):
+            res = smooth(mesh, method, **params)
+            assert res.after.objective <= res.before.objective
+            assert res.after.inverted_elements == 0
+            assert boundary_error(mesh, res.mesh) < 1e-9
+            assert res.boundary["corner"] == corners  # an L-block's 12 corners; none on the annulus' circles
+
+
+def test_inverted_input_is_refused_clearly():
+    mesh = perturb_box(2, amplitude=0.0)
+    pts = mesh.points.copy()
+    pts[13] = pts[13] + [0.9, 0.9, 0.9]  # the centre node pulled through the elements
+    bad = mesh.with_points(pts)
+    with pytest.raises(InvertedMeshError, match="inverted elements"):
+        smooth(bad, "ci", untangle="never")
+
+
+@pytest.mark.parametrize("kw,match", [
+    (dict(cohort=1), "cohort"), (dict(reduction=1.5), "reduction"), (dict(variations=0), "variations"),
+    (dict(delta=0), "delta"), (dict(stage_switch=2), "stage_switch"), (dict(bogus=1), "bogus"),
+])
+def test_bad_parameters(kw, match):
+    with pytest.raises(ConfigError, match=match):
+        smooth(perturb_box(2, amplitude=0.1), "ci", **kw)
+
+
+def test_unknown_method():
+    with pytest.raises(ConfigError, match="unknown method"):
+        smooth(perturb_box(2), "simulated-annealing")
+
+
+def test_params_defaults_documented():
+    p = CIParams()
+    for field in ("cohort", "variations", "reduction", "delta", "attempts", "stage_switch", "max_sweeps"):
+        assert f"`{field}`" in CIParams.__doc__
+        assert getattr(p, field) is not None
+
+
+def test_problem_colouring_is_valid():
+    mesh = perturb_box(4, amplitude=0.2, seed=0)
+    pb = build_problem(mesh)
+    col = pb.colour[mesh.hexes]
+    srt = np.sort(col, axis=1)
+    assert not (srt[:, 1:] == srt[:, :-1]).any()
+    assert float(q.objective(mesh.points, mesh.hexes)) > 0
