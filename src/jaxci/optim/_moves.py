@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..boundary import CORNER, EDGE, INTERIOR, SURFACE
-from ..projection import Constraints, _closest_on_segments, _closest_on_triangles, _nearest, _tol
+from ..projection import Constraints, project_nodes
 from ._local import ColourBatches, NodeStars, colour_batches, node_stars
 
 
@@ -161,39 +161,42 @@ def colour_slice(cs: ColouredStars, i):
 def project_trials(cons: Constraints, cs_i: ColouredStars, trials):
     """Project trial positions of shape ``(M, S, 3)`` of the nodes of one colour onto their constraints.
 
-    Interior slots are returned unchanged; surface slots go to their patch, edge slots to their curve.
+    Interior slots are returned unchanged. Surface slots whose ring is planar and whose trials all stay inside
+    the disk their ring covers (`planar_rings`) take the orthogonal projection onto the plane, which is then the
+    exact nearest point of the patch; otherwise (one `lax.cond` per colour) every boundary slot goes through
+    `jaxci.projection.project_nodes` (nearest point of its patch or curve).
     """
     a, b = cs_i.n_interior, cs_i.n_interior + cs_i.n_surface
+    M, S, _ = trials.shape
+    if b == M and a == M:
+        return trials
     n = cons.x_orig.shape[0]
-    out = [trials[:a]]
-    for lo, hi, fn in ((a, b, project_surface_nodes), (b, trials.shape[0], project_edge_nodes)):
-        if hi > lo:
-            part = trials[lo:hi]
-            S = part.shape[1]
-            idx = jnp.broadcast_to(jnp.minimum(cs_i.nodes[lo:hi], n - 1)[:, None], part.shape[:2]).reshape(-1)
+    part = trials[a:]
+    idx = jnp.broadcast_to(jnp.minimum(cs_i.nodes[a:], n - 1)[:, None], part.shape[:2]).reshape(-1)
 
-            def full(part=part, idx=idx, fn=fn, S=S, lo=lo, hi=hi):
-                return fn(cons, idx, part.reshape(-1, 3)).reshape(hi - lo, S, 3)
+    def full():
+        return project_nodes(cons, idx, part.reshape(-1, 3)).reshape(M - a, S, 3)
 
-            if fn is project_surface_nodes:
-                pl = cs_i.plane[lo:hi, None]  # (m, 1, 7)
-                o, nrm, r = pl[..., :3], pl[..., 3:6], pl[..., 6]
-                flat = part - nrm * jnp.sum((part - o) * nrm, axis=-1, keepdims=True)
-                inside = jnp.sum((flat - o) ** 2, axis=-1) < (0.999 * r) ** 2
-                ok = jnp.all(inside | ~cs_i.mask[lo:hi, None])
-                out.append(jax.lax.cond(ok, lambda flat=flat: flat, full))
-            else:
-                out.append(full())
-    return jnp.concatenate(out, axis=0)
+    if b - a and b == M:  # only surface slots: the planar shortcut may skip the search
+        pl = cs_i.plane[a:b, None]  # (m, 1, 7)
+        o, nrm, r = pl[..., :3], pl[..., 3:6], pl[..., 6]
+        flat = part - nrm * jnp.sum((part - o) * nrm, axis=-1, keepdims=True)
+        inside = jnp.sum((flat - o) ** 2, axis=-1) < (0.999 * r) ** 2
+        ok = jnp.all(inside | ~cs_i.mask[a:b, None])
+        proj = jax.lax.cond(ok, lambda: flat, full)
+    elif b - a:
+        pl = cs_i.plane[a:b, None]
+        o, nrm, r = pl[..., :3], pl[..., 3:6], pl[..., 6]
+        flat = part[: b - a] - nrm * jnp.sum((part[: b - a] - o) * nrm, axis=-1, keepdims=True)
+        inside = jnp.sum((flat - o) ** 2, axis=-1) < (0.999 * r) ** 2
+        ok = jnp.all(inside | ~cs_i.mask[a:b, None])
+        edge_idx = jnp.broadcast_to(jnp.minimum(cs_i.nodes[b:], n - 1)[:, None], (M - b, S)).reshape(-1)
 
+        def shortcut():
+            pe = project_nodes(cons, edge_idx, part[b - a:].reshape(-1, 3)).reshape(M - b, S, 3)
+            return jnp.concatenate([flat, pe], axis=0)
 
-def project_surface_nodes(cons: Constraints, idx, pts):
-    """Project positions `pts` ``(m, 3)`` of SURFACE nodes `idx` ``(m,)`` onto their candidate triangles."""
-    cand = cons.surface_cand[cons.row[idx]]
-    return _nearest(jnp, pts, cons.triangles.astype(pts.dtype), cand, _closest_on_triangles, _tol(pts.dtype))
-
-
-def project_edge_nodes(cons: Constraints, idx, pts):
-    """Project positions `pts` ``(m, 3)`` of EDGE nodes `idx` ``(m,)`` onto their candidate segments."""
-    cand = cons.edge_cand[cons.row[idx]]
-    return _nearest(jnp, pts, cons.segments.astype(pts.dtype), cand, _closest_on_segments, _tol(pts.dtype))
+        proj = jax.lax.cond(ok, shortcut, full)
+    else:
+        proj = full()
+    return jnp.concatenate([trials[:a], proj], axis=0)

@@ -168,7 +168,7 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, p: CIParams, chunk:
     w_new = jnp.where(accept, 4.0 * move, 0.5 * w0)
     w_new = jnp.clip(w_new, p.min_width * h, p.init_width * h)
     width = width.at[nodes].set(w_new, mode="drop")
-    return x, width, jnp.sum(accept)
+    return x, width, jnp.sum(accept, dtype=jnp.int32)
 
 
 @functools.partial(jax.jit, static_argnames=("p", "chunk"))

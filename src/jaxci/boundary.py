@@ -1,0 +1,282 @@
+"""Classification of the nodes of a hexahedral mesh by how they may move: interior, surface, edge or corner.
+
+The boundary is the set of quadrilaterals used by exactly one hexahedron (`jaxci.topology`). A boundary edge
+is a *feature edge* when the unit normals of its two boundary faces differ by more than the feature angle, or
+when it does not have exactly two boundary faces (a non-manifold or open edge). Then, per node:
+
+- CORNER (fixed): 1 or 3+ feature edges meet at it (a curve ends or curves meet), or 2 meet at an angle: the
+  direction of the curve turns by more than the feature angle; also a non-manifold boundary vertex (two or more
+  separate fans of boundary faces), a node of a face shared by three or more hexahedra, and every node the
+  user fixes.
+- EDGE (slides on its feature curve): exactly 2 feature edges, nearly aligned.
+- SURFACE (slides on its patch): a boundary node with no feature edge.
+- INTERIOR (free): the rest.
+
+*Patches* are the connected sets of boundary faces that meet across non-feature edges; *curves* are the
+connected chains of feature edges that meet at EDGE nodes (a circle without corners is one closed curve).
+Patches and curves are computed from the geometry only; fixing nodes afterwards does not split them.
+
+Nodes not used by any hexahedron, and nodes of other volume cells (wedges, pyramids, tetrahedra), are fixed:
+smoothing moves hexahedra only. A broken boundary (open or non-manifold) is reported with `warnings.warn` and
+in `BoundaryInfo.notes`, never raised: such edges and vertices become features and corners.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from .errors import MeshError
+from .mesh import HexMesh
+from .topology import BoundaryTopology, boundary_topology
+
+#: Node classes (values of `BoundaryInfo.node_class`).
+INTERIOR = 0
+SURFACE = 1
+EDGE = 2
+CORNER = 3
+
+#: Names of the node classes, indexed by class.
+CLASS_NAMES = ("interior", "surface", "edge", "corner")
+
+#: Volume cell types other than the linear hexahedron whose nodes are kept fixed.
+_OTHER_VOLUME_CELLS = frozenset(
+    {"tetra", "pyramid", "wedge", "tetra10", "pyramid13", "wedge15", "hexahedron20", "hexahedron27"}
+)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BoundaryInfo:
+    """How every node of a mesh may move, with the patches and feature curves of its boundary.
+
+    **Arguments:**
+
+    - `node_class`: int8 array of shape ``(n_nodes,)``, one of `INTERIOR`, `SURFACE`, `EDGE`, `CORNER`.
+    - `patch_id`: int32 array of shape ``(n_nodes,)``: the patch of each SURFACE node, -1 for other nodes.
+    - `curve_id`: int32 array of shape ``(n_nodes,)``: the curve of each EDGE node, -1 for other nodes.
+    - `topology`: the `BoundaryTopology` (boundary faces and edges) it was computed from.
+    - `face_patch`: int32 array of shape ``(n_faces,)``, the patch of each boundary face.
+    - `edge_is_feature`: bool array of shape ``(n_edges,)`` over `topology.edges`.
+    - `feature_edges`: int64 array of shape ``(n_feature_edges, 2)``, the feature edges (node pairs).
+    - `edge_curve`: int32 array of shape ``(n_feature_edges,)``, the curve of each feature edge.
+    - `n_patches`, `n_curves`: numbers of patches and curves.
+    - `feature_angle`: the feature angle in degrees it was computed with.
+    - `notes`: sentences about what was unusual (open or non-manifold boundary, fixed non-hex nodes, ...).
+    """
+
+    node_class: np.ndarray
+    patch_id: np.ndarray
+    curve_id: np.ndarray
+    topology: BoundaryTopology
+    face_patch: np.ndarray
+    edge_is_feature: np.ndarray
+    feature_edges: np.ndarray
+    edge_curve: np.ndarray
+    n_patches: int
+    n_curves: int
+    feature_angle: float
+    notes: tuple[str, ...] = ()
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.node_class.shape[0])
+
+    def nodes_of(self, cls: int) -> np.ndarray:
+        """Sorted indices of the nodes of class `cls`, int64 array."""
+        return np.flatnonzero(self.node_class == cls)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Number of nodes per class, by name (``{"interior": ..., "surface": ..., "edge": ..., "corner": ...}``)."""
+        c = np.bincount(self.node_class, minlength=4)
+        return {name: int(c[i]) for i, name in enumerate(CLASS_NAMES)}
+
+
+def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted normals of quadrilaterals, ``(x2 - x0) x (x3 - x1)`` (twice the area for a planar quad).
+
+    **Arguments:** `points` of shape ``(n_nodes, 3)``; `faces` of shape ``(n_faces, 4)``.
+
+    **Returns:** a float64 array of shape ``(n_faces, 3)``.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    return np.cross(p[faces[:, 2]] - p[faces[:, 0]], p[faces[:, 3]] - p[faces[:, 1]])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Rows of `v` scaled to unit length (zero rows stay zero)."""
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.divide(v, norm, out=np.zeros_like(v), where=norm > 0)
+
+
+def _local_position(faces: np.ndarray, f: np.ndarray, node: np.ndarray) -> np.ndarray:
+    """For each pair (face f[j], node[j]) with the node on the face, the node's position 0..3 in the face."""
+    return np.argmax(faces[f] == node[:, None], axis=1)
+
+
+def _components(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of the graph on `n` vertices with edges (a[j], b[j])."""
+    g = sp.coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
+    count, labels = connected_components(g, directed=False)
+    return int(count), labels.astype(np.int32)
+
+
+def classify_boundary(
+    mesh: HexMesh,
+    *,
+    feature_angle: float = 40.0,
+    fix_boundary: bool = False,
+    fixed_nodes: Sequence[int] | np.ndarray | None = None,
+    fixed_sets: Sequence[str] = (),
+    topology: BoundaryTopology | None = None,
+) -> BoundaryInfo:
+    """Classify every node of `mesh` as interior, surface, edge or corner (see this module's docstring).
+
+    **Arguments:**
+
+    - `mesh`: the `HexMesh`; its current coordinates define the boundary geometry.
+    - `feature_angle`: angle in degrees (0 < angle < 180) above which the normals of two boundary faces across an
+      edge, or the directions of two feature edges at a node, make a feature. Keyword only argument.
+    - `fix_boundary`: make every boundary node a corner (only interior nodes move). Keyword only argument.
+    - `fixed_nodes`: indices of further nodes to fix. Keyword only argument.
+    - `fixed_sets`: names of `mesh.point_sets` whose nodes are fixed. Keyword only argument.
+    - `topology`: a precomputed `boundary_topology(mesh.hexes, mesh.n_nodes)`. Keyword only argument.
+
+    **Returns:** a `BoundaryInfo`. Raises `MeshError` for a bad `feature_angle`, an out-of-range fixed node
+    or an unknown point set; warns (`UserWarning`) about an open or non-manifold boundary.
+    """
+    if not 0.0 < float(feature_angle) < 180.0:
+        raise MeshError(f"feature_angle must be in degrees strictly between 0 and 180, got {feature_angle!r}")
+    where = f"{mesh.source}: " if mesh.source else ""
+    hexes = mesh.hexes
+    n = mesh.n_nodes
+    fixed = np.zeros(0, dtype=np.int64) if fixed_nodes is None else np.asarray(fixed_nodes).ravel()
+    if fixed.size and (fixed.dtype.kind not in "iu" or fixed.min() < 0 or fixed.max() >= n):
+        raise MeshError(f"{where}fixed_nodes must be node indices in [0, {n}), got {fixed.tolist()[:10]}")
+    for name in fixed_sets:
+        if name not in mesh.point_sets:
+            known = ", ".join(sorted(mesh.point_sets)) or "none"
+            raise MeshError(f"{where}fixed_sets: the mesh has no point set {name!r} (point sets: {known})")
+    pts = np.asarray(mesh.points, dtype=np.float64)
+    topo = boundary_topology(hexes, n) if topology is None else topology
+    faces, edges = topo.faces, topo.edges
+    n_faces = len(faces)
+    cos_t = float(np.cos(np.radians(feature_angle)))
+    notes: list[str] = []
+
+    # --- feature edges
+    valence = topo.edge_valence
+    manifold = valence == 2
+    ptr = topo.edge_face_ptr
+    last = max(len(topo.edge_face) - 1, 0)
+    fa = topo.edge_face[ptr[:-1]]  # first and (if any) second boundary face of each edge
+    fb = topo.edge_face[np.minimum(ptr[:-1] + 1, last)]
+    normal = _unit(face_normals(pts, faces))
+    cos_e = np.einsum("ij,ij->i", normal[fa], normal[fb])
+    feature = ~manifold | (cos_e < cos_t)
+    fedges = edges[feature]
+    n_open = int(np.count_nonzero(valence % 2 == 1))
+    n_nm_edges = int(np.count_nonzero((valence > 2) & (valence % 2 == 0)))
+
+    # --- non-manifold vertices: face corners around a node connected across manifold edges
+    me = np.flatnonzero(manifold)
+    a_nodes = np.concatenate([edges[me, 0], edges[me, 1]])
+    fa_m, fb_m = np.tile(fa[me], 2), np.tile(fb[me], 2)
+    ca = 4 * fa_m + _local_position(faces, fa_m, a_nodes)
+    cb = 4 * fb_m + _local_position(faces, fb_m, a_nodes)
+    _, corner_comp = _components(4 * n_faces, ca, cb)
+    node_comp = np.unique(faces.ravel() * np.int64(4 * n_faces) + corner_comp)  # distinct (node, fan) pairs
+    nm_vertex = np.bincount(node_comp // max(4 * n_faces, 1), minlength=n) > 1
+
+    # --- geometric node classes
+    on_boundary = np.zeros(n, dtype=bool)
+    on_boundary[faces.ravel()] = True
+    deg = np.bincount(fedges.ravel(), minlength=n)
+    cls = np.where(on_boundary, SURFACE, INTERIOR).astype(np.int8)
+    cls[deg == 2] = EDGE
+    cls[(deg == 1) | (deg >= 3) | nm_vertex] = CORNER
+    half_node = fedges.ravel()
+    half_other = fedges[:, ::-1].ravel()
+    half_edge = np.repeat(np.arange(len(fedges)), 2)
+    by_node = np.argsort(half_node, kind="stable")
+    hn, ho, he = half_node[by_node], half_other[by_node], half_edge[by_node]
+    two = np.flatnonzero(np.diff(hn) == 0)
+    two = two[cls[hn[two]] == EDGE]  # the pairs (two[j], two[j] + 1) are the two feature edges of an EDGE node
+    v = hn[two]
+    d_in = _unit(pts[v] - pts[ho[two]])
+    d_out = _unit(pts[ho[two + 1]] - pts[v])
+    sharp = np.einsum("ij,ij->i", d_in, d_out) < cos_t
+    cls[v[sharp]] = CORNER
+
+    # --- curves: feature edges joined at EDGE nodes
+    joined = two[cls[v] == EDGE]
+    n_curves, edge_curve = _components(len(fedges), he[joined], he[joined + 1])
+    curve_id = np.full(n, -1, dtype=np.int32)
+    curve_id[hn] = edge_curve[he]
+
+    # --- patches: faces joined across manifold non-feature edges
+    smooth = np.flatnonzero(~feature)
+    n_patches, face_patch = _components(n_faces, fa[smooth], fb[smooth])
+    patch_id = np.full(n, -1, dtype=np.int32)
+    patch_id[faces.ravel()] = np.repeat(face_patch, 4)
+
+    # --- broken boundaries
+    if topo.n_nonmanifold_faces:
+        notes.append(
+            f"{topo.n_nonmanifold_faces} faces are shared by three or more hexahedra (invalid mesh); they are "
+            f"not boundary faces and their nodes are fixed"
+        )
+    if n_open:
+        notes.append(
+            f"open boundary: {n_open} boundary edges have an odd number of boundary faces; they are feature "
+            f"edges and their curves are fixed at their ends"
+        )
+    if n_nm_edges:
+        notes.append(
+            f"non-manifold boundary: {n_nm_edges} boundary edges have 4 or more boundary faces (elements "
+            f"touching along an edge); they are feature edges"
+        )
+    if nm_vertex.any():
+        notes.append(
+            f"non-manifold boundary: {int(nm_vertex.sum())} boundary nodes join separate fans of boundary faces "
+            f"(elements touching at a vertex); they are fixed as corners"
+        )
+    for msg in notes:
+        warnings.warn(f"{where}{msg}", stacklevel=2)
+
+    # --- nodes that must not move
+    used = np.zeros(n, dtype=bool)
+    used[hexes.ravel()] = True
+    cls[~used] = CORNER
+    other = [b.data for b in mesh.cells if b.type in _OTHER_VOLUME_CELLS and len(b.data)]
+    if other:
+        onodes = np.unique(np.concatenate([o.ravel() for o in other]))
+        cls[onodes] = CORNER
+        notes.append(f"{len(onodes)} nodes of non-hexahedral volume cells are fixed")
+    cls[topo.nonmanifold_faces.ravel()] = CORNER
+    if fix_boundary:
+        cls[on_boundary & used] = CORNER
+    cls[fixed.astype(np.int64)] = CORNER
+    for name in fixed_sets:
+        cls[np.asarray(mesh.point_sets[name], dtype=np.int64).ravel()] = CORNER
+    patch_id[cls != SURFACE] = -1
+    curve_id[cls != EDGE] = -1
+    return BoundaryInfo(
+        node_class=cls,
+        patch_id=patch_id,
+        curve_id=curve_id,
+        topology=topo,
+        face_patch=face_patch,
+        edge_is_feature=feature,
+        feature_edges=fedges,
+        edge_curve=edge_curve,
+        n_patches=n_patches,
+        n_curves=n_curves,
+        feature_angle=float(feature_angle),
+        notes=tuple(notes),
+    )

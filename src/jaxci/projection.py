@@ -1,0 +1,417 @@
+"""Projection of nodes back onto the ORIGINAL boundary of a mesh, and the free coordinates of the movable nodes.
+
+**Geometry kept.** Every boundary quadrilateral of the input mesh is split into four triangles around its
+centroid (the mean of its corners): no diagonal is preferred, a planar quad gives four coplanar triangles (so
+planar patches are reproduced exactly), and a warped quad is approximated by a surface symmetric in its
+corners. Feature curves are kept as the polylines of their feature edges. Each triangle belongs to the patch of
+its quad, each segment to one curve (`jaxci.boundary`).
+
+**Projection.** A SURFACE node goes to the nearest point of its own patch, an EDGE node to the nearest point
+of its own curve, a CORNER node back to its original position; INTERIOR nodes do not move. Restricting the
+search to the node's own patch or curve stops a node from jumping across a thin wall or onto another face.
+
+- `project_np` (numpy) searches the whole patch or curve (a k-d tree of triangle centroids, queried within a
+  radius that provably holds the nearest triangle), so it is exact for any displacement.
+- `project` and `project_nodes` (JAX, jit-able, differentiable) compare a FIXED-size list of candidates per
+  node: the triangles of the quads of its own patch within its 2-ring on the original boundary (K_tri = 4 x
+  the largest such 2-ring: 16 quads = 64 triangles on a structured grid), or the segments of its own curve
+  within its 2-ring (K_seg, 4 on a chain). Shorter lists are padded by repeating an entry. Both agree whenever
+  the nearest point lies in the 2-ring, i.e. for moves of up to about one element.
+
+The nearest point of a triangle is its orthogonal projection if that falls inside (with a relative tolerance
+of 256 machine epsilons), else the nearest point of its sides. Inside projections win ties, up to rounding
+noise (side points carry a penalty of (64 eps)^2 times the squared quad size): at a node sitting exactly on a
+mesh vertex the derivative of the projection is then the tangent projector of a triangle, not zero. All
+geometry-only quantities (unit normals, inverse Gram matrices, inverse lengths) are precomputed, so the kernel
+has no division or square root.
+
+**Parametrisation.** For gradient methods the free coordinates are a flat vector ``u`` in three blocks, nodes
+by increasing index within each: 3 per INTERIOR node (its displacement), 2 per SURFACE node (coordinates in an
+orthonormal tangent basis of the original area-weighted node normal), 1 per EDGE node (along the unit tangent
+of its curve); none for CORNER nodes. ``params_to_points(c, u, x0) = project(c, x0 + B u)``. On planar patches
+and straight curves the projection is exact, so its derivative is too: at ``u = 0`` the Jacobian is exactly
+``B``. An ``n^3`` box has ``3 (n-1)^3 + 12 (n-1)^2 + 12 (n-1)`` free coordinates (2400 for n = 9).
+
+Index and geometry arrays live in `Constraints`, a pytree passed INTO jitted functions (closed-over arrays
+become compile-time constants and compile far slower). Kernels use a structure-of-arrays layout and 1-D
+gathers, the fast form on XLA:CPU.
+"""
+
+# ruff: noqa: F722  (jaxtyping shape strings such as "n 3" are not forward references)
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+from scipy.spatial import cKDTree
+
+from ._closest import (
+    _SEG_ROWS,
+    _TRI_ROWS,
+    _closest_on_segments,
+    _closest_on_triangles,
+    _nearest,
+    _segment_centres,
+    _segment_table,
+    _tol,
+    _triangle_centres,
+    _triangle_table,
+)
+from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, face_normals
+from .mesh import HexMesh
+from .topology import csr_gather, incidence
+
+
+class Constraints(eqx.Module):
+    """The boundary constraints of a mesh as a pytree of arrays, to pass INTO jitted functions.
+
+    Built by `build_constraints`. Index arrays are int32, geometry is in the float dtype chosen there.
+
+    **Fields:**
+
+    - `x_orig`: original node coordinates, shape ``(n_nodes, 3)`` (corners are restored to them).
+    - `node_class`: class of each node (`jaxci.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
+    - `group`: patch id of SURFACE nodes, curve id of EDGE nodes, -1 otherwise; shape ``(n_nodes,)``.
+    - `row`: position of a SURFACE (EDGE) node in `surface_nodes` (`edge_nodes`), 0 otherwise.
+    - `interior_nodes`, `surface_nodes`, `edge_nodes`, `corner_nodes`: sorted node indices of each class.
+    - `surface_basis`: orthonormal tangent pair of each SURFACE node, shape ``(n_surface, 2, 3)``.
+    - `edge_tangent`: unit tangent of each EDGE node, shape ``(n_edge, 3)``.
+    - `surface_cand`: candidate triangles of each SURFACE node, shape ``(max(n_surface, 1), K_tri)``.
+    - `edge_cand`: candidate segments of each EDGE node, shape ``(max(n_edge, 1), K_seg)``.
+    - `triangles`: the 4 triangles of every original boundary quad, packed: one row per precomputed quantity
+      (see the module source), shape ``(19, n_triangles)``.
+    - `triangle_patch`: patch of each triangle, shape ``(n_triangles,)``.
+    - `segments`: the feature edges, packed (start, direction, inverse squared length, squared length), shape
+      ``(8, n_segments)``.
+    - `segment_curve`: curve of each segment, shape ``(n_segments,)``.
+    """
+
+    x_orig: Float[Array, "n 3"]
+    node_class: Int[Array, " n"]
+    group: Int[Array, " n"]
+    row: Int[Array, " n"]
+    interior_nodes: Int[Array, " ni"]
+    surface_nodes: Int[Array, " ns"]
+    edge_nodes: Int[Array, " ne"]
+    corner_nodes: Int[Array, " nc"]
+    surface_basis: Float[Array, "ns 2 3"]
+    edge_tangent: Float[Array, "ne 3"]
+    surface_cand: Int[Array, "ms kt"]
+    edge_cand: Int[Array, "me ks"]
+    triangles: Float[Array, "19 nt"]
+    triangle_patch: Int[Array, " nt"]
+    segments: Float[Array, "8 nsg"]
+    segment_curve: Int[Array, " nsg"]
+
+
+def _pad_rows(indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """CSR rows as a dense (n_rows, max_len) int32 array, short rows padded by repeating their first entry.
+    At least shape (1, 1) (a row of zeros) when there is nothing."""
+    n_rows = len(indptr) - 1
+    lens = np.diff(indptr)
+    width = max(int(lens.max(initial=0)), 1)
+    out = np.zeros((max(n_rows, 1), width), dtype=np.int32)
+    if n_rows:
+        out[:n_rows] = indices[np.minimum(indptr[:-1], max(len(indices) - 1, 0))][:, None]
+        rows = np.repeat(np.arange(n_rows), lens)
+        out[rows, np.arange(len(indices)) - np.repeat(indptr[:-1], lens)] = indices
+    return out
+
+
+def _ring_candidates(
+    cells: np.ndarray, n_nodes: int, nodes: np.ndarray, cell_group: np.ndarray, node_group: np.ndarray
+) -> np.ndarray:
+    """For each of `nodes`, the cells (faces or segments) of its own group within its 2-ring, padded."""
+    if not len(cells):
+        return np.zeros((1, 1), dtype=np.int32)
+    inc = incidence(cells, n_nodes)
+    ring = ((inc[nodes] @ inc.T) @ inc).tocsr()
+    ring.sort_indices()
+    rows = np.repeat(np.arange(len(nodes)), np.diff(ring.indptr))
+    keep = cell_group[ring.indices] == node_group[nodes][rows]
+    indptr = np.zeros(len(nodes) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows[keep], minlength=len(nodes)), out=indptr[1:])
+    return _pad_rows(indptr, ring.indices[keep])
+
+
+def _unit_rows(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
+
+
+def _tangent_bases(normals: np.ndarray) -> np.ndarray:
+    """Orthonormal tangent pairs (m, 2, 3) of unit normals (m, 3) (an arbitrary pair for a zero normal)."""
+    m = len(normals)
+    helper = np.zeros((m, 3))
+    helper[np.arange(m), np.argmin(np.abs(normals), axis=1)] = 1.0
+    t1 = _unit_rows(helper - (helper * normals).sum(1, keepdims=True) * normals)
+    t2 = np.cross(normals, t1)
+    t2 = np.where(np.linalg.norm(t2, axis=1, keepdims=True) > 0, t2, _unit_rows(np.cross(t1, helper[:, ::-1])))
+    return np.stack([t1, t2], axis=1)
+
+
+def _edge_tangents(points: np.ndarray, fedges: np.ndarray, edge: np.ndarray) -> np.ndarray:
+    """Unit tangents (m, 3) of EDGE nodes from their two feature edges (bisecting a slight turn)."""
+    if not len(edge):
+        return np.zeros((0, 3))
+    inc = incidence(fedges, len(points))
+    owner, e = csr_gather(inc.indptr, inc.indices, edge)
+    other = np.where(fedges[e, 0] == edge[owner], fedges[e, 1], fedges[e, 0])
+    first = np.r_[True, owner[1:] != owner[:-1]]  # each EDGE node has exactly two feature edges
+    prev, nxt = other[first], other[~first]
+    return _unit_rows(_unit_rows(points[edge] - points[prev]) + _unit_rows(points[nxt] - points[edge]))
+
+
+def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None) -> Constraints:
+    """Keep a copy of the boundary of `mesh` and precompute everything the projections need.
+
+    **Arguments:**
+
+    - `mesh`: the mesh whose CURRENT coordinates are the original geometry to project onto.
+    - `info`: its `BoundaryInfo` (from `jaxci.boundary.classify_boundary`).
+    - `dtype`: float dtype of the geometry arrays; default JAX's default float (float64 under
+      ``jax_enable_x64``, else float32). Keyword only argument.
+
+    **Returns:** a `Constraints`.
+    """
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    pts = np.asarray(mesh.points, dtype=np.float64)
+    n = mesh.n_nodes
+    cls = np.asarray(info.node_class)
+    faces, fedges = info.topology.faces, info.feature_edges
+    group = np.where(cls == SURFACE, info.patch_id, np.where(cls == EDGE, info.curve_id, -1)).astype(np.int32)
+    nodes = {c: np.flatnonzero(cls == c) for c in (INTERIOR, SURFACE, EDGE, CORNER)}
+    surf, edge = nodes[SURFACE], nodes[EDGE]
+    row = np.zeros(n, dtype=np.int32)
+    row[surf] = np.arange(len(surf))
+    row[edge] = np.arange(len(edge))
+    # normals of surface nodes: area-weighted over the faces around them (all in their own patch)
+    normals = np.zeros((len(surf), 3))
+    if len(faces) and len(surf):
+        normals = _unit_rows(np.asarray(incidence(faces, n)[surf] @ face_normals(pts, faces)))
+    if len(faces):
+        tris, tri_patch = _triangle_table(pts, faces), np.repeat(info.face_patch, 4)
+    else:
+        tris, tri_patch = np.zeros((_TRI_ROWS, 1)), np.full(1, -1)
+    quad_cand = _ring_candidates(faces, n, surf, info.face_patch, group)
+    tri_cand = (4 * quad_cand[:, :, None] + np.arange(4)).reshape(len(quad_cand), -1)
+    if len(fedges):
+        segs, seg_curve = _segment_table(pts, fedges), info.edge_curve
+    else:
+        segs, seg_curve = np.zeros((_SEG_ROWS, 1)), np.full(1, -1)
+
+    def i32(a):
+        return jnp.asarray(np.asarray(a, dtype=np.int32))
+
+    def f(a):
+        return jnp.asarray(np.asarray(a, dtype=np.float64), dtype=dtype)
+
+    return Constraints(
+        x_orig=f(pts),
+        node_class=i32(cls),
+        group=i32(group),
+        row=i32(row),
+        interior_nodes=i32(nodes[INTERIOR]),
+        surface_nodes=i32(surf),
+        edge_nodes=i32(edge),
+        corner_nodes=i32(nodes[CORNER]),
+        surface_basis=f(_tangent_bases(normals)),
+        edge_tangent=f(_edge_tangents(pts, fedges, edge)),
+        surface_cand=i32(tri_cand),
+        edge_cand=i32(_ring_candidates(fedges, n, edge, info.edge_curve, group)),
+        triangles=f(tris),
+        triangle_patch=i32(tri_patch),
+        segments=f(segs),
+        segment_curve=i32(seg_curve),
+    )
+
+
+# ---------------------------------------------------------------------------------------------------- JAX
+
+
+@eqx.filter_jit
+def project(constraints: Constraints, points: Float[Array, "*batch n 3"]) -> Float[Array, "*batch n 3"]:
+    """Project every node onto the original boundary (JAX; jit-able and differentiable).
+
+    SURFACE nodes go to the nearest point of their candidate triangles, EDGE nodes to the nearest point of their
+    candidate segments, CORNER nodes to their original position; INTERIOR nodes are returned unchanged.
+
+    **Arguments:**
+
+    - `constraints`: the `Constraints` of the mesh (a pytree of arrays: pass it as an argument under `jax.jit`).
+    - `points`: node coordinates of shape ``(n_nodes, 3)``, or ``(..., n_nodes, 3)`` for a batch (a cohort of
+      candidate meshes).
+
+    **Returns:** the projected coordinates, same shape and dtype as `points`.
+    """
+    c = constraints
+    x = jnp.asarray(points)
+    ns, ne = c.surface_nodes.shape[0], c.edge_nodes.shape[0]
+    if ns:
+        tab, cand = c.triangles.astype(x.dtype), c.surface_cand[:ns]
+        p = _nearest(jnp, x[..., c.surface_nodes, :], tab, cand, _closest_on_triangles, _tol(x.dtype))
+        x = x.at[..., c.surface_nodes, :].set(p)
+    if ne:
+        tab, cand = c.segments.astype(x.dtype), c.edge_cand[:ne]
+        p = _nearest(jnp, x[..., c.edge_nodes, :], tab, cand, _closest_on_segments, _tol(x.dtype))
+        x = x.at[..., c.edge_nodes, :].set(p)
+    return x.at[..., c.corner_nodes, :].set(c.x_orig[c.corner_nodes].astype(x.dtype))
+
+
+@eqx.filter_jit
+def project_nodes(
+    constraints: Constraints, node_idx: Int[Array, " m"], points: Float[Array, "*batch m 3"]
+) -> Float[Array, "*batch m 3"]:
+    """Project the new positions of some nodes only (JAX; jit-able and differentiable).
+
+    For per-node or per-colour batches: each position is projected by the rule of its node's class (see
+    `project`). The triangle and the segment candidates are both evaluated for every node (fixed shapes), and the
+    one of its class is kept.
+
+    **Arguments:**
+
+    - `constraints`: the `Constraints` of the mesh.
+    - `node_idx`: node indices, integer array of shape ``(m,)`` (any classes, repeats allowed).
+    - `points`: new positions of these nodes, shape ``(m, 3)`` or ``(..., m, 3)``.
+
+    **Returns:** the projected positions, same shape and dtype as `points`.
+    """
+    c = constraints
+    x = jnp.asarray(points)
+    idx = jnp.asarray(node_idx)
+    cls, row = c.node_class[idx][:, None], c.row[idx]
+    cand = c.surface_cand[jnp.minimum(row, c.surface_cand.shape[0] - 1)]
+    ps = _nearest(jnp, x, c.triangles.astype(x.dtype), cand, _closest_on_triangles, _tol(x.dtype))
+    cand = c.edge_cand[jnp.minimum(row, c.edge_cand.shape[0] - 1)]
+    pe = _nearest(jnp, x, c.segments.astype(x.dtype), cand, _closest_on_segments, _tol(x.dtype))
+    fixed = c.x_orig[idx].astype(x.dtype)
+    return jnp.where(cls == SURFACE, ps, jnp.where(cls == EDGE, pe, jnp.where(cls == CORNER, fixed, x)))
+
+
+# ---------------------------------------------------------------------------------------------------- numpy
+
+
+def _search(table, cells, x, closest, centre_radius):
+    """Exact nearest points of `x` (m, 3) on the cells `table[:, cells]`, via a k-d tree of cell centres.
+
+    The nearest cell centre at distance d0 bounds the distance to the nearest point; a cell whose centre is
+    farther than d0 + (largest cell radius) cannot hold a nearer point.
+    """
+    centre, radius = centre_radius(table[:, cells])
+    tree = cKDTree(centre)
+    d0, _ = tree.query(x)
+    lists = tree.query_ball_point(x, d0 + radius.max() * (1 + 1e-9) + 1e-300)
+    lens = np.fromiter((len(v) for v in lists), dtype=np.int64, count=len(lists))
+    flat = np.fromiter((i for v in lists for i in v), dtype=np.int64, count=int(lens.sum()))
+    owner = np.repeat(np.arange(len(x)), lens)
+    p, score = closest(np, tuple(x[owner].T), table[:, cells[flat]], _tol(np.float64))
+    order = np.lexsort((score, owner))
+    first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
+    return np.stack(p, axis=1)[first]
+
+
+def project_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
+    """Project every node onto the original boundary, exactly, in numpy float64.
+
+    Like `project`, but each SURFACE (EDGE) node searches ALL triangles (segments) of its patch (curve), so any
+    displacement is handled. Builds one k-d tree per patch and curve on each call.
+
+    **Arguments:**
+
+    - `constraints`: the `Constraints` of the mesh.
+    - `points`: node coordinates, array of shape ``(n_nodes, 3)``.
+
+    **Returns:** a new float64 array of shape ``(n_nodes, 3)``.
+    """
+    c = constraints
+    x = np.array(points, dtype=np.float64)
+    group = np.asarray(c.group)
+    for nodes, table, cell_group, closest, centres in (
+        (c.surface_nodes, c.triangles, c.triangle_patch, _closest_on_triangles, _triangle_centres),
+        (c.edge_nodes, c.segments, c.segment_curve, _closest_on_segments, _segment_centres),
+    ):
+        nodes = np.asarray(nodes)
+        table = np.asarray(table, dtype=np.float64)
+        cell_group = np.asarray(cell_group)
+        for g in np.unique(group[nodes]):
+            sel = nodes[group[nodes] == g]
+            x[sel] = _search(table, np.flatnonzero(cell_group == g), x[sel], closest, centres)
+    corners = np.asarray(c.corner_nodes)
+    x[corners] = np.asarray(c.x_orig, dtype=np.float64)[corners]
+    return x
+
+
+# ---------------------------------------------------------------------------------------------------- parameters
+
+
+def n_free(constraints: Constraints) -> int:
+    """Number of free coordinates: 3 per interior, 2 per surface, 1 per edge node (a Python int)."""
+    c = constraints
+    return 3 * c.interior_nodes.shape[0] + 2 * c.surface_nodes.shape[0] + c.edge_nodes.shape[0]
+
+
+def _split(constraints: Constraints, u):
+    c = constraints
+    ni, ns = c.interior_nodes.shape[0], c.surface_nodes.shape[0]
+    if u.shape[-1] != n_free(c):
+        raise ValueError(
+            f"the parameter vector has {u.shape[-1]} entries but the constraints have {n_free(c)} free "
+            f"coordinates (3 per interior, 2 per surface, 1 per edge node)"
+        )
+    lead = u.shape[:-1]
+    return (
+        u[..., : 3 * ni].reshape(lead + (ni, 3)),
+        u[..., 3 * ni : 3 * ni + 2 * ns].reshape(lead + (ns, 2)),
+        u[..., 3 * ni + 2 * ns :],
+    )
+
+
+@eqx.filter_jit
+def params_to_points(
+    constraints: Constraints, u: Float[Array, "*batch n_free"], x0: Float[Array, "*batch n 3"]
+) -> Float[Array, "*batch n 3"]:
+    """Node coordinates ``project(x0 + B u)`` from the free coordinates `u` (JAX, differentiable).
+
+    **Arguments:**
+
+    - `constraints`: the `Constraints` of the mesh.
+    - `u`: free coordinates, shape ``(n_free,)`` or ``(..., n_free)``: interior displacements (node-major,
+      x y z), then surface tangent coordinates (node-major, 2 each), then edge tangent coordinates.
+    - `x0`: base coordinates of shape ``(n_nodes, 3)`` (broadcast against the batch of `u`), normally on the
+      boundary already.
+
+    **Returns:** coordinates of shape ``(..., n_nodes, 3)`` in the dtype of `x0` and `u` combined.
+    """
+    c = constraints
+    u = jnp.asarray(u)
+    ui, us, ue = _split(c, u)
+    x0 = jnp.asarray(x0)
+    x = jnp.broadcast_to(x0, jnp.broadcast_shapes(u.shape[:-1] + x0.shape[-2:], x0.shape)).astype(
+        jnp.result_type(x0, u)
+    )
+    x = x.at[..., c.interior_nodes, :].add(ui)
+    x = x.at[..., c.surface_nodes, :].add(jnp.einsum("...sk,skd->...sd", us, c.surface_basis.astype(x.dtype)))
+    x = x.at[..., c.edge_nodes, :].add(ue[..., None] * c.edge_tangent.astype(x.dtype))
+    return project(c, x)
+
+
+@eqx.filter_jit
+def points_to_params(
+    constraints: Constraints, points: Float[Array, "*batch n 3"], x0: Float[Array, "*batch n 3"]
+) -> Float[Array, "*batch n_free"]:
+    """The free coordinates ``B^T (points - x0)`` of a displacement (zero for ``points == x0``).
+
+    It inverts `params_to_points` for displacements along the tangents of planar patches and straight curves.
+
+    **Arguments:** `constraints`; `points` and `x0` of shape ``(..., n_nodes, 3)``.
+
+    **Returns:** an array of shape ``(..., n_free)``.
+    """
+    c = constraints
+    d = jnp.asarray(points) - jnp.asarray(x0)
+    lead = d.shape[:-2]
+    ui = d[..., c.interior_nodes, :].reshape(lead + (-1,))
+    us = jnp.einsum("...sd,skd->...sk", d[..., c.surface_nodes, :], c.surface_basis.astype(d.dtype))
+    ue = (d[..., c.edge_nodes, :] * c.edge_tangent.astype(d.dtype)).sum(-1)
+    return jnp.concatenate([ui, us.reshape(lead + (-1,)), ue], axis=-1)
