@@ -1,0 +1,149 @@
+"""Scaling benchmark: perturbed boxes from 10^3 to 100^3 hexes, time to reach max kappa/3 <= 1.01 and <= 1.0001.
+
+For every (size, method) a fresh subprocess (so peak memory and 'cold' are clean) generates the box (amplitude
+0.3, sliding boundary, seed 0, inverting draws redrawn), runs `jaxci.smooth` once cold (compilation included)
+and once warm to convergence, reads from the history the first iteration where max kappa/3 <= each threshold,
+then re-runs with the iteration cap set to that count (once to compile, once timed): that is the warm time to
+the threshold
+(setup included: classification, constraints, colouring, the float64 quality reports and checks). It also
+times the objective kernel alone on the mesh (corner evaluations per second). Device: `--device cpu|gpu|auto`
+(unchanged code on a GPU machine). Prints a table and writes JSON (`--out`).
+
+    python scripts/benchmark.py --sizes 10 20 30 60 100 --methods lbfgs ci smart-laplace
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+THRESHOLDS = (1.01, 1.0001)
+#: The keyword that caps the iterations of each method family (CI: sweeps; Laplace: sweeps; optimistix: steps).
+CAP = {"ci": "max_sweeps", "smart-laplace": "max_sweeps", "laplace": "max_sweeps"}
+CAP_DEFAULT = "max_steps"
+
+
+def child(args) -> dict:
+    """Run one (size, method) in this process and return its figures."""
+    import resource
+
+    import jax
+
+    if args.device != "auto":
+        jax.config.update("jax_platforms", "cuda" if args.device == "gpu" else "cpu")
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxci import quality as q
+    from jaxci.generate import perturb_box
+    from jaxci.smooth import smooth
+
+    n = args.size
+    t0 = time.perf_counter()
+    mesh = perturb_box(n, amplitude=args.amplitude, seed=args.seed, redraw_inverted=True)
+    t_gen = time.perf_counter() - t0
+    params = json.loads(args.params) if args.params else {}
+    out = dict(size=n, hexes=mesh.n_hexes, nodes=mesh.n_nodes, method=args.method, dtype=args.dtype,
+               device=str(jax.devices()[0]), backend=jax.default_backend(), jax=jax.__version__,
+               generate_s=t_gen, params=params)
+    t0 = time.perf_counter()
+    res = smooth(mesh, args.method, dtype=args.dtype, **params)
+    out["cold_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = smooth(mesh, args.method, dtype=args.dtype, **params)
+    out["warm_s"] = time.perf_counter() - t0
+    k = np.asarray(res.history["max_condition"], dtype=float)
+    out.update(iterations=res.iterations, before_max_condition=res.before.max_condition,
+               after_max_condition=res.after.max_condition, after_objective=res.after.objective,
+               inverted_after=res.after.inverted_elements, history_max_condition=k.tolist())
+    cap = CAP.get(args.method, CAP_DEFAULT)
+    for thr in THRESHOLDS:
+        hit = np.flatnonzero(k <= thr)
+        key = f"to_{thr:g}"
+        if not len(hit):
+            out[key] = None
+            continue
+        it = max(int(hit[0]), 1)
+        capped = {**params, cap: it, "tol": 0.0}
+        smooth(mesh, args.method, dtype=args.dtype, **capped)  # the cap may be a static argument: compile
+        t0 = time.perf_counter()
+        r2 = smooth(mesh, args.method, dtype=args.dtype, **capped)
+        dt = time.perf_counter() - t0
+        out[key] = dict(iterations=it, seconds=dt, reached=r2.after.max_condition)
+    # the objective kernel alone, warm
+    dt = jnp.float32 if args.dtype == "float32" else jnp.float64
+    with jax.enable_x64(args.dtype == "float64"):
+        pts = jnp.asarray(mesh.points, dt)
+        conn = q.transposed(mesh.hexes)
+        jax.block_until_ready(q.objective_t(pts, conn))
+        reps, t0 = 0, time.perf_counter()
+        while reps < 3 or time.perf_counter() - t0 < 0.5:
+            jax.block_until_ready(q.objective_t(pts, conn))
+            reps += 1
+        out["objective_mcorners_per_s"] = 8 * mesh.n_hexes * reps / (time.perf_counter() - t0) / 1e6
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10, 20, 30, 60])
+    ap.add_argument("--methods", nargs="+", default=["lbfgs", "ci", "smart-laplace"])
+    ap.add_argument("--amplitude", type=float, default=0.3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--dtype", choices=["float32", "float64"], default="float32")
+    ap.add_argument("--device", choices=["cpu", "gpu", "auto"], default="auto")
+    ap.add_argument("--params", default="", help="JSON dict of method parameters (applied to every method)")
+    ap.add_argument("--timeout", type=int, default=1800, help="seconds per (size, method)")
+    ap.add_argument("--out", default="results/benchmark.json")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--method", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        print("RESULT " + json.dumps(child(args)), flush=True)
+        return
+    rows = []
+    head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'cold s':>8} {'warm s':>8} {'it':>5} {'final k/3':>10} "
+            f"{'t(1.01) s':>10} {'t(1.0001) s':>12} {'peak MB':>8} {'Mcorner/s':>10}")
+    print(head)
+    for n in args.sizes:
+        for method in args.methods:
+            cmd = [sys.executable, __file__, "--child", "--size", str(n), "--method", method, "--amplitude",
+                   str(args.amplitude), "--seed", str(args.seed), "--dtype", args.dtype, "--device", args.device,
+                   "--params", args.params]
+            try:
+                p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+                line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
+                row = json.loads(line[-1][7:]) if line else dict(size=n, method=method, error=p.stderr[-2000:])
+            except subprocess.TimeoutExpired:
+                row = dict(size=n, method=method, error=f"timed out after {args.timeout} s")
+            rows.append(row)
+            if "error" in row:
+                print(f"{n:>5} {'':>8} {method:>14}  FAILED: {row['error'].strip().splitlines()[-1][:80]}",
+                      flush=True)
+                continue
+
+            def t(key, row=row):
+                v = row.get(key)
+                return "-" if not v else f"{v['seconds']:.2f}"
+
+            print(f"{n:>5} {row['hexes']:>8} {method:>14} {row['cold_s']:>8.2f} {row['warm_s']:>8.2f} "
+                  f"{row['iterations']:>5} {row['after_max_condition']:>10.6f} {t('to_1.01'):>10} "
+                  f"{t('to_1.0001'):>12} {row['peak_rss_mb']:>8.0f} "
+                  f"{row['objective_mcorners_per_s']:>10.0f}", flush=True)
+    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+    tmp = args.out + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(dict(benchmark="scaling", amplitude=args.amplitude, seed=args.seed, dtype=args.dtype,
+                       cpu_count=os.cpu_count(), rows=rows), f, indent=1)
+    os.replace(tmp, args.out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,121 @@
+"""The mesh model's validation and orientation handling, and the box generator's protocol."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from helpers import unit_cube
+
+import jaxci
+from jaxci.errors import MeshError
+from jaxci.generate import box, box_free_axes, perturb_box
+from jaxci.mesh import MIRROR_HEX, CellBlock, HexMesh, corner_determinants, hex_mesh
+
+
+def test_valid_cube():
+    m = hex_mesh(unit_cube(), [list(range(8))])
+    assert m.n_nodes == 8 and m.n_hexes == 1 and m.notes == () and not m.hex_mirrored
+
+
+def test_node_index_out_of_range():
+    with pytest.raises(MeshError, match=r"element 0 references node index 8, out of range \[0, 8\)"):
+        hex_mesh(unit_cube(), [[0, 1, 2, 3, 4, 5, 6, 8]])
+
+
+def test_repeated_node_in_hex():
+    with pytest.raises(MeshError, match="repeats a node"):
+        hex_mesh(unit_cube(), [[0, 1, 2, 2, 4, 5, 6, 7]])
+
+
+def test_non_finite_coordinates():
+    pts = unit_cube()
+    pts[3, 1] = np.nan
+    with pytest.raises(MeshError, match="node 3 has non-finite coordinates"):
+        hex_mesh(pts, [list(range(8))])
+
+
+def test_no_hexahedra():
+    with pytest.raises(MeshError, match="no hexahedra"):
+        HexMesh(unit_cube(), (CellBlock("tetra", np.array([[0, 1, 3, 4]])),))
+
+
+def test_unreferenced_nodes_are_reported_not_rejected():
+    pts = np.vstack([unit_cube(), [[5.0, 5.0, 5.0]]])
+    m = hex_mesh(pts, [list(range(8))])
+    assert any("1 unreferenced nodes" in n for n in m.notes)
+
+
+def test_degenerate_element_reported():
+    pts = unit_cube()
+    pts[4:, 2] = 0.0  # flattened
+    m = hex_mesh(pts, [list(range(8))], fix_orientation=False)
+    assert any("degenerate" in n for n in m.notes)
+
+
+def test_all_left_handed_are_mirrored_and_said():
+    mesh = box(2, 2, 1)
+    left = mesh.hexes[:, MIRROR_HEX]
+    assert (corner_determinants(mesh.points, left) < 0).all()
+    with pytest.warns(UserWarning, match="left-handed"):
+        m = hex_mesh(mesh.points, left)
+    assert m.hex_mirrored and any("mirrored" in n for n in m.notes)
+    assert (corner_determinants(m.points, m.hexes) > 0).all()
+
+
+def test_some_left_handed_are_inverted_not_reordered():
+    mesh = box(2, 1, 1)
+    hexes = mesh.hexes.copy()
+    hexes[0] = hexes[0][MIRROR_HEX]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m = hex_mesh(mesh.points, hexes)
+    assert not m.hex_mirrored
+    assert any("1 inverted hexahedra" in n for n in m.notes)
+
+
+def test_with_points_keeps_everything_but_coordinates():
+    m = jaxci.paper_case("cube27", seed=0)
+    moved = m.with_points(m.points + 0.0)
+    assert moved.cells[0].data is not None and np.array_equal(moved.hexes, m.hexes)
+    with pytest.raises(MeshError, match="shape"):
+        m.with_points(m.points[:-1])
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+def test_box_counts_and_ideal(n):
+    m = box(n, n + 1, n + 2, size=(1.0, 2.0, 3.0))
+    assert m.n_hexes == n * (n + 1) * (n + 2)
+    assert m.n_nodes == (n + 1) * (n + 2) * (n + 3)
+    assert (corner_determinants(m.points, m.hexes) > 0).all()
+
+
+def test_perturbation_protocol():
+    n = 4
+    base = box(n)
+    m = perturb_box(n, amplitude=0.4, seed=3)
+    d = m.points - base.points
+    free = box_free_axes(n, n, n, "sliding")
+    assert np.all(d[~free] == 0)  # corners fixed, faces stay on faces, edges on edges
+    assert np.abs(d).max() <= 0.4 / n + 1e-15
+    assert (corner_determinants(m.points, m.hexes) > 0).all()  # inverting draws were redrawn
+    again = perturb_box(n, amplitude=0.4, seed=3)
+    assert np.array_equal(again.points, m.points)
+    interior = perturb_box(n, amplitude=0.4, seed=3, which="interior")
+    on_boundary = ~box_free_axes(n, n, n, "interior").any(axis=1)
+    assert np.all(interior.points[on_boundary] == base.points[on_boundary])
+
+
+def test_paper_cases_by_name():
+    for name, n in (("cube27", 27), ("cube64", 64), ("cube729", 729)):
+        assert jaxci.paper_case(name, seed=1).n_hexes == n
+    with pytest.raises(MeshError, match="unknown paper case"):
+        jaxci.paper_case("cube1000")
+
+
+def test_bad_box_arguments():
+    with pytest.raises(MeshError, match="positive integer"):
+        box(0)
+    with pytest.raises(MeshError, match="amplitude"):
+        perturb_box(2, amplitude=-1)
