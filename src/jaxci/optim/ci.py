@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -107,6 +108,24 @@ class CIParams:
              f"patience must be an integer >= 1, got {self.patience}")
 
 
+class _Static(typing.NamedTuple):
+    """The hyperparameters that fix array shapes or loop bounds: static under jit (one compile each)."""
+
+    cohort: int
+    variations: int
+    attempts: int
+    max_sweeps: int
+    patience: int
+
+
+def _split(p: CIParams, dtype) -> tuple[_Static, dict]:
+    """Static part and traced part of `p`: changing reduction, widths or tolerances does not recompile."""
+    s = _Static(int(p.cohort), int(p.variations), int(p.attempts), int(p.max_sweeps), int(p.patience))
+    d = {k: jnp.asarray(getattr(p, k), dtype) for k in
+         ("reduction", "delta", "stage_switch", "init_width", "min_width", "tol", "ftol")}
+    return s, d
+
+
 def _follow(key, g, delta, roulette):
     """Index each candidate follows: roulette on 1/(g + delta), or the best. `g` has shape ``(..., C)``, >= 0."""
     logits = -jnp.log(g + delta)  # g = inf (an inverted candidate) -> probability 0
@@ -122,11 +141,11 @@ def _max_condition(points, conn):
 
 
 # ------------------------------------------------------------------------------------------------ local CI
-def _local_ci_colour(key, x, width, cs_i, cons: Constraints, p: CIParams, chunk: int):
+def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict, chunk: int):
     """One cohort run for every node of one colour. Returns new points, new widths, number of moved nodes."""
     nodes, mask, star, smask, basis, dims = (cs_i.nodes, cs_i.mask, cs_i.star, cs_i.smask, cs_i.basis, cs_i.dims)
     M = nodes.shape[0]
-    C, t, T = p.cohort, p.variations, p.attempts
+    C, t, T = s.cohort, s.variations, s.attempts
     dtype = x.dtype
     E = gather_star(x, star)
     ncorner = jnp.maximum(4 * jnp.sum(smask, axis=-1), 1).astype(dtype)  # (M,)
@@ -138,14 +157,14 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, p: CIParams, chunk:
     dim_mask = (jnp.arange(3)[None, :] < dims[:, None]).astype(dtype)  # (M, 3)
     cand = jnp.broadcast_to(x0[:, None], (M, C, 3))
     fc = jnp.broadcast_to(f0[:, None], (M, C))
-    n_roulette = int(round(p.stage_switch * T))
+    n_roulette = jnp.round(d["stage_switch"] * T)
 
     def attempt(a, carry):
         key, cand, fc = carry
         key, kf, ku = jax.random.split(key, 3)
-        follow = _follow(kf, fc, p.delta, a < n_roulette)  # (M, C)
+        follow = _follow(kf, fc, d["delta"], a < n_roulette)  # (M, C)
         centre = jnp.take_along_axis(cand, follow[..., None], axis=1)  # (M, C, 3)
-        w = w0 * p.reduction ** (a + 1).astype(dtype)  # (M,)
+        w = w0 * d["reduction"] ** (a + 1).astype(dtype)  # (M,)
         u = jax.random.uniform(ku, (M, C, t, 3), dtype, -0.5, 0.5) * (w[:, None, None, None] * dim_mask[:, None, None])
         step = jnp.einsum("mij,mctj->mcti", basis, u)
         trials = project_trials(cons, cs_i, (centre[:, :, None] + step).reshape(M, C * t, 3))
@@ -166,13 +185,13 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, p: CIParams, chunk:
     x = x.at[nodes].set(new_pos, mode="drop")
     move = jnp.linalg.norm(new_pos - x0, axis=-1)
     w_new = jnp.where(accept, 4.0 * move, 0.5 * w0)
-    w_new = jnp.clip(w_new, p.min_width * h, p.init_width * h)
+    w_new = jnp.clip(w_new, d["min_width"] * h, d["init_width"] * h)
     width = width.at[nodes].set(w_new, mode="drop")
     return x, width, jnp.sum(accept, dtype=jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnames=("p", "chunk"))
-def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, p: CIParams, chunk: int):
+@functools.partial(jax.jit, static_argnames=("s", "chunk"))
+def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static, d: dict, chunk: int):
     n_colours = cs.nodes.shape[0]
     dtype = x.dtype
     # initial widths: init_width * local edge length of every node
@@ -183,35 +202,35 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, p: CIParam
         return h_all.at[cs_i.nodes].set(local_length(gather_star(x, cs_i.star), cs_i.smask), mode="drop")
 
     h_all = jax.lax.fori_loop(0, n_colours, h_colour, h_all)
-    width = p.init_width * h_all
+    width = d["init_width"] * h_all
     f_init = objective_t(x, conn)
-    hist_f = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(f_init)
-    hist_k = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(_max_condition(x, conn))
-    hist_m = jnp.zeros((p.max_sweeps + 1,), jnp.int32)
+    hist_f = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(f_init)
+    hist_k = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(_max_condition(x, conn))
+    hist_m = jnp.zeros((s.max_sweeps + 1,), jnp.int32)
 
     def sweep(carry):
-        key, x, width, s, f_prev, _, hf, hk, hm = carry
+        key, x, width, it, f_prev, _, hf, hk, hm = carry
         key, ks = jax.random.split(key)
 
         def colour(i, c):
             x, width, moved = c
-            x, width, m = _local_ci_colour(jax.random.fold_in(ks, i), x, width, colour_slice(cs, i), cons, p, chunk)
+            x, width, m = _local_ci_colour(jax.random.fold_in(ks, i), x, width, colour_slice(cs, i), cons, s, d, chunk)
             return x, width, moved + m
 
         x, width, moved = jax.lax.fori_loop(0, n_colours, colour, (x, width, jnp.int32(0)))
         f = objective_t(x, conn)
-        s = s + 1
-        hf, hk, hm = hf.at[s].set(f), hk.at[s].set(_max_condition(x, conn)), hm.at[s].set(moved)
-        done = (f <= p.ftol) | (f_prev - f <= p.tol * f_prev) | (moved == 0)
-        return key, x, width, s, f, done, hf, hk, hm
+        it = it + 1
+        hf, hk, hm = hf.at[it].set(f), hk.at[it].set(_max_condition(x, conn)), hm.at[it].set(moved)
+        done = (f <= d["ftol"]) | (f_prev - f <= d["tol"] * f_prev) | (moved == 0)
+        return key, x, width, it, f, done, hf, hk, hm
 
     def cond(carry):
-        s, done = carry[3], carry[5]
-        return (s < p.max_sweeps) & ~done
+        it, done = carry[3], carry[5]
+        return (it < s.max_sweeps) & ~done
 
-    init = (key, x, width, jnp.int32(0), f_init, f_init <= p.ftol, hist_f, hist_k, hist_m)
-    _, x, _, s, _, _, hf, hk, hm = jax.lax.while_loop(cond, sweep, init)
-    return x, s, hf, hk, hm
+    init = (key, x, width, jnp.int32(0), f_init, f_init <= d["ftol"], hist_f, hist_k, hist_m)
+    _, x, _, it, _, _, hf, hk, hm = jax.lax.while_loop(cond, sweep, init)
+    return x, it, hf, hk, hm
 
 
 def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
@@ -227,17 +246,17 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
     dict of numpy arrays of length ``sweeps + 1`` (entry 0 = input): ``objective``, ``max_condition``,
     ``moved`` (nodes moved in the sweep).
     """
-    x, s, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, p, _auto_chunk(cs, p))
-    s = int(s)
-    return x, s, {"objective": np.asarray(hf[: s + 1]), "max_condition": np.asarray(hk[: s + 1]),
-                  "moved": np.asarray(hm[: s + 1])}
+    x, n, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, *_split(p, points.dtype), _auto_chunk(cs, p))
+    n = int(n)
+    return x, n, {"objective": np.asarray(hf[: n + 1]), "max_condition": np.asarray(hk[: n + 1]),
+                  "moved": np.asarray(hm[: n + 1])}
 
 
 # ------------------------------------------------------------------------------------------------ global CI
-@functools.partial(jax.jit, static_argnames=("p",))
-def _global_ci_run(key, x0, conn, cons: Constraints, scale, p: CIParams):
+@functools.partial(jax.jit, static_argnames=("s",))
+def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict):
     """Faithful global CI over the free coordinates u (shape ``(n_free,)``); `scale` is h per coordinate."""
-    C, t, T = p.cohort, p.variations, p.attempts
+    C, t, T = s.cohort, s.variations, s.attempts
     dtype = x0.dtype
     nf = scale.shape[0]
 
@@ -252,15 +271,15 @@ def _global_ci_run(key, x0, conn, cons: Constraints, scale, p: CIParams):
     cand = jnp.zeros((C, nf), dtype)
     fc = jnp.full((C,), f0)
     hist = jnp.full((T + 1, 3), jnp.nan, dtype).at[0].set(jnp.stack([f0, f0, _max_condition(x0, conn)]))
-    n_roulette = int(round(p.stage_switch * T))
+    n_roulette = jnp.round(d["stage_switch"] * T)
 
     def attempt(carry):
         key, cand, fc, a, hist, calm, _ = carry
         best_before = jnp.min(fc)
         key, kf, ku = jax.random.split(key, 3)
-        follow = _follow(kf, fc, p.delta, a < n_roulette)  # (C,)
+        follow = _follow(kf, fc, d["delta"], a < n_roulette)  # (C,)
         centre = cand[follow]  # (C, nf)
-        w = p.init_width * scale * p.reduction ** (a + 1).astype(dtype)
+        w = d["init_width"] * scale * d["reduction"] ** (a + 1).astype(dtype)
         U = centre[:, None] + jax.random.uniform(ku, (C, t, nf), dtype, -0.5, 0.5) * w
         ft = F_many(U.reshape(C * t, nf)).reshape(C, t)
         j = jnp.argmin(ft, axis=-1)
@@ -271,15 +290,15 @@ def _global_ci_run(key, x0, conn, cons: Constraints, scale, p: CIParams):
         a = a + 1
         kbest = _max_condition(params_to_points(cons, cand[jnp.argmin(fc)], x0), conn)
         hist = hist.at[a].set(jnp.stack([jnp.min(fc), jnp.max(fc), kbest]))
-        scale_f = p.tol * jnp.maximum(jnp.min(fc), p.ftol)
+        scale_f = d["tol"] * jnp.maximum(jnp.min(fc), d["ftol"])
         still = (jnp.max(fc) - jnp.min(fc) <= scale_f) & (best_before - jnp.min(fc) <= scale_f)
         calm = jnp.where(still, calm + 1, 0)
-        return key, cand, fc, a, hist, calm, (calm >= p.patience) | (jnp.min(fc) <= p.ftol)
+        return key, cand, fc, a, hist, calm, (calm >= s.patience) | (jnp.min(fc) <= d["ftol"])
 
     def cond(carry):
         return (carry[3] < T) & ~carry[6]
 
-    init = (key, cand, fc, jnp.int32(0), hist, jnp.int32(0), f0 <= p.ftol)
+    init = (key, cand, fc, jnp.int32(0), hist, jnp.int32(0), f0 <= d["ftol"])
     _, cand, fc, a, hist, _, _ = jax.lax.while_loop(cond, attempt, init)
     best = jnp.argmin(fc)
     x = params_to_points(cons, cand[best], x0)
@@ -293,7 +312,7 @@ def global_ci(key, points, conn, cons: Constraints, scale, p: CIParams):
     F of the cohort), ``worst`` (worst behaviour), ``max_condition`` (of the best candidate), per learning
     attempt; entry 0 = input.
     """
-    x, a, hist = _global_ci_run(key, points, conn, cons, scale, p)
+    x, a, hist = _global_ci_run(key, points, conn, cons, scale, *_split(p, points.dtype))
     a = int(a)
     hist = np.asarray(hist[: a + 1])
     return x, a, {"objective": hist[:, 0], "best": hist[:, 0], "worst": hist[:, 1], "max_condition": hist[:, 2]}
