@@ -1,37 +1,61 @@
-"""jaxci: hexahedral mesh smoothing with Cohort Intelligence, batched in JAX."""
+"""jaxci: hexahedral mesh smoothing with Cohort Intelligence, batched in JAX.
 
+The public API. The light parts (errors, mesh model, generators) are imported at once; the parts that import
+JAX and equinox (quality kernels, boundary constraints, optimizers, I/O) are loaded on first use, so that
+``jaxci --help`` and ``import jaxci`` stay fast (importing JAX + equinox costs seconds).
+"""
+
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
 from .errors import (
-    ConfigError as ConfigError,
+    ConfigError,
+    InvertedMeshError,
+    JaxciError,
+    MeshError,
+    MeshReadError,
+    MeshWriteError,
+    UnsupportedFormatError,
 )
-from .errors import (
-    InvertedMeshError as InvertedMeshError,
-)
-from .errors import (
-    JaxciError as JaxciError,
-)
-from .errors import (
-    MeshError as MeshError,
-)
-from .errors import (
-    MeshReadError as MeshReadError,
-)
-from .errors import (
-    MeshWriteError as MeshWriteError,
-)
-from .errors import (
-    UnsupportedFormatError as UnsupportedFormatError,
-)
-from .generate import PAPER_CASES as PAPER_CASES
-from .generate import box as box
-from .generate import paper_case as paper_case
-from .generate import perturb_box as perturb_box
-from .mesh import CellBlock as CellBlock
-from .mesh import HexMesh as HexMesh
-from .mesh import hex_mesh as hex_mesh
+from .generate import PAPER_CASES, box, paper_case, perturb_box
+from .mesh import CellBlock, HexMesh, hex_mesh
 
 try:
     __version__ = version("jaxci")
 except PackageNotFoundError:  # pragma: no cover
     __version__ = "0.0.0"
+
+#: name -> module of the lazily loaded public API.
+_LAZY = {
+    "smooth": "smooth",
+    "SmoothResult": "smooth",
+    "METHODS": "smooth",
+    "read_mesh": "io",
+    "write_mesh": "io",
+    "quality_report": "quality",
+    "QualityReport": "quality",
+    "objective": "quality",
+    "corner_condition": "quality",
+    "element_condition": "quality",
+    "element_scaled_jacobian": "quality",
+    "classify_boundary": "boundary",
+    "BoundaryInfo": "boundary",
+    "build_constraints": "projection",
+    "project": "projection",
+    "project_np": "projection",
+    "CIParams": "optim.ci",
+}
+
+__all__ = [
+    "CellBlock", "ConfigError", "HexMesh", "InvertedMeshError", "JaxciError", "MeshError", "MeshReadError",
+    "MeshWriteError", "PAPER_CASES", "UnsupportedFormatError", "box", "hex_mesh", "paper_case", "perturb_box",
+    *_LAZY,
+]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(import_module(f".{_LAZY[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'jaxci' has no attribute {name!r}")
