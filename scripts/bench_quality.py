@@ -1,10 +1,10 @@
 """Benchmark: corner evaluations per second of the closed-form kappa vs jnp.linalg.cond (Frobenius and 2-norm).
 
 For box meshes from 9^3 (5,832 corners, the paper's 729-element case) to 100^3 (8 million corners), float32 and
-float64, C = 1 and 8 candidates, it times the whole objective F (gather + per-corner kappa + mean), warm, with the connectivity already
-in the kernels' (8, N) layout, and
-prints a table and writes JSON. The reference paths (SVD / explicit inverse) are skipped above
-`--max-reference-corners` corners because they take minutes there; their throughput is flat in size.
+float64, C = 1 and 8 candidates, it times the whole objective F (gather + per-corner kappa + mean), warm, with
+the connectivity already in the kernels' (8, N) layout, and prints a table and writes JSON. The reference paths
+(SVD / explicit inverse) are skipped above `--max-reference-corners` corners because they take minutes there;
+their throughput is flat in size.
 
     python scripts/bench_quality.py [--sizes 9 20 50 100] [--out results/bench_quality.json]
 """
@@ -74,7 +74,7 @@ def main(argv=None):
                 pts = jnp.asarray(mesh.points, dtype=dtype)
                 if C > 1:
                     pts = jnp.broadcast_to(pts, (C, *pts.shape)) + 0.0
-                methods = {"closed-form": lambda p, h: q.objective_t(p, conn)}
+                methods = {"closed-form": lambda p, h, conn=conn: q.objective_t(p, conn)}
                 if corners <= args.max_reference_corners:
                     if C == 1:
                         methods["cond-fro"] = reference_objective_fro

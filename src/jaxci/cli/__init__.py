@@ -18,6 +18,7 @@ COMMANDS = {
     "generate": ("_generate", "write a structured (optionally perturbed) box mesh"),
     "smooth": ("_smooth", "smooth a mesh (move nodes, keep connectivity) and write it"),
     "classify": ("_classify", "write the boundary node classes of a mesh as point data"),
+    "run": ("_run", "run an experiment config (YAML): every mesh x method x seed, with report and figures"),
 }
 
 
