@@ -1,8 +1,8 @@
 """jaxci: hexahedral mesh smoothing with Cohort Intelligence, batched in JAX.
 
-The public API. The light parts (errors, mesh model, generators) are imported at once; the parts that import
-JAX and equinox (quality kernels, boundary constraints, optimizers, I/O) are loaded on first use, so that
-``jaxci --help`` and ``import jaxci`` stay fast (importing JAX + equinox costs seconds).
+The public API. `smooth` is imported at once (a function named like its module must be bound before anything
+imports the module, or ``jaxci.smooth`` would become the module); the rest of the JAX-side API (I/O, quality
+kernels, constraints, CI parameters) is loaded on first use.
 """
 
 from importlib import import_module
@@ -19,6 +19,7 @@ from .errors import (
 )
 from .generate import PAPER_CASES, box, paper_case, perturb_box
 from .mesh import CellBlock, HexMesh, hex_mesh
+from .smooth import METHODS, SmoothResult, smooth  # eager: the function must shadow its module's name
 
 try:
     __version__ = version("jaxci")
@@ -27,9 +28,6 @@ except PackageNotFoundError:  # pragma: no cover
 
 #: name -> module of the lazily loaded public API.
 _LAZY = {
-    "smooth": "smooth",
-    "SmoothResult": "smooth",
-    "METHODS": "smooth",
     "read_mesh": "io",
     "write_mesh": "io",
     "quality_report": "quality",
@@ -49,6 +47,7 @@ _LAZY = {
 __all__ = [
     "CellBlock", "ConfigError", "HexMesh", "InvertedMeshError", "JaxciError", "MeshError", "MeshReadError",
     "MeshWriteError", "PAPER_CASES", "UnsupportedFormatError", "box", "hex_mesh", "paper_case", "perturb_box",
+    "METHODS", "SmoothResult", "smooth",
     *_LAZY,
 ]
 
