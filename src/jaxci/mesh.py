@@ -7,6 +7,14 @@ of 4..7 (unit cube: P0=(0,0,0), P1=(1,0,0), P2=(1,1,0), P3=(0,1,0), P4..P7 the s
 A `HexMesh` keeps every cell block, point/cell data array and named set it was read with, so that a smoothed
 mesh is written back unchanged except for the node coordinates. Smoothing never changes connectivity: use
 `HexMesh.with_points` to make the moved mesh.
+
+**Quadratic cells** (ANSYS SOLID186 20-node bricks and their wedge/pyramid/tetrahedron forms, SOLID187 10-node
+tetrahedra) are held as their linear cell (`CellBlock.data`, the corner nodes: what is measured and smoothed) plus
+`CellBlock.midside`: the node on each edge, in the edge order of `EDGES` (VTK's quadratic cells and ANSYS's
+midside order Q R S T U V W X Y Z A B of a brick), -1 where an edge has none (ANSYS allows dropping midside
+nodes). A midside node belongs to one edge: two cells that share it must share that edge, and no cell may use it as
+a corner (checked on construction). `HexMesh.with_points` moves every midside node with its edge: to the midpoint of
+the edge's moved corner nodes, plus the offset it had from the old midpoint when that edge was curved.
 """
 
 from __future__ import annotations
@@ -39,6 +47,24 @@ CORNER_NEIGHBOURS = np.array(
 #: inverse; it turns a left-handed element (all eight corner determinants negative) into a right-handed one.
 MIRROR_HEX = np.array([4, 5, 6, 7, 0, 1, 2, 3], dtype=np.int64)
 
+#: Permutation of the 12 hexahedron edges (`EDGES`) that goes with `MIRROR_HEX`.
+MIRROR_HEX_EDGES = np.array([4, 5, 6, 7, 0, 1, 2, 3, 8, 9, 10, 11], dtype=np.int64)
+
+#: Edges (pairs of local corner nodes) of the linear volume cells, in the order of the midside nodes of VTK's
+#: quadratic cells (``hexahedron20``, ``wedge15``, ``pyramid13``, ``tetra10``) and of ANSYS's SOLID186/187.
+EDGES = {
+    "hexahedron": np.array(
+        [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]]
+    ),
+    "wedge": np.array([[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3], [0, 3], [1, 4], [2, 5]]),
+    "pyramid": np.array([[0, 1], [1, 2], [2, 3], [3, 0], [0, 4], [1, 4], [2, 4], [3, 4]]),
+    "tetra": np.array([[0, 1], [1, 2], [2, 0], [0, 3], [1, 3], [2, 3]]),
+}
+
+#: Relative distance from its edge's midpoint (to the edge length) below which a midside node counts as ON the
+#: midpoint (a straight edge; files keep 13-14 digits): `HexMesh.with_points` then puts it exactly there.
+MIDPOINT_TOLERANCE = 1e-9
+
 #: Number of nodes of the cell types jaxci knows (meshio names).
 NODES_PER_CELL = {
     "vertex": 1,
@@ -70,11 +96,14 @@ class CellBlock:
     - `type`: the meshio cell type name (``"hexahedron"``, ``"quad"``, ``"wedge"``, ...).
     - `data`: connectivity, an integer array of shape ``(n_cells, nodes_per_cell)`` of 0-based node indices.
     - `ids`: optional external element ids (ANSYS, Abaqus), shape ``(n_cells,)``.
+    - `midside`: optional midside nodes of quadratic cells, shape ``(n_cells, n_edges)`` (edges in `EDGES` order;
+      -1 where an edge has none); only for ``hexahedron``, ``wedge``, ``pyramid`` and ``tetra`` blocks.
     """
 
     type: str
     data: np.ndarray
     ids: np.ndarray | None = None
+    midside: np.ndarray | None = None
 
 
 def corner_determinants(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
@@ -122,8 +151,10 @@ class HexMesh:
       construction; `jaxci.io.write_mesh` mirrors them back so the file keeps its convention.
     - `fix_orientation`: mirror left-handed hexahedra when ALL of them are left-handed (default True).
 
-    Construction validates: node indices in range, no node repeated within a hexahedron, finite coordinates.
-    It records notes (`notes`) for unreferenced nodes, degenerate corners (det == 0) and inverted elements.
+    Construction validates: node indices in range, no node repeated within a hexahedron, finite coordinates, and
+    midside nodes of quadratic cells (`CellBlock.midside`) in range, each on one edge and no cell's corner.
+    It records notes (`notes`) for unreferenced nodes (midside nodes are referenced), degenerate corners
+    (det == 0) and inverted elements.
     """
 
     points: np.ndarray
@@ -176,7 +207,8 @@ class HexMesh:
             ids = None if blk.ids is None else np.asarray(blk.ids)
             if ids is not None and ids.shape != (data.shape[0],):
                 raise MeshError(f"{where}cell block {bi}: {ids.shape[0]} ids for {data.shape[0]} cells")
-            blocks.append(CellBlock(blk.type, data, ids))
+            mid = None if blk.midside is None else self._check_midside(blk, bi, data, ids, n, where)
+            blocks.append(CellBlock(blk.type, data, ids, mid))
         if not any(b.type == "hexahedron" and len(b.data) for b in blocks):
             found = sorted({b.type for b in blocks if len(b.data)}) or ["no cells"]
             raise MeshError(f"{where}the mesh has no hexahedra (found: {', '.join(found)})")
@@ -195,9 +227,7 @@ class HexMesh:
         det = corner_determinants(pts, hexes)
         left = (det < 0).all(axis=1)
         if fix_orientation and left.all():
-            blocks = [
-                CellBlock(b.type, b.data[:, MIRROR_HEX], b.ids) if b.type == "hexahedron" else b for b in blocks
-            ]
+            blocks = [mirrored_block(b) if b.type == "hexahedron" else b for b in blocks]
             mirrored = not mirrored
             msg = "every hexahedron was left-handed (all corner determinants < 0): node order mirrored to VTK's"
             notes.append(msg)
@@ -219,12 +249,31 @@ class HexMesh:
         used = np.zeros(n, bool)
         for b in blocks:
             used[b.data.ravel()] = True
+        midside, _ = _midside_table(blocks, used, where, self._node_label)
+        used[midside] = True
         if not used.all():
             notes.append(f"{int((~used).sum())} unreferenced nodes (kept, never moved)")
         object.__setattr__(self, "points", pts)
         object.__setattr__(self, "cells", tuple(blocks))
         object.__setattr__(self, "hex_mirrored", mirrored)
         object.__setattr__(self, "notes", tuple(notes))
+
+    @staticmethod
+    def _check_midside(blk: CellBlock, bi: int, data: np.ndarray, ids, n: int, where: str) -> np.ndarray:
+        mid = _as_int_array(blk.midside, f"{where}midside nodes of cell block {bi} ({blk.type})")
+        if blk.type not in EDGES:
+            raise MeshError(f"{where}cell block {bi} ({blk.type}) has midside nodes; only hexahedron, wedge, "
+                            f"pyramid and tetra blocks can (quadratic cells as linear cells plus midside nodes)")
+        shape = (len(data), len(EDGES[blk.type]))
+        if mid.shape != shape:
+            raise MeshError(f"{where}midside nodes of cell block {bi} ({blk.type}) have shape {mid.shape}, "
+                            f"expected {shape}")
+        bad = (mid < -1) | (mid >= n)
+        if bad.any():
+            row = int(np.flatnonzero(bad.any(axis=1))[0])
+            raise MeshError(f"{where}{blk.type} element {HexMesh._cell_label(CellBlock(blk.type, data, ids), row)} "
+                            f"has midside node index {int(mid[row][bad[row]][0])}, out of range [0, {n})")
+        return mid
 
     # ------------------------------------------------------------------ labels for messages
     def _node_label(self, k: int) -> str:
@@ -267,18 +316,114 @@ class HexMesh:
         return int(sum(len(b.data) for b in self.cells if b.type == "hexahedron"))
 
     @property
+    def midside_edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """The midside nodes of the mesh's quadratic cells and the corner nodes of their edges.
+
+        **Returns:** ``(nodes, ends)``: node indices of shape ``(m,)`` (each once, sorted) and the two corner nodes
+        of each one's edge, shape ``(m, 2)``; empty for a linear mesh.
+        """
+        used = np.zeros(self.n_nodes, bool)
+        for b in self.cells:
+            used[b.data.ravel()] = True
+        return _midside_table(self.cells, used, "", self._node_label)
+
+    @property
     def other_cell_types(self) -> list[str]:
         """Types of the non-hexahedron blocks (kept and written back; not smoothed as hexahedra)."""
         return [b.type for b in self.cells if b.type != "hexahedron"]
 
-    def with_points(self, points: np.ndarray, *, notes: Sequence[str] | None = None) -> HexMesh:
-        """The same mesh (connectivity, data, sets, ids) with new node coordinates of shape ``(n_nodes, 3)``."""
-        pts = np.asarray(points, dtype=np.float64)
+    def with_points(
+        self, points: np.ndarray, *, notes: Sequence[str] | None = None, midside: str = "follow"
+    ) -> HexMesh:
+        """The same mesh (connectivity, data, sets, ids) with new node coordinates.
+
+        **Arguments:**
+
+        - `points`: the new coordinates, shape ``(n_nodes, 3)``.
+        - `notes`: keyword only; the new mesh's notes (default none).
+        - `midside`: keyword only; what happens to the midside nodes of quadratic cells (`midside_edges`), whose
+          coordinates in `points` are ignored unless ``"keep"``: ``"follow"`` (default) puts each at the midpoint
+          of its edge's two corner nodes (as given in `points`) plus the offset it had from the old midpoint, so a
+          straight edge stays straight with its node in the middle and a curved edge keeps its bow; offsets
+          below `MIDPOINT_TOLERANCE` times the edge length count as 0. ``"midpoint"``: exactly the midpoint
+          (straightens curved edges). ``"keep"``: the coordinates in `points`.
+
+        **Returns:** a new `HexMesh`; when midside nodes were re-placed, a note says how many.
+        """
+        pts = np.array(points, dtype=np.float64)
         if pts.shape != self.points.shape:
             raise MeshError(f"new points have shape {pts.shape}, the mesh has {self.points.shape}")
-        return dataclasses.replace(
-            self, points=pts, fix_orientation=False, notes=tuple(notes) if notes is not None else ()
+        if midside not in ("follow", "midpoint", "keep"):
+            raise ValueError(f"midside must be 'follow', 'midpoint' or 'keep', got {midside!r}")
+        out_notes = list(notes) if notes is not None else []
+        nodes, ends = self.midside_edges
+        if len(nodes) and midside != "keep":
+            a, b = ends[:, 0], ends[:, 1]
+            centre = 0.5 * (pts[a] + pts[b])
+            curved = 0
+            if midside == "follow":
+                old = self.points
+                offset = old[nodes] - 0.5 * (old[a] + old[b])
+                length = np.linalg.norm(old[b] - old[a], axis=1)
+                straight = np.linalg.norm(offset, axis=1) <= MIDPOINT_TOLERANCE * length
+                offset[straight] = 0.0
+                curved = int((~straight).sum())
+                centre += offset
+            pts[nodes] = centre
+            out_notes.append(
+                f"{len(nodes)} midside nodes of quadratic cells re-placed at the midpoints of their edges' corner "
+                f"nodes" + (f" ({curved} on curved edges keep their offset from the midpoint)" if curved else "")
+            )
+        return dataclasses.replace(self, points=pts, fix_orientation=False, notes=tuple(out_notes))
+
+
+def mirrored_block(b: CellBlock) -> CellBlock:
+    """A hexahedron block mirrored by `MIRROR_HEX` (its midside nodes by `MIRROR_HEX_EDGES`)."""
+    mid = None if b.midside is None else np.asarray(b.midside)[:, MIRROR_HEX_EDGES]
+    return CellBlock(b.type, np.asarray(b.data)[:, MIRROR_HEX], b.ids, mid)
+
+
+def _midside_table(blocks, corner_used: np.ndarray, where: str, label) -> tuple[np.ndarray, np.ndarray]:
+    """Midside nodes of all blocks (sorted, unique) and their edges' corner nodes; checks that each node belongs
+    to one edge and is no cell's corner (`MeshError` naming the node and both elements otherwise)."""
+    rows = []  # (midside node, corner a, corner b, block, cell)
+    for bi, b in enumerate(blocks):
+        if b.midside is None or not len(b.data):
+            continue
+        mid = np.asarray(b.midside)
+        ends = np.asarray(b.data)[:, EDGES[b.type]]  # (N, E, 2)
+        cell = np.broadcast_to(np.arange(len(mid))[:, None], mid.shape)
+        has = mid >= 0
+        lo, hi = np.sort(ends, axis=2)[..., 0], np.sort(ends, axis=2)[..., 1]
+        rows.append(np.stack([mid[has], lo[has], hi[has], np.full(int(has.sum()), bi), cell[has]], axis=1))
+    if not rows:
+        return np.zeros(0, np.int64), np.zeros((0, 2), np.int64)
+    t = np.concatenate(rows)
+    t = t[np.lexsort((t[:, 4], t[:, 3], t[:, 0]))]
+
+    def elem(r) -> str:
+        blk = blocks[int(r[3])]
+        return f"{blk.type} element {HexMesh._cell_label(blk, int(r[4]))}"
+
+    corner = corner_used[t[:, 0]]
+    if corner.any():
+        r = t[int(np.flatnonzero(corner)[0])]
+        raise MeshError(
+            f"{where}node {label(int(r[0]))} is a midside node of {elem(r)} (edge {label(int(r[1]))}-"
+            f"{label(int(r[2]))}) and a corner node of a cell; a midside node belongs to one edge only"
         )
+    same = t[1:, 0] == t[:-1, 0]
+    clash = same & ((t[1:, 1] != t[:-1, 1]) | (t[1:, 2] != t[:-1, 2]))
+    if clash.any():
+        k = int(np.flatnonzero(clash)[0])
+        r, s = t[k], t[k + 1]
+        raise MeshError(
+            f"{where}midside node {label(int(r[0]))} is shared inconsistently: it lies on edge "
+            f"{label(int(r[1]))}-{label(int(r[2]))} of {elem(r)} but on edge {label(int(s[1]))}-{label(int(s[2]))} "
+            f"of {elem(s)} ({int(clash.sum())} such nodes); a midside node belongs to one edge only"
+        )
+    first = np.concatenate([[True], ~same])
+    return t[first, 0], t[first][:, 1:3]
 
 
 def hex_mesh(points, hexes, **kwargs) -> HexMesh:

@@ -254,7 +254,21 @@ class QualityReport:
     """What `jaxci quality` prints: counts, inverted corners/elements, condition figures, Table 1 histogram.
 
     Condition figures are kappa/3 (Frobenius, Verdict convention) over VALID corners and elements only;
-    `objective` is F (Eq. 3.1) over the valid corners, None if there are none.
+    `objective` is F (Eq. 3.1) over the valid corners, None if there are none. All these keys (and
+    `n_elements`) are about the HEXAHEDRA only, as they always were.
+
+    Every volume cell type (`jaxci.elements`: hexahedron, wedge, pyramid, tetra; quadratic cells by their
+    corner nodes) is in:
+
+    - `by_type`: type -> {``count``, ``inverted`` (cells), ``max_condition``, ``mean_condition`` (corner kappa/3
+      relative to the type's ideal cell, over the corners of valid cells), ``min_scaled_jacobian`` (Verdict's
+      element scaled Jacobian; for hexahedra the min corner one, as `min_scaled_jacobian`),
+      ``verdict_condition`` (max of VTK's ``HexCondition`` / ``WedgeCondition`` / ``TetCondition`` over valid
+      cells; pyramids: max corner kappa/3), ``objective`` (the type's mean of (kappa/3)^2 - 1 over its valid
+      corners)};
+    - `overall`: the same over all cells (no ``verdict_condition``); its ``objective`` is Eq. 3.1 over every
+      valid element corner, `jaxci.elements.mixed_objective` when no corner is inverted (on a hexahedral mesh:
+      `objective`).
     """
 
     n_nodes: int
@@ -268,6 +282,8 @@ class QualityReport:
     histogram: tuple[tuple[float, float, int], ...]
     worst_element: int | None = None
     other_cells: dict | None = None
+    by_type: dict | None = None
+    overall: dict | None = None
 
     def to_dict(self) -> dict:
         """The JSON object of ``jaxci quality --json`` (histogram as a list of {low, high, count})."""
@@ -319,4 +335,21 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
         worst_element=worst,
         other_cells={t: int(sum(len(b.data) for b in mesh.cells if b.type == t)) for t in mesh.other_cell_types}
         or None,
+        **_by_type(mesh, pts, {"kappa3": kappa3, "inverted": inv_el, "scaled_jacobian": sj.min(axis=1),
+                               "verdict_condition": elem_max}),
     )
+
+
+def _by_type(mesh: HexMesh, points, hex_figures: dict) -> dict:
+    """The `by_type` and `overall` fields of `quality_report`: `hex_figures` (the hexahedra's, computed above, in
+    the layout of `jaxci.elements.corner_figures`), `jaxci.elements.corner_figures` for the other types."""
+    from .elements import corner_figures, element_blocks, summary
+
+    figs = {t: hex_figures if t == "hexahedron" else corner_figures(points, cells, t)
+            for t, cells in element_blocks(mesh).items()}
+    by_type = {}
+    for t, f in figs.items():
+        ok = ~f["inverted"]
+        by_type[t] = {**summary([f]), "verdict_condition": float(f["verdict_condition"][ok].max()) if ok.any()
+                      else None}
+    return {"by_type": by_type, "overall": summary(list(figs.values()))}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 from ..errors import MeshReadError, MeshWriteError, UnsupportedFormatError
@@ -143,11 +144,15 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     | Gmsh 4.1 / 2.2 (`.msh`)      | kept, ints -> float64 | physical groups only | physical names | no |
     | Abaqus (`.inp`)              | dropped              | kept                 | dropped       | no  |
     | XDMF (`.xdmf`, `.xmf`) (2)   | kept, with dtypes    | kept (1)             | dropped       | no  |
-    | ANSYS APDL (`.mac`, `.apdl`, `.ans`, `.cdb`) | `ansys:*` only | dropped  | dropped       | yes |
+    | ANSYS APDL (`.mac`, `.apdl`, `.ans`, `.cdb`) | `ansys:*` only | components (3) | `ansys:*` only | yes |
 
     (1) as 0/1 integer data named ``set:NAME``, turned back into sets on reading. (2) with a ``.h5`` data file
-    beside it; needs the h5py package.
-    APDL holds hexahedra, wedges, pyramids and tetrahedra only, with 14 significant digits per coordinate.
+    beside it; needs the h5py package. (3) CMBLOCK node / element components, for set names ANSYS accepts.
+    APDL holds hexahedra, wedges, pyramids and tetrahedra only (8-node bricks, SOLID186 20-node bricks and their
+    degenerate forms, SOLID285/187 tetrahedra), with 14 significant digits per coordinate, and keeps the element
+    types (``ET``) and key options of a file it read. The midside nodes of quadratic cells (`CellBlock.midside`)
+    are written by APDL only; the other formats write the linear cells with a `LossyWriteWarning` (the midside
+    nodes stay in the file as unreferenced points, at their moved positions).
     Details in the docstrings of `jaxci.io._meshio` and `jaxci.io._ansys_apdl`.
 
     **Arguments:**
@@ -169,6 +174,14 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     fmt = _format_of(path, file_format, _WRITERS)
     inputs = _inputs(mesh)
     _refuse_input(path, inputs)
+    quadratic = sum(len(b.data) for b in mesh.cells if b.midside is not None)
+    if quadratic and fmt != "apdl":
+        warnings.warn(
+            f"{path.name}: {fmt} gets the {quadratic} quadratic cells as linear cells (their corner nodes); their "
+            f"midside nodes are written as unreferenced points. Write .cdb / .mac to keep them",
+            LossyWriteWarning,
+            stacklevel=2,
+        )
     folder = path.parent
     if not folder.is_dir():
         raise MeshWriteError(f"{path}: folder {folder} does not exist")

@@ -1,10 +1,10 @@
 """ANSYS meshes: the brick model shared by the NLIST/ELIST listing reader and the APDL NBLOCK/EBLOCK reader/writer.
 
 Both ANSYS text formats describe a mesh the same way: node numbers with coordinates, and solid bricks (SOLID185,
-or the corner nodes of SOLID186) with an element number, the attributes MAT TYP REL ESY SEC and the eight nodes
-I J K L M N O P. I J K L go around one face, M N O P around the opposite one, M above I: that is VTK's
-hexahedron order 0..7 unchanged. ANSYS writes wedges, pyramids and tetrahedra as degenerate bricks, which jaxci
-turns into proper cells (kept and written back, not smoothed as hexahedra):
+or SOLID186 with its 12 midside nodes) with an element number, the attributes MAT TYP REL ESY SEC and the eight
+corner nodes I J K L M N O P. I J K L go around one face, M N O P around the opposite one, M above I: that is
+VTK's hexahedron order 0..7 unchanged. ANSYS writes wedges, pyramids and tetrahedra as degenerate bricks, which
+jaxci turns into proper cells (kept and written back, not smoothed as hexahedra):
 
 | ANSYS nodes I..P  | shape        | jaxci cell block, VTK node order |
 |-------------------|--------------|----------------------------------|
@@ -17,11 +17,21 @@ ANSYS and VTK >= 9.7 (VTK before 9.7 numbered wedges the opposite way round and 
 Any other repeated-node pattern is an error. ANSYS node numbers become `HexMesh.node_ids`, element numbers
 `CellBlock.ids`, and MAT TYP REL ESY SEC the integer cell data ``ansys:mat``, ``ansys:typ``, ``ansys:rel``,
 ``ansys:esy``, ``ansys:sec``.
+
+**Quadratic elements.** The midside nodes Q R S T (edges IJ JK KL LI), U V W X (MN NO OP PM), Y Z A B (IM JN KO LP)
+of a 20-node brick become `CellBlock.midside` of its cell, in `jaxci.mesh.EDGES` order (the same order for a
+hexahedron); a node number 0 (a dropped midside node) becomes -1. The degenerate forms follow ANSYS's SOLID186
+pattern (`MIDSIDE_FROM_BRICK`): wedge ``Q R K T U V O X Y Z A A``, pyramid ``Q R S T M M M M Y Z A B``,
+tetrahedron ``Q R K T M M M M Y Z A A`` (a merged midside position may also be 0); anything else is refused.
+A 10-node tetrahedron (SOLID187: I J K L, then M N O P Q R on edges IJ JK KI IL JL KL) is read as the brick
+I J K K L L L L with those midside nodes. `jaxci.mesh.HexMesh.with_points` moves the midside nodes with their
+edges, and the writer writes the elements back with the same node count.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -30,6 +40,9 @@ from ..mesh import CellBlock, HexMesh
 
 #: Names of the cell data that hold an ANSYS element's attributes, in ELIST column order.
 ATTRIBUTES = ("ansys:mat", "ansys:typ", "ansys:rel", "ansys:esy", "ansys:sec")
+#: Cell data of the other EBLOCK fields: birth/death flag, solid model reference, element shape flag (kept only
+#: when some element has a non-zero value).
+EXTRA_ATTRIBUTES = ("ansys:birth", "ansys:solid", "ansys:shape")
 #: Attribute values given to elements that have none (a mesh read from another format).
 DEFAULT_ATTRIBUTES = (1, 1, 1, 0, 1)
 
@@ -40,6 +53,15 @@ _FROM_BRICK = {
     "pyramid": ([0, 1, 2, 3, 4], 5),
     "tetra": ([0, 1, 2, 4], 4),
 }
+#: For each jaxci cell type, the brick midside columns (0..11 = Q..B) that hold the cell's midside nodes in
+#: `jaxci.mesh.EDGES` order, and the (column, what it must equal) pattern of the merged positions: a corner column
+#: 0..7 of I..P (or 0, no node) or ``("mid", c)``: the same node as midside column c.
+MIDSIDE_FROM_BRICK = {
+    "hexahedron": (list(range(12)), []),
+    "wedge": ([0, 1, 3, 4, 5, 7, 8, 9, 10], [(2, 2), (6, 6), (11, ("mid", 10))]),
+    "pyramid": ([0, 1, 2, 3, 8, 9, 10, 11], [(4, 4), (5, 4), (6, 4), (7, 4)]),
+    "tetra": ([0, 1, 3, 8, 9, 10], [(2, 2), (4, 4), (5, 4), (6, 4), (7, 4), (11, ("mid", 10))]),
+}
 #: Inverse: which node of each cell goes to I..P of the degenerate brick ANSYS stores.
 TO_BRICK = {
     "hexahedron": [0, 1, 2, 3, 4, 5, 6, 7],
@@ -47,6 +69,26 @@ TO_BRICK = {
     "pyramid": [0, 1, 2, 3, 4, 4, 4, 4],
     "tetra": [0, 1, 2, 2, 3, 3, 3, 3],
 }
+#: Inverse for midside nodes: the source of each brick midside column Q..B: ``("mid", i)`` the cell's midside
+#: node i, ``("node", j)`` the cell's corner node j (a merged position).
+MIDSIDE_TO_BRICK = {
+    "hexahedron": [("mid", i) for i in range(12)],
+    "wedge": [("mid", 0), ("mid", 1), ("node", 2), ("mid", 2), ("mid", 3), ("mid", 4), ("node", 5), ("mid", 5),
+              ("mid", 6), ("mid", 7), ("mid", 8), ("mid", 8)],
+    "pyramid": [("mid", 0), ("mid", 1), ("mid", 2), ("mid", 3)] + [("node", 4)] * 4
+    + [("mid", 4), ("mid", 5), ("mid", 6), ("mid", 7)],
+    "tetra": [("mid", 0), ("mid", 1), ("node", 2), ("mid", 2)] + [("node", 3)] * 4
+    + [("mid", 3), ("mid", 4), ("mid", 5), ("mid", 5)],
+}
+
+#: ANSYS element routines (the number of ``ET,itype,number``) jaxci reads, by family: 8-node solid bricks,
+#: 20-node bricks (midside nodes), 4-node and 10-node tetrahedra. Any other type used by an element is refused.
+BRICK8 = {45: "SOLID45", 65: "SOLID65", 70: "SOLID70", 164: "SOLID164", 185: "SOLID185", 278: "SOLID278"}
+BRICK20 = {90: "SOLID90", 95: "SOLID95", 186: "SOLID186", 279: "SOLID279"}
+TET4 = {285: "SOLID285"}
+TET10 = {92: "SOLID92", 187: "SOLID187"}
+#: Names of element routines, for messages and ``ET`` lines (others are written as their number).
+ELEMENT_NAMES = {**BRICK8, **BRICK20, **TET4, **TET10, 200: "MESH200"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,7 +102,14 @@ class Bricks:
     - `corners`: node numbers I..P of each brick, shape ``(m, 8)``.
     - `files`: the files read; `node_src`, `elem_src`: (file index, line number) of each row, shapes ``(n, 2)``
       and ``(m, 2)``.
-    - `n_midside`: how many elements were listed with 20 nodes (SOLID186: only the 8 corners are kept).
+    - `n_midside`: how many elements were listed with 20 nodes (SOLID186 bricks); `n_tet10`: with 10 (SOLID187).
+    - `midside`: node numbers Q..B of each brick's midside nodes, shape ``(m, 12)``, 0 where none; None when no
+      element has any.
+    - `angles`: nodal rotation angles THXY THYZ THZX (NBLOCK), shape ``(n, 3)``; None when all are 0.
+    - `extra`: EBLOCK birth/death flag, solid model reference and shape flag, shape ``(m, 3)``; None when all 0.
+    - `etypes`: ``ET`` records, ``[itype, routine]`` rows of shape ``(k, 2)``; `keyopts`: ``KEYOPT`` records,
+      ``[itype, knum, value]`` rows of shape ``(j, 3)``; None when the file has none.
+    - `components`: CMBLOCK components, ``(name, "NODE" | "ELEM", ids, where)`` with the numbers expanded.
     """
 
     node_ids: np.ndarray
@@ -72,6 +121,13 @@ class Bricks:
     node_src: np.ndarray
     elem_src: np.ndarray
     n_midside: int = 0
+    n_tet10: int = 0
+    midside: np.ndarray | None = None
+    angles: np.ndarray | None = None
+    extra: np.ndarray | None = None
+    etypes: np.ndarray | None = None
+    keyopts: np.ndarray | None = None
+    components: tuple = ()
 
     def where_node(self, k: int) -> str:
         return f"{self.files[self.node_src[k, 0]]}, line {self.node_src[k, 1]}"
@@ -90,13 +146,24 @@ def _first_duplicate(ids: np.ndarray) -> tuple[int, int] | None:
     return tuple(int(p) for p in pairs[np.argmin(pairs[:, 1])])
 
 
-def to_hexmesh(b: Bricks, source: str, node_list: str) -> HexMesh:
+def _lookup(sorted_ids: np.ndarray, order: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """0-based positions of `ids` among the node (or element) numbers, and where they are missing."""
+    if len(sorted_ids) == 0:
+        return np.zeros(ids.shape, np.int64), np.ones(ids.shape, bool)
+    pos = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
+    return order[pos], sorted_ids[pos] != ids
+
+
+def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = ()) -> HexMesh:
     """Build the `HexMesh` of an ANSYS mesh: map node numbers, turn degenerate bricks into cells.
 
     **Arguments:** `b` the parsed rows; `source` the value of `HexMesh.source` (the file or files read);
-    `node_list` what the nodes came from, for messages (``"NLIST"``, ``"NBLOCK"``).
+    `node_list` what the nodes came from, for messages (``"NLIST"``, ``"NBLOCK"``); `notes` the reader's own
+    notes.
 
-    **Returns:** a `HexMesh` with blocks ``hexahedron``, then ``wedge``, ``pyramid``, ``tetra`` when present.
+    **Returns:** a `HexMesh` with blocks ``hexahedron``, then ``wedge``, ``pyramid``, ``tetra`` when present (with
+    their midside nodes), ``ansys:*`` cell data, ``ansys:angles`` point data, ``ansys:et`` / ``ansys:keyopt``
+    field data and the components as point and cell sets.
     """
     if (dup := _first_duplicate(b.node_ids)) is not None:
         i, j = dup
@@ -108,15 +175,24 @@ def to_hexmesh(b: Bricks, source: str, node_list: str) -> HexMesh:
         )
     order = np.argsort(b.node_ids)
     sorted_ids = b.node_ids[order]
-    pos = np.minimum(np.searchsorted(sorted_ids, b.corners), len(sorted_ids) - 1)
-    missing = sorted_ids[pos] != b.corners
+    conn, missing = _lookup(sorted_ids, order, b.corners)  # (m, 8) 0-based node indices
+    mid_conn = None
+    if b.midside is not None:
+        mid_conn, mid_missing = _lookup(sorted_ids, order, b.midside)
+        mid_missing &= b.midside != 0
+        mid_conn = np.where(b.midside != 0, mid_conn, -1)
+        if mid_missing.any() and not missing.any():
+            k, c = (int(v) for v in np.argwhere(mid_missing)[0])
+            raise MeshReadError(
+                f"{b.where_elem(k)}: element {b.elem_ids[k]} references midside node {b.midside[k, c]}, which is "
+                f"not in the {node_list} ({int(mid_missing.any(axis=1).sum())} such elements)"
+            )
     if missing.any():
         k, c = (int(v) for v in np.argwhere(missing)[0])
         raise MeshReadError(
             f"{b.where_elem(k)}: element {b.elem_ids[k]} references node {b.corners[k, c]}, which is not in "
             f"the {node_list} ({int(missing.any(axis=1).sum())} such elements)"
         )
-    conn = order[pos]  # (m, 8) 0-based node indices
 
     srt = np.sort(conn, axis=1)
     distinct = 1 + (srt[:, 1:] != srt[:, :-1]).sum(axis=1)
@@ -140,14 +216,23 @@ def to_hexmesh(b: Bricks, source: str, node_list: str) -> HexMesh:
         )
 
     blocks, cell_data = [], {name: [] for name in ATTRIBUTES}
+    extra = {name: [] for name in EXTRA_ATTRIBUTES} if b.extra is not None else {}
+    rows_of = []  # element rows of each block, for the components
     for cell_type, mask in kind.items():
         if not mask.any():
             continue
         cols, _ = _FROM_BRICK[cell_type]
-        blocks.append(CellBlock(cell_type, c[mask][:, cols], b.elem_ids[mask]))
+        mid = None
+        if mid_conn is not None and (b.midside[mask] != 0).any():
+            mid = _cell_midside(b, mask, mid_conn, cell_type)
+        blocks.append(CellBlock(cell_type, c[mask][:, cols], b.elem_ids[mask], mid))
+        rows_of.append(np.flatnonzero(mask))
         for a, name in enumerate(ATTRIBUTES):
             cell_data[name].append(b.attrs[mask, a])
-    notes = []
+        for a, name in enumerate(extra):
+            extra[name].append(b.extra[mask, a])
+    cell_data.update(extra)
+    notes = list(notes)
     converted = {t: int(kind[t].sum()) for t in ("wedge", "pyramid", "tetra") if kind[t].any()}
     if converted:
         parts = ", ".join(f"{n} to {t}" for t, n in converted.items())
@@ -155,19 +240,109 @@ def to_hexmesh(b: Bricks, source: str, node_list: str) -> HexMesh:
             f"{sum(converted.values())} degenerate bricks converted ({parts}); kept and written back, not "
             f"smoothed as hexahedra"
         )
-    if b.n_midside:
+    if b.n_midside or b.n_tet10:
+        listed = " and ".join(([f"{b.n_midside} elements listed with 20 nodes (SOLID186)"] if b.n_midside else [])
+                              + ([f"{b.n_tet10} with 10 nodes (SOLID187)"] if b.n_tet10 else []))
         notes.append(
-            f"{b.n_midside} elements listed with 20 nodes (SOLID186): read as 8-node bricks from their corner "
-            f"nodes I..P; the midside nodes are kept as unreferenced nodes"
+            f"{listed}: measured and smoothed by their corner nodes; their midside nodes follow their edges "
+            f"(re-placed at the midpoints of the moved corner nodes) and are written back"
         )
+    point_sets, cell_sets = _components(b, order, sorted_ids, rows_of, notes)
+    field_data = {}
+    if b.etypes is not None:
+        field_data["ansys:et"] = np.asarray(b.etypes, np.int64).reshape(-1, 2)
+    if b.keyopts is not None:
+        field_data["ansys:keyopt"] = np.asarray(b.keyopts, np.int64).reshape(-1, 3)
     return HexMesh(
         np.asarray(b.points, dtype=np.float64),
         tuple(blocks),
+        point_data={} if b.angles is None else {"ansys:angles": np.asarray(b.angles, np.float64)},
         cell_data=cell_data,
+        point_sets=point_sets,
+        cell_sets=cell_sets,
+        field_data=field_data,
         node_ids=b.node_ids,
         source=source,
         notes=tuple(notes),
     )
+
+
+def _cell_midside(b: Bricks, mask: np.ndarray, mid_conn: np.ndarray, cell_type: str) -> np.ndarray:
+    """The midside nodes (0-based, -1 for none) of the bricks `mask` of one cell type, in `EDGES` order; refuses a
+    degenerate brick whose merged midside positions do not follow ANSYS's pattern."""
+    cols, pattern = MIDSIDE_FROM_BRICK[cell_type]
+    raw, corners = b.midside[mask], b.corners[mask]
+    bad = np.zeros(len(raw), bool)
+    for col, src in pattern:
+        want = raw[:, src[1]] if isinstance(src, tuple) else corners[:, src]
+        bad |= (raw[:, col] != want) & (raw[:, col] != 0)
+    if bad.any():
+        k = int(np.flatnonzero(mask)[np.flatnonzero(bad)[0]])
+        letters = "QRSTUVWXYZAB"
+        expect = " ".join(
+            (f"{letters[src[1]]}" if isinstance(src, tuple) else "IJKLMNOP"[src]) + f"={letters[col]}"
+            for col, src in pattern
+        )
+        raise MeshReadError(
+            f"{b.where_elem(k)}: 20-node element {b.elem_ids[k]} is a degenerate brick ({cell_type}) whose midside "
+            f"nodes Q..B = {' '.join(str(v) for v in b.midside[k])} do not follow ANSYS's pattern for it "
+            f"({expect}); jaxci cannot tell which edge they belong to"
+        )
+    return mid_conn[mask][:, cols]
+
+
+def _expand(items: list[int]) -> np.ndarray:
+    """CMBLOCK items to numbers: a negative item -j after i means i+1..j."""
+    out, prev = [], None
+    for v in items:
+        if v < 0 and prev is not None:
+            out.extend(range(prev + 1, -v + 1))
+            prev = None
+        else:
+            out.append(v)
+            prev = v
+    return np.asarray(out, dtype=np.int64)
+
+
+def _components(b: Bricks, order, sorted_ids, rows_of: list[np.ndarray], notes: list[str]) -> tuple[dict, dict]:
+    """CMBLOCK components as point sets (node indices) and cell sets (row indices per block)."""
+    point_sets, cell_sets = {}, {}
+    if not b.components:
+        return point_sets, cell_sets
+    eorder = np.argsort(b.elem_ids)
+    block_of = np.zeros(len(b.elem_ids), np.int64)
+    row_in = np.zeros(len(b.elem_ids), np.int64)
+    for bi, rows in enumerate(rows_of):
+        block_of[rows], row_in[rows] = bi, np.arange(len(rows))
+    for name, kind, ids, _where in b.components:
+        ids = np.unique(ids)
+        if kind == "NODE":
+            idx, missing = _lookup(sorted_ids, order, ids)
+            point_sets[name] = np.sort(idx[~missing])
+        else:
+            idx, missing = _lookup(b.elem_ids[eorder], eorder, ids)
+            idx = idx[~missing]
+            cell_sets[name] = [np.sort(row_in[idx[block_of[idx] == bi]]) for bi in range(len(rows_of))]
+        if missing.any():
+            notes.append(
+                f"component {name} lists {int(missing.sum())} {'node' if kind == 'NODE' else 'element'} numbers "
+                f"that the file does not define (first {int(ids[missing][0])}); left out"
+            )
+    return point_sets, cell_sets
+
+
+def element_routines(mesh: HexMesh, typ: np.ndarray, has_mid: np.ndarray) -> dict[int, int]:
+    """ANSYS element routine of every element type number: the mesh's ``ansys:et`` records, else SOLID186 for a
+    type with midside nodes and SOLID185 for the others."""
+    known = {}
+    et = mesh.field_data.get("ansys:et")
+    if et is not None:
+        known = {int(t): int(r) for t, r in np.asarray(et, np.int64).reshape(-1, 2)}
+    out = dict(known)
+    for t in np.unique(typ).tolist():
+        if t not in out:
+            out[t] = 186 if has_mid[typ == t].any() else 185
+    return out
 
 
 def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bricks, list[str]]:
@@ -175,23 +350,25 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
 
     **Arguments:**
 
-    - `mesh`: the mesh (node ids, ``ansys:*`` cell data).
-    - `cells`: its cell blocks as the file should hold them (`jaxci.io._meshio.file_cells`).
+    - `mesh`: the mesh (node ids, ``ansys:*`` cell data, ``ansys:angles``, ``ansys:et`` / ``ansys:keyopt``).
+    - `cells`: its cell blocks as the file should hold them (hexahedra in the file's handedness).
     - `where`: the file being written, for messages.
 
     **Returns:** `(bricks, dropped)`; `dropped` names the blocks left out (``"12 quad"``). Nodes without ids are
-    numbered 1..n, elements without ids from one past the largest element id.
+    numbered 1..n, elements without ids from one past the largest element id. `bricks.midside` holds the midside
+    node numbers in brick form (0 for none), `bricks.etypes` every element type's routine.
     """
     node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
     known_ids = [np.asarray(blk.ids) for blk in cells if blk.ids is not None and blk.type in TO_BRICK]
     next_id = int(max((ids.max() for ids in known_ids if len(ids)), default=0)) + 1
-    corners, elem_ids, attrs, dropped = [], [], [], []
+    corners, mids, elem_ids, attrs, extra, dropped = [], [], [], [], [], []
     for i, blk in enumerate(cells):
         if blk.type not in TO_BRICK:
             dropped.append(f"{len(blk.data)} {blk.type}")
             continue
         n = len(blk.data)
         corners.append(node_ids[blk.data[:, TO_BRICK[blk.type]]])
+        mids.append(_brick_midside(blk, node_ids))
         if blk.ids is None:
             elem_ids.append(np.arange(next_id, next_id + n))
             next_id += n
@@ -202,7 +379,11 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
             values = mesh.cell_data[name][i] if name in mesh.cell_data else np.full(n, default)
             cols.append(np.asarray(values).astype(np.int64))
         attrs.append(np.stack(cols, axis=1))
+        extra.append(np.stack([np.asarray(mesh.cell_data[name][i]).astype(np.int64) if name in mesh.cell_data
+                               else np.zeros(n, np.int64) for name in EXTRA_ATTRIBUTES], axis=1))
     empty8 = np.zeros((0, 8), np.int64)
+    m = sum(map(len, elem_ids))
+    angles = mesh.point_data.get("ansys:angles")
     b = Bricks(
         node_ids=node_ids,
         points=mesh.points,
@@ -211,11 +392,38 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
         corners=np.concatenate(corners) if corners else empty8,
         files=(where,),
         node_src=np.zeros((mesh.n_nodes, 2), np.int64),
-        elem_src=np.zeros((sum(map(len, elem_ids)), 2), np.int64),
+        elem_src=np.zeros((m, 2), np.int64),
+        midside=np.concatenate(mids) if mids else np.zeros((0, 12), np.int64),
+        angles=None if angles is None else np.asarray(angles, np.float64).reshape(-1, 3),
+        extra=np.concatenate(extra) if extra else np.zeros((0, 3), np.int64),
+        keyopts=mesh.field_data.get("ansys:keyopt"),
     )
     for ids, what in ((b.node_ids, "node"), (b.elem_ids, "element")):
         if (dup := _first_duplicate(ids)) is not None:
             raise MeshWriteError(f"{where}: {what} id {ids[dup[1]]} is used twice; ANSYS ids must be unique")
         if len(ids) and ids.min() < 1:
             raise MeshWriteError(f"{where}: {what} id {ids.min()} is not positive; ANSYS ids start at 1")
-    return b, dropped
+    routines = element_routines(mesh, b.attrs[:, 1], _has_midside(b))
+    return dataclasses.replace(b, etypes=np.array(sorted(routines.items()), np.int64).reshape(-1, 2)), dropped
+
+
+def _has_midside(b: Bricks) -> np.ndarray:
+    """Which bricks have a midside node of their own (not a merged corner position), shape ``(m,)``."""
+    mid = b.midside
+    if mid is None or not len(mid):
+        return np.zeros(len(b.elem_ids), bool)
+    return ((mid != 0) & ~(mid[:, :, None] == b.corners[:, None, :]).any(axis=2)).any(axis=1)
+
+
+def _brick_midside(blk: CellBlock, node_ids: np.ndarray) -> np.ndarray:
+    """Midside node numbers Q..B of the degenerate bricks of a block (0 where none), shape ``(N, 12)``."""
+    n = len(blk.data)
+    if blk.midside is None:
+        return np.zeros((n, 12), np.int64)
+    mid = np.asarray(blk.midside)
+    has = mid >= 0
+    num = np.where(has, node_ids[np.where(has, mid, 0)], 0)
+    out = np.zeros((n, 12), np.int64)
+    for col, (src, j) in enumerate(MIDSIDE_TO_BRICK[blk.type]):
+        out[:, col] = num[:, j] if src == "mid" else node_ids[blk.data[:, j]]
+    return out

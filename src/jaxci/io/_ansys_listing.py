@@ -21,7 +21,7 @@ made only of numbers is a data row and is checked strictly:
   coordinates may be in any float notation (``0.10000E-01``);
 - an element row has ELEM MAT TYP REL ESY SEC and the 8 nodes I..P (14 integers). A 20-node SOLID186 brick
   continues its node list on following lines indented past the SEC column: its first 8 nodes are the corners
-  I..P, which are kept; the 12 midside nodes are dropped from the element (and noted).
+  I..P, the other 12 its midside nodes Q..B (kept with the element: see `jaxci.io._ansys`).
 
 Nodes must be listed in the global Cartesian system (``DSYS=0``).
 """
@@ -137,6 +137,8 @@ class _Rows:
             n_midside += n == 20
         nodes = np.array(self.nodes, dtype=np.float64).reshape(-1, 4)
         elems = np.array([row[:_ELEM_FIELDS] for row in self.elems], dtype=np.int64).reshape(-1, _ELEM_FIELDS)
+        midside = np.array([row[_ELEM_FIELDS:] if len(row) > _ELEM_FIELDS else [0] * 12 for row in self.elems],
+                           dtype=np.int64).reshape(-1, 12)
         return Bricks(
             node_ids=np.array([row[0] for row in self.nodes], dtype=np.int64),
             points=nodes[:, 1:],
@@ -147,6 +149,7 @@ class _Rows:
             node_src=np.array(self.node_src, dtype=np.int64).reshape(-1, 2),
             elem_src=np.array(self.elem_src, dtype=np.int64).reshape(-1, 2),
             n_midside=n_midside,
+            midside=midside if (midside != 0).any() else None,
         )
 
 
