@@ -101,8 +101,8 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 def _run_method(problem: Problem, method: str, key, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params)."""
     if method in ("ci", "ci-global"):
-        from .optim.ci import CIParams, global_ci, local_ci
         from .optim._moves import coloured_stars
+        from .optim.ci import CIParams, global_ci, local_ci
 
         try:
             p = CIParams(**params)
@@ -157,16 +157,20 @@ def smooth(
 
     - `mesh`: the input `HexMesh` (not modified).
     - `method`: one of `METHODS`: ``"ci"`` batched local Cohort Intelligence (default), ``"ci-global"`` the
-      paper's global CI.
+      paper's global CI; ``"bfgs"``, ``"lbfgs"``, ``"cg"``, ``"lm"``, ``"gauss-newton"`` the optimistix
+      baselines (`jaxci.optim.gradient`); ``"laplace"``, ``"smart-laplace"`` (`jaxci.optim.laplace`).
     - `seed`: seed of the `jax.random` key of stochastic methods (same seed, same result). The key uses the
       ``"rbg"`` generator (XLA's RngBitGenerator): its code compiles in a tenth of the time of threefry's.
     - `dtype`: ``"float32"`` (default, fast) or ``"float64"``.
     - `feature_angle`: degrees; boundary edges sharper than this are feature curves (nodes slide along them).
     - `fix_boundary`: fix every boundary node; `fixed_nodes`: node indices to fix; `fixed_sets`: names of node
       sets of the file to fix.
-    - `untangle`: ``"auto"`` (untangle first if the input has inverted elements), ``"always"``, ``"never"``
-      (refuse inverted input).
-    - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams` fields).
+    - `untangle`: ``"auto"`` (untangle first if the input has inverted elements, `jaxci.optim.untangle`),
+      ``"always"`` (run the untangling stage anyway: it also lifts corners below its det margin), ``"never"``
+      (refuse inverted input with `InvertedMeshError`). If untangling fails, `InvertedMeshError` is raised.
+    - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,
+      `jaxci.optim.gradient.GradientParams`, `jaxci.optim.laplace.LaplaceParams` fields); keys starting with
+      ``untangle_`` go to `jaxci.optim.untangle.UntangleParams` (e.g. ``untangle_margin=1e-2``).
 
     **Returns:** a `SmoothResult`.
     """
@@ -180,23 +184,43 @@ def smooth(
     notes: list[str] = []
     with jax.enable_x64(True):
         before = quality_report(mesh)
-    if before.inverted_corners:
+    untangle_params = {k[len("untangle_"):]: params.pop(k) for k in list(params) if k.startswith("untangle_")}
+    untangled = None
+    if before.inverted_corners and untangle == "never":
         where = f"{mesh.source}: " if mesh.source else ""
         bad = np.flatnonzero((corner_determinants(mesh.points, mesh.hexes) <= 0).any(axis=1))
         raise InvertedMeshError(
             f"{where}the mesh has {before.inverted_elements} inverted elements ({before.inverted_corners} corners "
             f"with det <= 0; first: element {mesh.hex_label(int(bad[0]))}); it must be untangled before it can "
-            f"be smoothed, and no untangling stage is available for method {method!r}"
+            f"be smoothed, and untangle='never' was given"
         )
+    if before.inverted_corners or untangle == "always":
+        from .optim.untangle import UntangleParams, untangle_stage
+
+        try:
+            up = UntangleParams(**untangle_params)
+        except TypeError as e:
+            raise ConfigError(f"unknown untangling parameter (untangle_*): {e}") from None
+        info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
+                                 fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
+        untangled, untangle_notes = untangle_stage(mesh, info, up)  # InvertedMeshError if it fails
+        notes.extend(untangle_notes)
     np_dtype = _DTYPES[dtype]
     with jax.enable_x64(dtype == "float64"):
         problem = build_problem(mesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                 fixed_nodes=fixed_nodes, fixed_sets=fixed_sets)
+        if untangled is not None:
+            problem = dataclasses.replace(problem, x0=jnp.asarray(untangled, np_dtype))
         x, iterations, history, resolved = _run_method(problem, method, jax.random.key(seed, impl="rbg"), params)
         x = np.asarray(x, dtype=np.float64)
     notes.extend(problem.info.notes)
     with jax.enable_x64(True):
-        points, check_notes = _enforce_invariants(mesh, problem, x)
+        if untangled is None:
+            points, check_notes = _enforce_invariants(mesh, problem, x)
+        else:
+            from .optim.untangle import enforce_after_untangling
+
+            points, check_notes = enforce_after_untangling(mesh, problem.info, untangled, x)
         notes.extend(check_notes)
         after = quality_report(mesh, points)
     history = _standard_history(history)

@@ -1,0 +1,213 @@
+"""Laplacian and smart Laplacian smoothing: every free node to the centroid of its edge neighbours, by colours.
+
+**Laplacian** (``"laplace"``): a node's target is the mean of the nodes joined to it by a hexahedron edge (each
+neighbour once). The move ``d = centroid - x`` is restricted to the node's free directions (``B B^T d`` with
+the move basis of `jaxci.optim._moves`: all of d inside, its tangent part on a surface, its component along
+the curve on an edge) and the new position is projected onto the node's constraint (`project_trials`). Every
+move is accepted: on a concave region the plain Laplacian can fold elements, which is what it is compared for.
+
+**Smart Laplacian** (``"smart-laplace"``): the same target, but a node moves only if the sum of (kappa/3)^2
+over the corners it moves (`local_terms`) decreases and none of them inverts; the steps ``1, 1/2, 1/4, ...``
+(`LaplaceParams.backtrack` of them) of the move are tried at once and the longest acceptable one is taken.
+Nodes of one colour share no element, so F decreases by the sum of the accepted local decreases: from a valid
+mesh the smart Laplacian never inverts a corner and never raises F.
+
+Both sweep the colours in turn (Gauss-Seidel by colour, as the local CI does: `ColouredStars`, one batched
+evaluation per colour, `jax.lax` loops under one `jax.jit`) until the largest move of a sweep is below
+``tol * h`` (h the local edge length of the node that moved) or after `max_sweeps` sweeps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ConfigError
+from ..projection import Constraints
+from ..quality import condition_from_invariants, corner_columns, corner_invariants, gather_corners, objective_t
+from ._local import gather_star, local_length, local_terms
+from ._moves import ColouredStars, colour_slice, coloured_stars, project_trials
+
+#: Method names of this module.
+METHODS = ("laplace", "smart-laplace")
+
+#: The 12 edges of a hexahedron in VTK node order.
+HEX_EDGES = np.array(
+    [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class LaplaceParams:
+    """Hyperparameters of the (smart) Laplacian. Validated on construction (`ConfigError`).
+
+    - `max_sweeps`: most colour sweeps (default 500, >= 1).
+    - `tol`: stop when the largest move of a sweep is below ``tol * h`` (h: local edge length), default 1e-5.
+    - `backtrack`: smart Laplacian only: number of step lengths tried, ``1, 1/2, ..., 1/2^(backtrack-1)``
+      (default 3; 1: the full step or nothing).
+    """
+
+    max_sweeps: int = 500
+    tol: float = 1e-5
+    backtrack: int = 3
+
+    def __post_init__(self):
+        def need(ok, msg):
+            if not ok:
+                raise ConfigError(f"Laplace parameter {msg}")
+
+        need(int(self.max_sweeps) == self.max_sweeps and self.max_sweeps >= 1,
+             f"max_sweeps must be an integer >= 1, got {self.max_sweeps!r}")
+        need(self.tol >= 0, f"tol must be >= 0, got {self.tol!r}")
+        need(int(self.backtrack) == self.backtrack and 1 <= self.backtrack <= 16,
+             f"backtrack must be an integer in [1, 16], got {self.backtrack!r}")
+
+
+def edge_neighbours(hexes: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes joined to each node by a hexahedron edge, each once, padded.
+
+    **Arguments:** `hexes` of shape ``(N, 8)``; `n_nodes`.
+
+    **Returns:** ``(nbr, mask)`` of shape ``(n_nodes, K)`` (K the largest number of edge neighbours; padding
+    repeats the node itself and is False in `mask`).
+    """
+    hexes = np.asarray(hexes, dtype=np.int64)
+    e = hexes[:, HEX_EDGES].reshape(-1, 2)
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    both = np.concatenate([e, e[:, ::-1]])
+    both = both[np.lexsort((both[:, 1], both[:, 0]))]
+    deg = np.bincount(both[:, 0], minlength=n_nodes)
+    K = max(int(deg.max(initial=0)), 1)
+    start = np.concatenate([[0], np.cumsum(deg)[:-1]])
+    k = np.arange(len(both)) - start[both[:, 0]]
+    nbr = np.repeat(np.arange(n_nodes)[:, None], K, axis=1)
+    nbr[both[:, 0], k] = both[:, 1]
+    mask = np.zeros((n_nodes, K), bool)
+    mask[both[:, 0], k] = True
+    return nbr, mask
+
+
+def _max_condition(x, conn):
+    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
+    return jnp.max(jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)))
+
+
+def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n_steps: int):
+    """Move every node of one colour; returns new points and the largest move relative to h."""
+    nodes, mask = cs_i.nodes, cs_i.mask
+    safe = jnp.minimum(nodes, x.shape[0] - 1)
+    x0 = x[safe]  # (M, 3)
+    w = nmask_i.astype(x.dtype)
+    cnt = jnp.maximum(jnp.sum(w, axis=-1, keepdims=True), 1.0)
+    centroid = jnp.stack([jnp.sum(x[:, d][nbr_i] * w, axis=-1) for d in range(3)], axis=-1) / cnt
+    d = centroid - x0
+    dt = jnp.einsum("mij,mj->mi", cs_i.basis, jnp.einsum("mji,mj->mi", cs_i.basis, d))
+    fractions = jnp.asarray([0.5**k for k in range(n_steps)], x.dtype)
+    trials = x0[:, None] + fractions[None, :, None] * dt[:, None]  # (M, S, 3)
+    trials = project_trials(cons, cs_i, trials)
+    if smart:
+        E = gather_star(x, cs_i.star)
+        f0 = local_terms(E, cs_i.smask, x0[:, None])[:, 0]
+        ft = local_terms(E, cs_i.smask, trials)
+        ok = (ft < f0[:, None]) & jnp.isfinite(ft)
+        j = jnp.argmax(ok, axis=1)  # the longest acceptable step
+        accept = mask & jnp.any(ok, axis=1)
+        new = jnp.take_along_axis(trials, j[:, None, None], axis=1)[:, 0]
+    else:
+        accept = mask
+        new = trials[:, 0]
+    new = jnp.where(accept[:, None], new, x0)
+    move = jnp.linalg.norm(new - x0, axis=-1) / h_i
+    x = x.at[nodes].set(new, mode="drop")
+    return x, jnp.max(jnp.where(mask, move, 0.0))
+
+
+@functools.partial(jax.jit, static_argnames=("smart", "p"))
+def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smart: bool, p: LaplaceParams):
+    n_colours = cs.nodes.shape[0]
+    dtype = x.dtype
+
+    def h_colour(i):
+        cs_i = colour_slice(cs, i)
+        h = local_length(gather_star(x, cs_i.star), cs_i.smask)
+        return jnp.where(h > 0, h, 1.0)
+
+    h = jax.lax.map(h_colour, jnp.arange(n_colours))  # (n_colours, M)
+    hist_f = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(objective_t(x, conn))
+    hist_k = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(_max_condition(x, conn))
+    hist_m = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(0.0)
+
+    def sweep(carry):
+        x, s, _, hf, hk, hm = carry
+
+        def colour(i, c):
+            x, mv = c
+            x, m = _colour_step(x, colour_slice(cs, i), nbr[i], nmask[i], h[i], cons, smart, p.backtrack if smart
+                                else 1)
+            return x, jnp.maximum(mv, m)
+
+        x, mv = jax.lax.fori_loop(0, n_colours, colour, (x, jnp.zeros((), dtype)))
+        s = s + 1
+        hf = hf.at[s].set(objective_t(x, conn))
+        hk = hk.at[s].set(_max_condition(x, conn))
+        hm = hm.at[s].set(mv)
+        return x, s, mv <= p.tol, hf, hk, hm
+
+    def cond(carry):
+        return (carry[1] < p.max_sweeps) & ~carry[2]
+
+    x, s, _, hf, hk, hm = jax.lax.while_loop(cond, sweep, (x, jnp.int32(0), jnp.array(False), hist_f, hist_k, hist_m))
+    return x, s, hf, hk, hm
+
+
+def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: LaplaceParams = LaplaceParams(),
+            *, smart: bool = False):
+    """Run the (smart) Laplacian from `points` ``(n, 3)``.
+
+    **Arguments:**
+
+    - `points`: start coordinates ``(n, 3)``; `conn`: transposed connectivity ``(8, N)``.
+    - `cs`: `ColouredStars` of the mesh (`coloured_stars`); `nbr`, `nmask`: ``(n_colours, M, K)`` edge
+      neighbours of the nodes of `cs` and their mask (`coloured_neighbours`).
+    - `cons`: the `Constraints`; `p`: `LaplaceParams`; `smart`: the smart variant.
+
+    **Returns:** ``(points, sweeps, history, params)``: coordinates ``(n, 3)``, the number of sweeps, numpy
+    arrays of length ``sweeps + 1`` (entry 0 = input): ``objective`` (F; ``inf`` once an element is inverted),
+    ``max_condition`` (max kappa/3, ``inf`` likewise) and ``max_move`` (largest move of the sweep / h); and the
+    resolved hyperparameters.
+    """
+    x, s, hf, hk, hm = _laplace_run(points, conn, cs, nbr, nmask, cons, bool(smart), p)
+    s = int(s)
+    hist = {"objective": np.asarray(hf[: s + 1]), "max_condition": np.asarray(hk[: s + 1]),
+            "max_move": np.asarray(hm[: s + 1])}
+    return x, s, hist, {"method": "smart-laplace" if smart else "laplace", **dataclasses.asdict(p)}
+
+
+def coloured_neighbours(cs: ColouredStars, hexes: np.ndarray, n_nodes: int) -> tuple[jax.Array, jax.Array]:
+    """Edge neighbours laid out like `cs.nodes`: ``(n_colours, M, K)`` indices and mask."""
+    nbr, mask = edge_neighbours(hexes, n_nodes)
+    nodes = np.asarray(cs.nodes)
+    real = np.asarray(cs.mask)
+    safe = np.minimum(nodes, n_nodes - 1)
+    return jnp.asarray(nbr[safe].astype(np.int32)), jnp.asarray(mask[safe] & real[..., None])
+
+
+def run_laplace(problem, method: str, params: dict):
+    """`jaxci.smooth`'s entry: `LaplaceParams` from `params`, stars and neighbours of `problem`, then `laplace`.
+
+    **Returns:** ``(points, sweeps, history, resolved params)``.
+    """
+    if method not in METHODS:
+        raise ConfigError(f"unknown Laplace method {method!r}; choose one of {', '.join(METHODS)}")
+    try:
+        p = LaplaceParams(**params)
+    except TypeError as e:
+        raise ConfigError(f"unknown Laplace parameter: {e}") from None
+    mesh = problem.mesh
+    cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces)
+    nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes)
+    return laplace(problem.x0, problem.conn, cs, nbr, nmask, problem.cons, p, smart=method == "smart-laplace")

@@ -1,0 +1,237 @@
+"""Untangling: move nodes until no hexahedron corner is inverted, before shape improvement.
+
+F (Eq. 3.1) is infinite on a tangled mesh, so it cannot drive the nodes out of a fold. This stage minimises the
+regularised Winslow-type energy of Garanzha, Kaporin, Kudryavtseva, Protais, Ray, Sokolov (2021), "Foldover-free
+maps in 50 lines of code" (ACM ToG 40(4)), the method behind Gmsh's ``UntangleMeshGeometry``. Per hex corner,
+with ``J = A / L_e`` (the corner matrix of element e over a reference length L_e: the mean edge length of e in
+the input, so an ideal corner has ``J = I``):
+
+    E_c = (1 - theta) (|J|_F^2 / 3) / chi(eps, det J)^(2/3) + theta (det J^2 + 1) / chi(eps, det J),
+    chi(eps, d) = (d + sqrt(eps^2 + d^2)) / 2,
+
+summed over all corners (scaled by 1/32 per corner, as `jaxci.optim.gradient` scales F). chi is a smooth,
+positive stand-in for det that tends to det for det >> eps and to eps^2 / (4 |det|) for det < 0, so E is finite
+and smooth on tangled meshes and the fold is pushed out as eps decreases. The eps schedule is the paper's:
+start with ``eps = sqrt(1e-12 + 0.04 min(det_min, 0)^2)``; after each inner minimisation with E_prev, E,
+``sigma = max(1 - E / E_prev, 0.1)``, ``mu = (1 - sigma) chi(eps, det_min)``, and
+``eps = 2 sqrt(mu (mu - det_min))`` if ``det_min < mu`` else ``1e-10``.
+
+Each inner minimisation is optimistix's L-BFGS over the same constrained parametrisation as the gradient
+methods (`jaxci.optim.gradient.Parametrisation`: interior nodes free, surface nodes on their patch, edge nodes on
+their curve, corners fixed; all on the ORIGINAL boundary), and stops as soon as every corner has
+``det J >= margin`` (det A >= margin L_e^3); the stage stops there. The result is projected onto the original
+boundary in float64 (`project_np`) and checked: no corner with det <= 0, else `InvertedMeshError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ..boundary import CORNER, BoundaryInfo
+from ..errors import ConfigError, InvertedMeshError
+from ..mesh import HexMesh, corner_determinants
+from ..projection import Constraints, project_np
+from ..quality import corner_columns, gather_corners, transposed
+from .gradient import _CORNERS_PER_NODE, Parametrisation, _solve, make_parametrisation
+
+
+@dataclasses.dataclass(frozen=True)
+class UntangleParams:
+    """Hyperparameters of the untangling stage. Validated on construction (`ConfigError`).
+
+    - `theta`: weight in [0, 1) of the volume term (det^2 + 1)/chi against the shape term (default 0.1).
+    - `margin`: target: every corner with det A >= margin * L_e^3 (default 1e-3; > 0).
+    - `max_rounds`: most eps updates (outer iterations, default 60).
+    - `inner_steps`: most L-BFGS steps per round (default 400).
+    - `rtol`, `atol`: L-BFGS termination per round (default 1e-7 each).
+    """
+
+    theta: float = 0.1
+    margin: float = 1e-3
+    max_rounds: int = 60
+    inner_steps: int = 400
+    rtol: float = 1e-7
+    atol: float = 1e-7
+
+    def __post_init__(self):
+        def need(ok, msg):
+            if not ok:
+                raise ConfigError(f"untangling parameter {msg}")
+
+        need(0 <= self.theta < 1, f"theta must be in [0, 1), got {self.theta!r}")
+        need(0 < self.margin < 1, f"margin must be in (0, 1), got {self.margin!r}")
+        for name in ("max_rounds", "inner_steps"):
+            v = getattr(self, name)
+            need(int(v) == v and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
+        need(self.rtol > 0 and self.atol > 0, "rtol and atol must be > 0")
+
+
+def _chi(eps, d):
+    return 0.5 * (d + jnp.sqrt(eps * eps + d * d))
+
+
+def _normalised_corners(x, conn, inv_len):
+    """det J and |J|_F^2 per corner (``J = A / L_e``), shapes ``(8, N)``."""
+    ax, ay, az, bx, by, bz, cx, cy, cz = (col * inv_len for col in corner_columns(*gather_corners(x, conn)))
+    det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+    fro2 = ax * ax + ay * ay + az * az + bx * bx + by * by + bz * bz + cx * cx + cy * cy + cz * cz
+    return det, fro2
+
+
+def _energy_fn(v, args):
+    par, conn, inv_len, eps, theta, margin = args
+    det, fro2 = _normalised_corners(par.points(v), conn, inv_len)
+    c = _chi(eps, det)
+    e = (1.0 - theta) * (fro2 / 3.0) / c ** (2.0 / 3.0) + theta * (det * det + 1.0) / c
+    energy = jnp.sum(jax.lax.optimization_barrier(e)) / _CORNERS_PER_NODE
+    dmin = jnp.min(jax.lax.optimization_barrier(det))
+    return energy, (energy, dmin, dmin >= margin)
+
+
+@jax.jit
+def _state(par, conn, inv_len, eps, theta, margin, v):
+    return _energy_fn(v, (par, conn, inv_len, eps, theta, margin))[1][:2]
+
+
+@jax.jit
+def _points(par, v):
+    return par.points(v)
+
+
+def element_lengths(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
+    """Mean length of the 12 edges of each hexahedron, shape ``(N,)`` (float64)."""
+    from .laplace import HEX_EDGES
+
+    p = np.asarray(points, dtype=np.float64)
+    e = np.asarray(hexes)[:, HEX_EDGES]  # (N, 12, 2)
+    return np.linalg.norm(p[e[..., 1]] - p[e[..., 0]], axis=-1).mean(axis=1)
+
+
+def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntangleParams = UntangleParams()):
+    """Untangle `mesh` (float64) keeping its boundary nodes on the original boundary.
+
+    **Arguments:**
+
+    - `mesh`: the input `HexMesh` (its coordinates are the start and define the original boundary).
+    - `info`, `cons`: its `BoundaryInfo` and float64 `Constraints`.
+    - `p`: `UntangleParams`.
+
+    **Returns:** ``(points, report)``: float64 coordinates ``(n, 3)`` projected onto the original boundary
+    (`project_np`), and a dict: ``rounds``, ``steps`` (L-BFGS steps in all), ``eps`` (per round),
+    ``min_det`` (min det J per round, entry 0 = input), ``energy`` (per round), ``untangled`` (bool: no
+    corner with det <= 0 after projection), ``inverted_elements`` (after), ``wall_time``.
+    """
+    t0 = time.perf_counter()
+    hexes = mesh.hexes
+    conn = transposed(hexes)
+    lens = element_lengths(mesh.points, hexes)
+    lens = np.where(lens > 0, lens, max(float(lens.max(initial=0.0)), 1.0))
+    inv_len = jnp.asarray(1.0 / lens, jnp.float64)[None, :]
+    par: Parametrisation = make_parametrisation(mesh, info, cons, scaled=True, dtype=jnp.float64)
+    nf = par.n_free
+    theta = jnp.float64(p.theta)
+    margin = jnp.float64(p.margin)
+    solver = optx.LBFGS(rtol=p.rtol, atol=p.atol)
+    v = jnp.zeros((nf,), jnp.float64)
+    e_prev, dmin = (float(a) for a in _state(par, conn, inv_len, jnp.float64(1.0), theta, margin, v))
+    eps = float(np.sqrt(1e-12 + 0.04 * min(dmin, 0.0) ** 2))
+    hist_eps, hist_dmin, hist_e = [], [dmin], []
+    steps = 0
+    rounds = 0
+    while dmin < p.margin and rounds < p.max_rounds and nf:
+        e_prev = float(_state(par, conn, inv_len, jnp.float64(eps), theta, margin, v)[0])
+        args = (par, conn, inv_len, jnp.float64(eps), theta, margin)
+        v, k, _, _, _ = _solve(solver, _energy_fn, v, args, int(p.inner_steps))
+        steps += int(k)
+        rounds += 1
+        e, dmin = (float(a) for a in _state(par, conn, inv_len, jnp.float64(eps), theta, margin, v))
+        hist_eps.append(eps)
+        hist_dmin.append(dmin)
+        hist_e.append(e)
+        sigma = max(1.0 - e / e_prev, 0.1) if e_prev > 0 else 0.1
+        mu = (1.0 - sigma) * 0.5 * (dmin + np.sqrt(eps * eps + dmin * dmin))
+        eps = 2.0 * float(np.sqrt(mu * (mu - dmin))) if dmin < mu else 1e-10
+    x = project_np(cons, np.asarray(_points(par, v), dtype=np.float64))
+    det = corner_determinants(x, hexes)
+    bad = (det <= 0).any(axis=1)
+    report = {
+        "rounds": rounds,
+        "steps": steps,
+        "eps": hist_eps,
+        "min_det": hist_dmin,
+        "energy": hist_e,
+        "untangled": not bool(bad.any()),
+        "inverted_elements": int(bad.sum()),
+        "min_scaled_det": float((det / lens[:, None] ** 3).min()),
+        "wall_time": time.perf_counter() - t0,
+    }
+    return x, report
+
+
+def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = UntangleParams()):
+    """`jaxci.smooth`'s untangling stage: untangle or raise `InvertedMeshError` (the input is never modified).
+
+    **Arguments:** `mesh` the input mesh; `info` its `BoundaryInfo` (with the user's fixed nodes); `p`.
+
+    **Returns:** ``(points, notes)``: untangled float64 coordinates ``(n, 3)`` with every boundary node on the
+    original boundary, and sentences for `SmoothResult.notes`.
+    """
+    from ..projection import build_constraints
+
+    where = f"{mesh.source}: " if mesh.source else ""
+    det0 = corner_determinants(mesh.points, mesh.hexes)
+    inv0 = (det0 <= 0).any(axis=1)
+    with jax.enable_x64(True):
+        cons = build_constraints(mesh, info, dtype=jnp.float64)
+        x, rep = untangle(mesh, info, cons, p)
+    if not rep["untangled"]:
+        bad = np.flatnonzero((corner_determinants(x, mesh.hexes) <= 0).any(axis=1))
+        stuck = np.asarray(info.node_class)[np.unique(mesh.hexes[bad])] == CORNER
+        raise InvertedMeshError(
+            f"{where}untangling failed: {rep['inverted_elements']} of {int(inv0.sum())} inverted elements are still "
+            f"inverted after {rep['rounds']} rounds ({rep['steps']} L-BFGS steps; first: element "
+            f"{mesh.hex_label(int(bad[0]))}; {int(stuck.sum())} of their nodes are fixed corners of the boundary); "
+            f"the input is left unchanged"
+        )
+    if not inv0.any() and rep["rounds"] == 0:
+        return x, [f"untangling: no inverted element and min det / L^3 = {rep['min_det'][0]:.3g} >= margin "
+                   f"{p.margin:g}: nothing to do"]
+    note = (
+        f"untangling: {int(inv0.sum())} inverted elements ({int((det0 <= 0).sum())} corners) untangled in "
+        f"{rep['rounds']} rounds of L-BFGS on the regularised Winslow energy ({rep['steps']} steps, "
+        f"{rep['wall_time']:.2f} s); min det / L^3 {rep['min_det'][0]:.3g} -> {rep['min_scaled_det']:.3g}; boundary "
+        f"nodes kept on the original boundary"
+    )
+    return x, [note]
+
+
+def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.ndarray, x: np.ndarray):
+    """`jaxci.smooth`'s final check when the start was untangled: no inverted corner, F not above the start's.
+
+    **Arguments:** `mesh` the (tangled) input; `info` its `BoundaryInfo`; `untangled` the untangled start
+    ``(n, 3)``; `x` the shape-improved coordinates ``(n, 3)``.
+
+    **Returns:** ``(points, notes)``: `x` projected onto the original boundary in float64, or `untangled` if that
+    has an inverted corner or a higher F than `untangled` (with a note saying so).
+    """
+    from ..projection import build_constraints
+    from ..quality import objective
+
+    with jax.enable_x64(True):
+        cons = build_constraints(mesh, info, dtype=jnp.float64)
+        x = project_np(cons, x)
+        hexes = mesh.hexes
+        inv = int((corner_determinants(x, hexes) <= 0).sum())
+        f0, f1 = float(objective(untangled, hexes)), float(objective(x, hexes))
+    if inv or not np.isfinite(f1):
+        return np.array(untangled), [f"shape improvement left {inv} inverted corners; the untangled mesh is returned"]
+    if f1 > f0:
+        return np.array(untangled), [f"shape improvement raised the objective from {f0:.6g} to {f1:.6g}; the "
+                                     f"untangled mesh is returned"]
+    return x, []

@@ -1,0 +1,168 @@
+"""Gradient baselines (optimistix): back to the ideal grid, exact gradients, safety, least-squares size limit.
+
+Compilation dominates the cost here (4-10 s per solver and mesh shape on 2 cores), so the tests share a few
+mesh shapes (the 3^3 box with a sliding boundary for most solvers) and the more expensive combinations are
+marked ``slow``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxci.errors import ConfigError
+from jaxci.generate import box, perturb_box
+from jaxci.optim.gradient import (
+    GradientParams,
+    _solve,
+    _solver,
+    make_parametrisation,
+    minimise,
+    objective_and_grad,
+    solver_args,
+)
+from jaxci.projection import params_to_points
+from jaxci.quality import objective_t, transposed
+from jaxci.smooth import build_problem, smooth
+
+
+def grid_error(mesh_out, n: int) -> float:
+    """Largest node distance to the ideal n^3 grid of the unit cube, in units of h = 1/n."""
+    return float(np.abs(np.asarray(mesh_out.points) - box(n).points).max() * n)
+
+
+@pytest.mark.parametrize("method,n,which,fix", [
+    ("lbfgs", 9, "interior", True),  # the 729-element cube, boundary fixed
+    ("lbfgs", 5, "sliding", False),  # 5^3: shares its compiled solver with test_untangle's hex_5_tangled
+    ("bfgs", 3, "sliding", False),
+    ("cg", 3, "sliding", False),
+    pytest.param("lbfgs", 3, "interior", True, marks=pytest.mark.slow),
+    pytest.param("bfgs", 3, "interior", True, marks=pytest.mark.slow),
+    pytest.param("cg", 9, "sliding", False, marks=pytest.mark.slow),
+])
+def test_perturbed_cube_returns_to_the_grid(method, n, which, fix):
+    mesh = perturb_box(n, amplitude=0.3, seed=4, which=which)
+    res = smooth(mesh, method, dtype="float64", fix_boundary=fix)
+    assert res.history["solver_result"] == "successful"
+    assert res.after.max_condition <= 1 + 1e-6
+    assert grid_error(res.mesh, n) <= 1e-5
+    hist = np.asarray(res.history["objective"])
+    assert len(hist) == res.iterations + 1 and hist[0] == pytest.approx(res.before.objective)
+    assert np.all(np.diff(hist) <= 1e-12 * hist[0])  # line-search methods: F never rises
+    assert np.asarray(res.history["max_condition"])[0] == pytest.approx(res.before.max_condition)
+
+
+@pytest.mark.parametrize("method", ["lm", "gauss-newton"])
+def test_least_squares_return_to_the_grid(method):
+    mesh = perturb_box(3, amplitude=0.3, seed=4, which="sliding")
+    res = smooth(mesh, method, dtype="float64")
+    assert res.after.max_condition <= 1 + 1e-6
+    assert grid_error(res.mesh, 3) <= 1e-5
+
+
+def test_least_squares_refuse_large_meshes():
+    mesh = perturb_box(9, amplitude=0.1)  # 2400 free coordinates
+    with pytest.raises(ConfigError, match="dense Jacobian.*max_free=1000"):
+        smooth(mesh, "lm", max_free=1000)
+
+
+@pytest.mark.slow
+def test_plain_gauss_newton_inverts_and_falls_back_to_the_best_valid_iterate():
+    mesh = perturb_box(3, amplitude=0.3, seed=4, which="sliding")
+    res = smooth(mesh, "gauss-newton", dtype="float64", gn_search="none", residual="kappa")
+    # the full Gauss-Newton step inverts elements; the NaN state is caught and the input (the only valid
+    # iterate) comes back, unchanged
+    assert res.history["solver_result"] != "successful"
+    assert res.after.inverted_elements == 0
+    assert res.after.objective == pytest.approx(res.before.objective)
+
+
+@pytest.mark.slow
+def test_loop_matches_optx_minimise():
+    """Our recording loop makes the same calls as optx.minimise: same steps, same iterate."""
+    mesh = perturb_box(3, amplitude=0.3, seed=4, which="interior")
+    pr = build_problem(mesh, dtype=np.float64, fix_boundary=True)
+    par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)
+    p = GradientParams()
+    fn, args = solver_args("lbfgs", par, pr.conn, p)
+    v0 = jnp.zeros(par.n_free)
+    y, steps, result, hf, _ = _solve(_solver("lbfgs", p), fn, v0, args, 2000)
+    sol = optx.minimise(fn, _solver("lbfgs", p), v0, args, has_aux=True, max_steps=2000, throw=False)
+    assert int(steps) == int(sol.stats["num_steps"])
+    assert sol.result == optx.RESULTS.successful and result == optx.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(y), np.asarray(sol.value), rtol=0, atol=1e-12)
+    # optx.minimise's aux lags one accepted step; the loop records F of the returned iterate itself
+    assert float(hf[int(steps)]) == pytest.approx(float(fn(sol.value, args)[1][0]), rel=1e-6, abs=1e-15)
+
+
+def test_parametrisation_shortcut_equals_projection():
+    mesh = perturb_box(3, amplitude=0.2, seed=1, which="sliding")
+    pr = build_problem(mesh, dtype=np.float64)
+    par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)
+    assert par.shortcut  # planar faces, straight edges
+    v = 0.2 * jax.random.normal(jax.random.key(0), (par.n_free,), jnp.float64)
+    points = jax.jit(lambda p, u: p.points(u))
+    x = points(par, v)
+    np.testing.assert_allclose(np.asarray(x), np.asarray(params_to_points(pr.cons, par.scale * v, pr.x0)),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.asarray(par.params(x)), np.asarray(v), atol=1e-12)
+    big = points(par, 20.0 * v)  # far outside the flat regions: the projection runs
+    np.testing.assert_allclose(np.asarray(big), np.asarray(params_to_points(pr.cons, par.scale * 20.0 * v, pr.x0)),
+                               atol=1e-12)
+
+
+def test_closed_form_gradient_matches_autodiff_and_finite_differences():
+    mesh = perturb_box(3, amplitude=0.3, seed=4, which="sliding")
+    x = jnp.asarray(mesh.points, jnp.float64)
+    conn = transposed(mesh.hexes)
+    f, g = objective_and_grad(x, conn)
+    f_ad, g_ad = jax.value_and_grad(objective_t)(x, conn)
+    assert float(f) == pytest.approx(float(f_ad), rel=1e-12)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(g_ad), rtol=1e-10, atol=1e-12 * float(jnp.abs(g_ad).max()))
+    rng = np.random.default_rng(0)
+    d = jnp.asarray(rng.standard_normal(x.shape))
+    eps = 1e-6
+    fd = (float(objective_t(x + eps * d, conn)) - float(objective_t(x - eps * d, conn))) / (2 * eps)
+    assert float(jnp.sum(g * d)) == pytest.approx(fd, rel=1e-6)
+    # an inverted corner: F is inf and its gradient leaves that corner out
+    bad = x.at[13].set(x[13] + 2.0)
+    fb, gb = objective_and_grad(bad, conn)
+    assert np.isinf(float(fb)) and bool(jnp.all(jnp.isfinite(gb)))
+
+
+@pytest.mark.slow
+def test_closed_form_gradient_drives_the_solver():
+    mesh = perturb_box(3, amplitude=0.3, seed=4, which="interior")
+    pr = build_problem(mesh, dtype=np.float64, fix_boundary=True)
+    par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)
+    x_ad, it_ad, _, _ = minimise("lbfgs", par, pr.conn, GradientParams())
+    x_cf, it_cf, _, _ = minimise("lbfgs", par, pr.conn, GradientParams(gradient="closed"))
+    assert it_cf == it_ad
+    np.testing.assert_allclose(np.asarray(x_cf), np.asarray(x_ad), atol=1e-9)
+
+
+@pytest.mark.parametrize("kw,match", [
+    (dict(max_steps=0), "max_steps"), (dict(rtol=-1), "rtol"), (dict(rtol=0, atol=0), "rtol"),
+    (dict(cg_method="newton"), "cg_method"), (dict(history_length=0), "history_length"),
+    (dict(gradient="numeric"), "gradient"), (dict(residual="log"), "residual"), (dict(bogus=1), "bogus"),
+])
+def test_bad_parameters(kw, match):
+    with pytest.raises(ConfigError, match=match):
+        smooth(perturb_box(2, amplitude=0.1), "lbfgs", **kw)
+
+
+@settings(max_examples=3, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 10_000), amplitude=st.floats(0.05, 0.45))
+def test_no_method_raises_f_or_inverts(seed, amplitude):
+    """From a valid start no method raises F or inverts a corner by itself (smooth's fallback never fires)."""
+    mesh = perturb_box(3, amplitude=amplitude, seed=seed, which="sliding")
+    for method in ("bfgs", "cg", "smart-laplace"):
+        res = smooth(mesh, method, dtype="float64")
+        assert res.notes == (), (method, res.notes)
+        assert res.after.inverted_elements == 0
+        assert res.after.objective <= res.before.objective

@@ -1,0 +1,71 @@
+"""Untangling: the Mesquite tangled meshes come out with no inverted element and the boundary kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import MESQUITE
+
+from jaxci.boundary import classify_boundary
+from jaxci.errors import ConfigError, InvertedMeshError
+from jaxci.generate import perturb_box
+from jaxci.io import read_mesh
+from jaxci.mesh import corner_determinants
+from jaxci.projection import build_constraints, project_np
+from jaxci.smooth import smooth
+
+
+def boundary_error(mesh_in, points) -> float:
+    """Largest move of a node under the exact projection onto mesh_in's boundary, relative to its size."""
+    cons = build_constraints(mesh_in, classify_boundary(mesh_in), dtype=np.float64)
+    x = np.asarray(points)
+    size = float(np.ptp(np.asarray(mesh_in.points), axis=0).max())
+    return float(np.abs(project_np(cons, x) - x).max()) / size
+
+
+@pytest.mark.parametrize("name,method,params", [
+    ("hex_5_tangled.vtk", "lbfgs", {}),
+    ("pave3.e.vtk", "smart-laplace", {"max_sweeps": 10}),  # a few sweeps: this test is about untangling
+])
+def test_tangled_meshes_are_untangled_with_the_boundary_kept(name, method, params):
+    mesh = read_mesh(MESQUITE / name)
+    before = mesh.points.copy()
+    res = smooth(mesh, method, dtype="float64", untangle="auto", **params)
+    assert res.before.inverted_elements > 0
+    assert res.after.inverted_elements == 0 and res.after.inverted_corners == 0
+    assert (corner_determinants(res.mesh.points, mesh.hexes) > 0).all()
+    assert boundary_error(mesh, res.mesh.points) <= 1e-9
+    assert any(n.startswith("untangling:") and "untangled" in n for n in res.notes)
+    assert np.isfinite(res.after.objective) and res.after.objective <= 2.0
+    np.testing.assert_array_equal(mesh.points, before)  # the input is never modified
+    if name == "hex_5_tangled.vtk":  # a tangled 5x5x5 block of a box: back to the perfect grid
+        assert res.after.max_condition <= 1 + 1e-6
+        # untangle="always" on the (valid) result: nothing to do (same shapes: compiled code is reused)
+        again = smooth(res.mesh, method, dtype="float64", untangle="always")
+        assert any("nothing to do" in n for n in again.notes)
+        assert again.after.max_condition <= 1 + 1e-6
+
+
+def tangled_cube():
+    mesh = perturb_box(2, amplitude=0.0)
+    pts = mesh.points.copy()
+    pts[13] = pts[13] + [0.9, 0.9, 0.9]  # the centre node pulled through the elements
+    return mesh.with_points(pts)
+
+
+def test_never_refuses_and_failure_is_reported_with_the_input_untouched():
+    bad = tangled_cube()
+    with pytest.raises(InvertedMeshError, match="untangle='never'"):
+        smooth(bad, "lbfgs", untangle="never")
+    before = bad.points.copy()
+    with pytest.raises(InvertedMeshError, match="untangling failed.*input is left unchanged"):
+        smooth(bad, "lbfgs", fixed_nodes=np.arange(bad.n_nodes))  # nothing may move
+    np.testing.assert_array_equal(bad.points, before)
+
+
+def test_bad_parameters():
+    mesh = perturb_box(2, amplitude=0.1, seed=1)
+    with pytest.raises(ConfigError, match="margin"):
+        smooth(tangled_cube(), "lbfgs", untangle_margin=2.0)
+    with pytest.raises(ConfigError, match="untangle must be"):
+        smooth(mesh, "lbfgs", untangle="sometimes")
