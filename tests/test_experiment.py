@@ -3,6 +3,7 @@ output files, determinism, refusal to overwrite, Ctrl-C."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import re
@@ -178,9 +179,8 @@ def test_force_replaces_and_seeds_override(small_run, tmp_path, capsys):
 
 
 def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):
-    import jaxci.smooth
-
-    real = jaxci.smooth.smooth
+    smooth_module = importlib.import_module("jaxci.smooth")
+    real = smooth_module.smooth
     calls = []
 
     def flaky(*args, **kwargs):
@@ -189,7 +189,7 @@ def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(jaxci.smooth, "smooth", flaky)
+    monkeypatch.setattr(smooth_module, "smooth", flaky)
     cfg = _write(tmp_path, SMALL)
     code, _, err = _run(["run", str(cfg), "--out", str(tmp_path / "out"), "--quiet"], capsys)
     assert code == 130 and "partial" in err
@@ -200,10 +200,10 @@ def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):
 
 def test_failed_run_recorded(tmp_path, monkeypatch, capsys):
     """A run that raises a JaxciError (e.g. an inverted mesh) is recorded as failed; the others go on; exit 1."""
-    import jaxci.smooth
     from jaxci.errors import InvertedMeshError
 
-    real = jaxci.smooth.smooth
+    smooth_module = importlib.import_module("jaxci.smooth")
+    real = smooth_module.smooth
 
     def failing(mesh, method, *, seed, **kw):
         if seed == 0:
@@ -212,7 +212,7 @@ def test_failed_run_recorded(tmp_path, monkeypatch, capsys):
             raise RuntimeError("a bug")
         return real(mesh, method, seed=seed, **kw)
 
-    monkeypatch.setattr(jaxci.smooth, "smooth", failing)
+    monkeypatch.setattr(smooth_module, "smooth", failing)
     cfg = _write(tmp_path, SMALL.replace("seeds: [0, 1]", "seeds: [0, 1, 2]") + "figures: false\nwrite_meshes: false\n")
     code, _, err = _run(["run", str(cfg), "--out", str(tmp_path / "out"), "--quiet"], capsys)
     assert code == 1 and "seed 0: the mesh has 3 inverted elements" in err

@@ -389,8 +389,7 @@ def method_param_class(method: str):
     """
     import importlib
 
-    from . import smooth as sm
-
+    sm = importlib.import_module("jaxci.smooth")  # the module (``jaxci.smooth`` is the function)
     table = getattr(sm, "METHOD_PARAMS", None) or {}
     if method in table:
         return table[method]
