@@ -68,7 +68,7 @@ def test_least_squares_return_to_the_grid(method):
 def test_least_squares_refuse_large_meshes():
     mesh = perturb_box(9, amplitude=0.1)  # 2400 free coordinates
     with pytest.raises(ConfigError, match="dense Jacobian.*max_free=1000"):
-        smooth(mesh, "lm", max_free=1000)
+        smooth(mesh, "lm")
 
 
 @pytest.mark.slow

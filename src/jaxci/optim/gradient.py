@@ -49,8 +49,10 @@ memory) took every one of them to 1 + 1e-6 or better, so `minimise` always resta
 restart still lowers F (`GradientParams.restarts`, `restart_tol`); a restart at the optimum ends in 2-25 steps.
 
 **Least squares.** LM and Gauss-Newton form the dense Jacobian (8N x n_free) and factorise it: they are for
-small meshes only and refuse more than `GradientParams.max_free` free coordinates (3000 by default; ecosystem.md:
-fine at ~200 variables, more than 8 minutes at 3000). BFGS keeps a dense n_free x n_free inverse Hessian:
+small meshes only and refuse more than `GradientParams.max_free` free coordinates (1000 by default). Measured
+warm (float32, paper cubes): LM 0.24 s at 81 free coordinates (cube27), 0.67 s at 225 (cube64); the cost grows
+like residuals x unknowns^2 per step, so the 2400 unknowns of cube729 would take many minutes (ecosystem.md:
+more than 8 minutes at 3000). BFGS keeps a dense n_free x n_free inverse Hessian:
 seconds per hundred steps at 2400 unknowns; use L-BFGS or CG for anything but small meshes.
 
 **Closed-form gradient.** `objective_and_grad` is d F / d x in closed form (per corner d kappa^2 / d columns,
@@ -101,7 +103,7 @@ class GradientParams:
     - `restarts`: most restarts of the solver from its last iterate with a fresh state (default 3; see the module
       docstring): always one after the first run, another only while the previous run lowered F by more than
       ``restart_tol`` times the input's F (default 1e-6). `max_steps` bounds the steps of all runs together.
-    - `max_free`: least squares only: refuse more free coordinates than this (default 3000).
+    - `max_free`: least squares only: refuse more free coordinates than this (default 1000).
     - `gradient`: ``"autodiff"`` (`jax.grad`, default) or ``"closed"`` (`objective_and_grad`).
     - `gn_search`: Gauss-Newton only: ``"armijo"`` (default: backtracking Armijo line search on the Gauss-Newton
       direction) or ``"none"`` (`optx.GaussNewton` as shipped, full steps: it inverts elements at once on the
@@ -117,7 +119,7 @@ class GradientParams:
     history_length: int = 10
     cg_method: str = "polak_ribiere"
     scaled: bool = True
-    max_free: int = 3000
+    max_free: int = 1000
     restarts: int = 3
     restart_tol: float = 1e-6
     gradient: str = "autodiff"
