@@ -396,3 +396,18 @@ def test_other_formats_warn_about_midside_nodes(tmp_path):
     with pytest.warns(LossyWriteWarning) as caught:
         write_mesh(mesh, tmp_path / "beam.vtu")
     assert any("vtu gets the 40 quadratic cells as linear cells" in str(w.message) for w in caught)
+
+
+@pytest.mark.parametrize("method,params", [
+    ("ci-global", dict(attempts=40, init_width=0.02)), ("bfgs", dict(max_steps=60)), ("lbfgs", dict(max_steps=60)),
+    ("cg", dict(max_steps=60)), ("laplace", dict(max_sweeps=5)), ("smart-laplace", dict(max_sweeps=5)),
+])
+def test_sector_smooths_with_every_method(method, params):
+    """Every method on a mixed hex + wedge archive: no inversion, wedges untouched, F not raised, ids kept."""
+    mesh = read_mesh(EXAMPLES / "sector.cdb")
+    res = smooth(mesh, method, **params)
+    assert res.after.overall["inverted"] == 0 and res.after.objective <= res.before.objective
+    wedge = [b for b in res.mesh.cells if b.type == "wedge"][0]
+    np.testing.assert_array_equal(res.mesh.points[wedge.data], mesh.points[wedge.data])
+    assert [(b.type, len(b.data)) for b in res.mesh.cells] == [(b.type, len(b.data)) for b in mesh.cells]
+    assert all(np.array_equal(a.ids, b.ids) for a, b in zip(res.mesh.cells, mesh.cells, strict=True))
