@@ -68,7 +68,7 @@ def child(args) -> dict:
             out[key] = None
             continue
         it = max(int(hit[0]), 1)
-        capped = {**params, cap: it, "tol": 0.0}
+        capped = {**params, cap: it, **({"tol": 0.0} if args.method == "ci" else {})}
         smooth(mesh, args.method, dtype=args.dtype, **capped)  # the cap may be a static argument: compile
         t0 = time.perf_counter()
         r2 = smooth(mesh, args.method, dtype=args.dtype, **capped)
