@@ -22,6 +22,32 @@ from .errors import MeshError
 from .mesh import HexMesh, corner_determinants, hex_mesh
 
 
+def grid_hexes(ni: int, nj: int, nk: int, periodic_j: bool = False) -> np.ndarray:
+    """Hexahedra of a structured ``ni x nj x nk`` grid whose node (i, j, k) has index
+    ``i + (ni+1) * (j + nJ * k)`` with ``nJ = nj`` when `periodic_j` (j wraps around) else ``nj + 1``.
+    Shape ``(ni nj nk, 8)``, int64; right-handed when the grid axes i, j, k are."""
+    n_j = nj if periodic_j else nj + 1
+
+    def nid(i, j, k):
+        return i + (ni + 1) * ((j % n_j) + n_j * k)
+
+    k, j, i = np.meshgrid(np.arange(nk), np.arange(nj), np.arange(ni), indexing="ij")
+    i, j, k = i.ravel(), j.ravel(), k.ravel()
+    return np.stack(
+        [
+            nid(i, j, k),
+            nid(i + 1, j, k),
+            nid(i + 1, j + 1, k),
+            nid(i, j + 1, k),
+            nid(i, j, k + 1),
+            nid(i + 1, j, k + 1),
+            nid(i + 1, j + 1, k + 1),
+            nid(i, j + 1, k + 1),
+        ],
+        axis=1,
+    ).astype(np.int64)
+
+
 def box(
     nx: int,
     ny: int | None = None,
@@ -53,24 +79,7 @@ def box(
     z, y, x = np.meshgrid(zs, ys, xs, indexing="ij")
     points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
 
-    def nid(i, j, k):
-        return i + (nx + 1) * (j + (ny + 1) * k)
-
-    k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
-    i, j, k = i.ravel(), j.ravel(), k.ravel()
-    hexes = np.stack(
-        [
-            nid(i, j, k),
-            nid(i + 1, j, k),
-            nid(i + 1, j + 1, k),
-            nid(i, j + 1, k),
-            nid(i, j, k + 1),
-            nid(i + 1, j, k + 1),
-            nid(i + 1, j + 1, k + 1),
-            nid(i, j + 1, k + 1),
-        ],
-        axis=1,
-    )
+    hexes = grid_hexes(nx, ny, nz)
     return hex_mesh(points, hexes)
 
 

@@ -12,33 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import MeshError
+from .generate import grid_hexes
 from .mesh import HexMesh, hex_mesh
-
-
-def _grid_hexes(ni: int, nj: int, nk: int, periodic_j: bool = False) -> np.ndarray:
-    """Hexahedra of a structured ``ni x nj x nk`` grid whose node (i, j, k) has index
-    ``i + (ni+1) * (j + nJ * k)`` with ``nJ = nj`` when `periodic_j` (j wraps around) else ``nj + 1``.
-    Shape ``(ni nj nk, 8)``, int64; right-handed when the grid axes i, j, k are."""
-    n_j = nj if periodic_j else nj + 1
-
-    def nid(i, j, k):
-        return i + (ni + 1) * ((j % n_j) + n_j * k)
-
-    k, j, i = np.meshgrid(np.arange(nk), np.arange(nj), np.arange(ni), indexing="ij")
-    i, j, k = i.ravel(), j.ravel(), k.ravel()
-    return np.stack(
-        [
-            nid(i, j, k),
-            nid(i + 1, j, k),
-            nid(i + 1, j + 1, k),
-            nid(i, j + 1, k),
-            nid(i, j, k + 1),
-            nid(i + 1, j, k + 1),
-            nid(i + 1, j + 1, k + 1),
-            nid(i, j + 1, k + 1),
-        ],
-        axis=1,
-    ).astype(np.int64)
 
 
 def _compact(points: np.ndarray, hexes: np.ndarray) -> HexMesh:
@@ -65,7 +40,7 @@ def l_block(n: int = 2, *, size: float = 1.0, nz: int | None = None) -> HexMesh:
     h = size / n
     k, j, i = np.meshgrid(np.arange(nz + 1), np.arange(m + 1), np.arange(m + 1), indexing="ij")
     points = np.stack([i.ravel() * h, j.ravel() * h, k.ravel() * size / nz], axis=1).astype(np.float64)
-    hexes = _grid_hexes(m, m, nz)
+    hexes = grid_hexes(m, m, nz)
     ci, cj = hexes[:, 0] % (m + 1), (hexes[:, 0] // (m + 1)) % (m + 1)
     keep = ~((ci >= n) & (cj >= n))
     return _compact(points, hexes[keep])
@@ -129,7 +104,7 @@ def bevelled_box(
     yy = np.broadcast_to(ys[None, :, None], (n + 1, n + 1, n + 1))
     # flatten with i fastest, then y, then z: index i + (n+1) * (iy + (n+1) * iz)
     points = np.stack([a.transpose(2, 1, 0).ravel() for a in (xs, yy, zs)], axis=1)
-    return hex_mesh(points, _grid_hexes(n, n, n))
+    return hex_mesh(points, grid_hexes(n, n, n))
 
 
 def annulus(
@@ -160,4 +135,4 @@ def annulus(
     r = r_inner + (r_outer - r_inner) * i.ravel() / n_r
     th = 2.0 * np.pi * j.ravel() / n_theta
     points = np.stack([r * np.cos(th), r * np.sin(th), height * k.ravel() / n_z], axis=1).astype(np.float64)
-    return hex_mesh(points, _grid_hexes(n_r, n_theta, n_z, periodic_j=True))
+    return hex_mesh(points, grid_hexes(n_r, n_theta, n_z, periodic_j=True))
