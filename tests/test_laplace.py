@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 
 from jaxci.errors import ConfigError
-from jaxci.generate import perturb_box
+from jaxci.generate import grid_hexes, perturb_box
 from jaxci.mesh import corner_determinants, hex_mesh
 from jaxci.optim.laplace import edge_neighbours, run_laplace
-from jaxci.shapes import _grid_hexes
 from jaxci.smooth import build_problem, smooth
 
 
@@ -23,7 +22,7 @@ def v_notch(nx: int = 8, ny: int = 4, nz: int = 2, depth: float = 0.8, width: fl
     top = 1 - depth * np.maximum(0, 1 - np.abs(xs - 0.5) / width)
     k, j, i = np.meshgrid(np.arange(nz + 1), np.arange(ny + 1), np.arange(nx + 1), indexing="ij")
     pts = np.stack([xs[i], j / ny * top[i], k / nz * 0.5], axis=-1).reshape(-1, 3)
-    return hex_mesh(pts, _grid_hexes(nx, ny, nz))
+    return hex_mesh(pts, grid_hexes(nx, ny, nz))
 
 
 def test_edge_neighbours_of_a_box():
