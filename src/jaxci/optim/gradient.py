@@ -45,8 +45,8 @@ there and fails the Armijo test.
 steps; after a run of backtracked (tiny) steps that test fires far from the optimum. On the paper's 27-element
 cube, 30 seeds, BFGS stopped "successful" at max kappa/3 up to 459 (4 seeds above 1.0001 in float32, 1 in float64,
 2.25). Restarting the solver once from its last iterate with a fresh state (identity Hessian, empty L-BFGS
-memory) took every one of them to 1 + 1e-6 or better, so `minimise` always restarts once, and again while a
-restart still lowers F (`GradientParams.restarts`, `restart_tol`); a restart at the optimum ends in 2-25 steps.
+memory) took every one of them to 1 + 1e-6 or better, so `minimise` restarts a run that ends with F above
+1e-6 of the input's F, and again while a restart still lowers F (`GradientParams.restarts`, `restart_tol`).
 
 **Least squares.** LM and Gauss-Newton form the dense Jacobian (8N x n_free) and factorise it: they are for
 small meshes only and refuse more than `GradientParams.max_free` free coordinates (1000 by default). Measured
@@ -76,7 +76,6 @@ from ..errors import ConfigError
 from ..mesh import CORNER_NEIGHBOURS
 from ..projection import Constraints, n_free, project
 from ..quality import corner_columns, corner_invariants, gather_corners, squared_condition_from_invariants
-from ._local import gather_star, local_length, node_stars
 
 #: Method names of this module.
 METHODS = ("bfgs", "lbfgs", "cg", "lm", "gauss-newton")
@@ -101,8 +100,9 @@ class GradientParams:
     - `cg_method`: beta formula of nonlinear CG, one of `CG_METHODS` (default ``"polak_ribiere"``).
     - `scaled`: unknowns in units of the local edge length (default True; False: raw coordinate displacements).
     - `restarts`: most restarts of the solver from its last iterate with a fresh state (default 3; see the module
-      docstring): always one after the first run, another only while the previous run lowered F by more than
-      ``restart_tol`` times the input's F (default 1e-6). `max_steps` bounds the steps of all runs together.
+      docstring): a run ending with F above ``restart_tol`` times the input's F (default 1e-6) is restarted, the
+      second and later restarts only while the previous run lowered F by more than that. `max_steps` bounds the
+      steps of all runs together.
     - `max_free`: least squares only: refuse more free coordinates than this (default 1000).
     - `gradient`: ``"autodiff"`` (`jax.grad`, default) or ``"closed"`` (`objective_and_grad`).
     - `gn_search`: Gauss-Newton only: ``"armijo"`` (default: backtracking Armijo line search on the Gauss-Newton
@@ -236,11 +236,20 @@ def _flat_edge(points: np.ndarray, info: BoundaryInfo, edge_nodes: np.ndarray, t
 
 
 def node_lengths(hexes: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Mean length of the hex edges at each node, shape ``(n,)`` (numpy float64; 0 for unused nodes)."""
-    st = node_stars(hexes, len(points))
-    with jax.enable_x64(True):
-        h = local_length(gather_star(jnp.asarray(points, jnp.float64), jnp.asarray(st.star)), jnp.asarray(st.mask))
-        return np.asarray(h)
+    """Mean length of the hex edges at each node, shape ``(n,)`` (numpy float64; 0 for unused nodes).
+
+    Over the incident elements, the three edges of the element at the node (each edge once per element), as
+    `jaxci.optim._local.local_length` computes it for one node.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    h = np.asarray(hexes, dtype=np.int64)
+    a = np.repeat(h, 3, axis=1)  # (N, 24): each local node three times
+    b = h[:, CORNER_NEIGHBOURS.ravel()]  # (N, 24): its three edge neighbours
+    length = np.linalg.norm(p[b] - p[a], axis=-1)
+    n = len(p)
+    total = np.bincount(a.ravel(), weights=length.ravel(), minlength=n)
+    count = np.bincount(a.ravel(), minlength=n)
+    return np.divide(total, count, out=np.zeros(n), where=count > 0)
 
 
 def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *, scaled: bool = True,
@@ -587,6 +596,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         finite = seg_f[np.isfinite(seg_f)]
         gain = float(seg_f[0] - finite.min()) if len(finite) else 0.0
         if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol:
+            break
+        if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
             break
         if run >= 1 and not gain > p.restart_tol * abs(f0):
             break
