@@ -121,10 +121,10 @@ def test_sector_smooths_and_writes_back(smoothed_sector, tmp_path):
     assert res.after.objective < res.before.objective and res.after.max_condition < res.before.max_condition
     for rep in (res.before, res.after):
         assert rep.overall["inverted"] == 0 and set(rep.by_type) == {"hexahedron", "wedge"}
-    # wedges' nodes are fixed: they stay valid and unchanged
+    # linear wedges are smoothed with the hexahedra (mixed objective): they stay valid and their free nodes move
     wedge = [b for b in out.cells if b.type == "wedge"][0]
-    np.testing.assert_array_equal(out.points[wedge.data], mesh.points[wedge.data])
-    assert res.after.by_type["wedge"] == res.before.by_type["wedge"]
+    assert np.abs(out.points[wedge.data] - mesh.points[wedge.data]).max() > 1e-3
+    assert res.after.overall["objective"] < res.before.overall["objective"]
     assert np.abs(out.points - mesh.points).max() > 1e-3  # hexahedra moved
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a CDB mesh loses nothing
@@ -403,11 +403,11 @@ def test_other_formats_warn_about_midside_nodes(tmp_path):
     ("cg", dict(max_steps=60)), ("laplace", dict(max_sweeps=5)), ("smart-laplace", dict(max_sweeps=5)),
 ])
 def test_sector_smooths_with_every_method(method, params):
-    """Every method on a mixed hex + wedge archive: no inversion, wedges untouched, F not raised, ids kept."""
+    """Every method on a mixed hex + wedge archive: no inversion of any cell, the mixed F (over hexahedron and
+    wedge corners) not raised, ids kept."""
     mesh = read_mesh(EXAMPLES / "sector.cdb")
     res = smooth(mesh, method, **params)
-    assert res.after.overall["inverted"] == 0 and res.after.objective <= res.before.objective
-    wedge = [b for b in res.mesh.cells if b.type == "wedge"][0]
-    np.testing.assert_array_equal(res.mesh.points[wedge.data], mesh.points[wedge.data])
+    assert res.after.overall["inverted"] == 0
+    assert res.after.overall["objective"] <= res.before.overall["objective"]
     assert [(b.type, len(b.data)) for b in res.mesh.cells] == [(b.type, len(b.data)) for b in mesh.cells]
     assert all(np.array_equal(a.ids, b.ids) for a, b in zip(res.mesh.cells, mesh.cells, strict=True))

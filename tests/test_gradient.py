@@ -140,8 +140,8 @@ def test_closed_form_gradient_drives_the_solver():
     mesh = perturb_box(3, amplitude=0.3, seed=4, which="interior")
     pr = build_problem(mesh, dtype=np.float64, fix_boundary=True)
     par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)
-    x_ad, it_ad, _, _ = minimise("lbfgs", par, pr.conn, GradientParams())
-    x_cf, it_cf, _, _ = minimise("lbfgs", par, pr.conn, GradientParams(gradient="closed"))
+    x_ad, it_ad, _, _ = minimise("lbfgs", par, pr.conn, GradientParams(gradient="autodiff"))
+    x_cf, it_cf, _, _ = minimise("lbfgs", par, pr.conn, GradientParams())  # closed form: the default
     assert it_cf == it_ad
     np.testing.assert_allclose(np.asarray(x_cf), np.asarray(x_ad), atol=1e-9)
 
@@ -166,3 +166,21 @@ def test_no_method_raises_f_or_inverts(seed, amplitude):
         assert res.notes == (), (method, res.notes)
         assert res.after.inverted_elements == 0
         assert res.after.objective <= res.before.objective
+
+
+@pytest.mark.parametrize("method", ["lbfgs", "cg"])
+def test_max_move_caps_every_trial_and_saves_line_search_trials(method):
+    """No free coordinate moves more than `max_move` local edge lengths in one step (so the first trial of a mesh
+    with a nearly flat corner is not a huge raw-gradient step that the line search halves dozens of times)."""
+    mesh = perturb_box(5, amplitude=0.45, seed=3)
+    pr = build_problem(mesh, dtype=np.float64)
+    par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)
+    with jax.enable_x64(True):
+        x1, it1, h1, _ = minimise(method, par, pr.conn, GradientParams(max_steps=1, max_move=0.1, restarts=0))
+        v1 = np.asarray(par.params(x1))
+        assert np.abs(v1).max() <= 0.1 + 1e-9
+        capped = minimise(method, par, pr.conn, GradientParams(max_move=0.5))
+        free = minimise(method, par, pr.conn, GradientParams(max_move=0.0))
+    assert capped[2]["max_condition"][-1] < 1.001 and free[2]["max_condition"][-1] < 1.001
+    rejected = [int((np.diff(h["objective"]) == 0).sum()) for h in (capped[2], free[2])]
+    assert rejected[0] < rejected[1]

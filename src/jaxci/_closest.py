@@ -39,8 +39,9 @@ def _bump(dtype) -> float:
     return (64.0 * float(np.finfo(np.dtype(dtype)).eps)) ** 2
 
 
-# Rows of the packed triangle table (structure of arrays; one column per triangle (c, a, b) of a boundary quad,
-# c its centroid, a and b consecutive corners; the 4 triangles of quad f are columns 4 f .. 4 f + 3).
+# Rows of the packed triangle table (structure of arrays; one column per triangle (c, a, b) of a boundary face,
+# c its centroid, a and b consecutive corners; the 4 triangles of face f are columns 4 f .. 4 f + 3; a boundary
+# triangle is the face [a, b, c, c], see `_triangle_table`).
 # Everything that depends on the original geometry only is precomputed: the kernel has no division or root.
 _TC = 0  # centroid c (x y z)
 _TE1 = 3  # spoke e1 = a - c
@@ -104,9 +105,17 @@ def _closest_on_segments(xp, x, t, tol):
 
 
 def _triangle_table(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """The packed triangle table of the quads `faces` (F, 4): shape (19, 4 F), float64."""
+    """The packed triangle table of the faces `faces` (F, 4): shape (19, 4 F), float64.
+
+    A face ``[a, b, c, c]`` is a triangle: its centre is its centroid (a + b + c) / 3, and its 4 triangles are
+    (centre, a, b), (centre, b, c), a degenerate one (centre, c, c) (never an inside projection; its spoke lies
+    in the face) and (centre, c, a): together exactly the triangle.
+    """
     pc = points[faces]  # (F, 4, 3)
+    tri = faces[:, 3] == faces[:, 2]
     centre = pc.mean(axis=1)
+    if tri.any():
+        centre[tri] = pc[tri, :3].mean(axis=1)
     c = np.repeat(centre, 4, axis=0)
     e1 = pc.reshape(-1, 3) - c
     e2 = np.roll(pc, -1, axis=1).reshape(-1, 3) - c

@@ -1,12 +1,13 @@
-"""Classification of the nodes of a hexahedral mesh by how they may move: interior, surface, edge or corner.
+"""Classification of the nodes of a hex-dominant mesh by how they may move: interior, surface, edge or corner.
 
-The boundary is the set of quadrilaterals used by exactly one hexahedron (`jaxci.topology`). A boundary edge
+The boundary is the set of faces (quadrilaterals and triangles) used by exactly one volume cell of any type
+(`jaxci.topology`): a face a hexahedron shares with a wedge, pyramid or tetrahedron is interior. A boundary edge
 is a *feature edge* when the unit normals of its two boundary faces differ by more than the feature angle, or
 when it does not have exactly two boundary faces (a non-manifold or open edge). Then, per node:
 
 - CORNER (fixed): 1 or 3+ feature edges meet at it (a curve ends or curves meet), or 2 meet at an angle: the
   direction of the curve turns by more than the feature angle; also a non-manifold boundary vertex (two or more
-  separate fans of boundary faces), a node of a face shared by three or more hexahedra, and every node the
+  separate fans of boundary faces), a node of a face shared by three or more cells, and every node the
   user fixes.
 - EDGE (slides on its feature curve): exactly 2 feature edges, nearly aligned.
 - SURFACE (slides on its patch): a boundary node with no feature edge.
@@ -16,9 +17,12 @@ when it does not have exactly two boundary faces (a non-manifold or open edge). 
 connected chains of feature edges that meet at EDGE nodes (a circle without corners is one closed curve).
 Patches and curves are computed from the geometry only; fixing nodes afterwards does not split them.
 
-Nodes not used by any hexahedron, and nodes of other volume cells (wedges, pyramids, tetrahedra), are fixed:
-smoothing moves hexahedra only. A broken boundary (open or non-manifold) is reported with `warnings.warn` and
-in `BoundaryInfo.notes`, never raised: such edges and vertices become features and corners.
+Nodes of hexahedra and of linear wedges, pyramids and tetrahedra are classified alike and move. Nodes used by
+no volume cell are fixed, and so are the nodes of QUADRATIC wedges, pyramids and tetrahedra (midside nodes
+given, or meshio's ``wedge15``/``pyramid13``/``tetra10``/``hexahedron20`` blocks; `jaxci.mixed.fixed_nodes`),
+with a note. (Quadratic hexahedra are hexahedra with midside nodes: their corner nodes move and the midside
+nodes follow, `jaxci.mesh.HexMesh.with_points`.) A broken boundary (open or non-manifold) is reported with
+`warnings.warn` and in `BoundaryInfo.notes`, never raised: such edges and vertices become features and corners.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ from scipy.sparse.csgraph import connected_components
 
 from .errors import MeshError
 from .mesh import HexMesh
+from .mixed import fixed_nodes as fixed_cell_nodes
+from .mixed import volume_cells
 from .topology import BoundaryTopology, boundary_topology
 
 #: Node classes (values of `BoundaryInfo.node_class`).
@@ -44,10 +50,6 @@ CORNER = 3
 #: Names of the node classes, indexed by class.
 CLASS_NAMES = ("interior", "surface", "edge", "corner")
 
-#: Volume cell types other than the linear hexahedron whose nodes are kept fixed.
-_OTHER_VOLUME_CELLS = frozenset(
-    {"tetra", "pyramid", "wedge", "tetra10", "pyramid13", "wedge15", "hexahedron20", "hexahedron27"}
-)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -97,8 +99,22 @@ class BoundaryInfo:
         return {name: int(c[i]) for i, name in enumerate(CLASS_NAMES)}
 
 
+def mesh_topology(mesh: HexMesh) -> BoundaryTopology:
+    """`jaxci.topology.boundary_topology` of every volume cell of `mesh` (hexahedra, wedges, pyramids,
+    tetrahedra; quadratic cells by their corner nodes)."""
+    cells = volume_cells(mesh)
+    cells.pop("hexahedron", None)
+    hexes = mesh.hexes
+    quad = [np.asarray(b.data)[:, :8] for b in mesh.cells if b.type in ("hexahedron20", "hexahedron27")
+            and len(b.data)]
+    if quad:  # meshio's quadratic hexahedra bound the volume too (after the hexahedra: face_hex stays valid)
+        hexes = np.concatenate([hexes, *quad])
+    return boundary_topology(hexes, mesh.n_nodes, cells or None)
+
+
 def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted normals of quadrilaterals, ``(x2 - x0) x (x3 - x1)`` (twice the area for a planar quad).
+    """Area-weighted normals of faces, ``(x2 - x0) x (x3 - x1)`` (twice the area for a planar quadrilateral and for
+    a triangle ``[a, b, c, c]``).
 
     **Arguments:** `points` of shape ``(n_nodes, 3)``; `faces` of shape ``(n_faces, 4)``.
 
@@ -145,7 +161,8 @@ def classify_boundary(
     - `fix_boundary`: make every boundary node a corner (only interior nodes move). Keyword only argument.
     - `fixed_nodes`: indices of further nodes to fix. Keyword only argument.
     - `fixed_sets`: names of `mesh.point_sets` whose nodes are fixed. Keyword only argument.
-    - `topology`: a precomputed `boundary_topology(mesh.hexes, mesh.n_nodes)`. Keyword only argument.
+    - `topology`: a precomputed `boundary_topology(mesh.hexes, mesh.n_nodes, others)` (`mesh_topology`). Keyword
+      only argument.
 
     **Returns:** a `BoundaryInfo`. Raises `MeshError` for a bad `feature_angle`, an out-of-range fixed node
     or an unknown point set; warns (`UserWarning`) about an open or non-manifold boundary.
@@ -163,7 +180,7 @@ def classify_boundary(
             known = ", ".join(sorted(mesh.point_sets)) or "none"
             raise MeshError(f"{where}fixed_sets: the mesh has no point set {name!r} (point sets: {known})")
     pts = np.asarray(mesh.points, dtype=np.float64)
-    topo = boundary_topology(hexes, n) if topology is None else topology
+    topo = mesh_topology(mesh) if topology is None else topology
     faces, edges = topo.faces, topo.edges
     n_faces = len(faces)
     cos_t = float(np.cos(np.radians(feature_angle)))
@@ -187,8 +204,11 @@ def classify_boundary(
     me = np.flatnonzero(manifold)
     a_nodes = np.concatenate([edges[me, 0], edges[me, 1]])
     fa_m, fb_m = np.tile(fa[me], 2), np.tile(fb[me], 2)
-    ca = 4 * fa_m + _local_position(faces, fa_m, a_nodes)
+    ca = 4 * fa_m + _local_position(faces, fa_m, a_nodes)  # a triangle's repeated node: its first position
     cb = 4 * fb_m + _local_position(faces, fb_m, a_nodes)
+    tri = np.flatnonzero(faces[:, 3] == faces[:, 2])
+    if len(tri):  # the repeated node of a triangle is one corner of it
+        ca, cb = np.concatenate([ca, 4 * tri + 2]), np.concatenate([cb, 4 * tri + 3])
     _, corner_comp = _components(4 * n_faces, ca, cb)
     node_comp = np.unique(faces.ravel() * np.int64(4 * n_faces) + corner_comp)  # distinct (node, fan) pairs
     nm_vertex = np.bincount(node_comp // max(4 * n_faces, 1), minlength=n) > 1
@@ -228,7 +248,7 @@ def classify_boundary(
     # --- broken boundaries
     if topo.n_nonmanifold_faces:
         notes.append(
-            f"{topo.n_nonmanifold_faces} faces are shared by three or more hexahedra (invalid mesh); they are "
+            f"{topo.n_nonmanifold_faces} faces are shared by three or more cells (invalid mesh); they are "
             f"not boundary faces and their nodes are fixed"
         )
     if n_open:
@@ -252,13 +272,16 @@ def classify_boundary(
     # --- nodes that must not move
     used = np.zeros(n, dtype=bool)
     used[hexes.ravel()] = True
+    for t, cells in volume_cells(mesh).items():
+        if t != "hexahedron":
+            used[cells.ravel()] = True
     cls[~used] = CORNER
-    other = [b.data for b in mesh.cells if b.type in _OTHER_VOLUME_CELLS and len(b.data)]
-    if other:
-        onodes = np.unique(np.concatenate([o.ravel() for o in other]))
-        cls[onodes] = CORNER
-        notes.append(f"{len(onodes)} nodes of non-hexahedral volume cells are fixed")
-    cls[topo.nonmanifold_faces.ravel()] = CORNER
+    quadratic = fixed_cell_nodes(mesh)
+    if len(quadratic):
+        cls[quadratic] = CORNER
+        notes.append(f"{len(quadratic)} nodes of quadratic non-hexahedral cells (wedge, pyramid, tetrahedron with "
+                     f"midside nodes) are fixed")
+    cls[topo.nonmanifold_nodes] = CORNER
     if fix_boundary:
         cls[on_boundary & used] = CORNER
     cls[fixed.astype(np.int64)] = CORNER

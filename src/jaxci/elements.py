@@ -326,18 +326,39 @@ def element_blocks(mesh: HexMesh) -> dict[str, np.ndarray]:
     return out
 
 
+def corner_terms_t(points, conn, cell_type: str):
+    """(kappa_i/3)^2 of every corner of the cells of one type, in JAX (jit-able, differentiable).
+
+    **Arguments:** `points` of shape ``(n, 3)``; `conn` the TRANSPOSED connectivity ``(k, N)``; `cell_type` one
+    of `ELEMENT_TYPES` (static).
+
+    **Returns:** shape ``(n_corners, N)``; ``inf`` where det A_i <= 0. For hexahedra it is
+    `jaxci.quality`'s kernel, unchanged.
+    """
+    if cell_type == "hexahedron":
+        from .quality import corner_columns, corner_invariants, gather_corners
+
+        return _sq_kappa3(jnp, *corner_invariants(*corner_columns(*gather_corners(points, conn))))
+    cols = _times_inverse(_columns(*_nodes(jnp, points, conn), CORNERS[cell_type]), TARGETS[cell_type])
+    return _sq_kappa3(jnp, *_invariants(cols))
+
+
+def normalised_corner_columns_t(points, conn, cell_type: str):
+    """The 9 column entries of ``T_i = A_i W^-1`` per corner (JAX), each of shape ``(n_corners, N)``; `conn` is
+    the transposed ``(k, N)`` connectivity. ``det T_i = det A_i / det W``: the same sign as det A_i."""
+    return _times_inverse(_columns(*_nodes(jnp, points, conn), CORNERS[cell_type]), TARGETS[cell_type])
+
+
+def pyramid_tet_dets_t(points, conn):
+    """det A_0 of the four tetrahedra of Verdict's pyramid Jacobian (`PYRAMID_TETS`), JAX, shape ``(4, N)``;
+    `conn` the transposed ``(5, N)`` pyramid connectivity."""
+    X, Y, Z = _nodes(jnp, points, conn)
+    return jnp.stack([_invariants(_columns(X[t], Y[t], Z[t], CORNERS["tetra"][:1]))[0][0] for t in PYRAMID_TETS])
+
+
 @jax.jit
 def _mixed_objective(points, conns: dict):
-    from .quality import corner_columns, corner_invariants, gather_corners
-
-    terms = []
-    for cell_type, conn in conns.items():
-        if cell_type == "hexahedron":  # jaxci.quality.objective_t's kernel, unchanged
-            det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(points, conn)))
-        else:
-            cols = _times_inverse(_columns(*_nodes(jnp, points, conn), CORNERS[cell_type]), TARGETS[cell_type])
-            det, fro2, adj2 = _invariants(cols)
-        terms.append(_sq_kappa3(jnp, det, fro2, adj2))
+    terms = [corner_terms_t(points, conn, cell_type) for cell_type, conn in conns.items()]
     if len(terms) == 1:
         return jnp.mean(terms[0]) - 1.0
     total = sum(jnp.sum(t) for t in terms)

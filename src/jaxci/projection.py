@@ -1,10 +1,11 @@
 """Projection of nodes back onto the ORIGINAL boundary of a mesh, and the free coordinates of the movable nodes.
 
-**Geometry kept.** Every boundary quadrilateral of the input mesh is split into four triangles around its
-centroid (the mean of its corners): no diagonal is preferred, a planar quad gives four coplanar triangles (so
-planar patches are reproduced exactly), and a warped quad is approximated by a surface symmetric in its
-corners. Feature curves are kept as the polylines of their feature edges. Each triangle belongs to the patch of
-its quad, each segment to one curve (`jaxci.boundary`).
+**Geometry kept.** Every boundary quadrilateral of the input mesh is split into four triangles around its centroid
+(the mean of its corners): no diagonal is preferred, a planar quad gives four coplanar triangles (so planar patches
+are reproduced exactly), and a warped quad is approximated by a surface symmetric in its corners. A boundary
+triangle (of a wedge, pyramid or tetrahedron, stored as ``[a, b, c, c]``, `jaxci.topology`) is split around its
+centroid the same way and is reproduced exactly. Feature curves are kept as the polylines of their feature edges.
+Each triangle belongs to the patch of its quad, each segment to one curve (`jaxci.boundary`).
 
 **Projection.** A SURFACE node goes to the nearest point of its own patch, an EDGE node to the nearest point
 of its own curve, a CORNER node back to its original position; INTERIOR nodes do not move. Restricting the
@@ -189,7 +190,7 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None) -> Const
     # normals of surface nodes: area-weighted over the faces around them (all in their own patch)
     normals = np.zeros((len(surf), 3))
     if len(faces) and len(surf):
-        normals = _unit_rows(np.asarray(incidence(faces, n)[surf] @ face_normals(pts, faces)))
+        normals = _unit_rows(np.asarray(incidence(faces, n).sign()[surf] @ face_normals(pts, faces)))
     if len(faces):
         tris, tri_patch = _triangle_table(pts, faces), np.repeat(info.face_patch, 4)
     else:

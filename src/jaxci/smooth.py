@@ -1,11 +1,13 @@
 """`jaxci.smooth`: one interface for every smoothing method, one history record for all of them.
 
 Every method works on the same problem: minimise the paper's F (Eq. 3.1) by moving nodes, corner nodes fixed,
-edge nodes on their feature curve, surface nodes on their surface (`jaxci.boundary`, `jaxci.projection`).
+edge nodes on their feature curve, surface nodes on their surface (`jaxci.boundary`, `jaxci.projection`). On a
+hex-dominant mesh F is the mean over the corners of EVERY cell, hexahedra, wedges, pyramids and tetrahedra
+(`jaxci.elements.mixed_objective`, `jaxci.mixed`), and the nodes of linear non-hexahedral cells move too.
 Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
 
-- no corner is inverted that was valid in the input, and F did not increase (else the input is returned, with
-  a note saying why);
+- no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase (else
+  the input is returned, with a note saying why);
 - every boundary node lies on the ORIGINAL boundary (a final exact float64 projection).
 
 A mesh with inverted elements cannot be smoothed by F (its objective is infinite): with ``untangle="auto"`` it
@@ -22,12 +24,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import mixed
 from .boundary import BoundaryInfo, classify_boundary
+from .elements import mixed_objective
 from .errors import ConfigError, InvertedMeshError
-from .mesh import HexMesh, corner_determinants
+from .mesh import HexMesh
 from .projection import Constraints, build_constraints, project_np
-from .quality import QualityReport, objective, quality_report, transposed
-from .topology import colour_nodes
+from .quality import QualityReport, quality_report, transposed
+from .topology import colour_nodes, node_adjacency
 
 #: Method names accepted by `smooth` (and ``jaxci smooth --method``).
 METHODS = ("ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton", "laplace", "smart-laplace")
@@ -76,7 +80,9 @@ class SmoothResult:
 
 @dataclasses.dataclass(frozen=True)
 class Problem:
-    """Everything a method needs, built once: constraints, colouring, transposed connectivity, dtype."""
+    """Everything a method needs, built once: constraints, colouring, transposed connectivity, dtype; for a mixed
+    mesh the non-hexahedral cells (`extra`: `jaxci.mixed.ExtraCells`; `table`: `jaxci.mixed.CornerTable`), None
+    for a hexahedral one."""
 
     mesh: HexMesh
     info: BoundaryInfo
@@ -85,17 +91,27 @@ class Problem:
     conn: jnp.ndarray
     x0: jnp.ndarray
     dtype: type
+    extra: mixed.ExtraCells | None = None
+    table: mixed.CornerTable | None = None
 
 
 def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.0, fix_boundary: bool = False,
                   fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = ()) -> Problem:
-    """Classify the boundary, build the constraints and the colouring of `mesh` (call inside the dtype context)."""
+    """Classify the boundary, build the constraints and the colouring of `mesh` (call inside the dtype context).
+
+    On a mixed mesh no two nodes of one colour share a cell of any type."""
     info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary, fixed_nodes=fixed_nodes,
                              fixed_sets=tuple(fixed_sets))
     cons = build_constraints(mesh, info, dtype=dtype)
-    colour = colour_nodes(mesh.hexes, mesh.n_nodes).colour
+    extra = table = None
+    if mixed.has_extra(mesh):
+        cells = list(mixed.volume_cells(mesh).values())
+        colour = colour_nodes(mesh.hexes, mesh.n_nodes, node_adjacency(cells, mesh.n_nodes)).colour
+        extra, table = mixed.extra_cells(mesh), mixed.corner_table(mesh)
+    else:
+        colour = colour_nodes(mesh.hexes, mesh.n_nodes).colour
     return Problem(mesh, info, cons, np.asarray(colour), transposed(mesh.hexes), jnp.asarray(mesh.points, dtype),
-                   dtype)
+                   dtype, extra, table)
 
 
 def _run_method(problem: Problem, method: str, key, params: dict):
@@ -109,10 +125,12 @@ def _run_method(problem: Problem, method: str, key, params: dict):
         except TypeError as e:
             raise ConfigError(f"unknown CI parameter: {e}") from None
         if method == "ci":
-            cs = coloured_stars(problem.mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces)
-            x, it, hist = local_ci(key, problem.x0, problem.conn, cs, problem.cons, p)
+            cs = coloured_stars(problem.mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces,
+                                problem.table)
+            x, it, hist = local_ci(key, problem.x0, problem.conn, cs, problem.cons, p, problem.extra)
         else:
-            x, it, hist = global_ci(key, problem.x0, problem.conn, problem.cons, free_scale(problem), p)
+            x, it, hist = global_ci(key, problem.x0, problem.conn, problem.cons, free_scale(problem), p,
+                                    problem.extra)
         return x, it, hist, dataclasses.asdict(p)
     if method in ("bfgs", "lbfgs", "cg", "lm", "gauss-newton"):
         from .optim.gradient import run_gradient
@@ -132,6 +150,8 @@ def free_scale(problem: Problem) -> jnp.ndarray:
     st = node_stars(problem.mesh.hexes, problem.mesh.n_nodes)
     h = np.asarray(local_length(gather_star(jnp.asarray(problem.mesh.points), jnp.asarray(st.star)),
                                 jnp.asarray(st.mask)))
+    if problem.extra is not None:  # nodes of non-hexahedral cells only: their mean cell edge length
+        h = np.where(h > 0, h, mixed.node_lengths(problem.mesh))
     c = problem.cons
     parts = [np.repeat(h[np.asarray(c.interior_nodes)], 3), np.repeat(h[np.asarray(c.surface_nodes)], 2),
              h[np.asarray(c.edge_nodes)]]
@@ -186,15 +206,17 @@ def smooth(
         before = quality_report(mesh)
     untangle_params = {k[len("untangle_"):]: params.pop(k) for k in list(params) if k.startswith("untangle_")}
     untangled = None
-    if before.inverted_corners and untangle == "never":
+    tangled = bool(before.inverted_corners) or bool(before.overall and before.overall["inverted"])
+    if tangled and untangle == "never":
         where = f"{mesh.source}: " if mesh.source else ""
-        bad = np.flatnonzero((corner_determinants(mesh.points, mesh.hexes) <= 0).any(axis=1))
+        bad = {t: np.flatnonzero(b) for t, b in mixed.inverted_cells(mesh, mesh.points).items() if b.any()}
+        t0 = next(iter(bad))
         raise InvertedMeshError(
-            f"{where}the mesh has {before.inverted_elements} inverted elements ({before.inverted_corners} corners "
-            f"with det <= 0; first: element {mesh.hex_label(int(bad[0]))}); it must be untangled before it can "
-            f"be smoothed, and untangle='never' was given"
+            f"{where}the mesh has {sum(len(b) for b in bad.values())} inverted elements ({before.inverted_corners} "
+            f"hexahedron corners with det <= 0; first: {_label(mesh, t0, int(bad[t0][0]))}); it must be untangled "
+            f"before it can be smoothed, and untangle='never' was given"
         )
-    if before.inverted_corners or untangle == "always":
+    if tangled or untangle == "always":
         from .optim.untangle import UntangleParams, untangle_stage
 
         try:
@@ -234,17 +256,20 @@ def smooth(
     )
 
 
+def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
+    return f"element {mesh.hex_label(k)}" if cell_type == "hexahedron" else mixed.cell_label(mesh, cell_type, k)
+
+
 def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """Exact float64 projection onto the original boundary, then the no-inversion / no-increase checks."""
+    """Exact float64 projection onto the original boundary, then the no-inversion / no-increase checks over every
+    cell type (`jaxci.elements.inverted`, `jaxci.elements.mixed_objective`)."""
     cons64 = build_constraints(mesh, problem.info, dtype=np.float64)
     x = project_np(cons64, x)
-    hexes = mesh.hexes
-    det0 = corner_determinants(mesh.points, hexes)
-    det1 = corner_determinants(x, hexes)
-    new_inv = int(((det1 <= 0) & (det0 > 0)).sum())
-    f0, f1 = float(objective(mesh.points, hexes)), float(objective(x, hexes))
-    if new_inv or not np.isfinite(f1):
-        return np.array(mesh.points), [f"the result had {new_inv} newly inverted corners; the input is returned"]
+    new = mixed.newly_inverted(mesh, mesh.points, x)
+    f0, f1 = float(mixed_objective(mesh.points, mesh)), float(mixed_objective(x, mesh))
+    if new or not np.isfinite(f1):
+        what = ", ".join(f"{k} {t}" for t, k in new.items()) or "non-finite objective"
+        return np.array(mesh.points), [f"the result had newly inverted elements ({what}); the input is returned"]
     if f1 > f0:
         return np.array(mesh.points), [f"the objective rose from {f0:.6g} to {f1:.6g}; the input is returned"]
     return x, []

@@ -1,13 +1,17 @@
-"""Mesh topology in vectorised numpy: boundary quadrilaterals and edges, node adjacency, node colouring.
+"""Mesh topology in vectorised numpy: boundary faces and edges, node adjacency, node colouring.
 
 Everything here depends on the connectivity only (never on coordinates) and scales to millions of hexahedra:
-no Python loop runs per element or per node. The face of a hexahedron is keyed by its four sorted node indices
-(two int64 keys, so up to about 3e9 nodes); node adjacency is the sparsity pattern of ``A A^T`` for the
-node-element incidence matrix ``A`` (scipy's sparse product, much faster than sorting the 56 node pairs of
-every element).
+no Python loop runs per element or per node. A face is keyed by its sorted node indices (two int64 keys, so up
+to about 3e9 nodes); node adjacency is the sparsity pattern of ``A A^T`` for the node-element incidence matrix
+``A`` (scipy's sparse product, much faster than sorting the 56 node pairs of every element).
 
-Faces of a hexahedron (`HEX_FACES`) are VTK's, each listed counter-clockwise seen from outside a right-handed
-element, so ``(x2 - x0) x (x3 - x1)`` of a boundary face points out of the mesh.
+Faces of every linear volume cell (`CELL_FACES`: hexahedron 6 quadrilaterals, wedge 2 triangles + 3
+quadrilaterals, pyramid 1 quadrilateral + 4 triangles, tetrahedron 4 triangles) are listed counter-clockwise
+seen from outside a valid cell (VTK node orders, `jaxci.elements`). Faces are stored as 4 nodes: a TRIANGLE
+repeats its last node (``[a, b, c, c]``), so ``(x2 - x0) x (x3 - x1)`` is twice the area times the outward unit
+normal for triangles and (planar) quadrilaterals alike, and splitting a face into the triangles (centre,
+corner i, corner i+1) covers it exactly (one of them degenerate for a triangle). A face shared by two cells of
+any types is interior.
 """
 
 from __future__ import annotations
@@ -32,24 +36,40 @@ HEX_FACES = np.array(
 )
 
 
+#: The faces of every linear volume cell type (local node indices, outward for a valid cell, triangles padded by
+#: repeating their last node), shape ``(n_faces, 4)``; the types' node orders are `jaxci.elements`'.
+CELL_FACES = {
+    "hexahedron": HEX_FACES,
+    "wedge": np.array([[0, 2, 1, 1], [3, 4, 5, 5], [0, 1, 4, 3], [1, 2, 5, 4], [2, 0, 3, 5]], dtype=np.int64),
+    "pyramid": np.array([[0, 3, 2, 1], [0, 1, 4, 4], [1, 2, 4, 4], [2, 3, 4, 4], [3, 0, 4, 4]], dtype=np.int64),
+    "tetra": np.array([[0, 2, 1, 1], [0, 1, 3, 3], [1, 2, 3, 3], [2, 0, 3, 3]], dtype=np.int64),
+}
+
+#: Index of each cell type in `BoundaryTopology.face_type`.
+FACE_CELL_TYPES = ("hexahedron", "wedge", "pyramid", "tetra")
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class BoundaryTopology:
-    """Boundary quadrilaterals and boundary edges of a hexahedral mesh.
+    """Boundary faces (quadrilaterals and triangles) and boundary edges of a volume mesh.
 
     **Arguments:**
 
-    - `faces`: the boundary quadrilaterals (faces used by exactly one hexahedron), int64 array of shape
-      ``(n_faces, 4)``, oriented outward (counter-clockwise seen from outside a right-handed element).
-    - `face_hex`: the hexahedron each boundary face belongs to, shape ``(n_faces,)``.
+    - `faces`: the boundary faces (faces used by exactly one cell), int64 array of shape ``(n_faces, 4)``,
+      oriented outward (counter-clockwise seen from outside a valid cell); a triangle repeats its last node.
+    - `face_hex`: the hexahedron each boundary face belongs to (index into the hexahedra), -1 for a face of
+      another cell type; shape ``(n_faces,)``.
     - `edges`: the boundary edges (sides of boundary faces), int64 array of shape ``(n_edges, 2)`` with
       ``edges[:, 0] < edges[:, 1]``.
     - `face_edges`: for each boundary face, the index into `edges` of its sides ``(f0,f1), (f1,f2), (f2,f3),
-      (f3,f0)``; shape ``(n_faces, 4)``.
+      (f3,f0)``, -1 for the side ``(c, c)`` of a triangle; shape ``(n_faces, 4)``.
     - `edge_face_ptr`, `edge_face`: CSR lists of the boundary faces around each boundary edge: the faces of
       edge ``e`` are ``edge_face[edge_face_ptr[e]:edge_face_ptr[e + 1]]``; shapes ``(n_edges + 1,)`` and
-      ``(4 n_faces,)``.
-    - `nonmanifold_faces`: the distinct faces shared by three or more hexahedra (an invalid mesh), as sorted
-      node indices, shape ``(k, 4)``; they are not boundary faces.
+      ``(n_sides,)`` (4 per quadrilateral, 3 per triangle).
+    - `nonmanifold_faces`: the distinct faces shared by three or more cells (an invalid mesh), as sorted node
+      indices, shape ``(k, 4)`` (a triangle: -1 then its 3 nodes); they are not boundary faces.
+    - `face_type`: the cell type of each boundary face's cell (index into `FACE_CELL_TYPES`), int8; `face_cell`:
+      that cell's index within its type; both of shape ``(n_faces,)``. Default: every face a hexahedron's.
     """
 
     faces: np.ndarray
@@ -59,6 +79,19 @@ class BoundaryTopology:
     edge_face_ptr: np.ndarray
     edge_face: np.ndarray
     nonmanifold_faces: np.ndarray
+    face_type: np.ndarray | None = None
+    face_cell: np.ndarray | None = None
+
+    @property
+    def is_triangle(self) -> np.ndarray:
+        """Which boundary faces are triangles (last node repeated), bool ``(n_faces,)``."""
+        return self.faces[:, 3] == self.faces[:, 2]
+
+    @property
+    def nonmanifold_nodes(self) -> np.ndarray:
+        """Sorted nodes of `nonmanifold_faces` (without the -1 padding of triangles)."""
+        v = np.unique(self.nonmanifold_faces)
+        return v[v >= 0]
 
     @property
     def edge_valence(self) -> np.ndarray:
@@ -75,20 +108,43 @@ class BoundaryTopology:
         return np.unique(self.faces)
 
 
-def boundary_topology(hexes: np.ndarray, n_nodes: int) -> BoundaryTopology:
-    """Find the boundary quadrilaterals and edges of a hexahedral mesh.
+def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryTopology:
+    """Find the boundary faces and edges of a hexahedral or hex-dominant mesh.
 
     **Arguments:**
 
     - `hexes`: connectivity in VTK node order, integer array of shape ``(n_hexes, 8)``.
     - `n_nodes`: number of nodes (one more than the largest index).
+    - `others`: optional mapping ``{"wedge": (N, 6), "pyramid": (N, 5), "tetra": (N, 4)}`` of the other linear
+      volume cells (corner nodes; `jaxci.elements` node orders): their faces bound the volume too, and a face
+      they share with a hexahedron (or each other) is interior.
 
     **Returns:** a `BoundaryTopology`.
     """
     hexes = np.asarray(hexes, dtype=np.int64)
     n = np.int64(max(int(n_nodes), 1))
-    all_faces = np.stack([hexes[:, HEX_FACES[:, i]] for i in range(4)], axis=-1).reshape(-1, 4)
+    blocks = [("hexahedron", hexes)]
+    for t, cells in (others or {}).items():
+        if t not in CELL_FACES or t == "hexahedron":
+            raise ValueError(f"boundary_topology: unknown extra cell type {t!r}; expected wedge, pyramid or tetra")
+        cells = np.asarray(cells, dtype=np.int64)
+        if cells.ndim != 2 or cells.shape[1] != int(CELL_FACES[t].max()) + 1:
+            raise ValueError(f"boundary_topology: {t} cells must have shape (N, {int(CELL_FACES[t].max()) + 1}), "
+                             f"got {cells.shape}")
+        if len(cells):
+            blocks.append((t, cells))
+    parts, ftype, fcell = [], [], []
+    for t, cells in blocks:
+        nf = len(CELL_FACES[t])
+        parts.append(np.stack([cells[:, CELL_FACES[t][:, i]] for i in range(4)], axis=-1).reshape(-1, 4))
+        if len(blocks) > 1:
+            ftype.append(np.full(len(cells) * nf, FACE_CELL_TYPES.index(t), np.int8))
+            fcell.append(np.repeat(np.arange(len(cells)), nf))
+    all_faces = parts[0] if len(parts) == 1 else np.concatenate(parts)
     srt = np.sort(all_faces, axis=1)
+    if len(blocks) > 1:  # a triangle's key: its 3 sorted nodes after a -1 (whatever node it repeats)
+        tri = all_faces[:, 3] == all_faces[:, 2]
+        srt[tri] = np.sort(np.where(np.arange(4) == 3, -1, all_faces[tri]), axis=1)
     k1 = srt[:, 0] * n + srt[:, 1]
     k2 = srt[:, 2] * n + srt[:, 3]
     order = np.lexsort((k2, k1))
@@ -100,17 +156,33 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int) -> BoundaryTopology:
     single = order[count[group] == 1]
     single.sort()
     faces = all_faces[single]
-    face_hex = single // 6
+    if len(blocks) > 1:
+        face_type = np.concatenate(ftype)[single]
+        face_cell = np.concatenate(fcell)[single]
+        face_hex = np.where(face_type == 0, face_cell, -1)
+    else:
+        face_type = np.zeros(len(single), np.int8)
+        face_hex = face_cell = single // 6
     nonmanifold = srt[order[first & (count[group] >= 3)]]
     del all_faces, srt, k1, k2, order, k1o, k2o, first, group
 
     sides = np.stack([faces, np.roll(faces, -1, axis=1)], axis=-1).reshape(-1, 2)  # (4F, 2)
     lo, hi = sides.min(axis=1), sides.max(axis=1)
+    real = lo != hi  # the side (c, c) of a triangle is not an edge
+    all_real = bool(real.all())
+    side_face = np.arange(len(sides)) // 4
+    if not all_real:
+        lo, hi, side_face = lo[real], hi[real], side_face[real]
     keys, inverse = np.unique(lo * n + hi, return_inverse=True)
     edges = np.stack([keys // n, keys % n], axis=1).astype(np.int64)
-    face_edges = inverse.reshape(-1, 4).astype(np.int64)
+    if all_real:
+        face_edges = inverse.reshape(-1, 4).astype(np.int64)
+    else:
+        face_edges = np.full(len(sides), -1, np.int64)
+        face_edges[real] = inverse
+        face_edges = face_edges.reshape(-1, 4)
     by_edge = np.argsort(inverse, kind="stable")
-    edge_face = (by_edge // 4).astype(np.int64)
+    edge_face = side_face[by_edge].astype(np.int64)
     edge_face_ptr = np.zeros(len(edges) + 1, dtype=np.int64)
     np.cumsum(np.bincount(inverse, minlength=len(edges)), out=edge_face_ptr[1:])
     return BoundaryTopology(
@@ -121,6 +193,8 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int) -> BoundaryTopology:
         edge_face_ptr=edge_face_ptr,
         edge_face=edge_face,
         nonmanifold_faces=nonmanifold,
+        face_type=face_type,
+        face_cell=face_cell.astype(np.int64),
     )
 
 
@@ -137,18 +211,22 @@ def incidence(cells: np.ndarray, n_nodes: int) -> sp.csr_matrix:
     )
 
 
-def node_adjacency(hexes: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
-    """Node-node adjacency through shared hexahedra, in CSR form (a node is not its own neighbour).
+def node_adjacency(hexes, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Node-node adjacency through shared cells, in CSR form (a node is not its own neighbour).
 
     **Arguments:**
 
-    - `hexes`: integer array of shape ``(n_hexes, 8)``.
+    - `hexes`: integer array of shape ``(n_hexes, 8)``, or a list of cell arrays ``(N_t, k_t)`` of any widths
+      (hexahedra, wedges, ...: nodes sharing any cell are adjacent).
     - `n_nodes`: number of nodes.
 
     **Returns:** ``(indptr, indices)``, int64 arrays of shapes ``(n_nodes + 1,)`` and ``(nnz,)``: the
     neighbours of node ``i`` are ``indices[indptr[i]:indptr[i + 1]]``, sorted.
     """
-    a = incidence(hexes, n_nodes)
+    if isinstance(hexes, list | tuple):
+        a = sp.hstack([incidence(c, n_nodes) for c in hexes]).tocsr()
+    else:
+        a = incidence(hexes, n_nodes)
     g = (a @ a.T).tocsr()
     g.sort_indices()
     rows = np.repeat(np.arange(int(n_nodes)), np.diff(g.indptr))

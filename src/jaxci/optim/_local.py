@@ -111,14 +111,19 @@ def local_terms(E, smask, y):
 
 def chunked_local_terms(E, smask, y, chunk: int):
     """`local_terms` over S trials in chunks of `chunk` trials (bounded memory on large meshes)."""
+    return chunked(lambda t: local_terms(E, smask, t), y, chunk)
+
+
+def chunked(fn, y, chunk: int):
+    """``fn(y)`` for trials `y` ``(M, S, 3)`` -> ``(M, S)``, evaluated `chunk` trials at a time (`jax.lax.map`)."""
     M, S, _ = y.shape
     if chunk >= S:
-        return local_terms(E, smask, y)
+        return fn(y)
     n = -(-S // chunk)
     pad = n * chunk - S
     yp = jnp.concatenate([y, jnp.broadcast_to(y[:, :1], (M, pad, 3))], axis=1) if pad else y
     yc = jnp.moveaxis(yp.reshape(M, n, chunk, 3), 1, 0)
-    out = jax.lax.map(lambda t: local_terms(E, smask, t), yc)  # (n, M, chunk)
+    out = jax.lax.map(fn, yc)  # (n, M, chunk)
     return jnp.moveaxis(out, 0, 1).reshape(M, n * chunk)[:, :S]
 
 

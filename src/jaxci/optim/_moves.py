@@ -4,6 +4,11 @@ A movable node v has a basis B_v of shape ``(3, 3)`` whose columns span its free
 INTERIOR node, the two surface tangents (third column 0) for a SURFACE node, the curve tangent (other columns
 0) for an EDGE node. A trial position is ``project(x_v + B_v u)`` for a 3-vector u whose unused entries are
 ignored, so every trial lies on the node's constraint. CORNER and fixed nodes never move.
+
+On a mixed mesh the local objective of a node also counts the corners of the wedges, pyramids and tetrahedra
+around it (`ColouredStars.xnodes`..., rows of `jaxci.mixed.CornerTable`; a pyramid sub-tetrahedron counts only
+as a barrier): `local_sum`, `local_count`, `local_scale`. On a hexahedral mesh those arrays have a zero-size
+axis and the functions are the hexahedral ones (a static branch).
 """
 
 from __future__ import annotations
@@ -15,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..boundary import CORNER, EDGE, INTERIOR, SURFACE
+from ..mixed import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
 from ..projection import Constraints, project_nodes
-from ._local import ColourBatches, NodeStars, colour_batches, node_stars
+from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars
 
 
 def node_bases(cons: Constraints) -> jnp.ndarray:
@@ -54,6 +60,9 @@ class ColouredStars:
       position (3), the plane's unit normal (3) and the radius of the disk around the original position that
       its ring of faces covers; radius 0 (never used) otherwise. Inside that disk, the orthogonal projection
       onto the plane IS the nearest point of the patch, so the triangle search can be skipped (exactly).
+    - `xnodes` ``(n_colours, M, Kx, 4)``, `xwinv` ``(n_colours, M, Kx, 9)``, `xweight`, `xmask`
+      ``(n_colours, M, Kx)``: the non-hexahedral corners around each node (`jaxci.mixed.CornerTable` rows);
+      Kx = 0 on a hexahedral mesh.
     """
 
     nodes: jnp.ndarray
@@ -63,6 +72,10 @@ class ColouredStars:
     basis: jnp.ndarray
     dims: jnp.ndarray
     plane: jnp.ndarray
+    xnodes: jnp.ndarray
+    xwinv: jnp.ndarray
+    xweight: jnp.ndarray
+    xmask: jnp.ndarray
     n_interior: int
     n_surface: int
     n_edge: int
@@ -70,7 +83,7 @@ class ColouredStars:
 
 jax.tree_util.register_dataclass(
     ColouredStars,
-    data_fields=["nodes", "mask", "star", "smask", "basis", "dims", "plane"],
+    data_fields=["nodes", "mask", "star", "smask", "basis", "dims", "plane", "xnodes", "xwinv", "xweight", "xmask"],
     meta_fields=["n_interior", "n_surface", "n_edge"],
 )
 
@@ -90,16 +103,22 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
         return out
     sb = np.asarray(cons.surface_basis, dtype=np.float64)
     normal = np.cross(sb[:, 0], sb[:, 1])  # (ns, 3)
-    ring = np.sort(np.asarray(cons.surface_cand)[: len(surf)] // 4, axis=1)  # (ns, Kf) faces, repeats
+    ring = np.sort(np.asarray(cons.surface_cand)[: len(surf)] // 4, axis=1)  # (ns, K) faces, each 4 times
     first = np.ones(ring.shape, bool)
     first[:, 1:] = ring[:, 1:] != ring[:, :-1]  # unique faces per row
+    # compact each row to its unique faces (padded with repeats of the first): 4x less work below
+    keep = np.argsort(~first, axis=1, kind="stable")[:, : int(first.sum(axis=1).max())]
+    ring = np.take_along_axis(ring, keep, axis=1)
+    first = np.take_along_axis(first, keep, axis=1)
+    ring = np.where(first, ring, ring[:, :1])
     quad = faces[ring]  # (ns, Kf, 4)
     x0 = points[surf]
     dev = np.abs(np.einsum("skcd,sd->skc", points[quad] - x0[:, None, None], normal)).max(axis=(1, 2))
     a = quad
     b = np.roll(quad, -1, axis=2)
     lo, hi = np.minimum(a, b), np.maximum(a, b)
-    key = np.where(first[..., None], lo * n + hi, -1).reshape(len(surf), -1)  # (ns, 4Kf), -1 = duplicate face
+    # -1 = a duplicate face or the side (c, c) of a triangle [a, b, c, c]
+    key = np.where(first[..., None] & (lo != hi), lo * n + hi, -1).reshape(len(surf), -1)  # (ns, 4Kf)
     order = np.argsort(key, axis=1)
     ks = np.take_along_axis(key, order, axis=1)
     single = np.ones(ks.shape, bool)
@@ -119,10 +138,13 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
     return out
 
 
-def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, faces: np.ndarray) -> ColouredStars:
+def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, faces: np.ndarray,
+                   table: CornerTable | None = None) -> ColouredStars:
     """Group the movable nodes (class != CORNER) by `colour`, by class within a colour, with stars and bases.
 
-    `faces` are the boundary quadrilaterals (``BoundaryInfo.topology.faces``), for the planar-ring shortcut.
+    `faces` are the boundary faces (``BoundaryInfo.topology.faces``), for the planar-ring shortcut; `table` the
+    non-hexahedral corners (`jaxci.mixed.corner_table`; default none). The colouring must not give one colour to
+    two nodes of any cell (hexahedron or not).
     """
     cls = np.asarray(cons.node_class)
     n = len(cls)
@@ -138,6 +160,14 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     safe = np.minimum(nodes, n - 1)
     B = np.asarray(node_bases(cons))
     dims = free_dims(cons)
+    dtype = cons.x_orig.dtype
+    if table is None or not table.n_rows:
+        xnodes, xwinv = np.zeros(nodes.shape + (0, 4), np.int32), np.zeros(nodes.shape + (0, 9))
+        xweight, xmask = np.zeros(nodes.shape + (0,)), np.zeros(nodes.shape + (0,), bool)
+    else:
+        rows, rmask = node_corner_rows(table, n)
+        rows, rmask = rows[safe], rmask[safe] & mask[..., None]
+        xnodes, xwinv, xweight, xmask = table.nodes[rows], table.winv[rows], table.weight[rows], rmask
     return ColouredStars(
         nodes=jnp.asarray(nodes.astype(np.int32)),
         mask=jnp.asarray(mask),
@@ -147,10 +177,53 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
         dims=jnp.asarray(np.where(mask, dims[safe], 0).astype(np.int32)),
         plane=jnp.asarray(planar_rings(np.asarray(cons.x_orig, np.float64), faces, cons)[safe] * mask[..., None],
                           dtype=cons.x_orig.dtype),
+        xnodes=jnp.asarray(xnodes.astype(np.int32)),
+        xwinv=jnp.asarray(xwinv, dtype=dtype),
+        xweight=jnp.asarray(xweight, dtype=dtype),
+        xmask=jnp.asarray(xmask),
         n_interior=parts[0].nodes.shape[1],
         n_surface=parts[1].nodes.shape[1],
         n_edge=parts[2].nodes.shape[1],
     )
+
+
+def has_extra(cs: ColouredStars) -> bool:
+    """Whether `cs` holds non-hexahedral corners (static: a shape)."""
+    return cs.xnodes.shape[-2] > 0
+
+
+def local_sum(x, cs_i: ColouredStars, E, y):
+    """Sum of (kappa/3)^2 over every corner the nodes of one colour move, with the nodes at `y` ``(M, S, 3)``:
+    the hexahedral corners (`local_terms` on the gathered stars `E`) plus the non-hexahedral ones; ``(M, S)``,
+    ``inf`` where one is inverted (or a pyramid sub-tetrahedron)."""
+    total = local_terms(E, cs_i.smask, y)
+    if has_extra(cs_i):
+        v = jnp.minimum(cs_i.nodes, x.shape[0] - 1)
+        total = total + local_extra_terms(x, v, cs_i.xnodes, cs_i.xwinv, cs_i.xweight, cs_i.xmask, y)
+    return total
+
+
+def chunked_local_sum(x, cs_i: ColouredStars, E, y, chunk: int):
+    """`local_sum` over S trials in chunks of `chunk` trials."""
+    return chunked(lambda t: local_sum(x, cs_i, E, t), y, chunk)
+
+
+def local_count(cs_i: ColouredStars):
+    """Number of objective corners each node of one colour moves, ``(M,)`` (4 per hexahedron around it)."""
+    count = 4 * jnp.sum(cs_i.smask, axis=-1)
+    if has_extra(cs_i):
+        count = count + jnp.sum(cs_i.xmask & (cs_i.xweight > 0), axis=-1)
+    return count
+
+
+def local_scale(x, cs_i: ColouredStars, E):
+    """Local length scale of each node of one colour, ``(M,)``: the mean hexahedral edge length at it
+    (`local_length`), or for a node of non-hexahedral cells only, the mean distance to their nodes."""
+    h = local_length(E, cs_i.smask)
+    if has_extra(cs_i):
+        v = jnp.minimum(cs_i.nodes, x.shape[0] - 1)
+        h = jnp.where(h > 0, h, local_extra_length(x, v, cs_i.xnodes, cs_i.xweight, cs_i.xmask))
+    return h
 
 
 def colour_slice(cs: ColouredStars, i):

@@ -44,10 +44,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
+from ..mixed import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
 from ..projection import Constraints, params_to_points
-from ..quality import condition_from_invariants, corner_columns, corner_invariants, gather_corners, objective_t
-from ._local import chunked_local_terms, gather_star, local_length
-from ._moves import ColouredStars, colour_slice, project_trials
+from ._local import gather_star
+from ._moves import ColouredStars, chunked_local_sum, colour_slice, local_count, local_scale, project_trials
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,25 +135,24 @@ def _follow(key, g, delta, roulette):
     return jnp.where(roulette, rou, best)
 
 
-def _max_condition(points, conn):
-    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(points, conn)))
-    return jnp.max(jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)))
+def _max_condition(points, conn, extra: ExtraCells):
+    return mixed_max_condition(points, conn, extra)
 
 
 # ------------------------------------------------------------------------------------------------ local CI
 def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict, chunk: int):
     """One cohort run for every node of one colour. Returns new points, new widths, number of moved nodes."""
-    nodes, mask, star, smask, basis, dims = (cs_i.nodes, cs_i.mask, cs_i.star, cs_i.smask, cs_i.basis, cs_i.dims)
+    nodes, mask, star, basis, dims = (cs_i.nodes, cs_i.mask, cs_i.star, cs_i.basis, cs_i.dims)
     M = nodes.shape[0]
     C, t, T = s.cohort, s.variations, s.attempts
     dtype = x.dtype
     E = gather_star(x, star)
-    ncorner = jnp.maximum(4 * jnp.sum(smask, axis=-1), 1).astype(dtype)  # (M,)
+    ncorner = jnp.maximum(local_count(cs_i), 1).astype(dtype)  # (M,)
     safe_nodes = jnp.minimum(nodes, x.shape[0] - 1)
     x0 = x[safe_nodes]  # (M, 3)
     w0 = width[safe_nodes]
-    h = local_length(E, smask)
-    f0 = chunked_local_terms(E, smask, x0[:, None], chunk)[:, 0] / ncorner - 1.0  # (M,)
+    h = local_scale(x, cs_i, E)
+    f0 = chunked_local_sum(x, cs_i, E, x0[:, None], chunk)[:, 0] / ncorner - 1.0  # (M,)
     dim_mask = (jnp.arange(3)[None, :] < dims[:, None]).astype(dtype)  # (M, 3)
     cand = jnp.broadcast_to(x0[:, None], (M, C, 3))
     fc = jnp.broadcast_to(f0[:, None], (M, C))
@@ -168,7 +167,7 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict
         u = jax.random.uniform(ku, (M, C, t, 3), dtype, -0.5, 0.5) * (w[:, None, None, None] * dim_mask[:, None, None])
         step = jnp.einsum("mij,mctj->mcti", basis, u)
         trials = project_trials(cons, cs_i, (centre[:, :, None] + step).reshape(M, C * t, 3))
-        ft = chunked_local_terms(E, smask, trials, chunk) / ncorner[:, None] - 1.0
+        ft = chunked_local_sum(x, cs_i, E, trials, chunk) / ncorner[:, None] - 1.0
         ft = ft.reshape(M, C, t)
         j = jnp.argmin(ft, axis=-1)  # (M, C)
         fb = jnp.take_along_axis(ft, j[..., None], axis=-1)[..., 0]
@@ -191,7 +190,8 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict
 
 
 @functools.partial(jax.jit, static_argnames=("s", "chunk"))
-def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static, d: dict, chunk: int):
+def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static, d: dict, chunk: int,
+                  extra: ExtraCells):
     n_colours = cs.nodes.shape[0]
     dtype = x.dtype
     # initial widths: init_width * local edge length of every node
@@ -199,13 +199,13 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
 
     def h_colour(i, h_all):
         cs_i = colour_slice(cs, i)
-        return h_all.at[cs_i.nodes].set(local_length(gather_star(x, cs_i.star), cs_i.smask), mode="drop")
+        return h_all.at[cs_i.nodes].set(local_scale(x, cs_i, gather_star(x, cs_i.star)), mode="drop")
 
     h_all = jax.lax.fori_loop(0, n_colours, h_colour, h_all)
     width = d["init_width"] * h_all
-    f_init = objective_t(x, conn)
+    f_init = mixed_objective_t(x, conn, extra)
     hist_f = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(f_init)
-    hist_k = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(_max_condition(x, conn))
+    hist_k = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(_max_condition(x, conn, extra))
     hist_m = jnp.zeros((s.max_sweeps + 1,), jnp.int32)
 
     def sweep(carry):
@@ -218,9 +218,9 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
             return x, width, moved + m
 
         x, width, moved = jax.lax.fori_loop(0, n_colours, colour, (x, width, jnp.int32(0)))
-        f = objective_t(x, conn)
+        f = mixed_objective_t(x, conn, extra)
         it = it + 1
-        hf, hk, hm = hf.at[it].set(f), hk.at[it].set(_max_condition(x, conn)), hm.at[it].set(moved)
+        hf, hk, hm = hf.at[it].set(f), hk.at[it].set(_max_condition(x, conn, extra)), hm.at[it].set(moved)
         done = (f <= d["ftol"]) | (f_prev - f <= d["tol"] * f_prev) | (moved == 0)
         return key, x, width, it, f, done, hf, hk, hm
 
@@ -239,14 +239,19 @@ def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
     return int(max(1, min(p.cohort * p.variations, budget // max(1, M * K * 4))))
 
 
-def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams = CIParams()):
-    """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity.
+def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams = CIParams(),
+             extra: ExtraCells | None = None):
+    """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity, `extra`
+    the non-hexahedral cells (`jaxci.mixed.extra_cells`; default none), whose corners `cs` must hold too
+    (`coloured_stars(..., table)`): F and the local objectives are then over every corner.
 
     **Returns:** ``(points, sweeps, history)``: the smoothed coordinates ``(n, 3)``, the number of sweeps, and a
     dict of numpy arrays of length ``sweeps + 1`` (entry 0 = input): ``objective``, ``max_condition``,
     ``moved`` (nodes moved in the sweep).
     """
-    x, n, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, *_split(p, points.dtype), _auto_chunk(cs, p))
+    extra = no_extra() if extra is None else extra
+    x, n, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, *_split(p, points.dtype), _auto_chunk(cs, p),
+                                     extra)
     n = int(n)
     return x, n, {"objective": np.asarray(hf[: n + 1]), "max_condition": np.asarray(hk[: n + 1]),
                   "moved": np.asarray(hm[: n + 1])}
@@ -254,14 +259,14 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
 
 # ------------------------------------------------------------------------------------------------ global CI
 @functools.partial(jax.jit, static_argnames=("s",))
-def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict):
+def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict, extra: ExtraCells):
     """Faithful global CI over the free coordinates u (shape ``(n_free,)``); `scale` is h per coordinate."""
     C, t, T = s.cohort, s.variations, s.attempts
     dtype = x0.dtype
     nf = scale.shape[0]
 
     def F(u):
-        return objective_t(params_to_points(cons, u, x0), conn)
+        return mixed_objective_t(params_to_points(cons, u, x0), conn, extra)
 
     def F_many(U):  # (S, nf) -> (S,)
         return jax.lax.map(F, U)
@@ -270,7 +275,7 @@ def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict)
     f0 = F(u0)
     cand = jnp.zeros((C, nf), dtype)
     fc = jnp.full((C,), f0)
-    hist = jnp.full((T + 1, 3), jnp.nan, dtype).at[0].set(jnp.stack([f0, f0, _max_condition(x0, conn)]))
+    hist = jnp.full((T + 1, 3), jnp.nan, dtype).at[0].set(jnp.stack([f0, f0, _max_condition(x0, conn, extra)]))
     n_roulette = jnp.round(d["stage_switch"] * T)
 
     def attempt(carry):
@@ -288,7 +293,7 @@ def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict)
         cand = jnp.where(better[:, None], U[jnp.arange(C), j], cand)
         fc = jnp.where(better, fb, fc)
         a = a + 1
-        kbest = _max_condition(params_to_points(cons, cand[jnp.argmin(fc)], x0), conn)
+        kbest = _max_condition(params_to_points(cons, cand[jnp.argmin(fc)], x0), conn, extra)
         hist = hist.at[a].set(jnp.stack([jnp.min(fc), jnp.max(fc), kbest]))
         scale_f = d["tol"] * jnp.maximum(jnp.min(fc), d["ftol"])
         still = (jnp.max(fc) - jnp.min(fc) <= scale_f) & (best_before - jnp.min(fc) <= scale_f)
@@ -305,14 +310,16 @@ def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict)
     return x, a, hist
 
 
-def global_ci(key, points, conn, cons: Constraints, scale, p: CIParams):
-    """Run the paper's global CI; `scale` is the local edge length per free coordinate, shape ``(n_free,)``.
+def global_ci(key, points, conn, cons: Constraints, scale, p: CIParams, extra: ExtraCells | None = None):
+    """Run the paper's global CI; `scale` is the local edge length per free coordinate, shape ``(n_free,)``;
+    `extra` the non-hexahedral cells (default none): the behaviour is then F over every corner.
 
     **Returns:** ``(points, attempts, history)`` with history arrays ``objective`` and ``best`` (best behaviour
     F of the cohort), ``worst`` (worst behaviour), ``max_condition`` (of the best candidate), per learning
     attempt; entry 0 = input.
     """
-    x, a, hist = _global_ci_run(key, points, conn, cons, scale, *_split(p, points.dtype))
+    extra = no_extra() if extra is None else extra
+    x, a, hist = _global_ci_run(key, points, conn, cons, scale, *_split(p, points.dtype), extra)
     a = int(a)
     hist = np.asarray(hist[: a + 1])
     return x, a, {"objective": hist[:, 0], "best": hist[:, 0], "worst": hist[:, 1], "max_condition": hist[:, 2]}

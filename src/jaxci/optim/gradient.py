@@ -57,8 +57,9 @@ seconds per hundred steps at 2400 unknowns; use L-BFGS or CG for anything but sm
 
 **Closed-form gradient.** `objective_and_grad` is d F / d x in closed form (per corner d kappa^2 / d columns,
 accumulated per element node and scattered into the nodes). It agrees with `jax.grad` to rounding and is
-available to the solvers with ``GradientParams(gradient="closed")`` (through a `jax.custom_jvp`), but it is not
-faster on XLA:CPU (see its docstring), so autodiff is the default.
+what the solvers use by default (``GradientParams(gradient="closed")``, through a `jax.custom_jvp`); ``"autodiff"``
+is `jax.grad` through the forward kernel (same values to rounding; 1.3-1.5x slower from 27k elements up, see
+`objective_and_grad`).
 """
 
 from __future__ import annotations
@@ -74,6 +75,8 @@ import optimistix as optx
 from ..boundary import BoundaryInfo
 from ..errors import ConfigError
 from ..mesh import CORNER_NEIGHBOURS
+from ..mixed import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
+from ..mixed import node_lengths as mixed_node_lengths
 from ..projection import Constraints, n_free, project
 from ..quality import corner_columns, corner_invariants, gather_corners, squared_condition_from_invariants
 
@@ -104,7 +107,9 @@ class GradientParams:
       second and later restarts only while the previous run lowered F by more than that. `max_steps` bounds the
       steps of all runs together.
     - `max_free`: least squares only: refuse more free coordinates than this (default 1000).
-    - `gradient`: ``"autodiff"`` (`jax.grad`, default) or ``"closed"`` (`objective_and_grad`).
+    - `gradient`: ``"closed"`` (`objective_and_grad`, default) or ``"autodiff"`` (`jax.grad`).
+    - `max_move`: BFGS, L-BFGS, CG: the largest trial move of one free coordinate per step, in local edge lengths
+      (default 0.5; 0: no cap): the search direction is shortened to it before the line search.
     - `gn_search`: Gauss-Newton only: ``"armijo"`` (default: backtracking Armijo line search on the Gauss-Newton
       direction) or ``"none"`` (`optx.GaussNewton` as shipped, full steps: it inverts elements at once on the
       perturbed cubes and stops there).
@@ -122,7 +127,8 @@ class GradientParams:
     max_free: int = 1000
     restarts: int = 3
     restart_tol: float = 1e-6
-    gradient: str = "autodiff"
+    gradient: str = "closed"
+    max_move: float = 0.5
     gn_search: str = "armijo"
     residual: str = "excess"
 
@@ -145,6 +151,7 @@ class GradientParams:
         need(self.restart_tol >= 0, f"restart_tol must be >= 0, got {self.restart_tol!r}")
         need(int(self.max_free) == self.max_free and self.max_free >= 1,
              f"max_free must be an integer >= 1, got {self.max_free!r}")
+        need(self.max_move >= 0, f"max_move must be >= 0, got {self.max_move!r}")
         need(self.gradient in ("autodiff", "closed"), f"gradient must be 'autodiff' or 'closed', got {self.gradient!r}")
         need(self.residual in ("kappa", "excess"), f"residual must be 'kappa' or 'excess', got {self.residual!r}")
         need(self.gn_search in ("armijo", "none"), f"gn_search must be 'armijo' or 'none', got {self.gn_search!r}")
@@ -163,7 +170,8 @@ class Parametrisation(eqx.Module):
 
     While every boundary node lies inside its flat region, ``x0 + B u`` is already on the boundary and its
     projection is itself, so `points` skips the search over candidate triangles (exactly: same value, same
-    derivative ``B``); otherwise it calls `jaxci.projection.project`.
+    derivative ``B``); otherwise it calls `jaxci.projection.project` (exact value; with `shortcut` the derivative
+    is still ``B``, the tangent map, so that the backward pass keeps no residuals of the projection).
     """
 
     cons: Constraints
@@ -196,7 +204,10 @@ class Parametrisation(eqx.Module):
             return project(self.cons, x)
         d = x[self.flat_nodes] - self.flat_origin
         inside = jnp.all(jnp.sum(d * d, axis=-1) < (0.999 * self.flat_radius) ** 2)
-        return jax.lax.cond(inside, lambda y: y, lambda y: project(self.cons, y), x)
+        # outside: the exact projection, differentiated as the lift (B, its derivative on the flat regions); a
+        # differentiated projection branch keeps its residuals even when not taken (zeros), which cost 35 ms per
+        # gradient at 60^3
+        return jax.lax.cond(inside, lambda y: y, lambda y: y + jax.lax.stop_gradient(project(self.cons, y) - y), x)
 
     def params(self, points):
         """Scaled free coordinates of `points` ``(n, 3)``: ``B^T (points - x0) / scale`` (inverse of `lift`)."""
@@ -243,13 +254,18 @@ def node_lengths(hexes: np.ndarray, points: np.ndarray) -> np.ndarray:
     """
     p = np.asarray(points, dtype=np.float64)
     h = np.asarray(hexes, dtype=np.int64)
-    a = np.repeat(h, 3, axis=1)  # (N, 24): each local node three times
-    b = h[:, CORNER_NEIGHBOURS.ravel()]  # (N, 24): its three edge neighbours
-    length = np.linalg.norm(p[b] - p[a], axis=-1)
+    a, b = h[:, _EDGE_ENDS[0]].T, h[:, _EDGE_ENDS[1]].T  # (12, N): the 12 edges of every element, each once
+    d = p[b] - p[a]
+    length = np.sqrt(np.einsum("...d,...d->...", d, d)).ravel()
     n = len(p)
-    total = np.bincount(a.ravel(), weights=length.ravel(), minlength=n)
-    count = np.bincount(a.ravel(), minlength=n)
+    ends = np.concatenate([a.ravel(), b.ravel()])  # each edge counts for both of its nodes
+    total = np.bincount(ends, weights=np.concatenate([length, length]), minlength=n)
+    count = np.bincount(ends, minlength=n)
     return np.divide(total, count, out=np.zeros(n), where=count > 0)
+
+
+#: The 12 edges of a hexahedron (local nodes i < j joined by an edge), from `CORNER_NEIGHBOURS`.
+_EDGE_ENDS = np.array(sorted({(min(i, int(j)), max(i, int(j))) for i in range(8) for j in CORNER_NEIGHBOURS[i]})).T
 
 
 def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *, scaled: bool = True,
@@ -316,11 +332,30 @@ def _cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-_COLUMN_OWNER = [np.argsort(CORNER_NEIGHBOURS[:, j]) for j in range(3)]
+#: Per column j, the corner whose column j ends at each local node (static Python ints).
+_COLUMN_OWNER = [tuple(int(i) for i in np.argsort(CORNER_NEIGHBOURS[:, j])) for j in range(3)]
+
+
+def _rows(a, order):
+    """``a[order]`` along the first axis by static slices (no index array: its dtype follows jax_enable_x64)."""
+    return jnp.stack([a[i] for i in order])
 
 
 def objective_and_grad(points, conn):
     """F (Eq. 3.1) and its gradient with respect to the node coordinates, in closed form.
+
+    (`objective_terms_and_grad` without the max.)
+
+    **Arguments:** `points` of shape ``(n, 3)``; `conn` the transposed connectivity ``(8, N)``.
+
+    **Returns:** ``(F, grad)``: a scalar (``inf`` if any corner has det <= 0) and shape ``(n, 3)``.
+    """
+    f, _, g = objective_terms_and_grad(points, conn)
+    return f, g
+
+
+def objective_terms_and_grad(points, conn):
+    """F (Eq. 3.1), max kappa/3 and the gradient of F with respect to the node coordinates, in closed form.
 
     With columns a, b, c of a corner matrix, u = b x c, v = c x a, w = a x b, det = a . u,
     |A|^2 = |a|^2 + |b|^2 + |c|^2 and |adj A|^2 = |u|^2 + |v|^2 + |w|^2, the term t = |A|^2 |adj A|^2 / (9 det^2)
@@ -328,14 +363,19 @@ def objective_and_grad(points, conn):
     column is the difference of two nodes, so its gradient goes to one node with + and to the corner's node
     with -; the 8 per-element node gradients are scattered into the nodes.
 
-    Measured on this 2-core CPU (float64, minimum of 10 runs): 0.55 ms vs 0.64 ms for `jax.value_and_grad` at
-    1000 elements, 236 ms vs 262 ms at 125k elements (the forward pass: 0.05 ms and 8 ms). Materialising the
-    per-corner gradient arrays dominates; writing them is bandwidth-bound on this machine. A per-node form (each
-    node's star, no scatter) was 6x slower. So the solvers use `jax.grad` by default.
+    One division per corner (``1/det``; ``2t/|A|^2``, ``2t/|adj A|^2``, ``2t/det`` are products of it).
+    Measured on this 2-core CPU (float32, warm, minimum of 5 runs, value and gradient with respect to the scaled
+    free coordinates of L-BFGS, perturbed boxes): 0.8 / 9.5 / 130 ms at 10^3 / 30^3 / 60^3 elements against
+    0.8 / 11.4 / 196 ms for `jax.grad` (the forward pass alone: 0.2 / 2.0 / 21 ms). What dominates: XLA:CPU does
+    not fuse a kernel with 24 outputs per element into one loop; it materialises the gathered and permuted corner
+    coordinates and recomputes the shared corner quantities per output (barriers, per-element rows and chunking
+    with `lax.map` were measured and are not faster); past the caches (60^3: 7 MB per corner array) it is
+    memory-bound. The scatter-add into the nodes is ~10% (a gather over a node-incidence table and
+    `segment_sum` cost the same).
 
     **Arguments:** `points` of shape ``(n, 3)``; `conn` the transposed connectivity ``(8, N)``.
 
-    **Returns:** ``(F, grad)``: a scalar (``inf`` if any corner has det <= 0) and shape ``(n, 3)`` (the
+    **Returns:** ``(F, kmax, grad)``: scalars (``inf`` if any corner has det <= 0) and shape ``(n, 3)`` (the
     contributions of inverted corners are left out).
     """
     X, Y, Z = gather_corners(points, conn)
@@ -346,13 +386,17 @@ def objective_and_grad(points, conn):
     fro2 = sum(t * t for t in (*a, *b, *c))
     adj2 = sum(t * t for t in (*u, *v, *w))
     valid = det > 0
-    sdet = jnp.where(valid, det, 1.0)
-    term = jnp.where(valid, fro2 * adj2 / (9.0 * sdet * sdet), jnp.inf)
-    f = jnp.mean(jax.lax.optimization_barrier(term)) - 1.0
-    t = jnp.where(valid, term, 0.0) / term.size
-    p = 2.0 * t / jnp.where(valid, fro2, 1.0)
-    q = 2.0 * t / jnp.where(valid, adj2, 1.0)
-    r = 2.0 * t / sdet
+    # one division per corner: t = fro2 adj2 / (9 det^2), and 2 t / fro2, 2 t / adj2, 2 t / det are products
+    idet = jnp.where(valid, 1.0 / jnp.where(valid, det, 1.0), 0.0)
+    idet2 = idet * idet
+    term = jnp.where(valid, fro2 * adj2 * idet2 * (1.0 / 9.0), jnp.inf)
+    term = jax.lax.optimization_barrier(term)
+    f = jnp.mean(term) - 1.0
+    kmax = jnp.sqrt(jnp.max(term))
+    w2 = 2.0 / (9.0 * term.size)
+    p = w2 * adj2 * idet2
+    q = w2 * fro2 * idet2
+    r = p * fro2 * idet
     vxc, bxw = _cross(v, c), _cross(b, w)
     cxu, wxa = _cross(c, u), _cross(w, a)
     uxb, axv = _cross(u, b), _cross(a, v)
@@ -362,54 +406,63 @@ def objective_and_grad(points, conn):
         ga = p * a[k] + q * (vxc[k] + bxw[k]) - r * u[k]
         gb = p * b[k] + q * (cxu[k] + wxa[k]) - r * v[k]
         gc = p * c[k] + q * (uxb[k] + axv[k]) - r * w[k]
-        node = -(ga + gb + gc) + ga[_COLUMN_OWNER[0]] + gb[_COLUMN_OWNER[1]] + gc[_COLUMN_OWNER[2]]
+        node = -(ga + gb + gc) + _rows(ga, _COLUMN_OWNER[0]) + _rows(gb, _COLUMN_OWNER[1]) + _rows(gc, _COLUMN_OWNER[2])
         g = jnp.zeros(n, points.dtype)
         for m in range(8):
             g = g.at[conn[m]].add(node[m])
         grads.append(g)
-    return f, jnp.stack(grads, axis=1)
+    return f, kmax, jnp.stack(grads, axis=1)
 
 
 @jax.custom_jvp
 def _objective_closed(points, conn):
-    return objective_and_grad(points, conn)[0]
+    """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent)."""
+    return objective_terms_and_grad(points, conn)[:2]
 
 
 @_objective_closed.defjvp
 def _objective_closed_jvp(primals, tangents):
     points, conn = primals
     dx, _ = tangents
-    f, g = objective_and_grad(points, conn)
-    return f, jnp.sum(g * dx)
+    f, k, g = objective_terms_and_grad(points, conn)
+    return (f, k), (jnp.sum(g * dx), jnp.zeros_like(k))
 
 
-def _objective(x, conn, closed: bool):
-    """F and max kappa/3 of coordinates `x` (``inf`` for an inverted mesh)."""
-    term = jax.lax.optimization_barrier(_corner_terms(x, conn))
-    kmax = jnp.sqrt(jnp.max(term))
-    f = _objective_closed(x, conn) if closed else jnp.mean(term) - 1.0
+def _objective(x, conn, closed: bool, extra=None):
+    """F and max kappa/3 of coordinates `x` (``inf`` for an inverted mesh); over every corner of the hexahedra and
+    of `extra` (`jaxci.mixed.ExtraCells`, static types) when it has cells."""
+    if closed:  # one kernel for F, its gradient and the max
+        f, kmax = _objective_closed(x, conn)
+    else:
+        term = jax.lax.optimization_barrier(_corner_terms(x, conn))
+        kmax = jnp.sqrt(jnp.max(term))
+        f = jnp.mean(term) - 1.0
+    if extra is not None and extra.types:
+        f, kmax = _mixed_objective(x, 8 * conn.shape[1], f, kmax, extra)
     return f, kmax
 
 
 def _min_fn(v, args):
-    par, conn, s, ftol = args
-    f, kmax = _objective(par.points(v), conn, False)
+    par, conn, s, ftol, extra = args
+    f, kmax = _objective(par.points(v), conn, False, extra)
     return s * f, (f, kmax, f <= ftol)
 
 
 def _min_fn_closed(v, args):
-    par, conn, s, ftol = args
-    f, kmax = _objective(par.points(v), conn, True)
+    par, conn, s, ftol, extra = args
+    f, kmax = _objective(par.points(v), conn, True, extra)
     return s * f, (f, kmax, f <= ftol)
 
 
 def _lsq_fn(v, args):
-    """Residuals kappa/3 per corner, times sqrt(2 s / 8N): 0.5 |r|^2 = s (F + 1)."""
-    par, conn, s, ftol = args
+    """Residuals kappa/3 per corner, times sqrt(2 s / n_corners): 0.5 |r|^2 = s (F + 1)."""
+    par, conn, s, ftol, extra = args
     x = par.points(v)
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     valid = det > 0
     k3 = jnp.where(valid, jnp.sqrt(fro2 * adj2) / (3.0 * jnp.where(valid, det, 1.0)), jnp.inf)
+    if extra is not None and extra.types:
+        return _mixed_residuals(x, k3 * k3, extra, s, ftol, excess=False)
     w = jnp.sqrt(2.0 * s / k3.size).astype(k3.dtype)
     k3b = jax.lax.optimization_barrier(k3)
     f = jnp.mean(k3b * k3b) - 1.0
@@ -417,9 +470,13 @@ def _lsq_fn(v, args):
 
 
 def _lsq_fn_excess(v, args):
-    """Residuals sqrt((kappa/3)^2 - 1) per corner, times sqrt(2 s / 8N): 0.5 |r|^2 = s F (zero at the optimum)."""
-    par, conn, s, ftol = args
+    """Residuals sqrt((kappa/3)^2 - 1) per corner, times sqrt(2 s / n_corners): 0.5 |r|^2 = s F (zero at the
+    optimum)."""
+    par, conn, s, ftol, extra = args
     x = par.points(v)
+    if extra is not None and extra.types:
+        det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
+        return _mixed_residuals(x, squared_condition_from_invariants(det, fro2, adj2), extra, s, ftol, excess=True)
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     valid = det > 0
     sdet = jnp.where(valid, det, 1.0)
@@ -434,13 +491,23 @@ def _lsq_fn_excess(v, args):
 
 
 # ---------------------------------------------------------------------------------------------- the loop
+#: Consecutive rejected trials after which `_solve` stops a solver whose steps are capped (`max_move`): the
+#: trial is then below 2^-20 of `max_move`; in float32 that is F's rounding noise at the optimum (measured: 28
+#: rejected trials ended every L-BFGS run at 30^3 after it had converged, each a full objective and gradient
+#: evaluation). Uncapped solvers (and LM, Gauss-Newton) get `MAX_REJECTED_UNCAPPED`: their first raw-gradient
+#: trial can be 2^35 times too long.
+MAX_REJECTED = 20
+MAX_REJECTED_UNCAPPED = 64
+
+
 @eqx.filter_jit
-def _solve(solver, fn, y0, args, max_steps: int, limit=None):
+def _solve(solver, fn, y0, args, max_steps: int, limit=None, max_rejected: int = MAX_REJECTED_UNCAPPED):
     """optimistix's iteration (init, step, terminate in a bounded loop), recording per step what `fn` reports.
 
     `fn(y, args)` returns ``(value, (f, k, stop))``: the solver minimises `value`; `f` (tracked: the best
     valid iterate is the one with the lowest finite `f`) and `k` are recorded per step; the loop also ends
-    once `stop` is True at an accepted iterate.
+    once `stop` is True at an accepted iterate, and after `max_rejected` (static) consecutive trials that leave
+    the accepted iterate unchanged.
 
     `max_steps` (static) sizes the history; `limit` (traced, <= max_steps, default max_steps) ends the loop.
 
@@ -459,11 +526,11 @@ def _solve(solver, fn, y0, args, max_steps: int, limit=None):
     ok = optx.RESULTS.successful
 
     def cond(carry):
-        _, step, _, stop, _, _, _, _, _ = carry
+        _, step, _, stop, _, _, _, _, _, _ = carry
         return (step < limit) & ~stop
 
     def body(carry):
-        y, step, dyn, _, _, y_best, f_best, hf, hk = carry
+        y, step, dyn, _, _, y_best, f_best, hf, hk, rejected = carry
         st = eqx.combine(static, dyn)
         y, st, _ = solver.step(fn, y, args, options, st, tags)
         terminate, result = solver.terminate(fn, y, args, options, st, tags)
@@ -471,27 +538,61 @@ def _solve(solver, fn, y0, args, max_steps: int, limit=None):
         finite_y = jnp.all(jnp.isfinite(y))
         result = optx.RESULTS.where(finite_y, result, optx.RESULTS.nonfinite)
         step = step + 1
+        rejected = jnp.where(f == hf[step - 1], rejected + 1, 0)
         hf, hk = hf.at[step].set(f), hk.at[step].set(k)
         better = finite_y & jnp.isfinite(f) & (f <= f_best)
         y_best = jnp.where(better, y, y_best)
         f_best = jnp.where(better, f, f_best)
-        stop = terminate | (result != ok) | (stop & finite_y & jnp.isfinite(f))
+        stop = terminate | (result != ok) | (stop & finite_y & jnp.isfinite(f)) | (rejected >= max_rejected)
         dyn2, _ = eqx.partition(st, eqx.is_array)
-        return y, step, dyn2, stop, result, y_best, f_best, hf, hk
+        return y, step, dyn2, stop, result, y_best, f_best, hf, hk, rejected
 
-    carry = (y0, jnp.int32(0), dyn0, stop0, ok, y0, f0, hf, hk)
-    _, steps, _, stop, result, y_best, _, hf, hk = jax.lax.while_loop(cond, body, carry)
+    carry = (y0, jnp.int32(0), dyn0, stop0, ok, y0, f0, hf, hk, jnp.int32(0))
+    _, steps, _, stop, result, y_best, _, hf, hk, _ = jax.lax.while_loop(cond, body, carry)
     result = optx.RESULTS.where((result == ok) & ~stop, optx.RESULTS.nonlinear_max_steps_reached, result)
     return y_best, steps, result, hf, hk
 
 
+class _CappedDescent(optx.AbstractDescent):
+    """A descent whose step is at most `cap` in the max norm at step size 1 (then scaled by the step size).
+
+    The unknowns are in units of the local edge length, so no node moves more than `cap` edge lengths per trial.
+    Without it, the first quasi-Newton step (identity Hessian: the raw gradient, huge where one corner is nearly
+    flat) overshoots by orders of magnitude and the line search halves it ~35 times, one full objective and
+    gradient evaluation each (measured: 35 of 76 L-BFGS steps at 30^3, amplitude 0.3).
+    """
+
+    inner: optx.AbstractDescent
+    cap: float
+
+    def init(self, y, f_info_struct):
+        return self.inner.init(y, f_info_struct)
+
+    def query(self, y, f_info, state):
+        return self.inner.query(y, f_info, state)
+
+    def step(self, step_size, state):
+        d, result = self.inner.step(jnp.ones_like(step_size), state)
+        big = optx.max_norm(d)
+        k = step_size * jnp.minimum(1.0, self.cap / jnp.maximum(big, jnp.finfo(big.dtype).tiny))
+        return jax.tree.map(lambda t: k.astype(t.dtype) * t, d), result
+
+
+def _max_rejected(method: str, p: GradientParams) -> int:
+    return MAX_REJECTED if method in ("bfgs", "lbfgs", "cg") and p.max_move else MAX_REJECTED_UNCAPPED
+
+
+def _capped(solver, cap):
+    return solver if not cap else eqx.tree_at(lambda s: s.descent, solver, _CappedDescent(solver.descent, cap))
+
+
 def _solver(method: str, p: GradientParams):
     if method == "bfgs":
-        return optx.BFGS(rtol=p.rtol, atol=p.atol)
+        return _capped(optx.BFGS(rtol=p.rtol, atol=p.atol), p.max_move)
     if method == "lbfgs":
-        return optx.LBFGS(rtol=p.rtol, atol=p.atol, history_length=int(p.history_length))
+        return _capped(optx.LBFGS(rtol=p.rtol, atol=p.atol, history_length=int(p.history_length)), p.max_move)
     if method == "cg":
-        return optx.NonlinearCG(rtol=p.rtol, atol=p.atol, method=getattr(optx, p.cg_method))
+        return _capped(optx.NonlinearCG(rtol=p.rtol, atol=p.atol, method=getattr(optx, p.cg_method)), p.max_move)
     if method == "lm":
         return optx.LevenbergMarquardt(rtol=p.rtol, atol=p.atol)
     if method == "gauss-newton":
@@ -532,17 +633,22 @@ def _result_message(result) -> str:
     return str(optx.RESULTS[result])
 
 
-def solver_args(method: str, par: Parametrisation, conn, p: GradientParams):
-    """The objective function and its `args` for `_solve` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``)."""
-    s = jnp.asarray(8.0 * conn.shape[1] / _CORNERS_PER_NODE, par.x0.dtype)
+def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None):
+    """The objective function and its `args` for `_solve` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``).
+
+    `extra`: the non-hexahedral cells (`jaxci.mixed.ExtraCells`; default none): F is then the mean over every
+    corner (`jaxci.elements.mixed_objective`) and ``s = n_corners / 32``.
+    """
+    extra = no_extra() if extra is None else extra
+    s = jnp.asarray((8.0 * conn.shape[1] + extra.n_corners) / _CORNERS_PER_NODE, par.x0.dtype)
     if method in LEAST_SQUARES:
         fn = _lsq_fn_excess if p.residual == "excess" else _lsq_fn
     else:
         fn = _min_fn_closed if p.gradient == "closed" else _min_fn
-    return fn, (par, conn, s, jnp.asarray(p.ftol, par.x0.dtype))
+    return fn, (par, conn, s, jnp.asarray(p.ftol, par.x0.dtype), extra)
 
 
-def minimise(method: str, par: Parametrisation, conn, p: GradientParams = GradientParams()):
+def minimise(method: str, par: Parametrisation, conn, p: GradientParams = GradientParams(), extra=None):
     """Run one gradient baseline from ``par.points(0)``.
 
     **Arguments:**
@@ -551,6 +657,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     - `par`: the `Parametrisation` (`make_parametrisation`).
     - `conn`: transposed connectivity ``(8, N)``.
     - `p`: `GradientParams`.
+    - `extra`: the wedges, pyramids and tetrahedra (`jaxci.mixed.ExtraCells`, default none): F over every corner.
 
     **Returns:** ``(points, iterations, history, params)``: coordinates ``(n, 3)`` (the best valid iterate), the
     number of solver steps, a dict of numpy arrays of length ``iterations + 1`` (entry 0 = input):
@@ -562,26 +669,29 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     if method not in METHODS:
         raise ConfigError(f"unknown gradient method {method!r}; choose one of {', '.join(METHODS)}")
     nf = par.n_free
+    extra = no_extra() if extra is None else extra
     if method in LEAST_SQUARES and nf > p.max_free:
         raise ConfigError(
-            f"method {method!r} forms a dense Jacobian ({8 * conn.shape[1]} residuals x {nf} free coordinates) and "
+            f"method {method!r} forms a dense Jacobian ({8 * conn.shape[1] + extra.n_corners} residuals x {nf} "
+            f"free coordinates) and "
             f"is only for small meshes: {nf} free coordinates > max_free={p.max_free}; use 'lbfgs' or 'cg', or raise "
             f"max_free"
         )
     params = {"method": method, **dataclasses.asdict(p)}
     if nf == 0:
         x = par.points(jnp.zeros((0,), par.x0.dtype))
-        f, k = _objective(x, conn, False)
+        f, k = _objective(x, conn, False, extra)
         return x, 0, {"objective": np.asarray([f]), "max_condition": np.asarray([k]),
                       "solver_result": "no free coordinates"}, params
-    fn, args = solver_args(method, par, conn, p)
+    fn, args = solver_args(method, par, conn, p, extra)
     solver = _solver(method, p)
     y = jnp.zeros((nf,), par.x0.dtype)
     hist_f, hist_k, starts = [], [], []
     steps = 0
     f0 = None
     for run in range(1 + int(p.restarts)):
-        y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps), jnp.int32(int(p.max_steps) - steps))
+        y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps), jnp.int32(int(p.max_steps) - steps),
+                                            _max_rejected(method, p))
         k = int(k)
         seg_f, seg_k = np.asarray(hf[: k + 1]), np.asarray(hk[: k + 1])
         if run == 0:
@@ -643,4 +753,59 @@ def run_gradient(problem, method: str, params: dict):
         raise ConfigError(f"unknown gradient-method parameter: {e}") from None
     par = make_parametrisation(problem.mesh, problem.info, problem.cons, problem.x0, scaled=p.scaled,
                                dtype=problem.dtype)
-    return minimise(method, par, problem.conn, p)
+    if not has_extra(problem.mesh):  # the hexahedral path, unchanged
+        return minimise(method, par, problem.conn, p)
+    if p.scaled:
+        par = _mixed_scale(par, problem)
+    return minimise(method, par, problem.conn, p, extra_cells(problem.mesh))
+
+
+# ---------------------------------------------------------------------------------------------- mixed meshes
+def _mixed_objective(x, n_hex: int, f_hex, k_hex, extra):
+    """F and max kappa/3 over the `n_hex` hexahedral corners (their F `f_hex`, max `k_hex`) and every corner of
+    `extra`; ``inf`` if a corner or a pyramid sub-tetrahedron is inverted."""
+    terms = extra_terms(x, extra)
+    n = n_hex + sum(t.size for t in terms)
+    barrier = extra_barrier(x, extra)
+    f = ((f_hex + 1.0) * n_hex + sum(jnp.sum(t) for t in terms)) / n - 1.0 + barrier
+    k = k_hex
+    for t in terms:
+        k = jnp.maximum(k, jnp.sqrt(jnp.max(jax.lax.optimization_barrier(t))))
+    return f, k + barrier
+
+
+def _mixed_residuals(x, hex_terms, extra, s, ftol, *, excess: bool):
+    """Least-squares residuals over every corner of a mixed mesh from the hexahedra's (kappa/3)^2 `hex_terms`
+    ``(8, N)``: kappa/3 (or ``sqrt((kappa/3)^2 - 1)`` when `excess`) times ``sqrt(2 s / n_corners)``, plus one
+    residual 0 (``inf`` when a pyramid sub-tetrahedron is inverted). Returns ``(residuals, (F, max kappa/3,
+    F <= ftol))``."""
+    terms = [hex_terms.reshape(-1)] + [t.reshape(-1) for t in extra_terms(x, extra)]
+    sq = jnp.concatenate(terms)
+    barrier = extra_barrier(x, extra)
+    w = jnp.sqrt(2.0 * s / sq.size).astype(sq.dtype)
+    sqb = jax.lax.optimization_barrier(sq)
+    if excess:
+        tiny = jnp.finfo(sq.dtype).tiny ** 0.5
+        r = jnp.sqrt(jnp.where(jnp.isfinite(sq), jnp.maximum(sq - 1.0, tiny), jnp.inf))
+    else:
+        r = jnp.sqrt(sq)
+    f = jnp.mean(sqb) - 1.0 + barrier
+    return jnp.concatenate([w * r, barrier[None]]), (f, jnp.sqrt(jnp.max(sqb)) + barrier, f <= ftol)
+
+
+def _mixed_scale(par: Parametrisation, problem) -> Parametrisation:
+    """`par` with the unit of the free coordinates of nodes that no hexahedron uses set to their mean cell edge
+    length (`jaxci.mixed.node_lengths`; the hexahedral `node_lengths` gives them none)."""
+    c = problem.cons
+    nodes = np.concatenate([np.repeat(np.asarray(c.interior_nodes), 3), np.repeat(np.asarray(c.surface_nodes), 2),
+                            np.asarray(c.edge_nodes)])
+    h_hex = node_lengths(problem.mesh.hexes, np.asarray(problem.x0, np.float64))
+    if h_hex.shape[0] < problem.mesh.n_nodes:
+        h_hex = np.pad(h_hex, (0, problem.mesh.n_nodes - h_hex.shape[0]))
+    h_all = mixed_node_lengths(problem.mesh, np.asarray(problem.x0, np.float64))
+    scale = np.asarray(par.scale, np.float64)
+    lone = (h_hex[nodes] <= 0) & (h_all[nodes] > 0)
+    if not lone.any():
+        return par
+    scale = np.where(lone, h_all[nodes], scale)
+    return eqx.tree_at(lambda q: q.scale, par, jnp.asarray(scale, par.scale.dtype))

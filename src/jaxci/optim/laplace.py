@@ -1,16 +1,17 @@
 """Laplacian and smart Laplacian smoothing: every free node to the centroid of its edge neighbours, by colours.
 
-**Laplacian** (``"laplace"``): a node's target is the mean of the nodes joined to it by a hexahedron edge (each
-neighbour once). The move ``d = centroid - x`` is restricted to the node's free directions (``B B^T d`` with
-the move basis of `jaxci.optim._moves`: all of d inside, its tangent part on a surface, its component along
-the curve on an edge) and the new position is projected onto the node's constraint (`project_trials`). Every
-move is accepted: on a concave region the plain Laplacian can fold elements, which is what it is compared for.
+**Laplacian** (``"laplace"``): a node's target is the mean of the nodes joined to it by a cell edge (each neighbour
+once; the edges of hexahedra, and on a mixed mesh of wedges, pyramids and tetrahedra too). The move ``d = centroid
+- x`` is restricted to the node's free directions (``B B^T d`` with the move basis of `jaxci.optim._moves`: all of
+d inside, its tangent part on a surface, its component along the curve on an edge) and the new position is
+projected onto the node's constraint (`project_trials`). Every move is accepted: on a concave region the plain
+Laplacian can fold elements, which is what it is compared for.
 
-**Smart Laplacian** (``"smart-laplace"``): the same target, but a node moves only if the sum of (kappa/3)^2
-over the corners it moves (`local_terms`) decreases and none of them inverts; the steps ``1, 1/2, 1/4, ...``
-(`LaplaceParams.backtrack` of them) of the move are tried at once and the longest acceptable one is taken.
-Nodes of one colour share no element, so F decreases by the sum of the accepted local decreases: from a valid
-mesh the smart Laplacian never inverts a corner and never raises F.
+**Smart Laplacian** (``"smart-laplace"``): the same target, but a node moves only if the sum of (kappa/3)^2 over
+the corners it moves (`jaxci.optim._moves.local_sum`: those of every cell type around it) decreases and none of
+them inverts; the steps ``1, 1/2, 1/4, ...`` (`LaplaceParams.backtrack` of them) of the move are tried at once and
+the longest acceptable one is taken. Nodes of one colour share no element, so F decreases by the sum of the
+accepted local decreases: from a valid mesh the smart Laplacian never inverts a corner and never raises F.
 
 Both sweep the colours in turn (Gauss-Seidel by colour, as the local CI does: `ColouredStars`, one batched
 evaluation per colour, `jax.lax` loops under one `jax.jit`) until the largest move of a sweep is below
@@ -27,10 +28,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
+from ..mixed import (
+    ExtraCells,
+    corner_table,
+    edge_pairs,
+    extra_cells,
+    has_extra,
+    mixed_max_condition,
+    mixed_objective_t,
+    no_extra,
+)
 from ..projection import Constraints
-from ..quality import condition_from_invariants, corner_columns, corner_invariants, gather_corners, objective_t
-from ._local import gather_star, local_length, local_terms
-from ._moves import ColouredStars, colour_slice, coloured_stars, project_trials
+from ._local import gather_star
+from ._moves import ColouredStars, colour_slice, coloured_stars, local_scale, local_sum, project_trials
 
 #: Method names of this module.
 METHODS = ("laplace", "smart-laplace")
@@ -67,16 +77,19 @@ class LaplaceParams:
              f"backtrack must be an integer in [1, 16], got {self.backtrack!r}")
 
 
-def edge_neighbours(hexes: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Nodes joined to each node by a hexahedron edge, each once, padded.
 
-    **Arguments:** `hexes` of shape ``(N, 8)``; `n_nodes`.
+    **Arguments:** `hexes` of shape ``(N, 8)``; `n_nodes`; `edges`: optional node pairs ``(E, 2)`` of further
+    cell edges (a mixed mesh's `jaxci.mixed.edge_pairs`), joined to the hexahedron edges.
 
     **Returns:** ``(nbr, mask)`` of shape ``(n_nodes, K)`` (K the largest number of edge neighbours; padding
     repeats the node itself and is False in `mask`).
     """
     hexes = np.asarray(hexes, dtype=np.int64)
     e = hexes[:, HEX_EDGES].reshape(-1, 2)
+    if edges is not None:
+        e = np.concatenate([e, np.asarray(edges, np.int64).reshape(-1, 2)])
     e = np.unique(np.sort(e, axis=1), axis=0)
     both = np.concatenate([e, e[:, ::-1]])
     both = both[np.lexsort((both[:, 1], both[:, 0]))]
@@ -91,9 +104,6 @@ def edge_neighbours(hexes: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.nda
     return nbr, mask
 
 
-def _max_condition(x, conn):
-    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
-    return jnp.max(jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)))
 
 
 def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n_steps: int):
@@ -111,8 +121,8 @@ def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n
     trials = project_trials(cons, cs_i, trials)
     if smart:
         E = gather_star(x, cs_i.star)
-        f0 = local_terms(E, cs_i.smask, x0[:, None])[:, 0]
-        ft = local_terms(E, cs_i.smask, trials)
+        f0 = local_sum(x, cs_i, E, x0[:, None])[:, 0]
+        ft = local_sum(x, cs_i, E, trials)
         ok = (ft < f0[:, None]) & jnp.isfinite(ft)
         j = jnp.argmax(ok, axis=1)  # the longest acceptable step
         accept = mask & jnp.any(ok, axis=1)
@@ -127,18 +137,19 @@ def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n
 
 
 @functools.partial(jax.jit, static_argnames=("smart", "p"))
-def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smart: bool, p: LaplaceParams):
+def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smart: bool, p: LaplaceParams,
+                 extra: ExtraCells):
     n_colours = cs.nodes.shape[0]
     dtype = x.dtype
 
     def h_colour(i):
         cs_i = colour_slice(cs, i)
-        h = local_length(gather_star(x, cs_i.star), cs_i.smask)
+        h = local_scale(x, cs_i, gather_star(x, cs_i.star))
         return jnp.where(h > 0, h, 1.0)
 
     h = jax.lax.map(h_colour, jnp.arange(n_colours))  # (n_colours, M)
-    hist_f = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(objective_t(x, conn))
-    hist_k = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(_max_condition(x, conn))
+    hist_f = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(mixed_objective_t(x, conn, extra))
+    hist_k = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(mixed_max_condition(x, conn, extra))
     hist_m = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(0.0)
 
     def sweep(carry):
@@ -152,8 +163,8 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
 
         x, mv = jax.lax.fori_loop(0, n_colours, colour, (x, jnp.zeros((), dtype)))
         s = s + 1
-        hf = hf.at[s].set(objective_t(x, conn))
-        hk = hk.at[s].set(_max_condition(x, conn))
+        hf = hf.at[s].set(mixed_objective_t(x, conn, extra))
+        hk = hk.at[s].set(mixed_max_condition(x, conn, extra))
         hm = hm.at[s].set(mv)
         return x, s, mv <= p.tol, hf, hk, hm
 
@@ -165,7 +176,7 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
 
 
 def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: LaplaceParams = LaplaceParams(),
-            *, smart: bool = False):
+            *, smart: bool = False, extra: ExtraCells | None = None):
     """Run the (smart) Laplacian from `points` ``(n, 3)``.
 
     **Arguments:**
@@ -174,22 +185,27 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     - `cs`: `ColouredStars` of the mesh (`coloured_stars`); `nbr`, `nmask`: ``(n_colours, M, K)`` edge
       neighbours of the nodes of `cs` and their mask (`coloured_neighbours`).
     - `cons`: the `Constraints`; `p`: `LaplaceParams`; `smart`: the smart variant.
+    - `extra`: keyword only; the non-hexahedral cells (`jaxci.mixed.extra_cells`, default none), whose corners
+      `cs` must hold too: F in the history is then over every corner.
 
     **Returns:** ``(points, sweeps, history, params)``: coordinates ``(n, 3)``, the number of sweeps, numpy
     arrays of length ``sweeps + 1`` (entry 0 = input): ``objective`` (F; ``inf`` once an element is inverted),
     ``max_condition`` (max kappa/3, ``inf`` likewise) and ``max_move`` (largest move of the sweep / h); and the
     resolved hyperparameters.
     """
-    x, s, hf, hk, hm = _laplace_run(points, conn, cs, nbr, nmask, cons, bool(smart), p)
+    extra = no_extra() if extra is None else extra
+    x, s, hf, hk, hm = _laplace_run(points, conn, cs, nbr, nmask, cons, bool(smart), p, extra)
     s = int(s)
     hist = {"objective": np.asarray(hf[: s + 1]), "max_condition": np.asarray(hk[: s + 1]),
             "max_move": np.asarray(hm[: s + 1])}
     return x, s, hist, {"method": "smart-laplace" if smart else "laplace", **dataclasses.asdict(p)}
 
 
-def coloured_neighbours(cs: ColouredStars, hexes: np.ndarray, n_nodes: int) -> tuple[jax.Array, jax.Array]:
-    """Edge neighbours laid out like `cs.nodes`: ``(n_colours, M, K)`` indices and mask."""
-    nbr, mask = edge_neighbours(hexes, n_nodes)
+def coloured_neighbours(cs: ColouredStars, hexes: np.ndarray, n_nodes: int,
+                        edges: np.ndarray | None = None) -> tuple[jax.Array, jax.Array]:
+    """Edge neighbours laid out like `cs.nodes`: ``(n_colours, M, K)`` indices and mask (`edges`: further cell
+    edges, as in `edge_neighbours`)."""
+    nbr, mask = edge_neighbours(hexes, n_nodes, edges)
     nodes = np.asarray(cs.nodes)
     real = np.asarray(cs.mask)
     safe = np.minimum(nodes, n_nodes - 1)
@@ -208,6 +224,14 @@ def run_laplace(problem, method: str, params: dict):
     except TypeError as e:
         raise ConfigError(f"unknown Laplace parameter: {e}") from None
     mesh = problem.mesh
-    cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces)
-    nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes)
-    return laplace(problem.x0, problem.conn, cs, nbr, nmask, problem.cons, p, smart=method == "smart-laplace")
+    if has_extra(mesh):
+        cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces,
+                            corner_table(mesh))
+        nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes, edge_pairs(mesh))
+        extra = extra_cells(mesh)
+    else:
+        cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces)
+        nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes)
+        extra = None
+    return laplace(problem.x0, problem.conn, cs, nbr, nmask, problem.cons, p, smart=method == "smart-laplace",
+                   extra=extra)

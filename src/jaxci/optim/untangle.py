@@ -21,6 +21,12 @@ methods (`jaxci.optim.gradient.Parametrisation`: interior nodes free, surface no
 their curve, corners fixed; all on the ORIGINAL boundary), and stops as soon as every corner has
 ``det J >= margin`` (det A >= margin L_e^3); the stage stops there. The result is projected onto the original
 boundary in float64 (`project_np`) and checked: no corner with det <= 0, else `InvertedMeshError`.
+
+**Mixed meshes.** The corners of wedges, pyramids and tetrahedra count like the hexahedra's, with
+``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.elements.TARGETS`, so an ideal cell of edge L_e has
+``J = I``); each of the four sub-tetrahedra of a pyramid (`jaxci.elements.PYRAMID_TETS`, which must stay positive
+too) adds the volume term ``theta (det J^2 + 1) / chi`` only. "Untangled" means no inverted cell of any type
+(`jaxci.elements.inverted`).
 """
 
 from __future__ import annotations
@@ -33,9 +39,11 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .. import elements as E
 from ..boundary import CORNER, BoundaryInfo
 from ..errors import ConfigError, InvertedMeshError
-from ..mesh import HexMesh, corner_determinants
+from ..mesh import EDGES, HexMesh, corner_determinants
+from ..mixed import ExtraCells, cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
 from ..projection import Constraints, project_np
 from ..quality import corner_columns, gather_corners, transposed
 from .gradient import _CORNERS_PER_NODE, Parametrisation, _solve, make_parametrisation
@@ -84,19 +92,44 @@ def _normalised_corners(x, conn, inv_len):
     return det, fro2
 
 
+def _extra_corners(x, extra: ExtraCells, inv_lens):
+    """det J and |J|_F^2 of the non-hexahedral corners (``J = A W^-1 / L_e``), and det J of the pyramids'
+    sub-tetrahedra (``J = A / L_e``): three lists of arrays."""
+    dets, fro2s, subs = [], [], []
+    for t, c, il in zip(extra.types, extra.conns, inv_lens, strict=True):
+        cols = [col * il for col in E.normalised_corner_columns_t(x, c, t)]
+        ax, ay, az, bx, by, bz, cx, cy, cz = cols
+        dets.append(ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx))
+        fro2s.append(sum(col * col for col in cols))
+        if t == "pyramid":
+            subs.append(E.pyramid_tet_dets_t(x, c) * il**3)
+    return dets, fro2s, subs
+
+
 def _energy_fn(v, args):
-    par, conn, inv_len, eps, theta, margin = args
-    det, fro2 = _normalised_corners(par.points(v), conn, inv_len)
+    par, conn, inv_len, eps, theta, margin, extra, inv_lens = args
+    x = par.points(v)
+    det, fro2 = _normalised_corners(x, conn, inv_len)
     c = _chi(eps, det)
     e = (1.0 - theta) * (fro2 / 3.0) / c ** (2.0 / 3.0) + theta * (det * det + 1.0) / c
     energy = jnp.sum(jax.lax.optimization_barrier(e)) / _CORNERS_PER_NODE
     dmin = jnp.min(jax.lax.optimization_barrier(det))
+    if extra.types:
+        dets, fro2s, subs = _extra_corners(x, extra, inv_lens)
+        for d, f2 in zip(dets, fro2s, strict=True):
+            ce = _chi(eps, d)
+            ee = (1.0 - theta) * (f2 / 3.0) / ce ** (2.0 / 3.0) + theta * (d * d + 1.0) / ce
+            energy = energy + jnp.sum(ee) / _CORNERS_PER_NODE
+            dmin = jnp.minimum(dmin, jnp.min(d))
+        for d in subs:
+            energy = energy + jnp.sum(theta * (d * d + 1.0) / _chi(eps, d)) / _CORNERS_PER_NODE
+            dmin = jnp.minimum(dmin, jnp.min(d))
     return energy, (energy, dmin, dmin >= margin)
 
 
 @jax.jit
-def _state(par, conn, inv_len, eps, theta, margin, v):
-    return _energy_fn(v, (par, conn, inv_len, eps, theta, margin))[1][:2]
+def _state(par, conn, inv_len, eps, theta, margin, extra, inv_lens, v):
+    return _energy_fn(v, (par, conn, inv_len, eps, theta, margin, extra, inv_lens))[1][:2]
 
 
 @jax.jit
@@ -104,13 +137,24 @@ def _points(par, v):
     return par.points(v)
 
 
-def element_lengths(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
-    """Mean length of the 12 edges of each hexahedron, shape ``(N,)`` (float64)."""
-    from .laplace import HEX_EDGES
-
+def element_lengths(points: np.ndarray, hexes: np.ndarray, cell_type: str = "hexahedron") -> np.ndarray:
+    """Mean length of the edges of each cell (`jaxci.mesh.EDGES` of `cell_type`), shape ``(N,)`` (float64)."""
     p = np.asarray(points, dtype=np.float64)
-    e = np.asarray(hexes)[:, HEX_EDGES]  # (N, 12, 2)
+    e = np.asarray(hexes)[:, EDGES[cell_type]]  # (N, n_edges, 2)
     return np.linalg.norm(p[e[..., 1]] - p[e[..., 0]], axis=-1).mean(axis=1)
+
+
+def _safe_lengths(lens: np.ndarray) -> np.ndarray:
+    return np.where(lens > 0, lens, max(float(lens.max(initial=0.0)), 1.0))
+
+
+def _scaled_min_det(mesh: HexMesh, x: np.ndarray, lens: np.ndarray) -> float:
+    """min det / L^3 over every corner (non-hexahedral corners: det A_i, not divided by det W)."""
+    out = float((corner_determinants(x, mesh.hexes) / lens[:, None] ** 3).min())
+    for t, cells in extra_blocks(mesh).items():
+        lt = _safe_lengths(element_lengths(mesh.points, cells, t))
+        out = min(out, float((E.corner_determinant(x, cells, t) / lt[:, None] ** 3).min()))
+    return out
 
 
 def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntangleParams = UntangleParams()):
@@ -130,27 +174,32 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     t0 = time.perf_counter()
     hexes = mesh.hexes
     conn = transposed(hexes)
-    lens = element_lengths(mesh.points, hexes)
-    lens = np.where(lens > 0, lens, max(float(lens.max(initial=0.0)), 1.0))
+    lens = _safe_lengths(element_lengths(mesh.points, hexes))
     inv_len = jnp.asarray(1.0 / lens, jnp.float64)[None, :]
+    blocks = extra_blocks(mesh)
+    extra = extra_cells(mesh) if blocks else no_extra()
+    inv_lens = tuple(jnp.asarray(1.0 / _safe_lengths(element_lengths(mesh.points, c, t)), jnp.float64)[None, :]
+                     for t, c in blocks.items())
     par: Parametrisation = make_parametrisation(mesh, info, cons, scaled=True, dtype=jnp.float64)
     nf = par.n_free
     theta = jnp.float64(p.theta)
     margin = jnp.float64(p.margin)
     solver = optx.LBFGS(rtol=p.rtol, atol=p.atol)
     v = jnp.zeros((nf,), jnp.float64)
-    e_prev, dmin = (float(a) for a in _state(par, conn, inv_len, jnp.float64(1.0), theta, margin, v))
+    e_prev, dmin = (float(a) for a in _state(par, conn, inv_len, jnp.float64(1.0), theta, margin, extra, inv_lens,
+                                             v))
     eps = float(np.sqrt(1e-12 + 0.04 * min(dmin, 0.0) ** 2))
     hist_eps, hist_dmin, hist_e = [], [dmin], []
     steps = 0
     rounds = 0
     while dmin < p.margin and rounds < p.max_rounds and nf:
-        e_prev = float(_state(par, conn, inv_len, jnp.float64(eps), theta, margin, v)[0])
-        args = (par, conn, inv_len, jnp.float64(eps), theta, margin)
+        e_prev = float(_state(par, conn, inv_len, jnp.float64(eps), theta, margin, extra, inv_lens, v)[0])
+        args = (par, conn, inv_len, jnp.float64(eps), theta, margin, extra, inv_lens)
         v, k, _, _, _ = _solve(solver, _energy_fn, v, args, int(p.inner_steps))
         steps += int(k)
         rounds += 1
-        e, dmin = (float(a) for a in _state(par, conn, inv_len, jnp.float64(eps), theta, margin, v))
+        e, dmin = (float(a) for a in _state(par, conn, inv_len, jnp.float64(eps), theta, margin, extra, inv_lens,
+                                            v))
         hist_eps.append(eps)
         hist_dmin.append(dmin)
         hist_e.append(e)
@@ -158,8 +207,7 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
         mu = (1.0 - sigma) * 0.5 * (dmin + np.sqrt(eps * eps + dmin * dmin))
         eps = 2.0 * float(np.sqrt(mu * (mu - dmin))) if dmin < mu else 1e-10
     x = project_np(cons, np.asarray(_points(par, v), dtype=np.float64))
-    det = corner_determinants(x, hexes)
-    bad = (det <= 0).any(axis=1)
+    bad = np.concatenate(list(inverted_cells(mesh, x).values()))
     report = {
         "rounds": rounds,
         "steps": steps,
@@ -168,7 +216,7 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
         "energy": hist_e,
         "untangled": not bool(bad.any()),
         "inverted_elements": int(bad.sum()),
-        "min_scaled_det": float((det / lens[:, None] ** 3).min()),
+        "min_scaled_det": _scaled_min_det(mesh, x, lens),
         "wall_time": time.perf_counter() - t0,
     }
     return x, report
@@ -186,24 +234,29 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
 
     where = f"{mesh.source}: " if mesh.source else ""
     det0 = corner_determinants(mesh.points, mesh.hexes)
-    inv0 = (det0 <= 0).any(axis=1)
+    inv0 = np.concatenate(list(inverted_cells(mesh, mesh.points).values()))
+    n_corners0 = int((det0 <= 0).sum()) + sum(int((E.corner_determinant(mesh.points, c, t) <= 0).sum())
+                                               for t, c in extra_blocks(mesh).items())
     with jax.enable_x64(True):
         cons = build_constraints(mesh, info, dtype=jnp.float64)
         x, rep = untangle(mesh, info, cons, p)
     if not rep["untangled"]:
-        bad = np.flatnonzero((corner_determinants(x, mesh.hexes) <= 0).any(axis=1))
-        stuck = np.asarray(info.node_class)[np.unique(mesh.hexes[bad])] == CORNER
+        blocks = E.element_blocks(mesh)
+        bad = {t: np.flatnonzero(b) for t, b in inverted_cells(mesh, x).items() if b.any()}
+        t0 = next(iter(bad))
+        nodes = np.unique(np.concatenate([blocks[t][k].ravel() for t, k in bad.items()]))
+        stuck = np.asarray(info.node_class)[nodes] == CORNER
         raise InvertedMeshError(
             f"{where}untangling failed: {rep['inverted_elements']} of {int(inv0.sum())} inverted elements are still "
-            f"inverted after {rep['rounds']} rounds ({rep['steps']} L-BFGS steps; first: element "
-            f"{mesh.hex_label(int(bad[0]))}; {int(stuck.sum())} of their nodes are fixed corners of the boundary); "
-            f"the input is left unchanged"
+            f"inverted after {rep['rounds']} rounds ({rep['steps']} L-BFGS steps; first: "
+            f"{cell_label(mesh, t0, bad[t0][0])}; {int(stuck.sum())} of their nodes are fixed corners of the "
+            f"boundary); the input is left unchanged"
         )
     if not inv0.any() and rep["rounds"] == 0:
         return x, [f"untangling: no inverted element and min det / L^3 = {rep['min_det'][0]:.3g} >= margin "
                    f"{p.margin:g}: nothing to do"]
     note = (
-        f"untangling: {int(inv0.sum())} inverted elements ({int((det0 <= 0).sum())} corners) untangled in "
+        f"untangling: {int(inv0.sum())} inverted elements ({n_corners0} corners) untangled in "
         f"{rep['rounds']} rounds of L-BFGS on the regularised Winslow energy ({rep['steps']} steps, "
         f"{rep['wall_time']:.2f} s); min det / L^3 {rep['min_det'][0]:.3g} -> {rep['min_scaled_det']:.3g}; boundary "
         f"nodes kept on the original boundary"
@@ -221,16 +274,15 @@ def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.nd
     has an inverted corner or a higher F than `untangled` (with a note saying so).
     """
     from ..projection import build_constraints
-    from ..quality import objective
 
     with jax.enable_x64(True):
         cons = build_constraints(mesh, info, dtype=jnp.float64)
         x = project_np(cons, x)
-        hexes = mesh.hexes
-        inv = int((corner_determinants(x, hexes) <= 0).sum())
-        f0, f1 = float(objective(untangled, hexes)), float(objective(x, hexes))
+        inv = int(sum(b.sum() for b in inverted_cells(mesh, x).values()))
+        f0, f1 = float(E.mixed_objective(untangled, mesh)), float(E.mixed_objective(x, mesh))
     if inv or not np.isfinite(f1):
-        return np.array(untangled), [f"shape improvement left {inv} inverted corners; the untangled mesh is returned"]
+        return np.array(untangled), [f"shape improvement left {inv} inverted elements; the untangled mesh is "
+                                     f"returned"]
     if f1 > f0:
         return np.array(untangled), [f"shape improvement raised the objective from {f0:.6g} to {f1:.6g}; the "
                                      f"untangled mesh is returned"]
