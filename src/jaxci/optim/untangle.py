@@ -17,7 +17,7 @@ start with ``eps = sqrt(1e-12 + 0.04 min(det_min, 0)^2)``; after each inner mini
 ``eps = 2 sqrt(mu (mu - det_min))`` if ``det_min < mu`` else ``1e-10``.
 
 Each inner minimisation is optimistix's L-BFGS over the same constrained parametrisation as the gradient
-methods (`jaxci.optim.gradient.Parametrisation`: interior nodes free, surface nodes on their patch, edge nodes on
+methods (`jaxci.optim.parametrisation.Parametrisation`: interior nodes free, surface nodes on their patch, edge nodes on
 their curve, corners fixed; all on the ORIGINAL boundary), and stops as soon as every corner has
 ``det J >= margin`` (det A >= margin L_e^3); the stage stops there. The result is projected onto the original
 boundary in float64 (`project_np`) and checked: no corner with det <= 0, else `InvertedMeshError`.
@@ -46,7 +46,9 @@ from ..mesh import EDGES, HexMesh, corner_determinants
 from ..mixed import ExtraCells, cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
 from ..projection import Constraints, project_np
 from ..quality import corner_columns, gather_corners, transposed
-from .gradient import _CORNERS_PER_NODE, Parametrisation, _solve, make_parametrisation
+from ._solve import _solve
+from .gradient import _CORNERS_PER_NODE
+from .parametrisation import Parametrisation, make_parametrisation
 
 
 @dataclasses.dataclass(frozen=True)
