@@ -65,7 +65,9 @@ def child(args) -> dict:
     k = np.asarray(res.history["max_condition"], dtype=float)
     out.update(iterations=res.iterations, before_max_condition=res.before.max_condition,
                after_max_condition=res.after.max_condition, after_objective=res.after.objective,
-               inverted_after=res.after.inverted_elements, history_max_condition=k.tolist())
+               inverted_after=res.after.inverted_elements, history_max_condition=k.tolist(),
+               history_objective=np.asarray(res.history["objective"], dtype=float).tolist(),
+               restarts=res.history.get("restarts"), solver_result=res.history.get("solver_result"))
     cap = CAP.get(args.method, CAP_DEFAULT)
     for thr in THRESHOLDS:
         hit = np.flatnonzero(k <= thr)
