@@ -198,7 +198,7 @@ def _objective(x, conn, closed: bool, extra=None):
     else:
         term = jax.lax.optimization_barrier(_corner_terms(x, conn))
         kmax = jnp.sqrt(jnp.max(term))
-        f = jnp.mean(term) - 1.0
+        f = jnp.mean(term - 1.0)
     if extra is not None and extra.types:
         f, kmax = _mixed_objective(x, 8 * conn.shape[1], f, kmax, extra)
     return f, kmax
