@@ -144,18 +144,11 @@ def _run_method(problem: Problem, method: str, key, params: dict):
 
 
 def free_scale(problem: Problem) -> jnp.ndarray:
-    """Local edge length per free coordinate (the `jaxci.projection` layout), shape ``(n_free,)``."""
-    from .optim._local import gather_star, local_length, node_stars
+    """Local edge length per free coordinate (the `jaxci.projection` layout), shape ``(n_free,)``
+    (`jaxci.optim.parametrisation.free_lengths`)."""
+    from .optim.parametrisation import free_lengths
 
-    st = node_stars(problem.mesh.hexes, problem.mesh.n_nodes)
-    h = np.asarray(local_length(gather_star(jnp.asarray(problem.mesh.points), jnp.asarray(st.star)),
-                                jnp.asarray(st.mask)))
-    if problem.extra is not None:  # nodes of non-hexahedral cells only: their mean cell edge length
-        h = np.where(h > 0, h, mixed.node_lengths(problem.mesh))
-    c = problem.cons
-    parts = [np.repeat(h[np.asarray(c.interior_nodes)], 3), np.repeat(h[np.asarray(c.surface_nodes)], 2),
-             h[np.asarray(c.edge_nodes)]]
-    return jnp.asarray(np.concatenate(parts), problem.dtype)
+    return jnp.asarray(free_lengths(problem.mesh, problem.cons), problem.dtype)
 
 
 def smooth(

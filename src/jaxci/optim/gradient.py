@@ -81,7 +81,6 @@ import optimistix as optx
 
 from ..errors import ConfigError
 from ..mixed import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
-from ..mixed import node_lengths as mixed_node_lengths
 from ..quality import (
     corner_columns,
     corner_invariants,
@@ -429,8 +428,6 @@ def run_gradient(problem, method: str, params: dict):
                                dtype=problem.dtype)
     if not has_extra(problem.mesh):  # the hexahedral path, unchanged
         return minimise(method, par, problem.conn, p)
-    if p.scaled:
-        par = _mixed_scale(par, problem)
     return minimise(method, par, problem.conn, p, extra_cells(problem.mesh))
 
 
@@ -465,21 +462,3 @@ def _mixed_residuals(x, hex_terms, extra, s, ftol, *, excess: bool):
         r = jnp.sqrt(sq)
     f = jnp.mean(sqb) - 1.0 + barrier
     return jnp.concatenate([w * r, barrier[None]]), (f, jnp.sqrt(jnp.max(sqb)) + barrier, f <= ftol)
-
-
-def _mixed_scale(par: Parametrisation, problem) -> Parametrisation:
-    """`par` with the unit of the free coordinates of nodes that no hexahedron uses set to their mean cell edge
-    length (`jaxci.mixed.node_lengths`; the hexahedral `node_lengths` gives them none)."""
-    c = problem.cons
-    nodes = np.concatenate([np.repeat(np.asarray(c.interior_nodes), 3), np.repeat(np.asarray(c.surface_nodes), 2),
-                            np.asarray(c.edge_nodes)])
-    h_hex = node_lengths(problem.mesh.hexes, np.asarray(problem.x0, np.float64))
-    if h_hex.shape[0] < problem.mesh.n_nodes:
-        h_hex = np.pad(h_hex, (0, problem.mesh.n_nodes - h_hex.shape[0]))
-    h_all = mixed_node_lengths(problem.mesh, np.asarray(problem.x0, np.float64))
-    scale = np.asarray(par.scale, np.float64)
-    lone = (h_hex[nodes] <= 0) & (h_all[nodes] > 0)
-    if not lone.any():
-        return par
-    scale = np.where(lone, h_all[nodes], scale)
-    return eqx.tree_at(lambda q: q.scale, par, jnp.asarray(scale, par.scale.dtype))

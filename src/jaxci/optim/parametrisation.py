@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import mixed
 from ..boundary import BoundaryInfo
 from ..mesh import CORNER_NEIGHBOURS
 from ..projection import Constraints, n_free, project
@@ -132,6 +133,19 @@ def node_lengths(hexes: np.ndarray, points: np.ndarray) -> np.ndarray:
 _EDGE_ENDS = np.array(sorted({(min(i, int(j)), max(i, int(j))) for i in range(8) for j in CORNER_NEIGHBOURS[i]})).T
 
 
+def free_lengths(mesh, cons: Constraints, points=None) -> np.ndarray:
+    """Local edge length of the node of every free coordinate (the `jaxci.projection` layout), float64
+    ``(n_free,)``: `node_lengths` over the hexahedra; for a node of non-hexahedral cells only, the mean edge
+    length of its cells (`jaxci.mixed.node_lengths`); 0 for a node of no cell.
+    """
+    pts = mesh.points if points is None else points
+    h = node_lengths(mesh.hexes, pts)
+    if mixed.has_extra(mesh):
+        h = np.where(h > 0, h, mixed.node_lengths(mesh, np.asarray(pts, dtype=np.float64)))
+    inter, surf, edge = (np.asarray(a) for a in (cons.interior_nodes, cons.surface_nodes, cons.edge_nodes))
+    return np.concatenate([np.repeat(h[inter], 3), np.repeat(h[surf], 2), h[edge]])
+
+
 def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *, scaled: bool = True,
                          dtype=None) -> Parametrisation:
     """Build the `Parametrisation` of a mesh's free coordinates.
@@ -152,9 +166,8 @@ def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *
     c = cons
     inter, surf, edge = (np.asarray(a) for a in (c.interior_nodes, c.surface_nodes, c.edge_nodes))
     if scaled:
-        h = node_lengths(mesh.hexes, base)
-        h = np.where(h > 0, h, 1.0)
-        scale = np.concatenate([np.repeat(h[inter], 3), np.repeat(h[surf], 2), h[edge]])
+        scale = free_lengths(mesh, c, base)
+        scale = np.where(scale > 0, scale, 1.0)
     else:
         scale = np.ones(n_free(c))
     rings = _flat_surface(pts, info, c)
