@@ -154,7 +154,7 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
 def write_figures(folder: Path, exp, records, results: dict) -> dict:
     """Draw every figure of an experiment into `folder`.
 
-    **Arguments:** `folder`; `exp` the `jaxci.experiment.Experiment`; `records` its `RunRecord` list; `results`
+    **Arguments:** `folder`; `exp` the `jaxci.config.Experiment`; `records` its `RunRecord` list; `results`
     ``(input HexMesh, SmoothResult)`` of the first seed per ``(mesh name, method label)``.
 
     **Returns:** ``{"files": [relative paths], "skipped": [reasons]}`` for the summary.

@@ -10,7 +10,7 @@ import sys
 
 
 def add_args(p) -> None:
-    p.add_argument("config", help="experiment config (YAML); see configs/ and jaxci.experiment")
+    p.add_argument("config", help="experiment config (YAML); see configs/ and jaxci.config")
     p.add_argument("--out", metavar="DIR", help="output folder (default: the config's output, else "
                    "results/<config name>)")
     p.add_argument("--force", action="store_true", help="replace DIR if it exists (once the new one is complete)")

@@ -187,7 +187,7 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     )
 
 
-def has_extra(cs: ColouredStars) -> bool:
+def stars_have_extra(cs: ColouredStars) -> bool:
     """Whether `cs` holds non-hexahedral corners (static: a shape)."""
     return cs.xnodes.shape[-2] > 0
 
@@ -197,7 +197,7 @@ def local_sum(x, cs_i: ColouredStars, E, y):
     the hexahedral corners (`local_terms` on the gathered stars `E`) plus the non-hexahedral ones; ``(M, S)``,
     ``inf`` where one is inverted (or a pyramid sub-tetrahedron)."""
     total = local_terms(E, cs_i.smask, y)
-    if has_extra(cs_i):
+    if stars_have_extra(cs_i):
         v = jnp.minimum(cs_i.nodes, x.shape[0] - 1)
         total = total + local_extra_terms(x, v, cs_i.xnodes, cs_i.xwinv, cs_i.xweight, cs_i.xmask, y)
     return total
@@ -211,7 +211,7 @@ def chunked_local_sum(x, cs_i: ColouredStars, E, y, chunk: int):
 def local_count(cs_i: ColouredStars):
     """Number of objective corners each node of one colour moves, ``(M,)`` (4 per hexahedron around it)."""
     count = 4 * jnp.sum(cs_i.smask, axis=-1)
-    if has_extra(cs_i):
+    if stars_have_extra(cs_i):
         count = count + jnp.sum(cs_i.xmask & (cs_i.xweight > 0), axis=-1)
     return count
 
@@ -220,7 +220,7 @@ def local_scale(x, cs_i: ColouredStars, E):
     """Local length scale of each node of one colour, ``(M,)``: the mean hexahedral edge length at it
     (`local_length`), or for a node of non-hexahedral cells only, the mean distance to their nodes."""
     h = local_length(E, cs_i.smask)
-    if has_extra(cs_i):
+    if stars_have_extra(cs_i):
         v = jnp.minimum(cs_i.nodes, x.shape[0] - 1)
         h = jnp.where(h > 0, h, local_extra_length(x, v, cs_i.xnodes, cs_i.xweight, cs_i.xmask))
     return h

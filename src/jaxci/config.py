@@ -1,0 +1,558 @@
+"""`jaxci.config`: experiment configs in YAML, their schema, validated up front and loaded.
+
+A config names meshes, methods and seeds; `load_config` reads and checks it into an `Experiment`, which
+`jaxci.experiment.run_experiment` runs. Example (every key shown; only `mesh` and `methods` are required):
+
+```yaml
+description: the paper's 27-element cube
+mesh:                                  # one entry or a list
+  - generate: {case: cube27}           # a paper cube (jaxci.generate.PAPER_CASES), perturbed by the run seed
+  - name: block
+    generate: {box: [10, 10, 10], amplitude: 0.3, which: sliding, size: [1, 1, 1]}   # optional seed: fixed
+  - file: ../../shared/data/mesquite/1000hex-block-internal-bias.vtk   # relative to this file's folder
+    boundary: {fix_boundary: true}     # per-mesh override of the top-level boundary
+boundary: {feature_angle: 40, fix_boundary: false, fixed_sets: [], fixed_nodes: []}
+methods:
+  - {name: CI local, method: ci, params: {max_sweeps: 50}}
+  - {name: CI global, method: ci-global, params: {attempts: 500}, meshes: [cube27]}   # meshes: restrict
+seeds: [0, 1, 2]                       # or runs: N (seeds 0..N-1); default [0]
+dtype: float32                         # float32 | float64
+device: cpu                            # cpu | gpu | auto
+output: results/cube27                 # relative to the working directory; default results/<config stem>
+untangle: auto                         # auto | always | never
+write_meshes: true                     # smoothed VTU of the FIRST seed of each (mesh, method) only
+figures: true
+report: {table1: {mesh: cube27, stage2: CI global}}   # Table 1 columns: method labels for stage 1 / stage 2
+```
+
+Every key is checked before anything runs or is written: unknown keys, wrong types, unknown methods, bad
+method parameters (by constructing the method's parameter dataclass), missing mesh files. Each problem is ONE
+`jaxci.errors.ConfigError` naming the file, the line and the key path, e.g.
+``paper.yaml:14: methods[0].params.cohort: ...``.
+
+This module knows nothing of running: `jaxci.experiment` imports it, never the reverse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+import typing
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import ConfigError, JaxciError
+
+# ----------------------------------------------------------------------------------------------- schema
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+class GenerateSpec(_Model):
+    """A generated mesh: one of the paper's cubes (`case`) or a perturbed box (`box` and the keys after it)."""
+
+    case: str | None = None
+    box: list[int] | None = None
+    amplitude: float = 0.3
+    which: Literal["sliding", "interior"] = "sliding"
+    size: list[float] = Field(default_factory=lambda: [1.0, 1.0, 1.0])
+    seed: int | None = None
+
+    @model_validator(mode="after")
+    def _values(self):
+        from .generate import PAPER_CASES
+
+        if self.case is not None and self.case not in PAPER_CASES:
+            raise ValueError(f"case: unknown case {self.case!r}; choose one of {', '.join(PAPER_CASES)}")
+        if self.box is not None and (len(self.box) != 3 or min(self.box) < 1):
+            raise ValueError(f"box: must be three element counts >= 1, [nx, ny, nz], got {self.box}")
+        if len(self.size) != 3 or min(self.size) <= 0:
+            raise ValueError(f"size: must be three positive edge lengths, got {self.size}")
+        if not self.amplitude >= 0:
+            raise ValueError(f"amplitude: must be >= 0 (a fraction of the grid spacing), got {self.amplitude}")
+        if self.seed is not None and self.seed < 0:
+            raise ValueError(f"seed: must be >= 0, got {self.seed}")
+        return self
+
+    @model_validator(mode="after")
+    def _one_kind(self):
+        if (self.case is None) == (self.box is None):
+            raise ValueError("give exactly one of 'case' (a paper cube) or 'box' ([nx, ny, nz])")
+        extra = {"amplitude", "which", "size"} & self.model_fields_set
+        if self.case is not None and extra:
+            raise ValueError(f"{', '.join(sorted(extra))}: only for 'box' (a paper case has its own perturbation)")
+        return self
+
+
+class BoundarySpec(_Model):
+    """How boundary nodes may move (the keyword arguments of `jaxci.smooth.smooth` of the same names)."""
+
+    feature_angle: float = 40.0
+    fix_boundary: bool = False
+    fixed_sets: list[str] = Field(default_factory=list)
+    fixed_nodes: list[int] = Field(default_factory=list)
+
+    @field_validator("feature_angle")
+    @classmethod
+    def _angle(cls, v):
+        if not 0 < v < 180:
+            raise ValueError(f"feature_angle must be in degrees strictly between 0 and 180, got {v}")
+        return v
+
+
+class MeshSpec(_Model):
+    """One mesh: ``file`` (a path, relative to the config's folder) or ``generate``; optional `name`, `boundary`."""
+
+    name: str | None = None
+    file: str | None = None
+    generate: GenerateSpec | None = None
+    boundary: BoundarySpec | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.file is None) == (self.generate is None):
+            raise ValueError("give exactly one of 'file' or 'generate'")
+        return self
+
+
+class MethodSpec(_Model):
+    """One method entry: a `name` (label, default the method), a `method` of `jaxci.smooth.METHODS`, `params`."""
+
+    name: str | None = None
+    method: str
+    params: dict[str, Any] = Field(default_factory=dict)
+    meshes: list[str] | None = None
+
+
+class Table1Spec(_Model):
+    """Which mesh and which two method labels fill the paper's Table 1 columns 'stage 1' and 'stage 2'."""
+
+    mesh: str | None = None
+    stage1: str | None = None
+    stage2: str | None = None
+
+
+class ReportSpec(_Model):
+    table1: Table1Spec = Field(default_factory=Table1Spec)
+
+
+class ExperimentConfig(_Model):
+    """The whole YAML document (see the module docstring)."""
+
+    description: str = ""
+    mesh: list[MeshSpec]
+    boundary: BoundarySpec = Field(default_factory=BoundarySpec)
+    methods: list[MethodSpec] = Field(min_length=1)
+    seeds: list[int] | None = None
+    runs: int | None = None
+    dtype: Literal["float32", "float64"] = "float32"
+    device: Literal["cpu", "gpu", "auto"] = "cpu"
+    output: str | None = None
+    untangle: Literal["auto", "always", "never"] = "auto"
+    write_meshes: bool = True
+    figures: bool = True
+    report: ReportSpec = Field(default_factory=ReportSpec)
+
+    @field_validator("mesh", mode="before")
+    @classmethod
+    def _one_or_many(cls, v):
+        return [v] if isinstance(v, dict) else v
+
+    @field_validator("mesh")
+    @classmethod
+    def _not_empty(cls, v):
+        if not v:
+            raise ValueError("give at least one mesh")
+        return v
+
+    @field_validator("runs")
+    @classmethod
+    def _runs(cls, v):
+        if v is not None and v < 1:
+            raise ValueError(f"runs must be >= 1, got {v}")
+        return v
+
+    @field_validator("seeds")
+    @classmethod
+    def _seeds(cls, v):
+        if v is not None:
+            if not v:
+                raise ValueError("seeds must not be empty")
+            if min(v) < 0 or len(set(v)) != len(v):
+                raise ValueError(f"seeds must be distinct integers >= 0, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _seeds_or_runs(self):
+        if self.seeds is not None and self.runs is not None:
+            raise ValueError("give 'seeds' or 'runs', not both")
+        return self
+
+
+# ----------------------------------------------------------------------------------------------- loading
+
+
+@dataclasses.dataclass(frozen=True)
+class ResolvedMesh:
+    """A validated mesh entry: unique `name` (and file-name `slug`), its spec, resolved `path` and boundary."""
+
+    name: str
+    slug: str
+    spec: MeshSpec
+    path: Path | None
+    boundary: BoundarySpec
+    mesh: Any = None  # the HexMesh read from `path` (file meshes only)
+
+    @property
+    def paper_case(self) -> str | None:
+        """The paper case name when this mesh is one of `jaxci.generate.PAPER_CASES`, else None."""
+        return self.spec.generate.case if self.spec.generate is not None else None
+
+    def build(self, seed: int):
+        """The input `HexMesh` of the run with `seed` (generated meshes are perturbed by it)."""
+        if self.mesh is not None:
+            return self.mesh
+        from .generate import paper_case, perturb_box
+
+        g = self.spec.generate
+        s = seed if g.seed is None else g.seed
+        if g.case is not None:
+            return paper_case(g.case, seed=s)
+        return perturb_box(*g.box, amplitude=g.amplitude, seed=s, which=g.which, size=tuple(g.size))
+
+
+@dataclasses.dataclass(frozen=True)
+class ResolvedMethod:
+    """A validated method entry: unique `label` (and `slug`), `method` name, `params`, meshes it runs on."""
+
+    label: str
+    slug: str
+    method: str
+    params: dict
+    meshes: tuple[str, ...] | None
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    """A loaded, fully validated config: `config` (the pydantic model), `path`, resolved meshes/methods, seeds."""
+
+    config: ExperimentConfig
+    path: Path
+    meshes: tuple[ResolvedMesh, ...]
+    methods: tuple[ResolvedMethod, ...]
+    seeds: tuple[int, ...]
+
+    def runs(self, seeds=None) -> list[tuple[ResolvedMesh, int, ResolvedMethod]]:
+        """Every (mesh, seed, method) in run order: mesh-major, then seed (one mesh build per seed), method."""
+        out = []
+        for m in self.meshes:
+            for s in self.seeds if seeds is None else seeds:
+                out.extend((m, s, meth) for meth in self.methods if meth.meshes is None or m.name in meth.meshes)
+        return out
+
+
+class _Locator:
+    """Maps a key path of the YAML document to ``file:line`` through the `yaml.compose` node tree."""
+
+    def __init__(self, path: Path, root):
+        self.path, self.root = path, root
+
+    def line(self, loc) -> int | None:
+        node = self.root
+        if node is None:
+            return None
+        line = node.start_mark.line + 1
+        for key in loc:
+            if isinstance(node, yaml.MappingNode):
+                if isinstance(key, int):  # a single mapping given where a list is allowed
+                    line = node.start_mark.line + 1
+                    continue
+                hit = [(k, v) for k, v in node.value if k.value == str(key)]
+                if not hit:
+                    break
+                line, node = hit[-1][0].start_mark.line + 1, hit[-1][1]
+            elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
+                node = node.value[key]
+                line = node.start_mark.line + 1
+            else:
+                break
+        return line
+
+    def error(self, loc, msg: str) -> ConfigError:
+        line = self.line(loc)
+        where = f"{self.path}:{line}" if line else f"{self.path}"
+        return ConfigError(f"{where}: {format_loc(loc)}: {msg}" if loc else f"{where}: {msg}")
+
+
+def format_loc(loc) -> str:
+    """``('methods', 0, 'params', 'cohort')`` -> ``'methods[0].params.cohort'``."""
+    out = ""
+    for k in loc:
+        out += f"[{k}]" if isinstance(k, int) else (f".{k}" if out else str(k))
+    return out
+
+
+def slugify(text: str) -> str:
+    """A file-name-safe form of a label: lower case, runs of other characters as ``-``."""
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "x"
+
+
+def _check_duplicates(node, locator: _Locator, loc=()) -> None:
+    if isinstance(node, yaml.MappingNode):
+        seen = set()
+        for k, v in node.value:
+            if k.value in seen:
+                raise ConfigError(f"{locator.path}:{k.start_mark.line + 1}: {format_loc((*loc, k.value))}: "
+                                  f"duplicate key")
+            seen.add(k.value)
+            _check_duplicates(v, locator, (*loc, k.value))
+    elif isinstance(node, yaml.SequenceNode):
+        for i, v in enumerate(node.value):
+            _check_duplicates(v, locator, (*loc, i))
+
+
+def _model_at(loc) -> type[BaseModel] | None:
+    """The pydantic model that holds the keys at `loc` (to list the allowed keys)."""
+    model: Any = ExperimentConfig
+    for key in loc:
+        if isinstance(key, int):
+            continue
+        field = model.model_fields.get(key) if isinstance(model, type) and issubclass(model, BaseModel) else None
+        if field is None:
+            return None
+        model = _inner_model(field.annotation)
+    return model if isinstance(model, type) and issubclass(model, BaseModel) else None
+
+
+def _inner_model(ann):
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return ann
+    for a in typing.get_args(ann):
+        m = _inner_model(a)
+        if m is not None:
+            return m
+    return None
+
+
+def _pydantic_message(err: dict) -> tuple[tuple, str]:
+    loc, typ = tuple(err["loc"]), err["type"]
+    if typ == "extra_forbidden":
+        model = _model_at(loc[:-1])
+        allowed = f"; allowed keys: {', '.join(model.model_fields)}" if model else ""
+        return loc, f"unknown key {loc[-1]!r}{allowed}"
+    if typ == "missing":
+        return loc, "required key is missing"
+    msg = err["msg"].removeprefix("Value error, ")
+    field, sep, rest = msg.partition(": ")
+    model = _model_at(loc) if sep else None
+    if model is not None and field in model.model_fields:  # a model validator naming the field at fault
+        return (*loc, field), rest
+    if typ not in ("value_error", "assertion_error") and "input" in err:
+        msg += f" (got {err['input']!r})"
+    return loc, msg
+
+
+#: Fallback for `method_param_class` while `jaxci.smooth` has no ``METHOD_PARAMS`` table: method ->
+#: ``"module:Class"`` under `jaxci`, imported on use; a missing module or class means "not checked up front".
+_PARAM_CLASSES = {
+    "ci": "optim.ci:CIParams",
+    "ci-global": "optim.ci:CIParams",
+    **dict.fromkeys(("bfgs", "lbfgs", "cg", "lm", "gauss-newton"), "optim.gradient:GradientParams"),
+    **dict.fromkeys(("laplace", "smart-laplace"), "optim.laplace:LaplaceParams"),
+}
+
+
+def method_param_class(method: str):
+    """The parameter dataclass of `method` (its fields are the method's ``params``), or None if unknown.
+
+    Looked up at call time in `jaxci.smooth.METHOD_PARAMS` (method -> dataclass) when that table exists, else in
+    `_PARAM_CLASSES`. Parameters of a method with no known class are checked only when it runs.
+    """
+    import importlib
+
+    sm = importlib.import_module("jaxci.smooth")  # the module (``jaxci.smooth`` is the function)
+    table = getattr(sm, "METHOD_PARAMS", None) or {}
+    if method in table:
+        return table[method]
+    if method not in _PARAM_CLASSES:
+        return None
+    module, _, name = _PARAM_CLASSES[method].partition(":")
+    try:
+        return getattr(importlib.import_module(f".{module}", __package__), name)
+    except (ImportError, AttributeError):
+        return None
+
+
+def _validate_params(method: str, params: dict, fail: Callable[[tuple, str], ConfigError]) -> None:
+    cls = method_param_class(method)
+    if cls is None:
+        return
+    names = [f.name for f in dataclasses.fields(cls)]
+    for key in params:
+        if key not in names:
+            raise fail((key,), f"unknown parameter of method {method!r}; valid: {', '.join(names)}")
+
+    def attempt(kw):
+        try:
+            cls(**kw)
+        except (JaxciError, ValueError, TypeError) as e:
+            return str(e)
+        return None
+
+    msg = attempt(params)
+    if msg is None:
+        return
+    for key, value in params.items():  # name the parameter at fault when it fails on its own
+        one = attempt({key: value})
+        if one is not None:
+            raise fail((key,), one)
+    raise fail((), msg)
+
+
+def load_config(path: str | os.PathLike) -> Experiment:
+    """Read and validate an experiment config (YAML), and read its mesh files.
+
+    **Arguments:**
+
+    - `path`: the YAML file; relative mesh paths in it are resolved against its folder.
+
+    **Returns:** an `Experiment`. Raises `ConfigError` (one line: ``file:line: key.path: what is wrong``) for a
+    missing or malformed file, unknown keys, wrong types or values, unknown methods or method parameters,
+    missing or unreadable mesh files.
+    """
+    from .smooth import METHODS
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: cannot read the config ({e})") from None
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark else str(path)
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(f"{where}: invalid YAML: {problem}") from None
+    loc8 = _Locator(path, root)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the config must be a YAML mapping of keys (mesh, methods, ...), "
+                          f"got {type(data).__name__}")
+    _check_duplicates(root, loc8)
+    try:
+        cfg = ExperimentConfig.model_validate(data)
+    except ValidationError as e:
+        errs = e.errors()
+        loc, msg = _pydantic_message(errs[0])
+        more = f" (and {len(errs) - 1} more problems)" if len(errs) > 1 else ""
+        raise loc8.error(loc, msg + more) from None
+
+    meshes = []
+    names: dict[str, int] = {}
+    for i, spec in enumerate(cfg.mesh):
+        mpath = None
+        if spec.file is not None:
+            mpath = Path(spec.file).expanduser()
+            if not mpath.is_absolute():
+                mpath = (path.parent / mpath).resolve()
+            if not mpath.is_file():
+                raise loc8.error(("mesh", i, "file"), f"no such mesh file: {mpath}")
+        name = spec.name or (mpath.stem if mpath else _generated_name(spec.generate))
+        if name in names:
+            raise loc8.error(("mesh", i), f"mesh name {name!r} is used twice (entries {names[name]} and {i}); "
+                             f"give each a distinct 'name'")
+        names[name] = i
+        meshes.append((i, name, spec, mpath, spec.boundary or cfg.boundary))
+    slugs = _unique_slugs([m[1] for m in meshes], lambda j: loc8.error(("mesh", meshes[j][0]), "mesh names "
+                          "must differ in more than punctuation and case (they name files)"))
+
+    resolved_meshes = []
+    for (i, name, spec, mpath, bnd), slug in zip(meshes, slugs, strict=True):
+        blk = ("mesh", i, "boundary") if spec.boundary else ("boundary",)
+        mesh = None
+        if mpath is not None:
+            from .io import read_mesh
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                try:
+                    mesh = read_mesh(mpath)
+                except JaxciError as e:
+                    raise loc8.error(("mesh", i, "file"), str(e)) from None
+            n_nodes = mesh.n_nodes
+            for j, s in enumerate(bnd.fixed_sets):
+                if s not in mesh.point_sets:
+                    known = ", ".join(mesh.point_sets) or "none"
+                    raise loc8.error((*blk, "fixed_sets", j), f"mesh {name!r} has no node set {s!r} (sets: {known})")
+        else:
+            g = spec.generate
+            if g.case is not None:
+                from .generate import PAPER_CASES
+
+                n_nodes = (PAPER_CASES[g.case].n + 1) ** 3
+            else:
+                n_nodes = math.prod(n + 1 for n in g.box)
+            if bnd.fixed_sets:
+                raise loc8.error((*blk, "fixed_sets"), f"generated mesh {name!r} has no node sets")
+        for j, n in enumerate(bnd.fixed_nodes):
+            if not 0 <= n < n_nodes:
+                raise loc8.error((*blk, "fixed_nodes", j), f"node index {n} out of range [0, {n_nodes}) of {name!r}")
+        resolved_meshes.append(ResolvedMesh(name, slug, spec, mpath, bnd, mesh))
+
+    methods = []
+    labels: dict[str, int] = {}
+    for i, m in enumerate(cfg.methods):
+        if m.method not in METHODS:
+            raise loc8.error(("methods", i, "method"), f"unknown method {m.method!r}; choose one of "
+                             f"{', '.join(METHODS)}")
+        label = m.name or m.method
+        if label in labels:
+            raise loc8.error(("methods", i), f"method label {label!r} is used twice (entries {labels[label]} and "
+                             f"{i}); give each a distinct 'name'")
+        labels[label] = i
+        _validate_params(m.method, m.params, lambda k, msg, i=i: loc8.error(("methods", i, "params", *k), msg))
+        for j, mn in enumerate(m.meshes or ()):
+            if mn not in names:
+                raise loc8.error(("methods", i, "meshes", j), f"no mesh named {mn!r}; meshes: {', '.join(names)}")
+        methods.append((label, m))
+    mslugs = _unique_slugs([lab for lab, _ in methods], lambda j: loc8.error(
+        ("methods", j), "method labels must differ in more than punctuation and case (they name files)"))
+    resolved_methods = tuple(
+        ResolvedMethod(lab, sl, m.method, dict(m.params), tuple(m.meshes) if m.meshes is not None else None)
+        for (lab, m), sl in zip(methods, mslugs, strict=True)
+    )
+
+    t1 = cfg.report.table1
+    if t1.mesh is not None and t1.mesh not in names:
+        raise loc8.error(("report", "table1", "mesh"), f"no mesh named {t1.mesh!r}; meshes: {', '.join(names)}")
+    for key in ("stage1", "stage2"):
+        v = getattr(t1, key)
+        if v is not None and v not in labels:
+            raise loc8.error(("report", "table1", key), f"no method named {v!r}; methods: {', '.join(labels)}")
+
+    seeds = tuple(cfg.seeds) if cfg.seeds is not None else tuple(range(cfg.runs or 1))
+    return Experiment(cfg, path, tuple(resolved_meshes), resolved_methods, seeds)
+
+
+def _generated_name(g: GenerateSpec) -> str:
+    return g.case if g.case is not None else "box{}x{}x{}".format(*g.box)
+
+
+def _unique_slugs(names: list[str], fail) -> list[str]:
+    slugs = [slugify(n) for n in names]
+    for j, s in enumerate(slugs):
+        if s in slugs[:j]:
+            raise fail(j)
+    return slugs
