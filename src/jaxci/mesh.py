@@ -115,11 +115,14 @@ def corner_determinants(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
     """
     p = np.asarray(points, dtype=np.float64)
     h = np.asarray(hexes)
-    x = p[h]  # (N, 8, 3)
-    base = x[:, :, None, :]  # (N, 8, 1, 3)
-    cols = x[:, CORNER_NEIGHBOURS, :] - base  # (N, 8, 3, 3): [..., column, component]
-    a, b, c = cols[:, :, 0], cols[:, :, 1], cols[:, :, 2]
-    return np.einsum("nij,nij->ni", a, np.cross(b, c))
+    X, Y, Z = (np.ascontiguousarray(p[:, d][h.T]) for d in range(3))  # (8, N) each: one row per local node
+    out = np.empty((h.shape[0], 8))
+    for i, (j, k, m) in enumerate(CORNER_NEIGHBOURS):  # columns a, b, c from node i; det = a . (b x c)
+        ax, ay, az = X[j] - X[i], Y[j] - Y[i], Z[j] - Z[i]
+        bx, by, bz = X[k] - X[i], Y[k] - Y[i], Z[k] - Z[i]
+        cx, cy, cz = X[m] - X[i], Y[m] - Y[i], Z[m] - Z[i]
+        out[:, i] = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+    return out
 
 
 def _as_int_array(a, name: str) -> np.ndarray:

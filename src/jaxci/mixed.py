@@ -30,6 +30,7 @@ import numpy as np
 
 from . import elements as E
 from .mesh import EDGES, HexMesh
+from .topology import unique_edges
 
 #: The non-hexahedral linear cell types that are measured and smoothed.
 EXTRA_TYPES = ("wedge", "pyramid", "tetra")
@@ -263,7 +264,7 @@ def node_lengths(mesh: HexMesh, points=None) -> np.ndarray:
 def edge_pairs(mesh: HexMesh) -> np.ndarray:
     """Every distinct edge of every volume cell, sorted node pairs ``(E, 2)``."""
     parts = [cells[:, EDGES[t]].reshape(-1, 2) for t, cells in volume_cells(mesh).items()]
-    return np.unique(np.sort(np.concatenate(parts), axis=1), axis=0)
+    return unique_edges(np.concatenate(parts))
 
 
 # ---------------------------------------------------------------------------------------------- checks (numpy)

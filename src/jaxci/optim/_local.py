@@ -57,8 +57,9 @@ class NodeStars:
 
 
 def node_stars(hexes: np.ndarray, n_nodes: int) -> NodeStars:
-    """Build `NodeStars` for `hexes` of shape ``(N, 8)`` (vectorised; K = the maximum valence)."""
-    hexes = np.asarray(hexes, dtype=np.int64)
+    """Build `NodeStars` for `hexes` of shape ``(N, 8)`` (vectorised; K = the maximum valence; int32 indices while
+    they fit: the star of a 100^3 box holds 64 M of them)."""
+    hexes = np.asarray(hexes, dtype=np.int32 if n_nodes < 2**31 else np.int64)
     n_el = len(hexes)
     node = hexes.ravel()  # (8N,) node of incidence (element e = i // 8, slot a = i % 8)
     elem = np.repeat(np.arange(n_el), 8)
@@ -69,8 +70,9 @@ def node_stars(hexes: np.ndarray, n_nodes: int) -> NodeStars:
     K = max(int(valence.max(initial=0)), 1)
     start = np.concatenate([[0], np.cumsum(valence)[:-1]])
     k = np.arange(len(node)) - start[node]
-    star = np.repeat(np.arange(n_nodes)[:, None, None], K, axis=1).repeat(8, axis=2)
-    star[node, k] = hexes[elem[:, None], ROTATE_TO_SLOT[slot]]
+    star = np.empty((n_nodes, K, 8), hexes.dtype)
+    star[:] = np.arange(n_nodes, dtype=hexes.dtype)[:, None, None]
+    star[node, k] = hexes.ravel()[elem[:, None] * 8 + ROTATE_TO_SLOT[slot]]  # flat take: 2-D fancy indexing is slower
     mask = np.zeros((n_nodes, K), bool)
     mask[node, k] = True
     return NodeStars(star=star, mask=mask, valence=valence)

@@ -39,6 +39,7 @@ from ..mixed import (
     no_extra,
 )
 from ..projection import Constraints
+from ..topology import unique_edges
 from ._local import gather_star
 from ._moves import ColouredStars, colour_slice, coloured_stars, local_scale, local_sum, project_trials
 
@@ -90,17 +91,17 @@ def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = 
     e = hexes[:, HEX_EDGES].reshape(-1, 2)
     if edges is not None:
         e = np.concatenate([e, np.asarray(edges, np.int64).reshape(-1, 2)])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    both = np.concatenate([e, e[:, ::-1]])
-    both = both[np.lexsort((both[:, 1], both[:, 0]))]
-    deg = np.bincount(both[:, 0], minlength=n_nodes)
+    e = unique_edges(e)
+    key = np.sort(np.concatenate([e[:, 0] * n_nodes + e[:, 1], e[:, 1] * n_nodes + e[:, 0]]))  # by (node, neighbour)
+    src, dst = key // n_nodes, key % n_nodes
+    deg = np.bincount(src, minlength=n_nodes)
     K = max(int(deg.max(initial=0)), 1)
     start = np.concatenate([[0], np.cumsum(deg)[:-1]])
-    k = np.arange(len(both)) - start[both[:, 0]]
+    k = np.arange(len(key)) - start[src]
     nbr = np.repeat(np.arange(n_nodes)[:, None], K, axis=1)
-    nbr[both[:, 0], k] = both[:, 1]
+    nbr[src, k] = dst
     mask = np.zeros((n_nodes, K), bool)
-    mask[both[:, 0], k] = True
+    mask[src, k] = True
     return nbr, mask
 
 
