@@ -80,6 +80,9 @@ def child(args) -> dict:
             out[key] = dict(iterations=it, seconds=None, reached=float(k[it]))
             continue
         capped = {**params, cap: it, **({"tol": 0.0} if args.method == "ci" else {})}
+        pre = int(params.get("presmooth", 0))
+        if pre:  # the history starts with the smart-Laplace sweeps: cap those, then the solver's steps
+            capped.update(presmooth=min(pre, it), max_steps=max(it - pre, 1))
         smooth(mesh, args.method, dtype=args.dtype, **capped)  # the cap may be a static argument: compile
         t0 = time.perf_counter()
         r2 = smooth(mesh, args.method, dtype=args.dtype, **capped)

@@ -7,6 +7,8 @@ marked ``slow``.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -112,8 +114,46 @@ def test_parametrisation_shortcut_equals_projection():
                                atol=1e-12)
     np.testing.assert_allclose(np.asarray(par.params(x)), np.asarray(v), atol=1e-12)
     big = points(par, 20.0 * v)  # far outside the flat regions: the projection runs
-    np.testing.assert_allclose(np.asarray(big), np.asarray(params_to_points(pr.cons, par.scale * 20.0 * v, pr.x0)),
-                               atol=1e-12)
+    exact = np.asarray(params_to_points(pr.cons, par.scale * 20.0 * v, pr.x0))
+    np.testing.assert_allclose(np.asarray(big), exact, atol=1e-12)
+    # outside jit (numpy, what minimise returns) and the reach of the flat regions agree with it
+    assert par.reach(v) < 1.0 < par.reach(20.0 * v)
+    np.testing.assert_allclose(np.asarray(par.final_points(v)), np.asarray(x), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(par.final_points(20.0 * v)), exact, atol=1e-12)
+    # strict: no projection; outside a flat region every coordinate is NaN (a rejected trial)
+    strict = dataclasses.replace(par, strict=True)
+    np.testing.assert_allclose(np.asarray(points(strict, v)), np.asarray(x), atol=0)
+    assert bool(jnp.all(jnp.isnan(points(strict, 20.0 * v))))
+
+
+def test_strict_run_continues_with_the_projection_near_a_flat_region_edge(monkeypatch):
+    import jaxci.optim.gradient as G
+
+    mesh = perturb_box(3, amplitude=0.3, seed=2, which="sliding")
+    pr = build_problem(mesh, dtype=np.float64)
+    par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)
+    x1, it1, h1, _ = minimise("lbfgs", par, pr.conn, GradientParams())
+    monkeypatch.setattr(G, "FLAT_REACH", -1.0)  # every strict run counts as held back: one more, projected
+    x2, it2, h2, _ = minimise("lbfgs", par, pr.conn, GradientParams())
+    assert len(h2["restarts"]) == len(h1["restarts"]) + 1
+    f = [float(objective_t(jnp.asarray(x), pr.conn)) for x in (x1, x2)]
+    assert f[1] <= f[0] + 1e-12 and f[1] < 1e-6 * float(objective_t(pr.x0, pr.conn))
+
+
+def test_presmooth_runs_smart_laplace_sweeps_first():
+    mesh = perturb_box(4, amplitude=0.3, seed=3, which="sliding")
+    plain = smooth(mesh, "lbfgs", dtype="float64")
+    res = smooth(mesh, "lbfgs", dtype="float64", presmooth=2)
+    lap = smooth(mesh, "smart-laplace", dtype="float64", max_sweeps=2)
+    h = res.history
+    assert h["presmooth"] == 2 and res.params["presmooth"] == 2
+    # the history starts with the smart Laplacian's sweeps, then the solver's steps
+    np.testing.assert_allclose(h["objective"][:3], lap.history["objective"], rtol=1e-9)
+    assert len(h["objective"]) == res.iterations + 1
+    assert res.after.inverted_elements == 0 and res.after.objective <= lap.after.objective
+    assert res.after.max_condition == pytest.approx(plain.after.max_condition, abs=1e-4)
+    with pytest.raises(ConfigError, match="presmooth"):
+        smooth(mesh, "lbfgs", presmooth=-1)
 
 
 def test_closed_form_gradient_matches_autodiff_and_finite_differences():

@@ -81,6 +81,7 @@ import optimistix as optx
 
 from ..errors import ConfigError
 from ..mixed import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
+from ..projection import project_np
 from ..quality import (
     corner_columns,
     corner_invariants,
@@ -98,6 +99,10 @@ METHODS = ("bfgs", "lbfgs", "cg", "lm", "gauss-newton")
 LEAST_SQUARES = ("lm", "gauss-newton")
 #: Nonlinear CG beta formulas (`optx.NonlinearCG(method=...)`).
 CG_METHODS = ("polak_ribiere", "fletcher_reeves", "hestenes_stiefel", "dai_yuan")
+
+#: A strict run (no projection: `Parametrisation.strict`) whose result has a boundary node further than this
+#: fraction of its flat region's radius from the region's origin is continued with the projection.
+FLAT_REACH = 0.9
 
 #: Corners one interior node moves (8 elements x 4 corners): the objective seen by the solvers is F * 8N / 32.
 _CORNERS_PER_NODE = 32.0
@@ -127,6 +132,11 @@ class GradientParams:
       perturbed cubes and stops there).
     - `residual`: least squares only: ``"excess"`` (default, ``sqrt((kappa/3)^2 - 1)`` per corner, zero at the
       optimum) or ``"kappa"`` (``kappa/3``); see the module docstring.
+    - `presmooth`: sweeps of the smart Laplacian (`jaxci.optim.laplace`) before the solver (default 0: none). The
+      smart Laplacian lowers F node by node, so a few sweeps take out the near-degenerate corners of a badly
+      shaped input locally, where a solver with one global line search has to shorten every step for them
+      (measured on perturbed boxes, amplitude 0.3, float32: at 10^6 elements L-BFGS alone needed 1152 steps to
+      max kappa/3 <= 1.0001, half its trials rejected; after 3 sweeps (max kappa/3 149,452 -> 1.0047) it needs 10).
     """
 
     max_steps: int = 2000
@@ -143,6 +153,7 @@ class GradientParams:
     max_move: float = 0.5
     gn_search: str = "armijo"
     residual: str = "excess"
+    presmooth: int = 0
 
     def __post_init__(self):
         def need(ok, msg):
@@ -167,6 +178,8 @@ class GradientParams:
         need(self.gradient in ("autodiff", "closed"), f"gradient must be 'autodiff' or 'closed', got {self.gradient!r}")
         need(self.residual in ("kappa", "excess"), f"residual must be 'kappa' or 'excess', got {self.residual!r}")
         need(self.gn_search in ("armijo", "none"), f"gn_search must be 'armijo' or 'none', got {self.gn_search!r}")
+        need(int(self.presmooth) == self.presmooth and self.presmooth >= 0,
+             f"presmooth must be an integer >= 0, got {self.presmooth!r}")
 
 
 # ---------------------------------------------------------------------------------------------- objective
@@ -356,18 +369,23 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         f, k = _objective(x, conn, False, extra)
         return x, 0, {"objective": np.asarray([f]), "max_condition": np.asarray([k]),
                       "solver_result": "no free coordinates"}, params
-    fn, args = solver_args(method, par, conn, p, extra)
     solver = _solver(method, p)
     y = jnp.zeros((nf,), par.x0.dtype)
     hist_f, hist_k, starts = [], [], []
     steps = 0
     f0 = None
-    for run in range(1 + int(p.restarts)):
+    # first without the projection fallback (strict: leaving a flat region is a rejected trial), a 40% smaller
+    # compiled loop; only if a node ends near the edge of its flat region, on with the projection
+    strict = par.shortcut
+    runs, max_runs = 0, 1 + int(p.restarts)
+    while runs < max_runs:
+        cur = dataclasses.replace(par, strict=True) if strict else par
+        fn, args = solver_args(method, cur, conn, p, extra)
         y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps), jnp.int32(int(p.max_steps) - steps),
-                                            _max_rejected(method, p))
+                                      _max_rejected(method, p))
         k = int(k)
         seg_f, seg_k = np.asarray(hf[: k + 1]), np.asarray(hk[: k + 1])
-        if run == 0:
+        if runs == 0:
             f0 = float(seg_f[0])
             hist_f.append(seg_f)
             hist_k.append(seg_k)
@@ -376,23 +394,22 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
             hist_f.append(seg_f[1:])
             hist_k.append(seg_k[1:])
         steps += k
+        runs += 1
         finite = seg_f[np.isfinite(seg_f)]
         gain = float(seg_f[0] - finite.min()) if len(finite) else 0.0
         if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol:
             break
+        if strict and par.reach(y) > FLAT_REACH:
+            strict, max_runs = False, max_runs + 1  # the flat regions may have held it back: once more, projected
+            continue
         if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
             break
-        if run >= 1 and not gain > p.restart_tol * abs(f0):
+        if runs >= 2 and not gain > p.restart_tol * abs(f0):
             break
-    x = _points_jit(par, y)
+    x = par.final_points(y)
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
     return x, steps, hist, params
-
-
-@jax.jit
-def _points_jit(par, v):
-    return par.points(v)
 
 
 def _method(name):
@@ -418,17 +435,32 @@ def run_gradient(problem, method: str, params: dict):
     **Arguments:** `problem` a `jaxci.smooth.Problem` (its `x0` is the start); `method` one of `METHODS`;
     `params` keyword hyperparameters (fields of `GradientParams`).
 
-    **Returns:** as `minimise`.
+    **Returns:** as `minimise`; with ``presmooth`` sweeps of the smart Laplacian first, the history starts with
+    theirs (``history["presmooth"]`` = sweeps run) and the iterations count sweeps and solver steps.
     """
     try:
         p = GradientParams(**params)
     except TypeError as e:
         raise ConfigError(f"unknown gradient-method parameter: {e}") from None
-    par = make_parametrisation(problem.mesh, problem.info, problem.cons, problem.x0, scaled=p.scaled,
-                               dtype=problem.dtype)
-    if not has_extra(problem.mesh):  # the hexahedral path, unchanged
-        return minimise(method, par, problem.conn, p)
-    return minimise(method, par, problem.conn, p, extra_cells(problem.mesh))
+    x0, pre = problem.x0, None
+    if p.presmooth:
+        from .laplace import run_laplace
+
+        xl, sweeps, pre, _ = run_laplace(problem, "smart-laplace", {"max_sweeps": int(p.presmooth)})
+        # exactly on the boundary again (float64), so that the flat-region shortcut of the parametrisation holds
+        x0 = project_np(problem.cons, np.asarray(xl, dtype=np.float64))
+    par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled, dtype=problem.dtype)
+    extra = extra_cells(problem.mesh) if has_extra(problem.mesh) else None
+    x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra)
+    if pre is None:
+        return x, steps, hist, resolved
+    hist = {**hist, "presmooth": int(sweeps)}
+    for key in ("objective", "max_condition"):
+        hist[key] = np.concatenate([np.asarray(pre[key], dtype=np.float64)[: sweeps + 1],
+                                    np.asarray(hist[key], dtype=np.float64)[1:]])
+    if "restarts" in hist:
+        hist["restarts"] = np.asarray(hist["restarts"]) + int(sweeps)
+    return x, int(sweeps) + steps, hist, resolved
 
 
 # ---------------------------------------------------------------------------------------------- mixed meshes
