@@ -8,7 +8,8 @@ the threshold (setup included: classification, constraints, colouring, the float
 Sizes above ``--full-upto`` (default 60) are run once, cold, with the iterations to each threshold but no
 re-timed runs (each would take minutes on a 2-core CPU). It also
 times the objective kernel alone on the mesh (corner evaluations per second). Device: `--device cpu|gpu|auto`
-(unchanged code on a GPU machine). Prints a table and writes JSON (`--out`).
+(unchanged code on a GPU machine). The children run with transparent huge pages for glibc's large allocations
+where that applies (`jaxci.runtime`; ``--hugepages off`` to compare). Prints a table and writes JSON (`--out`).
 
     python scripts/benchmark.py --sizes 10 20 30 60 100 --methods lbfgs ci smart-laplace
 """
@@ -50,7 +51,7 @@ def child(args) -> dict:
     params = json.loads(args.params) if args.params else {}
     out = dict(size=n, hexes=mesh.n_hexes, nodes=mesh.n_nodes, method=args.method, dtype=args.dtype,
                device=str(jax.devices()[0]), backend=jax.default_backend(), jax=jax.__version__,
-               generate_s=t_gen, params=params)
+               generate_s=t_gen, params=params, glibc_tunables=os.environ.get("GLIBC_TUNABLES"))
     t0 = time.perf_counter()
     res = smooth(mesh, args.method, dtype=args.dtype, **params)
     out["cold_s"] = time.perf_counter() - t0
@@ -127,6 +128,8 @@ def main(argv=None):
                     help="sizes above this are run once (cold: compile + run; iterations to each threshold, no "
                          "re-timed capped runs)")
     ap.add_argument("--out", default="results/benchmark.json")
+    ap.add_argument("--hugepages", choices=["on", "off"], default="on",
+                    help="run the children with GLIBC_TUNABLES=glibc.malloc.hugetlb=1 where it applies (jaxci.runtime)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--method", help=argparse.SUPPRESS)
@@ -134,6 +137,8 @@ def main(argv=None):
     if args.child:
         print("RESULT " + json.dumps(child(args)), flush=True)
         return
+    from jaxci.runtime import hugepage_environment
+
     rows = []
     head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'cold s':>8} {'warm s':>8} {'it':>5} {'final k/3':>10} "
             f"{'t(1.01) s':>10} {'t(1.0001) s':>12} {'peak MB':>8} {'Mcorner/s':>10}")
@@ -144,7 +149,10 @@ def main(argv=None):
                    str(args.amplitude), "--seed", str(args.seed), "--dtype", args.dtype, "--device", args.device,
                    "--params", args.params, "--full-upto", str(args.full_upto)]
             try:
-                p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+                env = (hugepage_environment() if args.hugepages == "on" else None) or {**os.environ}
+                if args.hugepages == "off":
+                    env["JAXCI_HUGEPAGES"] = "0"
+                p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
                 line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
                 row = json.loads(line[-1][7:]) if line else dict(size=n, method=method, error=p.stderr[-2000:])
             except subprocess.TimeoutExpired:

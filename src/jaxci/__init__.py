@@ -5,6 +5,11 @@ imports the module, or ``jaxci.smooth`` would become the module); the rest of th
 kernels, constraints, CI parameters) is loaded on first use.
 """
 
+# ruff: noqa: E402  (the re-exec of the jaxci command must come before the imports below)
+from . import runtime as _runtime
+
+_runtime.reexec_with_hugepages()  # the jaxci command only: huge pages for XLA's buffers (jaxci.runtime)
+
 from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 

@@ -12,6 +12,8 @@ import os
 import sys
 import warnings
 
+from ..runtime import TUNABLE
+
 #: subcommand -> (module, one-line help)
 COMMANDS = {
     "quality": ("_quality", "report the quality of a hexahedral mesh"),
@@ -36,11 +38,18 @@ def _setup_jax() -> None:
         pass
 
 
+def _runtime_line() -> str:
+    import jax
+
+    pages = "on" if TUNABLE in os.environ.get("GLIBC_TUNABLES", "") else "off"
+    return f"jax {jax.__version__}; huge pages for glibc allocations {pages} (jaxci.runtime)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
 
     parser = argparse.ArgumentParser(prog="jaxci", description="Hexahedral mesh quality and smoothing in JAX.")
-    parser.add_argument("--version", action="version", version=f"jaxci {__version__}")
+    parser.add_argument("--version", action="version", version=f"jaxci {__version__} ({_runtime_line()})")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (mod, help_) in COMMANDS.items():
