@@ -104,6 +104,7 @@ def main(argv=None):
     out = dict(
         benchmark="bench_quality", jax=jax.__version__, device=str(jax.devices()[0]),
         platform=platform.platform(), cpu_count=os.cpu_count(), python=sys.version.split()[0],
+        glibc_tunables=os.environ.get("GLIBC_TUNABLES"),
         rows=rows, ratios=ratios,
     )
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
