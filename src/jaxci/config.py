@@ -39,7 +39,6 @@ import dataclasses
 import math
 import os
 import re
-import typing
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -48,6 +47,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from .config_errors import Locator, check_duplicates, pydantic_message
 from .errors import ConfigError, JaxciError
 
 # ----------------------------------------------------------------------------------------------- schema
@@ -260,105 +260,9 @@ class Experiment:
         return out
 
 
-class _Locator:
-    """Maps a key path of the YAML document to ``file:line`` through the `yaml.compose` node tree."""
-
-    def __init__(self, path: Path, root):
-        self.path, self.root = path, root
-
-    def line(self, loc) -> int | None:
-        node = self.root
-        if node is None:
-            return None
-        line = node.start_mark.line + 1
-        for key in loc:
-            if isinstance(node, yaml.MappingNode):
-                if isinstance(key, int):  # a single mapping given where a list is allowed
-                    line = node.start_mark.line + 1
-                    continue
-                hit = [(k, v) for k, v in node.value if k.value == str(key)]
-                if not hit:
-                    break
-                line, node = hit[-1][0].start_mark.line + 1, hit[-1][1]
-            elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
-                node = node.value[key]
-                line = node.start_mark.line + 1
-            else:
-                break
-        return line
-
-    def error(self, loc, msg: str) -> ConfigError:
-        line = self.line(loc)
-        where = f"{self.path}:{line}" if line else f"{self.path}"
-        return ConfigError(f"{where}: {format_loc(loc)}: {msg}" if loc else f"{where}: {msg}")
-
-
-def format_loc(loc) -> str:
-    """``('methods', 0, 'params', 'cohort')`` -> ``'methods[0].params.cohort'``."""
-    out = ""
-    for k in loc:
-        out += f"[{k}]" if isinstance(k, int) else (f".{k}" if out else str(k))
-    return out
-
-
 def slugify(text: str) -> str:
     """A file-name-safe form of a label: lower case, runs of other characters as ``-``."""
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "x"
-
-
-def _check_duplicates(node, locator: _Locator, loc=()) -> None:
-    if isinstance(node, yaml.MappingNode):
-        seen = set()
-        for k, v in node.value:
-            if k.value in seen:
-                raise ConfigError(f"{locator.path}:{k.start_mark.line + 1}: {format_loc((*loc, k.value))}: "
-                                  f"duplicate key")
-            seen.add(k.value)
-            _check_duplicates(v, locator, (*loc, k.value))
-    elif isinstance(node, yaml.SequenceNode):
-        for i, v in enumerate(node.value):
-            _check_duplicates(v, locator, (*loc, i))
-
-
-def _model_at(loc) -> type[BaseModel] | None:
-    """The pydantic model that holds the keys at `loc` (to list the allowed keys)."""
-    model: Any = ExperimentConfig
-    for key in loc:
-        if isinstance(key, int):
-            continue
-        field = model.model_fields.get(key) if isinstance(model, type) and issubclass(model, BaseModel) else None
-        if field is None:
-            return None
-        model = _inner_model(field.annotation)
-    return model if isinstance(model, type) and issubclass(model, BaseModel) else None
-
-
-def _inner_model(ann):
-    if isinstance(ann, type) and issubclass(ann, BaseModel):
-        return ann
-    for a in typing.get_args(ann):
-        m = _inner_model(a)
-        if m is not None:
-            return m
-    return None
-
-
-def _pydantic_message(err: dict) -> tuple[tuple, str]:
-    loc, typ = tuple(err["loc"]), err["type"]
-    if typ == "extra_forbidden":
-        model = _model_at(loc[:-1])
-        allowed = f"; allowed keys: {', '.join(model.model_fields)}" if model else ""
-        return loc, f"unknown key {loc[-1]!r}{allowed}"
-    if typ == "missing":
-        return loc, "required key is missing"
-    msg = err["msg"].removeprefix("Value error, ")
-    field, sep, rest = msg.partition(": ")
-    model = _model_at(loc) if sep else None
-    if model is not None and field in model.model_fields:  # a model validator naming the field at fault
-        return (*loc, field), rest
-    if typ not in ("value_error", "assertion_error") and "input" in err:
-        msg += f" (got {err['input']!r})"
-    return loc, msg
 
 
 #: Fallback for `method_param_class` while `jaxci.smooth` has no ``METHOD_PARAMS`` table: method ->
@@ -446,16 +350,16 @@ def load_config(path: str | os.PathLike) -> Experiment:
         where = f"{path}:{mark.line + 1}" if mark else str(path)
         problem = getattr(e, "problem", None) or str(e).splitlines()[0]
         raise ConfigError(f"{where}: invalid YAML: {problem}") from None
-    loc8 = _Locator(path, root)
+    loc8 = Locator(path, root)
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the config must be a YAML mapping of keys (mesh, methods, ...), "
                           f"got {type(data).__name__}")
-    _check_duplicates(root, loc8)
+    check_duplicates(root, loc8)
     try:
         cfg = ExperimentConfig.model_validate(data)
     except ValidationError as e:
         errs = e.errors()
-        loc, msg = _pydantic_message(errs[0])
+        loc, msg = pydantic_message(errs[0], ExperimentConfig)
         more = f" (and {len(errs) - 1} more problems)" if len(errs) > 1 else ""
         raise loc8.error(loc, msg + more) from None
 

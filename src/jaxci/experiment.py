@@ -28,8 +28,9 @@ from typing import Any
 
 import yaml
 
-from .config import Experiment, ResolvedMesh, ResolvedMethod, _Locator
+from .config import Experiment, ResolvedMesh, ResolvedMethod
 from .config import load_config as load_config  # re-exported: ``from jaxci.experiment import load_config``
+from .config_errors import Locator
 from .errors import ConfigError, JaxciError
 from .report import RunRecord, commit_dir, json_ready, stage_dir, write_text, write_vtus
 
@@ -70,7 +71,7 @@ def resolve_output(exp: Experiment, out: str | os.PathLike | None) -> tuple[Path
     if out is not None:
         return Path(out), "--out"
     if exp.config.output is not None:
-        line = _Locator(exp.path, yaml.compose(exp.path.read_text(), Loader=yaml.SafeLoader)).line(("output",))
+        line = Locator(exp.path, yaml.compose(exp.path.read_text(), Loader=yaml.SafeLoader)).line(("output",))
         return Path(exp.config.output), f"{exp.path}:{line}: output"
     return Path("results") / exp.path.stem, "output (default)"
 
