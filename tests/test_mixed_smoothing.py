@@ -220,6 +220,19 @@ def test_every_method_smooths_a_mixed_mesh(mixed_box, method):
     assert (np.linalg.norm(x[movable] - mesh.points[movable], axis=1) > 1e-6).sum() >= len(movable) // 2
 
 
+@pytest.mark.slow
+def test_presmooth_on_a_mixed_mesh(mixed_box):
+    """Smart-Laplace sweeps (over the corners of every cell) then L-BFGS on the mixed F."""
+    mesh = mixed_box
+    lap = smooth(mesh, "smart-laplace", max_sweeps=2)
+    res = smooth(mesh, "lbfgs", presmooth=2, max_steps=20)
+    assert res.history["presmooth"] == 2
+    np.testing.assert_allclose(res.history["objective"][:3], lap.history["objective"], rtol=1e-5)
+    assert not any(v.any() for v in mixed.inverted_cells(mesh, res.mesh.points).values())
+    assert res.after.overall["objective"] < lap.after.overall["objective"]
+    on_box_boundary(res.mesh.points, np.flatnonzero(res.node_class != INTERIOR), res.node_class)
+
+
 def test_smart_laplace_rejects_moves_that_invert_a_wedge():
     """A wedge flattened so that the Laplacian target of its apex side inverts it: smart Laplace keeps it valid."""
     mesh = wedge_box(seed=2)
