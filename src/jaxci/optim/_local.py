@@ -59,22 +59,22 @@ class NodeStars:
 def node_stars(hexes: np.ndarray, n_nodes: int) -> NodeStars:
     """Build `NodeStars` for `hexes` of shape ``(N, 8)`` (vectorised; K = the maximum valence; int32 indices while
     they fit: the star of a 100^3 box holds 64 M of them)."""
-    hexes = np.asarray(hexes, dtype=np.int32 if n_nodes < 2**31 else np.int64)
-    n_el = len(hexes)
-    node = hexes.ravel()  # (8N,) node of incidence (element e = i // 8, slot a = i % 8)
-    elem = np.repeat(np.arange(n_el), 8)
-    slot = np.tile(np.arange(8), n_el)
-    order = np.argsort(node, kind="stable")
-    node, elem, slot = node[order], elem[order], slot[order]
+    it = np.int32 if max(n_nodes, 8 * len(hexes)) < 2**31 else np.int64
+    hexes = np.asarray(hexes, dtype=it)
+    flat = hexes.ravel()  # (8N,) node of incidence i (element i // 8, slot i % 8)
+    order = np.argsort(flat, kind="stable").astype(it)  # incidences grouped by node, elements in order
+    node = flat[order]
     valence = np.bincount(node, minlength=n_nodes)
     K = max(int(valence.max(initial=0)), 1)
-    start = np.concatenate([[0], np.cumsum(valence)[:-1]])
-    k = np.arange(len(node)) - start[node]
-    star = np.empty((n_nodes, K, 8), hexes.dtype)
-    star[:] = np.arange(n_nodes, dtype=hexes.dtype)[:, None, None]
-    star[node, k] = hexes.ravel()[elem[:, None] * 8 + ROTATE_TO_SLOT[slot]]  # flat take: 2-D fancy indexing is slower
-    mask = np.zeros((n_nodes, K), bool)
-    mask[node, k] = True
+    start = np.concatenate([[0], np.cumsum(valence)[:-1]]).astype(it)
+    pos = node * it(K) + (np.arange(len(node), dtype=it) - start[node])  # row of each incidence in (n * K)
+    star = np.empty((n_nodes * K, 8), it)
+    star[:] = np.repeat(np.arange(n_nodes, dtype=it), K)[:, None]  # padding: the node itself
+    base = (order - order % it(8))[:, None]  # first incidence of its element
+    star[pos] = flat[base + ROTATE_TO_SLOT.astype(it)[order % it(8)]]  # 1-D takes: 2-D fancy indexing is slower
+    mask = np.zeros(n_nodes * K, bool)
+    mask[pos] = True
+    star, mask = star.reshape(n_nodes, K, 8), mask.reshape(n_nodes, K)
     return NodeStars(star=star, mask=mask, valence=valence)
 
 

@@ -171,7 +171,7 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     return ColouredStars(
         nodes=jnp.asarray(nodes.astype(np.int32)),
         mask=jnp.asarray(mask),
-        star=jnp.asarray(stars.star[safe].astype(np.int32)),
+        star=jnp.asarray(stars.star[safe].astype(np.int32, copy=False)),
         smask=jnp.asarray(stars.mask[safe] & mask[..., None]),
         basis=jnp.asarray(B[safe], dtype=cons.x_orig.dtype),
         dims=jnp.asarray(np.where(mask, dims[safe], 0).astype(np.int32)),
