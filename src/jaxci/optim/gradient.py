@@ -351,6 +351,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     ``restarts`` (the steps at which the solver was restarted) and ``solver_result`` (optimistix's result name
     of the last run); and the resolved hyperparameters. Raises `ConfigError` for a
     least-squares method on more than ``p.max_free`` free coordinates.
+
+    Where every moving boundary node has a flat region (``par.shortcut``) the first run is strict (no projection
+    compiled; a trial that leaves a region is rejected); if its result has a node beyond `FLAT_REACH` of its
+    region's radius, the solver goes on from there with the projection (one more run, in ``restarts``).
     """
     if method not in METHODS:
         raise ConfigError(f"unknown gradient method {method!r}; choose one of {', '.join(METHODS)}")
