@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxci.errors import ConfigError
-from jaxci.generate import grid_hexes, perturb_box
+from jaxci.generate import box, grid_hexes, perturb_box
 from jaxci.mesh import corner_determinants, hex_mesh
 from jaxci.optim.laplace import edge_neighbours, run_laplace
 from jaxci.smooth import build_problem, smooth
@@ -66,3 +66,12 @@ def test_laplace_restores_a_perturbed_box(method):
 def test_bad_parameters(kw, match):
     with pytest.raises(ConfigError, match=match):
         smooth(perturb_box(2, amplitude=0.1), "smart-laplace", **kw)
+
+
+@pytest.mark.parametrize("method,kw", [("laplace", {}), ("smart-laplace", {}), ("lbfgs", {"presmooth": 2})])
+def test_a_mesh_with_no_movable_node_is_returned_unchanged(method, kw):
+    mesh = box(1)  # one hexahedron: every node is a corner
+    mesh = mesh.with_points(mesh.points + np.array([[0.1, 0, 0]] + [[0, 0, 0]] * 7))
+    res = smooth(mesh, method, **kw)
+    np.testing.assert_array_equal(res.mesh.points, mesh.points)
+    assert res.after.max_condition == pytest.approx(res.before.max_condition)

@@ -134,7 +134,7 @@ def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n
     new = jnp.where(accept[:, None], new, x0)
     move = jnp.linalg.norm(new - x0, axis=-1) / h_i
     x = x.at[nodes].set(new, mode="drop")
-    return x, jnp.max(jnp.where(mask, move, 0.0))
+    return x, jnp.max(jnp.where(mask, move, 0.0), initial=0.0)  # initial: a mesh with no movable node
 
 
 @functools.partial(jax.jit, static_argnames=("smart", "p"))
