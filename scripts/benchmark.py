@@ -30,13 +30,21 @@ CAP_DEFAULT = "max_steps"
 
 
 def child(args) -> dict:
-    """Run one (size, method) in this process and return its figures."""
+    """Run one (size, method) in this process on the device of ``--device`` and return its figures
+    (`jaxci.errors.ConfigError` if that device is not there)."""
+    import jax
+
+    from jaxci.experiment import select_device
+
+    device = select_device(args.device)
+    with jax.default_device(device):
+        return _measure(args, device)
+
+
+def _measure(args, device) -> dict:
     import resource
 
     import jax
-
-    if args.device != "auto":
-        jax.config.update("jax_platforms", "cuda" if args.device == "gpu" else "cpu")
     import jax.numpy as jnp
     import numpy as np
 
@@ -50,7 +58,7 @@ def child(args) -> dict:
     t_gen = time.perf_counter() - t0
     params = json.loads(args.params) if args.params else {}
     out = dict(size=n, hexes=mesh.n_hexes, nodes=mesh.n_nodes, method=args.method, dtype=args.dtype,
-               device=str(jax.devices()[0]), backend=jax.default_backend(), jax=jax.__version__,
+               device=str(device), backend=device.platform, jax=jax.__version__,
                generate_s=t_gen, params=params, glibc_tunables=os.environ.get("GLIBC_TUNABLES"))
     t0 = time.perf_counter()
     res = smooth(mesh, args.method, dtype=args.dtype, **params)
@@ -135,7 +143,13 @@ def main(argv=None):
     ap.add_argument("--method", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        print("RESULT " + json.dumps(child(args)), flush=True)
+        from jaxci.errors import JaxciError
+
+        try:
+            print("RESULT " + json.dumps(child(args)), flush=True)
+        except JaxciError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
         return
     from jaxci.runtime import hugepage_environment
 
