@@ -17,7 +17,8 @@ from pathlib import Path
 
 from ..errors import MeshReadError, MeshWriteError, UnsupportedFormatError
 from ..mesh import HexMesh
-from ._ansys_apdl import read_apdl, write_apdl
+from ._ansys_apdl import read_apdl
+from ._ansys_apdl_write import write_apdl
 from ._ansys_listing import read_ansys_listing as read_ansys_listing
 from ._meshio import LossyWriteWarning as LossyWriteWarning
 from ._meshio import read_meshio, write_meshio
@@ -153,7 +154,7 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     types (``ET``) and key options of a file it read. The midside nodes of quadratic cells (`CellBlock.midside`)
     are written by APDL only; the other formats write the linear cells with a `LossyWriteWarning` (the midside
     nodes stay in the file as unreferenced points, at their moved positions).
-    Details in the docstrings of `jaxci.io._meshio` and `jaxci.io._ansys_apdl`.
+    Details in the docstrings of `jaxci.io._meshio` and `jaxci.io._ansys_apdl_write`.
 
     **Arguments:**
 

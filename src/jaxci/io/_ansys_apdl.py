@@ -1,78 +1,36 @@
-"""Write a mesh as an ANSYS APDL input file (NBLOCK / EBLOCK), and read that subset of APDL and CDB archives.
+"""Read ANSYS APDL input files (NBLOCK / EBLOCK) and CDB archives: the subset `jaxci.io._ansys_apdl_write` writes.
 
-`write_apdl` writes, for the extensions ``.mac``, ``.apdl``, ``.ans`` and ``.cdb``:
-
-```
-/COM, jaxci mesh: 27 nodes, 8 elements
-/PREP7
-ET,1,SOLID185
-NBLOCK,6,SOLID,        27,        27
-(3i9,6e21.13e3)
-        1        0        0 0.0000000000000E+000 0.0000000000000E+000 0.0000000000000E+000
-...
-N,R5.3,LOC,       -1,
-EBLOCK,19,SOLID,         8,         8
-(19i9)
-        1        1        1        1        0        0        0        0        8        0        1 ... (8 nodes)
-...
-       -1
-FINISH
-```
-
-- ``ET,<itype>,<routine>`` per element type: the file's own ``ET`` records when the mesh came from an APDL file or
-  CDB archive (``ansys:et`` field data; in a ``.cdb`` as numbers, ``ET,1,186``, as ANSYS ``CDWRITE`` does and
-  mapdl-archive reads; elsewhere as names, ``ET,1,SOLID186``, or the number when jaxci has no name), and its
-  ``KEYOPT,<itype>,<knum>,<value>`` records (``ansys:keyopt``); for other meshes SOLID185 per TYP seen (SOLID186
-  for a TYP whose elements have midside nodes).
-- NBLOCK rows: node number, 0, 0 and X Y Z in ``E21.13`` (14 significant digits), and the rotation angles THXY
-  THYZ THZX when the mesh has them (``ansys:angles`` point data).
-- EBLOCK rows: MAT TYPE REAL SECNUM ESYS, birth/death, solid ref, shape (``ansys:birth``, ``ansys:solid``,
-  ``ansys:shape``, else 0), the node count, 0, the element number and the nodes: 8 (I..P) for an 8-node type;
-  20 for a 20-node type (SOLID186: I..P then the midside nodes Q..B on a second line, 0 where an edge has none);
-  4 or 10 for a tetrahedron type (SOLID285, SOLID187: I J K L then M..R). Wedges, pyramids and tetrahedra of a
-  brick type are written as the degenerate bricks they were read from (see `jaxci.io._ansys`). Node and element
-  numbers are kept; elements are grouped by cell type.
-- ``CMBLOCK,<name>,NODE|ELEM,<n>`` per point / cell set (ANSYS components, numbers in ``8i10`` with ranges as
-  ANSYS writes them), for sets whose names ANSYS accepts (a letter, then up to 31 letters, digits or ``_``).
-  Other cell types, data and sets are left out with a `LossyWriteWarning`.
-
-`read_apdl` reads the mesh of such a file or of an ANSYS ``CDWRITE`` archive (``.cdb``) with one parser: each
-NBLOCK and EBLOCK in SOLID format, fields cut by the Fortran format line that follows it, trailing zero
-coordinates omitted, an element's nodes continued on following lines, block row counts checked; ``ET`` (and
-``ETBLOCK``) and ``KEYOPT`` records; ``CMBLOCK`` node and element components (as point and cell sets). Elements
-must be 3-D solids of a type jaxci knows (`jaxci.io._ansys.BRICK8`, ``BRICK20``, ``TET4``, ``TET10``); an
-element of another type, or of a TYPE no ``ET`` defines, is refused naming the file, line and element. Other
-commands (materials, loads, ``*SET`` parameters, ...) are skipped and counted in `HexMesh.notes`: the written file
-holds the mesh, element types and components only. The reader and the writer agree with the ``mapdl-archive``
-package on its example archives (``tests/test_ansys.py``, ``tests/test_cdb.py``).
+`read_apdl` reads the mesh of an APDL input file (as `write_apdl` writes it) or of an ANSYS ``CDWRITE`` archive
+(``.cdb``) with one parser: each NBLOCK and EBLOCK in SOLID format, fields cut by the Fortran format line that
+follows it, trailing zero coordinates omitted, an element's nodes continued on following lines, block row counts
+checked; ``ET`` (and ``ETBLOCK``) and ``KEYOPT`` records; ``CMBLOCK`` node and element components (as point and cell
+sets). Elements must be 3-D solids of a type jaxci knows (`jaxci.io._ansys.BRICK8`, ``BRICK20``, ``TET4``,
+``TET10``); an element of another type, or of a TYPE no ``ET`` defines, is refused naming the file, line and
+element. Other commands (materials, loads, ``*SET`` parameters, ...) are skipped and counted in `HexMesh.notes`: the
+written file holds the mesh, element types and components only. The reader and the writer agree with the
+``mapdl-archive`` package on its example archives (``tests/test_ansys.py``, ``tests/test_cdb.py``).
 """
 
 from __future__ import annotations
 
 import os
 import re
-import warnings
 
 import numpy as np
 
-from ..errors import MeshReadError, MeshWriteError
-from ..mesh import CellBlock, HexMesh, mirrored_block
+from ..errors import MeshReadError
+from ..mesh import HexMesh
 from ._ansys import (
-    ATTRIBUTES,
     BRICK8,
     BRICK20,
     ELEMENT_NAMES,
-    EXTRA_ATTRIBUTES,
     TET4,
     TET10,
     Bricks,
     _expand,
-    _has_midside,
-    from_hexmesh,
     to_hexmesh,
 )
 from ._ansys_listing import read_text_lines
-from ._meshio import LossyWriteWarning
 
 _FORMAT_ITEM = re.compile(r"(\d*)([IEFGD])(\d+)(?:\.\d+)?(?:E\d+)?", re.IGNORECASE)
 _NBLOCK_FORMAT = "(3i9,6e21.13e3)"
@@ -385,156 +343,3 @@ def read_apdl(path: str | os.PathLike) -> HexMesh:
         notes.append(f"{sum(reader.skipped.values())} other APDL commands skipped ({listed}); a file jaxci writes "
                      f"holds the mesh, element types and components only")
     return to_hexmesh(reader.bricks(), reader.path, "NBLOCK", notes=notes)
-
-
-def _e21(x: float) -> str:
-    """Fortran E21.13E3: `` 7.5000000000000E-001``."""
-    mantissa, exponent = f"{x:.13E}".split("E")
-    return f"{mantissa}E{int(exponent):+04d}".rjust(21)
-
-
-def _file_cells(mesh: HexMesh) -> list[CellBlock]:
-    """The cell blocks as the file holds them: hexahedra (and their midside nodes) mirrored back when
-    `HexMesh.hex_mirrored`."""
-    if not mesh.hex_mirrored:
-        return list(mesh.cells)
-    return [mirrored_block(b) if b.type == "hexahedron" else b for b in mesh.cells]
-
-
-def _compress(ids: np.ndarray) -> list[int]:
-    """Sorted numbers as CMBLOCK items: a run i, i+1, ..., j becomes i, -j (the inverse of `_expand`)."""
-    ids = np.unique(np.asarray(ids, np.int64))
-    if not len(ids):
-        return []
-    breaks = np.flatnonzero(np.diff(ids) != 1)
-    starts, ends = ids[np.r_[0, breaks + 1]], ids[np.r_[breaks, len(ids) - 1]]
-    out: list[int] = []
-    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
-        out += [a] if a == b else [a, -b]
-    return out
-
-
-def _cmblock(name: str, kind: str, ids: np.ndarray) -> list[str]:
-    items = _compress(ids)
-    out = [f"CMBLOCK,{name},{kind},{len(items):8d}", _CMBLOCK_FORMAT]
-    out += ["".join(f"{v:10d}" for v in items[i : i + 8]) for i in range(0, len(items), 8)]
-    return out
-
-
-def _element_rows(b: Bricks, path: str) -> list[str]:
-    """EBLOCK rows (one or two lines per element) of the bricks `b`, node counts by each TYPE's routine."""
-    routine = dict(b.etypes.tolist())
-    typ = b.attrs[:, 1]
-    own_mid = _has_midside(b)
-    mat, _, rel, esy, sec = b.attrs.T
-    extra = b.extra if b.extra is not None else np.zeros((len(typ), 3), np.int64)
-    out = []
-    for k in range(len(typ)):
-        r = routine[int(typ[k])]
-        corners, mid = b.corners[k], b.midside[k]
-        tet = corners[2] == corners[3] and (corners[4:] == corners[4]).all() and len(set(corners.tolist())) == 4
-        if r in TET4 or r in TET10:
-            if not tet:
-                shape = "hexahedron" if len(set(corners.tolist())) == 8 else "wedge or pyramid"
-                raise MeshWriteError(f"{path}: element {b.elem_ids[k]} has TYPE {typ[k]} = {ELEMENT_NAMES[r]}, a "
-                                     f"tetrahedron type, but is a {shape}")
-            nodes = [corners[0], corners[1], corners[2], corners[4]]
-            if own_mid[k] and r in TET10:
-                nodes += [mid[0], mid[1], mid[3], mid[8], mid[9], mid[10]]
-        elif r in BRICK20:
-            nodes = corners.tolist() + mid.tolist()
-        elif r in BRICK8:
-            nodes = corners.tolist()
-        else:
-            raise MeshWriteError(f"{path}: element {b.elem_ids[k]} has TYPE {typ[k]} = "
-                                 f"{ELEMENT_NAMES.get(r, f'element type {r}')}, which is not a 3-D solid jaxci writes")
-        if own_mid[k] and len(nodes) <= 8:
-            raise MeshWriteError(f"{path}: element {b.elem_ids[k]} has midside nodes, but its TYPE {typ[k]} is "
-                                 f"{ELEMENT_NAMES.get(r, r)}, a linear element; give it a quadratic type (SOLID186)")
-        head = [mat[k], typ[k], rel[k], sec[k], esy[k], *extra[k], len(nodes), 0, b.elem_ids[k]]
-        vals = [int(v) for v in head + nodes[:8]]
-        out.append("".join(f"{v:9d}" for v in vals))
-        if len(nodes) > 8:
-            out.append("".join(f"{int(v):9d}" for v in nodes[8:]))
-    return out
-
-
-def write_apdl(mesh: HexMesh, path: str | os.PathLike) -> None:
-    """Write `mesh` as an APDL input file that re-creates it with its node and element numbers.
-
-    **Arguments:**
-
-    - `mesh`: the mesh; hexahedron, wedge, pyramid and tetra blocks are written (with their midside nodes),
-      with the element types, key options and components it was read with (module docstring).
-    - `path`: the file to write (`jaxci.io.write_mesh` passes a temporary name and moves it into place).
-
-    **Returns:** nothing. Issues a `LossyWriteWarning` listing the cells, data and sets it leaves out; raises
-    `MeshWriteError` for a mesh ANSYS cannot hold as such (midside nodes in a linear element type, a brick of a
-    tetrahedron type, duplicate ids).
-    """
-    path = os.fspath(path)
-    b, dropped = from_hexmesh(mesh, _file_cells(mesh), path)
-    if len(b.elem_ids) == 0:
-        raise MeshWriteError(f"{path}: the mesh has no cells that ANSYS bricks can hold")
-    lost = [f"cells {', '.join(dropped)}"] if dropped else []
-    other = sorted(set(mesh.cell_data) - set(ATTRIBUTES) - set(EXTRA_ATTRIBUTES))
-    other += sorted(set(mesh.point_data) - {"ansys:angles"})
-    if other:
-        lost.append(f"point/cell data {other}")
-    bad_names = sorted(n for n in (*mesh.point_sets, *mesh.cell_sets) if not _COMPONENT_NAME.fullmatch(n))
-    if bad_names:
-        lost.append(f"sets {bad_names} (not valid ANSYS component names)")
-    field = sorted(set(mesh.field_data) - {"ansys:et", "ansys:keyopt"})
-    if field:
-        lost.append(f"field data {field}")
-    if lost:
-        warnings.warn(f"{os.path.basename(path)}: APDL drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
-
-    out = [f"/COM, jaxci mesh: {len(b.node_ids)} nodes, {len(b.elem_ids)} elements", "/PREP7"]
-    numeric = path.lower().endswith(".cdb")  # CDWRITE's form (what mapdl-archive reads); names elsewhere
-    out += [f"ET,{t},{r if numeric else ELEMENT_NAMES.get(r, r)}" for t, r in b.etypes.tolist()]
-    if b.keyopts is not None:
-        out += [f"KEYOPT,{t},{k},{v}" for t, k, v in np.asarray(b.keyopts, np.int64).reshape(-1, 3).tolist()]
-    out += [f"NBLOCK,6,SOLID,{b.node_ids.max():10d},{len(b.node_ids):10d}", _NBLOCK_FORMAT]
-    if b.angles is not None and (b.angles != 0).any():
-        out += [
-            f"{nid:9d}{0:9d}{0:9d}" + "".join(_e21(v) for v in (*xyz, *ang))
-            for nid, xyz, ang in zip(b.node_ids.tolist(), b.points.tolist(), b.angles.tolist(), strict=True)
-        ]
-    else:
-        out += [
-            f"{nid:9d}{0:9d}{0:9d}{_e21(x)}{_e21(y)}{_e21(z)}"
-            for nid, (x, y, z) in zip(b.node_ids.tolist(), b.points.tolist(), strict=True)
-        ]
-    out += ["N,R5.3,LOC,       -1,", f"EBLOCK,19,SOLID,{b.elem_ids.max():10d},{len(b.elem_ids):10d}", _EBLOCK_FORMAT]
-    out += _element_rows(b, path)
-    out += [f"{-1:9d}"]
-    node_ids = b.node_ids
-    for name, idx in mesh.point_sets.items():
-        if _COMPONENT_NAME.fullmatch(name):
-            out += _cmblock(name, "NODE", node_ids[np.asarray(idx, np.int64)])
-    if mesh.cell_sets:
-        ids_of = [blk.ids for blk in _element_blocks_with_ids(mesh, b)]
-        for name, per_block in mesh.cell_sets.items():
-            if _COMPONENT_NAME.fullmatch(name):
-                ids = [ids_of[i][np.asarray(rows, np.int64)] for i, rows in enumerate(per_block)
-                       if ids_of[i] is not None and rows is not None]
-                out += _cmblock(name, "ELEM", np.concatenate(ids) if ids else np.zeros(0, np.int64))
-    out += ["FINISH", ""]
-    try:
-        with open(path, "w", encoding="ascii") as f:
-            f.write("\n".join(out))
-    except OSError as exc:
-        raise MeshWriteError(f"{path}: cannot write ({exc.strerror})") from exc
-
-
-def _element_blocks_with_ids(mesh: HexMesh, b: Bricks) -> list[CellBlock]:
-    """Each cell block with the element numbers the file gives it (None for blocks the file leaves out)."""
-    out, start = [], 0
-    for blk in mesh.cells:
-        if blk.type in ("hexahedron", "wedge", "pyramid", "tetra"):
-            out.append(CellBlock(blk.type, blk.data, b.elem_ids[start : start + len(blk.data)]))
-            start += len(blk.data)
-        else:
-            out.append(CellBlock(blk.type, blk.data, None))
-    return out
