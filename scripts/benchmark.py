@@ -89,8 +89,9 @@ def _measure(args, device) -> dict:
             out[key] = dict(iterations=it, seconds=None, reached=float(k[it]))
             continue
         capped = {**params, cap: it, **({"tol": 0.0} if args.method == "ci" else {})}
-        pre = int(params.get("presmooth", 0))
-        if pre:  # the history starts with the smart-Laplace sweeps: cap those, then the solver's steps
+        pre = int(res.history.get("presmooth") or 0)  # sweeps run (the Laplacian may stop before presmooth)
+        if pre:  # the history starts with the smart-Laplace sweeps: cap those, then the solver's steps (at least
+            # one: a threshold reached within the sweeps is timed with one solver step more)
             capped.update(presmooth=min(pre, it), max_steps=max(it - pre, 1))
         smooth(mesh, args.method, dtype=args.dtype, **capped)  # the cap may be a static argument: compile
         t0 = time.perf_counter()
@@ -164,8 +165,10 @@ def main(argv=None):
                    "--params", args.params, "--full-upto", str(args.full_upto)]
             try:
                 env = (hugepage_environment() if args.hugepages == "on" else None) or {**os.environ}
-                if args.hugepages == "off":
+                if args.hugepages == "off":  # also drop the tunable if this process was started with it
                     env["JAXCI_HUGEPAGES"] = "0"
+                    kept = [t for t in env.get("GLIBC_TUNABLES", "").split(":") if t and "malloc.hugetlb" not in t]
+                    env["GLIBC_TUNABLES"] = ":".join(kept)
                 p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
                 line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
                 row = json.loads(line[-1][7:]) if line else dict(size=n, method=method, error=p.stderr[-2000:])

@@ -16,6 +16,8 @@ from jaxci.runtime import TUNABLE, _glibc_version, hugepage_environment, is_jaxc
     (["python", "-X", "importtime", "-m", "jaxci"], True),
     (["python", "/venv/bin/jaxci", "quality", "a.vtk"], True),
     (["python", "script.py", "-m", "jaxci"], False),
+    (["python", "-", "-m", "jaxci"], False),  # a script read from stdin, with its own arguments
+    (["python", "-u", "--", "-m", "jaxci"], False),
     (["python", "-m", "pytest"], False),
     (["python", "-c", "import jaxci"], False),
     (["python"], False),

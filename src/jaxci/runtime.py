@@ -56,7 +56,7 @@ def is_jaxci_command(orig_argv: list[str]) -> bool:
     if len(orig_argv) >= 2 and os.path.basename(orig_argv[1]) == "jaxci":
         return True
     i, n = 1, len(orig_argv)
-    while i < n and orig_argv[i].startswith("-"):  # interpreter options before -m
+    while i < n and orig_argv[i].startswith("-") and orig_argv[i] not in ("-", "--"):  # options before -m
         if orig_argv[i] == "-m":
             return i + 1 < n and orig_argv[i + 1] == "jaxci"
         if orig_argv[i] in ("-X", "-W"):
@@ -72,7 +72,7 @@ def reexec_with_hugepages() -> None:
     with the tunable (called first thing by ``jaxci/__init__``, before numpy or JAX allocate anything); else, or
     if the exec fails, return."""
     orig = list(getattr(sys, "orig_argv", ()))
-    if not is_jaxci_command(orig):
+    if not sys.executable or not is_jaxci_command(orig):
         return
     env = hugepage_environment()
     if env is None:

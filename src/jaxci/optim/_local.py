@@ -59,13 +59,14 @@ class NodeStars:
 def node_stars(hexes: np.ndarray, n_nodes: int) -> NodeStars:
     """Build `NodeStars` for `hexes` of shape ``(N, 8)`` (vectorised; K = the maximum valence; int32 indices while
     they fit: the star of a 100^3 box holds 64 M of them)."""
-    it = np.int32 if max(n_nodes, 8 * len(hexes)) < 2**31 else np.int64
-    hexes = np.asarray(hexes, dtype=it)
+    hexes = np.asarray(hexes)
+    valence = np.bincount(hexes.ravel(), minlength=n_nodes)
+    K = max(int(valence.max(initial=0)), 1)
+    it = np.int32 if max(n_nodes * K, 8 * len(hexes)) < 2**31 else np.int64  # every index below fits
+    hexes = hexes.astype(it, copy=False)
     flat = hexes.ravel()  # (8N,) node of incidence i (element i // 8, slot i % 8)
     order = np.argsort(flat, kind="stable").astype(it)  # incidences grouped by node, elements in order
     node = flat[order]
-    valence = np.bincount(node, minlength=n_nodes)
-    K = max(int(valence.max(initial=0)), 1)
     start = np.concatenate([[0], np.cumsum(valence)[:-1]]).astype(it)
     pos = node * it(K) + (np.arange(len(node), dtype=it) - start[node])  # row of each incidence in (n * K)
     star = np.empty((n_nodes * K, 8), it)

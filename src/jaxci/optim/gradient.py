@@ -380,7 +380,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     f0 = None
     # first without the projection fallback (strict: leaving a flat region is a rejected trial), a 40% smaller
     # compiled loop; only if a node ends near the edge of its flat region, on with the projection
-    strict = par.shortcut
+    # (not where the start is already outside a flat region, e.g. after presmooth or untangling, and not for a
+    # solver that accepts every step: it would accept a NaN point)
+    never_rejects = method == "gauss-newton" and p.gn_search == "none"
+    strict = par.shortcut and not never_rejects and par.reach(np.zeros(nf)) < FLAT_REACH
     runs, max_runs = 0, 1 + int(p.restarts)
     while runs < max_runs:
         cur = dataclasses.replace(par, strict=True) if strict else par
@@ -390,7 +393,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         k = int(k)
         seg_f, seg_k = np.asarray(hf[: k + 1]), np.asarray(hk[: k + 1])
         if runs == 0:
-            f0 = float(seg_f[0])
+            f0 = float(seg_f[np.isfinite(seg_f)][0]) if np.isfinite(seg_f).any() else float(seg_f[0])
             hist_f.append(seg_f)
             hist_k.append(seg_k)
         else:
@@ -403,11 +406,11 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         gain = float(seg_f[0] - finite.min()) if len(finite) else 0.0
         if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol:
             break
+        if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
+            break
         if strict and par.reach(y) > FLAT_REACH:
             strict, max_runs = False, max_runs + 1  # the flat regions may have held it back: once more, projected
             continue
-        if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
-            break
         if runs >= 2 and not gain > p.restart_tol * abs(f0):
             break
     x = par.final_points(y)
