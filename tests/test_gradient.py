@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from jaxci.boundary import INTERIOR
 from jaxci.errors import ConfigError
 from jaxci.generate import box, perturb_box
 from jaxci.optim.gradient import (
@@ -124,6 +125,23 @@ def test_parametrisation_shortcut_equals_projection():
     strict = dataclasses.replace(par, strict=True)
     np.testing.assert_allclose(np.asarray(points(strict, v)), np.asarray(x), atol=0)
     assert bool(jnp.all(jnp.isnan(points(strict, 20.0 * v))))
+
+
+def test_flat_regions_of_a_rotated_box_in_float32():
+    """Planes and lines that are not axis-aligned are flat too when the constraints and the start are float32
+    (their rounding made every such region fail a 1e-12 test: no shortcut, no strict run)."""
+    c, s_ = np.cos(0.3), np.sin(0.3)
+    rot = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]) @ np.array([[1, 0, 0], [0, c, -s_], [0, s_, c]])
+    mesh = perturb_box(4, amplitude=0.3, seed=1, which="sliding")
+    mesh = mesh.with_points(mesh.points @ rot.T + 0.123)
+    pr = build_problem(mesh, dtype=np.float32)
+    par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)
+    assert par.shortcut
+    res = smooth(mesh, "lbfgs")
+    assert res.after.max_condition < 1.0001 and res.after.inverted_elements == 0
+    back = (res.mesh.points - 0.123) @ rot  # in the box's own frame: boundary nodes still on its faces
+    on = res.node_class != INTERIOR
+    assert np.all(np.min(np.abs(np.stack([back[on], back[on] - 1.0])), axis=0).min(axis=1) < 1e-9)
 
 
 def test_strict_run_continues_with_the_projection_near_a_flat_region_edge(monkeypatch):

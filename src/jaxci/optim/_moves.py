@@ -101,9 +101,13 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
     surf = np.asarray(cons.surface_nodes)
     if len(surf) == 0 or len(faces) == 0:
         return out
-    sb = np.asarray(cons.surface_basis, dtype=np.float64)
-    normal = np.cross(sb[:, 0], sb[:, 1])  # (ns, 3)
     ring = np.sort(np.asarray(cons.surface_cand)[: len(surf)] // 4, axis=1)  # (ns, K) faces, each 4 times
+    # the normal from the float64 geometry of the node's first ring face (the constraints' bases may be float32:
+    # their rounding alone made every plane that is not axis-aligned fail the 1e-12 planarity test)
+    f0 = points[faces[ring[:, 0]]]  # (ns, 4, 3); a triangle [a, b, c, c] gives (c - a) x (c - b)
+    normal = np.cross(f0[:, 2] - f0[:, 0], f0[:, 3] - f0[:, 1])
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
     first = np.ones(ring.shape, bool)
     first[:, 1:] = ring[:, 1:] != ring[:, :-1]  # unique faces per row
     # compact each row to its unique faces (padded with repeats of the first): 4x less work below

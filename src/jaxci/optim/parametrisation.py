@@ -139,8 +139,9 @@ def _flat_surface(points: np.ndarray, info: BoundaryInfo, cons: Constraints) -> 
     return planar_rings(points, info.topology.faces, cons)
 
 
-def _flat_edge(points: np.ndarray, info: BoundaryInfo, edge_nodes: np.ndarray, tangent: np.ndarray) -> np.ndarray:
-    """Per EDGE node, the half-length of the straight interval around it made by its two feature edges (0: none)."""
+def _flat_edge(points: np.ndarray, info: BoundaryInfo, edge_nodes: np.ndarray) -> np.ndarray:
+    """Per EDGE node, the half-length of the straight interval around it made by its two feature edges (0: none);
+    straightness is tested in the float64 geometry (the constraints' tangents may be float32)."""
     out = np.zeros(len(edge_nodes))
     fe = np.asarray(info.feature_edges)
     if not len(edge_nodes) or not len(fe):
@@ -151,8 +152,10 @@ def _flat_edge(points: np.ndarray, info: BoundaryInfo, edge_nodes: np.ndarray, t
             continue
         other = np.where(rows[:, 0] == v, rows[:, 1], rows[:, 0])
         rel = points[other] - points[v]
-        along = rel @ tangent[j]
-        perp = np.linalg.norm(rel - along[:, None] * tangent[j], axis=1)
+        chord = rel[1] - rel[0]
+        t = chord / max(float(np.linalg.norm(chord)), 1e-300)
+        along = rel @ t
+        perp = np.linalg.norm(rel - along[:, None] * t, axis=1)
         r = float(np.min(np.abs(along)))
         if along.min() < 0 < along.max() and perp.max() <= 1e-12 * max(r, 1e-300):
             out[j] = r
@@ -220,21 +223,22 @@ def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *
         scale = np.ones(n_free(c))
     rings = _flat_surface(pts, info, c)
     tangent = np.asarray(c.edge_tangent, dtype=np.float64)
-    r_edge = _flat_edge(pts, info, edge, tangent)
+    r_edge = _flat_edge(pts, info, edge)
     nodes = np.concatenate([surf, edge]).astype(np.int64)
     origin = pts[nodes]
     radius = np.concatenate([rings[surf, 6], r_edge])
-    # base points must lie on their plane / line for x0 + B u to stay on it
+    # base points must lie on their plane / line for x0 + B u to stay on it, to the precision of the working dtype
+    # (a float32 start is off a plane that is not axis-aligned by its rounding, and the tangents may be float32)
+    tol = np.maximum(1e-12 * radius, 64 * np.finfo(dtype).eps * np.abs(base[nodes]).max(axis=1, initial=0.0))
     if len(surf):
         normal = rings[surf, 3:6]
         off = np.abs(np.einsum("sd,sd->s", base[surf] - pts[surf], normal))
-        radius[: len(surf)] = np.where(off <= 1e-12 * np.maximum(radius[: len(surf)], 1e-300),
-                                       radius[: len(surf)], 0.0)
+        radius[: len(surf)] = np.where(off <= tol[: len(surf)], radius[: len(surf)], 0.0)
     if len(edge):
         rel = base[edge] - pts[edge]
         perp = np.linalg.norm(rel - np.einsum("ed,ed->e", rel, tangent)[:, None] * tangent, axis=1)
         k = len(surf)
-        radius[k:] = np.where(perp <= 1e-12 * np.maximum(radius[k:], 1e-300), radius[k:], 0.0)
+        radius[k:] = np.where(perp <= tol[k:], radius[k:], 0.0)
     shortcut = bool(len(nodes)) and bool(np.all(radius > 0))
     return Parametrisation(
         cons=c,
