@@ -166,7 +166,6 @@ def main(argv=None):
             try:
                 env = (hugepage_environment() if args.hugepages == "on" else None) or {**os.environ}
                 if args.hugepages == "off":  # also drop the tunable if this process was started with it
-                    env["JAXCI_HUGEPAGES"] = "0"
                     kept = [t for t in env.get("GLIBC_TUNABLES", "").split(":") if t and "malloc.hugetlb" not in t]
                     env["GLIBC_TUNABLES"] = ":".join(kept)
                 p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
