@@ -34,3 +34,8 @@ class InvertedMeshError(MeshError):
 
 class ConfigError(JaxciError, ValueError):
     """An experiment config or a method parameter is invalid."""
+
+
+class UsageError(JaxciError, TypeError):
+    """A public function was called with an argument of the wrong type (a path or an array where a `HexMesh` is
+    expected, a float seed, ...)."""
