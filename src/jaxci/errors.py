@@ -39,7 +39,3 @@ class ConfigError(JaxciError, ValueError):
 class UsageError(JaxciError, TypeError):
     """A public function was called with an argument of the wrong type (a path or an array where a `HexMesh` is
     expected, a float seed, ...)."""
-
-
-class UsageError(JaxciError, TypeError):
-    """A jaxci function was called with an argument of the wrong type (a mesh where a path belongs, ...)."""
