@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 
@@ -384,11 +385,16 @@ def test_etblock_keyopts_and_node_angles(tmp_path):
     assert mesh.field_data["ansys:keyopt"].tolist() == [[1, 1, 7]]
     angles = mesh.point_data["ansys:angles"]
     assert angles[0].tolist() == [0.0, 30.0, 0.0] and (angles[1:] == 0).all()
-    write_mesh(mesh, tmp_path / "back.cdb")
-    a = archive(tmp_path / "back.cdb")
+    write_mesh(mesh, tmp_path / "back.cdb")  # the archive's own text, ETBLOCK and all
+    assert (tmp_path / "back.cdb").read_bytes() == (tmp_path / "etblock.cdb").read_bytes()
+    fresh = dataclasses.replace(mesh, field_data={k: v for k, v in mesh.field_data.items() if k != "ansys:deck"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_mesh(fresh, tmp_path / "fresh.cdb")  # written afresh: ET and KEYOPT records
+    a = archive(tmp_path / "fresh.cdb")
     assert a.ekey.tolist() == [[1, 200], [2, 185]] and a.key_option == {1: [[1, 7]]}
     np.testing.assert_allclose(a.node_angles[0], [0.0, 30.0, 0.0])
-    assert read_mesh(tmp_path / "back.cdb").point_data["ansys:angles"][0].tolist() == [0.0, 30.0, 0.0]
+    assert read_mesh(tmp_path / "fresh.cdb").point_data["ansys:angles"][0].tolist() == [0.0, 30.0, 0.0]
 
 
 def test_other_formats_warn_about_midside_nodes(tmp_path):

@@ -15,8 +15,10 @@ import tempfile
 import warnings
 from pathlib import Path
 
-from ..errors import MeshReadError, MeshWriteError, UnsupportedFormatError
+from ..errors import MeshReadError, MeshWriteError, UnsupportedFormatError, UsageError
 from ..mesh import HexMesh
+from ._abaqus import read_abaqus
+from ._abaqus_write import write_abaqus
 from ._ansys_apdl import read_apdl
 from ._ansys_apdl_write import write_apdl
 from ._ansys_listing import read_ansys_listing as read_ansys_listing
@@ -46,7 +48,7 @@ _READERS = {
     "vtu": lambda path: read_meshio(path, "vtu"),
     "gmsh": lambda path: read_meshio(path, "gmsh"),
     "gmsh22": lambda path: read_meshio(path, "gmsh22"),
-    "abaqus": lambda path: read_meshio(path, "abaqus"),
+    "abaqus": read_abaqus,
     "xdmf": lambda path: read_meshio(path, "xdmf"),
     "apdl": read_apdl,
     "ansys-listing": read_ansys_listing,
@@ -57,7 +59,7 @@ _WRITERS = {
     "vtu": lambda mesh, path: write_meshio(mesh, path, "vtu"),
     "gmsh": lambda mesh, path: write_meshio(mesh, path, "gmsh"),
     "gmsh22": lambda mesh, path: write_meshio(mesh, path, "gmsh22"),
-    "abaqus": lambda mesh, path: write_meshio(mesh, path, "abaqus"),
+    "abaqus": write_abaqus,
     "xdmf": lambda mesh, path: write_meshio(mesh, path, "xdmf"),
     "apdl": write_apdl,
 }
@@ -65,18 +67,33 @@ _WRITERS = {
 
 def _format_of(path: Path, file_format: str | None, table: dict) -> str:
     if file_format is not None:
+        if not isinstance(file_format, str):
+            raise UsageError(f"file_format must be a format name (str) or None, got {type(file_format).__name__}")
         if file_format not in table:
             raise UnsupportedFormatError(
-                f"{path}: unknown file_format {file_format!r}; known: {', '.join(sorted(table))}"
+                f"{path}: unknown file format {file_format!r}; known: {', '.join(sorted(table))}"
             )
         return file_format
     fmt = FORMATS.get(path.suffix.lower())
     if fmt is None:
+        known = ", ".join(ext for ext, f in FORMATS.items() if f in table)
         raise UnsupportedFormatError(
-            f"{path}: unknown mesh file extension {path.suffix or '(none)'!r}; known: {', '.join(FORMATS)} "
-            f"(or pass file_format=)"
+            f"{path}: unknown mesh file extension {path.suffix or '(none)'!r}; known extensions: {known}"
         )
     return fmt
+
+
+def _as_path(path, func: str) -> Path:
+    """`path` as a `Path`, or a `UsageError` saying what was passed instead."""
+    if isinstance(path, str | os.PathLike) and not isinstance(path, bytes):
+        p = Path(path)
+        if str(p) in ("", "."):
+            raise UsageError(f"{func}: the file path is empty")
+        return p
+    what = type(path).__module__ + "." + type(path).__qualname__ if type(path).__module__ != "builtins" else \
+        type(path).__name__
+    hint = " (the mesh comes first: write_mesh(mesh, path))" if isinstance(path, HexMesh) else ""
+    raise UsageError(f"{func}: path must be a file path (str or os.PathLike), got {what}{hint}")
 
 
 def read_mesh(path: str | os.PathLike | tuple, *, file_format: str | None = None) -> HexMesh:
@@ -102,17 +119,21 @@ def read_mesh(path: str | os.PathLike | tuple, *, file_format: str | None = None
                 f"a pair of files is read as ANSYS (NLIST, ELIST) listings only, got {len(path)} paths and "
                 f"file_format={file_format!r}"
             )
-        for p in path:
-            if not Path(p).is_file():
-                raise MeshReadError(f"{p}: no such file")
-        return read_ansys_listing(*path)
-    path = Path(path)
+        paths = [_as_path(p, "read_mesh") for p in path]
+        for p in paths:
+            _check_input(p)
+        return read_ansys_listing(*paths)
+    path = _as_path(path, "read_mesh")
+    _check_input(path)
     fmt = _format_of(path, file_format, _READERS)
-    if not path.exists():
-        raise MeshReadError(f"{path}: no such file")
+    return _READERS[fmt](path)
+
+
+def _check_input(path: Path) -> None:
     if path.is_dir():
         raise MeshReadError(f"{path}: is a folder, not a mesh file")
-    return _READERS[fmt](path)
+    if not path.exists():
+        raise MeshReadError(f"{path}: no such file")
 
 
 def _inputs(mesh: HexMesh) -> list[Path]:
@@ -167,7 +188,13 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     `MeshWriteError` when the target is the mesh's input file, or the write fails (unwritable folder, a mesh
     the format cannot hold), and `UnsupportedFormatError` for an unknown extension.
     """
-    path = Path(path)
+    if not isinstance(mesh, HexMesh):
+        what = type(mesh).__module__ + "." + type(mesh).__qualname__ if type(mesh).__module__ != "builtins" \
+            else type(mesh).__name__
+        hint = " (the mesh comes first: write_mesh(mesh, path))" if isinstance(mesh, str | os.PathLike) else \
+            " (make one with jaxci.mesh.hex_mesh(points, hexes))" if what == "numpy.ndarray" else ""
+        raise UsageError(f"write_mesh: mesh must be a jaxci HexMesh, got {what}{hint}")
+    path = _as_path(path, "write_mesh")
     if file_format == "ansys-listing" or (file_format is None and FORMATS.get(path.suffix.lower()) == "ansys-listing"):
         raise UnsupportedFormatError(
             f"{path}: ANSYS NLIST/ELIST listings are read only; write an APDL input file (.mac) instead"
@@ -176,10 +203,10 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     inputs = _inputs(mesh)
     _refuse_input(path, inputs)
     quadratic = sum(len(b.data) for b in mesh.cells if b.midside is not None)
-    if quadratic and fmt != "apdl":
+    if quadratic and fmt not in ("apdl", "abaqus"):
         warnings.warn(
             f"{path.name}: {fmt} gets the {quadratic} quadratic cells as linear cells (their corner nodes); their "
-            f"midside nodes are written as unreferenced points. Write .cdb / .mac to keep them",
+            f"midside nodes are written as unreferenced points. Write .inp, .cdb or .mac to keep them",
             LossyWriteWarning,
             stacklevel=2,
         )
@@ -191,7 +218,7 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     try:
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder))
     except OSError as exc:
-        raise MeshWriteError(f"{path}: cannot write in folder {folder} ({exc.strerror})") from exc
+        raise MeshWriteError(f"{path}: cannot write in folder {folder} ({_os_reason(exc, folder)})") from exc
     try:
         _WRITERS[fmt](mesh, tmp / path.name)
         produced = sorted(tmp.iterdir(), key=lambda p: p.name == path.name)  # companions first, the file last
@@ -199,9 +226,23 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
             _refuse_input(folder / p.name, inputs)
         for p in produced:
             os.replace(p, folder / p.name)
-    except MeshWriteError:
-        raise
+    except MeshWriteError as exc:  # name the output, never the hidden temporary file
+        raise MeshWriteError(str(exc).replace(str(tmp / path.name), str(path)).replace(str(tmp), str(folder))) \
+            from exc
     except OSError as exc:
-        raise MeshWriteError(f"{path}: cannot write ({exc.strerror or exc})") from exc
+        raise MeshWriteError(f"{path}: cannot write ({_os_reason(exc, folder)})") from exc
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _os_reason(exc: OSError, folder: Path) -> str:
+    """What went wrong, in words: the system's message for an errno, else the exception's text (numpy's "problem
+    writing element 555 to file" says nothing of a full disk: the free space tells)."""
+    if exc.errno is not None and exc.strerror:
+        return exc.strerror
+    try:
+        full = shutil.disk_usage(folder).free < 1 << 20
+    except OSError:
+        full = False
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return f"no space left on device: {text}" if full else text

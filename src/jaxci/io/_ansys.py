@@ -154,12 +154,13 @@ def _lookup(sorted_ids: np.ndarray, order: np.ndarray, ids: np.ndarray) -> tuple
     return order[pos], sorted_ids[pos] != ids
 
 
-def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = ()) -> HexMesh:
+def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = (),
+               extra_field_data: dict | None = None) -> HexMesh:
     """Build the `HexMesh` of an ANSYS mesh: map node numbers, turn degenerate bricks into cells.
 
     **Arguments:** `b` the parsed rows; `source` the value of `HexMesh.source` (the file or files read);
     `node_list` what the nodes came from, for messages (``"NLIST"``, ``"NBLOCK"``); `notes` the reader's own
-    notes.
+    notes; `extra_field_data` more field data (the APDL reader's ``ansys:deck``, the file's text).
 
     **Returns:** a `HexMesh` with blocks ``hexahedron``, then ``wedge``, ``pyramid``, ``tetra`` when present (with
     their midside nodes), ``ansys:*`` cell data, ``ansys:angles`` point data, ``ansys:et`` / ``ansys:keyopt``
@@ -253,6 +254,7 @@ def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = ()
         field_data["ansys:et"] = np.asarray(b.etypes, np.int64).reshape(-1, 2)
     if b.keyopts is not None:
         field_data["ansys:keyopt"] = np.asarray(b.keyopts, np.int64).reshape(-1, 3)
+    field_data.update(extra_field_data or {})
     return HexMesh(
         np.asarray(b.points, dtype=np.float64),
         tuple(blocks),

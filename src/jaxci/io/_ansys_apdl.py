@@ -30,7 +30,8 @@ from ._ansys import (
     _expand,
     to_hexmesh,
 )
-from ._ansys_listing import read_text_lines
+from ._ansys_listing import read_text, read_text_lines
+from ._deck import MAX_ID
 
 _FORMAT_ITEM = re.compile(r"(\d*)([IEFGD])(\d+)(?:\.\d+)?(?:E\d+)?", re.IGNORECASE)
 _NBLOCK_FORMAT = "(3i9,6e21.13e3)"
@@ -68,10 +69,14 @@ def _cut(line: str, fields: list[tuple[bool, int]], where: str) -> list[float | 
         chunk = line[pos : pos + width].strip()
         pos += width
         try:
-            out.append(int(chunk) if is_int else float(chunk.replace("D", "E").replace("d", "e")))
+            value = int(chunk) if is_int else float(chunk.replace("D", "E").replace("d", "e"))
         except ValueError:
             kind = "an integer" if is_int else "a number"
             raise MeshReadError(f"{where}: field {len(out) + 1} {chunk!r} is not {kind}") from None
+        if is_int and abs(value) > MAX_ID:
+            raise MeshReadError(f"{where}: field {len(out) + 1} {chunk!r} is too large (jaxci reads numbers up to "
+                                f"{MAX_ID})")
+        out.append(value)
     if pos < len(line):
         raise MeshReadError(f"{where}: row is longer than its format allows ({len(fields)} fields)")
     return out
@@ -94,11 +99,13 @@ def _block_header(line: str, lineno: int, path: str) -> tuple[str, int | None]:
 class _Reader:
     """One pass over the lines of an APDL file, collecting blocks and records with their line numbers."""
 
-    def __init__(self, path: str) -> None:
+    def __init__(self, path: str, lines: list[str] | None = None) -> None:
         self.path = path
-        self.lines = read_text_lines(path, "APDL file")
+        self.lines = read_text_lines(path, "APDL file") if lines is None else lines
         self.i = 0
         self.nodes, self.node_src, self.angles = [], [], []
+        self.node_format: list[int] = []  # index into nblock_formats of each node's row
+        self.nblock_formats: list[tuple[str, list]] = []  # (format line, fields) of each NBLOCK
         self.elems, self.elem_src = [], []  # (fixed 11 fields, node list)
         self.etypes, self.keyopts, self.components = {}, [], []
         self.skipped: dict[str, int] = {}
@@ -201,6 +208,8 @@ class _Reader:
         name, count = _block_header(raw, start, self.path)
         line, lineno = self.next_line(name, start)
         fields = _fortran_widths(line, self.where(lineno))
+        if name == "NBLOCK":
+            self.nblock_formats.append((line.strip(), fields))
         found = 0
         while True:
             row, lineno = self.next_line(name, start)
@@ -221,10 +230,16 @@ class _Reader:
             raise MeshReadError(f"{where}: NBLOCK row has {len(values)} fields, expected at least 3")
         if any(isinstance(v, float) for v in values[:3]):
             raise MeshReadError(f"{where}: NBLOCK row does not start with 3 integers (node number, 0, 0)")
+        if values[0] < 1:
+            raise MeshReadError(f"{where}: node number {values[0]} is not positive (ids start at 1)")
         xyz = (values[3:6] + [0.0, 0.0, 0.0])[:3]  # ANSYS omits trailing zero coordinates
+        if not np.isfinite(values[3:9]).all():
+            raise MeshReadError(f"{where}: node {values[0]} has a non-finite coordinate or angle "
+                                f"({', '.join(map(str, values[3:9]))})")
         self.nodes.append((values[0], *xyz))
         self.angles.append((values[6:9] + [0.0, 0.0, 0.0])[:3])
         self.node_src.append((0, lineno))
+        self.node_format.append(len(self.nblock_formats) - 1)
 
     def elem_row(self, values: list, fields, where: str, lineno: int, start: int) -> None:
         n_nodes = values[8] if len(values) > 8 else -1
@@ -233,6 +248,8 @@ class _Reader:
                 f"{where}: EBLOCK row has {len(values)} fields and node count {n_nodes}; expected "
                 f"{_EBLOCK_FIXED} fields and 4, 8, 10 or 20 nodes (a 3-D solid in SOLID format)"
             )
+        if values[10] < 1:
+            raise MeshReadError(f"{where}: element number {values[10]} is not positive (ids start at 1)")
         nodes = values[_EBLOCK_FIXED:]
         while len(nodes) < n_nodes:  # the nodes continue on the next line(s)
             if self.i >= len(self.lines):
@@ -334,12 +351,26 @@ def read_apdl(path: str | os.PathLike) -> HexMesh:
     element components as point and cell sets. Raises `MeshReadError` naming the file and line for a bad or
     truncated block, a node no NBLOCK defines, an element type jaxci cannot read.
     """
-    reader = _Reader(os.fspath(path))
+    path = os.fspath(path)
+    text = read_text(path, "APDL file")
+    reader = _Reader(path, text.splitlines())
     reader.run()
     notes = []
     if reader.skipped:
         top = sorted(reader.skipped.items(), key=lambda kv: -kv[1])
         listed = ", ".join(f"{k} x{v}" if v > 1 else k for k, v in top[:8]) + (", ..." if len(top) > 8 else "")
-        notes.append(f"{sum(reader.skipped.values())} other APDL commands skipped ({listed}); a file jaxci writes "
-                     f"holds the mesh, element types and components only")
-    return to_hexmesh(reader.bricks(), reader.path, "NBLOCK", notes=notes)
+        notes.append(f"{sum(reader.skipped.values())} other APDL commands not modelled ({listed}); kept in the "
+                     f"file's text, and written back when the mesh is written as APDL with only its node "
+                     f"coordinates changed")
+    return to_hexmesh(reader.bricks(), reader.path, "NBLOCK", notes=notes, extra_field_data={"ansys:deck": text})
+
+
+def other_commands(text: str) -> list[str]:
+    """The APDL commands of a file's text that jaxci does not model (``MPDATA x3``, ...), most frequent first."""
+    reader = _Reader("(text)", text.splitlines())
+    try:
+        reader.run()
+    except MeshReadError:
+        return ["(unreadable)"]
+    top = sorted(reader.skipped.items(), key=lambda kv: -kv[1])
+    return [f"{k} x{v}" if v > 1 else k for k, v in top]

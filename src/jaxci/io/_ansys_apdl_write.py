@@ -40,6 +40,7 @@ FINISH
 from __future__ import annotations
 
 import os
+import re
 import warnings
 
 import numpy as np
@@ -57,8 +58,10 @@ from ._ansys import (
     Bricks,
     _has_midside,
     from_hexmesh,
+    to_hexmesh,
 )
-from ._ansys_apdl import _CMBLOCK_FORMAT, _COMPONENT_NAME, _EBLOCK_FORMAT, _NBLOCK_FORMAT
+from ._ansys_apdl import _CMBLOCK_FORMAT, _COMPONENT_NAME, _EBLOCK_FORMAT, _NBLOCK_FORMAT, _Reader
+from ._deck import deck_losses, model_difference
 from ._meshio import LossyWriteWarning
 
 
@@ -89,15 +92,24 @@ def _compress(ids: np.ndarray) -> list[int]:
     return out
 
 
+def int_width(largest: int, least: int) -> int:
+    """Width of the integer fields that hold numbers up to `largest` in magnitude: `least` (ANSYS's own width),
+    or one more than the digits of `largest` (and its sign) when those do not fit, so fields stay apart."""
+    digits = len(str(int(largest)))
+    return least if digits < least else digits + 1
+
+
 def _cmblock(name: str, kind: str, ids: np.ndarray) -> list[str]:
     items = _compress(ids)
-    out = [f"CMBLOCK,{name},{kind},{len(items):8d}", _CMBLOCK_FORMAT]
-    out += ["".join(f"{v:10d}" for v in items[i : i + 8]) for i in range(0, len(items), 8)]
+    w = int_width(max((abs(v) for v in items), default=0) * 10, 10)  # room for the '-' of a range end
+    out = [f"CMBLOCK,{name},{kind},{len(items):8d}", _CMBLOCK_FORMAT if w == 10 else f"(8i{w})"]
+    out += ["".join(f"{v:{w}d}" for v in items[i : i + 8]) for i in range(0, len(items), 8)]
     return out
 
 
-def _element_rows(b: Bricks, path: str) -> list[str]:
-    """EBLOCK rows (one or two lines per element) of the bricks `b`, node counts by each TYPE's routine."""
+def _element_rows(b: Bricks, path: str, w: int) -> list[str]:
+    """EBLOCK rows (one or two lines per element) of the bricks `b`, node counts by each TYPE's routine, in
+    integer fields of width `w`."""
     routine = dict(b.etypes.tolist())
     typ = b.attrs[:, 1]
     own_mid = _has_midside(b)
@@ -128,9 +140,9 @@ def _element_rows(b: Bricks, path: str) -> list[str]:
                                  f"{ELEMENT_NAMES.get(r, r)}, a linear element; give it a quadratic type (SOLID186)")
         head = [mat[k], typ[k], rel[k], sec[k], esy[k], *extra[k], len(nodes), 0, b.elem_ids[k]]
         vals = [int(v) for v in head + nodes[:8]]
-        out.append("".join(f"{v:9d}" for v in vals))
+        out.append("".join(f"{v:{w}d}" for v in vals))
         if len(nodes) > 8:
-            out.append("".join(f"{int(v):9d}" for v in nodes[8:]))
+            out.append("".join(f"{int(v):{w}d}" for v in nodes[8:]))
     return out
 
 
@@ -148,42 +160,64 @@ def write_apdl(mesh: HexMesh, path: str | os.PathLike) -> None:
     tetrahedron type, duplicate ids).
     """
     path = os.fspath(path)
-    b, dropped = from_hexmesh(mesh, _file_cells(mesh), path)
-    if len(b.elem_ids) == 0:
-        raise MeshWriteError(f"{path}: the mesh has no cells that ANSYS bricks can hold")
-    lost = [f"cells {', '.join(dropped)}"] if dropped else []
+    lost, text = [], None
+    deck = mesh.field_data.get("ansys:deck")
+    if isinstance(deck, str):
+        reason, text = _in_place(mesh, deck)
+        if text is None:
+            lost += [f"{what} ({reason}, so the file cannot be rewritten in place)"
+                     for fmt, what in deck_losses(mesh, "apdl") if fmt == "apdl"]
     other = sorted(set(mesh.cell_data) - set(ATTRIBUTES) - set(EXTRA_ATTRIBUTES))
     other += sorted(set(mesh.point_data) - {"ansys:angles"})
     if other:
         lost.append(f"point/cell data {other}")
+    field = sorted(set(mesh.field_data) - {"ansys:et", "ansys:keyopt", "ansys:deck", "abaqus:deck",
+                                           "abaqus:element_types"})
+    if field:
+        lost.append(f"field data {field}")
+    if text is None:
+        fresh, more = _fresh(mesh, path)
+        lost = more + lost + [what for fmt, what in deck_losses(mesh, "apdl") if fmt != "apdl"]
+    if lost:
+        warnings.warn(f"{os.path.basename(path)}: APDL drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
+    with open(path, "w", encoding="utf-8", newline="") as f:
+        f.write(fresh if text is None else text)
+
+
+def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
+    """The text of an APDL file written afresh, and what it leaves out."""
+    b, dropped = from_hexmesh(mesh, _file_cells(mesh), path)
+    if len(b.elem_ids) == 0:
+        raise MeshWriteError(f"{path}: the mesh has no cells that ANSYS bricks can hold")
+    lost = [f"cells {', '.join(dropped)}"] if dropped else []
     bad_names = sorted(n for n in (*mesh.point_sets, *mesh.cell_sets) if not _COMPONENT_NAME.fullmatch(n))
     if bad_names:
         lost.append(f"sets {bad_names} (not valid ANSYS component names)")
-    field = sorted(set(mesh.field_data) - {"ansys:et", "ansys:keyopt"})
-    if field:
-        lost.append(f"field data {field}")
-    if lost:
-        warnings.warn(f"{os.path.basename(path)}: APDL drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
 
     out = [f"/COM, jaxci mesh: {len(b.node_ids)} nodes, {len(b.elem_ids)} elements", "/PREP7"]
     numeric = path.lower().endswith(".cdb")  # CDWRITE's form (what mapdl-archive reads); names elsewhere
     out += [f"ET,{t},{r if numeric else ELEMENT_NAMES.get(r, r)}" for t, r in b.etypes.tolist()]
     if b.keyopts is not None:
         out += [f"KEYOPT,{t},{k},{v}" for t, k, v in np.asarray(b.keyopts, np.int64).reshape(-1, 3).tolist()]
-    out += [f"NBLOCK,6,SOLID,{b.node_ids.max():10d},{len(b.node_ids):10d}", _NBLOCK_FORMAT]
+    wn = int_width(b.node_ids.max(), 9)  # ANSYS's i9, wider for node numbers of 9 digits or more
+    out += [f"NBLOCK,6,SOLID,{b.node_ids.max():10d},{len(b.node_ids):10d}",
+            _NBLOCK_FORMAT if wn == 9 else _NBLOCK_FORMAT.replace("3i9", f"3i{wn}")]
     if b.angles is not None and (b.angles != 0).any():
         out += [
-            f"{nid:9d}{0:9d}{0:9d}" + "".join(_e21(v) for v in (*xyz, *ang))
+            f"{nid:{wn}d}{0:{wn}d}{0:{wn}d}" + "".join(_e21(v) for v in (*xyz, *ang))
             for nid, xyz, ang in zip(b.node_ids.tolist(), b.points.tolist(), b.angles.tolist(), strict=True)
         ]
     else:
         out += [
-            f"{nid:9d}{0:9d}{0:9d}{_e21(x)}{_e21(y)}{_e21(z)}"
+            f"{nid:{wn}d}{0:{wn}d}{0:{wn}d}{_e21(x)}{_e21(y)}{_e21(z)}"
             for nid, (x, y, z) in zip(b.node_ids.tolist(), b.points.tolist(), strict=True)
         ]
-    out += ["N,R5.3,LOC,       -1,", f"EBLOCK,19,SOLID,{b.elem_ids.max():10d},{len(b.elem_ids):10d}", _EBLOCK_FORMAT]
-    out += _element_rows(b, path)
-    out += [f"{-1:9d}"]
+    largest = max(int(np.abs(a).max(initial=0)) for a in (b.node_ids, b.elem_ids, b.attrs, b.extra))
+    we = int_width(largest, 9)
+    out += ["N,R5.3,LOC,       -1,", f"EBLOCK,19,SOLID,{b.elem_ids.max():10d},{len(b.elem_ids):10d}",
+            _EBLOCK_FORMAT if we == 9 else f"(19i{we})"]
+    out += _element_rows(b, path, we)
+    out += [f"{-1:{we}d}"]
     node_ids = b.node_ids
     for name, idx in mesh.point_sets.items():
         if _COMPONENT_NAME.fullmatch(name):
@@ -196,11 +230,7 @@ def write_apdl(mesh: HexMesh, path: str | os.PathLike) -> None:
                        if ids_of[i] is not None and rows is not None]
                 out += _cmblock(name, "ELEM", np.concatenate(ids) if ids else np.zeros(0, np.int64))
     out += ["FINISH", ""]
-    try:
-        with open(path, "w", encoding="ascii") as f:
-            f.write("\n".join(out))
-    except OSError as exc:
-        raise MeshWriteError(f"{path}: cannot write ({exc.strerror})") from exc
+    return "\n".join(out), lost
 
 
 def _element_blocks_with_ids(mesh: HexMesh, b: Bricks) -> list[CellBlock]:
@@ -213,3 +243,72 @@ def _element_blocks_with_ids(mesh: HexMesh, b: Bricks) -> list[CellBlock]:
         else:
             out.append(CellBlock(blk.type, blk.data, None))
     return out
+
+
+# ---------------------------------------------------------------------------------------------------- in place
+_REAL_ITEM = re.compile(r"(\d*)([EDGF])(\d+)\.(\d+)(?:E(\d+))?", re.IGNORECASE)
+
+
+class _Unfit(Exception):
+    """A coordinate does not fit its NBLOCK field."""
+
+
+def _fortran_real(v: float, letter: str, w: int, d: int, e: int) -> str:
+    """`v` in the Fortran edit descriptor ``Ew.dEe`` (ANSYS's form: one digit before the point) or ``Fw.d``."""
+    if letter == "F":
+        s = f"{v:{w}.{d}f}"
+    else:
+        mantissa, exponent = f"{v:.{d}E}".split("E")
+        s = f"{mantissa}E{int(exponent):+0{e + 1}d}".rjust(w)
+    if len(s) > w:
+        raise _Unfit(f"{v!r} does not fit the field {letter}{w}.{d}")
+    return s
+
+
+def _nblock_row(line: str, fmt_line: str, fields: list, xyz: list[float]) -> str:
+    """An NBLOCK row (with its line ending) with new coordinates; fields whose value did not change keep their text."""
+    body = line.rstrip("\r\n")
+    end = line[len(body):]
+    n_int = 0
+    while n_int < len(fields) and fields[n_int][0]:
+        n_int += 1
+    items = [m for m in (_REAL_ITEM.fullmatch(t.strip()) for t in fmt_line.strip("() ").split(",")) if m]
+    if n_int < 3 or not items or len(fields) < n_int + 3:
+        raise _Unfit(f"NBLOCK format {fmt_line} is not 3 integers and 3 or more reals")
+    letter, d = items[0].group(2).upper(), int(items[0].group(4))
+    e = int(items[0].group(5) or 2)
+    start = sum(w for _, w in fields[:n_int])
+    out = body[:start].ljust(start)
+    pos = start
+    for k in range(3):
+        w = fields[n_int + k][1]
+        chunk = body[pos : pos + w]
+        old = float(chunk.replace("D", "E").replace("d", "e")) if chunk.strip() else 0.0
+        out += chunk.ljust(w) if old == xyz[k] else _fortran_real(xyz[k], letter, w, d, e)
+        pos += w
+    return (out + body[pos:]).rstrip() + end
+
+
+def _in_place(mesh: HexMesh, text: str) -> tuple[str | None, str | None]:
+    """(None, the file's text with the mesh's node coordinates) when `mesh` is the file's mesh with moved nodes,
+    else (what differs, None)."""
+    label = f"the text of {mesh.source or 'the mesh'}"
+    reader = _Reader(label, text.splitlines())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        reader.run()
+        ref = to_hexmesh(reader.bricks(), label, "NBLOCK")
+    reason = model_difference(mesh, ref, cell_data=ATTRIBUTES + EXTRA_ATTRIBUTES, point_data=("ansys:angles",),
+                              field_data=("ansys:et", "ansys:keyopt"))
+    if reason is not None:
+        return reason, None
+    lines = text.splitlines(keepends=True)
+    moved = np.flatnonzero((mesh.points != ref.points).any(axis=1))
+    for k in moved.tolist():
+        i = reader.node_src[k][1] - 1
+        fmt_line, fields = reader.nblock_formats[reader.node_format[k]]
+        try:
+            lines[i] = _nblock_row(lines[i], fmt_line, fields, mesh.points[k].tolist())
+        except _Unfit as exc:
+            return f"node {int(ref.node_ids[k])}: {exc}", None
+    return None, "".join(lines)

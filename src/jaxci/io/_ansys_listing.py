@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import MeshReadError
 from ..mesh import HexMesh
 from ._ansys import Bricks, to_hexmesh
+from ._deck import MAX_ID, parse_coordinate, parse_id
 
 _NODE_HEADER = ("NODE", "X", "Y", "Z")
 _ELEM_HEADER = ("ELEM", "MAT", "TYP", "REL", "ESY", "SEC")
@@ -43,17 +44,24 @@ _ELEM_FIELDS = len(_ELEM_HEADER) + 8
 _DSYS = re.compile(r"\bDSYS\s*=\s*(-?\d+)")
 
 
-def read_text_lines(path: str | os.PathLike, what: str) -> list[str]:
-    """The lines of a text file, or a `MeshReadError` naming the file."""
+def read_text(path: str | os.PathLike, what: str) -> str:
+    """The text of a file with its line endings, or a `MeshReadError` naming the file."""
     try:
-        with open(path, encoding="utf-8", errors="strict") as f:
-            return f.read().splitlines()
+        with open(path, encoding="utf-8", errors="strict", newline="") as f:
+            return f.read()
     except FileNotFoundError:
         raise MeshReadError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise MeshReadError(f"{path}: is a folder, not an {what}") from None
     except UnicodeDecodeError as exc:
         raise MeshReadError(f"{path}: not a text {what} (undecodable byte at offset {exc.start})") from None
     except OSError as exc:
         raise MeshReadError(f"{path}: cannot read ({exc.strerror})") from None
+
+
+def read_text_lines(path: str | os.PathLike, what: str) -> list[str]:
+    """The lines of a text file, or a `MeshReadError` naming the file."""
+    return read_text(path, what).splitlines()
 
 
 def _is_number(tok: str) -> bool:
@@ -66,9 +74,13 @@ def _is_number(tok: str) -> bool:
 
 def _int(tok: str, path, lineno: int, what: str) -> int:
     try:
-        return int(tok)
+        value = int(tok)
     except ValueError:
         raise MeshReadError(f"{path}, line {lineno}: {what} {tok!r} is not an integer") from None
+    if abs(value) > MAX_ID:
+        raise MeshReadError(f"{path}, line {lineno}: {what} {value} is too large (jaxci reads numbers up to "
+                            f"{MAX_ID})")
+    return value
 
 
 class _Rows:
@@ -109,8 +121,11 @@ class _Rows:
                         f"{path}, line {lineno}: node row has {len(toks)} fields, expected {width} "
                         f"(NODE X Y Z{' THXY THYZ THZX' if width == 7 else ''})"
                     )
-                nid = _int(toks[0], path, lineno, "node number")
-                self.nodes.append((nid, float(toks[1]), float(toks[2]), float(toks[3])))
+                where = f"{path}, line {lineno}"
+                nid = parse_id(toks[0], where, "node number")
+                xyz = [parse_coordinate(t, where, f"coordinate {c} of node {nid}") for c, t in
+                       zip("XYZ", toks[1:4], strict=True)]
+                self.nodes.append((nid, *xyz))
                 self.node_src.append((fi, lineno))
             elif len(raw) - len(raw.lstrip()) >= cont_col:  # continuation of a 20-node element's node list
                 if not self.elems or self.elem_src[-1][0] != fi:
@@ -122,7 +137,10 @@ class _Rows:
                         f"{path}, line {lineno}: element row has {len(toks)} fields, expected {_ELEM_FIELDS} "
                         f"(ELEM MAT TYP REL ESY SEC and the 8 nodes I J K L M N O P)"
                     )
-                self.elems.append([_int(t, path, lineno, "field") for t in toks])
+                row = [_int(t, path, lineno, f"field {k} ({name})") for k, (t, name) in
+                       enumerate(zip(toks, _ELEM_HEADER + tuple("IJKLMNOP"), strict=True), 1)]
+                parse_id(toks[0], f"{path}, line {lineno}", "element number")
+                self.elems.append(row)
                 self.elem_src.append((fi, lineno))
 
     def bricks(self) -> Bricks:

@@ -1,4 +1,4 @@
-"""Mesh files through meshio: legacy VTK, VTU, Gmsh 2.2 / 4.1, Abaqus and XDMF.
+"""Mesh files through meshio: legacy VTK, VTU, Gmsh 2.2 / 4.1 and XDMF.
 
 Each format is read with its own meshio reader (``meshio.vtu.read``, ``meshio.gmsh.read``, ...), never with
 ``meshio.read``, which prints and calls ``sys.exit`` on a corrupt file. Every failure becomes a
@@ -17,14 +17,17 @@ The table of what each format keeps is in the docstring of `jaxci.io.write_mesh`
   / ``gmsh:geometrical`` / ``gmsh:dim_tags`` read from a Gmsh file are ordinary cell / point data and are
   kept; meshio's ``gmsh:bounding_entities`` is not a cell set and is dropped on reading. Gmsh 2.2 drops other
   cell data of a mesh with several cell blocks (meshio 5.3.5 splits it wrongly on reading).
-- Abaqus keeps point and cell sets, drops all data, numbers nodes and elements 1..n, and writes hexahedra as
-  ``C3D8`` and quadrilaterals as ``S4`` (meshio's own choices are C3D8RH and CAX4P).
 - XDMF needs the ``h5py`` package, for reading and for writing; the heavy data go to a ``.h5`` file beside it.
 
 Sets in VTU, VTK and XDMF: a cell set ``NAME`` is written as integer cell data ``set:NAME`` (1 in the set, 0
 elsewhere) and a point set as point data ``set:NAME``; on reading, 0/1 integer data named ``set:...`` become
-sets again. Node ids (`HexMesh.node_ids`) and element ids (`CellBlock.ids`) are kept only by the ANSYS APDL
-format. Anything a format drops is reported with a `LossyWriteWarning`.
+sets again. Node ids (`HexMesh.node_ids`) and element ids (`CellBlock.ids`) are kept only by the Abaqus and ANSYS
+APDL formats (`jaxci.io._abaqus`, `jaxci.io._ansys_apdl`), and so is the text of a source deck (``abaqus:deck``,
+``ansys:deck`` field data). Anything a format drops is reported with a `LossyWriteWarning`, before writing.
+
+Counts are checked against the headers that announce them (`jaxci.io._counts`): a file whose POINTS, CELLS,
+CELL_TYPES, POINT_DATA or CELL_DATA (legacy VTK) or $Nodes / $Elements (Gmsh) counts disagree with what the file
+holds is a truncated or corrupt file, and so is a Gmsh file that defines a node tag twice.
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ import numpy as np
 
 from ..errors import JaxciError, MeshReadError, MeshWriteError
 from ..mesh import MIRROR_HEX, CellBlock, HexMesh
+from ._counts import check_gmsh, check_vtk, check_vtu, vtu_header
+from ._deck import deck_losses
 
 #: Prefix of the point / cell data that carry a point / cell set in formats without sets.
 SET_PREFIX = "set:"
@@ -55,7 +60,6 @@ _READERS = {
     "vtu": meshio.vtu.read,
     "gmsh": meshio.gmsh.read,
     "gmsh22": meshio.gmsh.read,
-    "abaqus": meshio.abaqus.read,
     "xdmf": meshio.xdmf.read,
 }
 
@@ -65,7 +69,6 @@ _WRITERS = {
     "vtu": lambda path, m: meshio.vtu.write(path, m, binary=True, compression="zlib"),
     "gmsh": lambda path, m: meshio.gmsh.write(path, m, "4.1", binary=True),
     "gmsh22": lambda path, m: meshio.gmsh.write(path, m, "2.2", binary=True),
-    "abaqus": meshio.abaqus.write,
     "xdmf": meshio.xdmf.write,
 }
 
@@ -77,8 +80,10 @@ _KEEPS = {
     "xdmf": {"data": True, "sets": "data", "field_data": False},
     "gmsh": {"data": "float64", "sets": "physical", "field_data": "physical"},
     "gmsh22": {"data": "float64", "sets": "physical", "field_data": "physical"},
-    "abaqus": {"data": False, "sets": True, "field_data": False},
 }
+
+#: Field data that carry a source deck (its text and element type names), reported by `deck_losses`, not written.
+_DECK_FIELDS = ("abaqus:deck", "abaqus:element_types", "ansys:deck")
 
 #: Messages meshio prints that say nothing to a jaxci user (jaxci chose ASCII legacy VTK on purpose).
 _MESHIO_NOISE = ("VTK ASCII files are only meant for debugging",)
@@ -129,7 +134,7 @@ def _describe(exc: BaseException) -> str:
 
 
 #: Format names in messages.
-_TITLES = {"vtk": "legacy VTK", "vtu": "VTU", "gmsh": "Gmsh", "gmsh22": "Gmsh", "abaqus": "Abaqus", "xdmf": "XDMF"}
+_TITLES = {"vtk": "legacy VTK", "vtu": "VTU", "gmsh": "Gmsh", "gmsh22": "Gmsh", "xdmf": "XDMF"}
 
 
 def _native(a) -> np.ndarray:
@@ -152,12 +157,14 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
     **Arguments:**
 
     - `path`: an existing file.
-    - `fmt`: ``"vtk"``, ``"vtu"``, ``"gmsh"``, ``"gmsh22"``, ``"abaqus"`` or ``"xdmf"``.
+    - `fmt`: ``"vtk"``, ``"vtu"``, ``"gmsh"``, ``"gmsh22"`` or ``"xdmf"``.
 
     **Returns:** a `HexMesh` carrying the file's point/cell data, point/cell sets and field data.
     """
     _needs_h5py(path, fmt, MeshReadError)
     try:
+        if fmt in ("gmsh", "gmsh22"):
+            check_gmsh(path)
         with _meshio_output_as_warnings():
             m = _READERS[fmt](path)
     except OSError as exc:
@@ -165,8 +172,16 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
             raise MeshReadError(f"{path}: corrupt or truncated {_TITLES[fmt]} file ({_describe(exc)})") from exc
         raise MeshReadError(f"{path}: cannot read ({exc.strerror})") from exc
     except (*_READ_ERRORS, MemoryError) as exc:  # MemoryError: a corrupt header announcing billions of items
+        if isinstance(exc, JaxciError):
+            raise
         why = _describe(exc)
+        if fmt == "vtu" and not why:
+            why = f"the arrays disagree with the header, or are cut short: {vtu_header(path)}".rstrip(": ")
         raise MeshReadError(f"{path}: corrupt or truncated {_TITLES[fmt]} file{f' ({why})' if why else ''}") from exc
+    if fmt == "vtk":
+        check_vtk(path, m)
+    elif fmt == "vtu":
+        check_vtu(path, m)
     try:
         return _from_meshio(m, path)
     except JaxciError:
@@ -235,9 +250,10 @@ def write_meshio(mesh: HexMesh, path: Path, fmt: str) -> None:
 
     - `mesh`: the mesh; hexahedra are written in the file's own handedness (see `HexMesh.hex_mirrored`).
     - `path`: the file to write (`jaxci.io.write_mesh` passes a temporary name and moves it into place).
-    - `fmt`: ``"vtk"``, ``"vtu"``, ``"gmsh"`` (4.1), ``"gmsh22"``, ``"abaqus"`` or ``"xdmf"``.
+    - `fmt`: ``"vtk"``, ``"vtu"``, ``"gmsh"`` (4.1), ``"gmsh22"`` or ``"xdmf"``.
 
-    **Returns:** nothing. Issues one `LossyWriteWarning` listing what the format cannot hold, if anything.
+    **Returns:** nothing. Issues one `LossyWriteWarning` listing what the format cannot hold, if anything, before
+    writing. `OSError` from writing propagates (`jaxci.io.write_mesh` reports it).
     """
     _needs_h5py(path, fmt, MeshWriteError)
     try:
@@ -248,16 +264,11 @@ def write_meshio(mesh: HexMesh, path: Path, fmt: str) -> None:
         raise MeshWriteError(f"{path}: meshio cannot write this mesh as {_TITLES[fmt]} ({_describe(exc)})") from exc
     if lost:
         warnings.warn(f"{path.name}: {fmt} drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=4)
-    elsets = {}
-    if fmt == "abaqus":  # meshio 5.3.5 writes a set once per cell block and reads back only the last one
-        elsets, m.cell_sets = m.cell_sets, {}
     try:
         with _meshio_output_as_warnings(LossyWriteWarning):
             _WRITERS[fmt](path, m)
-        if fmt == "abaqus":
-            _fix_abaqus(path, [len(c) for c in m.cells], elsets)
-    except OSError as exc:
-        raise MeshWriteError(f"{path}: cannot write ({exc.strerror or _describe(exc)})") from exc
+    except OSError:
+        raise
     except (meshio.WriteError, ValueError, KeyError, IndexError, TypeError) as exc:
         raise MeshWriteError(f"{path}: meshio cannot write this mesh as {_TITLES[fmt]} ({_describe(exc)})") from exc
 
@@ -269,8 +280,8 @@ def _to_meshio(mesh: HexMesh, fmt: str, path: Path) -> tuple[meshio.Mesh, list[s
     cell_data = {k: [np.asarray(a) for a in v] for k, v in mesh.cell_data.items()}
     point_sets = {k: np.asarray(v) for k, v in mesh.point_sets.items()}
     cell_sets = {k: [np.asarray(a) for a in v] for k, v in mesh.cell_sets.items()}
-    field_data = dict(mesh.field_data)
-    lost = []
+    field_data = {k: v for k, v in mesh.field_data.items() if k not in _DECK_FIELDS}
+    lost = [what for _, what in deck_losses(mesh, fmt)]
 
     if keeps["sets"] == "data":
         for name, idx in point_sets.items():
@@ -357,22 +368,3 @@ def _add_gmsh_tags(cells, cell_data, point_data, n_nodes: int, fmt: str, path: P
     if free.sum() == 0:
         raise MeshWriteError(f"{path}: cannot assign Gmsh 4.1 node entities to this mesh; use gmsh22")
     point_data["gmsh:dim_tags"] = dim_tags
-
-
-#: Element names meshio 5.3.5 picks that are odd for a plain 3-D mesh, and the plain Abaqus element jaxci writes.
-_ABAQUS_ELEMENTS = {"C3D8RH": "C3D8", "CAX4P": "S4"}
-
-
-def _fix_abaqus(path: Path, sizes: list[int], cell_sets: dict) -> None:
-    """Use plain element names, and write each cell set once over all blocks (meshio writes a set once per
-    block and reads back only the last one; it numbers elements 1..N in block order)."""
-    text = path.read_text()
-    for odd, plain in _ABAQUS_ELEMENTS.items():
-        text = text.replace(f"*ELEMENT, TYPE={odd}\n", f"*ELEMENT, TYPE={plain}\n")
-    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-    for name, per_block in cell_sets.items():
-        ids = np.concatenate([np.asarray(idx, np.int64) + 1 + off for idx, off in zip(per_block, offsets, strict=True)])
-        if len(ids):
-            rows = (",".join(map(str, ids[i : i + 8].tolist())) for i in range(0, len(ids), 8))
-            text += f"*ELSET, ELSET={name}\n" + ",\n".join(rows) + "\n"
-    path.write_text(text)

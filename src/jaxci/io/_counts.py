@@ -1,0 +1,252 @@
+"""Trust no header: the counts a legacy VTK, VTU or Gmsh file announces must match what it holds.
+
+meshio reads what a file holds and believes what its headers say only in part: a legacy VTK file cut inside
+CELL_TYPES reads as a smaller mesh, and a Gmsh file whose $Elements header disagrees with its element lines reads
+without complaint. These checks run on every file `jaxci.io._meshio.read_meshio` reads and raise a `MeshReadError`
+naming the file and what is missing:
+
+- legacy VTK (after meshio): POINTS, CELLS, CELL_TYPES, POINT_DATA and CELL_DATA counts against the points and cells
+  read (and CELLS' size against the connectivity);
+- VTU (after meshio): NumberOfPoints and NumberOfCells against the points and cells read;
+- Gmsh 2.2 and 4.1, ASCII and binary (before meshio): the $Nodes and $Elements sections are walked entity block by
+  entity block; every block must hold the nodes and elements its header announces, the totals must match the
+  section headers, the section must end where its $End line is, and no node tag may appear twice.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import meshio
+import numpy as np
+
+from ..errors import MeshReadError
+
+_VTK_HEADER = re.compile(rb"^[ \t]*(POINTS|CELLS|CELL_TYPES|POINT_DATA|CELL_DATA)[ \t]+(\d+)(?:[ \t]+(\d+))?",
+                         re.MULTILINE)
+
+
+def _cells_held(m: meshio.Mesh) -> tuple[int, int]:
+    """Number of cells and of connectivity entries of a meshio mesh."""
+    n = sum(len(c.data) for c in m.cells)
+    size = sum(int(np.asarray(c.data).size) for c in m.cells)
+    return n, size
+
+
+def check_vtk(path: Path, m: meshio.Mesh) -> None:
+    """Legacy VTK: the counts of the section headers against what meshio read."""
+    data = path.read_bytes()
+    if not re.search(rb"DATASET[ \t]+UNSTRUCTURED_GRID", data[:4096], re.IGNORECASE):
+        return
+    version = re.match(rb"#\s*vtk DataFile Version\s*(\d+)\.(\d+)", data)
+    v5 = version is not None and int(version.group(1)) >= 5
+    headers = {}
+    for match in _VTK_HEADER.finditer(data):
+        headers.setdefault(match.group(1).decode(), (int(match.group(2)), match.group(3) and int(match.group(3))))
+    n_cells, size = _cells_held(m)
+    n_points = len(m.points)
+    found = {"POINTS": n_points, "CELL_TYPES": n_cells, "POINT_DATA": n_points, "CELL_DATA": n_cells}
+    what = {"POINTS": "points", "CELL_TYPES": "cell types", "POINT_DATA": "point data values",
+            "CELL_DATA": "cell data values"}
+    for key in ("POINTS", "CELL_TYPES", "POINT_DATA", "CELL_DATA"):
+        if key in headers and headers[key][0] != found[key]:
+            held = "points" if key in ("POINTS", "POINT_DATA") else "cells"
+            raise MeshReadError(f"{path}: corrupt or truncated legacy VTK file: {key} announces {headers[key][0]} "
+                                f"{what[key]}, the file holds {found[key]} {held}")
+    if "CELLS" in headers:
+        count, announced_size = headers["CELLS"]
+        cells = count - 1 if v5 else count
+        if cells != n_cells:
+            raise MeshReadError(f"{path}: corrupt or truncated legacy VTK file: CELLS announces {cells} cells, the "
+                                f"file holds {n_cells}")
+        want = size if v5 else size + n_cells
+        if announced_size is not None and announced_size != want:
+            raise MeshReadError(f"{path}: corrupt or truncated legacy VTK file: CELLS announces {announced_size} "
+                                f"connectivity entries, the cells read hold {want}")
+
+
+def check_vtu(path: Path, m: meshio.Mesh) -> None:
+    """VTU: NumberOfPoints / NumberOfCells of each piece, summed, against what meshio read."""
+    head = path.read_bytes()
+    pieces = re.findall(rb"<Piece\b[^>]*>", head)
+    n_points = n_cells = 0
+    for p in pieces:
+        pts = re.search(rb'NumberOfPoints\s*=\s*"(\d+)"', p)
+        cls = re.search(rb'NumberOfCells\s*=\s*"(\d+)"', p)
+        if pts is None or cls is None:
+            return
+        n_points += int(pts.group(1))
+        n_cells += int(cls.group(1))
+    if not pieces:
+        return
+    held, _ = _cells_held(m)
+    if n_points != len(m.points) or n_cells != held:
+        raise MeshReadError(f"{path}: corrupt or truncated VTU file: the header announces {n_points} points and "
+                            f"{n_cells} cells, the arrays hold {len(m.points)} points and {held} cells")
+
+
+def vtu_header(path: Path) -> str:
+    """The counts a VTU file's pieces announce, for a message about a file meshio could not read."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+    except OSError:
+        return ""
+    counts = re.findall(rb'Number(?:OfPoints|OfCells)\s*=\s*"\d+"', head)
+    return " ".join(c.decode() for c in counts[:4])
+
+
+# ---------------------------------------------------------------------------------------------------- Gmsh
+class _Cursor:
+    """Reads the numbers of one section: its whitespace-separated tokens (ASCII) or native binary values."""
+
+    def __init__(self, data: bytes, pos: int, ascii_: bool, size_t: np.dtype, where: str, section: str) -> None:
+        self.data, self.pos, self.ascii, self.size_t = data, pos, ascii_, size_t
+        self.where, self.section = where, section
+        if ascii_:
+            stop = data.find(b"$End" + section.encode(), pos)
+            if stop < 0:
+                self.fail(f"no $End{section} (the file ends inside the section)")
+            self.tokens, self.i = data[pos:stop].split(), 0
+
+    def fail(self, what: str):
+        raise MeshReadError(f"{self.where}: corrupt or truncated Gmsh file: ${self.section}: {what}")
+
+    def ints(self, n: int, dtype) -> np.ndarray:
+        """`n` integers (`dtype` their binary type: int32 or size_t)."""
+        if self.ascii:
+            if self.i + n > len(self.tokens):
+                self.fail("fewer values than its headers announce")
+            try:
+                out = np.array(self.tokens[self.i : self.i + n]).astype(np.int64)
+            except (ValueError, OverflowError):
+                self.fail(f"a value that is not an integer near value {self.i + 1}")
+            self.i += n
+            return out
+        dtype = np.dtype(dtype)
+        end = self.pos + n * dtype.itemsize
+        if end > len(self.data):
+            self.fail("the file ends before the values its headers announce")
+        out = np.frombuffer(self.data, dtype, n, self.pos).astype(np.int64)
+        self.pos = end
+        return out
+
+    def skip(self, n: int, itemsize: int) -> None:
+        """Skip `n` values of `itemsize` bytes each (in binary)."""
+        if self.ascii:
+            self.i += n
+            if self.i > len(self.tokens):
+                self.fail("fewer values than its headers announce")
+        else:
+            self.pos += n * itemsize
+            if self.pos > len(self.data):
+                self.fail("the file ends before the values its headers announce")
+
+    def end(self) -> None:
+        if self.ascii:
+            if self.i != len(self.tokens):
+                self.fail(f"{len(self.tokens) - self.i} values more than its headers announce")
+            return
+        m = re.compile(rb"\s*(\$\S*)").match(self.data, self.pos)
+        if m is None or m.group(1) != b"$End" + self.section.encode():
+            self.fail(f"more or other data than its headers announce (no $End{self.section} where they end)")
+
+
+def _nodes_per_type(t: int, c: _Cursor) -> int:
+    try:
+        return meshio._common.num_nodes_per_cell[meshio.gmsh.common._gmsh_to_meshio_type[int(t)]]
+    except KeyError:
+        c.fail(f"unknown element type {int(t)}")
+
+
+def _check_tags(tags: np.ndarray, where: str) -> None:
+    order = np.argsort(tags, kind="stable")
+    same = np.flatnonzero(tags[order][1:] == tags[order][:-1])
+    if len(same):
+        k = int(order[same[0] + 1])
+        raise MeshReadError(f"{where}: node tag {int(tags[k])} is defined twice in $Nodes (node {int(order[same[0]])} "
+                            f"and node {k} in file order)")
+
+
+def check_gmsh(path: Path) -> None:
+    """Gmsh 2.2 / 4.1: walk $Nodes and $Elements (module docstring). Files of other versions are left to meshio."""
+    data = path.read_bytes()
+    fmt = re.search(rb"\$MeshFormat\s+(\d+\.\d+)\s+(\d+)\s+(\d+)", data[:1024])
+    if fmt is None or fmt.group(1) not in (b"2.2", b"4.1"):
+        return
+    v4, ascii_ = fmt.group(1) == b"4.1", fmt.group(2) == b"0"
+    size_t = np.dtype(f"u{int(fmt.group(3))}")
+    where = str(path)
+    for name in ("Nodes", "Elements"):
+        start = re.search(rb"(?m)^\$" + name.encode() + rb"\s*?\n", data)
+        if start is None:
+            if name == "Elements":
+                raise MeshReadError(f"{where}: corrupt or truncated Gmsh file: no $Elements section")
+            continue
+        c = _Cursor(data, start.end(), ascii_, size_t, where, name)
+        if v4:
+            _walk41(c, name)
+        else:
+            _walk22(c, name)
+        c.end()
+
+
+def _walk41(c: _Cursor, name: str) -> None:
+    n_blocks, total, _, _ = c.ints(4, c.size_t)
+    held = 0
+    tags = []
+    for _ in range(n_blocks):
+        dim, _, kind = c.ints(3, np.int32)
+        (n,) = c.ints(1, c.size_t)
+        held += n
+        if name == "Nodes":
+            tags.append(c.ints(n, c.size_t))
+            c.skip(n * (3 + (int(dim) if kind else 0)), 8)
+        else:
+            c.skip(n * (1 + _nodes_per_type(kind, c)), c.size_t.itemsize)
+    if held != total:
+        c.fail(f"the header announces {total} {name.lower()}, its {n_blocks} entity blocks hold {held}")
+    if tags:
+        _check_tags(np.concatenate(tags), c.where)
+
+
+def _walk22(c: _Cursor, name: str) -> None:
+    if c.ascii:
+        (total,) = c.ints(1, np.int32)
+    else:
+        m = re.compile(rb"\s*(\d+)[^\S\n]*\r?\n").match(c.data, c.pos)
+        if m is None:
+            c.fail("no count line")
+        total, c.pos = int(m.group(1)), m.end()
+    if name == "Nodes":
+        if c.ascii:
+            if c.i + 4 * total > len(c.tokens):
+                c.fail(f"the header announces {total} nodes, the section holds fewer")
+            try:
+                tags = np.array(c.tokens[c.i : c.i + 4 * total : 4]).astype(np.int64)
+            except (ValueError, OverflowError):
+                c.fail("a node tag that is not an integer")
+            c.i += 4 * total
+        else:
+            if c.pos + 28 * total > len(c.data):
+                c.fail(f"the header announces {total} nodes, the file ends before them")
+            rec = np.frombuffer(c.data, np.dtype([("tag", "i4"), ("xyz", "f8", 3)]), total, c.pos)
+            tags = rec["tag"].astype(np.int64)
+            c.pos += 28 * total
+        _check_tags(tags, c.where)
+        return
+    if c.ascii:
+        for _ in range(total):
+            _, t, n_tags = c.ints(3, np.int32)
+            c.skip(int(n_tags) + _nodes_per_type(t, c), 4)
+        return
+    held = 0
+    while held < total:
+        t, follow, n_tags = c.ints(3, np.int32)
+        if follow < 1:
+            c.fail(f"an element block of {int(follow)} elements")
+        c.skip(int(follow) * (1 + int(n_tags) + _nodes_per_type(t, c)), 4)
+        held += int(follow)
+    if held != total:
+        c.fail(f"the header announces {total} elements, the blocks hold {held}")

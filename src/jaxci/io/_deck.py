@@ -1,0 +1,148 @@
+"""What the solver-deck formats (Abaqus ``.inp``, ANSYS ``.cdb`` / APDL) share: ids, and writing a deck back in place.
+
+A mesh read from an Abaqus deck or an ANSYS archive carries the file's text as field data (``abaqus:deck``,
+``ansys:deck``): materials, sections, loads, steps and every other line jaxci does not model. When such a mesh is
+written to the same kind of file and differs from the deck only in its node coordinates (`model_difference`), the
+writer rewrites the coordinates of the node lines and keeps every other line byte for byte. Otherwise it writes the
+mesh afresh and `deck_losses` says, in a `LossyWriteWarning` issued before writing, what of the deck is lost.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import MeshReadError
+from ..mesh import HexMesh
+
+#: Largest id jaxci holds (numpy int64). Ids are positive: 1 .. MAX_ID.
+MAX_ID = 2**63 - 1
+#: Field data holding the text of the deck a mesh was read from, per format.
+DECK_KEYS = {"abaqus": "abaqus:deck", "apdl": "ansys:deck"}
+
+
+def parse_id(token: str, where: str, what: str) -> int:
+    """A positive integer id (node or element number) from a text field, or a `MeshReadError` at `where`."""
+    tok = token.strip()
+    try:
+        value = int(tok)
+    except ValueError:
+        try:
+            f = float(tok.replace("D", "E").replace("d", "e"))
+        except ValueError:
+            f = None
+        if f is None or not np.isfinite(f) or f != int(f):
+            raise MeshReadError(f"{where}: {what} {tok!r} is not an integer") from None
+        value = int(f)
+    if value < 1:
+        raise MeshReadError(f"{where}: {what} {value} is not positive (ids start at 1)")
+    if value > MAX_ID:
+        raise MeshReadError(f"{where}: {what} {value} is too large (jaxci reads ids up to {MAX_ID})")
+    return value
+
+
+def parse_coordinate(token: str, where: str, what: str) -> float:
+    """A finite float from a text field (Fortran ``D`` exponents accepted; empty is 0), or a `MeshReadError`."""
+    tok = token.strip()
+    if not tok:
+        return 0.0
+    try:
+        value = float(tok.replace("D", "E").replace("d", "e"))
+    except ValueError:
+        raise MeshReadError(f"{where}: {what} {tok!r} is not a number") from None
+    if not np.isfinite(value):
+        raise MeshReadError(f"{where}: {what} is {tok!r}; coordinates must be finite numbers")
+    return value
+
+
+def first_duplicate(ids: np.ndarray) -> tuple[int, int] | None:
+    """Positions (first, second) of the first repeated value of `ids` in file order, or None."""
+    ids = np.asarray(ids)
+    order = np.argsort(ids, kind="stable")
+    same = np.flatnonzero(ids[order][1:] == ids[order][:-1])
+    if len(same) == 0:
+        return None
+    pairs = np.stack([order[same], order[same + 1]], axis=1)
+    return tuple(int(p) for p in pairs[np.argmin(pairs[:, 1])])
+
+
+def _same_array(a, b) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    a, b = np.asarray(a), np.asarray(b)
+    return a.shape == b.shape and bool(np.array_equal(a, b))
+
+
+def _same_sets(a: dict, b: dict, per_block: bool) -> bool:
+    if set(a) != set(b):
+        return False
+    for name in a:
+        x, y = (a[name], b[name]) if per_block else ([a[name]], [b[name]])
+        if len(x) != len(y):
+            return False
+        for u, v in zip(x, y, strict=True):
+            u = np.unique(np.asarray(u if u is not None else [], np.int64))
+            v = np.unique(np.asarray(v if v is not None else [], np.int64))
+            if not np.array_equal(u, v):
+                return False
+    return True
+
+
+def model_difference(mesh: HexMesh, deck: HexMesh, cell_data=(), point_data=(), field_data=()) -> str | None:
+    """None when `mesh` is `deck` with other node coordinates; else what differs, for a message.
+
+    **Arguments:** `mesh` the mesh to write; `deck` the mesh its source deck holds (read again); `cell_data`,
+    `point_data`, `field_data` the names of the data the deck format stores, which must agree too.
+    """
+    if mesh.n_nodes != deck.n_nodes or not _same_array(mesh.node_ids, deck.node_ids):
+        return "its nodes or node ids differ from the deck's"
+    if mesh.hex_mirrored != deck.hex_mirrored or len(mesh.cells) != len(deck.cells):
+        return "its cell blocks differ from the deck's"
+    for a, b in zip(mesh.cells, deck.cells, strict=True):
+        if a.type != b.type or not all(_same_array(x, y) for x, y in
+                                       ((a.data, b.data), (a.ids, b.ids), (a.midside, b.midside))):
+            return "its cells differ from the deck's"
+    if not _same_sets(dict(mesh.point_sets), dict(deck.point_sets), False) or not _same_sets(
+        dict(mesh.cell_sets), dict(deck.cell_sets), True
+    ):
+        return "its node or element sets differ from the deck's"
+    for name in cell_data:
+        x, y = mesh.cell_data.get(name), deck.cell_data.get(name)
+        if (x is None) != (y is None) or (x is not None and not all(
+                _same_array(u, v) for u, v in zip(x, y, strict=True))):
+            return f"its cell data {name!r} differ from the deck's"
+    for name in point_data:
+        if not _same_array(mesh.point_data.get(name), deck.point_data.get(name)):
+            return f"its point data {name!r} differ from the deck's"
+    for name in field_data:
+        x, y = mesh.field_data.get(name), deck.field_data.get(name)
+        if (x is None) != (y is None) or (x is not None and not np.array_equal(np.asarray(x), np.asarray(y))):
+            return f"its {name!r} differ from the deck's"
+    return None
+
+
+def deck_losses(mesh: HexMesh, fmt: str) -> list[tuple[str, str]]:
+    """What the source decks carried by `mesh` (field data ``abaqus:deck``, ``ansys:deck``) hold that a file of
+    format `fmt` written afresh does not: ``(deck format, phrase)`` per deck, for a `LossyWriteWarning`."""
+    from ._abaqus import deck_extras
+    from ._ansys_apdl import other_commands
+
+    out = []
+    deck = mesh.field_data.get("abaqus:deck")
+    if isinstance(deck, str):
+        keywords, types = deck_extras(deck)
+        if fmt == "abaqus":
+            types = []  # a fresh Abaqus deck keeps the element types
+        what = ([f"the keyword blocks {_listed(keywords)}"] if keywords else []) + (
+            [f"the element types {types}"] if types else [])
+        if what:
+            out.append(("abaqus", f"{' and '.join(what)} of the source Abaqus deck"))
+    deck = mesh.field_data.get("ansys:deck")
+    if isinstance(deck, str):
+        commands = other_commands(deck)
+        if commands:
+            out.append(("apdl", f"the other APDL commands of the source file ({_listed(commands)})"))
+    return out
+
+
+def _listed(names: list[str], most: int = 8) -> str:
+    return ", ".join(names[:most]) + (f", ... ({len(names)} in all)" if len(names) > most else "")
