@@ -1,0 +1,114 @@
+"""The real-mesh benchmark (scripts/bench_realmesh.py) and its corpus (scripts/realmesh_corpus.py)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import bench_realmesh as bench  # noqa: E402
+import realmesh_corpus as corpus  # noqa: E402
+
+
+def test_cube_recipe_reproduces_the_peers_cube():
+    path = corpus.PEERS / "cube9_pert.vtk"
+    if not path.exists():
+        pytest.skip(f"{path} not here")
+    import meshio
+
+    m = meshio.read(path)
+    pts, hexes = corpus.perturbed_cube(9)
+    np.testing.assert_array_equal(pts, m.points)
+    np.testing.assert_array_equal(hexes, m.cells_dict["hexahedron"])
+
+
+def _pairs(args):
+    return sorted((f, tuple(float(x) for x in v.split(","))) for f, v in zip(args[::2], args[1::2], strict=True))
+
+
+def test_box_domain_flags_of_the_unit_cube_are_msqshapes():
+    from jaxci.mesh import hex_mesh
+
+    pts, hexes = corpus.perturbed_cube(3)
+    mesh = hex_mesh(pts, hexes)
+    _, faces = bench.skin(mesh)
+    box = bench.box_planes(pts, faces)
+    assert box is not None and box["on"].sum() == 6 * 16  # 4 x 4 nodes in each face plane
+    want = corpus.PEERS / "cube_domain_args.txt"
+    if want.exists():
+        assert _pairs(bench.box_domain_args(box)) == _pairs(want.read_text().split())
+    moved = pts.copy()
+    moved[0, 0] += 0.01  # node 0 (a corner) leaves x = 0
+    assert bench.off_box(moved, box) == pytest.approx(0.01)
+    # a single distorted hexahedron whose nodes all touch the bounding box is no box
+    one = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 2], [0, 1, 1]], float)
+    single = hex_mesh(one, np.arange(8)[None])
+    assert bench.box_planes(one, bench.skin(single)[1]) is None
+
+
+def test_child_rusage_is_the_commands_own():
+    r = bench.run_child([sys.executable, "-S", "-c", "print('hi')"], timeout=30)
+    assert r["rc"] == 0 and r["stdout"].strip() == "hi" and not r["timed_out"]
+    assert 0 < r["peak_rss_mb"] < 100  # not this process's RSS (numpy, JAX imported)
+    r = bench.run_child([sys.executable, "-S", "-c", "import time; time.sleep(30)"], timeout=0.5)
+    assert r["timed_out"] and r["rc"] != 0 and r["wall_s"] < 10
+
+
+@pytest.mark.slow
+def test_bench_realmesh_end_to_end(tmp_path):
+    """One tiny mesh (a gmsh ball split from tetrahedra, or a perturbed 4^3 cube without gmsh): jaxci cold and
+    warm, msqshape where it is, the JSON fields and their values."""
+    out = tmp_path / "bench.json"
+    if corpus.have_gmsh():
+        meshes, expect_box = ["sphere_tet2hex"], False
+    else:
+        cube = tmp_path / "cube4.vtk"
+        corpus.write_vtk(cube, *corpus.perturbed_cube(4))
+        meshes, expect_box = [str(cube)], True
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_realmesh.py"), "--meshes", *meshes,
+                        "--sizes", "tiny", "--corpus-dir", str(tmp_path / "corpus"), "--out", str(out),
+                        "--timeout", "300"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "wrote" in p.stdout
+    doc = json.loads(out.read_text())
+    assert doc["benchmark"] == "realmesh" and doc["settings"]["methods"] == ["default"]
+    (m,) = doc["meshes"]
+    assert 100 <= m["hexes"] <= 1000 and m["nodes"] > m["hexes"] / 2 and m["skin_nodes"] > 0
+    b = m["before"]
+    assert b["inverted_elements"] == 0 and b["max_condition"] > 1.0 and b["mean_condition"] >= 1.0
+    assert m["box_shaped"] is expect_box and m["msq_domain"] == ("box" if expect_box else "skin")
+    runs = m["jaxci"]["default"]
+    for name in ("cold", "warm"):
+        r = runs[name]
+        assert r["ok"] and r["rc"] == 0 and not r["timed_out"], r.get("stderr_tail")
+        assert r["wall_s"] > 0 and r["cpu_s"] > 0 and 20 < r["peak_rss_mb"] < 8000
+        assert "phases" in r and (r["phases"] is None or isinstance(r["phases"], dict))
+        a = r["after"]
+        assert a["inverted_elements"] == 0 and 1.0 <= a["max_condition"] <= b["max_condition"] + 1e-9
+        assert a["mean_condition"] <= b["mean_condition"] + 1e-9
+        assert r["boundary"]["skin_nodes"] == m["skin_nodes"] and isinstance(r["boundary"]["moved"], bool)
+        assert r["iterations"] is not None and r["reported_wall_s"] > 0
+    assert runs["cold"]["cache_entries_after"] >= 0
+    assert "skipped" in runs["warm_other"]  # one mesh: nothing else warmed the cache
+    msq = m["msqshape"]
+    if not bench.MSQSHAPE.exists():
+        assert "skipped" in msq
+        return
+    for mode in ("domain", "free"):
+        r = msq[mode]
+        assert r["ok"] and r["rc"] == 0, r.get("stderr_tail")
+        assert r["wall_s"] > 0 and r["cpu_s"] >= 0 and 0 < r["peak_rss_mb"] < 2000
+        assert r["after"]["inverted_elements"] == 0 and r["after"]["max_condition"] >= 1.0
+        assert isinstance(r["boundary"]["moved"], bool)
+    if expect_box:  # sliding on the cube's planes
+        assert msq["domain"]["boundary"]["off_box_planes"] < 1e-6
+    else:  # -s: the skin is fixed
+        assert not msq["domain"]["boundary"]["moved"]
+    assert msq["free"]["flags"] == "none"
