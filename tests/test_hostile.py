@@ -547,10 +547,6 @@ def apply(text: str, tok, new: str) -> str:
 # ----------------------------------------------------------------------------------------------- truncation zones
 
 
-def _last_token_start(text: str, end: int | None = None) -> int:
-    return [m.start() for m in _WORD.finditer(text[:end])][-1]
-
-
 def truncation_zones(fmt, name, data: bytes) -> list[tuple[int, int]]:
     """Inclusive ranges of lengths to cut `data` (file `name` of format `fmt`) to, each of which cuts mesh data
     (or the end marker of a format that requires one), so that reading what is left must fail."""
