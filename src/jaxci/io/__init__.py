@@ -1,6 +1,6 @@
 """Reading and writing hexahedral meshes: the meshio formats that carry hexahedra, and ANSYS text.
 
-`read_mesh` / `write_mesh` pick the format from the file extension through `FORMATS` (or take
+`read_mesh` / `write_mesh` pick the format from the file extension through `FORMATS` (or, in the API, take
 ``file_format=``, one of its values or ``"gmsh22"``). ANSYS NLIST/ELIST listings are read with
 `read_ansys_listing`, or with `read_mesh` given the pair ``(nlist, elist)`` or one ``.lis`` / ``.txt`` file
 holding both listings. `write_mesh` never overwrites the file a mesh was read from, writes atomically, and
@@ -109,9 +109,10 @@ def read_mesh(path: str | os.PathLike | tuple, *, file_format: str | None = None
     **Returns:** a `HexMesh` with ``source`` set to the file, carrying the file's other cell blocks, data,
     sets and ids (see `write_mesh` for which format holds what).
 
-    Raises `MeshReadError` (missing, unreadable, truncated or corrupt file), `UnsupportedFormatError` (unknown
-    extension or format name) or `MeshError` (no hexahedra, non-finite coordinates, bad node index), each with
-    a one-line message naming the file.
+    Raises `MeshReadError` (missing, unreadable, truncated or corrupt file, a folder, counts that disagree with
+    their headers, duplicate or out-of-range ids), `UnsupportedFormatError` (unknown extension or format name),
+    `MeshError` (no hexahedra, non-finite coordinates, bad node index) or `UsageError` (`path` not a path), each
+    with a one-line message naming the file.
     """
     if isinstance(path, tuple | list):
         if len(path) != 2 or file_format not in (None, "ansys-listing"):
@@ -159,23 +160,33 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     What each format keeps (coordinates are float64-exact except APDL; hexahedra keep their node order and
     handedness: mirrored hexahedra, `HexMesh.hex_mirrored`, are mirrored back):
 
-    | format (extensions)          | point / cell data    | point / cell sets    | field data    | ids |
-    |------------------------------|----------------------|----------------------|---------------|-----|
-    | VTU (`.vtu`)                 | kept, with dtypes    | kept (1)             | dropped       | no  |
-    | legacy VTK (`.vtk`)          | kept, with dtypes    | kept (1)             | dropped       | no  |
-    | Gmsh 4.1 / 2.2 (`.msh`)      | kept, ints -> float64 | physical groups only | physical names | no |
-    | Abaqus (`.inp`)              | dropped              | kept                 | dropped       | no  |
-    | XDMF (`.xdmf`, `.xmf`) (2)   | kept, with dtypes    | kept (1)             | dropped       | no  |
-    | ANSYS APDL (`.mac`, `.apdl`, `.ans`, `.cdb`) | `ansys:*` only | components (3) | `ansys:*` only | yes |
+    | format (extensions)          | point / cell data    | point / cell sets    | field data    | ids | deck (4) |
+    |------------------------------|----------------------|----------------------|---------------|-----|----------|
+    | VTU (`.vtu`)                 | kept, with dtypes    | kept (1)             | dropped       | no  | no       |
+    | legacy VTK (`.vtk`)          | kept, with dtypes    | kept (1)             | dropped       | no  | no       |
+    | Gmsh 4.1 / 2.2 (`.msh`)      | kept, ints -> float64 | physical groups only | physical names | no | no       |
+    | Abaqus (`.inp`)              | dropped              | kept                 | dropped       | yes | yes      |
+    | XDMF (`.xdmf`, `.xmf`) (2)   | kept, with dtypes    | kept (1)             | dropped       | no  | no       |
+    | ANSYS APDL (`.mac`, `.apdl`, `.ans`, `.cdb`) | `ansys:*` only | components (3) | `ansys:*` only | yes | yes |
 
     (1) as 0/1 integer data named ``set:NAME``, turned back into sets on reading. (2) with a ``.h5`` data file
     beside it; needs the h5py package. (3) CMBLOCK node / element components, for set names ANSYS accepts.
+    (4) A mesh read from an Abaqus deck or an APDL file / CDB archive carries the file's text (field data
+    ``abaqus:deck``, ``ansys:deck``). Written to the same kind of file while it still has the file's nodes, ids,
+    cells, element types and sets (only its coordinates changed, as after smoothing), the file is written back
+    with only the coordinates of its node lines rewritten: materials, sections, steps, loads and every other line
+    jaxci does not model are kept byte for byte. Otherwise, and in every other format, a `LossyWriteWarning`
+    names the keyword blocks or commands lost.
+    Abaqus keeps the element type of each block (``C3D8R``, ...; ``abaqus:element_types``) and writes a mesh from
+    another format with ``C3D8``, ``C3D20`` (hexahedra with midside nodes), ``C3D6``, ``C3D4``, ``S4``, ...
     APDL holds hexahedra, wedges, pyramids and tetrahedra only (8-node bricks, SOLID186 20-node bricks and their
     degenerate forms, SOLID285/187 tetrahedra), with 14 significant digits per coordinate, and keeps the element
-    types (``ET``) and key options of a file it read. The midside nodes of quadratic cells (`CellBlock.midside`)
-    are written by APDL only; the other formats write the linear cells with a `LossyWriteWarning` (the midside
-    nodes stay in the file as unreferenced points, at their moved positions).
-    Details in the docstrings of `jaxci.io._meshio` and `jaxci.io._ansys_apdl_write`.
+    types (``ET``) and key options of a file it read; ids of any size up to int64 are written in integer fields
+    wide enough for them (mapdl-archive, with int32 ids, reads ids up to 2147483647). The midside nodes of quadratic
+    cells (`CellBlock.midside`) are written by APDL and Abaqus only; the other formats write the linear cells with
+    a `LossyWriteWarning` (the midside nodes stay in the file as unreferenced points, at their moved positions).
+    Every `LossyWriteWarning` is issued before the file is written. Details in the docstrings of
+    `jaxci.io._meshio`, `jaxci.io._abaqus_write` and `jaxci.io._ansys_apdl_write`.
 
     **Arguments:**
 
@@ -185,8 +196,9 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     - `file_format`: keyword only; a format name to use instead of the one the extension says.
 
     **Returns:** nothing. Issues a `LossyWriteWarning` when the format drops part of the mesh; raises
-    `MeshWriteError` when the target is the mesh's input file, or the write fails (unwritable folder, a mesh
-    the format cannot hold), and `UnsupportedFormatError` for an unknown extension.
+    `MeshWriteError` naming `path` (never the temporary file) when the target is the mesh's input file, or the
+    write fails (unwritable folder, full disk, a mesh the format cannot hold), `UnsupportedFormatError` for an
+    unknown extension, and `UsageError` when `mesh` is not a `HexMesh` or `path` not a path.
     """
     if not isinstance(mesh, HexMesh):
         what = type(mesh).__module__ + "." + type(mesh).__qualname__ if type(mesh).__module__ != "builtins" \

@@ -279,7 +279,8 @@ class Deck:
                 toks = toks[1:]
             acc += [parse_id(t, where, f"node id of element {acc[0]}") for t in toks]
             if len(acc) > count + 1:
-                raise MeshReadError(f"{where}: element {acc[0]} lists {len(acc) - 1} nodes; TYPE={etype} has "
+                begun = f" (continued from line {self.origin[blk.line[-1]][1]})" if blk.line[-1] != i else ""
+                raise MeshReadError(f"{where}: element {acc[0]}{begun} lists {len(acc) - 1} nodes; TYPE={etype} has "
                                     f"{count}")
             if len(acc) == count + 1:
                 blk.ids.append(acc[0])

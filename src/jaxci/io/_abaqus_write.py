@@ -80,32 +80,40 @@ def _coordinate_line(line: str, xyz) -> str:
     return ",".join(parts) + end
 
 
-def _in_place(mesh: HexMesh, text: str) -> tuple[str | None, str | None]:
-    """(None, the deck with the mesh's coordinates) when `mesh` is the deck's mesh with moved nodes, else
-    (what differs, None)."""
+def _in_place(mesh: HexMesh, text: str) -> tuple[str | None, str | None, dict[int, str]]:
+    """(None, the deck with the mesh's coordinates, ...) when `mesh` is the deck's mesh with moved nodes, else
+    (what differs, None, ...); last the Abaqus element type of every element id of the deck."""
     lines = text.splitlines(keepends=True)
     label = f"the deck of {mesh.source or 'the mesh'}"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
         ref = HexMesh(**parts)
+    id_types = {i: b.name for b in deck.blocks for i in b.ids}
     reason = model_difference(mesh, ref, field_data=("abaqus:element_types",))
     if reason is not None:
-        return reason, None
+        return reason, None, id_types
     old = ref.points
     moved = np.flatnonzero((mesh.points != old).any(axis=1) | (np.signbit(mesh.points) != np.signbit(old)).any(axis=1))
     for k in moved.tolist():
         i = deck.node_line[k]
         lines[i] = _coordinate_line(lines[i], mesh.points[k].tolist())
-    return None, "".join(lines)
+    return None, "".join(lines), id_types
 
 
-def _block_name(blk, names, k: int, quadratic: bool) -> str | None:
-    """The Abaqus type name of cell block `k`: its own (``abaqus:element_types``) when that fits, else the default."""
-    if names is not None and k < len(names):
-        fam = element_family(str(names[k]))
+def _block_name(blk, names, k: int, quadratic: bool, id_types: dict[int, str]) -> str | None:
+    """The Abaqus type name of cell block `k`: its own (``abaqus:element_types``, else the one the source deck gives
+    all its element ids) when that fits the block, else the default."""
+    own = None
+    if names is not None:
+        own = str(names[k])
+    elif blk.ids is not None and id_types:
+        found = {id_types.get(int(i)) for i in np.asarray(blk.ids).tolist()}
+        own = found.pop() if len(found) == 1 else None
+    if own is not None:
+        fam = element_family(own)
         if fam is not None and fam[0] == blk.type and (fam[2] > fam[1]) == quadratic:
-            return str(names[k]).upper()
+            return own.upper()
     return DEFAULT_NAMES.get((blk.type, quadratic))
 
 
@@ -117,8 +125,9 @@ def _label(name: str) -> str | None:
     return None
 
 
-def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
-    """The text of a deck written afresh, and what it leaves out."""
+def _fresh(mesh: HexMesh, path: str, id_types: dict[int, str]) -> tuple[str, list[str]]:
+    """The text of a deck written afresh, and what it leaves out; `id_types` the Abaqus element type of each element
+    id of the mesh's source deck (if any)."""
     lost = []
     node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
     cells = _file_cells(mesh)
@@ -130,12 +139,12 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
     for k, blk in enumerate(cells):
         data = np.asarray(blk.data, np.int64)
         mid = None if blk.midside is None else np.asarray(blk.midside, np.int64)
-        name = _block_name(blk, names, k, mid is not None)
+        name = _block_name(blk, names, k, mid is not None, id_types)
         if mid is not None and (name is None or (mid < 0).any()):
             why = "lack midside nodes on some edges" if (mid < 0).any() else "have no quadratic Abaqus type"
             lost.append(f"the midside nodes of the {len(data)} {blk.type} cells of block {k}, which {why} "
                         f"(written as linear cells)")
-            mid, name = None, _block_name(blk, names, k, False)
+            mid, name = None, _block_name(blk, names, k, False, id_types)
         if name is None:
             lost.append(f"{len(data)} {blk.type} cells (no Abaqus element type)")
             continue
@@ -204,15 +213,15 @@ def write_abaqus(mesh: HexMesh, path: str | os.PathLike) -> None:
     """
     path = os.fspath(path)
     lost = []
-    text = None
+    text, id_types = None, {}
     deck = mesh.field_data.get("abaqus:deck")
     if isinstance(deck, str):
-        reason, text = _in_place(mesh, deck)
+        reason, text, id_types = _in_place(mesh, deck)
         if text is None:
             lost += [f"{what} ({reason}, so the deck cannot be rewritten in place)"
                      for fmt, what in deck_losses(mesh, "abaqus") if fmt == "abaqus"]
     if text is None:
-        text, more = _fresh(mesh, path)
+        text, more = _fresh(mesh, path, id_types)
         lost += more
         lost += [what for fmt, what in deck_losses(mesh, "abaqus") if fmt != "abaqus"]
     lost += _dropped_data(mesh)

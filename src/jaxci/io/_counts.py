@@ -66,6 +66,110 @@ def check_vtk(path: Path, m: meshio.Mesh) -> None:
                                 f"connectivity entries, the cells read hold {want}")
 
 
+def _is_number(tok: str) -> bool:
+    try:
+        float(tok)
+    except ValueError:
+        return False
+    return True
+
+
+def diagnose_vtk(path: Path) -> str | None:
+    """Which section of an ASCII legacy VTK file holds more or fewer values than its header announces (for a
+    file meshio could not read); None when they all agree, or the file is binary or has sections not walked."""
+    try:
+        lines = path.read_text(encoding="latin-1").splitlines()
+    except OSError:
+        return None
+    if len(lines) < 4 or lines[2].strip().upper() != "ASCII":
+        return None
+    v5 = re.match(r"#\s*vtk DataFile Version\s*([5-9])", lines[0]) is not None
+    tok = " ".join(lines[3:]).split()
+    i, per = 0, None  # per: the count of the current POINT_DATA / CELL_DATA
+
+    def take(need: int, what: str) -> str | None:
+        nonlocal i
+        n = 0
+        while n <= need and i + n < len(tok) and _is_number(tok[i + n]):
+            n += 1
+        i += min(n, need)
+        if n < need:
+            return f"{what}, the file holds {n} values"
+        if n > need:
+            return f"{what}, the file holds more values"
+        return None
+
+    try:
+        while i < len(tok):
+            kw = tok[i].upper()
+            if kw == "DATASET":
+                i += 2
+                continue
+            if kw == "POINTS":
+                n = int(tok[i + 1])
+                i += 3
+                msg = take(3 * n, f"POINTS announces {n} points ({3 * n} values)")
+            elif kw == "CELLS" and v5:
+                n, m = int(tok[i + 1]), int(tok[i + 2])
+                i += 3
+                msg = None
+                for sub, count in (("OFFSETS", n), ("CONNECTIVITY", m)):
+                    if i < len(tok) and tok[i].upper() == sub:
+                        i += 2
+                        msg = msg or take(count, f"CELLS announces {count} "
+                                                 f"{'offsets' if sub == 'OFFSETS' else 'connectivity entries'}")
+            elif kw == "CELLS":
+                n, m = int(tok[i + 1]), int(tok[i + 2])
+                i += 3
+                msg = take(m, f"CELLS announces {n} cells in {m} values")
+            elif kw == "CELL_TYPES":
+                n = int(tok[i + 1])
+                i += 2
+                msg = take(n, f"CELL_TYPES announces {n} cell types")
+            elif kw in ("POINT_DATA", "CELL_DATA"):
+                per = int(tok[i + 1])
+                i += 2
+                continue
+            elif kw == "SCALARS":
+                comps = int(tok[i + 3]) if _is_number(tok[i + 3]) else 1
+                i += 4 if _is_number(tok[i + 3]) else 3
+                if i < len(tok) and tok[i].upper() == "LOOKUP_TABLE":
+                    i += 2
+                msg = take(per * comps, f"SCALARS announce {per * comps} values")
+            elif kw in ("VECTORS", "NORMALS", "TENSORS"):
+                i += 3
+                k = 9 if kw == "TENSORS" else 3
+                msg = take(per * k, f"{kw} announce {per * k} values")
+            elif kw == "FIELD":
+                arrays = int(tok[i + 2])
+                i += 3
+                msg = None
+                for k in range(arrays):
+                    if i >= len(tok):
+                        msg = f"FIELD announces {arrays} arrays, the file holds {k}"
+                        break
+                    name, comps, tuples = tok[i], int(tok[i + 1]), int(tok[i + 2])
+                    i += 4
+                    msg = take(comps * tuples, f"FIELD array {name} announces {comps * tuples} values")
+                    if msg is not None:
+                        break
+            elif kw == "LOOKUP_TABLE":
+                n = int(tok[i + 2])
+                i += 3
+                msg = take(4 * n, f"LOOKUP_TABLE announces {n} colours")
+            elif i + 1 >= len(tok) and kw.isalpha():
+                return f"the file ends inside the header of a section ({tok[i]!r})"
+            else:
+                return None  # METADATA, COLOR_SCALARS, ...: not walked
+            if msg is not None:
+                return msg
+    except IndexError:
+        return f"the file ends inside the header of a section ({' '.join(tok[i:])!r})"
+    except (ValueError, TypeError):
+        return None
+    return None
+
+
 def check_vtu(path: Path, m: meshio.Mesh) -> None:
     """VTU: NumberOfPoints / NumberOfCells of each piece, summed, against what meshio read."""
     head = path.read_bytes()
@@ -161,6 +265,8 @@ def _nodes_per_type(t: int, c: _Cursor) -> int:
 
 
 def _check_tags(tags: np.ndarray, where: str) -> None:
+    if len(tags) and tags.min() < 1:
+        raise MeshReadError(f"{where}: node tag {int(tags.min())} in $Nodes is not positive (Gmsh tags start at 1)")
     order = np.argsort(tags, kind="stable")
     same = np.flatnonzero(tags[order][1:] == tags[order][:-1])
     if len(same):

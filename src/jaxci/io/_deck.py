@@ -133,7 +133,7 @@ def deck_losses(mesh: HexMesh, fmt: str) -> list[tuple[str, str]]:
         if fmt == "abaqus":
             types = []  # a fresh Abaqus deck keeps the element types
         what = ([f"the keyword blocks {_listed(keywords)}"] if keywords else []) + (
-            [f"the element types {types}"] if types else [])
+            [f"the element types {', '.join(types)}"] if types else [])
         if what:
             out.append(("abaqus", f"{' and '.join(what)} of the source Abaqus deck"))
     deck = mesh.field_data.get("ansys:deck")

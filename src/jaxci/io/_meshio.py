@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import JaxciError, MeshReadError, MeshWriteError
 from ..mesh import MIRROR_HEX, CellBlock, HexMesh
-from ._counts import check_gmsh, check_vtk, check_vtu, vtu_header
+from ._counts import check_gmsh, check_vtk, check_vtu, diagnose_vtk, vtu_header
 from ._deck import deck_losses
 
 #: Prefix of the point / cell data that carry a point / cell set in formats without sets.
@@ -175,6 +175,8 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
         if isinstance(exc, JaxciError):
             raise
         why = _describe(exc)
+        if fmt == "vtk" and (diagnosis := diagnose_vtk(path)) is not None:
+            raise MeshReadError(f"{path}: corrupt or truncated legacy VTK file: {diagnosis}") from exc
         if fmt == "vtu" and not why:
             why = f"the arrays disagree with the header, or are cut short: {vtu_header(path)}".rstrip(": ")
         raise MeshReadError(f"{path}: corrupt or truncated {_TITLES[fmt]} file{f' ({why})' if why else ''}") from exc
