@@ -637,3 +637,18 @@ def test_writer_errors_name_the_output_not_the_temporary_file(tmp_path):
     with pytest.raises(MeshWriteError) as info:
         write_mesh(mesh, tmp_path / "m.cdb")
     assert str(info.value) == f"{tmp_path / 'm.cdb'}: element id 0 is not positive; ANSYS ids start at 1"
+
+
+def test_smoothing_an_abaqus_deck_through_the_cli(tmp_path, capsys):
+    """Bug 4 as reported: `jaxci smooth t.inp o.inp` kept neither C3D8R nor *MATERIAL, with rc 0 and no warning."""
+    from jaxci.cli import main
+
+    assert main(["smooth", str(DECK), str(tmp_path / "o.inp"), "--json"]) == 0
+    assert "drops" not in capsys.readouterr().err
+    old, new = deck_lines(DECK), deck_lines(tmp_path / "o.inp")
+    assert len(old) == len(new)
+    changed = [i for i, (a, b) in enumerate(zip(old, new, strict=True)) if a != b]
+    assert changed and all(4 <= i < 4 + 64 for i in changed)  # node lines only
+    before, after = read_mesh(DECK), read_mesh(tmp_path / "o.inp")
+    assert after.field_data["abaqus:element_types"] == ("C3D8R", "C3D8I", "C3D8H", "C3D8RH")
+    assert np.abs(after.points - before.points).max() > 1e-3

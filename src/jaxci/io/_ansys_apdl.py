@@ -6,9 +6,12 @@ follows it, trailing zero coordinates omitted, an element's nodes continued on f
 checked; ``ET`` (and ``ETBLOCK``) and ``KEYOPT`` records; ``CMBLOCK`` node and element components (as point and cell
 sets). Elements must be 3-D solids of a type jaxci knows (`jaxci.io._ansys.BRICK8`, ``BRICK20``, ``TET4``,
 ``TET10``); an element of another type, or of a TYPE no ``ET`` defines, is refused naming the file, line and
-element. Other commands (materials, loads, ``*SET`` parameters, ...) are skipped and counted in `HexMesh.notes`: the
-written file holds the mesh, element types and components only. The reader and the writer agree with the
-``mapdl-archive`` package on its example archives (``tests/test_ansys.py``, ``tests/test_cdb.py``).
+element. Other commands (materials, loads, ``*SET`` parameters, ...) are not modelled (counted in `HexMesh.notes`);
+the whole text of the file is kept as the field data ``ansys:deck``, and `jaxci.io._ansys_apdl_write.write_apdl`
+writes it back with only the coordinates of the NBLOCK rows changed. Node and element numbers must be positive and
+unique and fit int64, coordinates finite; anything else is a `MeshReadError` naming the file and line. The reader
+and the writer agree with the ``mapdl-archive`` package on its example archives (``tests/test_ansys.py``,
+``tests/test_cdb.py``, ``tests/test_roundtrip.py``).
 """
 
 from __future__ import annotations

@@ -35,6 +35,17 @@ FINISH
 - ``CMBLOCK,<name>,NODE|ELEM,<n>`` per point / cell set (ANSYS components, numbers in ``8i10`` with ranges as
   ANSYS writes them), for sets whose names ANSYS accepts (a letter, then up to 31 letters, digits or ``_``).
   Other cell types, data and sets are left out with a `LossyWriteWarning`.
+- Integer fields are ANSYS's ``i9`` (``i10`` in CMBLOCK) while the numbers fit with a blank between them, and
+  wider for larger ids: ``(3i11,6e21.13e3)``, ``(19i11)``, ``(8i12)`` for 10-digit ids, and so on up to int64;
+  the format lines say so, and jaxci and mapdl-archive (int32 ids) read them back.
+
+**In place.** A mesh read from an APDL file or CDB archive carries the file's text (field data ``ansys:deck``).
+When the mesh still has the file's nodes, ids, cells, element attributes, element types, key options, nodal angles
+and components (only its coordinates changed, as after smoothing), `write_apdl` writes that text again with only the
+coordinate fields of the moved nodes' NBLOCK rows rewritten, in the block's own format (``e21.13e3``, ``e20.13``,
+...): materials, loads, ``*SET`` parameters and every other command are kept byte for byte. Otherwise the file is
+written afresh as above, with a `LossyWriteWarning` naming the commands that are lost; every warning comes before
+the file is written.
 """
 
 from __future__ import annotations

@@ -225,7 +225,7 @@ class _Cursor:
             try:
                 out = np.array(self.tokens[self.i : self.i + n]).astype(np.int64)
             except (ValueError, OverflowError):
-                self.fail(f"a value that is not an integer near value {self.i + 1}")
+                self.fail(f"value {self.i + 1} is not an integer of at most 64 bits")
             self.i += n
             return out
         dtype = np.dtype(dtype)
@@ -332,7 +332,7 @@ def _walk22(c: _Cursor, name: str) -> None:
             try:
                 tags = np.array(c.tokens[c.i : c.i + 4 * total : 4]).astype(np.int64)
             except (ValueError, OverflowError):
-                c.fail("a node tag that is not an integer")
+                c.fail("a node tag is not an integer of at most 64 bits")
             c.i += 4 * total
         else:
             if c.pos + 28 * total > len(c.data):
