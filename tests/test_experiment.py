@@ -7,6 +7,7 @@ import importlib
 import json
 import os
 import re
+import shutil
 from pathlib import Path
 
 import meshio
@@ -166,16 +167,19 @@ def test_deterministic(small_run, tmp_path):
 
 
 def test_force_replaces_and_seeds_override(small_run, tmp_path, capsys):
-    cfg, _ = small_run
+    cfg, first = small_run
     out = tmp_path / "out"
-    out.mkdir()
-    (out / "old.txt").write_text("old")
+    shutil.copytree(first, out)  # earlier results
     code, _, err = _run(["run", str(cfg), "--out", str(out), "--quiet"], capsys)
-    assert code == 2 and "--force" in err and (out / "old.txt").exists()
+    assert code == 2 and "--force" in err
     code, _, _ = _run(["run", str(cfg), "--out", str(out), "--quiet", "--force", "--seeds", "1"], capsys)
-    assert code == 0 and not (out / "old.txt").exists()
+    assert code == 0
     assert len(json.loads((out / "summary.json").read_text())["runs"]) == 1
-    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporary folder left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left behind
+    (out / "notes.txt").write_text("mine")  # a file jaxci did not write: never replaced, even with --force
+    code, _, err = _run(["run", str(cfg), "--out", str(out), "--quiet", "--force"], capsys)
+    assert code == 2 and "not a jaxci results folder" in err and "notes.txt" in err
+    assert (out / "notes.txt").read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
 def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):

@@ -2,16 +2,21 @@
 
 `run_experiment` smooths every (mesh, method, seed) of an `Experiment` (a YAML config read and validated by
 `jaxci.config.load_config`, re-exported here; the config format is described in `jaxci.config`) with
-`jaxci.smooth.smooth` and writes one output folder. The output folder is checked before anything runs: one that
-exists (without ``force``) or cannot be written is a `jaxci.errors.ConfigError`, as is ``device: gpu`` on a
+`jaxci.smooth.smooth` and writes one output folder. The output folder is checked before anything runs
+(`jaxci.results.stage`): one that exists (without ``force``), that is not a jaxci results folder (with
+``force``: a folder is replaced only if it holds earlier jaxci results and nothing else), that holds an input or
+the current folder, or that cannot be written is a `jaxci.errors.ConfigError`, as is ``device: gpu`` on a
 machine with no GPU.
 
 Output folder (written to a temporary sibling folder, renamed into place at the end; every file via a
 temporary file and `os.replace`): ``summary.json``, ``runs.csv``, ``history.json``, ``report.md`` (the paper's
-Tables 1-3 beside ours, `jaxci.report`), ``figures/*.png`` (`jaxci.plots`) and ``meshes/*.vtu``. A
-`KeyboardInterrupt` keeps the finished runs: the folder is still written, with ``"partial": true``. A run
-that fails (a `JaxciError` such as an inverted mesh with no untangling, or an unexpected exception unless
-``strict``) is recorded with its message and the other runs go on.
+Tables 1-3 beside ours, `jaxci.report`), ``figures/*.png`` (`jaxci.plots`), ``meshes/*.vtu`` and the marker
+``.jaxci-results`` (`jaxci.results.MARKER`). A `KeyboardInterrupt` keeps the finished runs: the folder is still
+written, with ``"partial": true`` and no figures (so that an interrupt acts at once); earlier results are
+replaced only by a complete run (a partial one, or one where every run failed, goes beside them,
+``<out>.partial-N`` / ``<out>.failed-N``). A run that fails (a `JaxciError` such as an inverted mesh with no
+untangling, or an unexpected exception unless ``strict``) is recorded with its message and the other runs go
+on.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import dataclasses
 import json
 import os
 import shutil
+import threading
 import time
 import warnings
 from collections.abc import Callable
@@ -32,7 +38,8 @@ from .config import Experiment, ResolvedMesh, ResolvedMethod
 from .config import load_config as load_config  # re-exported: ``from jaxci.experiment import load_config``
 from .config_errors import Locator
 from .errors import ConfigError, JaxciError
-from .report import RunRecord, commit_dir, json_ready, stage_dir, write_text, write_vtus
+from .report import RunRecord, json_ready, write_vtus
+from .results import Staged, stage, write_text
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +50,9 @@ class ExperimentResult:
     records: tuple[RunRecord, ...]
     summary: dict
     partial: bool
+    #: the earlier results folder left as it was, when this run was partial or every run failed (`out` is then
+    #: a sibling of it, ``<kept>.partial-N`` or ``<kept>.failed-N``); None when `out` is the folder asked for
+    kept: Path | None = None
 
     @property
     def failed(self) -> list[RunRecord]:
@@ -84,6 +94,7 @@ def run_experiment(
     seeds: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     strict: bool = False,
+    on_start: Callable[[Callable[[], ExperimentResult | None]], None] | None = None,
 ) -> ExperimentResult:
     """Run every (mesh, method, seed) of `exp` and write the output folder.
 
@@ -92,18 +103,24 @@ def run_experiment(
     - `exp`: a loaded `Experiment` (`load_config`).
     - `out`: the output folder (default: the config's ``output``, else ``results/<config stem>``). Keyword
       arguments below are keyword only.
-    - `force`: replace an existing output folder (only once the new one is complete).
+    - `force`: replace an existing output folder, only if it holds earlier jaxci results and nothing else, and
+      only once the new run is complete (`jaxci.results`).
     - `seeds`: run seeds ``0..seeds-1`` instead of the config's.
     - `progress`: called as ``progress(done, total, description)`` before each run and once at the end.
     - `strict`: re-raise an unexpected exception of a run (a bug) instead of recording it as a failed run.
+    - `on_start`: called once the output folder is checked, as ``on_start(finish)``; ``finish()`` may be called
+      from another thread (the jaxci command's interrupt watchdog, while this thread is stuck in a long XLA
+      call): it writes the finished runs as a partial result (no figures) and returns its `ExperimentResult`,
+      the result already written, or None if it could not get hold of the output within 10 s.
 
     **Returns:** an `ExperimentResult`. A run that raises a `JaxciError` (e.g. an inverted mesh that cannot be
     untangled) is recorded as ``"failed"`` and the others go on. On `KeyboardInterrupt` the finished runs are
-    written with ``"partial": true`` and the `KeyboardInterrupt` is raised again.
+    written with ``"partial": true`` (no figures) and a `KeyboardInterrupt` is raised again, with the
+    `ExperimentResult` as its argument. Earlier results in `out` are kept when the run is partial or every run
+    failed: the new results then go beside them (``<out>.partial-N`` / ``<out>.failed-N``,
+    `ExperimentResult.kept`).
     """
     import jax
-
-    from . import plots, report
 
     if seeds is not None:
         if int(seeds) != seeds or seeds < 1:
@@ -111,15 +128,16 @@ def run_experiment(
         exp = dataclasses.replace(exp, seeds=tuple(range(int(seeds))))
     device = select_device(exp.config.device)
     out_path, key = resolve_output(exp, out)
-    tmp, _ = stage_dir(out_path, key, force)
-    records: list[RunRecord] = []
+    files = [exp.path, *(m.path for m in exp.meshes if m.path is not None)]
+    state = _Run(exp, device, stage(out_path, key, force, files))
+    if on_start is not None:
+        on_start(state.abort)
     partial = False
     try:
         plan = exp.runs()
+        state.total = len(plan)
         first_seed = exp.seeds[0]
         inputs: dict[tuple[str, int], Any] = {}
-        results: dict[tuple[str, str], Any] = {}  # first seed's (input mesh, SmoothResult) per (mesh, label)
-        t0 = time.perf_counter()
         try:
             with jax.default_device(device):
                 for k, (rm, seed, meth) in enumerate(plan):
@@ -127,38 +145,98 @@ def run_experiment(
                         progress(k, len(plan), f"{rm.name} / {meth.label} / seed {seed}")
                     rec, res = _one_run(exp, rm, seed, meth, inputs, strict)
                     if res is not None and seed == first_seed:
-                        results[(rm.name, meth.label)] = (inputs[(rm.name, seed)], res)
+                        state.results[(rm.name, meth.label)] = (inputs[(rm.name, seed)], res)
                         if exp.config.write_meshes:
-                            rec.mesh_file = write_vtus(tmp, rm, meth, seed, inputs[(rm.name, seed)], res)
-                    records.append(rec)
+                            rec.mesh_file = write_vtus(state.staged.tmp, rm, meth, seed, inputs[(rm.name, seed)],
+                                                       res)
+                    state.records.append(rec)
                     inputs = {kk: v for kk, v in inputs.items() if kk == (rm.name, seed)}  # one mesh in memory
         except KeyboardInterrupt:  # keep the finished runs; written below, marked partial
             partial = True
         if progress is not None:
-            progress(len(records), len(plan), "writing results")
-        summary = report.build_summary(exp, records, device, partial=partial, total_runs=len(plan),
-                                       elapsed=time.perf_counter() - t0)
-        if exp.config.figures:
+            progress(len(state.records), len(plan), "writing results")
+    except BaseException:
+        state.staged.discard()
+        raise
+    return state.finish(partial)
+
+
+class _Run:
+    """The state of one `run_experiment` call that its output needs: written by `finish` (this thread) or by
+    `abort` (another thread, on an interrupt), whichever comes first, under `lock`."""
+
+    def __init__(self, exp: Experiment, device, staged: Staged):
+        self.exp, self.device, self.staged = exp, device, staged
+        self.records: list[RunRecord] = []
+        self.results: dict[tuple[str, str], Any] = {}  # first seed's (input mesh, SmoothResult) per (mesh, label)
+        self.total = 0
+        self.t0 = time.perf_counter()
+        self.lock = threading.Lock()
+        self.result: ExperimentResult | None = None
+        self.summary: dict = {}
+
+    def finish(self, partial: bool) -> ExperimentResult:
+        """Write the results (with figures); on a `KeyboardInterrupt` meanwhile, write them as partial without
+        figures. Raises `KeyboardInterrupt(result)` when interrupted (`partial`, or during the writing)."""
+        interrupted = partial
+        with self.lock:
+            if self.result is not None:  # `abort` wrote them
+                interrupted = True
+            else:
+                try:
+                    self.result = self._write(partial, figures=self.exp.config.figures and not partial)
+                except KeyboardInterrupt:
+                    interrupted = True
+                    if self.staged.committed is not None:  # interrupted just after the results were moved in
+                        self.result = self._result(self.staged.committed, partial, self.summary)
+                    else:  # figures may be half drawn: the runs without them
+                        shutil.rmtree(self.staged.tmp / "figures", ignore_errors=True)
+                        self.result = self._write(True, figures=False)
+                except BaseException:
+                    self.staged.discard()
+                    raise
+        if interrupted:
+            raise KeyboardInterrupt(self.result)
+        return self.result
+
+    def abort(self) -> ExperimentResult | None:
+        """From another thread: write the finished runs as a partial result (no figures) unless done."""
+        if not self.lock.acquire(timeout=10.0):
+            return None
+        try:
+            if self.result is None:
+                self.result = self._write(True, figures=False)
+            return self.result
+        finally:
+            self.lock.release()
+
+    def _write(self, partial: bool, figures: bool) -> ExperimentResult:
+        from . import plots, report
+
+        exp, records = self.exp, list(self.records)
+        tmp = self.staged.tmp
+        summary = report.build_summary(exp, records, self.device, partial=partial, total_runs=self.total,
+                                       elapsed=time.perf_counter() - self.t0)
+        if figures:
             try:
-                summary["figures"] = plots.write_figures(tmp / "figures", exp, records, results)
+                summary["figures"] = plots.write_figures(tmp / "figures", exp, records, self.results)
             except Exception as e:  # a plotting failure must not lose the runs: recorded, warned
                 summary["figures"] = {"error": f"{type(e).__name__}: {e}"}
                 warnings.warn(f"figures could not be drawn ({type(e).__name__}: {e}); the runs are written",
-                              stacklevel=2)
+                              stacklevel=3)
         write_text(tmp / "summary.json", json.dumps(json_ready(summary), indent=1, allow_nan=False) + "\n")
         write_text(tmp / "history.json", json.dumps(json_ready(
             [{"mesh": r.mesh, "method": r.label, "seed": r.seed, **(r.history or {})} for r in records]),
             allow_nan=False) + "\n")
         write_text(tmp / "runs.csv", report.runs_csv(records))
         write_text(tmp / "report.md", report.render_report(summary))
-        commit_dir(tmp, out_path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    result = ExperimentResult(out_path, tuple(records), summary, partial)
-    if partial:
-        raise KeyboardInterrupt(result)
-    return result
+        self.summary = summary
+        complete = not partial and any(r.status == "ok" for r in records)
+        return self._result(self.staged.commit(complete=complete, partial=partial), partial, summary, records)
+
+    def _result(self, dest: Path, partial: bool, summary: dict, records=None) -> ExperimentResult:
+        kept = self.staged.out if dest != self.staged.out else None
+        return ExperimentResult(dest, tuple(self.records if records is None else records), summary, partial, kept)
 
 
 def _one_run(exp: Experiment, rm: ResolvedMesh, seed: int, meth: ResolvedMethod, inputs: dict, strict: bool):

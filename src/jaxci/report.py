@@ -11,29 +11,24 @@ The paper (Sapre, Kulkarni, Shinde, "Finite Element Mesh Smoothing Using Cohort 
 per (mesh, method) are over the seeds of the experiment; the standard deviation is the sample one (N - 1,
 MATLAB's ``std``, which the paper used), 0 for a single run.
 
-It also holds the output side of `jaxci.experiment.run_experiment`: the `RunRecord` of a run, the atomic
-output folder (`stage_dir`, `commit_dir`) and files (`write_text`), strict JSON (`json_ready`) and the smoothed
-meshes with their quality fields (`annotated_mesh`, `write_vtus`).
+It also holds the output side of `jaxci.experiment.run_experiment`: the `RunRecord` of a run, strict JSON
+(`json_ready`) and the smoothed meshes with their quality fields (`annotated_mesh`, `write_vtus`); the output
+folder itself (atomic, never losing earlier results) is `jaxci.results`.
 """
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import dataclasses
 import io
 import math
-import os
 import platform
-import shutil
 import statistics
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
 from .quality import HISTOGRAM_EDGES
 
 #: Table 1 of the paper: corner counts of the 27-element cube per kappa/3 bin.
@@ -333,54 +328,6 @@ class RunRecord:
         d = dataclasses.asdict(self)
         d.pop("history")
         return d
-
-
-def stage_dir(out: Path, key: str, force: bool) -> tuple[Path, list[Path]]:
-    """Check `out` and make the temporary sibling folder; returns it and the parent folders it created."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{key}: {out} exists and is not a folder")
-    if out.exists() and not force:
-        raise ConfigError(f"{key}: {out} exists; pass --force to replace it (nothing was written)")
-    parent = out.absolute().parent
-    created, p = [], parent
-    while not p.exists():
-        created.append(p)
-        p = p.parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
-    except OSError as e:
-        for c in created:
-            with contextlib.suppress(OSError):
-                c.rmdir()
-        raise ConfigError(f"{key}: cannot write {out} ({e.strerror or e}); nothing was written") from None
-    return tmp, created
-
-
-def commit_dir(tmp: Path, out: Path) -> None:
-    """Rename the finished temporary folder onto `out` (an existing `out` is replaced only now)."""
-    out = out.absolute()
-    trash = None
-    if out.exists():
-        trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-        os.replace(out, trash / "old")
-    os.replace(tmp, out)
-    if trash is not None:
-        shutil.rmtree(trash, ignore_errors=True)
-
-
-def write_text(path: Path, text: str) -> None:
-    """Write `text` to `path` atomically (temporary file in the same folder, then `os.replace`)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def json_ready(x):
