@@ -1,4 +1,7 @@
-"""`jaxci classify MESH OUT.vtu`: write the node classes (interior/surface/edge/corner) as point data."""
+"""`jaxci classify MESH OUT.vtu [--force]`: write the node classes (interior/surface/edge/corner) as point data.
+
+OUT is checked first (`_files.check_output`: never MESH, an existing file only with ``--force``).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +14,8 @@ def add_args(p) -> None:
     p.add_argument("output", help="output mesh (e.g. .vtu for ParaView) with point data 'node_class'")
     p.add_argument("--feature-angle", type=float, default=40.0, help="degrees (default 40)")
     p.add_argument("--json", action="store_true", help="print the counts as JSON")
+    p.add_argument("--force", action="store_true", help="overwrite OUTPUT if it is an existing file (never the "
+                   "input)")
 
 
 def run(args) -> int:
@@ -18,14 +23,18 @@ def run(args) -> int:
 
     from ..boundary import classify_boundary
     from ..io import read_mesh, write_mesh
+    from ._files import check_output
+    from ._interrupt import removing_temporaries
 
+    check_output(args.output, [args.mesh], force=args.force)
     mesh = read_mesh(args.mesh)
     info = classify_boundary(mesh, feature_angle=args.feature_angle)
     pd = dict(mesh.point_data)
     pd["node_class"] = np.asarray(info.node_class, dtype=np.int32)
     pd["patch_id"] = np.asarray(info.patch_id, dtype=np.int32)
     pd["curve_id"] = np.asarray(info.curve_id, dtype=np.int32)
-    write_mesh(dataclasses.replace(mesh, point_data=pd, fix_orientation=False, notes=(), source=None), args.output)
+    with removing_temporaries(args.output):  # source kept: write_mesh refuses the input files too
+        write_mesh(dataclasses.replace(mesh, point_data=pd, fix_orientation=False, notes=()), args.output)
     counts = {f"{k}_nodes": v for k, v in info.counts.items()}
     if args.json:
         print(json.dumps({**counts, "patches": info.n_patches, "curves": info.n_curves, "notes": list(info.notes)}))

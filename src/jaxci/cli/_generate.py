@@ -1,4 +1,7 @@
-"""`jaxci generate box --n 9 --amplitude 0.3 --seed 0 out.vtu`: structured and perturbed box meshes."""
+"""`jaxci generate box --n 9 --amplitude 0.3 --seed 0 out.vtu [--force]`: structured and perturbed box meshes.
+
+An existing OUT is refused without ``--force`` (`_files.check_output`); the file is written atomically.
+"""
 
 from __future__ import annotations
 
@@ -16,18 +19,23 @@ def add_args(p) -> None:
     p.add_argument("--which", choices=["sliding", "interior"], default="sliding",
                    help="perturb boundary nodes along the boundary too (sliding) or interior nodes only")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--force", action="store_true", help="overwrite OUT if it is an existing file")
 
 
 def run(args) -> int:
     from ..generate import paper_case, perturb_box
     from ..io import write_mesh
+    from ._files import check_output
+    from ._interrupt import removing_temporaries
 
+    check_output(args.out, force=args.force)
     if args.kind == "box":
         n = args.n
         mesh = perturb_box(args.nx or n, args.ny or n, args.nz or n, amplitude=args.amplitude, seed=args.seed,
                            which=args.which, size=tuple(args.size))
     else:
         mesh = paper_case(args.kind, seed=args.seed)
-    write_mesh(mesh, args.out)
+    with removing_temporaries(args.out):
+        write_mesh(mesh, args.out)
     print(f"wrote {args.out}: {mesh.n_nodes} nodes, {mesh.n_hexes} hexahedra")
     return 0

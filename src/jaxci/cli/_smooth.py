@@ -1,9 +1,12 @@
-"""`jaxci smooth IN OUT --method ci [--seed S] [--json]`: smooth a mesh and write it in the format of OUT."""
+"""`jaxci smooth IN OUT --method ci [--seed S] [--json] [--force]`: smooth a mesh and write it in the format of OUT.
+
+OUT is checked before the smoothing (`_files.check_output`: never the input, an existing file only with
+``--force``) and written atomically; an interrupt leaves no OUT and no temporary file.
+"""
 
 from __future__ import annotations
 
 import json
-import os
 
 
 def add_args(p) -> None:
@@ -22,7 +25,8 @@ def add_args(p) -> None:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object")
-    p.add_argument("--force", action="store_true", help="overwrite OUTPUT if it exists")
+    p.add_argument("--force", action="store_true", help="overwrite OUTPUT if it is an existing file (never the "
+                   "input)")
 
 
 def _parse_params(items: list[str]) -> dict:
@@ -41,20 +45,19 @@ def _parse_params(items: list[str]) -> dict:
 
 
 def run(args) -> int:
-    from ..errors import MeshWriteError
     from ..io import read_mesh, write_mesh
     from ..smooth import smooth
+    from ._files import check_output
+    from ._interrupt import removing_temporaries
     from ._quality import format_table
 
-    if os.path.abspath(args.input) == os.path.abspath(args.output):
-        raise MeshWriteError(f"{args.output}: refusing to overwrite the input mesh; choose another output path")
-    if os.path.exists(args.output) and not args.force:
-        raise MeshWriteError(f"{args.output}: exists; pass --force to overwrite it")
+    check_output(args.output, [args.input], force=args.force)
     mesh = read_mesh(args.input)
     res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
                  **_parse_params(args.param))
-    write_mesh(res.mesh, args.output)
+    with removing_temporaries(args.output):
+        write_mesh(res.mesh, args.output)
     if args.json:
         print(json.dumps({**res.summary(), "input": args.input, "output": args.output}))
         return 0
