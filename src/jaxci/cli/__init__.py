@@ -1,7 +1,13 @@
 """The `jaxci` command line: one module per subcommand, each with `add_args(parser)` and `run(args)`.
 
 `main(argv)` returns the exit code: 0 on success, 2 for any error the user can fix (bad file, bad mesh, bad
-config: one line on stderr, no traceback), 130 on Ctrl-C. Library code never prints or exits; only this does.
+config, an output that exists or is an input: one line on stderr, no traceback, nothing written), 1 for a bug
+of ours ("internal error"), 130 on SIGINT (Ctrl-C) and 143 on SIGTERM, acted on within about a second even
+during a long computation (`_interrupt`: finished work kept, temporary files removed, one line on stderr).
+Library code never prints, exits or handles signals; only this does.
+
+Commands that write (``smooth``, ``classify``, ``generate``, ``run``) refuse an existing output unless given
+``--force`` and never write over one of their inputs (`_files`); every output is written atomically.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import sys
 import warnings
 
 from ..runtime import TUNABLE
+from . import _interrupt
 
 #: subcommand -> (module, one-line help)
 COMMANDS = {
@@ -22,6 +29,10 @@ COMMANDS = {
     "classify": ("_classify", "write the boundary node classes of a mesh as point data"),
     "run": ("_run", "run an experiment config (YAML): every mesh x method x seed, with report and figures"),
 }
+
+
+#: Exit codes of an interrupt: 128 + SIGINT, 128 + SIGTERM.
+INTERRUPTED = (130, 143)
 
 
 def _setup_jax() -> None:
@@ -62,14 +73,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI with `argv` (default ``sys.argv[1:]``) and return the exit code."""
+    with _interrupt.guard() as guard:
+        try:
+            parser = build_parser()
+            try:
+                args = parser.parse_args(argv)
+            except SystemExit as e:  # argparse: --help (0) or a usage error (2)
+                return int(e.code or 0)
+            _setup_jax()
+            return _dispatch(args)
+        except KeyboardInterrupt as e:  # SIGINT or SIGTERM (`_interrupt`); a command may add what it kept
+            guard.claim_exit()
+            detail = e.args[0] if e.args and isinstance(e.args[0], str) else ""
+            print(f"jaxci: interrupted ({_interrupt.signal_name(guard.signum)})" + (f": {detail}" if detail else ""),
+                  file=sys.stderr)
+            return guard.exit_code
+
+
+def _dispatch(args) -> int:
     from ..errors import JaxciError
 
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as e:  # argparse: --help (0) or a usage error (2)
-        return int(e.code or 0)
-    _setup_jax()
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -83,9 +106,6 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"jaxci: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("jaxci: interrupted", file=sys.stderr)
-        return 130
     except Exception as e:  # a bug of ours: one line, the traceback only with --debug
         if args.debug:
             raise
@@ -95,4 +115,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry() -> None:  # pragma: no cover - console script
-    sys.exit(main())
+    code = main()
+    if code in INTERRUPTED:  # skip the interpreter's shutdown: it would wait for an XLA computation to finish
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)

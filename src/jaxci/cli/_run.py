@@ -1,7 +1,13 @@
 """`jaxci run CONFIG [--out DIR] [--force] [--seeds N] [--quiet]`: run an experiment config (`jaxci.experiment`).
 
 Exit codes: 0 all runs done, 1 some runs failed (listed on stderr, recorded in the summary), 2 a bad config or
-output folder (nothing written), 130 interrupted (the finished runs are written, marked ``"partial": true``).
+output folder (nothing written), 130 on SIGINT (Ctrl-C) and 143 on SIGTERM: the finished runs are written,
+marked ``"partial": true``, even when the signal comes during a long computation (`_interrupt`).
+
+DIR (`jaxci.results`): a new folder, or with ``--force`` an empty one or earlier jaxci results (marker file
+``.jaxci-results``) holding nothing else; never the current folder or one holding an input. Earlier results
+are replaced only by a complete run: an interrupted run, or one where every run failed, is written beside them
+to ``DIR.partial-N`` / ``DIR.failed-N`` (first free N) and stderr says so.
 """
 
 from __future__ import annotations
@@ -13,7 +19,9 @@ def add_args(p) -> None:
     p.add_argument("config", help="experiment config (YAML); see configs/ and jaxci.config")
     p.add_argument("--out", metavar="DIR", help="output folder (default: the config's output, else "
                    "results/<config name>)")
-    p.add_argument("--force", action="store_true", help="replace DIR if it exists (once the new one is complete)")
+    p.add_argument("--force", action="store_true",
+                   help="replace DIR if it holds earlier jaxci results and nothing else (or is empty); they are "
+                   "replaced only once the new run is complete, else it goes to DIR.partial-N / DIR.failed-N")
     p.add_argument("--seeds", type=int, metavar="N", help="run seeds 0..N-1 instead of the config's")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary lines")
 
@@ -37,23 +45,42 @@ def _progress_bar(enabled: bool):
     return bar, update
 
 
+def _kept_line(res) -> str:
+    """What an interrupted `run_experiment` wrote, for the stderr line."""
+    if res is None:
+        return "the finished runs could not be written in time (a temporary folder may remain)"
+    s = res.summary
+    done = f"{s['runs_done']} of {s['runs_planned']} runs" if s else f"{len(res.records)} runs"
+    line = f"{done} finished, written to {res.out}" + (" (partial)" if res.partial else "")
+    if res.kept is not None:
+        line += f"; earlier results in {res.kept} untouched"
+    return line
+
+
 def run(args) -> int:
-    from ..experiment import load_config, run_experiment
+    from ..experiment import ExperimentResult, load_config, run_experiment
+    from ._interrupt import on_interrupt
 
     exp = load_config(args.config)
     ctx, update = _progress_bar(not args.quiet and sys.stderr.isatty())
+    abort = []  # run_experiment's finish-now function, for the interrupt watchdog
+
+    def emergency():
+        return _kept_line(abort[0]()) if abort else None
+
     try:
-        with ctx:
+        with on_interrupt(emergency), ctx:
             res = run_experiment(exp, args.out, force=args.force, seeds=args.seeds, progress=update,
-                                 strict=getattr(args, "debug", False))
+                                 strict=getattr(args, "debug", False), on_start=abort.append)
     except KeyboardInterrupt as e:
         partial = e.args[0] if e.args else None
-        if partial is not None and hasattr(partial, "out"):
-            print(f"jaxci: interrupted: {len(partial.records)} finished runs written to {partial.out} "
-                  f"(partial)", file=sys.stderr)
+        if isinstance(partial, ExperimentResult):
+            raise KeyboardInterrupt(_kept_line(partial)) from None
         raise
     for r in res.failed:
         print(f"jaxci: run failed: {r.mesh} / {r.label} / seed {r.seed}: {r.error}", file=sys.stderr)
+    if res.kept is not None:
+        print(f"jaxci: every run failed: written to {res.out}; earlier results in {res.kept} kept", file=sys.stderr)
     if not args.quiet:
         n = len(res.records)
         print(f"wrote {res.out}: {n} runs ({len(res.failed)} failed) in {res.summary['elapsed']:.1f} s; "
