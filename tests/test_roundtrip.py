@@ -523,7 +523,8 @@ def test_vtu_header_counts(tmp_path, old, new):
     meshio.vtu.write(tmp_path / "a.vtu", meshio.Mesh(box(2).points, [("hexahedron", box(2).cells[0].data)]),
                      binary=False)
     (tmp_path / "bad.vtu").write_text((tmp_path / "a.vtu").read_text().replace(old, new))
-    with pytest.raises(MeshReadError, match=r"bad\.vtu: corrupt or truncated VTU file \(.*(Number|shape)"):
+    with pytest.raises(MeshReadError, match=r"bad\.vtu: corrupt or truncated VTU file(: piece 0 announces \d+ cells "
+                                            r"\(NumberOfCells\) and holds 8 offsets and 8 types| \(.*shape)"):
         read_mesh(tmp_path / "bad.vtu")
 
 
@@ -652,3 +653,71 @@ def test_smoothing_an_abaqus_deck_through_the_cli(tmp_path, capsys):
     before, after = read_mesh(DECK), read_mesh(tmp_path / "o.inp")
     assert after.field_data["abaqus:element_types"] == ("C3D8R", "C3D8I", "C3D8H", "C3D8RH")
     assert np.abs(after.points - before.points).max() > 1e-3
+
+
+@pytest.mark.parametrize("version", ["4.1", "2.2"])
+def test_gmsh_elements_must_reference_defined_nodes_once(tmp_path, version):
+    data = ascii_gmsh(tmp_path, version)
+    ff = "gmsh22" if version == "2.2" else None
+    head, elements = data.split(b"$Elements\n")
+    rows = elements.split(b"\n")
+    first = 2 if version == "4.1" else 1  # the first element line (4.1: after the totals and the block header)
+    fields = rows[first].split()
+    bad = fields[:-1] + [b"999"]
+    (tmp_path / "ref.msh").write_bytes(head + b"$Elements\n" + b"\n".join(rows[:first] + [b" ".join(bad)] +
+                                                                         rows[first + 1:]))
+    with pytest.raises(MeshReadError, match=r"ref\.msh: an element of \$Elements lists node tag 999, which \$Nodes "
+                                            r"does not define"):
+        read_mesh(tmp_path / "ref.msh", file_format=ff)
+    second = rows[first + 1].split()
+    dup = [fields[0]] + second[1:]
+    (tmp_path / "dup.msh").write_bytes(head + b"$Elements\n" + b"\n".join(rows[:first + 1] + [b" ".join(dup)] +
+                                                                         rows[first + 2:]))
+    with pytest.raises(MeshReadError, match=r"dup\.msh: element tag 1 is defined twice in \$Elements"):
+        read_mesh(tmp_path / "dup.msh", file_format=ff)
+
+
+@pytest.mark.parametrize("array, old, new, message", [
+    ("offsets", "8\n16\n", "8\n15\n", r"cell 1 has 7 nodes by its offsets, but its type 12 \(hexahedron\) has 8"),
+    ("types", "12\n12\n", "12\n10\n", r"cell 1 has 8 nodes by its offsets, but its type 10 \(tetra\) has 4"),
+    ("types", "12\n12\n", "12\n99\n", r"holds 1 cells of VTK type 99, which jaxci cannot read"),
+    ("offsets", "56\n64\n", "56\n", r"announces 8 cells \(NumberOfCells\) and holds 7 offsets and 8 types"),
+])
+def test_vtu_cell_arrays_must_agree(tmp_path, array, old, new, message):
+    """meshio slices the connectivity by offsets and type sizes: a wrong offset or type gave other cells, silently."""
+    m = meshio.Mesh(box(2).points, [("hexahedron", box(2).cells[0].data)])
+    meshio.vtu.write(tmp_path / "a.vtu", m, binary=False)
+    text = (tmp_path / "a.vtu").read_text()
+    head, rest = text.split(f'Name="{array}" format="ascii">\n', 1)
+    assert rest.startswith(old) or old in rest[: rest.index("</DataArray>")]
+    body, tail = rest.split("</DataArray>", 1)
+    (tmp_path / "bad.vtu").write_text(head + f'Name="{array}" format="ascii">\n' + body.replace(old, new, 1) +
+                                      "</DataArray>" + tail)
+    with pytest.raises(MeshReadError, match=r"bad\.vtu: (corrupt or truncated VTU file: piece 0:? )?" + message):
+        read_mesh(tmp_path / "bad.vtu")
+
+
+@pytest.mark.skipif(not HAS_H5PY, reason="h5py not installed")
+@pytest.mark.parametrize("old, new, message", [
+    ('Dimensions="27 3"', 'Dimensions="24 3"', r"the Geometry announces 24 x 3 values, the data hold 27 points"),
+    ('NumberOfElements="8"', 'NumberOfElements="9"', r"the Topology announces 9 elements, the data hold 8"),
+    ('Dimensions="8 8"', 'Dimensions="8 7"', r"the Topology data item announces 8 x 7 values"),
+])
+def test_xdmf_dimensions_must_match_the_data(tmp_path, old, new, message):
+    write_mesh(box(2), tmp_path / "b.xdmf")
+    text = (tmp_path / "b.xdmf").read_text()
+    assert old in text
+    (tmp_path / "b.xdmf").write_text(text.replace(old, new))
+    with pytest.raises(MeshReadError, match=r"b\.xdmf: corrupt XDMF file: " + message):
+        read_mesh(tmp_path / "b.xdmf")
+
+
+def test_cdb_ids_above_2_53_stay_distinct(tmp_path):
+    """Ids between 2^53 and 2^63 went through float64 and two of them became one ("listed twice")."""
+    base = box(1)
+    big = 2**62
+    mesh = HexMesh(base.points, (CellBlock("hexahedron", base.cells[0].data, np.array([big + 7])),),
+                   node_ids=big + np.arange(8))
+    write_mesh(mesh, tmp_path / "big.cdb")
+    back = read_mesh(tmp_path / "big.cdb")
+    assert back.node_ids.tolist() == mesh.node_ids.tolist() and back.cells[0].ids.tolist() == [big + 7]

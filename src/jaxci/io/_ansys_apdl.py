@@ -292,12 +292,12 @@ class _Reader:
                     midside[k] = nodes[8:]
             n_mid += len(nodes) == 20
             n_tet10 += len(nodes) == 10
-        nd = np.array(self.nodes, dtype=np.float64)
+        nd = np.array([n[1:] for n in self.nodes], dtype=np.float64).reshape(-1, 3)
         ang = np.array(self.angles, dtype=np.float64)
         extra = fixed[:, 5:8]
         return Bricks(
-            node_ids=nd[:, 0].astype(np.int64),
-            points=nd[:, 1:],
+            node_ids=np.array([n[0] for n in self.nodes], dtype=np.int64),  # not through float64: ids above 2^53
+            points=nd,
             elem_ids=fixed[:, 10],
             attrs=fixed[:, [0, 1, 2, 4, 3]],  # EBLOCK order MAT TYPE REAL SECNUM ESYS -> MAT TYP REL ESY SEC
             corners=corners,

@@ -190,6 +190,138 @@ def check_vtu(path: Path, m: meshio.Mesh) -> None:
                             f"{n_cells} cells, the arrays hold {len(m.points)} points and {held} cells")
 
 
+def read_vtu(path: Path) -> meshio.Mesh:
+    """Read a VTU file as ``meshio.vtu.read`` does, and check each piece's cell arrays: as many offsets and types as
+    NumberOfCells, offsets increasing to the connectivity's length, and each cell holding as many nodes as its
+    type has (meshio slices the connectivity by the offsets and the type's size, so a wrong offset or type would
+    silently give other cells); a cell type meshio cannot read (which it would drop) is refused too. When meshio
+    fails, the same checks say why if they can."""
+    from xml.etree import ElementTree as ET
+
+    from meshio.vtu import _vtu
+
+    try:
+        try:
+            root = ET.parse(str(path)).getroot()
+        except ET.ParseError:
+            root = _vtu._parse_raw_binary(str(path))
+        grid, appended = _vtu.get_grid(root)
+    except Exception:  # noqa: BLE001 - whatever is wrong, meshio's reader reports it below
+        grid = None
+    try:
+        reader = _vtu.VtuReader(str(path))
+    except Exception:
+        if grid is not None:
+            bare = _vtu.VtuReader.__new__(_vtu.VtuReader)  # only its array decoding, set up as its __init__ does
+            bare.compression = root.attrib.get("compressor")
+            bare.header_type = root.attrib.get("header_type", "UInt32")
+            bare.byte_order = root.attrib.get("byte_order")
+            bare.appended_data = appended
+            try:
+                _check_vtu_pieces(path, grid, bare)
+            except MeshReadError:
+                raise
+            except Exception:  # noqa: BLE001 - no better diagnosis: meshio's error stands
+                pass
+        raise
+    mesh = meshio.Mesh(reader.points, reader.cells, point_data=reader.point_data, cell_data=reader.cell_data,
+                       field_data=reader.field_data)
+    if grid is not None:
+        _check_vtu_pieces(path, grid, reader)
+    return mesh
+
+
+def _check_vtu_pieces(path: Path, grid, reader) -> None:
+    for k, piece in enumerate(grid.findall("Piece")):
+        cells = piece.find("Cells")
+        if cells is None:
+            continue
+        arrays = {da.attrib.get("Name"): np.asarray(reader.read_data(da)).ravel() for da in cells}
+        _check_vtu_piece(path, k, int(piece.attrib["NumberOfCells"]), arrays)
+
+
+def _check_vtu_piece(path: Path, k: int, n_cells: int, arrays: dict) -> None:
+    from meshio._vtk_common import vtk_to_meshio_type
+
+    where = f"{path}: corrupt or truncated VTU file: piece {k}"
+    offsets, types, conn = (arrays.get(n) for n in ("offsets", "types", "connectivity"))
+    if offsets is None or types is None or conn is None:
+        raise MeshReadError(f"{where} lacks one of the cell arrays offsets, types, connectivity")
+    if (types == 42).any():
+        return  # polyhedra: faces and face offsets, left to meshio
+    if len(offsets) != n_cells or len(types) != n_cells:
+        raise MeshReadError(f"{where} announces {n_cells} cells (NumberOfCells) and holds {len(offsets)} offsets and "
+                            f"{len(types)} types")
+    sizes = np.diff(np.concatenate([[0], offsets.astype(np.int64)]))
+    if n_cells and (sizes < 1).any():
+        c = int(np.flatnonzero(sizes < 1)[0])
+        raise MeshReadError(f"{where}: the offsets do not increase at cell {c} ({int(offsets[c])})")
+    if n_cells and int(offsets[-1]) != len(conn):
+        raise MeshReadError(f"{where}: the last offset is {int(offsets[-1])}, the connectivity holds {len(conn)} "
+                            f"entries")
+    for t in np.unique(types).tolist():
+        name = vtk_to_meshio_type.get(int(t))
+        if name is None:
+            raise MeshReadError(f"{path}: holds {int((types == t).sum())} cells of VTK type {int(t)}, which jaxci "
+                                f"cannot read (it would drop them)")
+        width = meshio._common.num_nodes_per_cell.get(name)
+        bad = (types == t) & (sizes != width) if width else np.zeros(len(types), bool)
+        if bad.any():
+            c = int(np.flatnonzero(bad)[0])
+            raise MeshReadError(f"{where}: cell {c} has {int(sizes[c])} nodes by its offsets, but its type {int(t)} "
+                                f"({name}) has {width} ({int(bad.sum())} such cells)")
+
+
+def check_xdmf(path: Path, m: meshio.Mesh) -> None:
+    """XDMF: the Dimensions of the Geometry, Topology and Attribute data items (and Topology's NumberOfElements)
+    against the arrays meshio read from the HDF5 file (meshio reads the arrays whole, whatever the XML says)."""
+    from xml.etree import ElementTree as ET
+
+    try:
+        root = ET.parse(str(path)).getroot()
+    except (ET.ParseError, OSError):
+        return
+    grids = root.findall(".//Grid")
+    if len(grids) != 1:
+        return  # collections and time series: left to meshio
+    grid = grids[0]
+    n_points, n_cells = len(m.points), sum(len(c.data) for c in m.cells)
+
+    def dims(item) -> list[int] | None:
+        d = item.find("DataItem") if item is not None else None
+        try:
+            return [int(v) for v in d.attrib["Dimensions"].split()] if d is not None else None
+        except (KeyError, ValueError):
+            return None
+
+    def fail(what: str):
+        raise MeshReadError(f"{path}: corrupt XDMF file: {what}")
+
+    geo = dims(grid.find("Geometry"))
+    if geo is not None and int(np.prod(geo)) != 3 * n_points:
+        fail(f"the Geometry announces {' x '.join(map(str, geo))} values, the data hold {n_points} points")
+    topo = grid.find("Topology")
+    if topo is not None:
+        announced = topo.attrib.get("NumberOfElements")
+        if announced is not None and int(announced) != n_cells:
+            fail(f"the Topology announces {announced} elements, the data hold {n_cells}")
+        t = dims(topo)
+        if topo.attrib.get("TopologyType", "").lower() != "mixed" and len(m.cells) == 1:
+            width = int(np.shape(m.cells[0].data)[1])
+            if t is not None and (t[0] != n_cells or (len(t) > 1 and t[1] != width)):
+                fail(f"the Topology data item announces {' x '.join(map(str, t))} values, the data hold {n_cells} "
+                     f"elements of {width} nodes")
+            per = topo.attrib.get("NodesPerElement")
+            if per is not None and per.strip() != str(width):
+                fail(f"the Topology announces {per} nodes per element, the data hold {width}")
+    for att in grid.findall("Attribute"):
+        d = dims(att)
+        want = n_points if att.attrib.get("Center", "Node") == "Node" else n_cells
+        if d is not None and att.attrib.get("Center", "Node") in ("Node", "Cell") and d[0] != want:
+            fail(f"attribute {att.attrib.get('Name')!r} announces {d[0]} values, the mesh has {want} "
+                 f"{'points' if want == n_points else 'cells'}")
+
+
 def vtu_header(path: Path) -> str:
     """The counts a VTU file's pieces announce, for a message about a file meshio could not read."""
     try:
@@ -264,15 +396,17 @@ def _nodes_per_type(t: int, c: _Cursor) -> int:
         c.fail(f"unknown element type {int(t)}")
 
 
-def _check_tags(tags: np.ndarray, where: str) -> None:
+def _check_tags(tags: np.ndarray, where: str, what: str) -> None:
+    section = "$Nodes" if what == "node" else "$Elements"
     if len(tags) and tags.min() < 1:
-        raise MeshReadError(f"{where}: node tag {int(tags.min())} in $Nodes is not positive (Gmsh tags start at 1)")
+        raise MeshReadError(f"{where}: {what} tag {int(tags.min())} in {section} is not positive (Gmsh tags start "
+                            f"at 1)")
     order = np.argsort(tags, kind="stable")
     same = np.flatnonzero(tags[order][1:] == tags[order][:-1])
     if len(same):
         k = int(order[same[0] + 1])
-        raise MeshReadError(f"{where}: node tag {int(tags[k])} is defined twice in $Nodes (node {int(order[same[0]])} "
-                            f"and node {k} in file order)")
+        raise MeshReadError(f"{where}: {what} tag {int(tags[k])} is defined twice in {section} ({what} "
+                            f"{int(order[same[0]])} and {what} {k} in file order)")
 
 
 def check_gmsh(path: Path) -> None:
@@ -284,6 +418,7 @@ def check_gmsh(path: Path) -> None:
     v4, ascii_ = fmt.group(1) == b"4.1", fmt.group(2) == b"0"
     size_t = np.dtype(f"u{int(fmt.group(3))}")
     where = str(path)
+    node_tags = None
     for name in ("Nodes", "Elements"):
         start = re.search(rb"(?m)^\$" + name.encode() + rb"\s*?\n", data)
         if start is None:
@@ -291,17 +426,21 @@ def check_gmsh(path: Path) -> None:
                 raise MeshReadError(f"{where}: corrupt or truncated Gmsh file: no $Elements section")
             continue
         c = _Cursor(data, start.end(), ascii_, size_t, where, name)
-        if v4:
-            _walk41(c, name)
-        else:
-            _walk22(c, name)
+        tags, nodes = _walk41(c, name) if v4 else _walk22(c, name)
         c.end()
+        if name == "Nodes":
+            _check_tags(tags, where, "node")
+            node_tags = np.sort(tags)
+        else:
+            _check_tags(tags, where, "element")
+            _check_references(tags, nodes, node_tags, where)
 
 
-def _walk41(c: _Cursor, name: str) -> None:
+def _walk41(c: _Cursor, name: str) -> tuple[np.ndarray, list]:
+    """(tags, node tags of each element block) of a Gmsh 4.1 section."""
     n_blocks, total, _, _ = c.ints(4, c.size_t)
     held = 0
-    tags = []
+    tags, nodes = [], []
     for _ in range(n_blocks):
         dim, _, kind = c.ints(3, np.int32)
         (n,) = c.ints(1, c.size_t)
@@ -310,14 +449,17 @@ def _walk41(c: _Cursor, name: str) -> None:
             tags.append(c.ints(n, c.size_t))
             c.skip(n * (3 + (int(dim) if kind else 0)), 8)
         else:
-            c.skip(n * (1 + _nodes_per_type(kind, c)), c.size_t.itemsize)
+            k = _nodes_per_type(kind, c)
+            rows = c.ints(n * (1 + k), c.size_t).reshape(n, 1 + k)
+            tags.append(rows[:, 0])
+            nodes.append(rows[:, 1:])
     if held != total:
         c.fail(f"the header announces {total} {name.lower()}, its {n_blocks} entity blocks hold {held}")
-    if tags:
-        _check_tags(np.concatenate(tags), c.where)
+    return (np.concatenate(tags) if tags else np.zeros(0, np.int64)), nodes
 
 
-def _walk22(c: _Cursor, name: str) -> None:
+def _walk22(c: _Cursor, name: str) -> tuple[np.ndarray, list]:
+    """(tags, node tags of the elements) of a Gmsh 2.2 section."""
     if c.ascii:
         (total,) = c.ints(1, np.int32)
     else:
@@ -329,10 +471,7 @@ def _walk22(c: _Cursor, name: str) -> None:
         if c.ascii:
             if c.i + 4 * total > len(c.tokens):
                 c.fail(f"the header announces {total} nodes, the section holds fewer")
-            try:
-                tags = np.array(c.tokens[c.i : c.i + 4 * total : 4]).astype(np.int64)
-            except (ValueError, OverflowError):
-                c.fail("a node tag is not an integer of at most 64 bits")
+            tags = _as_ints(c, c.tokens[c.i : c.i + 4 * total : 4], "a node tag")
             c.i += 4 * total
         else:
             if c.pos + 28 * total > len(c.data):
@@ -340,19 +479,54 @@ def _walk22(c: _Cursor, name: str) -> None:
             rec = np.frombuffer(c.data, np.dtype([("tag", "i4"), ("xyz", "f8", 3)]), total, c.pos)
             tags = rec["tag"].astype(np.int64)
             c.pos += 28 * total
-        _check_tags(tags, c.where)
-        return
+        return tags, []
     if c.ascii:
-        for _ in range(total):
-            _, t, n_tags = c.ints(3, np.int32)
-            c.skip(int(n_tags) + _nodes_per_type(t, c), 4)
-        return
-    held = 0
+        tok, i = c.tokens, c.i
+        ids, refs = [], []
+        try:
+            for _ in range(total):
+                k, n_tags = _nodes_per_type(int(tok[i + 1]), c), int(tok[i + 2])
+                ids.append(tok[i])
+                refs.extend(tok[i + 3 + n_tags : i + 3 + n_tags + k])
+                i += 3 + n_tags + k
+        except (IndexError, ValueError):
+            c.fail("fewer values than its headers announce")
+        if i > len(tok):
+            c.fail("fewer values than its headers announce")
+        c.i = i
+        return _as_ints(c, ids, "an element tag"), [_as_ints(c, refs, "a node tag")]
+    held, tags, nodes = 0, [], []
     while held < total:
-        t, follow, n_tags = c.ints(3, np.int32)
+        t, follow, n_tags = (int(v) for v in c.ints(3, np.int32))
         if follow < 1:
-            c.fail(f"an element block of {int(follow)} elements")
-        c.skip(int(follow) * (1 + int(n_tags) + _nodes_per_type(t, c)), 4)
-        held += int(follow)
+            c.fail(f"an element block of {follow} elements")
+        k = _nodes_per_type(t, c)
+        rows = c.ints(follow * (1 + n_tags + k), np.int32).reshape(follow, 1 + n_tags + k)
+        tags.append(rows[:, 0])
+        nodes.append(rows[:, 1 + n_tags :])
+        held += follow
     if held != total:
         c.fail(f"the header announces {total} elements, the blocks hold {held}")
+    return (np.concatenate(tags) if tags else np.zeros(0, np.int64)), nodes
+
+
+def _as_ints(c: _Cursor, tokens: list, what: str) -> np.ndarray:
+    try:
+        return np.array(tokens).astype(np.int64).reshape(-1)
+    except (ValueError, OverflowError):
+        c.fail(f"{what} is not an integer of at most 64 bits")
+
+
+def _check_references(elem_tags: np.ndarray, nodes: list, node_tags: np.ndarray | None, where: str) -> None:
+    """Every node an element lists is a node tag of $Nodes."""
+    if node_tags is None:
+        raise MeshReadError(f"{where}: corrupt or truncated Gmsh file: $Elements but no $Nodes section")
+    for block in nodes:
+        flat = np.asarray(block, np.int64).reshape(-1)
+        if not len(flat):
+            continue
+        pos = np.minimum(np.searchsorted(node_tags, flat), max(len(node_tags) - 1, 0))
+        bad = node_tags[pos] != flat if len(node_tags) else np.ones(len(flat), bool)
+        if bad.any():
+            raise MeshReadError(f"{where}: an element of $Elements lists node tag {int(flat[bad][0])}, which $Nodes "
+                                f"does not define ({int(bad.sum())} such references)")

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import JaxciError, MeshReadError, MeshWriteError
 from ..mesh import MIRROR_HEX, CellBlock, HexMesh
-from ._counts import check_gmsh, check_vtk, check_vtu, diagnose_vtk, vtu_header
+from ._counts import check_gmsh, check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
 from ._deck import deck_losses
 
 #: Prefix of the point / cell data that carry a point / cell set in formats without sets.
@@ -54,10 +54,11 @@ class LossyWriteWarning(UserWarning):
     """`write_mesh` wrote a format that cannot hold part of the mesh (see the table in `jaxci.io.write_mesh`)."""
 
 
-#: meshio's own reader of each format (never ``meshio.read``: it calls ``sys.exit`` on a corrupt file).
+#: meshio's own reader of each format (never ``meshio.read``: it calls ``sys.exit`` on a corrupt file); VTU's with
+#: jaxci's check of its cell arrays (`jaxci.io._counts.read_vtu`).
 _READERS = {
     "vtk": meshio.vtk.read,
-    "vtu": meshio.vtu.read,
+    "vtu": read_vtu,
     "gmsh": meshio.gmsh.read,
     "gmsh22": meshio.gmsh.read,
     "xdmf": meshio.xdmf.read,
@@ -98,6 +99,7 @@ _READ_ERRORS = (
     AttributeError,
     AssertionError,
     EOFError,
+    OverflowError,  # a number beyond int64 where meshio converts to numpy integers
     UnicodeDecodeError,
     RuntimeError,
     SyntaxError,  # xml.etree.ElementTree.ParseError
@@ -184,6 +186,8 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
         check_vtk(path, m)
     elif fmt == "vtu":
         check_vtu(path, m)
+    elif fmt == "xdmf":
+        check_xdmf(path, m)
     try:
         return _from_meshio(m, path)
     except JaxciError:
