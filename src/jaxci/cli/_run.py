@@ -24,6 +24,9 @@ def add_args(p) -> None:
                    "replaced only once the new run is complete, else it goes to DIR.partial-N / DIR.failed-N")
     p.add_argument("--seeds", type=int, metavar="N", help="run seeds 0..N-1 instead of the config's")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary lines")
+    p.epilog = ("exit codes: 0 all runs done; 1 some runs failed; 2 bad config or output folder (nothing written); "
+                "130 on SIGINT, 143 on SIGTERM (finished runs written, marked partial, beside earlier results: "
+                "DIR.partial-N)")
 
 
 def _progress_bar(enabled: bool):
