@@ -1,16 +1,20 @@
-"""Trust no header: the counts a legacy VTK, VTU or Gmsh file announces must match what it holds.
+"""Trust no header: the counts a legacy VTK, VTU, XDMF or Gmsh file announces must match what it holds.
 
 meshio reads what a file holds and believes what its headers say only in part: a legacy VTK file cut inside
-CELL_TYPES reads as a smaller mesh, and a Gmsh file whose $Elements header disagrees with its element lines reads
-without complaint. These checks run on every file `jaxci.io._meshio.read_meshio` reads and raise a `MeshReadError`
-naming the file and what is missing:
+CELL_TYPES reads as a smaller mesh, a VTU file with a wrong offset reads with other cells, and a Gmsh file whose
+$Elements header disagrees with its element lines reads without complaint. These checks run on every file
+`jaxci.io._meshio.read_meshio` reads and raise a `MeshReadError` naming the file and what is missing or wrong:
 
 - legacy VTK (after meshio): POINTS, CELLS, CELL_TYPES, POINT_DATA and CELL_DATA counts against the points and cells
-  read (and CELLS' size against the connectivity);
-- VTU (after meshio): NumberOfPoints and NumberOfCells against the points and cells read;
+  read (and CELLS' size against the connectivity); when meshio fails on an ASCII file, its sections are walked to
+  say which one holds more or fewer values than announced (`diagnose_vtk`);
+- VTU (`read_vtu`): NumberOfPoints and NumberOfCells against the arrays; offsets increasing to the connectivity's
+  length, each cell as large as its type; cell types meshio would drop are refused;
+- XDMF (after meshio): the Dimensions of Geometry, Topology and Attribute data items against the HDF5 arrays;
 - Gmsh 2.2 and 4.1, ASCII and binary (before meshio): the $Nodes and $Elements sections are walked entity block by
   entity block; every block must hold the nodes and elements its header announces, the totals must match the
-  section headers, the section must end where its $End line is, and no node tag may appear twice.
+  section headers, the section must end where its $End line is, node and element tags must be positive and
+  unique, and every node an element lists must be a node tag.
 """
 
 from __future__ import annotations

@@ -26,8 +26,9 @@ APDL formats (`jaxci.io._abaqus`, `jaxci.io._ansys_apdl`), and so is the text of
 ``ansys:deck`` field data). Anything a format drops is reported with a `LossyWriteWarning`, before writing.
 
 Counts are checked against the headers that announce them (`jaxci.io._counts`): a file whose POINTS, CELLS,
-CELL_TYPES, POINT_DATA or CELL_DATA (legacy VTK) or $Nodes / $Elements (Gmsh) counts disagree with what the file
-holds is a truncated or corrupt file, and so is a Gmsh file that defines a node tag twice.
+CELL_TYPES, POINT_DATA or CELL_DATA (legacy VTK), NumberOfPoints / NumberOfCells / offsets (VTU), Dimensions (XDMF)
+or $Nodes / $Elements (Gmsh) disagree with what the file holds is a truncated or corrupt file, and so is a Gmsh file
+that defines a node or element tag twice or whose elements list undefined nodes.
 """
 
 from __future__ import annotations
