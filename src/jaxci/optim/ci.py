@@ -46,8 +46,14 @@ import numpy as np
 from ..errors import ConfigError
 from ..mixed import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
 from ..projection import Constraints, params_to_points
+from . import _params as _p
 from ._local import gather_star
 from ._moves import ColouredStars, chunked_local_sum, colour_slice, local_count, local_scale, project_trials
+
+#: Upper bounds of `CIParams` (a typo must not hang a run or exhaust memory): cohort and variations each, their
+#: product (trial positions evaluated at once per node and attempt: batch shapes grow with it), loop bounds
+#: (attempts, sweeps, patience), interval widths (fractions of the local edge length).
+MAX_COHORT, MAX_TRIALS, MAX_LOOP, MAX_WIDTH = 256, 4096, 1_000_000, 1e3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,25 +93,28 @@ class CIParams:
     patience: int = 20
 
     def __post_init__(self):
-        def need(ok, msg):
-            if not ok:
-                raise ConfigError(f"CI parameter {msg}")
-
-        need(int(self.cohort) == self.cohort and self.cohort >= 2, f"cohort must be an integer >= 2, got {self.cohort}")
-        need(int(self.variations) == self.variations and self.variations >= 1,
-             f"variations must be an integer >= 1, got {self.variations}")
-        need(0 < self.reduction < 1, f"reduction must be in (0, 1), got {self.reduction}")
-        need(self.delta > 0, f"delta must be > 0, got {self.delta}")
-        need(int(self.attempts) == self.attempts and self.attempts >= 1,
-             f"attempts must be an integer >= 1, got {self.attempts}")
-        need(0 <= self.stage_switch <= 1, f"stage_switch must be in [0, 1], got {self.stage_switch}")
-        need(self.init_width > 0, f"init_width must be > 0, got {self.init_width}")
-        need(0 < self.min_width <= self.init_width, f"min_width must be in (0, init_width], got {self.min_width}")
-        need(int(self.max_sweeps) == self.max_sweeps and self.max_sweeps >= 1,
-             f"max_sweeps must be an integer >= 1, got {self.max_sweeps}")
-        need(self.tol >= 0 and self.ftol >= 0, "tol and ftol must be >= 0")
-        need(int(self.patience) == self.patience and self.patience >= 1,
-             f"patience must be an integer >= 1, got {self.patience}")
+        L = "CI"
+        _p.normalise(
+            self,
+            cohort=_p.integer(L, "cohort", self.cohort, 2, MAX_COHORT),
+            variations=_p.integer(L, "variations", self.variations, 1, MAX_COHORT),
+            reduction=_p.real(L, "reduction", self.reduction, 0, 1, lo_open=True, hi_open=True),
+            delta=_p.real(L, "delta", self.delta, 0, lo_open=True),
+            attempts=_p.integer(L, "attempts", self.attempts, 1, MAX_LOOP),
+            stage_switch=_p.real(L, "stage_switch", self.stage_switch, 0, 1),
+            init_width=_p.real(L, "init_width", self.init_width, 0, MAX_WIDTH, lo_open=True),
+            min_width=_p.real(L, "min_width", self.min_width, 0, MAX_WIDTH, lo_open=True),
+            max_sweeps=_p.integer(L, "max_sweeps", self.max_sweeps, 1, MAX_LOOP),
+            tol=_p.real(L, "tol", self.tol, 0),
+            ftol=_p.real(L, "ftol", self.ftol, 0),
+            patience=_p.integer(L, "patience", self.patience, 1, MAX_LOOP),
+        )
+        if self.min_width > self.init_width:
+            raise ConfigError(f"CI parameter min_width must be <= init_width ({self.init_width:g}), "
+                              f"got {self.min_width!r}")
+        if self.cohort * self.variations > MAX_TRIALS:
+            raise ConfigError(f"CI parameters cohort x variations = {self.cohort} x {self.variations} trial "
+                              f"positions per node and attempt must be at most {MAX_TRIALS}")
 
 
 class _Static(typing.NamedTuple):

@@ -90,6 +90,7 @@ from ..quality import (
     objective_terms_and_grad,
     squared_condition_from_invariants,
 )
+from . import _params as _p
 from ._solve import MAX_REJECTED, MAX_REJECTED_UNCAPPED, _CappedDescent, _solve
 from .parametrisation import Parametrisation, make_parametrisation, node_lengths  # noqa: F401  (re-exported)
 
@@ -106,6 +107,13 @@ FLAT_REACH = 0.9
 
 #: Corners one interior node moves (8 elements x 4 corners): the objective seen by the solvers is F * 8N / 32.
 _CORNERS_PER_NODE = 32.0
+
+
+#: Upper bounds of `GradientParams` (a typo must not hang a run or exhaust memory): solver steps (the history
+#: arrays have max_steps + 1 entries), L-BFGS memory and restarts, free coordinates of the dense least-squares
+#: Jacobian (8 N residuals x max_free, 8 bytes each: 10,000 free coordinates of a mesh of ~3,300 hexahedra is
+#: already 2 GB), smart-Laplace presmoothing sweeps.
+MAX_STEPS, MAX_HISTORY, MAX_FREE, MAX_PRESMOOTH = 1_000_000, 1000, 10_000, 100_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,30 +164,28 @@ class GradientParams:
     presmooth: int = 0
 
     def __post_init__(self):
-        def need(ok, msg):
-            if not ok:
-                raise ConfigError(f"gradient-method parameter {msg}")
-
-        need(int(self.max_steps) == self.max_steps and self.max_steps >= 1,
-             f"max_steps must be an integer >= 1, got {self.max_steps!r}")
-        need(self.rtol >= 0 and self.atol >= 0 and self.rtol + self.atol > 0,
-             f"rtol and atol must be >= 0 and not both 0, got rtol={self.rtol!r}, atol={self.atol!r}")
-        need(self.ftol >= 0, f"ftol must be >= 0, got {self.ftol!r}")
-        need(int(self.history_length) == self.history_length and self.history_length >= 1,
-             f"history_length must be an integer >= 1, got {self.history_length!r}")
-        need(self.cg_method in CG_METHODS, f"cg_method must be one of {', '.join(CG_METHODS)}, got {self.cg_method!r}")
-        need(isinstance(self.scaled, bool), f"scaled must be True or False, got {self.scaled!r}")
-        need(int(self.restarts) == self.restarts and self.restarts >= 0,
-             f"restarts must be an integer >= 0, got {self.restarts!r}")
-        need(self.restart_tol >= 0, f"restart_tol must be >= 0, got {self.restart_tol!r}")
-        need(int(self.max_free) == self.max_free and self.max_free >= 1,
-             f"max_free must be an integer >= 1, got {self.max_free!r}")
-        need(self.max_move >= 0, f"max_move must be >= 0, got {self.max_move!r}")
-        need(self.gradient in ("autodiff", "closed"), f"gradient must be 'autodiff' or 'closed', got {self.gradient!r}")
-        need(self.residual in ("kappa", "excess"), f"residual must be 'kappa' or 'excess', got {self.residual!r}")
-        need(self.gn_search in ("armijo", "none"), f"gn_search must be 'armijo' or 'none', got {self.gn_search!r}")
-        need(int(self.presmooth) == self.presmooth and self.presmooth >= 0,
-             f"presmooth must be an integer >= 0, got {self.presmooth!r}")
+        L = "gradient-method"
+        _p.normalise(
+            self,
+            max_steps=_p.integer(L, "max_steps", self.max_steps, 1, MAX_STEPS),
+            rtol=_p.real(L, "rtol", self.rtol, 0),
+            atol=_p.real(L, "atol", self.atol, 0),
+            ftol=_p.real(L, "ftol", self.ftol, 0),
+            history_length=_p.integer(L, "history_length", self.history_length, 1, MAX_HISTORY),
+            cg_method=_p.choice(L, "cg_method", self.cg_method, CG_METHODS),
+            scaled=_p.boolean(L, "scaled", self.scaled),
+            max_free=_p.integer(L, "max_free", self.max_free, 1, MAX_FREE),
+            restarts=_p.integer(L, "restarts", self.restarts, 0, MAX_HISTORY),
+            restart_tol=_p.real(L, "restart_tol", self.restart_tol, 0),
+            gradient=_p.choice(L, "gradient", self.gradient, ("closed", "autodiff")),
+            max_move=_p.real(L, "max_move", self.max_move, 0),
+            gn_search=_p.choice(L, "gn_search", self.gn_search, ("armijo", "none")),
+            residual=_p.choice(L, "residual", self.residual, ("excess", "kappa")),
+            presmooth=_p.integer(L, "presmooth", self.presmooth, 0, MAX_PRESMOOTH),
+        )
+        if self.rtol + self.atol <= 0:
+            raise ConfigError(f"gradient-method parameters rtol and atol must not both be 0, got rtol={self.rtol!r}, "
+                              f"atol={self.atol!r}")
 
 
 # ---------------------------------------------------------------------------------------------- objective
@@ -445,10 +451,7 @@ def run_gradient(problem, method: str, params: dict):
     **Returns:** as `minimise`; with ``presmooth`` sweeps of the smart Laplacian first, the history starts with
     theirs (``history["presmooth"]`` = sweeps run) and the iterations count sweeps and solver steps.
     """
-    try:
-        p = GradientParams(**params)
-    except TypeError as e:
-        raise ConfigError(f"unknown gradient-method parameter: {e}") from None
+    p = _p.make_params(GradientParams, params, method)
     x0, pre = problem.x0, None
     if p.presmooth:
         from .laplace import run_laplace

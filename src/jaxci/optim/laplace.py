@@ -40,6 +40,7 @@ from ..mixed import (
 )
 from ..projection import Constraints
 from ..topology import unique_edges
+from . import _params as _p
 from ._local import gather_star
 from ._moves import ColouredStars, colour_slice, coloured_stars, local_scale, local_sum, project_trials
 
@@ -50,6 +51,10 @@ METHODS = ("laplace", "smart-laplace")
 HEX_EDGES = np.array(
     [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64
 )
+
+
+#: Most sweeps (the history arrays have max_sweeps + 1 entries): a typo must not hang a run or exhaust memory.
+MAX_SWEEPS = 1_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,15 +72,13 @@ class LaplaceParams:
     backtrack: int = 3
 
     def __post_init__(self):
-        def need(ok, msg):
-            if not ok:
-                raise ConfigError(f"Laplace parameter {msg}")
-
-        need(int(self.max_sweeps) == self.max_sweeps and self.max_sweeps >= 1,
-             f"max_sweeps must be an integer >= 1, got {self.max_sweeps!r}")
-        need(self.tol >= 0, f"tol must be >= 0, got {self.tol!r}")
-        need(int(self.backtrack) == self.backtrack and 1 <= self.backtrack <= 16,
-             f"backtrack must be an integer in [1, 16], got {self.backtrack!r}")
+        L = "Laplace"
+        _p.normalise(
+            self,
+            max_sweeps=_p.integer(L, "max_sweeps", self.max_sweeps, 1, MAX_SWEEPS),
+            tol=_p.real(L, "tol", self.tol, 0),
+            backtrack=_p.integer(L, "backtrack", self.backtrack, 1, 16),
+        )
 
 
 def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -220,10 +223,7 @@ def run_laplace(problem, method: str, params: dict):
     """
     if method not in METHODS:
         raise ConfigError(f"unknown Laplace method {method!r}; choose one of {', '.join(METHODS)}")
-    try:
-        p = LaplaceParams(**params)
-    except TypeError as e:
-        raise ConfigError(f"unknown Laplace parameter: {e}") from None
+    p = _p.make_params(LaplaceParams, params, method)
     mesh = problem.mesh
     if has_extra(mesh):
         cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces,

@@ -41,14 +41,18 @@ import optimistix as optx
 
 from .. import elements as E
 from ..boundary import CORNER, BoundaryInfo
-from ..errors import ConfigError, InvertedMeshError
+from ..errors import InvertedMeshError
 from ..mesh import EDGES, HexMesh, corner_determinants
 from ..mixed import ExtraCells, cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
 from ..projection import Constraints, project_np
 from ..quality import corner_columns, gather_corners, transposed
+from . import _params as _p
 from ._solve import _solve
 from .gradient import _CORNERS_PER_NODE
 from .parametrisation import Parametrisation, make_parametrisation
+
+#: Upper bounds of `UntangleParams` (a typo must not hang a run): eps rounds, L-BFGS steps per round.
+MAX_ROUNDS, MAX_INNER_STEPS = 10_000, 1_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,16 +74,16 @@ class UntangleParams:
     atol: float = 1e-7
 
     def __post_init__(self):
-        def need(ok, msg):
-            if not ok:
-                raise ConfigError(f"untangling parameter {msg}")
-
-        need(0 <= self.theta < 1, f"theta must be in [0, 1), got {self.theta!r}")
-        need(0 < self.margin < 1, f"margin must be in (0, 1), got {self.margin!r}")
-        for name in ("max_rounds", "inner_steps"):
-            v = getattr(self, name)
-            need(int(v) == v and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
-        need(self.rtol > 0 and self.atol > 0, "rtol and atol must be > 0")
+        L = "untangling"
+        _p.normalise(
+            self,
+            theta=_p.real(L, "theta", self.theta, 0, 1, hi_open=True),
+            margin=_p.real(L, "margin", self.margin, 0, 1, lo_open=True, hi_open=True),
+            max_rounds=_p.integer(L, "max_rounds", self.max_rounds, 1, MAX_ROUNDS),
+            inner_steps=_p.integer(L, "inner_steps", self.inner_steps, 1, MAX_INNER_STEPS),
+            rtol=_p.real(L, "rtol", self.rtol, 0, lo_open=True),
+            atol=_p.real(L, "atol", self.atol, 0, lo_open=True),
+        )
 
 
 def _chi(eps, d):
@@ -249,10 +253,10 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
         nodes = np.unique(np.concatenate([blocks[t][k].ravel() for t, k in bad.items()]))
         stuck = np.asarray(info.node_class)[nodes] == CORNER
         raise InvertedMeshError(
-            f"{where}untangling failed: {rep['inverted_elements']} of {int(inv0.sum())} inverted elements are still "
-            f"inverted after {rep['rounds']} rounds ({rep['steps']} L-BFGS steps; first: "
-            f"{cell_label(mesh, t0, bad[t0][0])}; {int(stuck.sum())} of their nodes are fixed corners of the "
-            f"boundary); the input is left unchanged"
+            f"{where}untangling failed: {_elements(rep['inverted_elements'])} inverted after {rep['rounds']} rounds "
+            f"({int(inv0.sum())} {'was' if int(inv0.sum()) == 1 else 'were'} in the input; {rep['steps']} L-BFGS "
+            f"steps; first: {cell_label(mesh, t0, bad[t0][0])}; {int(stuck.sum())} of their {len(nodes)} nodes are "
+            f"fixed corners of the boundary); the input is left unchanged"
         )
     if not inv0.any() and rep["rounds"] == 0:
         return x, [f"untangling: no inverted element and min det / L^3 = {rep['min_det'][0]:.3g} >= margin "
@@ -264,6 +268,10 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
         f"nodes kept on the original boundary"
     )
     return x, [note]
+
+
+def _elements(k: int) -> str:
+    return f"{k} element is" if k == 1 else f"{k} elements are"
 
 
 def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.ndarray, x: np.ndarray):
