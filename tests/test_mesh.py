@@ -11,7 +11,18 @@ from helpers import unit_cube
 import jaxci
 from jaxci.errors import MeshError
 from jaxci.generate import box, box_free_axes, perturb_box
-from jaxci.mesh import MIRROR_HEX, CellBlock, HexMesh, corner_determinants, hex_mesh
+from jaxci.mesh import (
+    MIRROR_HEX,
+    CellBlock,
+    HexMesh,
+    check_volume,
+    coincident_pairs,
+    corner_determinants,
+    from_unit,
+    hex_mesh,
+    to_unit,
+    unit_frame,
+)
 
 
 def test_valid_cube():
@@ -119,3 +130,43 @@ def test_bad_box_arguments():
         box(0)
     with pytest.raises(MeshError, match="amplitude"):
         perturb_box(2, amplitude=-1)
+    for bad in ("abc", float("nan"), 2.5, True):
+        with pytest.raises(MeshError, match="nx must be a positive integer"):
+            box(bad)
+    with pytest.raises(MeshError, match="size must be three positive finite"):
+        box(2, size=(1.0, float("inf"), 1.0))
+    with pytest.raises(MeshError, match="amplitude"):
+        perturb_box(2, amplitude=float("nan"))
+    with pytest.raises(MeshError, match="which"):
+        perturb_box(2, which="all")
+
+
+@pytest.mark.parametrize("scale,offset", [(1.0, 0.0), (1e300, 0.0), (1e-300, 0.0), (3e-3, 1e4)])
+def test_unit_frame(scale, offset):
+    p = box(3).points * scale + offset
+    frame = unit_frame(p)
+    u = to_unit(p, frame)
+    assert np.abs(u).max() <= 1.0 and np.ptp(u, axis=0).max() >= 0.5
+    np.testing.assert_allclose(from_unit(u, frame), p, rtol=1e-15, atol=1e-15 * scale)
+    assert frame[1] == 2.0 ** np.floor(np.log2(scale * (1 + 1e-12)))  # a power of two: dividing by it is exact
+
+
+def test_coincident_pairs():
+    p = np.array([[0, 0, 0], [1, 1, 1], [0, 0, 1e-12], [1, 1, 1], [1, 1, 1]], float)
+    np.testing.assert_array_equal(coincident_pairs(p), [[0, 2], [1, 3], [1, 4], [3, 4]])
+    np.testing.assert_array_equal(coincident_pairs(p, tol=0.0), [[1, 3], [1, 4], [3, 4]])
+    np.testing.assert_array_equal(coincident_pairs(p, nodes=[0, 1, 2]), [[0, 2]])
+    assert box(2).coincident_nodes().shape == (0, 2) and not any("coincident" in n for n in box(2).notes)
+
+
+def test_zero_volume_detected():
+    check_volume(box(2))
+    m = box(2)
+    for axis, what in ((2, "in one plane"), (slice(1, 3), "on one line")):
+        p = m.points.copy()
+        p[:, axis] = 0.0
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            flat = hex_mesh(p, m.hexes)
+        with pytest.raises(MeshError, match=f"lie {what}"):
+            check_volume(flat)

@@ -36,7 +36,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from .errors import MeshError
-from .mesh import HexMesh
+from .mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
 from .mixed import fixed_nodes as fixed_cell_nodes
 from .mixed import volume_cells
 from .topology import BoundaryTopology, boundary_topology
@@ -167,8 +167,13 @@ def classify_boundary(
     **Returns:** a `BoundaryInfo`. Raises `MeshError` for a bad `feature_angle`, an out-of-range fixed node
     or an unknown point set; warns (`UserWarning`) about an open or non-manifold boundary.
     """
-    if not 0.0 < float(feature_angle) < 180.0:
+    mesh = as_hex_mesh(mesh, "classify_boundary")
+    if isinstance(feature_angle, (bool, str)) or not isinstance(feature_angle, (int, float, np.integer, np.floating)) \
+            or not 0.0 < float(feature_angle) < 180.0:
         raise MeshError(f"feature_angle must be in degrees strictly between 0 and 180, got {feature_angle!r}")
+    if isinstance(fixed_sets, str):
+        raise MeshError(f"fixed_sets must be a list of node set names, got the string {fixed_sets!r} (write "
+                        f"[{fixed_sets!r}])")
     where = f"{mesh.source}: " if mesh.source else ""
     hexes = mesh.hexes
     n = mesh.n_nodes
@@ -176,10 +181,10 @@ def classify_boundary(
     if fixed.size and (fixed.dtype.kind not in "iu" or fixed.min() < 0 or fixed.max() >= n):
         raise MeshError(f"{where}fixed_nodes must be node indices in [0, {n}), got {fixed.tolist()[:10]}")
     for name in fixed_sets:
-        if name not in mesh.point_sets:
+        if not isinstance(name, str) or name not in mesh.point_sets:
             known = ", ".join(sorted(mesh.point_sets)) or "none"
             raise MeshError(f"{where}fixed_sets: the mesh has no point set {name!r} (point sets: {known})")
-    pts = np.asarray(mesh.points, dtype=np.float64)
+    pts = to_unit(mesh.points, unit_frame(mesh.points))  # normals and angles are scale-invariant; no overflow
     topo = mesh_topology(mesh) if topology is None else topology
     faces, edges = topo.faces, topo.edges
     n_faces = len(faces)

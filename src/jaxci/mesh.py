@@ -20,6 +20,8 @@ the edge's moved corner nodes, plus the offset it had from the old midpoint when
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
 import warnings
 from collections.abc import Mapping, Sequence
 
@@ -64,6 +66,14 @@ EDGES = {
 #: Relative distance from its edge's midpoint (to the edge length) below which a midside node counts as ON the
 #: midpoint (a straight edge; files keep 13-14 digits): `HexMesh.with_points` then puts it exactly there.
 MIDPOINT_TOLERANCE = 1e-9
+
+#: Two distinct nodes closer than this fraction of the bounding-box diagonal are coincident (`coincident_pairs`):
+#: an unmerged interface, two parts meshed apart and written into one file.
+COINCIDENT_TOLERANCE = 1e-9
+
+#: A node farther than this many median edge lengths from the mesh's median node is refused on construction:
+#: across such a range float64 keeps no digits of an element's shape (a stray node, or mixed units).
+MAX_COORDINATE_RANGE = 1e12
 
 #: Number of nodes of the cell types jaxci knows (meshio names).
 NODES_PER_CELL = {
@@ -125,6 +135,64 @@ def corner_determinants(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
     return out
 
 
+def unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The frame in which jaxci measures and smooths: ``(centre, scale)`` with ``unit = (points - centre) / scale``.
+
+    `centre` is the bounding-box centre, shape ``(3,)``; `scale` the power of two at or below the box's largest
+    side (1.0 for a single point), so that the unit coordinates lie within [-1, 1] whatever the file's units
+    (a box of side 1e300 or 1e-300 is measured like a unit box; the quality metrics are scale-invariant) and
+    dividing by `scale` is exact.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if not len(p):
+        return np.zeros(3), 1.0
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    centre = 0.5 * lo + 0.5 * hi  # no overflow near the float64 limit
+    extent = float((0.5 * hi - 0.5 * lo).max()) * 2.0
+    if not (extent > 0 and np.isfinite(extent)):
+        return centre, 1.0
+    return centre, math.ldexp(1.0, math.frexp(extent)[1] - 1)
+
+
+def to_unit(points: np.ndarray, frame: tuple[np.ndarray, float]) -> np.ndarray:
+    """`points` ``(n, 3)`` in the unit frame of `unit_frame` (float64)."""
+    centre, scale = frame
+    return (np.asarray(points, dtype=np.float64) - centre) / scale
+
+
+def from_unit(points: np.ndarray, frame: tuple[np.ndarray, float]) -> np.ndarray:
+    """The inverse of `to_unit`."""
+    centre, scale = frame
+    return np.asarray(points, dtype=np.float64) * scale + centre
+
+
+def coincident_pairs(points: np.ndarray, nodes: np.ndarray | None = None,
+                     tol: float = COINCIDENT_TOLERANCE) -> np.ndarray:
+    """Pairs of distinct nodes closer than `tol` times the bounding-box diagonal of `points`.
+
+    **Arguments:** `points` of shape ``(n, 3)``; `nodes` the node indices to consider (default all); `tol` the
+    relative tolerance (>= 0; 0: exactly equal coordinates).
+
+    **Returns:** an int64 array of shape ``(k, 2)``, each row ``i < j``, sorted. O(n log n) (a k-d tree).
+    """
+    from scipy.spatial import cKDTree
+
+    if not (isinstance(tol, (int, float, np.floating)) and not isinstance(tol, bool) and 0 <= tol < 1):
+        raise MeshError(f"coincident-node tolerance must be a number in [0, 1) (a fraction of the bounding-box "
+                        f"diagonal), got {tol!r}")
+    idx = np.arange(len(points)) if nodes is None else np.asarray(nodes, dtype=np.int64)
+    if len(idx) < 2:
+        return np.zeros((0, 2), np.int64)
+    p = to_unit(np.asarray(points)[idx], unit_frame(np.asarray(points)[idx]))
+    diag = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+    if diag > 0:
+        pairs = cKDTree(p).query_pairs(tol * diag, output_type="ndarray")
+    else:  # every node at one point: a chain joins them all (not every pair)
+        pairs = np.stack([np.arange(len(idx) - 1), np.arange(1, len(idx))], axis=1)
+    pairs = np.sort(idx[np.asarray(pairs, dtype=np.int64).reshape(-1, 2)], axis=1)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
 def _as_int_array(a, name: str) -> np.ndarray:
     arr = np.asarray(a)
     if arr.dtype.kind not in "iu":
@@ -172,8 +240,9 @@ class HexMesh:
     hex_mirrored: bool = False
     fix_orientation: dataclasses.InitVar[bool] = True
     notes: tuple[str, ...] = ()
+    check_coincident: dataclasses.InitVar[bool] = True
 
-    def __post_init__(self, fix_orientation: bool) -> None:
+    def __post_init__(self, fix_orientation: bool, check_coincident: bool) -> None:
         where = f"{self.source}: " if self.source else ""
         pts = np.asarray(self.points)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -227,7 +296,9 @@ class HexMesh:
                 f"({int(rep.sum())} such elements)"
             )
         mirrored = self.hex_mirrored
-        det = corner_determinants(pts, hexes)
+        _check_range(pts, hexes, where, self._node_label)
+        det = corner_determinants(to_unit(pts, unit_frame(pts)), hexes)  # no overflow at 1e300, no underflow
+
         left = (det < 0).all(axis=1)
         if fix_orientation and left.all():
             blocks = [mirrored_block(b) if b.type == "hexahedron" else b for b in blocks]
@@ -257,6 +328,10 @@ class HexMesh:
         if not used.all():
             notes.append(f"{int((~used).sum())} unreferenced nodes (kept, never moved)")
         object.__setattr__(self, "points", pts)
+        if check_coincident:
+            pairs = self.coincident_nodes()
+            if len(pairs):
+                notes.append(coincident_note(self, pairs))
         object.__setattr__(self, "cells", tuple(blocks))
         object.__setattr__(self, "hex_mirrored", mirrored)
         object.__setattr__(self, "notes", tuple(notes))
@@ -303,6 +378,18 @@ class HexMesh:
     def hex_label(self, k: int) -> str:
         """A readable label of hexahedron `k` (0-based over all hexahedron blocks), with its file id if any."""
         return self._hex_label(self.cells, k)
+
+    def coincident_nodes(self) -> np.ndarray:
+        """Pairs of distinct nodes of the mesh's cells at one point (`coincident_pairs` with
+        `COINCIDENT_TOLERANCE`), shape ``(k, 2)``; computed once per mesh."""
+        cached = self.__dict__.get("_coincident")
+        if cached is None:
+            used = np.zeros(self.n_nodes, bool)
+            for b in self.cells:
+                used[np.asarray(b.data).ravel()] = True
+            cached = coincident_pairs(self.points, np.flatnonzero(used))
+            self.__dict__["_coincident"] = cached
+        return cached
 
     # ------------------------------------------------------------------ derived views
     @property
@@ -377,7 +464,8 @@ class HexMesh:
                 f"{len(nodes)} midside nodes of quadratic cells re-placed at the midpoints of their edges' corner "
                 f"nodes" + (f" ({curved} on curved edges keep their offset from the midpoint)" if curved else "")
             )
-        return dataclasses.replace(self, points=pts, fix_orientation=False, notes=tuple(out_notes))
+        return dataclasses.replace(self, points=pts, fix_orientation=False, notes=tuple(out_notes),
+                                   check_coincident=False)
 
 
 def mirrored_block(b: CellBlock) -> CellBlock:
@@ -432,3 +520,128 @@ def _midside_table(blocks, corner_used: np.ndarray, where: str, label) -> tuple[
 def hex_mesh(points, hexes, **kwargs) -> HexMesh:
     """A `HexMesh` from a point array of shape ``(n, 3)`` and one hexahedron block of shape ``(N, 8)``."""
     return HexMesh(np.asarray(points, dtype=np.float64), (CellBlock("hexahedron", np.asarray(hexes)),), **kwargs)
+
+
+def _check_range(pts: np.ndarray, hexes: np.ndarray, where: str, label) -> None:
+    """`MeshError` if a node lies more than `MAX_COORDINATE_RANGE` median edge lengths from the median node."""
+    if not len(hexes):
+        return
+    with np.errstate(over="ignore", invalid="ignore"):
+        e = np.abs(pts[hexes[:, [1, 3, 4]]] - pts[hexes[:, [0]]]).max(axis=2)  # (N, 3) max-norm edge lengths
+        h = float(np.median(e))
+        if not h > 0:  # most edges of zero length: a degenerate mesh, reported as such (not a range problem)
+            return
+        mid = np.median(pts, axis=0)
+        dist = np.abs(0.5 * pts - 0.5 * mid).max(axis=1) * 2.0
+    k = int(np.argmax(dist))
+    if not dist[k] / h <= MAX_COORDINATE_RANGE:
+        raise MeshError(
+            f"{where}node {label(k)} at {pts[k].tolist()} lies {dist[k]:.3g} from the median node, "
+            f"{dist[k] / h:.3g} times the median edge length {h:.3g} (at most {MAX_COORDINATE_RANGE:.0e}): float64 "
+            f"cannot measure elements across such a range; a stray node, or coordinates in mixed units?"
+        )
+
+
+def coincident_note(mesh: HexMesh, pairs: np.ndarray) -> str:
+    """The sentence of `HexMesh.notes` about coincident nodes (`HexMesh.coincident_nodes`)."""
+    n = len(np.unique(pairs))
+    a, b = (mesh._node_label(int(k)) for k in pairs[0])
+    return (f"{len(pairs)} pairs of coincident nodes ({n} nodes closer than {COINCIDENT_TOLERANCE:g} x the "
+            f"bounding-box diagonal: an unmerged interface?), first: nodes {a} and {b}; smoothing keeps them fixed "
+            f"(jaxci.mesh.merge_coincident merges them)")
+
+
+def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMesh:
+    """`mesh` with every group of coincident nodes merged into one node (an unmerged interface joined).
+
+    **Arguments:**
+
+    - `mesh`: the `HexMesh`.
+    - `tol`: nodes closer than `tol` times the bounding-box diagonal are merged (`coincident_pairs`; default
+      `COINCIDENT_TOLERANCE`; groups are closed transitively).
+
+    **Returns:** a new `HexMesh` with fewer nodes: each group kept as its lowest-numbered node (its coordinates,
+    point data and id), cells, midside nodes and point sets renumbered, other nodes in their order; a note says
+    how many nodes were merged. `mesh` itself when nothing coincides. Raises `MeshError` if a merge makes a
+    hexahedron repeat a node (a collapsed element).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    mesh = as_hex_mesh(mesh, "merge_coincident")
+    if tol == COINCIDENT_TOLERANCE:
+        pairs = mesh.coincident_nodes()
+    else:
+        used = np.zeros(mesh.n_nodes, bool)
+        for b in mesh.cells:
+            used[b.data.ravel()] = True
+        pairs = coincident_pairs(mesh.points, np.flatnonzero(used), tol)
+    if not len(pairs):
+        return mesh
+    n = mesh.n_nodes
+    g = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, comp = connected_components(g, directed=False)
+    rep = np.full(comp.max() + 1, n, dtype=np.int64)
+    np.minimum.at(rep, comp, np.arange(n))
+    target = rep[comp]  # each node -> its group's lowest node
+    keep = target == np.arange(n)
+    new_index = np.cumsum(keep) - 1
+    remap = new_index[target]
+    cells = tuple(CellBlock(b.type, remap[b.data], b.ids,
+                            None if b.midside is None else np.where(b.midside >= 0, remap[np.maximum(b.midside, 0)],
+                                                                    -1))
+                  for b in mesh.cells)
+    merged = int(n - keep.sum())
+    first = mesh._node_label(int(pairs[0, 1])), mesh._node_label(int(pairs[0, 0]))
+    groups = len(np.unique(target[~keep]))
+    note = (f"merged {groups} groups of coincident nodes ({merged + groups} nodes closer than {tol:g} x the "
+            f"bounding-box diagonal) into one node each, first: node {first[0]} into {first[1]}; {n} -> "
+            f"{int(keep.sum())} nodes")
+    return dataclasses.replace(
+        mesh,
+        points=mesh.points[keep],
+        cells=cells,
+        point_data={k: np.asarray(v)[keep] for k, v in mesh.point_data.items()},
+        point_sets={k: np.unique(remap[np.asarray(v, dtype=np.int64)]) for k, v in mesh.point_sets.items()},
+        node_ids=None if mesh.node_ids is None else np.asarray(mesh.node_ids)[keep],
+        notes=(*(m for m in mesh.notes if "coincident nodes" not in m), note),
+        fix_orientation=False,
+    )
+
+
+def as_hex_mesh(obj, caller: str) -> HexMesh:
+    """`obj` as a `HexMesh` for the public function `caller`: a `HexMesh` as is, a `meshio.Mesh` converted (as
+    `jaxci.io.read_mesh` converts a file); anything else raises `UsageError` saying how to make one."""
+    from .errors import UsageError
+
+    if isinstance(obj, HexMesh):
+        return obj
+    cls = type(obj)
+    if cls.__name__ == "Mesh" and cls.__module__.split(".")[0] == "meshio":
+        from .io._meshio import _from_meshio
+
+        return _from_meshio(obj, "<meshio.Mesh>")
+    hint = "read a file with jaxci.read_mesh(path) or build one with jaxci.hex_mesh(points, hexes)"
+    if isinstance(obj, (str, bytes, os.PathLike)):
+        raise UsageError(f"{caller} expects a jaxci HexMesh, got the path {os.fsdecode(obj)!r}; read the file with "
+                         f"jaxci.read_mesh(path) first")
+    if hasattr(obj, "__array__") or isinstance(obj, (list, tuple)):
+        what = f"an array of shape {obj.shape}" if hasattr(obj, "shape") else f"a {cls.__name__}"
+        raise UsageError(f"{caller} expects a jaxci HexMesh, got {what}; build one from node coordinates and "
+                         f"hexahedra with jaxci.hex_mesh(points, hexes)")
+    raise UsageError(f"{caller} expects a jaxci HexMesh, got {cls.__module__}.{cls.__name__}; {hint}")
+
+
+def check_volume(mesh: HexMesh) -> None:
+    """`MeshError` if the nodes of the hexahedra lie in one plane, on one line or at one point (a mesh of zero
+    volume, which neither untangling nor smoothing can repair): a 3 x 3 eigenvalue problem, O(n)."""
+    nodes = np.unique(mesh.hexes)
+    p = to_unit(mesh.points[nodes], unit_frame(mesh.points[nodes]))
+    p = p - p.mean(axis=0)
+    w, v = np.linalg.eigh(p.T @ p)  # ascending
+    if w[2] <= 0 or w[0] <= (1e-12) ** 2 * w[2]:
+        where = f"{mesh.source}: " if mesh.source else ""
+        what = ("all at one point" if w[2] <= 0 else "on one line" if w[1] <= (1e-12) ** 2 * w[2]
+                else f"in one plane (normal {np.round(v[:, 0], 6).tolist()})")
+        raise MeshError(f"{where}the {len(nodes)} nodes of the hexahedra lie {what}: the mesh has no volume, and "
+                        f"no moving of nodes can untangle or smooth it")

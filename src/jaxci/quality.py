@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .mesh import CORNER_NEIGHBOURS, HexMesh
+from .errors import MeshError
+from .mesh import CORNER_NEIGHBOURS, HexMesh, as_hex_mesh, to_unit, unit_frame
 
 #: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
 HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
@@ -313,9 +314,25 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
 
     Uses float64 when ``jax_enable_x64`` is on (the CLI turns it on), else float32; meshes of at most
     `NUMPY_REPORT_MAX` hexahedra are measured in numpy float64 (`jaxci.elements`' kernel: no compilation, which
-    cost 0.4 s of a 729-element cold start).
+    cost 0.4 s of a 729-element cold start). The coordinates are measured in the unit frame of
+    `jaxci.mesh.unit_frame` (the metrics are scale-invariant): a mesh in metres, nanometres or light years gives
+    the same report, without overflow or underflow.
+
+    **Arguments:** `mesh` a `HexMesh` (a `meshio.Mesh` is converted; anything else raises `UsageError`);
+    `points` optional coordinates of shape ``(n_nodes, 3)``, finite (`MeshError` otherwise).
     """
-    pts = mesh.points if points is None else points
+    mesh = as_hex_mesh(mesh, "quality_report")
+    if points is None:
+        pts = mesh.points
+    else:
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.shape != mesh.points.shape:
+            raise MeshError(f"quality_report: points have shape {pts.shape}, the mesh has {mesh.points.shape}")
+        if not np.isfinite(pts).all():
+            k = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
+            raise MeshError(f"quality_report: node {mesh._node_label(k)} has non-finite coordinates "
+                            f"{pts[k].tolist()}")
+    pts = to_unit(pts, unit_frame(pts))
     hexes = mesh.hexes
     if mesh.n_hexes <= NUMPY_REPORT_MAX:
         from .elements import _corner_kernel as np_kernel
