@@ -49,6 +49,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from .config_errors import Locator, check_duplicates, pydantic_message
 from .errors import ConfigError, JaxciError
+from .optim._params import MAX_SEED
+
+#: Most runs (seeds) of one config.
+MAX_RUNS = 100_000
 
 # ----------------------------------------------------------------------------------------------- schema
 
@@ -75,12 +79,12 @@ class GenerateSpec(_Model):
             raise ValueError(f"case: unknown case {self.case!r}; choose one of {', '.join(PAPER_CASES)}")
         if self.box is not None and (len(self.box) != 3 or min(self.box) < 1):
             raise ValueError(f"box: must be three element counts >= 1, [nx, ny, nz], got {self.box}")
-        if len(self.size) != 3 or min(self.size) <= 0:
-            raise ValueError(f"size: must be three positive edge lengths, got {self.size}")
-        if not self.amplitude >= 0:
-            raise ValueError(f"amplitude: must be >= 0 (a fraction of the grid spacing), got {self.amplitude}")
-        if self.seed is not None and self.seed < 0:
-            raise ValueError(f"seed: must be >= 0, got {self.seed}")
+        if len(self.size) != 3 or not all(0 < v < math.inf for v in self.size):
+            raise ValueError(f"size: must be three positive finite edge lengths, got {self.size}")
+        if not 0 <= self.amplitude <= 10:
+            raise ValueError(f"amplitude: must be in [0, 10] (a fraction of the grid spacing), got {self.amplitude}")
+        if self.seed is not None and not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"seed: must be an integer in [0, 2**32 - 1], got {self.seed}")
         return self
 
     @model_validator(mode="after")
@@ -177,8 +181,8 @@ class ExperimentConfig(_Model):
     @field_validator("runs")
     @classmethod
     def _runs(cls, v):
-        if v is not None and v < 1:
-            raise ValueError(f"runs must be >= 1, got {v}")
+        if v is not None and not 1 <= v <= MAX_RUNS:
+            raise ValueError(f"runs must be in [1, {MAX_RUNS}], got {v}")
         return v
 
     @field_validator("seeds")
@@ -187,8 +191,11 @@ class ExperimentConfig(_Model):
         if v is not None:
             if not v:
                 raise ValueError("seeds must not be empty")
-            if min(v) < 0 or len(set(v)) != len(v):
-                raise ValueError(f"seeds must be distinct integers >= 0, got {v}")
+            if min(v) < 0 or max(v) > MAX_SEED or len(set(v)) != len(v):
+                bad = [s for s in v if not 0 <= s <= MAX_SEED][:3] or v
+                raise ValueError(f"seeds must be distinct integers in [0, 2**32 - 1], got {bad}")
+            if len(v) > MAX_RUNS:
+                raise ValueError(f"at most {MAX_RUNS} seeds, got {len(v)}")
         return v
 
     @model_validator(mode="after")
@@ -333,6 +340,8 @@ def load_config(path: str | os.PathLike) -> Experiment:
     missing or malformed file, unknown keys, wrong types or values, unknown methods or method parameters,
     missing or unreadable mesh files.
     """
+    from .generate import PAPER_CASES
+    from .memory import check_fits, ci_trials, smooth_bytes
     from .smooth import METHODS
 
     path = Path(path)
@@ -403,13 +412,21 @@ def load_config(path: str | os.PathLike) -> Experiment:
         else:
             g = spec.generate
             if g.case is not None:
-                from .generate import PAPER_CASES
-
                 n_nodes = (PAPER_CASES[g.case].n + 1) ** 3
             else:
                 n_nodes = math.prod(n + 1 for n in g.box)
             if bnd.fixed_sets:
                 raise loc8.error((*blk, "fixed_sets"), f"generated mesh {name!r} has no node sets")
+        if mesh is not None:
+            n_hexes = mesh.n_hexes + sum(len(b.data) for b in mesh.cells if b.type in ("wedge", "pyramid", "tetra"))
+        elif spec.generate.case is not None:
+            n_hexes = PAPER_CASES[spec.generate.case].n ** 3
+        else:
+            n_hexes = math.prod(spec.generate.box)
+        trials = max([ci_trials(m.method, m.params) for m in cfg.methods if m.meshes is None or name in m.meshes],
+                     default=16)
+        check_fits(smooth_bytes(n_hexes, cfg.dtype, trials), f"mesh {name!r}: smoothing {n_hexes:_} elements in "
+                   f"{cfg.dtype}", error=lambda msg, i=i: loc8.error(("mesh", i), msg))
         for j, n in enumerate(bnd.fixed_nodes):
             if not 0 <= n < n_nodes:
                 raise loc8.error((*blk, "fixed_nodes", j), f"node index {n} out of range [0, {n_nodes}) of {name!r}")

@@ -15,11 +15,15 @@ again (up to `max_redraws` rounds), so the result has no inverted element. Same 
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 
 import numpy as np
 
 from .errors import MeshError
+from .memory import check_fits, generate_bytes
 from .mesh import HexMesh, corner_determinants, hex_mesh
+from .optim._params import check_seed
 
 
 def grid_hexes(ni: int, nj: int, nk: int, periodic_j: bool = False) -> np.ndarray:
@@ -65,14 +69,10 @@ def box(
 
     **Returns:** a `HexMesh` with ``(nx+1)(ny+1)(nz+1)`` nodes and ``nx ny nz`` hexahedra.
     """
-    ny = nx if ny is None else ny
-    nz = nx if nz is None else nz
-    for name, v in (("nx", nx), ("ny", ny), ("nz", nz)):
-        if int(v) != v or v < 1:
-            raise MeshError(f"box: {name} must be a positive integer, got {v!r}")
-    if any(s <= 0 for s in size):
-        raise MeshError(f"box: size must be positive, got {size}")
-    nx, ny, nz = int(nx), int(ny), int(nz)
+    nx, ny, nz = _counts("box", nx, ny, nz)
+    size = _triple("box", "size", size, positive=True)
+    origin = _triple("box", "origin", origin, positive=False)
+    check_fits(generate_bytes(nx * ny * nz), f"box: a box of {nx} x {ny} x {nz} = {nx * ny * nz:_} hexahedra")
     xs = origin[0] + np.linspace(0.0, size[0], nx + 1)
     ys = origin[1] + np.linspace(0.0, size[1], ny + 1)
     zs = origin[2] + np.linspace(0.0, size[2], nz + 1)
@@ -81,6 +81,30 @@ def box(
 
     hexes = grid_hexes(nx, ny, nz)
     return hex_mesh(points, hexes)
+
+
+def _counts(fn: str, nx, ny, nz) -> tuple[int, int, int]:
+    """Element counts per axis as ints >= 1 (`ny`, `nz` default to `nx`); `MeshError` naming the bad one."""
+    ny = nx if ny is None else ny
+    nz = nx if nz is None else nz
+    for name, v in (("nx", nx), ("ny", ny), ("nz", nz)):
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or int(v) != v or v < 1:
+            raise MeshError(f"{fn}: {name} must be a positive integer, got {v!r}")
+    return int(nx), int(ny), int(nz)
+
+
+def _triple(fn: str, name: str, v, positive: bool) -> tuple[float, float, float]:
+    """Three finite numbers (> 0 if `positive`) as floats; `MeshError` otherwise."""
+    try:
+        t = tuple(v)
+    except TypeError:
+        t = ()
+    ok = len(t) == 3 and all(isinstance(a, numbers.Real) and not isinstance(a, bool) and math.isfinite(a)
+                             and (a > 0 or not positive) for a in t)
+    if not ok:
+        what = "positive finite edge lengths" if positive else "finite coordinates"
+        raise MeshError(f"{fn}: {name} must be three {what}, got {v!r}")
+    return tuple(float(a) for a in t)
 
 
 def box_free_axes(nx: int, ny: int, nz: int, which: str = "sliding") -> np.ndarray:
@@ -120,10 +144,19 @@ def perturb_box(
 
     **Returns:** a `HexMesh`. Raises `MeshError` if no valid draw was found in `max_redraws` rounds.
     """
-    ny = nx if ny is None else ny
-    nz = nx if nz is None else nz
-    if not amplitude >= 0:
-        raise MeshError(f"perturb_box: amplitude must be >= 0, got {amplitude}")
+    nx, ny, nz = _counts("perturb_box", nx, ny, nz)
+    if isinstance(amplitude, bool) or not isinstance(amplitude, numbers.Real) or not 0 <= amplitude <= 10:
+        raise MeshError(f"perturb_box: amplitude must be a number in [0, 10] (a fraction of the grid spacing), "
+                        f"got {amplitude!r}")
+    seed = check_seed(seed, "perturb_box: seed")
+    if not isinstance(which, str) or which not in ("sliding", "interior"):
+        raise MeshError(f"perturb_box: which must be 'sliding' or 'interior', got {which!r}")
+    if not isinstance(redraw_inverted, bool):
+        raise MeshError(f"perturb_box: redraw_inverted must be True or False, got {redraw_inverted!r}")
+    if isinstance(max_redraws, bool) or not isinstance(max_redraws, numbers.Integral) or \
+            not 1 <= max_redraws <= 1_000_000:
+        raise MeshError(f"perturb_box: max_redraws must be an integer in [1, 1_000_000], got {max_redraws!r}")
+    size = _triple("perturb_box", "size", size, positive=True)
     mesh = box(nx, ny, nz, size=size)
     h = np.array([size[0] / nx, size[1] / ny, size[2] / nz])
     free = box_free_axes(nx, ny, nz, which)
@@ -160,6 +193,7 @@ class PaperCase:
     which: str = "sliding"
 
     def mesh(self, seed: int = 0) -> HexMesh:
+        """The perturbed cube for `seed` (an integer in [0, 2**32 - 1])."""
         return perturb_box(self.n, amplitude=self.amplitude, seed=seed, which=self.which)
 
 

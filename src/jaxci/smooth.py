@@ -17,6 +17,7 @@ goes through the untangling stage first where one is available, otherwise `Inver
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import time
 from collections.abc import Sequence
 
@@ -27,7 +28,7 @@ import numpy as np
 from . import mixed
 from .boundary import BoundaryInfo, classify_boundary
 from .elements import mixed_objective
-from .errors import ConfigError, InvertedMeshError
+from .errors import ConfigError, InvertedMeshError, MeshError
 from .mesh import HexMesh
 from .projection import Constraints, build_constraints, project_np
 from .quality import QualityReport, quality_report, transposed
@@ -118,12 +119,9 @@ def _run_method(problem: Problem, method: str, key, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params)."""
     if method in ("ci", "ci-global"):
         from .optim._moves import coloured_stars
-        from .optim.ci import CIParams, global_ci, local_ci
+        from .optim.ci import global_ci, local_ci
 
-        try:
-            p = CIParams(**params)
-        except TypeError as e:
-            raise ConfigError(f"unknown CI parameter: {e}") from None
+        p = method_params(method, params)
         if method == "ci":
             cs = coloured_stars(problem.mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces,
                                 problem.table)
@@ -162,18 +160,21 @@ def smooth(
     fixed_nodes: Sequence[int] | None = None,
     fixed_sets: Sequence[str] = (),
     untangle: str = "auto",
+    merge_coincident: bool = False,
     **params,
 ) -> SmoothResult:
     """Smooth the hexahedra of `mesh` by moving nodes; connectivity never changes.
 
     **Arguments:**
 
-    - `mesh`: the input `HexMesh` (not modified).
+    - `mesh`: the input `HexMesh` (not modified); a `meshio.Mesh` is converted (as `jaxci.io.read_mesh` converts
+      a file); a path or an array raises `jaxci.errors.UsageError` (read it with `jaxci.read_mesh` first).
     - `method`: one of `METHODS`: ``"ci"`` batched local Cohort Intelligence (default), ``"ci-global"`` the
       paper's global CI; ``"bfgs"``, ``"lbfgs"``, ``"cg"``, ``"lm"``, ``"gauss-newton"`` the optimistix
       baselines (`jaxci.optim.gradient`); ``"laplace"``, ``"smart-laplace"`` (`jaxci.optim.laplace`).
-    - `seed`: seed of the `jax.random` key of stochastic methods (same seed, same result). The key uses the
-      ``"rbg"`` generator (XLA's RngBitGenerator): its code compiles in a tenth of the time of threefry's.
+    - `seed`: an integer in [0, 2**32 - 1] (`jaxci.optim._params.check_seed`), the seed of the `jax.random` key
+      of stochastic methods (same seed, same result; distinct seeds, distinct keys). The key uses the ``"rbg"``
+      generator (XLA's RngBitGenerator): its code compiles in a tenth of the time of threefry's.
     - `dtype`: ``"float32"`` (default, fast) or ``"float64"``.
     - `feature_angle`: degrees; boundary edges sharper than this are feature curves (nodes slide along them).
     - `fix_boundary`: fix every boundary node; `fixed_nodes`: node indices to fix; `fixed_sets`: names of node
@@ -181,23 +182,91 @@ def smooth(
     - `untangle`: ``"auto"`` (untangle first if the input has inverted elements, `jaxci.optim.untangle`),
       ``"always"`` (run the untangling stage anyway: it also lifts corners below its det margin), ``"never"``
       (refuse inverted input with `InvertedMeshError`). If untangling fails, `InvertedMeshError` is raised.
+    - `merge_coincident`: merge coincident nodes first (`jaxci.mesh.merge_coincident`: the result has fewer
+      nodes). Default False: coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface) are fixed, so
+      they stay exactly coincident, and a note says how many.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,
       `jaxci.optim.gradient.GradientParams`, `jaxci.optim.laplace.LaplaceParams` fields); keys starting with
       ``untangle_`` go to `jaxci.optim.untangle.UntangleParams` (e.g. ``untangle_margin=1e-2``).
 
+    Every argument is checked before any work (`ConfigError` naming the argument or parameter, the method and
+    the value). The mesh is refused (`MeshError`) if its estimated peak memory (`jaxci.memory.smooth_bytes`)
+    exceeds the memory available, or if it has no volume (`jaxci.mesh.check_volume`). All the work is done in
+    the unit frame of `jaxci.mesh.unit_frame` (scale-invariant metrics, no overflow at 1e300 or underflow at
+    1e-300), and the nodes that moved are mapped back; the others keep their input coordinates bit for bit.
+
     **Returns:** a `SmoothResult`.
     """
-    if method not in METHODS:
+    from .memory import check_fits, smooth_bytes
+    from .mesh import as_hex_mesh, check_volume, from_unit, to_unit, unit_frame
+    from .mesh import merge_coincident as merge
+    from .optim._params import check_seed
+
+    mesh = as_hex_mesh(mesh, "smooth")
+    if not isinstance(method, str) or method not in METHODS:
         raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    if dtype not in _DTYPES:
-        raise ConfigError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
-    if untangle not in ("auto", "always", "never"):
-        raise ConfigError(f"untangle must be 'auto', 'always' or 'never', got {untangle!r}")
+    _choice("dtype", dtype, tuple(_DTYPES))
+    _choice("untangle", untangle, ("auto", "always", "never"))
+    seed = check_seed(seed)
+    if isinstance(feature_angle, bool) or not isinstance(feature_angle, numbers.Real) or \
+            not 0 < feature_angle < 180:
+        raise ConfigError(f"smooth: feature_angle must be in degrees strictly between 0 and 180, got "
+                          f"{feature_angle!r}")
+    if isinstance(fixed_sets, str):
+        raise ConfigError(f"smooth: fixed_sets must be a list of node set names, got the string {fixed_sets!r} "
+                          f"(write [{fixed_sets!r}])")
+    for name, flag in (("fix_boundary", fix_boundary), ("merge_coincident", merge_coincident)):
+        if not isinstance(flag, bool):
+            raise ConfigError(f"smooth: {name} must be True or False, got {flag!r}")
+    untangle_params = {k: params.pop(k) for k in list(params) if isinstance(k, str) and k.startswith("untangle_")}
+    p = method_params(method, params)  # checked now, not after the untangling
+    if untangle_params:
+        from .optim._params import make_params
+        from .optim.untangle import UntangleParams
+
+        make_params(UntangleParams, untangle_params, "untangling", prefix="untangle_",
+                    what="the untangling stage")
+    where = f"{mesh.source}: " if mesh.source else ""
+    trials = p.cohort * p.variations if method in ("ci", "ci-global") else 16
+    check_fits(smooth_bytes(mesh.n_hexes + sum(len(c) for c in mixed.extra_blocks(mesh).values()), dtype, trials),
+               f"{where}smoothing {mesh.n_hexes} hexahedra in {dtype}")
+    check_volume(mesh)
     t0 = time.perf_counter()
     notes: list[str] = []
+    if merge_coincident:
+        merged = merge(mesh)
+        if merged is not mesh:
+            notes.append(merged.notes[-1])
+        mesh = merged
+    fixed = _fixed_nodes(mesh, fixed_nodes)
+    pairs = mesh.coincident_nodes()
+    if len(pairs):
+        fixed = np.union1d(fixed, pairs.ravel())
+        notes.append(f"{len(pairs)} pairs of coincident nodes ({len(np.unique(pairs))} nodes, first: "
+                     f"{mesh._node_label(int(pairs[0, 0]))} and {mesh._node_label(int(pairs[0, 1]))}) fixed, so they "
+                     f"stay coincident (merge them with merge_coincident=True)")
+    frame = unit_frame(mesh.points)
+    unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
+                               check_coincident=False)
+    points, res = _smooth_unit(unit, method, seed, dtype, feature_angle, fix_boundary, fixed, fixed_sets,
+                                        untangle, untangle_params, params, notes)
+    moved = (points != unit.points).any(axis=1)
+    real = np.array(mesh.points)
+    real[moved] = from_unit(points[moved], frame)
+    return dataclasses.replace(
+        res, mesh=mesh.with_points(real), wall_time=time.perf_counter() - t0,
+        params={**res.params, "seed": seed, "dtype": dtype, "feature_angle": feature_angle,
+                "fix_boundary": fix_boundary},
+        notes=tuple(notes),
+    )
+
+
+def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
+                 untangle, untangle_params, params, notes) -> tuple[np.ndarray, SmoothResult]:
+    """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
+    and wall time are filled in by `smooth`; `notes` is appended to)."""
     with jax.enable_x64(True):
         before = quality_report(mesh)
-    untangle_params = {k[len("untangle_"):]: params.pop(k) for k in list(params) if k.startswith("untangle_")}
     untangled = None
     tangled = bool(before.inverted_corners) or bool(before.overall and before.overall["inverted"])
     if tangled and untangle == "never":
@@ -210,12 +279,11 @@ def smooth(
             f"before it can be smoothed, and untangle='never' was given"
         )
     if tangled or untangle == "always":
+        from .optim._params import make_params
         from .optim.untangle import UntangleParams, untangle_stage
 
-        try:
-            up = UntangleParams(**untangle_params)
-        except TypeError as e:
-            raise ConfigError(f"unknown untangling parameter (untangle_*): {e}") from None
+        up = make_params(UntangleParams, untangle_params, "untangling", prefix="untangle_",
+                         what="the untangling stage")
         info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                  fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
         untangled, untangle_notes = untangle_stage(mesh, info, up)  # InvertedMeshError if it fails
@@ -238,15 +306,46 @@ def smooth(
             points, check_notes = enforce_after_untangling(mesh, problem.info, untangled, x)
         notes.extend(check_notes)
         after = quality_report(mesh, points)
-    history = _standard_history(history)
-    out = mesh.with_points(points)
-    return SmoothResult(
-        mesh=out, history=history, iterations=int(iterations), wall_time=time.perf_counter() - t0, method=method,
-        params={**resolved, "seed": seed, "dtype": dtype, "feature_angle": feature_angle,
-                "fix_boundary": fix_boundary},
-        before=before, after=after, boundary=problem.info.counts, node_class=np.asarray(problem.info.node_class),
-        notes=tuple(notes),
+    res = SmoothResult(
+        mesh=mesh, history=_standard_history(history), iterations=int(iterations), wall_time=0.0, method=method,
+        params=resolved, before=before, after=after, boundary=problem.info.counts,
+        node_class=np.asarray(problem.info.node_class),
     )
+    return points, res
+
+
+def _choice(name: str, value, choices: tuple) -> None:
+    if not isinstance(value, str) or value not in choices:
+        raise ConfigError(f"smooth: {name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+
+
+def _fixed_nodes(mesh: HexMesh, fixed_nodes) -> np.ndarray:
+    """`fixed_nodes` as sorted unique node indices (`MeshError` for anything but integers in range)."""
+    if fixed_nodes is None:
+        return np.zeros(0, np.int64)
+    where = f"{mesh.source}: " if mesh.source else ""
+    try:
+        a = np.asarray(fixed_nodes).ravel()
+    except (TypeError, ValueError):
+        a = np.asarray([object()])
+    n = mesh.n_nodes
+    if a.size and (a.dtype.kind not in "iu" or a.min() < 0 or a.max() >= n):
+        raise MeshError(f"{where}fixed_nodes must be node indices in [0, {n}), got {a.tolist()[:10]}")
+    return np.unique(a.astype(np.int64))
+
+
+def method_params(method: str, params: dict):
+    """The checked parameter dataclass of `method` built from `params` (`ConfigError` naming the method and the
+    parameter for an unknown name or a bad value)."""
+    from .optim._params import make_params
+
+    if method in ("ci", "ci-global"):
+        from .optim.ci import CIParams as cls
+    elif method in ("laplace", "smart-laplace"):
+        from .optim.laplace import LaplaceParams as cls
+    else:
+        from .optim.gradient import GradientParams as cls
+    return make_params(cls, params, method)
 
 
 def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
