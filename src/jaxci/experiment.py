@@ -34,7 +34,7 @@ from typing import Any
 
 import yaml
 
-from .config import Experiment, ResolvedMesh, ResolvedMethod
+from .config import MAX_RUNS, Experiment, ResolvedMesh, ResolvedMethod
 from .config import load_config as load_config  # re-exported: ``from jaxci.experiment import load_config``
 from .config_errors import Locator
 from .errors import ConfigError, JaxciError
@@ -123,8 +123,8 @@ def run_experiment(
     import jax
 
     if seeds is not None:
-        if int(seeds) != seeds or seeds < 1:
-            raise ConfigError(f"--seeds must be an integer >= 1, got {seeds}")
+        if isinstance(seeds, bool) or int(seeds) != seeds or not 1 <= seeds <= MAX_RUNS:
+            raise ConfigError(f"--seeds must be an integer in [1, {MAX_RUNS}], got {seeds}")
         exp = dataclasses.replace(exp, seeds=tuple(range(int(seeds))))
     device = select_device(exp.config.device)
     out_path, key = resolve_output(exp, out)

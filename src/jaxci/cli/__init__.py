@@ -56,10 +56,18 @@ def _runtime_line() -> str:
     return f"jax {jax.__version__}; huge pages for glibc allocations {pages} (jaxci.runtime)"
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its usage errors as ONE line on stderr (``jaxci: error: ...``, exit 2), like every other
+    error of the command; the usage is one ``--help`` away."""
+
+    def error(self, message: str):
+        self.exit(2, f"jaxci: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
 
-    parser = argparse.ArgumentParser(prog="jaxci", description="Hexahedral mesh quality and smoothing in JAX.")
+    parser = _Parser(prog="jaxci", description="Hexahedral mesh quality and smoothing in JAX.")
     parser.add_argument("--version", action="version", version=f"jaxci {__version__} ({_runtime_line()})")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)

@@ -31,7 +31,7 @@ def run(args) -> int:
     check_output(args.out, force=args.force)
     if args.kind == "box":
         n = args.n
-        mesh = perturb_box(args.nx or n, args.ny or n, args.nz or n, amplitude=args.amplitude, seed=args.seed,
+        mesh = perturb_box(*(n if v is None else v for v in (args.nx, args.ny, args.nz)), amplitude=args.amplitude, seed=args.seed,
                            which=args.which, size=tuple(args.size))
     else:
         mesh = paper_case(args.kind, seed=args.seed)
