@@ -30,8 +30,8 @@ def run(args) -> int:
 
     check_output(args.out, force=args.force)
     if args.kind == "box":
-        n = args.n
-        mesh = perturb_box(*(n if v is None else v for v in (args.nx, args.ny, args.nz)), amplitude=args.amplitude, seed=args.seed,
+        nx, ny, nz = (args.n if v is None else v for v in (args.nx, args.ny, args.nz))
+        mesh = perturb_box(nx, ny, nz, amplitude=args.amplitude, seed=args.seed,
                            which=args.which, size=tuple(args.size))
     else:
         mesh = paper_case(args.kind, seed=args.seed)
