@@ -21,9 +21,10 @@ from .errors import (
     MeshReadError,
     MeshWriteError,
     UnsupportedFormatError,
+    UsageError,
 )
 from .generate import PAPER_CASES, box, paper_case, perturb_box
-from .mesh import CellBlock, HexMesh, hex_mesh
+from .mesh import CellBlock, HexMesh, hex_mesh, merge_coincident
 from .smooth import METHODS, SmoothResult, smooth  # eager: the function must shadow its module's name
 
 try:
@@ -51,7 +52,8 @@ _LAZY = {
 
 __all__ = [
     "CellBlock", "ConfigError", "HexMesh", "InvertedMeshError", "JaxciError", "MeshError", "MeshReadError",
-    "MeshWriteError", "PAPER_CASES", "UnsupportedFormatError", "box", "hex_mesh", "paper_case", "perturb_box",
+    "MeshWriteError", "PAPER_CASES", "UnsupportedFormatError", "UsageError", "box", "hex_mesh", "merge_coincident",
+    "paper_case", "perturb_box",
     "METHODS", "SmoothResult", "smooth",
     *_LAZY,
 ]

@@ -58,17 +58,19 @@ MAX_COHORT, MAX_TRIALS, MAX_LOOP, MAX_WIDTH = 256, 4096, 1_000_000, 1e3
 
 @dataclasses.dataclass(frozen=True)
 class CIParams:
-    """Hyperparameters of Cohort Intelligence (both forms). Validated on construction.
+    """Hyperparameters of Cohort Intelligence (both forms). Validated on construction (`ConfigError`: types,
+    finite values, ranges; an integral float counts as an int).
 
     The local defaults (C = 4, t = 4, 4 attempts per colour visit) were chosen by measurement on the perturbed
     729-element cube (scripts/reproduce_paper.py): C = 6, t = 8, 8 attempts needs the same number of sweeps to
     reach max kappa/3 <= 1.001 and <= 1.0001 at 5-8x the cost; C = 2 or t = 2 need more sweeps.
 
-    - `cohort`: C, candidates per cohort (default 4; >= 2).
-    - `variations`: t, variations sampled per candidate and attempt (default 4; >= 1).
+    - `cohort`: C, candidates per cohort (default 4; 2 to 256).
+    - `variations`: t, variations sampled per candidate and attempt (default 4; 1 to 256; C t <= 4096).
     - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.8).
     - `delta`: > 0, regulariser of the follow probabilities 1/(g + delta) (default 1e-3).
-    - `attempts`: learning attempts per cohort run (local: per colour visit, default 4; global: total).
+    - `attempts`: learning attempts per cohort run (local: per colour visit, default 4; global: total;
+      at most 10^6, as `max_sweeps` and `patience`).
     - `stage_switch`: fraction in [0, 1] of the attempts that follow by roulette (stage 1); the rest follow the
       best (stage 2). Default 0.5.
     - `init_width`: initial interval width as a fraction of the local edge length h (default 0.5).

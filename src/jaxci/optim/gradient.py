@@ -120,7 +120,7 @@ MAX_STEPS, MAX_HISTORY, MAX_FREE, MAX_PRESMOOTH = 1_000_000, 1000, 10_000, 100_0
 class GradientParams:
     """Hyperparameters of the gradient baselines. Validated on construction (`ConfigError`).
 
-    - `max_steps`: most solver steps (objective evaluations), default 2000 (>= 1).
+    - `max_steps`: most solver steps (objective evaluations), default 2000 (1 to 10^6).
     - `rtol`, `atol`: optimistix's Cauchy termination (change of the scaled unknowns AND of the scaled objective
       between accepted steps), default 1e-6 each (see the module docstring for the evidence).
     - `ftol`: also stop as soon as F <= ftol (default 0: only at a perfect mesh).
@@ -131,7 +131,7 @@ class GradientParams:
       docstring): a run ending with F above ``restart_tol`` times the input's F (default 1e-6) is restarted, the
       second and later restarts only while the previous run lowered F by more than that. `max_steps` bounds the
       steps of all runs together.
-    - `max_free`: least squares only: refuse more free coordinates than this (default 1000).
+    - `max_free`: least squares only: refuse more free coordinates than this (default 1000; at most 10,000).
     - `gradient`: ``"closed"`` (`objective_and_grad`, default) or ``"autodiff"`` (`jax.grad`).
     - `max_move`: BFGS, L-BFGS, CG: the largest trial move of one free coordinate per step, in local edge lengths
       (default 0.5; 0: no cap): the search direction is shortened to it before the line search.

@@ -61,7 +61,7 @@ MAX_SWEEPS = 1_000_000
 class LaplaceParams:
     """Hyperparameters of the (smart) Laplacian. Validated on construction (`ConfigError`).
 
-    - `max_sweeps`: most colour sweeps (default 500, >= 1).
+    - `max_sweeps`: most colour sweeps (default 500; 1 to 10^6).
     - `tol`: stop when the largest move of a sweep is below ``tol * h`` (h: local edge length), default 1e-5.
     - `backtrack`: smart Laplacian only: number of step lengths tried, ``1, 1/2, ..., 1/2^(backtrack-1)``
       (default 3; 1: the full step or nothing).

@@ -61,8 +61,8 @@ class UntangleParams:
 
     - `theta`: weight in [0, 1) of the volume term (det^2 + 1)/chi against the shape term (default 0.1).
     - `margin`: target: every corner with det A >= margin * L_e^3 (default 1e-3; > 0).
-    - `max_rounds`: most eps updates (outer iterations, default 60).
-    - `inner_steps`: most L-BFGS steps per round (default 400).
+    - `max_rounds`: most eps updates (outer iterations, default 60; at most 10,000).
+    - `inner_steps`: most L-BFGS steps per round (default 400; at most 10^6).
     - `rtol`, `atol`: L-BFGS termination per round (default 1e-7 each).
     """
 
