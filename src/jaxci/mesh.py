@@ -456,8 +456,9 @@ class HexMesh:
             if midside == "follow":
                 old = self.points
                 offset = old[nodes] - 0.5 * (old[a] + old[b])
-                length = np.linalg.norm(old[b] - old[a], axis=1)
-                straight = np.linalg.norm(offset, axis=1) <= MIDPOINT_TOLERANCE * length
+                unit = unit_frame(old)[1]  # lengths compared in the unit frame: no overflow of squares at 1e300
+                length = np.linalg.norm((old[b] - old[a]) / unit, axis=1)
+                straight = np.linalg.norm(offset / unit, axis=1) <= MIDPOINT_TOLERANCE * length
                 offset[straight] = 0.0
                 curved = int((~straight).sum())
                 centre += offset
