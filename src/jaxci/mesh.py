@@ -552,7 +552,7 @@ def coincident_note(mesh: HexMesh, pairs: np.ndarray) -> str:
     a, b = (mesh._node_label(int(k)) for k in pairs[0])
     return (f"{len(pairs)} pairs of coincident nodes ({n} nodes closer than {COINCIDENT_TOLERANCE:g} x the "
             f"bounding-box diagonal: an unmerged interface?), first: nodes {a} and {b}; smoothing keeps them fixed "
-            f"(jaxci.mesh.merge_coincident merges them)")
+            f"(--merge-coincident or jaxci.mesh.merge_coincident merges them)")
 
 
 def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMesh:

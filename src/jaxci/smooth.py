@@ -244,7 +244,7 @@ def smooth(
         fixed = np.union1d(fixed, pairs.ravel())
         notes.append(f"{len(pairs)} pairs of coincident nodes ({len(np.unique(pairs))} nodes, first: "
                      f"{mesh._node_label(int(pairs[0, 0]))} and {mesh._node_label(int(pairs[0, 1]))}) fixed, so they "
-                     f"stay coincident (merge them with merge_coincident=True)")
+                     f"stay coincident (--merge-coincident, or merge_coincident=True, merges them)")
     frame = unit_frame(mesh.points)
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
                                check_coincident=False)

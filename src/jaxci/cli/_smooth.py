@@ -22,6 +22,9 @@ def add_args(p) -> None:
     p.add_argument("--fixed-set", action="append", default=[], metavar="NAME",
                    help="fix the nodes of this named node set of the file (repeatable)")
     p.add_argument("--untangle", choices=["auto", "always", "never"], default="auto")
+    p.add_argument("--merge-coincident", action="store_true",
+                   help="merge coincident nodes (an unmerged interface) before smoothing; without it they are "
+                        "kept fixed, so they stay exactly coincident")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object")
@@ -55,6 +58,7 @@ def run(args) -> int:
     mesh = read_mesh(args.input)
     res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
+                 merge_coincident=args.merge_coincident,
                  **_parse_params(args.param))
     with removing_temporaries(args.output):
         write_mesh(res.mesh, args.output)
