@@ -34,8 +34,20 @@ from .projection import Constraints, build_constraints, project_np
 from .quality import QualityReport, quality_report, transposed
 from .topology import colour_nodes, node_adjacency
 
-#: Method names accepted by `smooth` (and ``jaxci smooth --method``).
-METHODS = ("ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton", "laplace", "smart-laplace")
+#: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
+#: (`auto_pipeline`).
+METHODS = ("auto", "ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton", "laplace", "smart-laplace")
+
+#: Hexahedra from which the default pipeline runs smart-Laplace sweeps before L-BFGS (below it the sweeps'
+#: extra compilation costs more than the solver steps they save: `auto_pipeline`).
+AUTO_PRESMOOTH_FROM = 20_000
+
+#: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
+OPTIMAL_F = 1e-14
+
+#: The iteration cap of each method: the parameter that stops it, for the note when it does.
+_CAPS = {"ci": "max_sweeps", "laplace": "max_sweeps", "smart-laplace": "max_sweeps", "bfgs": "max_steps",
+         "lbfgs": "max_steps", "cg": "max_steps", "lm": "max_steps", "gauss-newton": "max_steps"}
 
 _DTYPES = {"float32": np.float32, "float64": np.float64}
 
@@ -50,7 +62,11 @@ class SmoothResult:
     - `iterations`, `wall_time` (seconds, including compilation), `method`, `params` (all hyperparameters).
     - `before`, `after`: `QualityReport` of input and output; `boundary`: node counts per class.
     - `node_class`: class of every node (`jaxci.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
-    - `notes`: what a user should know (invariant fallbacks, untangling, ...).
+    - `notes`: what a user should know (invariant fallbacks, untangling, an iteration cap that stopped it, ...).
+    - `phases`: where the time went (`jaxci.phases.PhaseClock.as_dict`: seconds, compile seconds and
+      compilations per phase: ``validate``, ``report`` (quality before), ``untangle``, ``setup`` (boundary
+      classification, constraints, colouring), ``smooth`` (the method), ``checks`` (float64 invariants and the
+      quality after)).
     """
 
     mesh: HexMesh
@@ -64,6 +80,7 @@ class SmoothResult:
     boundary: dict
     node_class: np.ndarray | None = None
     notes: tuple[str, ...] = ()
+    phases: dict | None = None
 
     def summary(self) -> dict:
         """JSON-ready summary: before/after quality keys, iterations, wall time, method and params."""
@@ -76,6 +93,7 @@ class SmoothResult:
             "after": self.after.to_dict(),
             "boundary": self.boundary,
             "notes": list(self.notes),
+            "phases": self.phases,
         }
 
 
@@ -115,6 +133,22 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
                    dtype, extra, table)
 
 
+def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
+    """The default pipeline (``method="auto"``): ``(method, params, description)``.
+
+    Chosen by measurement on real and generated meshes (docs/results/bench_realmesh.md): L-BFGS on F after the
+    untangling stage (when the input has inverted elements), with `AUTO_PRESMOOTH_FROM` hexahedra and more
+    3 smart-Laplace sweeps first (they fix the worst corners node by node; at 10^6 elements L-BFGS alone needed
+    1152 steps, 13 after them). Local CI ran to its sweep cap on unstructured meshes. `params` (the user's) win.
+    """
+    params = dict(params)
+    if "presmooth" not in params and n_hexes >= AUTO_PRESMOOTH_FROM:
+        params["presmooth"] = 3
+    pre = int(params.get("presmooth", 0))
+    desc = "L-BFGS on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")
+    return "lbfgs", params, desc
+
+
 def _run_method(problem: Problem, method: str, key, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params)."""
     if method in ("ci", "ci-global"):
@@ -151,7 +185,7 @@ def free_scale(problem: Problem) -> jnp.ndarray:
 
 def smooth(
     mesh: HexMesh,
-    method: str = "ci",
+    method: str = "auto",
     *,
     seed: int = 0,
     dtype: str = "float32",
@@ -161,6 +195,7 @@ def smooth(
     fixed_sets: Sequence[str] = (),
     untangle: str = "auto",
     merge_coincident: bool = False,
+    clock=None,
     **params,
 ) -> SmoothResult:
     """Smooth the hexahedra of `mesh` by moving nodes; connectivity never changes.
@@ -169,9 +204,10 @@ def smooth(
 
     - `mesh`: the input `HexMesh` (not modified); a `meshio.Mesh` is converted (as `jaxci.io.read_mesh` converts
       a file); a path or an array raises `jaxci.errors.UsageError` (read it with `jaxci.read_mesh` first).
-    - `method`: one of `METHODS`: ``"ci"`` batched local Cohort Intelligence (default), ``"ci-global"`` the
-      paper's global CI; ``"bfgs"``, ``"lbfgs"``, ``"cg"``, ``"lm"``, ``"gauss-newton"`` the optimistix
-      baselines (`jaxci.optim.gradient`); ``"laplace"``, ``"smart-laplace"`` (`jaxci.optim.laplace`).
+    - `method`: one of `METHODS`: ``"auto"`` the default pipeline (`auto_pipeline`: untangle if needed, then
+      L-BFGS, with smart-Laplace sweeps first on large meshes), ``"ci"`` batched local Cohort Intelligence,
+      ``"ci-global"`` the paper's global CI; ``"bfgs"``, ``"lbfgs"``, ``"cg"``, ``"lm"``, ``"gauss-newton"``
+      the optimistix baselines (`jaxci.optim.gradient`); ``"laplace"``, ``"smart-laplace"`` (`jaxci.optim.laplace`).
     - `seed`: an integer in [0, 2**32 - 1] (`jaxci.optim._params.check_seed`), the seed of the `jax.random` key
       of stochastic methods (same seed, same result; distinct seeds, distinct keys). The key uses the ``"rbg"``
       generator (XLA's RngBitGenerator): its code compiles in a tenth of the time of threefry's.
@@ -185,6 +221,8 @@ def smooth(
     - `merge_coincident`: merge coincident nodes first (`jaxci.mesh.merge_coincident`: the result has fewer
       nodes). Default False: coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface) are fixed, so
       they stay exactly coincident, and a note says how many.
+    - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
+      ``phases`` is its `as_dict`.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,
       `jaxci.optim.gradient.GradientParams`, `jaxci.optim.laplace.LaplaceParams` fields); keys starting with
       ``untangle_`` go to `jaxci.optim.untangle.UntangleParams` (e.g. ``untangle_margin=1e-2``).
@@ -197,9 +235,53 @@ def smooth(
 
     **Returns:** a `SmoothResult`.
     """
-    from .memory import check_fits, smooth_bytes
-    from .mesh import as_hex_mesh, check_volume, from_unit, to_unit, unit_frame
+    from .mesh import from_unit, to_unit, unit_frame
     from .mesh import merge_coincident as merge
+    from .phases import PhaseClock
+
+    clock = PhaseClock() if clock is None else clock
+    with clock.phase("validate"):
+        mesh, method, seed, fixed_sets, untangle_params, params, auto = _validate(
+            mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, fix_boundary, merge_coincident, params)
+    t0 = time.perf_counter()
+    notes: list[str] = []
+    if auto:
+        notes.append(f"default method (auto): {auto}; choose another with --method / method=")
+    if merge_coincident:
+        merged = merge(mesh)
+        if merged is not mesh:
+            notes.append(merged.notes[-1])
+        mesh = merged
+    fixed = _fixed_nodes(mesh, fixed_nodes)
+    pairs = mesh.coincident_nodes()
+    if len(pairs):
+        fixed = np.union1d(fixed, pairs.ravel())
+        notes.append(f"{len(pairs)} pairs of coincident nodes ({len(np.unique(pairs))} nodes, first: "
+                     f"{mesh._node_label(int(pairs[0, 0]))} and {mesh._node_label(int(pairs[0, 1]))}) fixed, so they "
+                     f"stay coincident (--merge-coincident, or merge_coincident=True, merges them)")
+    frame = unit_frame(mesh.points)
+    unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
+                               check_coincident=False)
+    points, res = _smooth_unit(unit, method, seed, dtype, feature_angle, fix_boundary, fixed, fixed_sets,
+                               untangle, untangle_params, params, notes, clock)
+    moved = (points != unit.points).any(axis=1)
+    real = np.array(mesh.points)
+    real[moved] = from_unit(points[moved], frame)
+    return dataclasses.replace(
+        res, mesh=mesh.with_points(real), wall_time=time.perf_counter() - t0,
+        method="auto" if auto else method,
+        params={**res.params, "seed": seed, "dtype": dtype, "feature_angle": feature_angle,
+                "fix_boundary": fix_boundary, **({"pipeline": auto} if auto else {})},
+        notes=tuple(notes), phases=clock.as_dict(),
+    )
+
+
+def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, fix_boundary, merge_coincident,
+              params):
+    """`smooth`'s argument checks, before any work: ``(mesh, method, seed, fixed_sets, untangle_params, params,
+    auto)`` with the `auto_pipeline` resolved (`auto`: its description, else "")."""
+    from .memory import check_fits, smooth_bytes
+    from .mesh import as_hex_mesh, check_volume
     from .optim._params import check_seed
 
     mesh = as_hex_mesh(mesh, "smooth")
@@ -219,6 +301,9 @@ def smooth(
         if not isinstance(flag, bool):
             raise ConfigError(f"smooth: {name} must be True or False, got {flag!r}")
     untangle_params = {k: params.pop(k) for k in list(params) if isinstance(k, str) and k.startswith("untangle_")}
+    auto = ""
+    if method == "auto":
+        method, params, auto = auto_pipeline(mesh.n_hexes, params)
     p = method_params(method, params)  # checked now, not after the untangling
     if untangle_params:
         from .optim._params import make_params
@@ -231,44 +316,24 @@ def smooth(
     check_fits(smooth_bytes(mesh.n_hexes + sum(len(c) for c in mixed.extra_blocks(mesh).values()), dtype, trials),
                f"{where}smoothing {mesh.n_hexes} hexahedra in {dtype}")
     check_volume(mesh)
-    t0 = time.perf_counter()
-    notes: list[str] = []
-    if merge_coincident:
-        merged = merge(mesh)
-        if merged is not mesh:
-            notes.append(merged.notes[-1])
-        mesh = merged
-    fixed = _fixed_nodes(mesh, fixed_nodes)
-    pairs = mesh.coincident_nodes()
-    if len(pairs):
-        fixed = np.union1d(fixed, pairs.ravel())
-        notes.append(f"{len(pairs)} pairs of coincident nodes ({len(np.unique(pairs))} nodes, first: "
-                     f"{mesh._node_label(int(pairs[0, 0]))} and {mesh._node_label(int(pairs[0, 1]))}) fixed, so they "
-                     f"stay coincident (--merge-coincident, or merge_coincident=True, merges them)")
-    frame = unit_frame(mesh.points)
-    unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
-                               check_coincident=False)
-    points, res = _smooth_unit(unit, method, seed, dtype, feature_angle, fix_boundary, fixed, fixed_sets,
-                                        untangle, untangle_params, params, notes)
-    moved = (points != unit.points).any(axis=1)
-    real = np.array(mesh.points)
-    real[moved] = from_unit(points[moved], frame)
-    return dataclasses.replace(
-        res, mesh=mesh.with_points(real), wall_time=time.perf_counter() - t0,
-        params={**res.params, "seed": seed, "dtype": dtype, "feature_angle": feature_angle,
-                "fix_boundary": fix_boundary},
-        notes=tuple(notes),
-    )
+    return mesh, method, seed, fixed_sets, untangle_params, params, auto
 
 
 def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
-                 untangle, untangle_params, params, notes) -> tuple[np.ndarray, SmoothResult]:
+                 untangle, untangle_params, params, notes, clock) -> tuple[np.ndarray, SmoothResult]:
     """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
-    and wall time are filled in by `smooth`; `notes` is appended to)."""
-    with jax.enable_x64(True):
+    and wall time are filled in by `smooth`; `notes` is appended to, `clock` records the phases)."""
+    with clock.phase("report"), jax.enable_x64(True):
         before = quality_report(mesh)
     untangled = None
     tangled = bool(before.inverted_corners) or bool(before.overall and before.overall["inverted"])
+    f_before = before.overall["objective"] if before.overall else before.objective
+    if not tangled and untangle != "always" and f_before is not None and f_before <= OPTIMAL_F:
+        notes.append(f"the mesh is already optimal (F = {f_before:.3g}, every corner an ideal cube corner): "
+                     f"nothing to do")
+        return np.array(mesh.points), SmoothResult(
+            mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]}, iterations=0,
+            wall_time=0.0, method=method, params={}, before=before, after=before, boundary={})
     if tangled and untangle == "never":
         where = f"{mesh.source}: " if mesh.source else ""
         bad = {t: np.flatnonzero(b) for t, b in mixed.inverted_cells(mesh, mesh.points).items() if b.any()}
@@ -284,20 +349,30 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
 
         up = make_params(UntangleParams, untangle_params, "untangling", prefix="untangle_",
                          what="the untangling stage")
-        info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
-                                 fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
-        untangled, untangle_notes = untangle_stage(mesh, info, up)  # InvertedMeshError if it fails
+        with clock.phase("untangle"):
+            info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
+                                     fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
+            untangled, untangle_notes = untangle_stage(mesh, info, up)  # InvertedMeshError if it fails
         notes.extend(untangle_notes)
     np_dtype = _DTYPES[dtype]
     with jax.enable_x64(dtype == "float64"):
-        problem = build_problem(mesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
-                                fixed_nodes=fixed_nodes, fixed_sets=fixed_sets)
-        if untangled is not None:
-            problem = dataclasses.replace(problem, x0=jnp.asarray(untangled, np_dtype))
-        x, iterations, history, resolved = _run_method(problem, method, jax.random.key(seed, impl="rbg"), params)
-        x = np.asarray(x, dtype=np.float64)
+        with clock.phase("setup"):
+            problem = build_problem(mesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
+                                    fixed_nodes=fixed_nodes, fixed_sets=fixed_sets)
+            if untangled is not None:
+                problem = dataclasses.replace(problem, x0=jnp.asarray(untangled, np_dtype))
+        with clock.phase("smooth"):
+            x, iterations, history, resolved = _run_method(problem, method, jax.random.key(seed, impl="rbg"),
+                                                           params)
+            x = np.asarray(x, dtype=np.float64)
     notes.extend(problem.info.notes)
-    with jax.enable_x64(True):
+    cap = _CAPS.get(method)
+    if cap is not None and cap in resolved:
+        run = int(iterations) - int(np.asarray(history.get("presmooth", 0)))
+        if run >= int(resolved[cap]):
+            notes.append(f"{method} stopped at its cap of {resolved[cap]} iterations ({cap}) before it converged; "
+                         f"--param {cap}=N lets it go further")
+    with clock.phase("checks"), jax.enable_x64(True):
         if untangled is None:
             points, check_notes = _enforce_invariants(mesh, problem, x)
         else:

@@ -44,7 +44,7 @@ def _setup_jax() -> None:
     try:
         os.makedirs(cache, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     except OSError:  # pragma: no cover - an unwritable home only costs compile time
         pass
 

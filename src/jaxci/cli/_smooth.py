@@ -1,4 +1,10 @@
-"""`jaxci smooth IN OUT --method ci [--seed S] [--json] [--force]`: smooth a mesh and write it in the format of OUT.
+"""`jaxci smooth IN OUT [--method M] [--seed S] [--json] [--verbose] [--force]`: smooth a mesh, write it as OUT.
+
+Without ``--method`` the default pipeline runs (``auto``: `jaxci.smooth.auto_pipeline`), and the output says
+which. ``--json`` reports the time of each phase (``phases``: ``startup`` (process start, imports and JAX set-up),
+``read``, then `jaxci.smooth`'s ``validate``, ``report``, ``untangle``, ``setup``, ``smooth``, ``checks``, and
+``write``; each with its compilation seconds and count); ``--verbose`` prints one line per phase on stderr as it
+ends (with a spinner while it runs on a terminal).
 
 OUT is checked before the smoothing (`_files.check_output`: never the input, an existing file only with
 ``--force``) and written atomically; an interrupt leaves no OUT and no temporary file.
@@ -7,6 +13,7 @@ OUT is checked before the smoothing (`_files.check_output`: never the input, an 
 from __future__ import annotations
 
 import json
+import sys
 
 
 def add_args(p) -> None:
@@ -14,7 +21,9 @@ def add_args(p) -> None:
 
     p.add_argument("input", help="input mesh file (never modified)")
     p.add_argument("output", help="output mesh file; its extension picks the format")
-    p.add_argument("--method", default="ci", choices=METHODS, help="smoothing method (default ci: local CI)")
+    p.add_argument("--method", default="auto", choices=METHODS,
+                   help="smoothing method (default auto: untangle if needed, then L-BFGS, with smart-Laplace sweeps "
+                        "first on large meshes; the output says which)")
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (default 0)")
     p.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     p.add_argument("--feature-angle", type=float, default=40.0, help="degrees (default 40)")
@@ -27,7 +36,8 @@ def add_args(p) -> None:
                         "kept fixed, so they stay exactly coincident")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
-    p.add_argument("--json", action="store_true", help="print one JSON summary object")
+    p.add_argument("--json", action="store_true", help="print one JSON summary object (with phase timings)")
+    p.add_argument("--verbose", "-v", action="store_true", help="one line per phase on stderr (time, compilation)")
     p.add_argument("--force", action="store_true", help="overwrite OUTPUT if it is an existing file (never the "
                    "input)")
 
@@ -47,7 +57,40 @@ def _parse_params(items: list[str]) -> dict:
     return out
 
 
+def _phase_printer(enabled: bool):
+    """`PhaseClock` ``on_event`` for ``--verbose``: a line per finished phase on stderr, a rich spinner while a
+    phase runs (on a terminal); None when disabled."""
+    if not enabled:
+        return None
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    live = {}
+
+    def on_event(kind: str, name: str, rec: dict | None) -> None:
+        if kind == "start":
+            if console.is_terminal and not live:
+                live[name] = console.status(f"{name} ...")
+                live[name].start()
+            return
+        status = live.pop(name, None)
+        if status is not None:
+            status.stop()
+        comp = f" (compilation {rec['compile_seconds']:.2f} s, {rec['compiled']} compiled)" if rec["compiled"] else ""
+        print(f"jaxci: {name:<9} {rec['seconds']:8.2f} s{comp}", file=sys.stderr, flush=True)
+
+    return on_event
+
+
 def run(args) -> int:
+    from ..phases import PhaseClock, process_age
+
+    clock = PhaseClock(_phase_printer(args.verbose))
+    age = process_age()
+    if age is not None:
+        clock.add("startup", age)
+        if clock.on_event is not None:
+            clock.on_event("end", "startup", clock.as_dict()["startup"])
     from ..io import read_mesh, write_mesh
     from ..smooth import smooth
     from ._files import check_output
@@ -55,20 +98,25 @@ def run(args) -> int:
     from ._quality import format_table
 
     check_output(args.output, [args.input], force=args.force)
-    mesh = read_mesh(args.input)
+    with clock.phase("read"):
+        mesh = read_mesh(args.input)
     res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
-                 merge_coincident=args.merge_coincident,
-                 **_parse_params(args.param))
-    with removing_temporaries(args.output):
+                 merge_coincident=args.merge_coincident, clock=clock, **_parse_params(args.param))
+    with clock.phase("write"), removing_temporaries(args.output):
         write_mesh(res.mesh, args.output)
+    phases = clock.as_dict()
+    if args.verbose:
+        t = phases["total"]
+        print(f"jaxci: total     {t['seconds']:8.2f} s (compilation {t['compile_seconds']:.2f} s, {t['compiled']} "
+              f"compiled, {t['cache_hits']} from the compilation cache)", file=sys.stderr)
     if args.json:
-        print(json.dumps({**res.summary(), "input": args.input, "output": args.output}))
+        print(json.dumps({**res.summary(), "phases": phases, "input": args.input, "output": args.output}))
         return 0
     for note in (*mesh.notes, *res.notes):
         print(f"note: {note}")
     b, a = res.before.to_dict(), res.after.to_dict()
     print(format_table(b, f"before: {args.input}"))
-    print(format_table(a, f"after ({args.method}, {res.iterations} iterations, {res.wall_time:.2f} s): "
-                          f"{args.output}"))
+    label = res.params.get("pipeline", res.method) if res.method == "auto" else res.method
+    print(format_table(a, f"after ({label}, {res.iterations} iterations, {res.wall_time:.2f} s): {args.output}"))
     return 0

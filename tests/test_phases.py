@@ -1,0 +1,83 @@
+"""Phase timings (`jaxci.phases`), the default pipeline (``method="auto"``), the note when an iteration cap stops
+a method, and the already-optimal shortcut (issue 14)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+import jaxci
+from jaxci.cli import main
+from jaxci.generate import box, perturb_box
+from jaxci.io import write_mesh
+from jaxci.phases import PhaseClock, compile_totals
+
+PHASE_KEYS = {"seconds", "compile_seconds", "compiled", "cache_hits"}
+
+
+def test_phase_clock_counts_compilations():
+    import jax
+    import jax.numpy as jnp
+
+    clock = PhaseClock()
+    with clock.phase("a"):
+        jax.jit(lambda x: jnp.sin(x) * 3.0 + 0.123456)(jnp.arange(7.0)).block_until_ready()
+    with clock.phase("a"):
+        pass
+    d = clock.as_dict()
+    assert set(d) == {"a", "total"}
+    assert set(d["a"]) == PHASE_KEYS
+    assert d["a"]["compiled"] >= 1 and d["a"]["compile_seconds"] > 0
+    assert d["total"]["seconds"] >= d["a"]["compile_seconds"]
+    assert compile_totals()["compiled"] >= 1
+
+
+def test_default_is_auto_and_reports_phases():
+    mesh = perturb_box(3, 3, 3, amplitude=0.2, seed=1)
+    res = jaxci.smooth(mesh)
+    assert res.method == "auto" and res.params["pipeline"].startswith("L-BFGS")
+    assert any(n.startswith("default method (auto)") for n in res.notes)
+    assert {"validate", "report", "setup", "smooth", "checks", "total"} <= set(res.phases)
+    assert res.after.max_condition < res.before.max_condition
+    assert res.summary()["phases"] == res.phases
+
+
+def test_auto_presmooths_large_meshes_only():
+    from jaxci.smooth import AUTO_PRESMOOTH_FROM, auto_pipeline
+
+    assert auto_pipeline(1000, {})[1] == {}
+    assert auto_pipeline(AUTO_PRESMOOTH_FROM, {})[1] == {"presmooth": 3}
+    assert auto_pipeline(AUTO_PRESMOOTH_FROM, {"presmooth": 0})[1] == {"presmooth": 0}  # the user's value wins
+
+
+def test_optimal_mesh_returns_at_once():
+    mesh = box(3, 3, 3)
+    res = jaxci.smooth(mesh, "lbfgs")
+    assert res.iterations == 0
+    assert any("already optimal" in n for n in res.notes)
+    np.testing.assert_array_equal(res.mesh.points, mesh.points)
+    assert "smooth" not in res.phases  # no method ran, nothing compiled for it
+
+
+def test_cap_is_a_note():
+    mesh = perturb_box(3, 3, 3, amplitude=0.3, seed=2)
+    res = jaxci.smooth(mesh, "lbfgs", max_steps=2)
+    assert any("stopped at its cap of 2 iterations (max_steps)" in n for n in res.notes)
+    done = jaxci.smooth(mesh, "lbfgs")
+    assert not any("cap" in n for n in done.notes)
+
+
+def test_cli_json_and_verbose_phases(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    write_mesh(perturb_box(3, 3, 3, amplitude=0.2, seed=3), "in.vtk")
+    assert main(["smooth", "in.vtk", "out.vtk", "--json", "--verbose"]) == 0
+    out, err = capsys.readouterr()
+    summary = json.loads(out)
+    phases = summary["phases"]
+    assert {"startup", "read", "validate", "smooth", "checks", "write", "total"} <= set(phases)
+    assert all(set(v) == PHASE_KEYS for v in phases.values())
+    assert summary["method"] == "auto"
+    lines = err.strip().splitlines()
+    assert any(line.startswith("jaxci: read") for line in lines)
+    assert lines[-1].startswith("jaxci: total")
