@@ -195,6 +195,7 @@ def smooth(
     fixed_sets: Sequence[str] = (),
     untangle: str = "auto",
     merge_coincident: bool = False,
+    keep_worst: bool = True,
     clock=None,
     **params,
 ) -> SmoothResult:
@@ -221,6 +222,9 @@ def smooth(
     - `merge_coincident`: merge coincident nodes first (`jaxci.mesh.merge_coincident`: the result has fewer
       nodes). Default False: coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface) are fixed, so
       they stay exactly coincident, and a note says how many.
+    - `keep_worst`: guarantee that the worst cell (max corner kappa/3, float64, every cell type) is no worse than
+      the input's (`jaxci.guard.keep_worst`: the nodes of cells that ended worse are put back, and a note says
+      what that cost in mean quality). False returns the method's result as it is.
     - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,
@@ -242,7 +246,8 @@ def smooth(
     clock = PhaseClock() if clock is None else clock
     with clock.phase("validate"):
         mesh, method, seed, fixed_sets, untangle_params, params, auto = _validate(
-            mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, fix_boundary, merge_coincident, params)
+            mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params,
+            {"fix_boundary": fix_boundary, "merge_coincident": merge_coincident, "keep_worst": keep_worst})
     t0 = time.perf_counter()
     notes: list[str] = []
     if auto:
@@ -263,7 +268,7 @@ def smooth(
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
                                check_coincident=False)
     points, res = _smooth_unit(unit, method, seed, dtype, feature_angle, fix_boundary, fixed, fixed_sets,
-                               untangle, untangle_params, params, notes, clock)
+                               untangle, untangle_params, params, notes, clock, keep_worst)
     moved = (points != unit.points).any(axis=1)
     real = np.array(mesh.points)
     real[moved] = from_unit(points[moved], frame)
@@ -276,8 +281,7 @@ def smooth(
     )
 
 
-def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, fix_boundary, merge_coincident,
-              params):
+def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params, flags: dict):
     """`smooth`'s argument checks, before any work: ``(mesh, method, seed, fixed_sets, untangle_params, params,
     auto)`` with the `auto_pipeline` resolved (`auto`: its description, else "")."""
     from .memory import check_fits, smooth_bytes
@@ -297,7 +301,7 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, fi
     if isinstance(fixed_sets, str):
         raise ConfigError(f"smooth: fixed_sets must be a list of node set names, got the string {fixed_sets!r} "
                           f"(write [{fixed_sets!r}])")
-    for name, flag in (("fix_boundary", fix_boundary), ("merge_coincident", merge_coincident)):
+    for name, flag in flags.items():
         if not isinstance(flag, bool):
             raise ConfigError(f"smooth: {name} must be True or False, got {flag!r}")
     untangle_params = {k: params.pop(k) for k in list(params) if isinstance(k, str) and k.startswith("untangle_")}
@@ -320,7 +324,7 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, fi
 
 
 def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
-                 untangle, untangle_params, params, notes, clock) -> tuple[np.ndarray, SmoothResult]:
+                 untangle, untangle_params, params, notes, clock, keep_worst) -> tuple[np.ndarray, SmoothResult]:
     """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
     and wall time are filled in by `smooth`; `notes` is appended to, `clock` records the phases)."""
     with clock.phase("report"), jax.enable_x64(True):
@@ -374,7 +378,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                          f"--param {cap}=N lets it go further")
     with clock.phase("checks"), jax.enable_x64(True):
         if untangled is None:
-            points, check_notes = _enforce_invariants(mesh, problem, x)
+            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst)
         else:
             from .optim.untangle import enforce_after_untangling
 
@@ -427,9 +431,11 @@ def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
     return f"element {mesh.hex_label(k)}" if cell_type == "hexahedron" else mixed.cell_label(mesh, cell_type, k)
 
 
-def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """Exact float64 projection onto the original boundary, then the no-inversion / no-increase checks over every
-    cell type (`jaxci.elements.inverted`, `jaxci.elements.mixed_objective`)."""
+def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray,
+                        keep_worst: bool = True) -> tuple[np.ndarray, list[str]]:
+    """Exact float64 projection onto the original boundary, then the no-inversion, worst-cell
+    (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell type (`jaxci.elements.inverted`,
+    `jaxci.elements.mixed_objective`)."""
     cons64 = build_constraints(mesh, problem.info, dtype=np.float64)
     x = project_np(cons64, x)
     new = mixed.newly_inverted(mesh, mesh.points, x)
@@ -437,9 +443,20 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray) -> tuple
     if new or not np.isfinite(f1):
         what = ", ".join(f"{k} {t}" for t, k in new.items()) or "non-finite objective"
         return np.array(mesh.points), [f"the result had newly inverted elements ({what}); the input is returned"]
+    notes = []
+    if keep_worst:
+        from .guard import keep_worst as guard
+
+        y, n_back, w0, w1 = guard(mesh, mesh.points, x)
+        if n_back:
+            f2 = float(mixed_objective(y, mesh))
+            notes.append(f"worst cell kept no worse than the input's (max kappa/3 {w0:.6g}; the method's result had "
+                         f"{w1:.6g}): {n_back} nodes put back where they were, F {f1:.6g} -> {f2:.6g} "
+                         f"(keep_worst=False / --allow-worse-worst returns the method's result)")
+            x, f1 = y, f2
     if f1 > f0:
-        return np.array(mesh.points), [f"the objective rose from {f0:.6g} to {f1:.6g}; the input is returned"]
-    return x, []
+        return np.array(mesh.points), [*notes, f"the objective rose from {f0:.6g} to {f1:.6g}; the input is returned"]
+    return x, notes
 
 
 def _standard_history(h: dict) -> dict:

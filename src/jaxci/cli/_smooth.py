@@ -34,6 +34,9 @@ def add_args(p) -> None:
     p.add_argument("--merge-coincident", action="store_true",
                    help="merge coincident nodes (an unmerged interface) before smoothing; without it they are "
                         "kept fixed, so they stay exactly coincident")
+    p.add_argument("--allow-worse-worst", action="store_true",
+                   help="return the method's result even if its worst cell is worse than the input's (by default "
+                        "the nodes of such cells are put back: jaxci.guard)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object (with phase timings)")
@@ -102,7 +105,8 @@ def run(args) -> int:
         mesh = read_mesh(args.input)
     res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
-                 merge_coincident=args.merge_coincident, clock=clock, **_parse_params(args.param))
+                 merge_coincident=args.merge_coincident, keep_worst=not args.allow_worse_worst, clock=clock,
+                 **_parse_params(args.param))
     with clock.phase("write"), removing_temporaries(args.output):
         write_mesh(res.mesh, args.output)
     phases = clock.as_dict()
