@@ -356,6 +356,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         with clock.phase("untangle"):
             info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                      fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
+            _refuse_stuck(mesh, info)
             untangled, untangle_notes = untangle_stage(mesh, info, up)  # InvertedMeshError if it fails
         notes.extend(untangle_notes)
     np_dtype = _DTYPES[dtype]
@@ -391,6 +392,25 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         node_class=np.asarray(problem.info.node_class),
     )
     return points, res
+
+
+def _refuse_stuck(mesh: HexMesh, info: BoundaryInfo) -> None:
+    """`InvertedMeshError` at once, naming them, if some inverted cells cannot be fixed by any allowed move
+    (`jaxci.optim.feasibility.stuck_cells`: an inverted corner whose four nodes are all fixed)."""
+    from .optim.feasibility import stuck_cells
+
+    stuck = stuck_cells(mesh, info)
+    if not stuck:
+        return
+    where = f"{mesh.source}: " if mesh.source else ""
+    n = sum(len(v) for v in stuck.values())
+    labels = [_label(mesh, t, int(k)) for t, ks in stuck.items() for k in ks[:5]][:5]
+    raise InvertedMeshError(
+        f"{where}{n} inverted {'element cannot' if n == 1 else 'elements cannot'} be untangled: each has an inverted "
+        f"corner whose four nodes are all fixed (boundary corners, fixed sets or --fix-boundary), so no allowed "
+        f"move changes it ({', '.join(labels)}{', ...' if n > len(labels) else ''}); free those nodes (drop "
+        f"--fix-boundary / --fixed-set, or a smaller --feature-angle) or repair the elements in the mesher"
+    )
 
 
 def _choice(name: str, value, choices: tuple) -> None:
