@@ -36,6 +36,7 @@ This module knows nothing of running: `jaxci.experiment` imports it, never the r
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import re
@@ -312,9 +313,12 @@ def _validate_params(method: str, params: dict, fail: Callable[[tuple, str], Con
         if key not in names:
             raise fail((key,), f"unknown parameter of method {method!r}; valid: {', '.join(names)}")
 
+    build = getattr(cls, "for_method", None)  # per-method defaults (CI: "ci-global" has its own)
+    build = cls if build is None else functools.partial(build, method)
+
     def attempt(kw):
         try:
-            cls(**kw)
+            build(**kw)
         except (JaxciError, ValueError, TypeError) as e:
             return str(e)
         return None

@@ -228,7 +228,8 @@ def smooth(
     - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,
-      `jaxci.optim.gradient.GradientParams`, `jaxci.optim.laplace.LaplaceParams` fields); keys starting with
+      `jaxci.optim.gradient.GradientParams`, `jaxci.optim.laplace.LaplaceParams` fields; one not given takes the
+      method's default: ``"ci-global"`` has its own, the paper's, `jaxci.optim.ci.GLOBAL_DEFAULTS`); keys starting with
       ``untangle_`` go to `jaxci.optim.untangle.UntangleParams` (e.g. ``untangle_margin=1e-2``).
 
     Every argument is checked before any work (`ConfigError` naming the argument or parameter, the method and
@@ -435,12 +436,16 @@ def _fixed_nodes(mesh: HexMesh, fixed_nodes) -> np.ndarray:
 
 def method_params(method: str, params: dict):
     """The checked parameter dataclass of `method` built from `params` (`ConfigError` naming the method and the
-    parameter for an unknown name or a bad value)."""
+    parameter for an unknown name or a bad value). A parameter not given takes its METHOD's default: CI's come
+    from `jaxci.optim.ci.CIParams.for_method` (``"ci"`` local CI's, ``"ci-global"`` the paper's global CI's),
+    the one source for `smooth`, ``jaxci smooth`` and YAML configs (`jaxci.config`)."""
     from .optim._params import make_params
 
     if method in ("ci", "ci-global"):
-        from .optim.ci import CIParams as cls
-    elif method in ("laplace", "smart-laplace"):
+        from .optim.ci import ci_params
+
+        return ci_params(method, params)
+    if method in ("laplace", "smart-laplace"):
         from .optim.laplace import LaplaceParams as cls
     else:
         from .optim.gradient import GradientParams as cls

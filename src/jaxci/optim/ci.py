@@ -37,7 +37,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import types
 import typing
+from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -61,20 +63,27 @@ class CIParams:
     """Hyperparameters of Cohort Intelligence (both forms). Validated on construction (`ConfigError`: types,
     finite values, ranges; an integral float counts as an int).
 
+    Each form has its own defaults: the field defaults below are local CI's (``"ci"``); global CI
+    (``"ci-global"``) replaces some of them (`GLOBAL_DEFAULTS`). `CIParams.for_method` builds either, and every
+    entry point (`jaxci.smooth`, ``jaxci smooth --method ci-global``, YAML configs) goes through it, so a field the
+    user does not give takes its method's default.
+
     The local defaults (C = 4, t = 4, 4 attempts per colour visit) were chosen by measurement on the perturbed
     729-element cube (scripts/reproduce_paper.py): C = 6, t = 8, 8 attempts needs the same number of sweeps to
     reach max kappa/3 <= 1.001 and <= 1.0001 at 5-8x the cost; C = 2 or t = 2 need more sweeps.
 
-    - `cohort`: C, candidates per cohort (default 4; 2 to 256).
-    - `variations`: t, variations sampled per candidate and attempt (default 4; 1 to 256; C t <= 4096).
-    - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.8).
+    Fields (default local / global where they differ):
+
+    - `cohort`: C, candidates per cohort (default 4 / 5; 2 to 256).
+    - `variations`: t, variations sampled per candidate and attempt (default 4 / 5; 1 to 256; C t <= 4096).
+    - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.8 / 0.998).
     - `delta`: > 0, regulariser of the follow probabilities 1/(g + delta) (default 1e-3).
-    - `attempts`: learning attempts per cohort run (local: per colour visit, default 4; global: total;
-      at most 10^6, as `max_sweeps` and `patience`).
+    - `attempts`: learning attempts per cohort run (local: per colour visit, default 4; global: total, default
+      1000; at most 10^6, as `max_sweeps` and `patience`).
     - `stage_switch`: fraction in [0, 1] of the attempts that follow by roulette (stage 1); the rest follow the
-      best (stage 2). Default 0.5.
-    - `init_width`: initial interval width as a fraction of the local edge length h (default 0.5).
-    - `min_width`: smallest interval width, fraction of h (default 1e-6).
+      best (stage 2). Default 0.5 / 0.2.
+    - `init_width`: initial interval width as a fraction of the local edge length h (default 0.5 / 0.03).
+    - `min_width`: local CI: smallest interval width, fraction of h (default 1e-6).
     - `max_sweeps`: local CI: maximum colour sweeps (default 200).
     - `tol`: saturation: relative change of F per sweep (local) or spread of behaviours (global) (default 1e-6).
     - `ftol`: stop when F <= ftol (default 1e-10).
@@ -117,6 +126,48 @@ class CIParams:
         if self.cohort * self.variations > MAX_TRIALS:
             raise ConfigError(f"CI parameters cohort x variations = {self.cohort} x {self.variations} trial "
                               f"positions per node and attempt must be at most {MAX_TRIALS}")
+
+    @classmethod
+    def for_method(cls, method: str = "ci", **params) -> CIParams:
+        """The parameters of CI form `method`: ``"ci"`` (local, the field defaults) or ``"ci-global"`` (the
+        paper's, `GLOBAL_DEFAULTS` over the field defaults), with `params` (field names) over its defaults.
+
+        The one source of CI defaults: `jaxci.smooth.method_params` (hence `jaxci.smooth`, ``jaxci smooth`` and
+        ``jaxci run``) and `jaxci.config`'s up-front check build CI parameters here. Raises `ConfigError` for
+        another method or a bad value, `TypeError` for an unknown field (`jaxci.optim._params.make_params` names
+        it first)."""
+        if method not in METHOD_DEFAULTS:
+            raise ConfigError(f"CI parameters: unknown CI method {method!r}; choose one of "
+                              f"{', '.join(map(repr, METHOD_DEFAULTS))}")
+        return cls(**{**METHOD_DEFAULTS[method], **params})
+
+
+#: Global CI's defaults where they differ from the field defaults of `CIParams` (local CI's): the paper's
+#: algorithm (two stages, roulette then follow-the-best; greedy; intervals shrunk by a constant factor) with the
+#: budget and schedule measured on its three cubes, 30 seeds each (docs/results/paper_global_ci.md; the paper
+#: gives none of them): 5 candidates x 5 variations (25 evaluations of F per attempt) and 1000 learning attempts,
+#: initial intervals 0.03 h wide per free coordinate, shrunk by 0.998 per attempt (to 13.5% at attempt 1000;
+#: 0.995, the earlier configs' value, shrank them to 0.7% and stalled cube729 near max kappa/3 1.6), roulette
+#: for the first 20% of the attempts, then everyone follows the best: the paper's "after few learning attempts,
+#: all candidates follow global best" (following the best converges faster than the roulette, whose
+#: probabilities 1/F are nearly uniform over a cohort of close behaviours).
+GLOBAL_DEFAULTS: Mapping[str, float] = types.MappingProxyType(
+    {"cohort": 5, "variations": 5, "reduction": 0.998, "attempts": 1000, "stage_switch": 0.2, "init_width": 0.03})
+
+#: The defaults of each CI form: method name -> the fields that differ from `CIParams`'s own (read-only).
+METHOD_DEFAULTS: Mapping[str, Mapping[str, float]] = types.MappingProxyType(
+    {"ci": types.MappingProxyType({}), "ci-global": GLOBAL_DEFAULTS})
+
+
+def ci_params(method: str, params: Mapping) -> CIParams:
+    """`CIParams.for_method` from a mapping of the user's parameters (`params`: field names to values), checked
+    as `jaxci.optim._params.make_params` checks them: an unknown name is listed with the valid ones, and every
+    `ConfigError` names `method` (``"ci"`` or ``"ci-global"``). `jaxci.smooth.method_params` calls it."""
+    if method not in METHOD_DEFAULTS:
+        CIParams.for_method(method)  # the error naming the CI methods
+    if isinstance(params, Mapping):  # else make_params says what is wrong with it
+        params = {**METHOD_DEFAULTS[method], **params}
+    return _p.make_params(CIParams, params, method)
 
 
 class _Static(typing.NamedTuple):
