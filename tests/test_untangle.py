@@ -58,8 +58,12 @@ def test_never_refuses_and_failure_is_reported_with_the_input_untouched():
     with pytest.raises(InvertedMeshError, match="untangle='never'"):
         smooth(bad, "lbfgs", untangle="never")
     before = bad.points.copy()
-    with pytest.raises(InvertedMeshError, match="untangling failed.*input is left unchanged"):
-        smooth(bad, "lbfgs", fixed_nodes=np.arange(bad.n_nodes))  # nothing may move
+    with pytest.raises(InvertedMeshError, match="cannot be untangled"):  # nothing may move: refused at once
+        smooth(bad, "lbfgs", fixed_nodes=np.arange(bad.n_nodes))
+    # one L-BFGS step (the evaluation at the start) in one round: the stage fails, with exact counts
+    with pytest.raises(InvertedMeshError, match=r"untangling failed: 7 elements are inverted after 1 rounds "
+                                                r"\(7 were in the input; 1 L-BFGS steps.*input is left unchanged"):
+        smooth(bad, "lbfgs", untangle_max_rounds=1, untangle_inner_steps=1)
     np.testing.assert_array_equal(bad.points, before)
 
 
