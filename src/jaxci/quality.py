@@ -67,7 +67,9 @@ def transposed(hexes):
     """``(N, 8)`` hexahedra -> the ``(8, N)`` contiguous layout the kernels take (int32 unless x64 is on)."""
     if isinstance(hexes, jax.Array):
         return hexes.T
-    return jnp.asarray(np.ascontiguousarray(np.asarray(hexes).T))
+    # converted on the host and device_put: jnp.asarray of a numpy array compiles a small program per shape
+    a = np.asarray(hexes)
+    return jax.device_put(np.ascontiguousarray(a.T, dtype=jax.dtypes.canonicalize_dtype(a.dtype)))
 
 
 def corner_columns(X, Y, Z):
@@ -410,7 +412,7 @@ def objective_and_grad(points, conn):
     return f, g
 
 
-def objective_terms_and_grad(points, conn):
+def objective_terms_and_grad(points, conn, weight=None):
     """F (Eq. 3.1), max kappa/3 and the gradient of F with respect to the node coordinates, in closed form.
 
     With columns a, b, c of a corner matrix, u = b x c, v = c x a, w = a x b, det = a . u,
@@ -429,7 +431,9 @@ def objective_terms_and_grad(points, conn):
     memory-bound. The scatter-add into the nodes is ~10% (a gather over a node-incidence table and
     `segment_sum` cost the same).
 
-    **Arguments:** `points` of shape ``(n, 3)``; `conn` the transposed connectivity ``(8, N)``.
+    **Arguments:** `points` of shape ``(n, 3)``; `conn` the transposed connectivity ``(8, N)``; `weight`
+    optional ``(N,)``: 1 for a real element, 0 for a padding one (`jaxci.optim._buckets`), which then adds
+    nothing to F, its max or its gradient, and F is the mean over the real corners (default: every element).
 
     **Returns:** ``(F, kmax, grad)``: scalars (``inf`` if any corner has det <= 0) and shape ``(n, 3)`` (the
     contributions of inverted corners are left out).
@@ -449,9 +453,16 @@ def objective_terms_and_grad(points, conn):
     term = jax.lax.optimization_barrier(term)
     # the mean of term - 1 (small numbers near the optimum), not mean(term) - 1: in float32 over 8 M corners the
     # rounding of a sum of values near 1 swamped the decrease of F that the line search tests
-    f = jnp.mean(term - 1.0)
-    kmax = jnp.sqrt(jnp.max(term))
-    w2 = 2.0 / (9.0 * term.size)
+    if weight is None:
+        f = jnp.mean(term - 1.0)
+        kmax = jnp.sqrt(jnp.max(term))
+        w2 = 2.0 / (9.0 * term.size)
+    else:
+        real = weight > 0  # (N,): padding elements drop out of F, the max and (w2 = 0) the gradient
+        n_corners = 8.0 * jnp.sum(real.astype(term.dtype))
+        f = jnp.sum(jnp.where(real, term - 1.0, 0.0)) / n_corners
+        kmax = jnp.sqrt(jnp.max(jnp.where(real, term, 0.0)))
+        w2 = jnp.where(real, 2.0 / (9.0 * n_corners), 0.0)
     p = w2 * adj2 * idet2
     q = w2 * fro2 * idet2
     r = p * fro2 * idet

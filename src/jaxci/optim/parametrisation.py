@@ -21,6 +21,7 @@ from .. import mixed
 from ..boundary import BoundaryInfo
 from ..mesh import CORNER_NEIGHBOURS
 from ..projection import Constraints, n_free, project, project_np
+from ._buckets import bucket, free_index, free_layout, pad_constraints, pad_rows, to_device
 
 
 class Parametrisation(eqx.Module):
@@ -89,7 +90,7 @@ class Parametrisation(eqx.Module):
         x = self._lift_np(v)
         if not (self.shortcut and self._reach(x) < 1.0):
             x = project_np(self.cons, x)
-        return jnp.asarray(x, self.x0.dtype)
+        return to_device(x, self.x0.dtype)
 
     def _lift_np(self, v):
         f64 = np.float64
@@ -108,7 +109,42 @@ class Parametrisation(eqx.Module):
         ui = d[c.interior_nodes].reshape(-1)
         us = jnp.einsum("sd,skd->sk", d[c.surface_nodes], c.surface_basis.astype(d.dtype)).reshape(-1)
         ue = jnp.sum(d[c.edge_nodes] * c.edge_tangent.astype(d.dtype), axis=-1)
-        return jnp.concatenate([ui, us, ue]) / self.scale
+        scale = self.scale
+        return jnp.where(scale > 0, jnp.concatenate([ui, us, ue]) / jnp.where(scale > 0, scale, 1.0), 0.0)
+
+
+def pad_parametrisation(par: Parametrisation) -> tuple[Parametrisation, np.ndarray]:
+    """`par` padded to the size class of its mesh (`jaxci.optim._buckets`): ``(padded, index)``.
+
+    Nodes, the interior / surface / edge blocks of the free coordinates, the flat regions and every array of
+    the constraints (`jaxci.optim._buckets.pad_constraints`) are rounded up to the ladder, with at least one
+    padding node (the dummy node every padded entry points to). Padded free coordinates have scale 0 and a zero
+    basis: they never move a node and their gradient is exactly 0; the padded flat regions are the dummy node's
+    own position with radius 1 (always inside). `index` ``(n_free,)`` is the position of every real free
+    coordinate in the padded vector: ``v = v_pad[index]``.
+    """
+    n = int(par.x0.shape[0])
+    n_pad = bucket(n + 1)
+    real = free_layout(par.cons)
+    cons = pad_constraints(par.cons, n_pad)
+    padded = free_layout(cons)
+    index = free_index(real, padded)
+    dtype = par.x0.dtype
+    scale = np.zeros(3 * padded[0] + 2 * padded[1] + padded[2])
+    scale[index] = np.asarray(par.scale, np.float64)
+    flat = np.asarray(par.flat_nodes)
+    m = bucket(len(flat))
+    out = Parametrisation(
+        cons=cons,
+        x0=to_device(pad_rows(np.asarray(par.x0), n_pad, 0.0), dtype),
+        scale=to_device(scale, dtype),
+        flat_nodes=to_device(pad_rows(flat, m, n), np.int32),
+        flat_origin=to_device(pad_rows(np.asarray(par.flat_origin), m, 0.0), dtype),
+        flat_radius=to_device(pad_rows(np.asarray(par.flat_radius), m, 1.0), dtype),
+        shortcut=par.shortcut,
+        strict=par.strict,
+    )
+    return out, index
 
 
 def _lift(xp, x0, scale, c: Constraints, v):
@@ -240,12 +276,13 @@ def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *
         k = len(surf)
         radius[k:] = np.where(perp <= tol[k:], radius[k:], 0.0)
     shortcut = bool(len(nodes)) and bool(np.all(radius > 0))
+    # to_device: no compilation per shape (jnp.asarray of a numpy array compiles a small program for each)
     return Parametrisation(
         cons=c,
-        x0=jnp.asarray(base, dtype),
-        scale=jnp.asarray(scale, dtype),
-        flat_nodes=jnp.asarray(nodes.astype(np.int32)),
-        flat_origin=jnp.asarray(origin, dtype),
-        flat_radius=jnp.asarray(radius, dtype),
+        x0=to_device(base, dtype),
+        scale=to_device(scale, dtype),
+        flat_nodes=to_device(nodes, np.int32),
+        flat_origin=to_device(origin, dtype),
+        flat_radius=to_device(radius, dtype),
         shortcut=shortcut,
     )
