@@ -91,8 +91,14 @@ from ..quality import (
     squared_condition_from_invariants,
 )
 from . import _params as _p
+from ._buckets import bucket, padded_connectivity, to_device
 from ._solve import MAX_REJECTED, MAX_REJECTED_UNCAPPED, _CappedDescent, _solve
-from .parametrisation import Parametrisation, make_parametrisation, node_lengths  # noqa: F401  (re-exported)
+from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
+    Parametrisation,
+    make_parametrisation,
+    node_lengths,
+    pad_parametrisation,
+)
 
 #: Method names of this module.
 METHODS = ("bfgs", "lbfgs", "cg", "lm", "gauss-newton")
@@ -145,6 +151,9 @@ class GradientParams:
       shaped input locally, where a solver with one global line search has to shorten every step for them
       (measured on perturbed boxes, amplitude 0.3, float32: at 10^6 elements L-BFGS alone needed 1152 steps to
       max kappa/3 <= 1.0001, half its trials rejected; after 3 sweeps (max kappa/3 149,452 -> 1.0047) it needs 10).
+    - `buckets`: BFGS, L-BFGS, CG on a hexahedral mesh: run the problem padded to its size class
+      (`jaxci.optim._buckets`; default True), so that meshes of similar size share one compiled solver loop and
+      the persistent compilation cache; the padding changes no result beyond rounding (False: exact shapes).
     """
 
     max_steps: int = 2000
@@ -162,6 +171,7 @@ class GradientParams:
     gn_search: str = "armijo"
     residual: str = "excess"
     presmooth: int = 0
+    buckets: bool = True
 
     def __post_init__(self):
         L = "gradient-method"
@@ -182,6 +192,7 @@ class GradientParams:
             gn_search=_p.choice(L, "gn_search", self.gn_search, ("armijo", "none")),
             residual=_p.choice(L, "residual", self.residual, ("excess", "kappa")),
             presmooth=_p.integer(L, "presmooth", self.presmooth, 0, MAX_PRESMOOTH),
+            buckets=_p.boolean(L, "buckets", self.buckets),
         )
         if self.rtol + self.atol <= 0:
             raise ConfigError(f"gradient-method parameters rtol and atol must not both be 0, got rtol={self.rtol!r}, "
@@ -195,48 +206,56 @@ def _corner_terms(x, conn):
 
 
 @jax.custom_jvp
-def _objective_closed(points, conn):
-    """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent)."""
-    return objective_terms_and_grad(points, conn)[:2]
+def _objective_closed(points, conn, weight):
+    """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent).
+    `weight`: None, or ``(N,)`` element weights (0: a padding element, `objective_terms_and_grad`)."""
+    return objective_terms_and_grad(points, conn, weight)[:2]
 
 
 @_objective_closed.defjvp
 def _objective_closed_jvp(primals, tangents):
-    points, conn = primals
-    dx, _ = tangents
-    f, k, g = objective_terms_and_grad(points, conn)
+    points, conn, weight = primals
+    dx = tangents[0]
+    f, k, g = objective_terms_and_grad(points, conn, weight)
     return (f, k), (jnp.sum(g * dx), jnp.zeros_like(k))
 
 
-def _objective(x, conn, closed: bool, extra=None):
+def _objective(x, conn, closed: bool, extra=None, weight=None):
     """F and max kappa/3 of coordinates `x` (``inf`` for an inverted mesh); over every corner of the hexahedra and
-    of `extra` (`jaxci.mixed.ExtraCells`, static types) when it has cells."""
+    of `extra` (`jaxci.mixed.ExtraCells`, static types) when it has cells. `weight` (hexahedral meshes only):
+    None, or ``(N,)`` element weights, 0 for the padding elements of a size class (`jaxci.optim._buckets`): they
+    add nothing and F is the mean over the real corners."""
     if closed:  # one kernel for F, its gradient and the max
-        f, kmax = _objective_closed(x, conn)
-    else:
+        f, kmax = _objective_closed(x, conn, weight)
+    elif weight is None:
         term = jax.lax.optimization_barrier(_corner_terms(x, conn))
         kmax = jnp.sqrt(jnp.max(term))
         f = jnp.mean(term - 1.0)
+    else:
+        real = weight > 0
+        term = jax.lax.optimization_barrier(_corner_terms(x, conn))
+        kmax = jnp.sqrt(jnp.max(jnp.where(real, term, 0.0)))
+        f = jnp.sum(jnp.where(real, term - 1.0, 0.0)) / (8.0 * jnp.sum(real.astype(term.dtype)))
     if extra is not None and extra.types:
         f, kmax = _mixed_objective(x, 8 * conn.shape[1], f, kmax, extra)
     return f, kmax
 
 
 def _min_fn(v, args):
-    par, conn, s, ftol, extra = args
-    f, kmax = _objective(par.points(v), conn, False, extra)
+    par, conn, s, ftol, extra, weight = args
+    f, kmax = _objective(par.points(v), conn, False, extra, weight)
     return s * f, (f, kmax, f <= ftol)
 
 
 def _min_fn_closed(v, args):
-    par, conn, s, ftol, extra = args
-    f, kmax = _objective(par.points(v), conn, True, extra)
+    par, conn, s, ftol, extra, weight = args
+    f, kmax = _objective(par.points(v), conn, True, extra, weight)
     return s * f, (f, kmax, f <= ftol)
 
 
 def _lsq_fn(v, args):
     """Residuals kappa/3 per corner, times sqrt(2 s / n_corners): 0.5 |r|^2 = s (F + 1)."""
-    par, conn, s, ftol, extra = args
+    par, conn, s, ftol, extra, _ = args
     x = par.points(v)
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     valid = det > 0
@@ -252,7 +271,7 @@ def _lsq_fn(v, args):
 def _lsq_fn_excess(v, args):
     """Residuals sqrt((kappa/3)^2 - 1) per corner, times sqrt(2 s / n_corners): 0.5 |r|^2 = s F (zero at the
     optimum)."""
-    par, conn, s, ftol, extra = args
+    par, conn, s, ftol, extra, _ = args
     x = par.points(v)
     if extra is not None and extra.types:
         det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
@@ -319,25 +338,48 @@ class _GaussNewtonArmijo(optx.AbstractGaussNewton):
 
 
 def _result_message(result) -> str:
+    code = int(np.asarray(result._value))  # on the host: comparing the items compiles a program
     for name in ("successful", "nonlinear_max_steps_reached", "nonfinite"):
-        if result == getattr(optx.RESULTS, name):
+        if code == int(np.asarray(getattr(optx.RESULTS, name)._value)):
             return name
     return str(optx.RESULTS[result])
 
 
-def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None):
+#: The methods whose problem is padded to its size class (`jaxci.optim._buckets`) on a hexahedral mesh.
+BUCKETED = ("bfgs", "lbfgs", "cg")
+
+
+def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None, weight=None,
+                n_hex: int | None = None):
     """The objective function and its `args` for `_solve` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``).
 
     `extra`: the non-hexahedral cells (`jaxci.mixed.ExtraCells`; default none): F is then the mean over every
-    corner (`jaxci.elements.mixed_objective`) and ``s = n_corners / 32``.
+    corner (`jaxci.elements.mixed_objective`) and ``s = n_corners / 32``. `weight` ``(N,)`` and `n_hex`: the
+    element weights of a padded connectivity (0: padding) and the number of real hexahedra (default: every
+    element of `conn` is real).
     """
     extra = no_extra() if extra is None else extra
-    s = jnp.asarray((8.0 * conn.shape[1] + extra.n_corners) / _CORNERS_PER_NODE, par.x0.dtype)
+    n_hex = conn.shape[1] if n_hex is None else n_hex
+    dtype = par.x0.dtype
+    s = to_device(np.asarray((8.0 * n_hex + extra.n_corners) / _CORNERS_PER_NODE), dtype)
     if method in LEAST_SQUARES:
         fn = _lsq_fn_excess if p.residual == "excess" else _lsq_fn
     else:
         fn = _min_fn_closed if p.gradient == "closed" else _min_fn
-    return fn, (par, conn, s, jnp.asarray(p.ftol, par.x0.dtype), extra)
+    return fn, (par, conn, s, to_device(np.asarray(p.ftol), dtype), extra, weight)
+
+
+def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra):
+    """``(par, conn, weight, index)`` to run: `par` and `conn` padded to their size class
+    (`pad_parametrisation`, `jaxci.optim._buckets.padded_connectivity`; `index`: the real free coordinates in
+    the padded vector) for `BUCKETED` methods on a hexahedral mesh with ``p.buckets``; else as given (`weight`
+    and `index` None)."""
+    if not (p.buckets and method in BUCKETED and not extra.types):
+        return par, conn, None, None
+    padded, index = pad_parametrisation(par)
+    hexes = np.asarray(conn).T
+    c, w = padded_connectivity(hexes, bucket(len(hexes)))
+    return padded, to_device(c, np.asarray(conn).dtype), to_device(w, par.x0.dtype), index
 
 
 def minimise(method: str, par: Parametrisation, conn, p: GradientParams = GradientParams(), extra=None):
@@ -380,7 +422,14 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         return x, 0, {"objective": np.asarray([f]), "max_condition": np.asarray([k]),
                       "solver_result": "no free coordinates"}, params
     solver = _solver(method, p)
-    y = jnp.zeros((nf,), par.x0.dtype)
+    run_par, run_conn, weight, index = _bucketed(method, par, conn, p, extra)
+    n_hex = int(conn.shape[1])
+
+    def real(y):  # the real free coordinates of the iterate (numpy)
+        y = np.asarray(y)
+        return y if index is None else y[index]
+
+    y = to_device(np.zeros(run_par.n_free), par.x0.dtype)
     hist_f, hist_k, starts = [], [], []
     steps = 0
     f0 = None
@@ -392,12 +441,12 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     strict = par.shortcut and not never_rejects and par.reach(np.zeros(nf)) < FLAT_REACH
     runs, max_runs = 0, 1 + int(p.restarts)
     while runs < max_runs:
-        cur = dataclasses.replace(par, strict=True) if strict else par
-        fn, args = solver_args(method, cur, conn, p, extra)
-        y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps), jnp.int32(int(p.max_steps) - steps),
+        cur = dataclasses.replace(run_par, strict=True) if strict else run_par
+        fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
+        y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps), to_device(np.int32(p.max_steps - steps)),
                                       _max_rejected(method, p))
         k = int(k)
-        seg_f, seg_k = np.asarray(hf[: k + 1]), np.asarray(hk[: k + 1])
+        seg_f, seg_k = np.asarray(hf)[: k + 1], np.asarray(hk)[: k + 1]  # sliced on the host: no compilation
         if runs == 0:
             f0 = float(seg_f[np.isfinite(seg_f)][0]) if np.isfinite(seg_f).any() else float(seg_f[0])
             hist_f.append(seg_f)
@@ -414,12 +463,12 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
             break
         if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
             break
-        if strict and par.reach(y) > FLAT_REACH:
+        if strict and par.reach(real(y)) > FLAT_REACH:
             strict, max_runs = False, max_runs + 1  # the flat regions may have held it back: once more, projected
             continue
         if runs >= 2 and not gain > p.restart_tol * abs(f0):
             break
-    x = par.final_points(y)
+    x = par.final_points(real(y))
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
     return x, steps, hist, params
@@ -456,7 +505,8 @@ def run_gradient(problem, method: str, params: dict):
     if p.presmooth:
         from .laplace import run_laplace
 
-        xl, sweeps, pre, _ = run_laplace(problem, "smart-laplace", {"max_sweeps": int(p.presmooth)})
+        xl, sweeps, pre, _ = run_laplace(problem, "smart-laplace", {"max_sweeps": int(p.presmooth),
+                                                                      "buckets": p.buckets})
         # exactly on the boundary again (float64), so that the flat-region shortcut of the parametrisation holds
         x0 = project_np(problem.cons, np.asarray(xl, dtype=np.float64))
     par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled, dtype=problem.dtype)

@@ -39,10 +39,28 @@ from ..mixed import (
     no_extra,
 )
 from ..projection import Constraints
+from ..quality import (
+    condition_from_invariants,
+    corner_columns,
+    corner_invariants,
+    gather_corners,
+    squared_condition_from_invariants,
+)
 from ..topology import unique_edges
 from . import _params as _p
+from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
 from ._local import gather_star
-from ._moves import ColouredStars, colour_slice, coloured_stars, local_scale, local_sum, project_trials
+from ._moves import (
+    ColouredStars,
+    colour_slice,
+    coloured_stars,
+    local_scale,
+    local_sum,
+    pad_slots,
+    pad_stars,
+    pad_width,
+    project_trials,
+)
 
 #: Method names of this module.
 METHODS = ("laplace", "smart-laplace")
@@ -65,11 +83,15 @@ class LaplaceParams:
     - `tol`: stop when the largest move of a sweep is below ``tol * h`` (h: local edge length), default 1e-5.
     - `backtrack`: smart Laplacian only: number of step lengths tried, ``1, 1/2, ..., 1/2^(backtrack-1)``
       (default 3; 1: the full step or nothing).
+    - `buckets`: on a hexahedral mesh, run the sweeps on the problem padded to its size class
+      (`jaxci.optim._buckets`; default True), so that meshes of similar size share one compiled sweep loop and
+      the persistent compilation cache; the padding changes no result beyond rounding (False: exact shapes).
     """
 
     max_sweeps: int = 500
     tol: float = 1e-5
     backtrack: int = 3
+    buckets: bool = True
 
     def __post_init__(self):
         L = "Laplace"
@@ -78,6 +100,7 @@ class LaplaceParams:
             max_sweeps=_p.integer(L, "max_sweeps", self.max_sweeps, 1, MAX_SWEEPS),
             tol=_p.real(L, "tol", self.tol, 0),
             backtrack=_p.integer(L, "backtrack", self.backtrack, 1, 16),
+            buckets=_p.boolean(L, "buckets", self.buckets),
         )
 
 
@@ -140,10 +163,25 @@ def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n
     return x, jnp.max(jnp.where(mask, move, 0.0), initial=0.0)  # initial: a mesh with no movable node
 
 
+def _history_terms(x, conn, extra: ExtraCells, weight):
+    """F and max kappa/3 of `x` (every corner; with `weight` ``(N,)``, a padded connectivity's element
+    weights, over the real hexahedra only)."""
+    if weight is None:
+        return mixed_objective_t(x, conn, extra), mixed_max_condition(x, conn, extra)
+    real = weight > 0
+    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
+    term = jax.lax.optimization_barrier(squared_condition_from_invariants(det, fro2, adj2))
+    f = jnp.sum(jnp.where(real, term - 1.0, 0.0)) / (8.0 * jnp.sum(real.astype(term.dtype)))
+    k = jnp.max(jnp.where(real, jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)), 0.0))
+    return f, k
+
+
 @functools.partial(jax.jit, static_argnames=("smart", "p"))
 def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smart: bool, p: LaplaceParams,
-                 extra: ExtraCells):
-    n_colours = cs.nodes.shape[0]
+                 extra: ExtraCells, weight=None, n_colours=None):
+    """The sweeps under one jit. `weight` ``(N,)`` and `n_colours` (traced): for a problem padded to its size
+    class, the element weights (0: padding) and the number of real colours (the padded ones are skipped)."""
+    n_colours = cs.nodes.shape[0] if n_colours is None else n_colours
     dtype = x.dtype
 
     def h_colour(i):
@@ -151,9 +189,10 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
         h = local_scale(x, cs_i, gather_star(x, cs_i.star))
         return jnp.where(h > 0, h, 1.0)
 
-    h = jax.lax.map(h_colour, jnp.arange(n_colours))  # (n_colours, M)
-    hist_f = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(mixed_objective_t(x, conn, extra))
-    hist_k = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(mixed_max_condition(x, conn, extra))
+    h = jax.lax.map(h_colour, jnp.arange(cs.nodes.shape[0]))  # (n_colours, M)
+    f0, k0 = _history_terms(x, conn, extra, weight)
+    hist_f = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(f0)
+    hist_k = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(k0)
     hist_m = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(0.0)
 
     def sweep(carry):
@@ -167,8 +206,9 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
 
         x, mv = jax.lax.fori_loop(0, n_colours, colour, (x, jnp.zeros((), dtype)))
         s = s + 1
-        hf = hf.at[s].set(mixed_objective_t(x, conn, extra))
-        hk = hk.at[s].set(mixed_max_condition(x, conn, extra))
+        f, k = _history_terms(x, conn, extra, weight)
+        hf = hf.at[s].set(f)
+        hk = hk.at[s].set(k)
         hm = hm.at[s].set(mv)
         return x, s, mv <= p.tol, hf, hk, hm
 
@@ -198,11 +238,35 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     resolved hyperparameters.
     """
     extra = no_extra() if extra is None else extra
-    x, s, hf, hk, hm = _laplace_run(points, conn, cs, nbr, nmask, cons, bool(smart), p, extra)
+    n = int(points.shape[0])
+    if p.buckets and not extra.types:  # padded to the size class: one compiled loop for meshes of similar size
+        points, conn, cs, nbr, nmask, cons, weight, n_col = _padded(points, conn, cs, nbr, nmask, cons)
+        x, s, hf, hk, hm = _laplace_run(points, conn, cs, nbr, nmask, cons, bool(smart), p, extra, weight, n_col)
+        x = to_device(np.asarray(x)[:n])  # sliced on the host: no compilation
+    else:
+        x, s, hf, hk, hm = _laplace_run(points, conn, cs, nbr, nmask, cons, bool(smart), p, extra)
     s = int(s)
-    hist = {"objective": np.asarray(hf[: s + 1]), "max_condition": np.asarray(hk[: s + 1]),
-            "max_move": np.asarray(hm[: s + 1])}
+    hist = {"objective": np.asarray(hf)[: s + 1], "max_condition": np.asarray(hk)[: s + 1],
+            "max_move": np.asarray(hm)[: s + 1]}
     return x, s, hist, {"method": "smart-laplace" if smart else "laplace", **dataclasses.asdict(p)}
+
+
+def _padded(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints):
+    """The arguments of `_laplace_run` padded to their size class (`jaxci.optim._buckets`): nodes (padding nodes
+    at the origin, CORNER nodes of the padded `Constraints`, referenced by no real element), elements (repeats of
+    element 0 with weight 0), colours, slots and star and neighbour widths (`jaxci.optim._moves.pad_stars`).
+    Returns them with the element weights and the real colour count."""
+    x = np.asarray(points)
+    n = x.shape[0]
+    n_pad = bucket(n + 1)
+    hexes = np.asarray(conn).T
+    c, w = padded_connectivity(hexes, bucket(len(hexes)))
+    k_pad = bucket(np.asarray(nmask).shape[2], 4)
+    nbr_p = pad_slots(pad_width(np.asarray(nbr), k_pad), cs, 0)
+    nmask_p = pad_slots(pad_width(np.asarray(nmask), k_pad, False), cs, False)
+    return (to_device(pad_rows(x, n_pad, 0.0)), to_device(c, hexes.dtype), pad_stars(cs, n_pad),
+            to_device(nbr_p, np.int32), to_device(nmask_p), pad_constraints(cons, n_pad), to_device(w, x.dtype),
+            to_device(np.int32(cs.nodes.shape[0])))
 
 
 def coloured_neighbours(cs: ColouredStars, hexes: np.ndarray, n_nodes: int,
@@ -213,7 +277,7 @@ def coloured_neighbours(cs: ColouredStars, hexes: np.ndarray, n_nodes: int,
     nodes = np.asarray(cs.nodes)
     real = np.asarray(cs.mask)
     safe = np.minimum(nodes, n_nodes - 1)
-    return jnp.asarray(nbr[safe].astype(np.int32)), jnp.asarray(mask[safe] & real[..., None])
+    return to_device(nbr[safe], np.int32), to_device(mask[safe] & real[..., None])
 
 
 def run_laplace(problem, method: str, params: dict):
