@@ -193,7 +193,8 @@ def test_local_sums_are_the_change_of_the_mixed_objective():
 
 
 # ------------------------------------------------------------------------------------------------ every method
-QUICK = {"ci": {"max_sweeps": 4}, "ci-global": {"attempts": 10}, "bfgs": {"max_steps": 20}, "lbfgs": {"max_steps": 20},
+QUICK = {"auto": {"max_steps": 20},
+         "ci": {"max_sweeps": 4}, "ci-global": {"attempts": 10}, "bfgs": {"max_steps": 20}, "lbfgs": {"max_steps": 20},
          "cg": {"max_steps": 20}, "lm": {"max_steps": 6}, "gauss-newton": {"max_steps": 6},
          "laplace": {"max_sweeps": 3}, "smart-laplace": {"max_sweeps": 3}}
 

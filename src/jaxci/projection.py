@@ -42,6 +42,7 @@ gathers, the fast form on XLA:CPU.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -202,11 +203,11 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None) -> Const
     else:
         segs, seg_curve = np.zeros((_SEG_ROWS, 1)), np.full(1, -1)
 
-    def i32(a):
-        return jnp.asarray(np.asarray(a, dtype=np.int32))
+    def i32(a):  # converted on the host: jnp.asarray compiles a small program per shape
+        return jax.device_put(np.asarray(a, dtype=np.int32))
 
     def f(a):
-        return jnp.asarray(np.asarray(a, dtype=np.float64), dtype=dtype)
+        return jax.device_put(np.asarray(a, dtype=np.dtype(dtype)))
 
     return Constraints(
         x_orig=f(pts),

@@ -129,7 +129,8 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
         extra, table = mixed.extra_cells(mesh), mixed.corner_table(mesh)
     else:
         colour = colour_nodes(mesh.hexes, mesh.n_nodes).colour
-    return Problem(mesh, info, cons, np.asarray(colour), transposed(mesh.hexes), jnp.asarray(mesh.points, dtype),
+    return Problem(mesh, info, cons, np.asarray(colour), transposed(mesh.hexes),
+                   jax.device_put(np.asarray(mesh.points, dtype)),
                    dtype, extra, table)
 
 
@@ -180,7 +181,7 @@ def free_scale(problem: Problem) -> jnp.ndarray:
     (`jaxci.optim.parametrisation.free_lengths`)."""
     from .optim.parametrisation import free_lengths
 
-    return jnp.asarray(free_lengths(problem.mesh, problem.cons), problem.dtype)
+    return jax.device_put(np.asarray(free_lengths(problem.mesh, problem.cons), problem.dtype))
 
 
 def smooth(
@@ -366,7 +367,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
             problem = build_problem(mesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                     fixed_nodes=fixed_nodes, fixed_sets=fixed_sets)
             if untangled is not None:
-                problem = dataclasses.replace(problem, x0=jnp.asarray(untangled, np_dtype))
+                problem = dataclasses.replace(problem, x0=jax.device_put(np.asarray(untangled, np_dtype)))
         with clock.phase("smooth"):
             x, iterations, history, resolved = _run_method(problem, method, jax.random.key(seed, impl="rbg"),
                                                            params)
