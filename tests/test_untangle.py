@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 from helpers import MESQUITE
@@ -11,6 +12,8 @@ from jaxci.errors import ConfigError, InvertedMeshError
 from jaxci.generate import perturb_box
 from jaxci.io import read_mesh
 from jaxci.mesh import corner_determinants
+from jaxci.optim.untangle import UntangleParams, untangle
+from jaxci.phases import compile_totals
 from jaxci.projection import build_constraints, project_np
 from jaxci.smooth import smooth
 
@@ -73,3 +76,40 @@ def test_bad_parameters():
         smooth(tangled_cube(), "lbfgs", untangle_margin=2.0)
     with pytest.raises(ConfigError, match="untangle must be"):
         smooth(mesh, "lbfgs", untangle="sometimes")
+
+
+@pytest.fixture(scope="module")
+def hex5():
+    mesh = read_mesh(MESQUITE / "hex_5_tangled.vtk")
+    info = classify_boundary(mesh)
+    return mesh, info, build_constraints(mesh, info, dtype=np.float64)
+
+
+def test_every_round_runs_in_one_compiled_loop(hex5):
+    """Rounds, steps, margin, theta and tolerances are traced: once compiled for a mesh, no value compiles again,
+    however many rounds a run takes."""
+    mesh, info, cons = hex5
+    with jax.enable_x64(True):
+        untangle(mesh, info, cons)
+        before = compile_totals()["compiled"]
+        _, many = untangle(mesh, info, cons, UntangleParams(margin=0.3, inner_steps=50, rtol=1e-5))
+        _, few = untangle(mesh, info, cons, UntangleParams(max_rounds=3, theta=0.3, atol=1e-6))
+    assert compile_totals()["compiled"] == before
+    assert many["rounds"] > 10 and len(many["eps"]) == len(many["energy"]) == many["rounds"]
+    assert len(many["min_det"]) == many["rounds"] + 1 and few["untangled"]
+
+
+def test_flat_regions_first_then_the_projection(hex5):
+    """On a box every moving boundary node has a flat region: the rounds run without the projection; a round
+    that ends with a node near the edge of its region (here: any move, flat_reach=0) hands over to the
+    projection, and the result is on the original boundary either way."""
+    mesh, info, cons = hex5
+    with jax.enable_x64(True):
+        x, rep = untangle(mesh, info, cons)
+        y, rep2 = untangle(mesh, info, cons, UntangleParams(inner_steps=6), flat_reach=0.0)
+    assert [r[0] for r in rep["runs"]] == ["flat regions"] and rep["untangled"]
+    assert [r[0] for r in rep2["runs"]] == ["flat regions", "projected"] and rep2["untangled"]
+    assert rep2["steps"] == sum(r[2] for r in rep2["runs"]) and rep2["rounds"] == sum(r[1] for r in rep2["runs"])
+    for pts in (x, y):
+        assert boundary_error(mesh, pts) <= 1e-9
+        assert (corner_determinants(pts, mesh.hexes) > 0).all()

@@ -33,6 +33,10 @@ CORNERS_PER_NODE = 32.0
 #: asked for is a traced value and changing it compiles nothing).
 HISTORY = 10_000
 
+#: A strict run stops after a round whose result has a boundary node further than this fraction of its flat
+#: region's radius from the region's origin, and goes on with the projection (as `jaxci.optim.gradient`'s).
+FLAT_REACH = 0.9
+
 #: eps after a round that left every corner above mu (the paper's value).
 EPS_FLOOR = 1e-10
 
@@ -189,8 +193,8 @@ def _direction(g, S, Y, rho, head, n_mem):
 
 
 @eqx.filter_jit
-def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol, atol, *, history: int = 10,
-                    max_rejected: int = MAX_REJECTED_UNCAPPED):
+def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol, atol, state=None,
+                    flat_reach=FLAT_REACH, *, history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED):
     """Every round of the untangling stage in one compiled loop of single energy-and-gradient evaluations.
 
     **Arguments:**
@@ -199,6 +203,8 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
     - `mesh_args`: ``(par, table, inv_len, extra, inv_lens)`` (see `energy_fn`).
     - `theta`, `margin`, `rtol`, `atol`: float scalars; `max_rounds` (at most `HISTORY`), `inner_steps`: int
       scalars. All traced: other values compile nothing.
+    - `state`: None (start at `v0`), or the state a strict run returned (see below): the loop goes on from there.
+    - `flat_reach`: a float scalar (traced), `FLAT_REACH` by default (see below).
     - `history` (static): L-BFGS memory; `max_rejected` (static): a round ends after this many consecutive
       steps that leave its iterate unchanged.
 
@@ -215,9 +221,16 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
     d_min))`` if ``d_min < mu`` else 1e-10; rounds go on while ``d_min < margin`` and fewer than `max_rounds`
     have run.
 
-    **Returns:** ``(v, rounds, steps, dmin0, hist_eps, hist_dmin, hist_energy)``: the last round's result, the
-    rounds and steps run, min det J of `v0`, and eps, min det J and energy after each round (arrays of length
-    `HISTORY`, the first `rounds` entries filled).
+    With a strict parametrisation (`Parametrisation.strict`: no projection compiled) a trial with a boundary node
+    outside its flat region has a NaN energy and is rejected like any trial that fails the Armijo test; a round
+    whose result has a node beyond `flat_reach` of its region's radius (the flat regions may be holding it back)
+    ends the loop with ``state["left"]`` True, so that the caller can go on with the projection (`state`: the
+    next round runs projected; `jaxci.optim.gradient.minimise`'s rule for its strict runs).
+
+    **Returns:** the loop state, a dict: ``y_best`` (the last round's result), ``rounds`` and ``steps`` (run in
+    all), ``dmin0`` (min det J of `v0`), ``h_eps``, ``h_dmin``, ``h_e`` (eps, min det J and energy after each
+    round: arrays of length `HISTORY`, the first ``rounds`` entries filled), ``left`` (see above), and the
+    L-BFGS state.
     """
     par, table, inv_len, extra, inv_lens = mesh_args
     dtype = v0.dtype
@@ -232,14 +245,14 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
         return (par, table, inv_len, eps, theta, margin, extra, inv_lens)
 
     carry = {
-        "probe": jnp.array(True), "done": false, "first": false, "y_eval": v0,
+        "probe": jnp.array(True), "done": false, "left": false, "first": false, "y_eval": v0,
         "v": v0, "f": zero, "g": jnp.zeros_like(v0), "d_acc": zero, "d": jnp.zeros_like(v0), "alpha": zero + 1,
         "S": jnp.zeros((history, n), dtype), "Y": jnp.zeros((history, n), dtype), "rho": jnp.zeros((history,), dtype),
         "head": i0, "n_mem": i0,
         "k": i0, "steps": i0, "rejected": i0, "f_last": zero,
         "y_best": v0, "f_best": zero, "d_best": zero,
         "eps": zero + 1, "e_start": zero, "rounds": i0, "dmin0": zero, "h_eps": nan, "h_dmin": nan, "h_e": nan,
-    }
+    } if state is None else {**state, "done": false, "left": false}
 
     def probed(c, f_e, d_e, g_e):
         del f_e, g_e
@@ -293,9 +306,16 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
         sigma = jnp.where(e_start > 0, jnp.maximum(1.0 - e / jnp.where(e_start > 0, e_start, 1.0), 0.1), 0.1)
         mu = (1.0 - sigma) * chi(eps, dmin)
         new_eps = jnp.where(dmin < mu, 2.0 * jnp.sqrt(jnp.maximum(mu * (mu - dmin), 0.0)), EPS_FLOOR)
+        done = (dmin >= margin) | (r + 1 >= max_rounds)
+        left = false
+        if par.strict:  # a node near the edge of its flat region: go on with the projection
+            x = par.lift(c["y_best"])
+            far = jnp.sum((x[par.flat_nodes] - par.flat_origin) ** 2, axis=-1) > (flat_reach * par.flat_radius) ** 2
+            left = ~done & jnp.any(far)
+            done = done | left
         return {**c, "h_eps": c["h_eps"].at[r].set(eps), "h_dmin": c["h_dmin"].at[r].set(dmin),
                 "h_e": c["h_e"].at[r].set(e), "eps": new_eps.astype(dtype), "rounds": r + 1,
-                "steps": c["steps"] + c["k"], "done": (dmin >= margin) | (r + 1 >= max_rounds),
+                "steps": c["steps"] + c["k"], "done": done, "left": left,
                 "first": jnp.array(True), "k": i0, "rejected": i0, "y_eval": c["y_best"],
                 "rho": jnp.zeros_like(c["rho"]), "head": i0, "n_mem": i0}
 
@@ -303,5 +323,4 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
         f_e, d_e, g_e = _value_and_grad(c["y_eval"], args_at(jnp.where(c["probe"], jnp.ones((), dtype), c["eps"])))
         return jax.lax.cond(c["probe"], probed, stepped, c, f_e, d_e, g_e)
 
-    c = jax.lax.while_loop(lambda c: ~c["done"], body, carry)
-    return c["y_best"], c["rounds"], c["steps"], c["dmin0"], c["h_eps"], c["h_dmin"], c["h_e"]
+    return jax.lax.while_loop(lambda c: ~c["done"], body, carry)

@@ -26,10 +26,12 @@ boundary in float64 (`project_np`) and checked: no corner with det <= 0, else `I
 **One compilation.** Every round runs inside one compiled loop (`jaxci.optim._untangle_loop.untangle_rounds`):
 eps, the round's start energy, the L-BFGS memory and the per-round history are loop-carried, the loop body holds
 the one energy-and-gradient evaluation (a closed-form kernel over a flat corner table), and nothing goes back to
-Python between rounds; the float64 checks are numpy. Measured cold in ``jaxci smooth --method lbfgs`` (CPU s of
-this stage, 2-core machine): pave3 with --fix-boundary 3.2 -> 1.8, pave3 sliding 6.5 -> 3.6, hex_5_tangled
-6.6 -> 2.7, cube30_pert 7.1 -> 3.4, with 15-16 -> 9-10 compilations and the same steps and results (optimistix's
-loop, a separate energy function for the round states and JAX's gradient before).
+Python between rounds; the float64 checks are numpy. Where every moving boundary node has a flat region (a box)
+the rounds run strict, without the projection compiled, until one ends with a node near the edge of its region
+(`jaxci.optim._untangle_loop.FLAT_REACH`), then with it. Measured cold in ``jaxci smooth --method lbfgs`` (CPU s of
+this stage, 2-core machine): pave3 with --fix-boundary 3.2 -> 1.6, pave3 sliding 6.5 -> 3.2, hex_5_tangled
+6.6 -> 1.9, cube30_pert 7.1 -> 2.2, with 15-16 -> 1 compilations of this module's own and the same steps and
+results (optimistix's loop, a separate energy function for the round states and JAX's gradient before).
 
 **Mixed meshes.** The corners of wedges, pyramids and tetrahedra count like the hexahedra's, with
 ``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.elements.TARGETS`, so an ideal cell of edge L_e has
@@ -54,7 +56,7 @@ from ..mesh import EDGES, HexMesh, corner_determinants
 from ..mixed import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
 from ..projection import Constraints, project_np
 from . import _params as _p
-from ._untangle_loop import corner_table, untangle_rounds
+from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
 from .parametrisation import Parametrisation, make_parametrisation
 
 #: Upper bounds of `UntangleParams` (a typo must not hang a run): eps rounds, L-BFGS steps per round.
@@ -112,7 +114,8 @@ def _scaled_min_det(mesh: HexMesh, x: np.ndarray, lens: np.ndarray) -> float:
     return out
 
 
-def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntangleParams = UntangleParams()):
+def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntangleParams = UntangleParams(), *,
+             flat_reach: float = FLAT_REACH):
     """Untangle `mesh` (float64) keeping its boundary nodes on the original boundary.
 
     **Arguments:**
@@ -120,11 +123,15 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     - `mesh`: the input `HexMesh` (its coordinates are the start and define the original boundary).
     - `info`, `cons`: its `BoundaryInfo` and float64 `Constraints`.
     - `p`: `UntangleParams`.
+    - `flat_reach`: where every moving boundary node has a flat region, the rounds run without the projection
+      until one ends with a node further than this fraction of its region's radius from its start, then with it
+      (`jaxci.optim._untangle_loop.untangle_rounds`).
 
     **Returns:** ``(points, report)``: float64 coordinates ``(n, 3)`` projected onto the original boundary
     (`project_np`), and a dict: ``rounds``, ``steps`` (L-BFGS steps in all), ``eps`` (per round),
     ``min_det`` (min det J per round, entry 0 = input), ``energy`` (per round), ``untangled`` (bool: no
-    corner with det <= 0 after projection), ``inverted_elements`` (after), ``wall_time``.
+    corner with det <= 0 after projection), ``inverted_elements`` (after), ``min_scaled_det`` (after),
+    ``runs`` (per compiled run: ``("flat regions" | "projected", rounds, steps)``), ``wall_time``.
     """
     t0 = time.perf_counter()
     hexes = mesh.hexes
@@ -137,21 +144,37 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     inv_lens = tuple(jax.device_put((1.0 / _safe_lengths(element_lengths(mesh.points, c, t)))[None, :])
                      for t, c in blocks.items())
     par: Parametrisation = make_parametrisation(mesh, info, cons, scaled=True, dtype=jnp.float64)
+    if not len(par.flat_nodes):  # no boundary node moves: the points are the lift, nothing to project
+        par = dataclasses.replace(par, shortcut=True)
     nf = par.n_free
     f64 = np.float64
     v = np.zeros((nf,), f64)
     rounds = steps = 0
-    hist_eps = hist_e = np.zeros(0)
+    hist = [np.zeros(0)] * 3
+    runs = []
     if nf:
-        v, rounds, steps, dmin0, h_eps, h_dmin, h_e = untangle_rounds(
-            jax.device_put(v), (par, table, inv_len, extra, inv_lens), f64(p.theta), f64(p.margin),
-            np.int32(p.max_rounds), np.int32(p.inner_steps), f64(p.rtol), f64(p.atol))
-        rounds, steps, dmin0 = int(rounds), int(steps), float(dmin0)
-        hist_eps, hist_dmin, hist_e = (np.asarray(h)[:rounds] for h in (h_eps, h_dmin, h_e))
+        # strict first where every moving boundary node has a flat region: no projection compiled (a trial that
+        # leaves a region is rejected); after a round that ends with a node near the edge of its region, the
+        # rounds go on with the projection
+        params = (f64(p.theta), f64(p.margin), np.int32(p.max_rounds), np.int32(p.inner_steps), f64(p.rtol),
+                  f64(p.atol))
+        state = None
+        for strict in (True, False) if par.shortcut else (False,):
+            run = dataclasses.replace(par, strict=strict)
+            state = untangle_rounds(jax.device_put(v), (run, table, inv_len, extra, inv_lens), *params, state,
+                                    f64(flat_reach))
+            r, k = int(state["rounds"]), int(state["steps"])
+            runs.append(("flat regions" if strict else "projected", r - rounds, k - steps))
+            rounds, steps = r, k
+            if not bool(state["left"]):
+                break
+        v = state["y_best"]
+        dmin0 = float(state["dmin0"])
+        hist = [np.asarray(state[key])[:rounds] for key in ("h_eps", "h_dmin", "h_e")]
     else:
         dmin0 = _scaled_min_det(mesh, np.asarray(mesh.points, f64), lens)
-        hist_dmin = np.zeros(0)
-    x = project_np(cons, np.asarray(par.final_points(v), dtype=f64))
+    hist_eps, hist_dmin, hist_e = hist
+    x = np.asarray(par.final_points(v), dtype=f64)  # exact: project_np where a node left its flat region
     bad = np.concatenate(list(inverted_cells(mesh, x).values()))
     report = {
         "rounds": rounds,
@@ -162,6 +185,7 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
         "untangled": not bool(bad.any()),
         "inverted_elements": int(bad.sum()),
         "min_scaled_det": _scaled_min_det(mesh, x, lens),
+        "runs": runs,
         "wall_time": time.perf_counter() - t0,
     }
     return x, report
