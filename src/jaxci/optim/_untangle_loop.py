@@ -95,9 +95,9 @@ def _hex_kernel(x, table, inv_len, eps, theta, grad: bool):
     dmin = jnp.min(jax.lax.optimization_barrier(det), initial=jnp.inf)
     if not grad:
         return energy, dmin, None
-    w = inv_len / CORNERS_PER_NODE
-    p = (2.0 / 3.0) * (1.0 - theta) * c23 * w  # 2 dE/df
-    q = ((-(2.0 / 3.0) * shape - volume) / s + 2.0 * theta * det * ich) * w  # dE/dd
+    unit = inv_len / CORNERS_PER_NODE  # d J / d A and the 1/32
+    p = (2.0 / 3.0) * (1.0 - theta) * c23 * unit  # 2 dE/df
+    q = ((-(2.0 / 3.0) * shape - volume) / s + 2.0 * theta * det * ich) * unit  # dE/dd
     v, w = _cross(c, a), _cross(a, b)
     nodes = table.ravel()
     grads = []

@@ -28,10 +28,12 @@ eps, the round's start energy, the L-BFGS memory and the per-round history are l
 the one energy-and-gradient evaluation (a closed-form kernel over a flat corner table), and nothing goes back to
 Python between rounds; the float64 checks are numpy. Where every moving boundary node has a flat region (a box)
 the rounds run strict, without the projection compiled, until one ends with a node near the edge of its region
-(`jaxci.optim._untangle_loop.FLAT_REACH`), then with it. Measured cold in ``jaxci smooth --method lbfgs`` (CPU s of
-this stage, 2-core machine): pave3 with --fix-boundary 3.2 -> 1.6, pave3 sliding 6.5 -> 3.2, hex_5_tangled
-6.6 -> 1.9, cube30_pert 7.1 -> 2.2, with 15-16 -> 1 compilations of this module's own and the same steps and
-results (optimistix's loop, a separate energy function for the round states and JAX's gradient before).
+(`jaxci.optim._untangle_loop.FLAT_REACH`), then with it. Measured cold in ``jaxci smooth --method lbfgs`` (CPU
+s of this stage, 2-core machine, interleaved runs): pave3 with --fix-boundary 3.1 -> 1.45, pave3 sliding 6.4 ->
+3.0, hex_5_tangled 5.5 -> 1.6, cube30_pert 6.2 -> 2.0, 7 compilations -> 1, with the same steps (27, 23, 7, 7),
+min det and final kappa (optimistix's loop, a separate energy function for the round states, JAX's gradient
+and small helper programs before); 60^3 (1838 inverted, 50 steps): 19.7 -> 11.5 cold, 13.7 -> 9.8 warm. One
+evaluation of the energy and its gradient costs what one of F does (60^3, float64: 266 against 255 ms).
 
 **Mixed meshes.** The corners of wedges, pyramids and tetrahedra count like the hexahedra's, with
 ``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.elements.TARGETS`, so an ideal cell of edge L_e has
