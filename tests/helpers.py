@@ -22,6 +22,18 @@ MESQUITE_FIGURES = {
 }
 
 
+#: A small experiment config: local CI (3 sweeps) on the 27-hex cube, seeds 0 and 1.
+CUBE27_EXPERIMENT = """\
+mesh:
+  generate: {case: cube27}
+methods:
+  - name: CI local
+    method: ci
+    params: {max_sweeps: 3}
+seeds: [0, 1]
+"""
+
+
 def unit_cube() -> np.ndarray:
     """The 8 nodes of the unit cube in VTK order, shape (8, 3)."""
     return np.array(
@@ -49,3 +61,16 @@ def read_vtk_hexes(path) -> tuple[np.ndarray, np.ndarray]:
 
     m = meshio.vtk.read(str(path))
     return np.asarray(m.points, dtype=float), np.asarray(m.cells_dict["hexahedron"])
+
+
+def interrupted_on_call(real, n: int = 2):
+    """`real` wrapped to raise KeyboardInterrupt (as Ctrl-C would) on its `n`-th call instead of running."""
+    calls = []
+
+    def wrapped(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == n:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    return wrapped

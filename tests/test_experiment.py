@@ -14,6 +14,7 @@ import meshio
 import numpy as np
 import pytest
 import yaml
+from helpers import CUBE27_EXPERIMENT, interrupted_on_call
 
 from jaxci.cli import main
 from jaxci.errors import ConfigError
@@ -22,16 +23,7 @@ from jaxci.experiment import load_config
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((REPO / "configs").glob("*.yaml"))
 
-SMALL = """\
-description: test config
-mesh:
-  generate: {case: cube27}
-methods:
-  - name: CI local
-    method: ci
-    params: {max_sweeps: 3}
-seeds: [0, 1]
-"""
+SMALL = "description: test config\n" + CUBE27_EXPERIMENT
 
 
 def _write(folder: Path, text: str, name: str = "exp.yaml") -> Path:
@@ -184,16 +176,7 @@ def test_force_replaces_and_seeds_override(small_run, tmp_path, capsys):
 
 def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):
     smooth_module = importlib.import_module("jaxci.smooth")
-    real = smooth_module.smooth
-    calls = []
-
-    def flaky(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(smooth_module, "smooth", flaky)
+    monkeypatch.setattr(smooth_module, "smooth", interrupted_on_call(smooth_module.smooth))
     cfg = _write(tmp_path, SMALL)
     code, _, err = _run(["run", str(cfg), "--out", str(tmp_path / "out"), "--quiet"], capsys)
     assert code == 130 and "partial" in err

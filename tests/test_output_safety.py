@@ -16,20 +16,12 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import CUBE27_EXPERIMENT, interrupted_on_call
 
 from jaxci.cli import main
 from jaxci.results import MARKER, foreign_entries
 
-QUICK = """\
-mesh:
-  generate: {case: cube27}
-methods:
-  - name: CI local
-    method: ci
-    params: {max_sweeps: 3}
-seeds: [0, 1]
-figures: false
-"""
+QUICK = CUBE27_EXPERIMENT + "figures: false\n"
 #: QUICK's first run, then a long one (local CI on a perturbed 24^3 box: 10 s or more on 2 cores).
 LONG = """\
 mesh:
@@ -151,15 +143,7 @@ def test_run_force_replaces_only_when_complete(tmp_path, earlier, monkeypatch, c
     old = snapshot(prev)
 
     # interrupted (KeyboardInterrupt in the main thread) after one run: earlier results untouched
-    calls = []
-
-    def interrupted(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(smooth_module, "smooth", interrupted)
+    monkeypatch.setattr(smooth_module, "smooth", interrupted_on_call(real))
     code, _, err = cli(capsys, "run", cfg, "--out", prev, "--force", "--quiet")
     assert code == 130
     one_line(err, f"1 of 2 runs finished, written to {prev}.partial-1 (partial); earlier results in {prev} untouched")

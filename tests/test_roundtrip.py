@@ -409,32 +409,32 @@ def test_abaqus_duplicate_node_with_other_coordinates(tmp_path):
         read_mesh(tmp_path / "dup.inp")
 
 
-def test_abaqus_duplicate_element_and_bad_fields(tmp_path):
+#: (file, text of the deck replaced (it occurs once), its replacement, message)
+ABAQUS_BAD_FIELDS = [
+    ("elem.inp", " 1002, ", " 1001, ", r"elem\.inp, line 71: element 1001 is defined twice \(first at .*line 70\)"),
+    ("zero.inp", "     10, 0.000000", "      0, 0.000000", r"zero\.inp, line 5: node id 0 is not positive"),
+    ("huge.inp", "     10, 0.000000", "99999999999999999999, 0.000000",
+     r"huge\.inp, line 5: node id 99999999999999999999 is too large"),
+    ("nan.inp", "     10, 0.000000,", "     10, nan,",
+     r"nan\.inp, line 5: coordinate x of node 10 is 'nan'; coordinates must be finite"),
+    ("long.inp", " 1002, ", " 1002, 99999, ", r"long\.inp, line 71: element 1002 lists 9 nodes; TYPE=C3D8R has 8"),
+    ("short.inp", ", 220\r\n 1003", "\r\n 1003",
+     r"short\.inp, line 72: element 1002 \(continued from line 71\) lists 16 nodes; TYPE=C3D8R has 8"),
+    ("ref.inp", " 1002, 20,", " 1002, 25,",
+     r"ref\.inp, line 71: element 1002 references node 25, which no \*NODE defines"),
+    ("set.inp", "\r\nE_C3D8RH\r\n", "\r\nE_NOPE\r\n",
+     r"set\.inp, line \d+: element set ALL lists 'E_NOPE', which is neither"),
+    ("ngen.inp", "*Nset, nset=BOTTOM", "*NGEN\n10, 40\n*Nset, nset=BOTTOM",
+     r"ngen\.inp, line \d+: \*NGEN generates or moves nodes"),
+]
+
+
+@pytest.mark.parametrize(("name", "old", "new", "message"), ABAQUS_BAD_FIELDS, ids=[c[0] for c in ABAQUS_BAD_FIELDS])
+def test_abaqus_duplicate_element_and_bad_fields(tmp_path, name, old, new, message):
     good = DECK.read_bytes().decode()  # CRLF line endings kept
-    cases = {
-        "elem.inp": (good.replace(" 1002, ", " 1001, "), r"elem\.inp, line 71: element 1001 is defined twice \(first "
-                                                         r"at .*line 70\)"),
-        "zero.inp": (good.replace("     10, 0.000000", "      0, 0.000000"), r"zero\.inp, line 5: node id 0 is not "
-                                                                             r"positive"),
-        "huge.inp": (good.replace("     10, 0.000000", "99999999999999999999, 0.000000"),
-                     r"huge\.inp, line 5: node id 99999999999999999999 is too large"),
-        "nan.inp": (good.replace("     10, 0.000000,", "     10, nan,"),
-                    r"nan\.inp, line 5: coordinate x of node 10 is 'nan'; coordinates must be finite"),
-        "long.inp": (good.replace(" 1002, ", " 1002, 99999, ", 1), r"long\.inp, line 71: element 1002 lists 9 "
-                                                                     r"nodes; TYPE=C3D8R has 8"),
-        "short.inp": (good.replace(", 220\r\n 1003", "\r\n 1003"),
-                      r"short\.inp, line 72: element 1002 \(continued from line 71\) lists 16 nodes; TYPE=C3D8R has 8"),
-        "ref.inp": (good.replace(" 1002, 20,", " 1002, 25,"), r"ref\.inp, line 71: element 1002 references node 25, "
-                                                               r"which no \*NODE defines"),
-        "set.inp": (good.replace("\r\nE_C3D8RH\r\n", "\r\nE_NOPE\r\n"), r"set\.inp, line \d+: element set ALL "
-                                                                           r"lists 'E_NOPE', which is neither"),
-        "ngen.inp": (good.replace("*Nset, nset=BOTTOM", "*NGEN\n10, 40\n*Nset, nset=BOTTOM"),
-                     r"ngen\.inp, line \d+: \*NGEN generates or moves nodes"),
-    }
-    for name, (text, message) in cases.items():
-        (tmp_path / name).write_bytes(text.encode())
-        with pytest.raises(MeshReadError, match=message):
-            read_mesh(tmp_path / name)
+    (tmp_path / name).write_bytes(good.replace(old, new, 1).encode())
+    with pytest.raises(MeshReadError, match=message):
+        read_mesh(tmp_path / name)
 
 
 def test_abaqus_parts_numbered_from_one_are_refused(tmp_path):

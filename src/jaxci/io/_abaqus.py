@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
-from ._deck import first_duplicate, parse_coordinate, parse_id
+from ._deck import first_duplicate, parse_coordinate, parse_id, read_text
 
 #: Abaqus shell, membrane, surface, truss and beam elements jaxci keeps as cells (not smoothed), with their cell type.
 SURFACE_TYPES = {
@@ -82,19 +82,6 @@ def _split_line(line: str) -> tuple[str, str]:
     return body, line[len(body):]
 
 
-def read_text(path: str | os.PathLike, what: str = "Abaqus deck") -> str:
-    """A file's text with its line endings, any bytes kept (undecodable ones as surrogates), or a `MeshReadError`."""
-    try:
-        with open(path, encoding="utf-8", errors="surrogateescape", newline="") as f:
-            return f.read()
-    except FileNotFoundError:
-        raise MeshReadError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise MeshReadError(f"{path}: is a folder, not an {what}") from None
-    except OSError as exc:
-        raise MeshReadError(f"{path}: cannot read ({exc.strerror})") from None
-
-
 def _keyword(text: str) -> tuple[str, dict[str, str | None]]:
     """Name (upper case, single spaces) and parameters (upper-case keys, values unquoted) of a keyword line."""
     parts = text.strip()[1:].split(",")
@@ -117,7 +104,8 @@ def flatten(path: str, depth: int = 0, where: str = "") -> tuple[list[str], list
     """The lines of a deck with its ``*INCLUDE`` files inlined (line endings kept), where each came from, and the
     included files."""
     lines, origin, included = [], [], []
-    for lineno, line in enumerate(read_text(path).splitlines(keepends=True), 1):
+    text = read_text(path, "Abaqus deck", errors="surrogateescape")
+    for lineno, line in enumerate(text.splitlines(keepends=True), 1):
         body, _ = _split_line(line)
         if _is_keyword(body) and _keyword(body)[0] == "INCLUDE":
             name = _keyword(body)[1].get("INPUT")

@@ -37,6 +37,7 @@ import numpy as np
 
 from ..errors import MeshReadError, MeshWriteError
 from ..mesh import CellBlock, HexMesh
+from ._deck import first_duplicate
 
 #: Names of the cell data that hold an ANSYS element's attributes, in ELIST column order.
 ATTRIBUTES = ("ansys:mat", "ansys:typ", "ansys:rel", "ansys:esy", "ansys:sec")
@@ -136,16 +137,6 @@ class Bricks:
         return f"{self.files[self.elem_src[k, 0]]}, line {self.elem_src[k, 1]}"
 
 
-def _first_duplicate(ids: np.ndarray) -> tuple[int, int] | None:
-    """Positions (first, second) of the first repeated value of `ids` in file order, or None."""
-    order = np.argsort(ids, kind="stable")
-    same = np.flatnonzero(ids[order][1:] == ids[order][:-1])
-    if len(same) == 0:
-        return None
-    pairs = np.stack([order[same], order[same + 1]], axis=1)
-    return tuple(int(p) for p in pairs[np.argmin(pairs[:, 1])])
-
-
 def _lookup(sorted_ids: np.ndarray, order: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """0-based positions of `ids` among the node (or element) numbers, and where they are missing."""
     if len(sorted_ids) == 0:
@@ -166,10 +157,10 @@ def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = ()
     their midside nodes), ``ansys:*`` cell data, ``ansys:angles`` point data, ``ansys:et`` / ``ansys:keyopt``
     field data and the components as point and cell sets.
     """
-    if (dup := _first_duplicate(b.node_ids)) is not None:
+    if (dup := first_duplicate(b.node_ids)) is not None:
         i, j = dup
         raise MeshReadError(f"{b.where_node(j)}: node {b.node_ids[j]} listed twice (first at {b.where_node(i)})")
-    if (dup := _first_duplicate(b.elem_ids)) is not None:
+    if (dup := first_duplicate(b.elem_ids)) is not None:
         i, j = dup
         raise MeshReadError(
             f"{b.where_elem(j)}: element {b.elem_ids[j]} listed twice (first at {b.where_elem(i)})"
@@ -401,7 +392,7 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
         keyopts=mesh.field_data.get("ansys:keyopt"),
     )
     for ids, what in ((b.node_ids, "node"), (b.elem_ids, "element")):
-        if (dup := _first_duplicate(ids)) is not None:
+        if (dup := first_duplicate(ids)) is not None:
             raise MeshWriteError(f"{where}: {what} id {ids[dup[1]]} is used twice; ANSYS ids must be unique")
         if len(ids) and ids.min() < 1:
             raise MeshWriteError(f"{where}: {what} id {ids.min()} is not positive; ANSYS ids start at 1")

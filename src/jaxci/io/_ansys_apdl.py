@@ -33,8 +33,8 @@ from ._ansys import (
     _expand,
     to_hexmesh,
 )
-from ._ansys_listing import read_text, read_text_lines
-from ._deck import MAX_ID
+from ._ansys_listing import read_text_lines
+from ._deck import MAX_ID, read_text
 
 _FORMAT_ITEM = re.compile(r"(\d*)([IEFGD])(\d+)(?:\.\d+)?(?:E\d+)?", re.IGNORECASE)
 _NBLOCK_FORMAT = "(3i9,6e21.13e3)"

@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import MeshReadError
 from ..mesh import HexMesh
 from ._ansys import Bricks, to_hexmesh
-from ._deck import MAX_ID, parse_coordinate, parse_id
+from ._deck import MAX_ID, is_number, parse_coordinate, parse_id, read_text
 
 _NODE_HEADER = ("NODE", "X", "Y", "Z")
 _ELEM_HEADER = ("ELEM", "MAT", "TYP", "REL", "ESY", "SEC")
@@ -44,32 +44,9 @@ _ELEM_FIELDS = len(_ELEM_HEADER) + 8
 _DSYS = re.compile(r"\bDSYS\s*=\s*(-?\d+)")
 
 
-def read_text(path: str | os.PathLike, what: str) -> str:
-    """The text of a file with its line endings, or a `MeshReadError` naming the file."""
-    try:
-        with open(path, encoding="utf-8", errors="strict", newline="") as f:
-            return f.read()
-    except FileNotFoundError:
-        raise MeshReadError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise MeshReadError(f"{path}: is a folder, not an {what}") from None
-    except UnicodeDecodeError as exc:
-        raise MeshReadError(f"{path}: not a text {what} (undecodable byte at offset {exc.start})") from None
-    except OSError as exc:
-        raise MeshReadError(f"{path}: cannot read ({exc.strerror})") from None
-
-
 def read_text_lines(path: str | os.PathLike, what: str) -> list[str]:
     """The lines of a text file, or a `MeshReadError` naming the file."""
     return read_text(path, what).splitlines()
-
-
-def _is_number(tok: str) -> bool:
-    try:
-        float(tok)
-    except ValueError:
-        return False
-    return True
 
 
 def _int(tok: str, path, lineno: int, what: str) -> int:
@@ -113,7 +90,7 @@ class _Rows:
                     f"{path}, line {lineno}: nodes are listed in coordinate system DSYS={m.group(1)}; list them "
                     f"in the global Cartesian system (DSYS,0 before NLIST)"
                 )
-            if section is None or not all(map(_is_number, toks)) or (toks == ["1"] and raw[0] == "1"):
+            if section is None or not all(map(is_number, toks)) or (toks == ["1"] and raw[0] == "1"):
                 continue  # page header, title, date, Fortran page eject, or numbers before any column header
             if section == "node":
                 if len(toks) != width:

@@ -26,6 +26,7 @@ import meshio
 import numpy as np
 
 from ..errors import MeshReadError
+from ._deck import is_number
 
 _VTK_HEADER = re.compile(rb"^[ \t]*(POINTS|CELLS|CELL_TYPES|POINT_DATA|CELL_DATA)[ \t]+(\d+)(?:[ \t]+(\d+))?",
                          re.MULTILINE)
@@ -70,14 +71,6 @@ def check_vtk(path: Path, m: meshio.Mesh) -> None:
                                 f"connectivity entries, the cells read hold {want}")
 
 
-def _is_number(tok: str) -> bool:
-    try:
-        float(tok)
-    except ValueError:
-        return False
-    return True
-
-
 def diagnose_vtk(path: Path) -> str | None:
     """Which section of an ASCII legacy VTK file holds more or fewer values than its header announces (for a
     file meshio could not read); None when they all agree, or the file is binary or has sections not walked."""
@@ -94,7 +87,7 @@ def diagnose_vtk(path: Path) -> str | None:
     def take(need: int, what: str) -> str | None:
         nonlocal i
         n = 0
-        while n <= need and i + n < len(tok) and _is_number(tok[i + n]):
+        while n <= need and i + n < len(tok) and is_number(tok[i + n]):
             n += 1
         i += min(n, need)
         if n < need:
@@ -135,8 +128,8 @@ def diagnose_vtk(path: Path) -> str | None:
                 i += 2
                 continue
             elif kw == "SCALARS":
-                comps = int(tok[i + 3]) if _is_number(tok[i + 3]) else 1
-                i += 4 if _is_number(tok[i + 3]) else 3
+                comps = int(tok[i + 3]) if is_number(tok[i + 3]) else 1
+                i += 4 if is_number(tok[i + 3]) else 3
                 if i < len(tok) and tok[i].upper() == "LOOKUP_TABLE":
                     i += 2
                 msg = take(per * comps, f"SCALARS announce {per * comps} values")

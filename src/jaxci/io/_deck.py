@@ -9,6 +9,8 @@ mesh afresh and `deck_losses` says, in a `LossyWriteWarning` issued before writi
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from ..errors import MeshReadError
@@ -52,6 +54,34 @@ def parse_coordinate(token: str, where: str, what: str) -> float:
     if not np.isfinite(value):
         raise MeshReadError(f"{where}: {what} is {tok!r}; coordinates must be finite numbers")
     return value
+
+
+def read_text(path: str | os.PathLike, what: str, errors: str = "strict") -> str:
+    """The text of a file with its line endings, or a `MeshReadError` naming the file.
+
+    `errors` is the decoding error handler: ``"strict"`` refuses undecodable bytes, ``"surrogateescape"`` keeps any
+    bytes (undecodable ones as surrogates).
+    """
+    try:
+        with open(path, encoding="utf-8", errors=errors, newline="") as f:
+            return f.read()
+    except FileNotFoundError:
+        raise MeshReadError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise MeshReadError(f"{path}: is a folder, not an {what}") from None
+    except UnicodeDecodeError as exc:
+        raise MeshReadError(f"{path}: not a text {what} (undecodable byte at offset {exc.start})") from None
+    except OSError as exc:
+        raise MeshReadError(f"{path}: cannot read ({exc.strerror})") from None
+
+
+def is_number(tok: str) -> bool:
+    """Whether a token reads as a float."""
+    try:
+        float(tok)
+    except ValueError:
+        return False
+    return True
 
 
 def first_duplicate(ids: np.ndarray) -> tuple[int, int] | None:
