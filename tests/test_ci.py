@@ -228,3 +228,22 @@ def test_global_ci_cli_defaults_smooth_a_perturbed_box(tmp_path, capsys):
     assert s["before"]["max_condition"] > 6
     assert s["after"]["max_condition"] < 1.02
     assert s["after"]["objective"] < 0.01 * s["before"]["objective"]
+
+
+@pytest.mark.parametrize("name", ["paper.yaml", "paper_quick.yaml"])
+def test_paper_configs_stage1_is_the_roulette_prefix_of_the_default_run(name):
+    """configs/paper*.yaml's Table 1 mapping with the defaults: 'CI global stage 1' is the first
+    stage_switch x attempts attempts of the default run (roulette only), 'CI global stage 2' the default run;
+    and such a stage-1 run is exactly a prefix of the two-stage run (same seed; small budget here)."""
+    from pathlib import Path
+
+    exp = load_config(Path(__file__).resolve().parents[1] / "configs" / name)
+    by = {m.label: m for m in exp.methods}
+    d = CIParams.for_method("ci-global")
+    assert by["CI global stage 2"].params == {}
+    assert by["CI global stage 1"].params == {"attempts": round(d.stage_switch * d.attempts), "stage_switch": 1.0}
+    mesh = jaxci.paper_case("cube27", seed=1)
+    two = smooth(mesh, "ci-global", seed=1, attempts=50)
+    one = smooth(mesh, "ci-global", seed=1, attempts=round(d.stage_switch * 50), stage_switch=1.0)
+    n = len(one.history["objective"])
+    assert n == 11 and one.history["objective"] == two.history["objective"][:n]
