@@ -268,12 +268,14 @@ def test_untangling_failure_counts_are_consistent():
 
 # ------------------------------------------------------------------------------------------ the CLI
 @pytest.mark.parametrize("extra,match", [
-    (["--param", "cohort=abc"], "method 'ci': CI parameter cohort must be an integer"),
-    (["--param", "cohort=NaN"], "got nan"),
+    (["--method", "ci", "--param", "cohort=abc"], "method 'ci': CI parameter cohort must be an integer"),
+    (["--method", "ci", "--param", "cohort=NaN"], "got nan"),
     (["--method", "lbfgs", "--param", "presmooth=abc"], "presmooth"),
     (["--method", "ci-global", "--param", "attempts=1000000000000"], "attempts"),
-    (["--param", "init_width=abc"], "init_width must be a finite number"),
-    (["--param", "bogus=1"], "unknown parameter 'bogus' of method 'ci'; valid: cohort"),
+    (["--method", "ci", "--param", "init_width=abc"], "init_width must be a finite number"),
+    (["--method", "ci", "--param", "bogus=1"], "unknown parameter 'bogus' of method 'ci'; valid: cohort"),
+    (["--param", "cohort=4"], "unknown parameter 'cohort' of method 'lbfgs'; valid: max_steps"),
+    (["--param", "cohort=4"], "(the default method, auto, runs lbfgs; --method picks another)"),
     (["--seed", "99999999999999999999999"], "seed must be an integer"),
     (["--seed", str(2**63)], "seed must be an integer"),
     (["--seed", "4294967296"], "seed must be an integer"),

@@ -310,7 +310,12 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     auto = ""
     if method == "auto":
         method, params, auto = auto_pipeline(mesh.n_hexes, params)
-    p = method_params(method, params)  # checked now, not after the untangling
+    try:
+        p = method_params(method, params)  # checked now, not after the untangling
+    except ConfigError as e:
+        if not auto:
+            raise
+        raise ConfigError(f"{e} (the default method, auto, runs {method}; --method picks another)") from None
     if untangle_params:
         from .optim._params import make_params
         from .optim.untangle import UntangleParams

@@ -33,10 +33,12 @@ that defines a node or element tag twice or whose elements list undefined nodes.
 
 from __future__ import annotations
 
+import binascii
 import contextlib
 import importlib.util
 import io
 import warnings
+import zlib
 from pathlib import Path
 
 import meshio
@@ -93,6 +95,7 @@ _MESHIO_NOISE = ("VTK ASCII files are only meant for debugging",)
 #: Errors a meshio reader raises on a bad file.
 _READ_ERRORS = (
     meshio.ReadError,
+    meshio._exceptions.CorruptionError,  # raised by the VTU reader, not exported by meshio
     ValueError,
     KeyError,
     IndexError,
@@ -104,6 +107,9 @@ _READ_ERRORS = (
     UnicodeDecodeError,
     RuntimeError,
     SyntaxError,  # xml.etree.ElementTree.ParseError
+    zlib.error,  # a corrupt compressed VTU block
+    binascii.Error,  # corrupt base64 in a VTU
+    MemoryError,  # a corrupt size field that asks numpy for a huge array
 )
 
 
