@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import MeshReadError
 from ._deck import is_number
 
-_VTK_HEADER = re.compile(rb"^[ \t]*(POINTS|CELLS|CELL_TYPES|POINT_DATA|CELL_DATA)[ \t]+(\d+)(?:[ \t]+(\d+))?",
+_VTK_HEADER = re.compile(rb"^[ \t]*(POINTS|CELLS|CELL_TYPES|POINT_DATA|CELL_DATA)[ \t]+(-?\d+)(?:[ \t]+(-?\d+))?",
                          re.MULTILINE)
 
 
@@ -49,6 +49,10 @@ def check_vtk(path: Path, m: meshio.Mesh) -> None:
     headers = {}
     for match in _VTK_HEADER.finditer(data):
         headers.setdefault(match.group(1).decode(), (int(match.group(2)), match.group(3) and int(match.group(3))))
+    for key, (count, extra) in headers.items():
+        if count < 0 or (extra is not None and extra < 0):
+            raise MeshReadError(f"{path}: corrupt legacy VTK file: {key} announces a negative count "
+                                f"({count}{'' if extra is None else f' {extra}'})")
     n_cells, size = _cells_held(m)
     n_points = len(m.points)
     found = {"POINTS": n_points, "CELL_TYPES": n_cells, "POINT_DATA": n_points, "CELL_DATA": n_cells}
@@ -423,6 +427,8 @@ def check_gmsh(path: Path) -> None:
                 raise MeshReadError(f"{where}: corrupt or truncated Gmsh file: no $Elements section")
             continue
         c = _Cursor(data, start.end(), ascii_, size_t, where, name)
+        if ascii_ and not v4 and name == "Elements":
+            _check_lines22(c, data, start.end())
         tags, nodes = _walk41(c, name) if v4 else _walk22(c, name)
         c.end()
         if name == "Nodes":
@@ -431,6 +437,24 @@ def check_gmsh(path: Path) -> None:
         else:
             _check_tags(tags, where, "element")
             _check_references(tags, nodes, node_tags, where)
+
+
+def _check_lines22(c: _Cursor, data: bytes, pos: int) -> None:
+    """ASCII Gmsh 2.2 $Elements: every element line holds exactly the values its type and tag count say (a
+    changed type would otherwise shift the values of the lines after it)."""
+    end = data.find(b"$EndElements", pos)
+    lines = data[pos : end if end >= 0 else len(data)].splitlines()[1:]
+    for j, line in enumerate(lines, 1):
+        f = line.split()
+        if not f:
+            continue
+        try:
+            need = 3 + int(f[2]) + _nodes_per_type(int(f[1]), c)
+        except (IndexError, ValueError):
+            c.fail(f"element line {j} is not 'tag type n_tags tags... nodes...'")
+        if len(f) != need:
+            c.fail(f"element line {j} (tag {f[0].decode(errors='replace')}) holds {len(f)} values, its type "
+                   f"{int(f[1])} and {int(f[2])} tags need {need}")
 
 
 def _walk41(c: _Cursor, name: str) -> tuple[np.ndarray, list]:
