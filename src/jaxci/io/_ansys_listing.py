@@ -14,8 +14,9 @@ job title) repeated on every page, then column headers and rows:
 
 A section starts at its column header (``NODE X Y Z ...`` or ``ELEM MAT TYP REL ESY SEC NODES``) and lasts until
 the other header, so both listings may sit in one file (the paper saved both into one text file) and page
-breaks may fall anywhere. Lines with any word that is not a number (headers, titles, dates) are skipped; a line
-made only of numbers is a data row and is checked strictly:
+breaks may fall anywhere. Lines with any word that is not a number (headers, titles, dates) are skipped, except
+a line of four or more fields led by a row number and at least half numbers, which is a corrupt data row (an
+error); a line made only of numbers is a data row and is checked strictly:
 
 - a node row has exactly as many fields as its column header (``NODE X Y Z`` and, if listed, ``THXY THYZ THZX``);
   coordinates may be in any float notation (``0.10000E-01``);
@@ -90,6 +91,12 @@ class _Rows:
                     f"{path}, line {lineno}: nodes are listed in coordinate system DSYS={m.group(1)}; list them "
                     f"in the global Cartesian system (DSYS,0 before NLIST)"
                 )
+            numbers = sum(map(is_number, toks))
+            if section is not None and toks[0].isdigit() and len(toks) >= 4 and len(toks) > numbers >= len(toks) / 2:
+                # mostly numbers, led by a row number: a data row with a corrupt field, not a title
+                bad = next(t for t in toks if not is_number(t))
+                raise MeshReadError(f"{path}, line {lineno}: {section if section == 'node' else 'element'} row with "
+                                    f"a field that is not a number ({bad!r}): corrupt listing")
             if section is None or not all(map(is_number, toks)) or (toks == ["1"] and raw[0] == "1"):
                 continue  # page header, title, date, Fortran page eject, or numbers before any column header
             if section == "node":
