@@ -62,8 +62,10 @@ def test_generate_then_smooth_roundtrip(capsys, tmp_path):
     code, out, _ = run(capsys, "quality", dst, "--json")
     assert json.loads(out)["max_condition"] == pytest.approx(d["after"]["max_condition"], rel=1e-9)
     # table output too
-    code, out, _ = run(capsys, "smooth", src, tmp_path / "s2.vtu", "--param", "max_sweeps=2")
+    code, out, _ = run(capsys, "smooth", src, tmp_path / "s2.vtu", "--method", "ci", "--param", "max_sweeps=2")
     assert code == 0 and "before:" in out and "after (ci" in out
+    code, out, _ = run(capsys, "smooth", src, tmp_path / "s3.vtu")  # the default pipeline says which it ran
+    assert code == 0 and "default method (auto): L-BFGS" in out and "after (L-BFGS on F" in out
 
 
 def test_classify_writes_node_classes(capsys, tmp_path):
