@@ -245,9 +245,10 @@ def _table1(summary) -> list[str]:
     if stages:
         out += ["Stage mapping: the paper's stage 1 (roulette-wheel following) and stage 2 (everyone follows the "
                 "best, after stage 1) are the config's method entries named in report.table1. With global CI, "
-                "a run of `attempts: A, stage_switch: 1.0` follows exactly the first A attempts of a run of "
-                "`attempts: 2A, stage_switch: 0.5` with the same seed, so 'stage 1' is the state at the switch and "
-                "'stage 2' the final state of the two-stage run.", ""]
+                "a run of `attempts: S, stage_switch: 1.0` follows exactly the first S attempts of a run of "
+                "`attempts: A, stage_switch: S/A` with the same seed (the configs: S = 200 of the default A = 1000, "
+                "`jaxci.optim.ci.GLOBAL_DEFAULTS`), so 'stage 1' is the state at the switch and 'stage 2' the "
+                "final state of the two-stage run.", ""]
     out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for i, b in enumerate(bin_labels()):
         out.append("| " + " | ".join([b] + ["-" if c[i] is None else str(c[i]) for c in cols]) + " |")
