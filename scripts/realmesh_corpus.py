@@ -261,6 +261,14 @@ class _Gmsh:
         gmsh.finalize()
 
 
+def _occ_model(gmsh, build: Callable, h: float) -> None:
+    """The OCC geometry `build(occ)` makes, synchronised, with a uniform mesh size `h`."""
+    build(gmsh.model.occ)
+    gmsh.model.occ.synchronize()
+    gmsh.option.setNumber("Mesh.MeshSizeMin", h)
+    gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+
+
 def _nodes(gmsh) -> tuple[np.ndarray, dict]:
     tags, coords, _ = gmsh.model.mesh.getNodes()
     pts = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
@@ -286,10 +294,7 @@ def _elements(gmsh, dim: int, n_nodes_per: int, index: dict) -> np.ndarray:
 def _solid_tet2hex(build: Callable, h: float) -> tuple[np.ndarray, np.ndarray]:
     """Tetrahedralise the OCC solid `build(occ)` makes with size `h`, split every tet into 4 hexahedra."""
     with _Gmsh() as gmsh:
-        build(gmsh.model.occ)
-        gmsh.model.occ.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMin", h)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+        _occ_model(gmsh, build, h)
         gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 12)
         gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay
         gmsh.option.setNumber("Mesh.SubdivisionAlgorithm", 2)  # all hexahedra
@@ -316,10 +321,7 @@ def _quads(build: Callable, h: float) -> tuple[np.ndarray, np.ndarray]:
     """Unstructured all-quad mesh of the OCC surface `build(occ)` makes (frontal-Delaunay for quads, Blossom
     full-quad recombination), size `h`: ``(points (n, 2), quads (m, 4))`` counter-clockwise."""
     with _Gmsh() as gmsh:
-        build(gmsh.model.occ)
-        gmsh.model.occ.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMin", h)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+        _occ_model(gmsh, build, h)
         gmsh.option.setNumber("Mesh.Algorithm", 8)
         gmsh.option.setNumber("Mesh.RecombineAll", 1)
         gmsh.option.setNumber("Mesh.RecombinationAlgorithm", 3)
