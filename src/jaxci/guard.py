@@ -31,18 +31,21 @@ def worst(mesh: HexMesh, points) -> float:
     return max((float(k.max()) for k in cell_worst(mesh, points).values() if len(k)), default=1.0)
 
 
-def keep_worst(mesh: HexMesh, before, after, *, rtol: float = 1e-12) -> tuple[np.ndarray, int, float, float]:
+def keep_worst(mesh: HexMesh, before, after, *, rtol: float = 1e-12,
+               worst_before: float | None = None) -> tuple[np.ndarray, int, float, float]:
     """`after` with the nodes of cells worse than the worst cell at `before` put back to `before`.
 
     **Arguments:** `mesh` (its cells); `before`, `after`: node coordinates of shape ``(n_nodes, 3)``; `rtol`:
-    relative slack on the input's worst value (float64 rounding).
+    relative slack on the input's worst value (float64 rounding); `worst_before`: `worst` at `before` when the
+    caller has it already (a quality report's max kappa/3 of a valid mesh), else computed.
 
     **Returns:** ``(points, n_put_back, worst_before, worst_after)``: the guarded coordinates (a new array), how
     many nodes were put back, the input's worst and the unguarded result's worst. Where the input has an
     inverted cell (worst ``inf``) there is nothing to guard and `after` is returned.
     """
     before, after = np.asarray(before, np.float64), np.asarray(after, np.float64)
-    w0, w1 = worst(mesh, before), worst(mesh, after)
+    w0 = worst(mesh, before) if worst_before is None else float(worst_before)
+    w1 = worst(mesh, after)
     limit = w0 * (1.0 + rtol)
     if not np.isfinite(w0) or w1 <= limit:
         return after.copy(), 0, w0, w1

@@ -137,9 +137,9 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
     """The default pipeline (``method="auto"``): ``(method, params, description)``.
 
-    Chosen by measurement on real and generated meshes (docs/results/bench_realmesh.md): L-BFGS on F after the
-    untangling stage (when the input has inverted elements), with `AUTO_PRESMOOTH_FROM` hexahedra and more
-    3 smart-Laplace sweeps first (they fix the worst corners node by node; at 10^6 elements L-BFGS alone needed
+    Chosen by measurement on real and generated meshes (docs/results/README.md, session 4): L-BFGS on F after the
+    untangling stage (when the input has inverted elements); from `AUTO_PRESMOOTH_FROM` hexahedra on, 3
+    smart-Laplace sweeps first (they fix the worst corners node by node; at 10^6 elements L-BFGS alone needed
     1152 steps, 13 after them). Local CI ran to its sweep cap on unstructured meshes. `params` (the user's) win.
     """
     params = dict(params)
@@ -386,7 +386,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                          f"--param {cap}=N lets it go further")
     with clock.phase("checks"), jax.enable_x64(True):
         if untangled is None:
-            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst)
+            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before)
         else:
             from .optim.untangle import enforce_after_untangling
 
@@ -463,7 +463,7 @@ def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
 
 
 def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray,
-                        keep_worst: bool = True) -> tuple[np.ndarray, list[str]]:
+                        keep_worst: bool = True, before: QualityReport | None = None) -> tuple[np.ndarray, list[str]]:
     """Exact float64 projection onto the original boundary, then the no-inversion, worst-cell
     (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell type (`jaxci.elements.inverted`,
     `jaxci.elements.mixed_objective`)."""
@@ -478,7 +478,9 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray,
     if keep_worst:
         from .guard import keep_worst as guard
 
-        y, n_back, w0, w1 = guard(mesh, mesh.points, x)
+        # the input's worst cell from its report (valid input on this path: every corner counted), not recomputed
+        w0 = None if before is None else (before.overall or {}).get("max_condition", before.max_condition)
+        y, n_back, w0, w1 = guard(mesh, mesh.points, x, worst_before=w0)
         if n_back:
             f2 = float(mixed_objective(y, mesh))
             notes.append(f"worst cell kept no worse than the input's (max kappa/3 {w0:.6g}; the method's result had "
