@@ -63,14 +63,14 @@ def test_child_rusage_is_the_commands_own():
 
 @pytest.mark.slow
 def test_bench_realmesh_end_to_end(tmp_path):
-    """One tiny mesh (a gmsh ball split from tetrahedra, or a perturbed 4^3 cube without gmsh): jaxci cold and
+    """One tiny mesh (a gmsh ball split from tetrahedra, or a perturbed 5^3 cube without gmsh): jaxci cold and
     warm, msqshape where it is, the JSON fields and their values."""
     out = tmp_path / "bench.json"
     if corpus.have_gmsh():
         meshes, expect_box = ["sphere_tet2hex"], False
     else:
-        cube = tmp_path / "cube4.vtk"
-        corpus.write_vtk(cube, *corpus.perturbed_cube(4))
+        cube = tmp_path / "cube5.vtk"
+        corpus.write_vtk(cube, *corpus.perturbed_cube(5))  # 125 hexes: within the checked range
         meshes, expect_box = [str(cube)], True
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_realmesh.py"), "--meshes", *meshes,
                         "--sizes", "tiny", "--corpus-dir", str(tmp_path / "corpus"), "--out", str(out),
