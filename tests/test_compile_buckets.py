@@ -99,7 +99,7 @@ def test_padded_solver_gives_the_unpadded_result(method):
     mesh, pr = _problem(4, 3, 5)
     with jax.enable_x64(True):
         par = make_parametrisation(pr.mesh, pr.info, pr.cons, dtype=np.float64)
-        out = [minimise(method, par, pr.conn, GradientParams(buckets=b)) for b in (True, False)]
+        out = [minimise(method, par, pr.conn, GradientParams(buckets=b, backend="jax")) for b in (True, False)]
     (xa, ka, ha, _), (xb, kb, hb, _) = out
     assert ha["solver_result"] == hb["solver_result"] == "successful"
     np.testing.assert_allclose(np.asarray(xa), np.asarray(xb), rtol=0, atol=1e-6)
@@ -107,7 +107,8 @@ def test_padded_solver_gives_the_unpadded_result(method):
     np.testing.assert_allclose(ha["objective"][: min(ka, kb, 20)], hb["objective"][: min(ka, kb, 20)], rtol=1e-9)
 
 
-@pytest.mark.parametrize("method,params", [("lbfgs", {}), ("lbfgs", {"presmooth": 3}), ("smart-laplace", {}),
+@pytest.mark.parametrize("method,params", [("lbfgs", {"backend": "jax"}), ("lbfgs", {"presmooth": 3, "backend": "jax"}),
+                                           ("smart-laplace", {}),
                                            ("laplace", {"max_sweeps": 50})],
                          ids=["lbfgs", "presmooth", "smart-laplace", "laplace"])
 def test_two_meshes_of_one_bucket_compile_the_solver_once(method, params):
@@ -126,7 +127,8 @@ def test_two_meshes_of_one_bucket_compile_the_solver_once(method, params):
 
 def _cli_smooth(src, out, cache):
     env = dict(os.environ, JAXCI_CACHE_DIR=str(cache))
-    p = subprocess.run([sys.executable, "-m", "jaxci", "smooth", str(src), str(out), "--method", "lbfgs", "--json"],
+    p = subprocess.run([sys.executable, "-m", "jaxci", "smooth", str(src), str(out), "--method", "lbfgs", "--json",
+                        "--param", "backend=jax"],  # the compiled loop (small meshes run in numpy by default)
                        env=env, capture_output=True, text=True, check=True)
     return json.loads(p.stdout)["phases"]["smooth"]
 

@@ -157,9 +157,9 @@ def test_strict_run_continues_with_the_projection_near_a_flat_region_edge(monkey
         return _solve(solver, fn, y, args, *rest)
 
     monkeypatch.setattr(G, "_solve", spy)
-    p = GradientParams(restart_tol=0.0)  # no early stop on convergence: the reach test decides
+    p = GradientParams(restart_tol=0.0, backend="jax")  # the compiled loop; no early stop: the reach test decides
     x1, _, _, _ = minimise("lbfgs", par, pr.conn, p)
-    assert all(seen)  # a box: no node near the edge of its flat region, every run (restarts too) strict
+    assert seen and all(seen)  # a box: no node near the edge of its flat region, every run (restarts too) strict
     seen.clear()
     monkeypatch.setattr(G, "FLAT_REACH", 1e-9)  # any boundary move counts as near the edge of its region
     x2, _, h2, _ = minimise("lbfgs", par, pr.conn, p)

@@ -79,6 +79,18 @@ def _closest_on_triangles(xp, x, t, tol):
     score), the score being the squared distance plus, for spoke and side points, a rounding-level penalty.
     """
     penalty = _bump(t[_TL2].dtype) * t[_TL2]
+    c, e1, e2 = (tuple(t[k : k + 3]) for k in (_TC, _TE1, _TE2))
+    p, h, inside, w, d1 = _plane_point(x, t, tol)
+    best = (p, xp.where(inside, h * h, xp.inf))
+    best = _keep_better(xp, best, _segment_point(x, c, e1, xp.clip(d1 * t[_TIS], 0, 1), penalty))
+    side = _sub3(e2, e1)
+    u = _dot3(_sub3(w, e1), side) * t[_TID]
+    return _keep_better(xp, best, _segment_point(x, _axpy3(1.0, e1, c), side, xp.clip(u, 0, 1), penalty))
+
+
+def _plane_point(x, t, tol):
+    """The orthogonal projection of `x` onto the planes of triangles `t`: ``(point, signed distance h, inside,
+    x - c, (x - c) . e1)``; `inside` where it falls inside the triangle (within `tol`)."""
     c, e1, e2, un = (tuple(t[k : k + 3]) for k in (_TC, _TE1, _TE2, _TN))
     g22, g12, g11 = t[_TG], t[_TG + 1], t[_TG + 2]
     w = _sub3(x, c)
@@ -87,11 +99,14 @@ def _closest_on_triangles(xp, x, t, tol):
     r = g11 * d2 - g12 * d1
     inside = (t[_TOK] > 0) & (s >= -tol) & (r >= -tol) & (s + r <= 1 + tol)
     h = _dot3(w, un)
-    best = (_axpy3(-h, un, x), xp.where(inside, h * h, xp.inf))
-    best = _keep_better(xp, best, _segment_point(x, c, e1, xp.clip(d1 * t[_TIS], 0, 1), penalty))
-    side = _sub3(e2, e1)
-    u = _dot3(_sub3(w, e1), side) * t[_TID]
-    return _keep_better(xp, best, _segment_point(x, _axpy3(1.0, e1, c), side, xp.clip(u, 0, 1), penalty))
+    return _axpy3(-h, un, x), h, inside, w, d1
+
+
+def _line_point(x, t, tol):
+    """The orthogonal projection of `x` onto the lines of segments `t`: ``(point, inside)``."""
+    a, d, inv = tuple(t[_SA : _SA + 3]), tuple(t[_SD : _SD + 3]), t[_SI]
+    s = _dot3(_sub3(x, a), d) * inv
+    return _axpy3(s, d, a), (inv > 0) & (s >= -tol) & (s <= 1 + tol)
 
 
 def _closest_on_segments(xp, x, t, tol):
@@ -148,16 +163,23 @@ def _segment_table(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return out
 
 
-def _nearest(xp, x, table, cand, closest, tol):
+def _nearest(xp, x, table, cand, closest, tol, rows=None):
     """Nearest candidate points: `x` (..., m, 3), candidate columns `cand` (m, K) of `table` -> (..., m, 3).
 
-    `closest` is `_closest_on_triangles` or `_closest_on_segments`, `tol` the inside tolerance (`_tol`).
+    `closest` is `_closest_on_triangles` or `_closest_on_segments`, `tol` the inside tolerance (`_tol`); `rows`
+    the gathered table (`candidate_rows`) where a caller keeps it between calls (numpy: the gather was a third
+    of a projection).
     """
-    rows = [table[j][cand] for j in range(table.shape[0])]  # 1-D gathers, each (m, K)
+    rows = candidate_rows(table, cand) if rows is None else rows
     xs = tuple(x[..., j][..., None] for j in range(3))  # each (..., m, 1)
     p, score = closest(xp, xs, rows, tol)
     k = xp.argmin(score, axis=-1)[..., None]
     return xp.stack([xp.take_along_axis(pj, k, axis=-1)[..., 0] for pj in p], axis=-1)
+
+
+def candidate_rows(table, cand) -> list:
+    """The rows of `table` gathered at the candidates `cand` (m, K): a list of (m, K) arrays."""
+    return [table[j][cand] for j in range(table.shape[0])]  # 1-D gathers, each (m, K)
 
 
 def _triangle_centres(t: np.ndarray):

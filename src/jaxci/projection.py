@@ -49,16 +49,21 @@ from jaxtyping import Array, Float, Int
 from scipy.spatial import cKDTree
 
 from ._closest import (
+    _SD,
     _SEG_ROWS,
+    _TN,
     _TRI_ROWS,
     _closest_on_segments,
     _closest_on_triangles,
+    _line_point,
     _nearest,
+    _plane_point,
     _segment_centres,
     _segment_table,
     _tol,
     _triangle_centres,
     _triangle_table,
+    candidate_rows,
 )
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, face_normals
 from .mesh import HexMesh
@@ -247,17 +252,121 @@ def project(constraints: Constraints, points: Float[Array, "*batch n 3"]) -> Flo
 
     **Returns:** the projected coordinates, same shape and dtype as `points`.
     """
-    c = constraints
-    x = jnp.asarray(points)
+    return _project(jnp, constraints, jnp.asarray(points))
+
+
+def project_near_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
+    """`project` in numpy (the candidate triangles and segments of each node, as under `jax.jit`; float64).
+
+    For displacements within a node's ring of boundary faces (a solver's iterates); `project_np` searches whole
+    patches and handles any displacement. The numpy copy of the constraints and their gathered candidates are
+    kept on `constraints` after the first call. **Returns** a new float64 array of shape ``(n_nodes, 3)``."""
+    c, rows = _host_constraints(constraints)
+    return _project(np, c, np.array(points, dtype=np.float64), rows)
+
+
+class NearProjector:
+    """`project_near_np` that remembers each boundary node's triangle (segment) of its last projection.
+
+    A solver's next iterate moves a node by a fraction of its cell, so its orthogonal projection nearly always
+    falls inside the same triangle: that is tested first (one triangle per node instead of the ~70 of its
+    2-ring: 6 ms -> ~1 ms per projection at 2360 hexahedra), and only the nodes that left it search all their
+    candidates. Where a point near a strongly curved patch is inside its old triangle and yet nearer to another,
+    it keeps the old one: a point on the boundary either way. Call with node coordinates ``(n, 3)``; returns a new
+    float64 array.
+    """
+
+    def __init__(self, constraints: Constraints):
+        self.c, self.rows = _host_constraints(constraints)
+        self.hint = [None, None]  # candidate column per surface node, per edge node
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        c = self.c
+        x = np.array(points, dtype=np.float64)
+        tol = _tol(np.float64)
+        kinds = ((c.surface_nodes, c.triangles, c.surface_cand, _closest_on_triangles, _plane_point),
+                 (c.edge_nodes, c.segments, c.edge_cand, _closest_on_segments, _line_point))
+        for kind, (nodes, table, cand, closest, orthogonal) in enumerate(kinds):
+            if not nodes.shape[0]:
+                continue
+            cand = cand[: nodes.shape[0]]
+            xs = x[nodes]
+            hint = self.hint[kind]
+            todo = np.ones(len(nodes), bool)
+            if hint is not None:
+                cell = cand[np.arange(len(nodes)), hint]
+                found = orthogonal(tuple(xs.T), table[:, cell], tol)
+                p, inside = found[0], found[2 if kind == 0 else 1]
+                x[nodes[inside]] = np.stack(p, axis=-1)[inside]
+                todo = ~inside
+            if todo.any():
+                rows = [r[todo] for r in self.rows[kind]]
+                sub = tuple(xs[todo].T[:, :, None])
+                p, score = closest(np, sub, rows, tol)
+                k = np.argmin(score, axis=-1)
+                pick = np.arange(len(k))
+                x[nodes[todo]] = np.stack([pj[pick, k] for pj in p], axis=-1)
+                if hint is None:
+                    hint = np.zeros(len(nodes), np.int64)
+                hint[todo] = k
+                self.hint[kind] = hint
+        x[c.corner_nodes] = c.x_orig[c.corner_nodes]
+        return x
+
+    def pullback(self, g: np.ndarray) -> np.ndarray:
+        """The gradient `g` ``(n, 3)`` at the last projected points taken back through the projection: on a
+        surface node minus its component along its triangle's normal, on an edge node its component along its
+        segment (the derivative of the projection onto a plane or a line). A new array."""
+        c, g = self.c, np.array(g)
+        for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, c.surface_cand, _TN),
+                                                          (c.edge_nodes, c.segments, c.edge_cand, _SD))):
+            hint = self.hint[kind]
+            if hint is None or not nodes.shape[0]:
+                continue
+            cell = cand[np.arange(len(nodes)), hint]
+            d = table[row : row + 3, cell].T
+            d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+            along = np.sum(g[nodes] * d, axis=1, keepdims=True) * d
+            g[nodes] = g[nodes] - along if kind == 0 else along
+        return g
+
+
+def _host_constraints(c: Constraints) -> tuple[Constraints, tuple]:
+    """``(c as numpy with float64 geometry, (triangle rows, segment rows) gathered at the candidates)``, cached
+    on `c` (converted once per solve, not once per objective evaluation)."""
+    cached = getattr(c, "_host_cache", None)
+    if cached is None:
+        def conv(a):
+            a = np.asarray(a)
+            return a.astype(np.float64) if np.issubdtype(a.dtype, np.floating) else a
+
+        h = jax.tree.map(conv, c)
+        ns, ne = h.surface_nodes.shape[0], h.edge_nodes.shape[0]
+        rows = (candidate_rows(h.triangles, h.surface_cand[:ns]) if ns else None,
+                candidate_rows(h.segments, h.edge_cand[:ne]) if ne else None)
+        cached = (h, rows)
+        object.__setattr__(c, "_host_cache", cached)  # eqx.Module is frozen; a cache is not a field
+    return cached
+
+
+def _project(xp, c: Constraints, x, rows=(None, None)):
+    """The body of `project` with the array module `xp` (`numpy`: `x` is updated in place; `rows` the gathered
+    candidates of `_host_constraints`)."""
     ns, ne = c.surface_nodes.shape[0], c.edge_nodes.shape[0]
-    if ns:
-        tab, cand = c.triangles.astype(x.dtype), c.surface_cand[:ns]
-        p = _nearest(jnp, x[..., c.surface_nodes, :], tab, cand, _closest_on_triangles, _tol(x.dtype))
-        x = x.at[..., c.surface_nodes, :].set(p)
-    if ne:
-        tab, cand = c.segments.astype(x.dtype), c.edge_cand[:ne]
-        p = _nearest(jnp, x[..., c.edge_nodes, :], tab, cand, _closest_on_segments, _tol(x.dtype))
-        x = x.at[..., c.edge_nodes, :].set(p)
+    for count, nodes, table, cand, closest, gathered in (
+        (ns, c.surface_nodes, c.triangles, c.surface_cand, _closest_on_triangles, rows[0]),
+        (ne, c.edge_nodes, c.segments, c.edge_cand, _closest_on_segments, rows[1]),
+    ):
+        if not count:
+            continue
+        p = _nearest(xp, x[..., nodes, :], table.astype(x.dtype), cand[:count], closest, _tol(x.dtype), gathered)
+        if xp is np:
+            x[..., nodes, :] = p
+        else:
+            x = x.at[..., nodes, :].set(p)
+    if xp is np:
+        x[..., c.corner_nodes, :] = c.x_orig[c.corner_nodes]
+        return x
     return x.at[..., c.corner_nodes, :].set(c.x_orig[c.corner_nodes].astype(x.dtype))
 
 

@@ -51,16 +51,17 @@ _NB = tuple(tuple(int(v) for v in CORNER_NEIGHBOURS[:, j]) for j in range(3))
 
 
 # ---------------------------------------------------------------------------------------------- kernels
-def gather_corners(points, conn):
+def gather_corners(points, conn, xp=jnp):
     """Node coordinates per local node, structure of arrays.
 
     **Arguments:** `points` of shape ``(n, 3)``; `conn` the TRANSPOSED connectivity, shape ``(8, N)``
-    (`hexes.T`: one contiguous row of node indices per local node, 2x faster to gather than ``(N, 8)``).
+    (`hexes.T`: one contiguous row of node indices per local node, 2x faster to gather than ``(N, 8)``); `xp`
+    the array module (`jax.numpy`, default, or `numpy`).
 
     **Returns:** ``(X, Y, Z)``, each of shape ``(8, N)``: component of local node a of element e at ``[a, e]``.
     """
     pt = points.T
-    return tuple(jnp.stack([pt[d][conn[a]] for a in range(8)]) for d in range(3))
+    return tuple(xp.stack([pt[d][conn[a]] for a in range(8)]) for d in range(3))
 
 
 def transposed(hexes):
@@ -394,9 +395,9 @@ def _cross(a, b):
 _COLUMN_OWNER = [tuple(int(i) for i in np.argsort(CORNER_NEIGHBOURS[:, j])) for j in range(3)]
 
 
-def _rows(a, order):
+def _rows(xp, a, order):
     """``a[order]`` along the first axis by static slices (no index array: its dtype follows jax_enable_x64)."""
-    return jnp.stack([a[i] for i in order])
+    return xp.stack([a[i] for i in order])
 
 
 def objective_and_grad(points, conn):
@@ -438,7 +439,20 @@ def objective_terms_and_grad(points, conn, weight=None):
     **Returns:** ``(F, kmax, grad)``: scalars (``inf`` if any corner has det <= 0) and shape ``(n, 3)`` (the
     contributions of inverted corners are left out).
     """
-    X, Y, Z = gather_corners(points, conn)
+    return _terms_and_grad(jnp, points, conn, weight)
+
+
+def objective_terms_and_grad_np(points: np.ndarray, conn: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """`objective_terms_and_grad` in numpy (the dtype of `points`; no compilation): ``(F, kmax, grad)``.
+
+    For meshes small enough that XLA's compilation costs more than the whole solve (`jaxci.optim.host`)."""
+    f, kmax, g = _terms_and_grad(np, points, conn, None)
+    return float(f), float(kmax), g
+
+
+def _terms_and_grad(xp, points, conn, weight):
+    """The body of `objective_terms_and_grad` with the array module `xp` (`jax.numpy` or `numpy`)."""
+    X, Y, Z = gather_corners(points, conn, xp)
     ax, ay, az, bx, by, bz, cx, cy, cz = corner_columns(X, Y, Z)
     a, b, c = (ax, ay, az), (bx, by, bz), (cx, cy, cz)
     u, v, w = _cross(b, c), _cross(c, a), _cross(a, b)
@@ -447,22 +461,23 @@ def objective_terms_and_grad(points, conn, weight=None):
     adj2 = sum(t * t for t in (*u, *v, *w))
     valid = det > 0
     # one division per corner: t = fro2 adj2 / (9 det^2), and 2 t / fro2, 2 t / adj2, 2 t / det are products
-    idet = jnp.where(valid, 1.0 / jnp.where(valid, det, 1.0), 0.0)
+    idet = xp.where(valid, 1.0 / xp.where(valid, det, 1.0), 0.0)
     idet2 = idet * idet
-    term = jnp.where(valid, fro2 * adj2 * idet2 * (1.0 / 9.0), jnp.inf)
-    term = jax.lax.optimization_barrier(term)
+    term = xp.where(valid, fro2 * adj2 * idet2 * (1.0 / 9.0), xp.inf)
+    if xp is jnp:
+        term = jax.lax.optimization_barrier(term)
     # the mean of term - 1 (small numbers near the optimum), not mean(term) - 1: in float32 over 8 M corners the
     # rounding of a sum of values near 1 swamped the decrease of F that the line search tests
     if weight is None:
-        f = jnp.mean(term - 1.0)
-        kmax = jnp.sqrt(jnp.max(term))
+        f = xp.mean(term - 1.0)
+        kmax = xp.sqrt(xp.max(term))
         w2 = 2.0 / (9.0 * term.size)
     else:
         real = weight > 0  # (N,): padding elements drop out of F, the max and (w2 = 0) the gradient
-        n_corners = 8.0 * jnp.sum(real.astype(term.dtype))
-        f = jnp.sum(jnp.where(real, term - 1.0, 0.0)) / n_corners
-        kmax = jnp.sqrt(jnp.max(jnp.where(real, term, 0.0)))
-        w2 = jnp.where(real, 2.0 / (9.0 * n_corners), 0.0)
+        n_corners = 8.0 * xp.sum(real.astype(term.dtype))
+        f = xp.sum(xp.where(real, term - 1.0, 0.0)) / n_corners
+        kmax = xp.sqrt(xp.max(xp.where(real, term, 0.0)))
+        w2 = xp.where(real, 2.0 / (9.0 * n_corners), 0.0)
     p = w2 * adj2 * idet2
     q = w2 * fro2 * idet2
     r = p * fro2 * idet
@@ -475,9 +490,13 @@ def objective_terms_and_grad(points, conn, weight=None):
         ga = p * a[k] + q * (vxc[k] + bxw[k]) - r * u[k]
         gb = p * b[k] + q * (cxu[k] + wxa[k]) - r * v[k]
         gc = p * c[k] + q * (uxb[k] + axv[k]) - r * w[k]
-        node = -(ga + gb + gc) + _rows(ga, _COLUMN_OWNER[0]) + _rows(gb, _COLUMN_OWNER[1]) + _rows(gc, _COLUMN_OWNER[2])
+        node = (-(ga + gb + gc) + _rows(xp, ga, _COLUMN_OWNER[0]) + _rows(xp, gb, _COLUMN_OWNER[1])
+                + _rows(xp, gc, _COLUMN_OWNER[2]))
+        if xp is np:  # one bincount: np.add.at is ~20x slower
+            grads.append(np.bincount(conn.reshape(-1), weights=node.reshape(-1), minlength=n).astype(points.dtype))
+            continue
         g = jnp.zeros(n, points.dtype)
         for m in range(8):
             g = g.at[conn[m]].add(node[m])
         grads.append(g)
-    return f, kmax, jnp.stack(grads, axis=1)
+    return f, kmax, xp.stack(grads, axis=1)

@@ -150,9 +150,11 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
     return "lbfgs", params, desc
 
 
-def _run_method(problem: Problem, method: str, key, params: dict):
-    """Dispatch to a method; returns (points, iterations, history, resolved params)."""
+def _run_method(problem: Problem, method: str, seed: int, params: dict):
+    """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
+    of the randomised methods (only there: building it compiles a program)."""
     if method in ("ci", "ci-global"):
+        key = jax.random.key(seed, impl="rbg")
         from .optim._moves import coloured_stars
         from .optim.ci import global_ci, local_ci
 
@@ -374,8 +376,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
             if untangled is not None:
                 problem = dataclasses.replace(problem, x0=jax.device_put(np.asarray(untangled, np_dtype)))
         with clock.phase("smooth"):
-            x, iterations, history, resolved = _run_method(problem, method, jax.random.key(seed, impl="rbg"),
-                                                           params)
+            x, iterations, history, resolved = _run_method(problem, method, seed, params)
             x = np.asarray(x, dtype=np.float64)
     notes.extend(problem.info.notes)
     cap = _CAPS.get(method)

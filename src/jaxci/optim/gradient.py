@@ -93,6 +93,8 @@ from ..quality import (
 from . import _params as _p
 from ._buckets import bucket, padded_connectivity, to_device
 from ._solve import MAX_REJECTED, MAX_REJECTED_UNCAPPED, _CappedDescent, _solve
+from .host import HOST_MAX, HostObjective
+from .host import lbfgs as host_lbfgs
 from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
     Parametrisation,
     make_parametrisation,
@@ -104,6 +106,9 @@ from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
 METHODS = ("bfgs", "lbfgs", "cg", "lm", "gauss-newton")
 #: The least-squares methods (dense Jacobian, small meshes only).
 LEAST_SQUARES = ("lm", "gauss-newton")
+#: Where L-BFGS runs (`GradientParams.backend`).
+BACKENDS = ("auto", "jax", "numpy")
+
 #: Nonlinear CG beta formulas (`optx.NonlinearCG(method=...)`).
 CG_METHODS = ("polak_ribiere", "fletcher_reeves", "hestenes_stiefel", "dai_yuan")
 
@@ -154,6 +159,9 @@ class GradientParams:
     - `buckets`: BFGS, L-BFGS, CG on a hexahedral mesh: run the problem padded to its size class
       (`jaxci.optim._buckets`; default True), so that meshes of similar size share one compiled solver loop and
       the persistent compilation cache; the padding changes no result beyond rounding (False: exact shapes).
+    - `backend`: L-BFGS on a hexahedral mesh: ``"auto"`` (default: numpy in float64, no compilation, up to
+      `jaxci.optim.host.HOST_MAX` elements; the compiled loop above), ``"numpy"`` (`jaxci.optim.host`, any size)
+      or ``"jax"`` (the compiled loop). Other methods and mixed meshes always run compiled.
     """
 
     max_steps: int = 2000
@@ -172,6 +180,7 @@ class GradientParams:
     residual: str = "excess"
     presmooth: int = 0
     buckets: bool = True
+    backend: str = "auto"
 
     def __post_init__(self):
         L = "gradient-method"
@@ -193,6 +202,7 @@ class GradientParams:
             residual=_p.choice(L, "residual", self.residual, ("excess", "kappa")),
             presmooth=_p.integer(L, "presmooth", self.presmooth, 0, MAX_PRESMOOTH),
             buckets=_p.boolean(L, "buckets", self.buckets),
+            backend=_p.choice(L, "backend", self.backend, BACKENDS),
         )
         if self.rtol + self.atol <= 0:
             raise ConfigError(f"gradient-method parameters rtol and atol must not both be 0, got rtol={self.rtol!r}, "
@@ -338,6 +348,8 @@ class _GaussNewtonArmijo(optx.AbstractGaussNewton):
 
 
 def _result_message(result) -> str:
+    if isinstance(result, str):  # the numpy solver's (`jaxci.optim.host`)
+        return result
     code = int(np.asarray(result._value))  # on the host: comparing the items compiles a program
     for name in ("successful", "nonlinear_max_steps_reached", "nonfinite"):
         if code == int(np.asarray(getattr(optx.RESULTS, name)._value)):
@@ -367,6 +379,14 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
     else:
         fn = _min_fn_closed if p.gradient == "closed" else _min_fn
     return fn, (par, conn, s, to_device(np.asarray(p.ftol), dtype), extra, weight)
+
+
+def use_host(method: str, p: GradientParams, n_hex: int, extra=None) -> bool:
+    """Whether `minimise` runs `method` in numpy (`jaxci.optim.host`): L-BFGS on a hexahedral mesh with
+    ``p.backend`` ``"numpy"``, or ``"auto"`` and at most `HOST_MAX` elements."""
+    if method != "lbfgs" or (extra is not None and extra.types) or p.backend == "jax":
+        return False
+    return p.backend == "numpy" or n_hex <= HOST_MAX
 
 
 def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra):
@@ -421,15 +441,16 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         f, k = _objective(x, conn, False, extra)
         return x, 0, {"objective": np.asarray([f]), "max_condition": np.asarray([k]),
                       "solver_result": "no free coordinates"}, params
-    solver = _solver(method, p)
-    run_par, run_conn, weight, index = _bucketed(method, par, conn, p, extra)
     n_hex = int(conn.shape[1])
+    on_host = use_host(method, p, n_hex, extra)
+    solver = None if on_host else _solver(method, p)
+    run_par, run_conn, weight, index = (par, conn, None, None) if on_host else _bucketed(method, par, conn, p, extra)
 
     def real(y):  # the real free coordinates of the iterate (numpy)
         y = np.asarray(y)
         return y if index is None else y[index]
 
-    y = to_device(np.zeros(run_par.n_free), par.x0.dtype)
+    y = np.zeros(run_par.n_free) if on_host else to_device(np.zeros(run_par.n_free), par.x0.dtype)
     hist_f, hist_k, starts = [], [], []
     steps = 0
     f0 = None
@@ -438,13 +459,22 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     # (not where the start is already outside a flat region, e.g. after presmooth or untangling, and not for a
     # solver that accepts every step: it would accept a NaN point)
     never_rejects = method == "gauss-newton" and p.gn_search == "none"
-    strict = par.shortcut and not never_rejects and par.reach(np.zeros(nf)) < FLAT_REACH
+    strict = par.shortcut and not never_rejects and not on_host and par.reach(np.zeros(nf)) < FLAT_REACH
     runs, max_runs = 0, 1 + int(p.restarts)
+    host_fn = None
     while runs < max_runs:
         cur = dataclasses.replace(run_par, strict=True) if strict else run_par
         fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
-        y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps), to_device(np.int32(p.max_steps - steps)),
-                                      _max_rejected(method, p))
+        if on_host:  # one for every run: its projector remembers each node's triangle
+            host_fn = host_fn or HostObjective(run_par, np.asarray(conn), float(np.asarray(args[2])))
+            fn = host_fn
+        if on_host:
+            y, k, result, hf, hk = host_lbfgs(fn, y, limit=p.max_steps - steps, max_rejected=_max_rejected(method, p),
+                                              rtol=p.rtol, atol=p.atol, history=int(p.history_length),
+                                              cap=p.max_move, ftol=p.ftol)
+        else:
+            y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps),
+                                          to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
         k = int(k)
         seg_f, seg_k = np.asarray(hf)[: k + 1], np.asarray(hk)[: k + 1]  # sliced on the host: no compilation
         if runs == 0:
@@ -468,7 +498,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
             continue
         if runs >= 2 and not gain > p.restart_tol * abs(f0):
             break
-    x = par.final_points(real(y))
+    if on_host and host_fn.best is not None and np.array_equal(host_fn.best[0], y):
+        x = to_device(host_fn.best[1], par.x0.dtype)  # the points of the best iterate as evaluated (on the boundary)
+    else:
+        x = par.final_points(real(y))
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
     return x, steps, hist, params

@@ -168,6 +168,15 @@ def _lift(xp, x0, scale, c: Constraints, v):
     return x
 
 
+def lift_transpose_np(scale: np.ndarray, c: Constraints, g: np.ndarray) -> np.ndarray:
+    """``scale * B^T g`` (numpy): a gradient ``(n, 3)`` with respect to the node coordinates taken to the scaled
+    free coordinates of `_lift` (the adjoint of its linear part), shape ``(n_free,)``."""
+    gi = g[np.asarray(c.interior_nodes)].reshape(-1)
+    gs = np.einsum("sd,skd->sk", g[np.asarray(c.surface_nodes)], np.asarray(c.surface_basis, g.dtype)).reshape(-1)
+    ge = np.sum(g[np.asarray(c.edge_nodes)] * np.asarray(c.edge_tangent, g.dtype), axis=-1)
+    return scale * np.concatenate([gi, gs, ge])
+
+
 def _flat_surface(points: np.ndarray, info: BoundaryInfo, cons: Constraints) -> np.ndarray:
     """Per node (origin (3), normal (3), radius) of its planar ring of boundary faces (radius 0: none)."""
     from ._moves import planar_rings

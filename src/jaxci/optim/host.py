@@ -1,0 +1,181 @@
+"""L-BFGS in numpy for small hexahedral meshes: the gradient solver without compilation.
+
+On a mesh of a few thousand hexahedra, XLA's compilation of the solver loop costs far more than the solve
+(`jaxci smooth` on a 2360-hex mesh, empty compile cache: 2.9 s compiling `_solve`, 0.6 s iterating; with a warm
+cache still 0.8 s tracing, lowering and loading it). The same algorithm run by numpy in float64 costs about
+1 ms per objective-and-gradient evaluation at that size (the closed-form kernel of
+`jaxci.quality.objective_terms_and_grad_np`, with glibc's huge-page tunable of `jaxci.runtime`), so the whole
+solve takes less than the compilation alone. `jaxci.optim.gradient.minimise` uses it for ``"lbfgs"`` on
+hexahedral meshes of at most `HOST_MAX` elements (``GradientParams(backend="auto")``; ``"jax"`` or ``"numpy"``
+force one).
+
+The iteration is that of the compiled path (`jaxci.optim._solve` with optimistix's `optx.LBFGS`): a two-loop
+L-BFGS direction (initial Hessian scaled by ``s.y / y.y``), each trial capped at ``max_move`` in the max norm,
+a backtracking Armijo search (halve on rejection, slope 0.1, back to step 1 after an accepted one), optimistix's
+Cauchy termination (change of the unknowns AND of the objective below ``atol + rtol |.|``, max norm) checked at
+accepted iterates, and the same stops (``F <= ftol``, `max_rejected` consecutive rejections, the step limit).
+Every objective evaluation is a step, as there. An inverted corner makes F infinite, so a trial that inverts an
+element is rejected like any trial that does not decrease F enough: validity is kept by construction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+
+from ..projection import NearProjector, _host_constraints
+from ..quality import objective_terms_and_grad_np
+from .parametrisation import Parametrisation, _lift, lift_transpose_np
+
+#: Largest hexahedral mesh `jaxci.optim.gradient.minimise` solves in numpy with ``backend="auto"``. Measured with
+#: `scripts/bench_realmesh.py` (docs/results/README.md, session 5): below it, numpy's whole solve is cheaper
+#: than the compiled loop's compilation.
+HOST_MAX = 10_000
+
+#: Armijo slope and step halving (optimistix's `BacktrackingArmijo` defaults).
+SLOPE = 0.1
+DECREASE = 0.5
+
+
+@dataclasses.dataclass
+class HostObjective:
+    """``value, grad, F, max kappa/3 = self(v)`` in numpy float64 for the scaled free coordinates `v`.
+
+    ``value = s F`` (the scaled objective the compiled path minimises), `grad` its gradient with respect to `v`
+    (through the lift's linear map ``B`` and, where a node was projected, the projection onto its triangle's
+    plane or its segment's line: the derivative `jax.grad` takes through `jaxci.projection.project`);
+    ``value = inf`` (`grad` None) if a corner is inverted. Node coordinates are ``project(x0 + B (scale v))``
+    with the candidate projection of the compiled path (`jaxci.projection.NearProjector`), skipped while every
+    moving boundary node is inside its flat region.
+    """
+
+    par: Parametrisation
+    conn: np.ndarray
+    s: float
+
+    def __post_init__(self):
+        par = self.par
+        self._cons, _ = _host_constraints(par.cons)
+        self._x0 = np.asarray(par.x0, np.float64)
+        self._scale = np.asarray(par.scale, np.float64)
+        self._flat = np.asarray(par.flat_nodes)
+        self._origin = np.asarray(par.flat_origin, np.float64)
+        self._r2 = (0.999 * np.asarray(par.flat_radius, np.float64)) ** 2
+        self._project = NearProjector(par.cons)
+        #: ``(v, points, output)`` of the accepted iterate (`accept`): the projector remembers each node's last
+        #: triangle, so the same `v` may land a node on a neighbouring triangle after other trials; a restart
+        #: from the accepted iterate and the returned points are this evaluation's
+        self.best = self._last = None
+
+    def points(self, v: np.ndarray) -> np.ndarray:
+        """Node coordinates ``(n, 3)`` of `v` (float64)."""
+        return self._points(v)[0]
+
+    def _points(self, v):
+        x = _lift(np, self._x0, self._scale, self._cons, v)
+        if self.par.shortcut:
+            d = x[self._flat] - self._origin
+            if np.all(np.sum(d * d, axis=-1) < self._r2):
+                return x, False
+        return self._project(x), True
+
+    def accept(self) -> None:
+        """The last evaluation is the solver's new iterate (`best`)."""
+        self.best = self._last
+
+    def __call__(self, v: np.ndarray):
+        best = self.best
+        if best is not None and np.array_equal(best[0], v):  # a restart from the accepted iterate: the same answer
+            self._last = best
+            return best[2]
+        x, projected = self._points(v)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            f, kmax, gx = objective_terms_and_grad_np(x, self.conn)
+        if not np.isfinite(f):
+            return np.inf, None, f, kmax
+        if projected:
+            gx = self._project.pullback(gx)
+        out = self.s * f, self.s * lift_transpose_np(self._scale, self._cons, gx), f, kmax
+        self._last = (np.array(v), x, out)
+        return out
+
+
+def _direction(g: np.ndarray, mem: list) -> np.ndarray:
+    """``-H g`` by the L-BFGS two-loop recursion over `mem` (pairs ``(s, y, 1 / s.y)``, oldest first)."""
+    q = g.copy()
+    alphas = []
+    for s, y, rho in reversed(mem):
+        a = rho * (s @ q)
+        alphas.append(a)
+        q -= a * y
+    if mem:
+        s, y, _ = mem[-1]
+        q *= (s @ y) / (y @ y)
+    for (s, y, rho), a in zip(mem, reversed(alphas), strict=True):
+        b = rho * (y @ q)
+        q += (a - b) * s
+    return -q
+
+
+def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
+          history: int, cap: float, ftol: float):
+    """Minimise `fun` (a `HostObjective`: ``value, grad, F, max kappa/3 = fun(y)``; its ``accept()``, if any,
+    is called once an evaluation becomes the iterate) from `y0` (float64, ``(n_free,)``).
+
+    **Arguments:** `limit` the most objective evaluations (steps); `max_rejected` consecutive rejected trials
+    that stop the run; `rtol`, `atol` the Cauchy termination; `history` the L-BFGS memory; `cap` the largest
+    trial move of one unknown at step size 1 (0: none); `ftol` stop once F <= ftol.
+
+    **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve._solve`: the accepted
+    iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
+    ``"nonlinear_max_steps_reached"``, ``"nonfinite"``), and F and max kappa/3 of the accepted iterate after
+    each step (entry 0: `y0`), numpy arrays of length ``steps + 1``.
+    """
+    y = np.array(y0, dtype=np.float64)
+    value, g, f, k = fun(y)
+    accept = getattr(fun, "accept", lambda: None)
+    hf, hk = [f], [k]
+    if g is None:
+        return y, 0, "nonfinite", np.asarray(hf), np.asarray(hk)
+    accept()
+    mem: list = []
+    d = -g
+    alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
+    stop = f <= ftol
+    while not stop and steps < limit:
+        big = float(np.max(np.abs(d), initial=0.0))
+        trial = d * (min(1.0, cap / big) if cap and big > 0 else 1.0)
+        slope = float(g @ trial)
+        y_try = y + alpha * trial
+        v_try, g_try, f_try, k_try = fun(y_try)
+        steps += 1
+        if g_try is not None and v_try <= value + SLOPE * alpha * slope:
+            s, dy = y_try - y, g_try - g
+            sy = float(s @ dy)
+            if sy > 1e-12 * np.sqrt(float(s @ s) * float(dy @ dy)):
+                mem.append((s, dy, 1.0 / sy))
+                if len(mem) > history:
+                    mem.pop(0)
+            converged = (np.max(np.abs(s), initial=0.0) < atol + rtol * np.max(np.abs(y_try), initial=0.0)
+                         and abs(v_try - value) < atol + rtol * abs(v_try))
+            y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
+            accept()
+            alpha, rejected = 1.0, 0
+            d = _direction(g, mem)
+            if not float(g @ d) < 0:  # not a descent direction: forget the curvature pairs
+                mem.clear()
+                d = -g
+            if converged:
+                result, stop = "successful", True
+            stop = stop or f <= ftol
+        else:
+            alpha *= DECREASE
+            rejected += 1
+            stop = rejected >= max_rejected
+        hf.append(f)
+        hk.append(k)
+    if stop and result != "successful":
+        result = "successful"
+    return y, steps, result, np.asarray(hf, np.float64), np.asarray(hk, np.float64)

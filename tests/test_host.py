@@ -1,0 +1,147 @@
+"""L-BFGS in numpy (`jaxci.optim.host`): same results as the compiled loop, validity by construction, boundary
+kept on curved patches, nothing compiled on the user's path for a small mesh."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from jaxci.errors import ConfigError
+from jaxci.generate import perturb_box
+from jaxci.mesh import HexMesh
+from jaxci.optim.gradient import GradientParams, minimise, use_host
+from jaxci.optim.host import HOST_MAX, lbfgs
+from jaxci.optim.parametrisation import make_parametrisation
+from jaxci.projection import NearProjector, project_near_np, project_np
+from jaxci.quality import objective_terms_and_grad, objective_terms_and_grad_np, quality_report, transposed
+from jaxci.shapes import annulus
+from jaxci.smooth import build_problem, smooth
+
+
+def _wavy_annulus(seed: int = 0) -> HexMesh:
+    """An annulus (curved inner and outer walls) with its interior and wall nodes moved off the ideal grid: the
+    walls are moved along their own circles (and z), so the boundary stays the original cylinder."""
+    m = annulus(16, 3, 3)
+    p = np.array(m.points, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    r, th = np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0])
+    inner = (r > 0.5 + 1e-9) & (r < 1 - 1e-9)
+    r = np.where(inner, r + rng.uniform(-0.05, 0.05, len(r)), r)
+    th = th + rng.uniform(-0.08, 0.08, len(r))
+    z = p[:, 2]
+    zin = (z > 1e-9) & (z < 1 - 1e-9)
+    z = np.where(zin, z + rng.uniform(-0.08, 0.08, len(z)), z)
+    q = np.stack([r * np.cos(th), r * np.sin(th), z], axis=1)
+    return m.with_points(q)
+
+
+def test_numpy_kernel_equals_the_compiled_one():
+    m = perturb_box(5, amplitude=0.3, seed=1)
+    with jax.enable_x64(True):
+        fj, kj, gj = jax.jit(objective_terms_and_grad)(jax.numpy.asarray(m.points), transposed(m.hexes))
+    fn, kn, gn = objective_terms_and_grad_np(np.asarray(m.points, np.float64), np.ascontiguousarray(m.hexes.T))
+    assert fn == pytest.approx(float(fj), rel=1e-12) and kn == pytest.approx(float(kj), rel=1e-12)
+    np.testing.assert_allclose(gn, np.asarray(gj), rtol=1e-10, atol=1e-12 * np.abs(gn).max())
+
+
+def test_near_projector_follows_a_moving_mesh_like_the_full_search():
+    """Small successive moves (a solver's iterates): the remembered triangle gives the candidate search's point."""
+    mesh = _wavy_annulus()
+    pr = build_problem(mesh, dtype=np.float64)
+    proj = NearProjector(pr.cons)
+    rng = np.random.default_rng(3)
+    x = np.array(mesh.points)
+    for _ in range(6):
+        x = x + 0.01 * rng.normal(size=x.shape)
+        a, b = proj(x), project_near_np(pr.cons, x)
+        # nearly every node where the full search puts it; a node inside its old triangle but nearer another
+        # (moved inward off the convex wall) may stay on the old one ...
+        same = np.all(np.abs(a - b) <= 1e-12, axis=1)
+        assert same.mean() >= 0.95
+        # ... and every node is on the original boundary (projecting again moves nothing), about as near to x
+        np.testing.assert_allclose(project_np(pr.cons, a), a, atol=1e-9)
+        da, db = np.linalg.norm(a - x, axis=1), np.linalg.norm(b - x, axis=1)
+        assert np.all(da <= db + 0.01)
+        x = a
+
+
+@pytest.mark.parametrize("shape", ["box", "annulus"])
+def test_numpy_lbfgs_reaches_the_compiled_result(shape):
+    mesh = perturb_box(5, amplitude=0.3, seed=4) if shape == "box" else _wavy_annulus()
+    out = {}
+    for backend in ("numpy", "jax"):
+        res = smooth(mesh, "lbfgs", dtype="float64", backend=backend, keep_worst=False)
+        assert res.after.inverted_elements == 0
+        hist = np.asarray(res.history["objective"])
+        assert np.all(np.diff(hist) <= 1e-12 * hist[0])  # F never rises
+        out[backend] = res
+    f_np, f_jax = out["numpy"].after.objective, out["jax"].after.objective
+    assert f_np <= f_jax * (1 + 1e-3) + 1e-9
+    assert f_np < 0.5 * out["numpy"].before.objective
+    if shape == "box":
+        assert out["numpy"].after.max_condition <= 1 + 1e-6
+    else:  # the walls stayed on their cylinders
+        p = np.asarray(out["numpy"].mesh.points)
+        r = np.hypot(p[:, 0], p[:, 1])
+        wall = (np.abs(np.asarray(mesh.points)[:, :2]) ** 2).sum(1) ** 0.5
+        on = np.isclose(wall, 0.5) | np.isclose(wall, 1.0)
+        # the walls are polygons of 16 sides: a node on a wall stays between the chord and the circle
+        assert np.all(np.abs(r[on] - wall[on]) <= 1 - np.cos(np.pi / 16) + 1e-9)
+
+
+def test_an_inverting_trial_is_rejected():
+    """A quadratic-looking step that would invert elements: the line search shortens it, the mesh stays valid."""
+    mesh = perturb_box(4, amplitude=0.3, seed=2)
+    pr = build_problem(mesh, dtype=np.float64)
+    par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0, dtype=np.float64)
+    from jaxci.optim.host import HostObjective
+
+    fun = HostObjective(par, np.ascontiguousarray(mesh.hexes.T), 1.0)
+    calls = []
+
+    def spy(v):
+        out = fun(v)
+        calls.append(out[0])
+        return out
+
+    y, steps, result, hf, hk = lbfgs(spy, np.zeros(par.n_free), limit=200, max_rejected=20, rtol=1e-8, atol=1e-8,
+                                     history=10, cap=5.0, ftol=0.0)  # a cap of 5 edge lengths: the first trials invert
+    assert np.isinf(calls).any()  # some trials inverted elements ...
+    assert np.all(np.isfinite(hf)) and np.all(np.diff(hf) <= 0)  # ... and were never accepted
+    assert quality_report(mesh, fun.points(y)).inverted_elements == 0
+    assert len(hf) == steps + 1 and result == "successful"
+
+
+def test_backend_choice():
+    box = perturb_box(3)
+    assert use_host("lbfgs", GradientParams(), HOST_MAX)
+    assert not use_host("lbfgs", GradientParams(), HOST_MAX + 1)
+    assert use_host("lbfgs", GradientParams(backend="numpy"), 10 * HOST_MAX)
+    assert not use_host("lbfgs", GradientParams(backend="jax"), 10)
+    assert not use_host("cg", GradientParams(backend="numpy"), 10)
+    with pytest.raises(ConfigError, match="backend"):
+        GradientParams(backend="gpu")
+    pr = build_problem(box, dtype=np.float64)
+    par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0, dtype=np.float64)
+    _, _, hist, params = minimise("lbfgs", par, pr.conn, GradientParams(backend="numpy"))
+    assert params["backend"] == "numpy" and hist["solver_result"] == "successful"
+
+
+@pytest.mark.slow
+def test_cli_small_mesh_compiles_nothing(tmp_path):
+    """The user's path: `jaxci smooth` of a 1000-hex mesh, empty compile cache: no XLA compilation at all."""
+    from jaxci.io import write_mesh
+
+    write_mesh(perturb_box(10, amplitude=0.3, seed=1), str(tmp_path / "in.vtk"))
+    env = dict(os.environ, JAXCI_CACHE_DIR=str(tmp_path / "cache"))
+    p = subprocess.run([sys.executable, "-m", "jaxci", "smooth", str(tmp_path / "in.vtk"), str(tmp_path / "out.vtk"),
+                        "--json"], env=env, capture_output=True, text=True, check=True)
+    doc = json.loads(p.stdout)
+    assert doc["phases"]["total"]["compiled"] == 0, doc["phases"]
+    assert doc["after"]["max_condition"] <= 1.0001 and doc["after"]["inverted_elements"] == 0
