@@ -54,17 +54,24 @@ class HostObjective:
     par: Parametrisation
     conn: np.ndarray
     s: float
+    #: ``(f, k, grad) = kernel(points)`` (default: F, max kappa/3 and dF/dx of the hexahedra `conn` ``(8, N)``,
+    #: `jaxci.quality.objective_terms_and_grad_np`); the untangling stage passes its energy
+    kernel: Callable | None = None
+    #: the boundary projection (default a new `NearProjector`; successive objectives may share one)
+    projector: NearProjector | None = None
 
     def __post_init__(self):
         par = self.par
+        if self.kernel is None:
+            self.kernel = lambda x: objective_terms_and_grad_np(x, self.conn)
         self._cons, _ = _host_constraints(par.cons)
         self._x0 = np.asarray(par.x0, np.float64)
         self._scale = np.asarray(par.scale, np.float64)
         self._flat = np.asarray(par.flat_nodes)
         self._origin = np.asarray(par.flat_origin, np.float64)
         self._r2 = (0.999 * np.asarray(par.flat_radius, np.float64)) ** 2
-        self._project = NearProjector(par.cons)
-        #: ``(v, points, output)`` of the accepted iterate (`accept`): the projector remembers each node's last
+        self._project = self.projector or NearProjector(par.cons)
+        #: ``(v, points, output, hint)`` of the accepted iterate (`accept`): the projector remembers each node's last
         #: triangle, so the same `v` may land a node on a neighbouring triangle after other trials; a restart
         #: from the accepted iterate and the returned points are this evaluation's
         self.best = self._last = None
@@ -74,31 +81,35 @@ class HostObjective:
         return self._points(v)[0]
 
     def _points(self, v):
+        """``(x, hint)``: the coordinates and the projector's triangles (None: not projected)."""
         x = _lift(np, self._x0, self._scale, self._cons, v)
         if self.par.shortcut:
             d = x[self._flat] - self._origin
             if np.all(np.sum(d * d, axis=-1) < self._r2):
-                return x, False
-        return self._project(x), True
+                return x, None
+        return self._project(x)
 
     def accept(self) -> None:
-        """The last evaluation is the solver's new iterate (`best`)."""
+        """The last evaluation is the solver's new iterate (`best`); its nodes' triangles are the projector's
+        starting point from now on."""
         self.best = self._last
+        if self._last[3] is not None:
+            self._project.commit(self._last[3])
 
     def __call__(self, v: np.ndarray):
         best = self.best
         if best is not None and np.array_equal(best[0], v):  # a restart from the accepted iterate: the same answer
             self._last = best
             return best[2]
-        x, projected = self._points(v)
+        x, hint = self._points(v)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            f, kmax, gx = objective_terms_and_grad_np(x, self.conn)
+            f, kmax, gx = self.kernel(x)
         if not np.isfinite(f):
             return np.inf, None, f, kmax
-        if projected:
-            gx = self._project.pullback(gx)
+        if hint is not None:
+            gx = self._project.pullback(gx, hint)
         out = self.s * f, self.s * lift_transpose_np(self._scale, self._cons, gx), f, kmax
-        self._last = (np.array(v), x, out)
+        self._last = (np.array(v), x, out, hint)
         return out
 
 
@@ -120,13 +131,14 @@ def _direction(g: np.ndarray, mem: list) -> np.ndarray:
 
 
 def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
-          history: int, cap: float, ftol: float):
+          history: int, cap: float, ftol: float, done: Callable | None = None):
     """Minimise `fun` (a `HostObjective`: ``value, grad, F, max kappa/3 = fun(y)``; its ``accept()``, if any,
     is called once an evaluation becomes the iterate) from `y0` (float64, ``(n_free,)``).
 
     **Arguments:** `limit` the most objective evaluations (steps); `max_rejected` consecutive rejected trials
     that stop the run; `rtol`, `atol` the Cauchy termination; `history` the L-BFGS memory; `cap` the largest
-    trial move of one unknown at step size 1 (0: none); `ftol` stop once F <= ftol.
+    trial move of one unknown at step size 1 (0: none); `ftol` stop once F <= ftol; `done` (optional): also
+    stop once ``done(F, k)`` holds at an accepted iterate (k the second number `fun` reports).
 
     **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve._solve`: the accepted
     iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
@@ -143,7 +155,10 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     mem: list = []
     d = -g
     alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
-    stop = f <= ftol
+    def finished(f, k):
+        return f <= ftol or (done is not None and bool(done(f, k)))
+
+    stop = finished(f, k)
     while not stop and steps < limit:
         big = float(np.max(np.abs(d), initial=0.0))
         trial = d * (min(1.0, cap / big) if cap and big > 0 else 1.0)
@@ -169,7 +184,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
                 d = -g
             if converged:
                 result, stop = "successful", True
-            stop = stop or f <= ftol
+            stop = stop or finished(f, k)
         else:
             alpha *= DECREASE
             rejected += 1
@@ -179,3 +194,53 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     if stop and result != "successful":
         result = "successful"
     return y, steps, result, np.asarray(hf, np.float64), np.asarray(hk, np.float64)
+
+
+def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndarray, *, theta: float,
+                       margin: float, max_rounds: int, inner_steps: int, rtol: float, atol: float,
+                       history: int = 10, max_rejected: int = 64):
+    """The untangling stage's eps rounds (`jaxci.optim._untangle_loop.untangle_rounds`) in numpy float64.
+
+    Each round minimises the regularised Winslow energy at its eps with `lbfgs` (no cap, the round's Armijo
+    search and Cauchy test) from the previous round's result, stopping as soon as every corner has
+    ``det J >= margin``; between rounds eps follows the schedule of `jaxci.optim.untangle`. The energy and its
+    gradient are the compiled path's closed-form kernel (`_hex_kernel` with numpy). Hexahedral meshes only.
+
+    **Returns:** ``(v, points, report)``: the scaled free coordinates and the node coordinates ``(n, 3)`` of the
+    result (as evaluated: on the boundary), and a dict ``rounds``, ``steps``, ``dmin0``, ``h_eps``, ``h_dmin``,
+    ``h_e`` (numpy arrays, one entry per round).
+    """
+    from ._untangle_loop import EPS_FLOOR, _hex_kernel, chi
+
+    projector = NearProjector(par.cons)
+
+    def objective(eps):
+        def kernel(x):
+            return _hex_kernel(x, table, inv_len, eps, theta, True, np)
+
+        return HostObjective(par, table, 1.0, kernel, projector)
+
+    v = np.zeros(par.n_free)
+    fun = objective(1.0)
+    _, _, _, dmin0 = fun(v)
+    points = fun.points(v)
+    eps = float(np.sqrt(1e-12 + 0.04 * min(dmin0, 0.0) ** 2))
+    rounds = steps = 0
+    h_eps, h_dmin, h_e = [], [], []
+    dmin = dmin0
+    while dmin < margin and rounds < max_rounds:
+        fun = objective(eps)
+        v, k, _, hf, hk = lbfgs(fun, v, limit=inner_steps, max_rejected=max_rejected, rtol=rtol, atol=atol,
+                                history=history, cap=0.0, ftol=-np.inf, done=lambda f, d: d >= margin)
+        steps += k + 1  # as the compiled loop counts: the round's first evaluation is a step
+        rounds += 1
+        e_start, e, dmin = float(hf[0]), float(hf[-1]), float(hk[-1])
+        points = fun.best[1] if fun.best is not None else fun.points(v)
+        h_eps.append(eps)
+        h_dmin.append(dmin)
+        h_e.append(e)
+        sigma = max(1.0 - e / e_start, 0.1) if e_start > 0 else 0.1
+        mu = (1.0 - sigma) * float(chi(eps, dmin, np))
+        eps = 2.0 * np.sqrt(max(mu * (mu - dmin), 0.0)) if dmin < mu else EPS_FLOOR
+    return v, points, {"rounds": rounds, "steps": steps, "dmin0": float(dmin0), "h_eps": np.asarray(h_eps),
+                       "h_dmin": np.asarray(h_dmin), "h_e": np.asarray(h_e)}

@@ -59,6 +59,7 @@ from ..mixed import cell_label, extra_blocks, extra_cells, inverted_cells, no_ex
 from ..projection import Constraints, project_np
 from . import _params as _p
 from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
+from .host import HOST_MAX, untangle_rounds_np
 from .parametrisation import Parametrisation, make_parametrisation
 
 #: Upper bounds of `UntangleParams` (a typo must not hang a run): eps rounds, L-BFGS steps per round.
@@ -74,6 +75,8 @@ class UntangleParams:
     - `max_rounds`: most eps updates (outer iterations, default 60; at most 10,000).
     - `inner_steps`: most L-BFGS steps per round (default 400; at most 10^6).
     - `rtol`, `atol`: L-BFGS termination per round (default 1e-7 each).
+    - `backend`: ``"auto"`` (default: numpy on hexahedral meshes of at most `jaxci.optim.host.HOST_MAX`
+      elements, no compilation; else the compiled loop), ``"numpy"`` (hexahedral meshes) or ``"jax"``.
     """
 
     theta: float = 0.1
@@ -82,6 +85,7 @@ class UntangleParams:
     inner_steps: int = 400
     rtol: float = 1e-7
     atol: float = 1e-7
+    backend: str = "auto"
 
     def __post_init__(self):
         L = "untangling"
@@ -93,6 +97,7 @@ class UntangleParams:
             inner_steps=_p.integer(L, "inner_steps", self.inner_steps, 1, MAX_INNER_STEPS),
             rtol=_p.real(L, "rtol", self.rtol, 0, lo_open=True),
             atol=_p.real(L, "atol", self.atol, 0, lo_open=True),
+            backend=_p.choice(L, "backend", self.backend, ("auto", "jax", "numpy")),
         )
 
 
@@ -133,7 +138,7 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     (`project_np`), and a dict: ``rounds``, ``steps`` (L-BFGS steps in all), ``eps`` (per round),
     ``min_det`` (min det J per round, entry 0 = input), ``energy`` (per round), ``untangled`` (bool: no
     corner with det <= 0 after projection), ``inverted_elements`` (after), ``min_scaled_det`` (after),
-    ``runs`` (per compiled run: ``("flat regions" | "projected", rounds, steps)``), ``wall_time``.
+    ``runs`` (per run: ``("flat regions" | "projected" | "numpy", rounds, steps)``), ``wall_time``.
     """
     t0 = time.perf_counter()
     hexes = mesh.hexes
@@ -154,7 +159,16 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     rounds = steps = 0
     hist = [np.zeros(0)] * 3
     runs = []
-    if nf:
+    on_host = bool(nf) and not blocks and (p.backend == "numpy" or (p.backend == "auto" and len(hexes) <= HOST_MAX))
+    x = None
+    if on_host:
+        v, x, st = untangle_rounds_np(par, corner_table(hexes), np.tile(1.0 / lens, 8), theta=p.theta,
+                                      margin=p.margin, max_rounds=p.max_rounds, inner_steps=p.inner_steps,
+                                      rtol=p.rtol, atol=p.atol)
+        rounds, steps, dmin0 = st["rounds"], st["steps"], st["dmin0"]
+        hist = [st["h_eps"], st["h_dmin"], st["h_e"]]
+        runs.append(("numpy", rounds, steps))
+    elif nf:
         # strict first where every moving boundary node has a flat region: no projection compiled (a trial that
         # leaves a region is rejected); after a round that ends with a node near the edge of its region, the
         # rounds go on with the projection
@@ -176,7 +190,8 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     else:
         dmin0 = _scaled_min_det(mesh, np.asarray(mesh.points, f64), lens)
     hist_eps, hist_dmin, hist_e = hist
-    x = np.asarray(par.final_points(v), dtype=f64)  # exact: project_np where a node left its flat region
+    if x is None:
+        x = np.asarray(par.final_points(v), dtype=f64)  # exact: project_np where a node left its flat region
     bad = np.concatenate(list(inverted_cells(mesh, x).values()))
     report = {
         "rounds": rounds,
