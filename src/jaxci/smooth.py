@@ -30,6 +30,7 @@ from .boundary import BoundaryInfo, classify_boundary
 from .elements import mixed_objective
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .mesh import HexMesh
+from .optim.host import HOST_MAX
 from .projection import Constraints, build_constraints, project_np
 from .quality import QualityReport, quality_report, transposed
 from .topology import colour_nodes, node_adjacency
@@ -38,9 +39,11 @@ from .topology import colour_nodes, node_adjacency
 #: (`auto_pipeline`).
 METHODS = ("auto", "ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton", "laplace", "smart-laplace")
 
-#: Hexahedra from which the default pipeline runs smart-Laplace sweeps before L-BFGS (below it the sweeps'
-#: extra compilation costs more than the solver steps they save: `auto_pipeline`).
-AUTO_PRESMOOTH_FROM = 20_000
+#: Hexahedra from which the default pipeline runs smart-Laplace sweeps before L-BFGS: where L-BFGS runs compiled
+#: in float32 (above `jaxci.optim.host.HOST_MAX`). Below it L-BFGS runs in numpy float64, which needs no sweeps
+#: (measured on a perturbed 21^3 box with a corner of kappa/3 7.7e5: float32 L-BFGS alone stalled at 5.5e5
+#: after 40 steps, float64 reached 1.0000 in 188 steps; `auto_pipeline`).
+AUTO_PRESMOOTH_FROM = HOST_MAX + 1
 
 #: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
 OPTIMAL_F = 1e-14
@@ -137,13 +140,15 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
     """The default pipeline (``method="auto"``): ``(method, params, description)``.
 
-    Chosen by measurement on real and generated meshes (docs/results/README.md, session 4): L-BFGS on F after the
-    untangling stage (when the input has inverted elements); from `AUTO_PRESMOOTH_FROM` hexahedra on, 3
-    smart-Laplace sweeps first (they fix the worst corners node by node; at 10^6 elements L-BFGS alone needed
-    1152 steps, 13 after them). Local CI ran to its sweep cap on unstructured meshes. `params` (the user's) win.
+    Chosen by measurement on real and generated meshes (docs/results/README.md, sessions 4 and 5): L-BFGS on F
+    after the untangling stage (when the input has inverted elements); where L-BFGS runs compiled (from
+    `AUTO_PRESMOOTH_FROM` hexahedra on, or ``backend="jax"``), 3 smart-Laplace sweeps first (they fix the worst
+    corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13 after them). Local CI ran to its
+    sweep cap on unstructured meshes. `params` (the user's) win.
     """
     params = dict(params)
-    if "presmooth" not in params and n_hexes >= AUTO_PRESMOOTH_FROM:
+    compiled = params.get("backend") == "jax" or (n_hexes >= AUTO_PRESMOOTH_FROM and params.get("backend") != "numpy")
+    if "presmooth" not in params and compiled:
         params["presmooth"] = 3
     pre = int(params.get("presmooth", 0))
     desc = "L-BFGS on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")
