@@ -401,6 +401,17 @@ def mixed_objective(points, mesh: HexMesh):
     return _mixed_objective(pts, conns)
 
 
+def checked_objective(mesh: HexMesh, power: float | None = None):
+    """The float64 objective `jaxci.smooth`'s final checks compare, as a function of the coordinates ``(n, 3)``
+    -> float: F over every cell (`mixed_objective`), or with `power` the p-mean of the hexahedra
+    (`jaxci.quality.pmean_objective`: what ``objective="pmean"`` minimises)."""
+    if power is None:
+        return lambda x: float(mixed_objective(x, mesh))
+    from .quality import pmean_objective
+
+    return lambda x: pmean_objective(x, mesh.hexes, power)
+
+
 def corner_figures(points, cells, cell_type: str) -> dict[str, np.ndarray]:
     """Everything `jaxci quality` reports about the cells of one type, as float64 numpy arrays.
 

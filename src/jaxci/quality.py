@@ -413,7 +413,7 @@ def objective_and_grad(points, conn):
     return f, g
 
 
-def objective_terms_and_grad(points, conn, weight=None):
+def objective_terms_and_grad(points, conn, weight=None, power=None):
     """F (Eq. 3.1), max kappa/3 and the gradient of F with respect to the node coordinates, in closed form.
 
     With columns a, b, c of a corner matrix, u = b x c, v = c x a, w = a x b, det = a . u,
@@ -434,24 +434,57 @@ def objective_terms_and_grad(points, conn, weight=None):
 
     **Arguments:** `points` of shape ``(n, 3)``; `conn` the transposed connectivity ``(8, N)``; `weight`
     optional ``(N,)``: 1 for a real element, 0 for a padding one (`jaxci.optim._buckets`), which then adds
-    nothing to F, its max or its gradient, and F is the mean over the real corners (default: every element).
+    nothing to F, its max or its gradient, and F is the mean over the real corners (default: every element);
+    `power` (static) p: the p-mean `pmean_objective` and its gradient instead of F (default None: F).
 
     **Returns:** ``(F, kmax, grad)``: scalars (``inf`` if any corner has det <= 0) and shape ``(n, 3)`` (the
     contributions of inverted corners are left out).
     """
-    return _terms_and_grad(jnp, points, conn, weight)
+    return _terms_and_grad(jnp, points, conn, weight, power)
 
 
-def objective_terms_and_grad_np(points: np.ndarray, conn: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """`objective_terms_and_grad` in numpy (the dtype of `points`; no compilation): ``(F, kmax, grad)``.
+def objective_terms_and_grad_np(points: np.ndarray, conn: np.ndarray, power: float | None = None
+                                ) -> tuple[float, float, np.ndarray]:
+    """`objective_terms_and_grad` in numpy (the dtype of `points`; no compilation): ``(F, kmax, grad)``; with
+    `power` p the p-mean objective instead of F (`pmean_objective`).
 
     For meshes small enough that XLA's compilation costs more than the whole solve (`jaxci.optim.host`)."""
-    f, kmax, g = _terms_and_grad(np, points, conn, None)
+    f, kmax, g = _terms_and_grad(np, points, conn, None, power)
     return float(f), float(kmax), g
 
 
-def _terms_and_grad(xp, points, conn, weight):
-    """The body of `objective_terms_and_grad` with the array module `xp` (`jax.numpy` or `numpy`)."""
+def pmean_objective(points, hexes, power: float) -> float:
+    """The p-mean objective ``M_p = (mean_i e_i^p)^(1/p)`` over every hexahedron corner, ``e_i = (kappa_i/3)^2 - 1``
+    (F of Eq. 3.1 is ``M_1``): numpy float64; ``inf`` if a corner is inverted.
+
+    As p grows the worst corners weigh more (``M_p -> max e_i``): minimising it pulls the worst element where
+    the mean lets it be (issue 15: on a hexahedral sphere the mean objective made the worst element worse).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    conn = np.ascontiguousarray(np.asarray(hexes).T)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        return float(_terms_and_grad(np, pts, conn, None, float(power))[0])
+
+
+def _pmean_weights(xp, e, real, power: float):
+    """``(M_p, c)`` for the excesses `e` ``(8, N)`` (``inf`` where inverted) of the corners where `real`
+    (None: all): the p-mean and per corner ``c_i = (e_i / M_p)^(p - 1)``, so that
+    ``d M_p = mean_i c_i d e_i``. Scaled by the largest excess, so that e^p neither overflows nor underflows."""
+    e = xp.maximum(e, 0.0)
+    if real is not None:
+        e = xp.where(real, e, 0.0)
+    n = e.size if real is None else 8.0 * xp.sum(real.astype(e.dtype))
+    top = xp.max(e)
+    safe = xp.where((top > 0) & (top < xp.inf), top, 1.0)
+    m = top * (xp.sum((e / safe) ** power) / n) ** (1.0 / power)
+    m = xp.where(top < xp.inf, m, xp.inf)
+    c = xp.where(m > 0, (e / xp.where(m > 0, m, 1.0)) ** (power - 1.0), 0.0)
+    return m, c
+
+
+def _terms_and_grad(xp, points, conn, weight, power=None):
+    """The body of `objective_terms_and_grad` with the array module `xp` (`jax.numpy` or `numpy`); `power`
+    (static) p: the p-mean ``M_p`` of the excesses (`pmean_objective`) instead of their mean F."""
     X, Y, Z = gather_corners(points, conn, xp)
     ax, ay, az, bx, by, bz, cx, cy, cz = corner_columns(X, Y, Z)
     a, b, c = (ax, ay, az), (bx, by, bz), (cx, cy, cz)
@@ -472,12 +505,16 @@ def _terms_and_grad(xp, points, conn, weight):
         f = xp.mean(term - 1.0)
         kmax = xp.sqrt(xp.max(term))
         w2 = 2.0 / (9.0 * term.size)
+        real = None
     else:
         real = weight > 0  # (N,): padding elements drop out of F, the max and (w2 = 0) the gradient
         n_corners = 8.0 * xp.sum(real.astype(term.dtype))
         f = xp.sum(xp.where(real, term - 1.0, 0.0)) / n_corners
         kmax = xp.sqrt(xp.max(xp.where(real, term, 0.0)))
         w2 = xp.where(real, 2.0 / (9.0 * n_corners), 0.0)
+    if power is not None:  # the p-mean: each corner's gradient weighted by (e_i / M_p)^(p - 1)
+        f, weights = _pmean_weights(xp, term - 1.0, real, power)
+        w2 = w2 * weights
     p = w2 * adj2 * idet2
     q = w2 * fro2 * idet2
     r = p * fro2 * idet

@@ -27,7 +27,7 @@ import numpy as np
 
 from . import mixed
 from .boundary import BoundaryInfo, classify_boundary
-from .elements import mixed_objective
+from .elements import checked_objective
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .mesh import HexMesh
 from .optim.host import HOST_MAX
@@ -391,12 +391,13 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
             notes.append(f"{method} stopped at its cap of {resolved[cap]} iterations ({cap}) before it converged; "
                          f"--param {cap}=N lets it go further")
     with clock.phase("checks"), jax.enable_x64(True):
+        power = float(resolved["p"]) if resolved.get("objective") == "pmean" else None
         if untangled is None:
-            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before)
+            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before, power)
         else:
             from .optim.untangle import enforce_after_untangling
 
-            points, check_notes = enforce_after_untangling(mesh, problem.info, untangled, x)
+            points, check_notes = enforce_after_untangling(mesh, problem.info, untangled, x, power)
         notes.extend(check_notes)
         after = quality_report(mesh, points)
     res = SmoothResult(
@@ -453,6 +454,9 @@ def method_params(method: str, params: dict):
     the one source for `smooth`, ``jaxci smooth`` and YAML configs (`jaxci.config`)."""
     from .optim._params import make_params
 
+    if params.get("objective", "mean") != "mean" and method not in ("bfgs", "lbfgs", "cg"):
+        raise ConfigError(f"objective {params['objective']!r} is for the gradient methods bfgs, lbfgs and cg (and "
+                          f"the default pipeline), not {method!r}")
     if method in ("ci", "ci-global"):
         from .optim.ci import ci_params
 
@@ -468,15 +472,18 @@ def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
     return f"element {mesh.hex_label(k)}" if cell_type == "hexahedron" else mixed.cell_label(mesh, cell_type, k)
 
 
-def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray,
-                        keep_worst: bool = True, before: QualityReport | None = None) -> tuple[np.ndarray, list[str]]:
+def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_worst: bool = True,
+                        before: QualityReport | None = None, power: float | None = None
+                        ) -> tuple[np.ndarray, list[str]]:
     """Exact float64 projection onto the original boundary, then the no-inversion, worst-cell
-    (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell type (`jaxci.elements.inverted`,
-    `jaxci.elements.mixed_objective`)."""
+    (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell type (`jaxci.elements.inverted`;
+    of `jaxci.elements.mixed_objective`, or of the p-mean `jaxci.quality.pmean_objective` with `power`: the
+    objective the method minimised)."""
     cons64 = build_constraints(mesh, problem.info, dtype=np.float64)
     x = project_np(cons64, x)
     new = mixed.newly_inverted(mesh, mesh.points, x)
-    f0, f1 = float(mixed_objective(mesh.points, mesh)), float(mixed_objective(x, mesh))
+    objective = checked_objective(mesh, power)
+    f0, f1 = objective(mesh.points), objective(x)
     if new or not np.isfinite(f1):
         what = ", ".join(f"{k} {t}" for t, k in new.items()) or "non-finite objective"
         return np.array(mesh.points), [f"the result had newly inverted elements ({what}); the input is returned"]
@@ -488,7 +495,7 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray,
         w0 = None if before is None else (before.overall or {}).get("max_condition", before.max_condition)
         y, n_back, w0, w1 = guard(mesh, mesh.points, x, worst_before=w0)
         if n_back:
-            f2 = float(mixed_objective(y, mesh))
+            f2 = objective(y)
             notes.append(f"worst cell kept no worse than the input's (max kappa/3 {w0:.6g}; the method's result had "
                          f"{w1:.6g}): {n_back} nodes put back where they were, F {f1:.6g} -> {f2:.6g} "
                          f"(keep_worst=False / --allow-worse-worst returns the method's result)")

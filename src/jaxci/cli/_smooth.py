@@ -37,6 +37,9 @@ def add_args(p) -> None:
     p.add_argument("--allow-worse-worst", action="store_true",
                    help="return the method's result even if its worst cell is worse than the input's (by default "
                         "the nodes of such cells are put back: jaxci.guard)")
+    p.add_argument("--objective", choices=["mean", "pmean"], default=None,
+                   help="what the gradient methods minimise: mean (F, Eq. 3.1: the default) or pmean (the p-mean "
+                        "of the corner excesses, --param p=4 by default: pulls the worst element harder)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object (with phase timings)")
@@ -100,13 +103,20 @@ def run(args) -> int:
     from ._interrupt import removing_temporaries
     from ._quality import format_table
 
+    params = _parse_params(args.param)
+    if args.objective is not None:
+        if params.get("objective", args.objective) != args.objective:
+            from ..errors import ConfigError
+
+            raise ConfigError(f"--objective {args.objective} and --param objective={params['objective']} disagree")
+        params["objective"] = args.objective
     check_output(args.output, [args.input], force=args.force)
     with clock.phase("read"):
         mesh = read_mesh(args.input)
     res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
                  merge_coincident=args.merge_coincident, keep_worst=not args.allow_worse_worst, clock=clock,
-                 **_parse_params(args.param))
+                 **params)
     with clock.phase("write"), removing_temporaries(args.output):
         write_mesh(res.mesh, args.output)
     phases = clock.as_dict()

@@ -61,11 +61,13 @@ class HostObjective:
     kernel: Callable | None = None
     #: the boundary projection (default a new `NearProjector`; successive objectives may share one)
     projector: NearProjector | None = None
+    #: the default kernel's p-mean power (None: F)
+    power: float | None = None
 
     def __post_init__(self):
         par = self.par
         if self.kernel is None:
-            self.kernel = lambda x: objective_terms_and_grad_np(x, self.conn)
+            self.kernel = lambda x: objective_terms_and_grad_np(x, self.conn, self.power)
         self._cons, _ = _host_constraints(par.cons)
         self._x0 = np.asarray(par.x0, np.float64)
         self._scale = np.asarray(par.scale, np.float64)

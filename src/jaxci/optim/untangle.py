@@ -254,7 +254,8 @@ def _elements(k: int) -> str:
     return f"{k} element is" if k == 1 else f"{k} elements are"
 
 
-def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.ndarray, x: np.ndarray):
+def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.ndarray, x: np.ndarray,
+                             power: float | None = None):
     """`jaxci.smooth`'s final check when the start was untangled: no inverted corner, F not above the start's.
 
     **Arguments:** `mesh` the (tangled) input; `info` its `BoundaryInfo`; `untangled` the untangled start
@@ -269,7 +270,8 @@ def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.nd
         cons = build_constraints(mesh, info, dtype=jnp.float64)
         x = project_np(cons, x)
         inv = int(sum(b.sum() for b in inverted_cells(mesh, x).values()))
-        f0, f1 = float(E.mixed_objective(untangled, mesh)), float(E.mixed_objective(x, mesh))
+        objective = E.checked_objective(mesh, power)  # F, or the p-mean the method minimised (`power`)
+        f0, f1 = objective(untangled), objective(x)
     if inv or not np.isfinite(f1):
         return np.array(untangled), [f"shape improvement left {inv} inverted elements; the untangled mesh is "
                                      f"returned"]
