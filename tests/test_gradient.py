@@ -20,10 +20,10 @@ from hypothesis import strategies as st
 from jaxci.boundary import INTERIOR
 from jaxci.errors import ConfigError
 from jaxci.generate import box, perturb_box
+from jaxci.optim._solve import _solve
+from jaxci.optim._solve import make_solver as _solver
 from jaxci.optim.gradient import (
     GradientParams,
-    _solve,
-    _solver,
     make_parametrisation,
     minimise,
     objective_and_grad,
@@ -145,6 +145,7 @@ def test_flat_regions_of_a_rotated_box_in_float32():
 
 
 def test_strict_run_continues_with_the_projection_near_a_flat_region_edge(monkeypatch):
+    import jaxci.optim._solve as S
     import jaxci.optim.gradient as G
 
     mesh = perturb_box(3, amplitude=0.3, seed=2, which="sliding")
@@ -156,7 +157,7 @@ def test_strict_run_continues_with_the_projection_near_a_flat_region_edge(monkey
         seen.append(args[0].strict)
         return _solve(solver, fn, y, args, *rest)
 
-    monkeypatch.setattr(G, "_solve", spy)
+    monkeypatch.setattr(S, "_solve", spy)
     p = GradientParams(restart_tol=0.0, backend="jax")  # the compiled loop; no early stop: the reach test decides
     x1, _, _, _ = minimise("lbfgs", par, pr.conn, p)
     assert seen and all(seen)  # a box: no node near the edge of its flat region, every run (restarts too) strict

@@ -8,15 +8,11 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
-#: Consecutive rejected trials after which `_solve` stops a solver whose steps are capped (`max_move`): the
-#: trial is then below 2^-20 of `max_move`; in float32 that is F's rounding noise at the optimum (measured: 28
-#: rejected trials ended every L-BFGS run at 30^3 after it had converged, each a full objective and gradient
-#: evaluation). Uncapped solvers (and LM, Gauss-Newton) get `MAX_REJECTED_UNCAPPED`: their first raw-gradient
-#: trial can be 2^35 times too long.
-MAX_REJECTED = 20
-MAX_REJECTED_UNCAPPED = 64
+from ..errors import ConfigError
+from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED  # noqa: F401  (re-exported)
 
 
 @eqx.filter_jit
@@ -95,3 +91,58 @@ class _CappedDescent(optx.AbstractDescent):
         big = optx.max_norm(d)
         k = step_size * jnp.minimum(1.0, self.cap / jnp.maximum(big, jnp.finfo(big.dtype).tiny))
         return jax.tree.map(lambda t: k.astype(t.dtype) * t, d), result
+
+
+def _capped(solver, cap):
+    return solver if not cap else eqx.tree_at(lambda s: s.descent, solver, _CappedDescent(solver.descent, cap))
+
+
+def make_solver(method: str, p):
+    """The optimistix solver of `method` with the `jaxci.optim.gradient.GradientParams` `p` (trials capped at
+    ``p.max_move`` for BFGS, L-BFGS and CG)."""
+    if method == "bfgs":
+        return _capped(optx.BFGS(rtol=p.rtol, atol=p.atol), p.max_move)
+    if method == "lbfgs":
+        return _capped(optx.LBFGS(rtol=p.rtol, atol=p.atol, history_length=int(p.history_length)), p.max_move)
+    if method == "cg":
+        return _capped(optx.NonlinearCG(rtol=p.rtol, atol=p.atol, method=getattr(optx, p.cg_method)), p.max_move)
+    if method == "lm":
+        return optx.LevenbergMarquardt(rtol=p.rtol, atol=p.atol)
+    if method == "gauss-newton":
+        if p.gn_search == "none":
+            return optx.GaussNewton(rtol=p.rtol, atol=p.atol)
+        return _GaussNewtonArmijo(rtol=p.rtol, atol=p.atol)
+    raise ConfigError(f"unknown gradient method {method!r}")
+
+
+def _quiet(**kwargs):
+    """No verbose output (optimistix calls ``verbose(name=(label, value), ...)`` every step)."""
+    return None
+
+
+class _GaussNewtonArmijo(optx.AbstractGaussNewton):
+    """Gauss-Newton steps (`optx.NewtonDescent` on the residual Jacobian) with a backtracking Armijo search.
+
+    optimistix's composition pattern (a descent plus a search). Plain `optx.GaussNewton` takes the full step
+    (`optx.LearningRate(1.0)`): on every perturbed cube tried, its first step inverts elements and the next
+    Jacobian is NaN.
+    """
+
+    rtol: float
+    atol: float
+    norm: object = optx.max_norm
+    descent: optx.NewtonDescent = optx.NewtonDescent()
+    search: optx.BacktrackingArmijo = optx.BacktrackingArmijo()
+    verbose: object = None
+
+    def __post_init__(self):
+        self.verbose = _quiet
+
+
+def result_message(result) -> str:
+    """optimistix's result as a name (``"successful"``, ``"nonlinear_max_steps_reached"``, ...)."""
+    code = int(np.asarray(result._value))  # on the host: comparing the items compiles a program
+    for name in ("successful", "nonlinear_max_steps_reached", "nonfinite"):
+        if code == int(np.asarray(getattr(optx.RESULTS, name)._value)):
+            return name
+    return str(optx.RESULTS[result])

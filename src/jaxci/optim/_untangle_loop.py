@@ -23,7 +23,7 @@ import numpy as np
 
 from .. import elements as E
 from ..mesh import CORNER_NEIGHBOURS
-from ._solve import MAX_REJECTED_UNCAPPED
+from ._params import MAX_REJECTED_UNCAPPED
 
 #: Corners one interior node moves (8 elements x 4 corners): the energy is a per-node sum (as F in
 #: `jaxci.optim.gradient`).

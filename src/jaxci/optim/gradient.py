@@ -74,11 +74,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ..errors import ConfigError
 from ..mixed import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
@@ -93,7 +91,7 @@ from ..quality import (
 )
 from . import _params as _p
 from ._buckets import bucket, padded_connectivity, to_device
-from ._solve import MAX_REJECTED, MAX_REJECTED_UNCAPPED, _CappedDescent, _solve
+from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED
 from .host import HOST_MAX, HostObjective
 from .host import lbfgs as host_lbfgs
 from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
@@ -324,58 +322,12 @@ def _max_rejected(method: str, p: GradientParams) -> int:
     return MAX_REJECTED if method in ("bfgs", "lbfgs", "cg") and p.max_move else MAX_REJECTED_UNCAPPED
 
 
-def _capped(solver, cap):
-    return solver if not cap else eqx.tree_at(lambda s: s.descent, solver, _CappedDescent(solver.descent, cap))
-
-
-def _solver(method: str, p: GradientParams):
-    if method == "bfgs":
-        return _capped(optx.BFGS(rtol=p.rtol, atol=p.atol), p.max_move)
-    if method == "lbfgs":
-        return _capped(optx.LBFGS(rtol=p.rtol, atol=p.atol, history_length=int(p.history_length)), p.max_move)
-    if method == "cg":
-        return _capped(optx.NonlinearCG(rtol=p.rtol, atol=p.atol, method=getattr(optx, p.cg_method)), p.max_move)
-    if method == "lm":
-        return optx.LevenbergMarquardt(rtol=p.rtol, atol=p.atol)
-    if method == "gauss-newton":
-        if p.gn_search == "none":
-            return optx.GaussNewton(rtol=p.rtol, atol=p.atol)
-        return _GaussNewtonArmijo(rtol=p.rtol, atol=p.atol)
-    raise ConfigError(f"unknown gradient method {method!r}; choose one of {', '.join(METHODS)}")
-
-
-def _quiet(**kwargs):
-    """No verbose output (optimistix calls ``verbose(name=(label, value), ...)`` every step)."""
-    return None
-
-
-class _GaussNewtonArmijo(optx.AbstractGaussNewton):
-    """Gauss-Newton steps (`optx.NewtonDescent` on the residual Jacobian) with a backtracking Armijo search.
-
-    optimistix's composition pattern (a descent plus a search). Plain `optx.GaussNewton` takes the full step
-    (`optx.LearningRate(1.0)`): on every perturbed cube tried, its first step inverts elements and the next
-    Jacobian is NaN.
-    """
-
-    rtol: float
-    atol: float
-    norm: object = optx.max_norm
-    descent: optx.NewtonDescent = optx.NewtonDescent()
-    search: optx.BacktrackingArmijo = optx.BacktrackingArmijo()
-    verbose: object = None
-
-    def __post_init__(self):
-        self.verbose = _quiet
-
-
 def _result_message(result) -> str:
     if isinstance(result, str):  # the numpy solver's (`jaxci.optim.host`)
         return result
-    code = int(np.asarray(result._value))  # on the host: comparing the items compiles a program
-    for name in ("successful", "nonlinear_max_steps_reached", "nonfinite"):
-        if code == int(np.asarray(getattr(optx.RESULTS, name)._value)):
-            return name
-    return str(optx.RESULTS[result])
+    from ._solve import result_message
+
+    return result_message(result)
 
 
 #: The methods whose problem is padded to its size class (`jaxci.optim._buckets`) on a hexahedral mesh.
@@ -470,7 +422,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
                       "solver_result": "no free coordinates"}, params
     n_hex = int(conn.shape[1])
     on_host = use_host(method, p, n_hex, extra)
-    solver = None if on_host else _solver(method, p)
+    if not on_host:  # optimistix and the compiled loop (imported here: 0.08 s the numpy path does without)
+        from ._solve import _solve, make_solver
+
+        solver = make_solver(method, p)
     run_par, run_conn, weight, index = (par, conn, None, None) if on_host else _bucketed(method, par, conn, p, extra)
 
     def real(y):  # the real free coordinates of the iterate (numpy)

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..projection import NearProjector, _host_constraints
 from ..quality import objective_terms_and_grad_np
+from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, _lift, lift_transpose_np
 
 #: Largest hexahedral mesh `jaxci.optim.gradient.minimise` (and the untangling stage) solves in numpy with
@@ -202,7 +203,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
 
 def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndarray, *, theta: float,
                        margin: float, max_rounds: int, inner_steps: int, rtol: float, atol: float,
-                       history: int = 10, max_rejected: int = 64):
+                       history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED):
     """The untangling stage's eps rounds (`jaxci.optim._untangle_loop.untangle_rounds`) in numpy float64.
 
     Each round minimises the regularised Winslow energy at its eps with `lbfgs` (no cap, the round's Armijo
