@@ -53,3 +53,59 @@ def test_single_inverted_hexahedron_is_stuck():
     mesh = jaxci.hex_mesh(pts, mesh.hexes)
     with pytest.raises(InvertedMeshError, match=r"1 inverted element cannot be untangled.*\(element 0\)"):
         jaxci.smooth(mesh, fix_boundary=True)
+
+
+def _two_tangles():
+    """A 4^3 box with two interior nodes pushed through their cells: around node `a` every node is fixed (those
+    cells can never be valid), around node `b` the nodes are free."""
+    mesh = box(4, 4, 4)
+    pts = np.array(mesh.points)
+    a = int(np.argmin(np.linalg.norm(pts - [0.25, 0.25, 0.25], axis=1)))
+    b = int(np.argmin(np.linalg.norm(pts - [0.75, 0.75, 0.75], axis=1)))
+    pts[a] += [0.2, 0.2, 0.2]
+    pts[b] -= [0.2, 0.2, 0.2]
+    mesh = jaxci.hex_mesh(pts, mesh.hexes)
+    around_a = np.unique(mesh.hexes[(mesh.hexes == a).any(axis=1)])
+    return mesh, a, b, around_a
+
+
+def test_partial_untangling_returns_what_could_be_untangled():
+    mesh, a, b, fixed = _two_tangles()
+    inverted0 = jaxci.elements.inverted(mesh.points, mesh.hexes, "hexahedron")
+    near_b = (mesh.hexes == b).any(axis=1)
+    assert inverted0[near_b].any() and inverted0[~near_b].any()
+    with pytest.raises(InvertedMeshError, match="cannot be untangled"):  # the default: refused at once
+        jaxci.smooth(mesh, fixed_nodes=fixed)
+    res = jaxci.smooth(mesh, fixed_nodes=fixed, untangle="partial")
+    after = jaxci.elements.inverted(res.mesh.points, mesh.hexes, "hexahedron")
+    assert not after[near_b].any()  # the free tangle is untangled ...
+    assert after.sum() == res.after.inverted_elements > 0  # ... the stuck one is left, and counted
+    np.testing.assert_array_equal(res.mesh.points[fixed], mesh.points[fixed])
+    assert any("partial untangling" in n and f"{int(after.sum())} left inverted" in n for n in res.notes)
+
+
+def test_partial_untangling_through_the_cli_exits_3(tmp_path):
+    import subprocess
+    import sys
+
+    from jaxci.io import write_mesh
+
+    mesh, a, b, fixed = _two_tangles()
+    mesh = jaxci.hex_mesh(mesh.points, mesh.hexes, point_sets={"stuck": fixed})
+    write_mesh(mesh, str(tmp_path / "in.vtu"))
+    out = tmp_path / "out.vtu"
+    cmd = [sys.executable, "-m", "jaxci", "smooth", str(tmp_path / "in.vtu"), str(out), "--fixed-set", "stuck",
+           "--untangle", "partial", "-v"]
+    p = subprocess.run(cmd, capture_output=True, text=True)
+    assert p.returncode == 3, p.stderr
+    assert out.exists() and "still inverted" in p.stderr and "Traceback" not in p.stderr
+    assert "jaxci: untangle  ... round 1" in p.stderr  # progress per round with -v
+
+
+def test_untangling_time_budget():
+    mesh, a, b, fixed = _two_tangles()
+    with pytest.raises(InvertedMeshError, match=r"time budget of 1e-09 s"):
+        jaxci.smooth(mesh, untangle_time_budget=1e-9)
+    res = jaxci.smooth(mesh, untangle="partial", untangle_time_budget=1e-9)
+    assert res.after.inverted_elements > 0 and any("time budget" in n for n in res.notes)
+    assert jaxci.smooth(mesh, untangle_time_budget=60.0).after.inverted_elements == 0

@@ -75,8 +75,9 @@ def process_age() -> float | None:
 class PhaseClock:
     """Wall time and compilation per named phase, in the order the phases first ran.
 
-    - `on_event`: optional ``on_event(kind, name, record)``, kind ``"start"`` (record None) or ``"end"``
-      (record: the phase's `as_dict` entry so far).
+    - `on_event`: optional ``on_event(kind, name, record)``, kind ``"start"`` (record None), ``"end"``
+      (record: the phase's `as_dict` entry so far) or ``"progress"`` (record ``{"text": ...}``: a line of
+      progress inside a long phase, `progress`).
     """
 
     def __init__(self, on_event: Callable[[str, str, dict | None], None] | None = None):
@@ -109,6 +110,11 @@ class PhaseClock:
                      c1["compiled"] - c0["compiled"], c1["cache_hits"] - c0["cache_hits"])
             if self.on_event is not None:
                 self.on_event("end", name, dict(self._phases[name]))
+
+    def progress(self, name: str, text: str) -> None:
+        """Report progress inside phase `name` (to `on_event`; nothing is recorded)."""
+        if self.on_event is not None:
+            self.on_event("progress", name, {"text": text})
 
     def as_dict(self) -> dict:
         """``{phase: {seconds, compile_seconds, compiled, cache_hits}}`` plus ``"total"`` (sums)."""

@@ -226,7 +226,10 @@ def smooth(
       sets of the file to fix.
     - `untangle`: ``"auto"`` (untangle first if the input has inverted elements, `jaxci.optim.untangle`),
       ``"always"`` (run the untangling stage anyway: it also lifts corners below its det margin), ``"never"``
-      (refuse inverted input with `InvertedMeshError`). If untangling fails, `InvertedMeshError` is raised.
+      (refuse inverted input with `InvertedMeshError`). If untangling fails, `InvertedMeshError` is raised,
+      except with ``"partial"``: untangle what can be untangled (also around elements no allowed move can fix)
+      and, if elements stay inverted, return that mesh without shape improvement (``result.after`` counts them,
+      a note names them; the command exits with status 3). ``untangle_time_budget=S`` bounds the stage.
     - `merge_coincident`: merge coincident nodes first (`jaxci.mesh.merge_coincident`: the result has fewer
       nodes). Default False: coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface) are fixed, so
       they stay exactly coincident, and a note says how many.
@@ -301,7 +304,7 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     if not isinstance(method, str) or method not in METHODS:
         raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     _choice("dtype", dtype, tuple(_DTYPES))
-    _choice("untangle", untangle, ("auto", "always", "never"))
+    _choice("untangle", untangle, ("auto", "always", "never", "partial"))
     seed = check_seed(seed)
     if isinstance(feature_angle, bool) or not isinstance(feature_angle, numbers.Real) or \
             not 0 < feature_angle < 180:
@@ -367,12 +370,24 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
 
         up = make_params(UntangleParams, untangle_params, "untangling", prefix="untangle_",
                          what="the untangling stage")
+        partial = untangle == "partial"
         with clock.phase("untangle"):
             info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                      fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
-            _refuse_stuck(mesh, info)
-            untangled, untangle_notes = untangle_stage(mesh, info, up)  # InvertedMeshError if it fails
+            if not partial:
+                _refuse_stuck(mesh, info)
+            # InvertedMeshError if it fails (unless partial)
+            untangled, untangle_notes = untangle_stage(mesh, info, up, partial=partial,
+                                                       progress=lambda text: clock.progress("untangle", text))
         notes.extend(untangle_notes)
+        if partial:
+            with clock.phase("checks"), jax.enable_x64(True):
+                left = quality_report(mesh, untangled)
+            if left.inverted_elements or left.inverted_corners:  # no shape improvement on a tangled mesh
+                return np.asarray(untangled, dtype=np.float64), SmoothResult(
+                    mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]},
+                    iterations=0, wall_time=0.0, method=method, params={"untangle": "partial"}, before=before,
+                    after=left, boundary=info.counts, node_class=np.asarray(info.node_class))
     np_dtype = _DTYPES[dtype]
     with jax.enable_x64(dtype == "float64"):
         with clock.phase("setup"):

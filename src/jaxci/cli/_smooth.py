@@ -30,7 +30,14 @@ def add_args(p) -> None:
     p.add_argument("--fix-boundary", action="store_true", help="fix every boundary node")
     p.add_argument("--fixed-set", action="append", default=[], metavar="NAME",
                    help="fix the nodes of this named node set of the file (repeatable)")
-    p.add_argument("--untangle", choices=["auto", "always", "never"], default="auto")
+    p.add_argument("--untangle", choices=["auto", "always", "never", "partial"], default="auto",
+                   help="auto: untangle inverted input first (default); always: also lift corners below the "
+                        "untangling margin; never: refuse inverted input; partial: untangle what can be untangled "
+                        "and, if elements stay inverted, write the mesh with them (no shape improvement) and exit "
+                        "with status 3")
+    p.add_argument("--untangle-budget", type=float, default=None, metavar="SECONDS",
+                   help="stop the untangling stage after this many seconds (meshes up to 20,000 hexahedra; "
+                        "larger ones are bounded by --param untangle_max_rounds / untangle_inner_steps)")
     p.add_argument("--merge-coincident", action="store_true",
                    help="merge coincident nodes (an unmerged interface) before smoothing; without it they are "
                         "kept fixed, so they stay exactly coincident")
@@ -74,6 +81,9 @@ def _phase_printer(enabled: bool):
     live = {}
 
     def on_event(kind: str, name: str, rec: dict | None) -> None:
+        if kind == "progress":
+            print(f"jaxci: {name:<9} ... {rec['text']}", file=sys.stderr, flush=True)
+            return
         if kind == "start":
             if console.is_terminal and not live:
                 live[name] = console.status(f"{name} ...")
@@ -104,6 +114,8 @@ def run(args) -> int:
     from ._quality import format_table
 
     params = _parse_params(args.param)
+    if args.untangle_budget is not None:
+        params["untangle_time_budget"] = args.untangle_budget
     if args.objective is not None:
         if params.get("objective", args.objective) != args.objective:
             from ..errors import ConfigError
@@ -126,11 +138,23 @@ def run(args) -> int:
               f"compiled, {t['cache_hits']} from the compilation cache)", file=sys.stderr)
     if args.json:
         print(json.dumps({**res.summary(), "phases": phases, "input": args.input, "output": args.output}))
-        return 0
+        return _status(res)
     for note in (*mesh.notes, *res.notes):
         print(f"note: {note}")
     b, a = res.before.to_dict(), res.after.to_dict()
     print(format_table(b, f"before: {args.input}"))
     label = res.params.get("pipeline", res.method) if res.method == "auto" else res.method
     print(format_table(a, f"after ({label}, {res.iterations} iterations, {res.wall_time:.2f} s): {args.output}"))
+    return _status(res)
+
+
+#: Exit status of ``--untangle partial`` when elements stayed inverted (the mesh was written with them).
+INVERTED_LEFT = 3
+
+
+def _status(res) -> int:
+    if res.after.inverted_elements or res.after.inverted_corners:
+        print(f"jaxci: {res.after.inverted_elements} elements are still inverted in the output (--untangle "
+              f"partial); exit status {INVERTED_LEFT}", file=sys.stderr)
+        return INVERTED_LEFT
     return 0

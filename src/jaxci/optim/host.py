@@ -21,6 +21,7 @@ element is rejected like any trial that does not decrease F enough: validity is 
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -136,14 +137,15 @@ def _direction(g: np.ndarray, mem: list) -> np.ndarray:
 
 
 def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
-          history: int, cap: float, ftol: float, done: Callable | None = None):
+          history: int, cap: float, ftol: float, done: Callable | None = None, deadline: float | None = None):
     """Minimise `fun` (a `HostObjective`: ``value, grad, F, max kappa/3 = fun(y)``; its ``accept()``, if any,
     is called once an evaluation becomes the iterate) from `y0` (float64, ``(n_free,)``).
 
     **Arguments:** `limit` the most objective evaluations (steps); `max_rejected` consecutive rejected trials
     that stop the run; `rtol`, `atol` the Cauchy termination; `history` the L-BFGS memory; `cap` the largest
     trial move of one unknown at step size 1 (0: none); `ftol` stop once F <= ftol; `done` (optional): also
-    stop once ``done(F, k)`` holds at an accepted iterate (k the second number `fun` reports).
+    stop once ``done(F, k)`` holds at an accepted iterate (k the second number `fun` reports); `deadline`
+    (optional, `time.perf_counter` seconds): stop after the first step past it (result ``"time budget"``).
 
     **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve._solve`: the accepted
     iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
@@ -165,6 +167,9 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
 
     stop = finished(f, k)
     while not stop and steps < limit:
+        if deadline is not None and time.perf_counter() > deadline:
+            result = "time budget"
+            break
         big = float(np.max(np.abs(d), initial=0.0))
         trial = d * (min(1.0, cap / big) if cap and big > 0 else 1.0)
         slope = float(g @ trial)
@@ -196,20 +201,23 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             stop = rejected >= max_rejected
         hf.append(f)
         hk.append(k)
-    if stop and result != "successful":
+    if stop and result == "nonlinear_max_steps_reached":
         result = "successful"
     return y, steps, result, np.asarray(hf, np.float64), np.asarray(hk, np.float64)
 
 
 def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndarray, *, theta: float,
                        margin: float, max_rounds: int, inner_steps: int, rtol: float, atol: float,
-                       history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED):
+                       history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED, deadline: float | None = None,
+                       progress: Callable | None = None):
     """The untangling stage's eps rounds (`jaxci.optim._untangle_loop.untangle_rounds`) in numpy float64.
 
     Each round minimises the regularised Winslow energy at its eps with `lbfgs` (no cap, the round's Armijo
     search and Cauchy test) from the previous round's result, stopping as soon as every corner has
     ``det J >= margin``; between rounds eps follows the schedule of `jaxci.optim.untangle`. The energy and its
     gradient are the compiled path's closed-form kernel (`_hex_kernel` with numpy). Hexahedral meshes only.
+    `deadline` (`time.perf_counter` seconds, optional): no step after it; `progress` (optional): called after
+    each round with ``(round, min det J, eps, energy)``.
 
     **Returns:** ``(v, points, report)``: the scaled free coordinates and the node coordinates ``(n, 3)`` of the
     result (as evaluated: on the boundary), and a dict ``rounds``, ``steps``, ``dmin0``, ``h_eps``, ``h_dmin``,
@@ -233,10 +241,13 @@ def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndar
     rounds = steps = 0
     h_eps, h_dmin, h_e = [], [], []
     dmin = dmin0
-    while dmin < margin and rounds < max_rounds:
+    out_of_time = False
+    while dmin < margin and rounds < max_rounds and not out_of_time:
         fun = objective(eps)
-        v, k, _, hf, hk = lbfgs(fun, v, limit=inner_steps, max_rejected=max_rejected, rtol=rtol, atol=atol,
-                                history=history, cap=0.0, ftol=-np.inf, done=lambda f, d: d >= margin)
+        v, k, result, hf, hk = lbfgs(fun, v, limit=inner_steps, max_rejected=max_rejected, rtol=rtol, atol=atol,
+                                     history=history, cap=0.0, ftol=-np.inf, done=lambda f, d: d >= margin,
+                                     deadline=deadline)
+        out_of_time = result == "time budget"
         steps += k + 1  # as the compiled loop counts: the round's first evaluation is a step
         rounds += 1
         e_start, e, dmin = float(hf[0]), float(hf[-1]), float(hk[-1])
@@ -246,6 +257,8 @@ def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndar
         h_e.append(e)
         sigma = max(1.0 - e / e_start, 0.1) if e_start > 0 else 0.1
         mu = (1.0 - sigma) * float(chi(eps, dmin, np))
+        if progress is not None:
+            progress(rounds, dmin, eps, e)
         eps = 2.0 * np.sqrt(max(mu * (mu - dmin), 0.0)) if dmin < mu else EPS_FLOOR
     return v, points, {"rounds": rounds, "steps": steps, "dmin0": float(dmin0), "h_eps": np.asarray(h_eps),
-                       "h_dmin": np.asarray(h_dmin), "h_e": np.asarray(h_e)}
+                       "h_dmin": np.asarray(h_dmin), "h_e": np.asarray(h_e), "out_of_time": out_of_time}

@@ -77,6 +77,9 @@ class UntangleParams:
     - `rtol`, `atol`: L-BFGS termination per round (default 1e-7 each).
     - `backend`: ``"auto"`` (default: numpy on hexahedral meshes of at most `jaxci.optim.host.HOST_MAX`
       elements, no compilation; else the compiled loop), ``"numpy"`` (hexahedral meshes) or ``"jax"``.
+    - `time_budget`: seconds after which the stage stops, untangled or not (default 0: none). Checked at every
+      step on the numpy path; the compiled loop (larger or mixed meshes) is bounded by `max_rounds` and
+      `inner_steps` only.
     """
 
     theta: float = 0.1
@@ -86,6 +89,7 @@ class UntangleParams:
     rtol: float = 1e-7
     atol: float = 1e-7
     backend: str = "auto"
+    time_budget: float = 0.0
 
     def __post_init__(self):
         L = "untangling"
@@ -98,6 +102,7 @@ class UntangleParams:
             rtol=_p.real(L, "rtol", self.rtol, 0, lo_open=True),
             atol=_p.real(L, "atol", self.atol, 0, lo_open=True),
             backend=_p.choice(L, "backend", self.backend, ("auto", "jax", "numpy")),
+            time_budget=_p.real(L, "time_budget", self.time_budget, 0),
         )
 
 
@@ -122,7 +127,7 @@ def _scaled_min_det(mesh: HexMesh, x: np.ndarray, lens: np.ndarray) -> float:
 
 
 def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntangleParams = UntangleParams(), *,
-             flat_reach: float = FLAT_REACH):
+             flat_reach: float = FLAT_REACH, progress=None):
     """Untangle `mesh` (float64) keeping its boundary nodes on the original boundary.
 
     **Arguments:**
@@ -133,6 +138,7 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     - `flat_reach`: where every moving boundary node has a flat region, the rounds run without the projection
       until one ends with a node further than this fraction of its region's radius from its start, then with it
       (`jaxci.optim._untangle_loop.untangle_rounds`).
+    - `progress`: optional ``progress(text)``, called after each round on the numpy path.
 
     **Returns:** ``(points, report)``: float64 coordinates ``(n, 3)`` projected onto the original boundary
     (`project_np`), and a dict: ``rounds``, ``steps`` (L-BFGS steps in all), ``eps`` (per round),
@@ -162,9 +168,15 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     on_host = bool(nf) and not blocks and (p.backend == "numpy" or (p.backend == "auto" and len(hexes) <= HOST_MAX))
     x = None
     if on_host:
+        def report(r, dmin, eps, e):
+            if progress is not None:
+                progress(f"round {r}: min det J {dmin:.3g} (target {p.margin:g}), eps {eps:.3g}, "
+                         f"{time.perf_counter() - t0:.1f} s")
+
         v, x, st = untangle_rounds_np(par, corner_table(hexes), np.tile(1.0 / lens, 8), theta=p.theta,
                                       margin=p.margin, max_rounds=p.max_rounds, inner_steps=p.inner_steps,
-                                      rtol=p.rtol, atol=p.atol)
+                                      rtol=p.rtol, atol=p.atol,
+                                      deadline=t0 + p.time_budget if p.time_budget else None, progress=report)
         rounds, steps, dmin0 = st["rounds"], st["steps"], st["dmin0"]
         hist = [st["h_eps"], st["h_dmin"], st["h_e"]]
         runs.append(("numpy", rounds, steps))
@@ -203,18 +215,23 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
         "inverted_elements": int(bad.sum()),
         "min_scaled_det": _scaled_min_det(mesh, x, lens),
         "runs": runs,
+        "out_of_time": bool(on_host and st["out_of_time"]),
         "wall_time": time.perf_counter() - t0,
     }
     return x, report
 
 
-def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = UntangleParams()):
+def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = UntangleParams(), *,
+                   partial: bool = False, progress=None):
     """`jaxci.smooth`'s untangling stage: untangle or raise `InvertedMeshError` (the input is never modified).
 
-    **Arguments:** `mesh` the input mesh; `info` its `BoundaryInfo` (with the user's fixed nodes); `p`.
+    **Arguments:** `mesh` the input mesh; `info` its `BoundaryInfo` (with the user's fixed nodes); `p`;
+    `partial`: where some elements stay inverted, return the result with fewer of them instead of raising (the
+    input if the stage left more); `progress`: optional ``progress(text)`` per round (`untangle`).
 
     **Returns:** ``(points, notes)``: untangled float64 coordinates ``(n, 3)`` with every boundary node on the
-    original boundary, and sentences for `SmoothResult.notes`.
+    original boundary (with `partial`, possibly some elements still inverted: the notes say how many), and
+    sentences for `SmoothResult.notes`.
     """
     from ..projection import build_constraints
 
@@ -225,7 +242,17 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
                                                for t, c in extra_blocks(mesh).items())
     with jax.enable_x64(True):
         cons = build_constraints(mesh, info, dtype=jnp.float64)
-        x, rep = untangle(mesh, info, cons, p)
+        x, rep = untangle(mesh, info, cons, p, progress=progress)
+    budget = (f" (its time budget of {p.time_budget:g} s ran out)" if rep.get("out_of_time") else "")
+    if not rep["untangled"] and partial:
+        left = rep["inverted_elements"]
+        if left > int(inv0.sum()):
+            x, left = np.array(mesh.points, dtype=np.float64), int(inv0.sum())
+        bad = {t: np.flatnonzero(b) for t, b in inverted_cells(mesh, x).items() if b.any()}
+        first = ", ".join(cell_label(mesh, t, int(k)) for t, ks in bad.items() for k in ks[:5])
+        return x, [f"partial untangling{budget}: {int(inv0.sum())} inverted elements in the input, {left} left "
+                   f"inverted ({first}{', ...' if left > 5 else ''}) after {rep['rounds']} rounds; shape "
+                   f"improvement skipped: the mesh is returned with them"]
     if not rep["untangled"]:
         blocks = E.element_blocks(mesh)
         bad = {t: np.flatnonzero(b) for t, b in inverted_cells(mesh, x).items() if b.any()}
@@ -233,10 +260,12 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
         nodes = np.unique(np.concatenate([blocks[t][k].ravel() for t, k in bad.items()]))
         stuck = np.asarray(info.node_class)[nodes] == CORNER
         raise InvertedMeshError(
-            f"{where}untangling failed: {_elements(rep['inverted_elements'])} inverted after {rep['rounds']} rounds "
+            f"{where}untangling failed{budget}: {_elements(rep['inverted_elements'])} inverted after {rep['rounds']} "
+            f"rounds "
             f"({int(inv0.sum())} {'was' if int(inv0.sum()) == 1 else 'were'} in the input; {rep['steps']} L-BFGS "
             f"steps; first: {cell_label(mesh, t0, bad[t0][0])}; {int(stuck.sum())} of their {len(nodes)} nodes are "
-            f"fixed corners of the boundary); the input is left unchanged"
+            f"fixed corners of the boundary); the input is left unchanged (untangle='partial' / --untangle partial "
+            f"returns the mesh with what could be untangled)"
         )
     if not inv0.any() and rep["rounds"] == 0:
         return x, [f"untangling: no inverted element and min det / L^3 = {rep['min_det'][0]:.3g} >= margin "
