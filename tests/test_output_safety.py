@@ -394,3 +394,22 @@ def test_sigterm_inside_gc_callback_not_lost(tmp_path):
     assert proc.returncode == 143 and seconds < 0.9, (proc.returncode, seconds, err)  # not the watchdog's 3 s
     one_line(err, "jaxci: interrupted (SIGTERM)")
     assert snapshot(tmp_path) == before
+
+
+@pytestmark_signals
+@pytest.mark.parametrize("delay", [0.05, 0.25, 0.5])
+def test_sigint_while_starting_is_quiet(tmp_path, delay):
+    """Ctrl-C during the first second (Python importing numpy and JAX, before the command's handlers): exit 130,
+    no traceback, nothing written."""
+    before = snapshot(tmp_path)
+    proc = _spawn(["-m", "jaxci", "generate", "box", "--n", "2", "o.vtu"], tmp_path)
+    time.sleep(delay)
+    seconds, err = _signal(proc, signal.SIGINT)
+    if proc.returncode == 0:  # it finished first: nothing to test at this delay on a fast machine
+        pytest.skip("the command finished before the signal")
+    assert proc.returncode == 130, (proc.returncode, err)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    if not err.strip():
+        assert snapshot(tmp_path) == before
+    else:  # the command's own handler was already in place
+        one_line(err, "jaxci: interrupted (SIGINT)")

@@ -9,6 +9,7 @@ kernels, constraints, CI parameters) is loaded on first use.
 from . import runtime as _runtime
 
 _runtime.reexec_with_hugepages()  # the jaxci command only: huge pages for XLA's buffers (jaxci.runtime)
+_runtime.quiet_interrupts_while_starting()  # the jaxci command only: Ctrl-C while importing exits 130, quietly
 
 from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version

@@ -81,3 +81,23 @@ def reexec_with_hugepages() -> None:
         os.execve(sys.executable, [sys.executable, *orig[1:]], env)
     except OSError:  # pragma: no cover - then run without
         return
+
+
+def quiet_interrupts_while_starting() -> None:
+    """For the jaxci command only: until the command installs its own handlers (`jaxci.cli._interrupt`), a
+    SIGINT or SIGTERM ends the process at once with 130 / 143 and no output (Ctrl-C during the first second,
+    while Python imports numpy and JAX, printed a KeyboardInterrupt traceback). A signal the parent set to be
+    ignored stays ignored; nothing was written yet, so there is nothing to clean up."""
+    if not is_jaxci_command(list(getattr(sys, "orig_argv", ()))):
+        return
+    import signal
+
+    def leave(signum, frame):  # pragma: no cover - exercised through a subprocess
+        os._exit(128 + signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                signal.signal(sig, leave)
+        except (ValueError, OSError):  # not the main thread, or no such signal here
+            pass
