@@ -103,8 +103,12 @@ def main(argv=None) -> int:
             "cpus": os.cpu_count(),
             "dtype": args.dtype,
         }
-        with open(args.out, "w") as fh:
-            json.dump({"meta": meta, "rows": rows}, fh, indent=1)
+        from pathlib import Path
+
+        from jaxci.results import write_text
+
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        write_text(Path(args.out), json.dumps({"meta": meta, "rows": rows}, indent=1))  # atomically
     return 0
 
 
