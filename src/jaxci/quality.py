@@ -41,8 +41,10 @@ from .mesh import CORNER_NEIGHBOURS, HexMesh, as_hex_mesh, to_unit, unit_frame
 #: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
 HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
 
-#: `quality_report` measures meshes of at most this many hexahedra in numpy (no compilation).
-NUMPY_REPORT_MAX = 20_000
+#: `quality_report` measures meshes of at most this many hexahedra in numpy (no compilation). Measured (2-core
+#: CPU, float64, perturbed boxes; first call / second call): 27,000 hexes 0.04 / 0.04 s in numpy against
+#: 0.84 / 0.07 s in JAX; 216,000: 0.25-0.69 / 0.25 s against 0.92 / 0.24 s.
+NUMPY_REPORT_MAX = 250_000
 
 #: Names of the per-corner condition metrics `corner_condition` accepts.
 METRICS = ("frobenius", "frobenius-cond", "2-norm")

@@ -31,12 +31,18 @@ from ..quality import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, _lift, lift_transpose_np
 
-#: Largest hexahedral mesh `jaxci.optim.gradient.minimise` (and the untangling stage) solves in numpy with
-#: ``backend="auto"``. Measured through ``jaxci smooth`` on perturbed boxes (amplitude 0.3, this 2-core CPU, one
-#: run each; numpy, then compiled with an empty / a warm compile cache): 4913 hexes 1.7 s against 3.0 / 1.8 s;
-#: 9261: 2.4 s against 3.3 / 1.8 s, where float32 L-BFGS stalled at max kappa/3 5.5e5 (float64: 1.0000);
-#: 17,576: 3.7 s against 3.4 / 2.2 s. Above it the compiled loop (after smart-Laplace sweeps) wins.
-HOST_MAX = 20_000
+#: Largest hexahedral mesh `jaxci.optim.gradient.minimise` solves in numpy with ``backend="auto"``. Measured
+#: through ``jaxci smooth`` on perturbed boxes (amplitude 0.3, this 2-core CPU; numpy, then compiled with an
+#: empty / a warm compile cache): 4913 hexes 1.7 s against 3.0 / 1.8 s; 9261: 2.4 s against 3.3 / 1.8 s, where
+#: float32 L-BFGS stalled at max kappa/3 5.5e5 (float64: 1.0000); 17,576: 3.7 s against 3.4 / 2.2 s;
+#: cube30_pert (27,000, tangled; machine loaded): 5.2 s against 9.2 / 4.0 s. Above it the compiled loop (after
+#: smart-Laplace sweeps) wins once its compilation is cached.
+HOST_MAX = 30_000
+
+#: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``: the compiled loop
+#: runs in float64 too, so a step costs about the same (266 ms for JAX at 60^3) and numpy saves its
+#: compilation (cube30_pert: 0.7 s against 2.3 s cold, 0.6 s against 0.65 s warm).
+UNTANGLE_HOST_MAX = 250_000
 
 #: Armijo slope and step halving (optimistix's `BacktrackingArmijo` defaults).
 SLOPE = 0.1
@@ -119,19 +125,25 @@ class HostObjective:
         return out
 
 
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """``a . b`` of two vectors without BLAS: OpenBLAS's multi-threaded ``ddot`` took 8 ms for 80,000 entries
+    on this 2-core machine under load (its threads spin against the other processes) against 0.04 ms here."""
+    return float(np.einsum("i,i->", a, b))
+
+
 def _direction(g: np.ndarray, mem: list) -> np.ndarray:
     """``-H g`` by the L-BFGS two-loop recursion over `mem` (pairs ``(s, y, 1 / s.y)``, oldest first)."""
     q = g.copy()
     alphas = []
     for s, y, rho in reversed(mem):
-        a = rho * (s @ q)
+        a = rho * _dot(s, q)
         alphas.append(a)
         q -= a * y
     if mem:
         s, y, _ = mem[-1]
-        q *= (s @ y) / (y @ y)
+        q *= _dot(s, y) / _dot(y, y)
     for (s, y, rho), a in zip(mem, reversed(alphas), strict=True):
-        b = rho * (y @ q)
+        b = rho * _dot(y, q)
         q += (a - b) * s
     return -q
 
@@ -172,14 +184,14 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             break
         big = float(np.max(np.abs(d), initial=0.0))
         trial = d * (min(1.0, cap / big) if cap and big > 0 else 1.0)
-        slope = float(g @ trial)
+        slope = _dot(g, trial)
         y_try = y + alpha * trial
         v_try, g_try, f_try, k_try = fun(y_try)
         steps += 1
         if g_try is not None and v_try <= value + SLOPE * alpha * slope:
             s, dy = y_try - y, g_try - g
-            sy = float(s @ dy)
-            if sy > 1e-12 * np.sqrt(float(s @ s) * float(dy @ dy)):
+            sy = _dot(s, dy)
+            if sy > 1e-12 * np.sqrt(_dot(s, s) * _dot(dy, dy)):
                 mem.append((s, dy, 1.0 / sy))
                 if len(mem) > history:
                     mem.pop(0)
@@ -189,7 +201,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             accept()
             alpha, rejected = 1.0, 0
             d = _direction(g, mem)
-            if not float(g @ d) < 0:  # not a descent direction: forget the curvature pairs
+            if not _dot(g, d) < 0:  # not a descent direction: forget the curvature pairs
                 mem.clear()
                 d = -g
             if converged:

@@ -59,7 +59,7 @@ from ..mixed import cell_label, extra_blocks, extra_cells, inverted_cells, no_ex
 from ..projection import Constraints, project_np
 from . import _params as _p
 from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
-from .host import HOST_MAX, untangle_rounds_np
+from .host import UNTANGLE_HOST_MAX, untangle_rounds_np
 from .parametrisation import Parametrisation, make_parametrisation
 
 #: Upper bounds of `UntangleParams` (a typo must not hang a run): eps rounds, L-BFGS steps per round.
@@ -75,8 +75,9 @@ class UntangleParams:
     - `max_rounds`: most eps updates (outer iterations, default 60; at most 10,000).
     - `inner_steps`: most L-BFGS steps per round (default 400; at most 10^6).
     - `rtol`, `atol`: L-BFGS termination per round (default 1e-7 each).
-    - `backend`: ``"auto"`` (default: numpy on hexahedral meshes of at most `jaxci.optim.host.HOST_MAX`
-      elements, no compilation; else the compiled loop), ``"numpy"`` (hexahedral meshes) or ``"jax"``.
+    - `backend`: ``"auto"`` (default: numpy on hexahedral meshes of at most
+      `jaxci.optim.host.UNTANGLE_HOST_MAX` elements, no compilation; else the compiled loop), ``"numpy"``
+      (hexahedral meshes) or ``"jax"``.
     - `time_budget`: seconds after which the stage stops, untangled or not (default 0: none). Checked at every
       step on the numpy path; the compiled loop (larger or mixed meshes) is bounded by `max_rounds` and
       `inner_steps` only.
@@ -165,7 +166,8 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     rounds = steps = 0
     hist = [np.zeros(0)] * 3
     runs = []
-    on_host = bool(nf) and not blocks and (p.backend == "numpy" or (p.backend == "auto" and len(hexes) <= HOST_MAX))
+    on_host = bool(nf) and not blocks and (p.backend == "numpy"
+                                           or (p.backend == "auto" and len(hexes) <= UNTANGLE_HOST_MAX))
     x = None
     if on_host:
         def report(r, dmin, eps, e):
