@@ -41,3 +41,35 @@ def test_benchmark_without_the_device_asked_for_says_so(tmp_path):
     stdout, data = _bench(tmp_path, "--device", "gpu")
     assert "FAILED: error: device: gpu requested but JAX sees no GPU" in stdout
     assert "no GPU" in data["rows"][0]["error"]
+
+
+MESQUITE = ROOT.parent / "shared" / "data" / "mesquite"
+
+
+def test_compare_methods_corpus_reports_before_and_after_per_method(tmp_path):
+    """``compare_methods.py --corpus`` on two tiny Mesquite meshes (one tangled): every row has before AND after
+    max and mean kappa/3, and a capped CI says so (no gmsh needed)."""
+    if not (MESQUITE / "hexes_4by2by2.vtk").exists() or not (MESQUITE / "hex_5_tangled.vtk").exists():
+        pytest.skip("the shared Mesquite meshes are not here")
+    out = tmp_path / "cmp"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "compare_methods.py"), "--corpus", "--meshes",
+                        "hexes_4by2by2", "hex_5_tangled", "--methods", "lbfgs", "lbfgs-pmean", "ci",
+                        "--ci-max-sweeps", "3", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    data = json.loads(out.with_suffix(".json").read_text())
+    rows = {(r["mesh"], r["method"]): r for r in data["results"]}
+    assert set(rows) == {(m, k) for m in ("hexes_4by2by2", "hex_5_tangled") for k in ("lbfgs", "lbfgs-pmean", "ci")}
+    for (mesh, method), r in rows.items():
+        assert r["status"] == "ok", r
+        for when in ("before", "after"):
+            for key in ("max_condition", "mean_condition", "inverted_elements"):
+                assert r[when][key] is not None, (mesh, method, when, key)
+        assert r["after"]["max_condition"] <= r["before"]["max_condition"] + 1e-9
+        assert 1.0 <= r["after"]["mean_condition"] <= r["after"]["max_condition"] + 1e-9
+        assert r["after"]["inverted_elements"] == 0 and r["iterations"] >= 1 and r["wall_s"] > 0
+    assert rows["hex_5_tangled", "lbfgs"]["before"]["inverted_elements"] > 0  # untangled first
+    assert rows["hexes_4by2by2", "lbfgs-pmean"]["method_params"]["objective"] == "pmean"
+    ci = rows["hexes_4by2by2", "ci"]
+    assert ci["method_params"]["max_sweeps"] == 3 and ci["capped"] and ci["iterations"] == 3
+    md = out.with_suffix(".md").read_text()
+    assert "max k/3 before" in md and "mean k/3 after" in md and "stopped at cap (max_sweeps=3)" in md
