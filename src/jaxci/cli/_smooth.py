@@ -36,7 +36,7 @@ def add_args(p) -> None:
                         "and, if elements stay inverted, write the mesh with them (no shape improvement) and exit "
                         "with status 3")
     p.add_argument("--untangle-budget", type=float, default=None, metavar="SECONDS",
-                   help="stop the untangling stage after this many seconds (meshes up to 250,000 hexahedra; "
+                   help="stop the untangling stage after this many seconds (meshes up to 60,000 hexahedra; "
                         "larger ones are bounded by --param untangle_max_rounds / untangle_inner_steps)")
     p.add_argument("--merge-coincident", action="store_true",
                    help="merge coincident nodes (an unmerged interface) before smoothing; without it they are "

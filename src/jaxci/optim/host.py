@@ -39,10 +39,11 @@ from .parametrisation import Parametrisation, _lift, lift_transpose_np
 #: smart-Laplace sweeps) wins once its compilation is cached.
 HOST_MAX = 30_000
 
-#: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``: the compiled loop
-#: runs in float64 too, so a step costs about the same (266 ms for JAX at 60^3) and numpy saves its
-#: compilation (cube30_pert: 0.7 s against 2.3 s cold, 0.6 s against 0.65 s warm).
-UNTANGLE_HOST_MAX = 250_000
+#: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``. The compiled loop
+#: runs in float64 too, so numpy saves its compilation (1-2 s) for a somewhat dearer step: cube30_pert (27,000
+#: hexes) 0.7 s against 2.3 s cold, 0.6 s against 0.65 s warm; cube60_pert (216,000, 50 steps) 16.4 s against
+#: 12.4 s cold, 9.9 s warm (numpy ~330 ms a step, XLA ~200-250 ms).
+UNTANGLE_HOST_MAX = 60_000
 
 #: Armijo slope and step halving (optimistix's `BacktrackingArmijo` defaults).
 SLOPE = 0.1
