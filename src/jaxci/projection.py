@@ -261,7 +261,7 @@ def project_near_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
     For displacements within a node's ring of boundary faces (a solver's iterates); `project_np` searches whole
     patches and handles any displacement. The numpy copy of the constraints and their gathered candidates are
     kept on `constraints` after the first call. **Returns** a new float64 array of shape ``(n_nodes, 3)``."""
-    c, rows = _host_constraints(constraints)
+    c, rows = host_constraints(constraints)
     return _project(np, c, np.array(points, dtype=np.float64), rows)
 
 
@@ -281,7 +281,7 @@ class NearProjector:
     """
 
     def __init__(self, constraints: Constraints):
-        self.c, self.rows = _host_constraints(constraints)
+        self.c, self.rows = host_constraints(constraints)
         self.hint = (None, None)  # candidate column per surface node, per edge node (None: search all)
 
     def commit(self, hint) -> None:
@@ -340,7 +340,7 @@ class NearProjector:
         return g
 
 
-def _host_constraints(c: Constraints) -> tuple[Constraints, tuple]:
+def host_constraints(c: Constraints) -> tuple[Constraints, tuple]:
     """``(c as numpy with float64 geometry, (triangle rows, segment rows) gathered at the candidates)``, cached
     on `c` (converted once per solve, not once per objective evaluation)."""
     cached = getattr(c, "_host_cache", None)
@@ -360,7 +360,7 @@ def _host_constraints(c: Constraints) -> tuple[Constraints, tuple]:
 
 def _project(xp, c: Constraints, x, rows=(None, None)):
     """The body of `project` with the array module `xp` (`numpy`: `x` is updated in place; `rows` the gathered
-    candidates of `_host_constraints`)."""
+    candidates of `host_constraints`)."""
     ns, ne = c.surface_nodes.shape[0], c.edge_nodes.shape[0]
     for count, nodes, table, cand, closest, gathered in (
         (ns, c.surface_nodes, c.triangles, c.surface_cand, _closest_on_triangles, rows[0]),

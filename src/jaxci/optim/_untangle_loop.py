@@ -62,7 +62,7 @@ def corner_table(hexes) -> np.ndarray:
     return tab.astype(np.int32) if tab.size == 0 or tab.max() < 2**31 - 1 else tab
 
 
-def _hex_kernel(x, table, inv_len, eps, theta, grad: bool, xp=jnp):
+def hex_kernel(x, table, inv_len, eps, theta, grad: bool, xp=jnp):
     """Energy (sum over corners / 32), min det J and, if `grad`, d energy / d x ``(n, 3)`` (else None).
 
     `table` is `corner_table` ``(4, C)``, `inv_len` ``(C,)`` one over the reference length of each corner's
@@ -119,13 +119,13 @@ def hex_energy(x, table, inv_len, eps, theta):
     """The hexahedra's energy (sum of the corner energies / 32) and min det J, at coordinates `x` ``(n, 3)``;
     `table` the `corner_table` ``(4, C)``, `inv_len` ``(C,)`` one over each corner's element reference length.
     Differentiable in `x` only (closed form: one kernel for the value and the gradient)."""
-    return _hex_kernel(x, table, inv_len, eps, theta, False)[:2]
+    return hex_kernel(x, table, inv_len, eps, theta, False)[:2]
 
 
 @hex_energy.defjvp
 def _hex_energy_jvp(primals, tangents):
     x, table, inv_len, eps, theta = primals
-    energy, dmin, g = _hex_kernel(x, table, inv_len, eps, theta, True)
+    energy, dmin, g = hex_kernel(x, table, inv_len, eps, theta, True)
     return (energy, dmin), (jnp.sum(g * tangents[0]), jnp.zeros_like(dmin))
 
 

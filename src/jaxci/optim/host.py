@@ -26,10 +26,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..projection import NearProjector, _host_constraints
+from ..projection import NearProjector, host_constraints
 from ..quality import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
-from .parametrisation import Parametrisation, _lift, lift_transpose_np
+from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
 #: Largest hexahedral mesh `jaxci.optim.gradient.minimise` solves in numpy with ``backend="auto"``. Measured
 #: through ``jaxci smooth`` on perturbed boxes (amplitude 0.3, this 2-core CPU; numpy, then compiled with an
@@ -77,7 +77,7 @@ class HostObjective:
         par = self.par
         if self.kernel is None:
             self.kernel = lambda x: objective_terms_and_grad_np(x, self.conn, self.power)
-        self._cons, _ = _host_constraints(par.cons)
+        self._cons, _ = host_constraints(par.cons)
         self._x0 = np.asarray(par.x0, np.float64)
         self._scale = np.asarray(par.scale, np.float64)
         self._flat = np.asarray(par.flat_nodes)
@@ -95,7 +95,7 @@ class HostObjective:
 
     def _points(self, v):
         """``(x, hint)``: the coordinates and the projector's triangles (None: not projected)."""
-        x = _lift(np, self._x0, self._scale, self._cons, v)
+        x = lift_points(np, self._x0, self._scale, self._cons, v)
         if self.par.shortcut:
             d = x[self._flat] - self._origin
             if np.all(np.sum(d * d, axis=-1) < self._r2):
@@ -228,7 +228,7 @@ def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndar
     Each round minimises the regularised Winslow energy at its eps with `lbfgs` (no cap, the round's Armijo
     search and Cauchy test) from the previous round's result, stopping as soon as every corner has
     ``det J >= margin``; between rounds eps follows the schedule of `jaxci.optim.untangle`. The energy and its
-    gradient are the compiled path's closed-form kernel (`_hex_kernel` with numpy). Hexahedral meshes only.
+    gradient are the compiled path's closed-form kernel (`hex_kernel` with numpy). Hexahedral meshes only.
     `deadline` (`time.perf_counter` seconds, optional): no step after it; `progress` (optional): called after
     each round with ``(round, min det J, eps, energy)``.
 
@@ -236,13 +236,13 @@ def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndar
     result (as evaluated: on the boundary), and a dict ``rounds``, ``steps``, ``dmin0``, ``h_eps``, ``h_dmin``,
     ``h_e`` (numpy arrays, one entry per round).
     """
-    from ._untangle_loop import EPS_FLOOR, _hex_kernel, chi
+    from ._untangle_loop import EPS_FLOOR, chi, hex_kernel
 
     projector = NearProjector(par.cons)
 
     def objective(eps):
         def kernel(x):
-            return _hex_kernel(x, table, inv_len, eps, theta, True, np)
+            return hex_kernel(x, table, inv_len, eps, theta, True, np)
 
         return HostObjective(par, table, 1.0, kernel, projector)
 

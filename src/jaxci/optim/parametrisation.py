@@ -57,7 +57,7 @@ class Parametrisation(eqx.Module):
 
     def lift(self, v):
         """``x0 + B (scale * v)`` without projection, shape ``(n, 3)``."""
-        return _lift(jnp, self.x0, self.scale, self.cons, v)
+        return lift_points(jnp, self.x0, self.scale, self.cons, v)
 
     def points(self, v):
         """Node coordinates of shape ``(n, 3)`` for scaled free coordinates `v` of shape ``(n_free,)``."""
@@ -94,7 +94,7 @@ class Parametrisation(eqx.Module):
 
     def _lift_np(self, v):
         f64 = np.float64
-        return _lift(np, np.asarray(self.x0, f64), np.asarray(self.scale, f64), self.cons, np.asarray(v, f64))
+        return lift_points(np, np.asarray(self.x0, f64), np.asarray(self.scale, f64), self.cons, np.asarray(v, f64))
 
     def _reach(self, x) -> float:
         d = x[np.asarray(self.flat_nodes)] - np.asarray(self.flat_origin, dtype=np.float64)
@@ -147,7 +147,7 @@ def pad_parametrisation(par: Parametrisation) -> tuple[Parametrisation, np.ndarr
     return out, index
 
 
-def _lift(xp, x0, scale, c: Constraints, v):
+def lift_points(xp, x0, scale, c: Constraints, v):
     """``x0 + B (scale * v)`` with `xp` = `jax.numpy` (traceable) or `numpy` (float64, in place on a copy)."""
     u = scale * v
     ni, ns = c.interior_nodes.shape[0], c.surface_nodes.shape[0]
@@ -170,7 +170,7 @@ def _lift(xp, x0, scale, c: Constraints, v):
 
 def lift_transpose_np(scale: np.ndarray, c: Constraints, g: np.ndarray) -> np.ndarray:
     """``scale * B^T g`` (numpy): a gradient ``(n, 3)`` with respect to the node coordinates taken to the scaled
-    free coordinates of `_lift` (the adjoint of its linear part), shape ``(n_free,)``."""
+    free coordinates of `lift_points` (the adjoint of its linear part), shape ``(n_free,)``."""
     gi = g[np.asarray(c.interior_nodes)].reshape(-1)
     gs = np.einsum("sd,skd->sk", g[np.asarray(c.surface_nodes)], np.asarray(c.surface_basis, g.dtype)).reshape(-1)
     ge = np.sum(g[np.asarray(c.edge_nodes)] * np.asarray(c.edge_tangent, g.dtype), axis=-1)
