@@ -218,3 +218,23 @@ def test_cli_objective_flag(tmp_path):
     assert bad.returncode != 0 and "disagree" in bad.stderr and "Traceback" not in bad.stderr
     bad = subprocess.run([*base, "--objective", "pmean", "--method", "ci"], capture_output=True, text=True)
     assert bad.returncode != 0 and "gradient methods" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_near_projector_leaves_kept_nodes_alone():
+    """Nodes marked `keep` (inside a flat part of the boundary) are neither moved nor pulled back; the others
+    are projected as without it."""
+    mesh = _wavy_annulus()
+    pr = build_problem(mesh, dtype=np.float64)
+    x = np.array(mesh.points) + 0.01 * np.random.default_rng(5).normal(size=mesh.points.shape)
+    keep = np.zeros(mesh.n_nodes, bool)
+    surf = np.asarray(pr.cons.surface_nodes)
+    keep[surf[::2]] = True
+    full, h_full = NearProjector(pr.cons)(x)
+    part, h_part = NearProjector(pr.cons)(x, keep)
+    np.testing.assert_array_equal(part[surf[::2]], x[surf[::2]])
+    np.testing.assert_allclose(part[surf[1::2]], full[surf[1::2]], atol=1e-12)
+    g = np.random.default_rng(6).normal(size=x.shape)
+    proj = NearProjector(pr.cons)
+    pulled = proj.pullback(g, h_part, keep)
+    np.testing.assert_array_equal(pulled[surf[::2]], g[surf[::2]])
+    np.testing.assert_allclose(pulled[surf[1::2]], proj.pullback(g, h_full)[surf[1::2]], atol=1e-12)

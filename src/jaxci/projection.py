@@ -282,15 +282,18 @@ class NearProjector:
 
     def __init__(self, constraints: Constraints):
         self.c, self.rows = host_constraints(constraints)
-        self.hint = (None, None)  # candidate column per surface node, per edge node (None: search all)
+        # candidate column per surface node, per edge node; -1: not known (search all its candidates)
+        self.hint = tuple(np.full(int(n.shape[0]), -1, np.int64) for n in (self.c.surface_nodes, self.c.edge_nodes))
 
     def commit(self, hint) -> None:
         """Remember `hint` (from `__call__`) for the next projections."""
         self.hint = hint
 
-    def __call__(self, points: np.ndarray):
+    def __call__(self, points: np.ndarray, keep: np.ndarray | None = None):
         """``(x, hint)``: the projected coordinates (a new float64 ``(n, 3)`` array) and the candidate column
-        each boundary node ended on (for `commit` and `pullback`)."""
+        each boundary node ended on (for `commit` and `pullback`; -1 where unknown). `keep` (optional, boolean
+        ``(n,)``): nodes left where they are, e.g. those inside a flat part of the boundary, where the point
+        is its own projection (their hint stays as it was)."""
         c = self.c
         x = np.array(points, dtype=np.float64)
         tol = _tol(np.float64)
@@ -298,45 +301,51 @@ class NearProjector:
                  (c.edge_nodes, c.segments, c.edge_cand, _closest_on_segments, _line_point))
         out = []
         for kind, (nodes, table, cand, closest, orthogonal) in enumerate(kinds):
-            hint = self.hint[kind]
-            if not nodes.shape[0]:
+            hint = self.hint[kind].copy()
+            active = np.arange(len(nodes)) if keep is None else np.flatnonzero(~keep[nodes])
+            if not len(active):
                 out.append(hint)
                 continue
-            cand = cand[: nodes.shape[0]]
-            xs = x[nodes]
-            todo = np.ones(len(nodes), bool)
-            hint = np.zeros(len(nodes), np.int64) if hint is None else hint.copy()
-            if self.hint[kind] is not None:
-                cell = cand[np.arange(len(nodes)), hint]
-                found = orthogonal(tuple(xs.T), table[:, cell], tol)
+            xs = x[nodes[active]]
+            todo = hint[active] < 0
+            known = np.flatnonzero(~todo)
+            if len(known):
+                rows = active[known]
+                cell = cand[rows, hint[rows]]
+                found = orthogonal(tuple(xs[known].T), table[:, cell], tol)
                 p, inside = found[0], found[2 if kind == 0 else 1]
-                x[nodes[inside]] = np.stack(p, axis=-1)[inside]
-                todo = ~inside
+                x[nodes[rows[inside]]] = np.stack(p, axis=-1)[inside]
+                todo[known[~inside]] = True
             if todo.any():
-                rows = [r[todo] for r in self.rows[kind]]
-                p, score = closest(np, tuple(xs[todo].T[:, :, None]), rows, tol)
+                rows = active[todo]
+                gathered = [r[rows] for r in self.rows[kind]]
+                p, score = closest(np, tuple(xs[todo].T[:, :, None]), gathered, tol)
                 k = np.argmin(score, axis=-1)
                 pick = np.arange(len(k))
-                x[nodes[todo]] = np.stack([pj[pick, k] for pj in p], axis=-1)
-                hint[todo] = k
+                x[nodes[rows]] = np.stack([pj[pick, k] for pj in p], axis=-1)
+                hint[rows] = k
             out.append(hint)
         x[c.corner_nodes] = c.x_orig[c.corner_nodes]
         return x, tuple(out)
 
-    def pullback(self, g: np.ndarray, hint) -> np.ndarray:
-        """The gradient `g` ``(n, 3)`` at points projected with `hint` (`__call__`) taken back through the
-        projection: on a surface node minus its component along its triangle's normal, on an edge node its
-        component along its segment (the derivative of the projection onto a plane or a line). A new array."""
+    def pullback(self, g: np.ndarray, hint, keep: np.ndarray | None = None) -> np.ndarray:
+        """The gradient `g` ``(n, 3)`` at points projected with `hint` (`__call__`, with the same `keep`) taken
+        back through the projection: on a surface node minus its component along its triangle's normal, on an
+        edge node its component along its segment (the derivative of the projection onto a plane or a line);
+        nodes of `keep` unchanged. A new array."""
         c, g = self.c, np.array(g)
         for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, c.surface_cand, _TN),
                                                           (c.edge_nodes, c.segments, c.edge_cand, _SD))):
-            if hint[kind] is None or not nodes.shape[0]:
+            rows = np.flatnonzero(hint[kind] >= 0) if keep is None else np.flatnonzero((hint[kind] >= 0)
+                                                                                       & ~keep[nodes])
+            if not len(rows):
                 continue
-            cell = cand[np.arange(len(nodes)), hint[kind]]
+            cell = cand[rows, hint[kind][rows]]
             d = table[row : row + 3, cell].T
             d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
-            along = np.sum(g[nodes] * d, axis=1, keepdims=True) * d
-            g[nodes] = g[nodes] - along if kind == 0 else along
+            sel = nodes[rows]
+            along = np.sum(g[sel] * d, axis=1, keepdims=True) * d
+            g[sel] = g[sel] - along if kind == 0 else along
         return g
 
 

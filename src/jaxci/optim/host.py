@@ -94,20 +94,25 @@ class HostObjective:
         return self._points(v)[0]
 
     def _points(self, v):
-        """``(x, hint)``: the coordinates and the projector's triangles (None: not projected)."""
+        """``(x, (hint, keep))``: the coordinates, the projector's triangles and the nodes it left alone
+        (None: nothing projected). A moving boundary node inside its flat region is its own projection: only
+        the others are projected (on a bracket with 79% of its boundary nodes on planes, 4/5 of the work)."""
         x = lift_points(np, self._x0, self._scale, self._cons, v)
-        if self.par.shortcut:
-            d = x[self._flat] - self._origin
-            if np.all(np.sum(d * d, axis=-1) < self._r2):
-                return x, None
-        return self._project(x)
+        d = x[self._flat] - self._origin
+        inside = np.sum(d * d, axis=-1) < self._r2
+        if self.par.shortcut and inside.all():
+            return x, None
+        keep = np.zeros(x.shape[0], bool)
+        keep[self._flat[inside]] = True
+        x, hint = self._project(x, keep)
+        return x, (hint, keep)
 
     def accept(self) -> None:
         """The last evaluation is the solver's new iterate (`best`); its nodes' triangles are the projector's
         starting point from now on."""
         self.best = self._last
         if self._last[3] is not None:
-            self._project.commit(self._last[3])
+            self._project.commit(self._last[3][0])
 
     def __call__(self, v: np.ndarray):
         best = self.best
@@ -120,7 +125,7 @@ class HostObjective:
         if not np.isfinite(f):
             return np.inf, None, f, kmax
         if hint is not None:
-            gx = self._project.pullback(gx, hint)
+            gx = self._project.pullback(gx, *hint)
         out = self.s * f, self.s * lift_transpose_np(self._scale, self._cons, gx), f, kmax
         self._last = (np.array(v), x, out, hint)
         return out
