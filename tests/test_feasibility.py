@@ -109,3 +109,21 @@ def test_untangling_time_budget():
     res = jaxci.smooth(mesh, untangle="partial", untangle_time_budget=1e-9)
     assert res.after.inverted_elements > 0 and any("time budget" in n for n in res.notes)
     assert jaxci.smooth(mesh, untangle_time_budget=60.0).after.inverted_elements == 0
+
+
+def test_untangling_budget_through_the_cli(tmp_path):
+    import subprocess
+    import sys
+
+    from jaxci.io import write_mesh
+
+    mesh, *_ = _two_tangles()
+    write_mesh(mesh, str(tmp_path / "in.vtk"))
+    base = [sys.executable, "-m", "jaxci", "smooth", str(tmp_path / "in.vtk"), str(tmp_path / "out.vtk")]
+    p = subprocess.run([*base, "--untangle-budget", "1e-9"], capture_output=True, text=True)
+    assert p.returncode == 2 and "time budget of 1e-09 s" in p.stderr and "Traceback" not in p.stderr
+    assert not (tmp_path / "out.vtk").exists()
+    p = subprocess.run([*base, "--untangle-budget", "1e-9", "--untangle", "partial"], capture_output=True, text=True)
+    assert p.returncode == 3 and (tmp_path / "out.vtk").exists()
+    p = subprocess.run([*base, "--untangle-budget", "-1", "--force"], capture_output=True, text=True)
+    assert p.returncode == 2 and "time_budget" in p.stderr and "Traceback" not in p.stderr
