@@ -163,14 +163,12 @@ def _segment_table(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return out
 
 
-def _nearest(xp, x, table, cand, closest, tol, rows=None):
+def _nearest(xp, x, table, cand, closest, tol):
     """Nearest candidate points: `x` (..., m, 3), candidate columns `cand` (m, K) of `table` -> (..., m, 3).
 
-    `closest` is `_closest_on_triangles` or `_closest_on_segments`, `tol` the inside tolerance (`_tol`); `rows`
-    the gathered table (`candidate_rows`) where a caller keeps it between calls (numpy: the gather was a third
-    of a projection).
+    `closest` is `_closest_on_triangles` or `_closest_on_segments`, `tol` the inside tolerance (`_tol`).
     """
-    rows = candidate_rows(table, cand) if rows is None else rows
+    rows = candidate_rows(table, cand)
     xs = tuple(x[..., j][..., None] for j in range(3))  # each (..., m, 1)
     p, score = closest(xp, xs, rows, tol)
     k = xp.argmin(score, axis=-1)[..., None]
@@ -178,7 +176,8 @@ def _nearest(xp, x, table, cand, closest, tol, rows=None):
 
 
 def candidate_rows(table, cand) -> list:
-    """The rows of `table` gathered at the candidates `cand` (m, K): a list of (m, K) arrays."""
+    """The rows of `table` gathered at the candidates `cand` (m, K): a list of (m, K) arrays (kept between
+    projections by `jaxci.projection.host_constraints`: in numpy the gather was a third of a projection)."""
     return [table[j][cand] for j in range(table.shape[0])]  # 1-D gathers, each (m, K)
 
 

@@ -112,7 +112,6 @@ VERDICT_WEDGE_NORMALISER = 1.16477
 NUMPY_OBJECTIVE_MAX = 100_000
 
 #: The four tetrahedra of Verdict's pyramid Jacobian and scaled Jacobian (``make_pyramid_tets``).
-
 PYRAMID_TETS = np.array([[0, 1, 2, 4], [0, 2, 3, 4], [0, 1, 3, 4], [1, 2, 3, 4]])
 
 

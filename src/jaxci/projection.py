@@ -252,17 +252,27 @@ def project(constraints: Constraints, points: Float[Array, "*batch n 3"]) -> Flo
 
     **Returns:** the projected coordinates, same shape and dtype as `points`.
     """
-    return _project(jnp, constraints, jnp.asarray(points))
+    c = constraints
+    x = jnp.asarray(points)
+    ns, ne = c.surface_nodes.shape[0], c.edge_nodes.shape[0]
+    if ns:
+        tab, cand = c.triangles.astype(x.dtype), c.surface_cand[:ns]
+        p = _nearest(jnp, x[..., c.surface_nodes, :], tab, cand, _closest_on_triangles, _tol(x.dtype))
+        x = x.at[..., c.surface_nodes, :].set(p)
+    if ne:
+        tab, cand = c.segments.astype(x.dtype), c.edge_cand[:ne]
+        p = _nearest(jnp, x[..., c.edge_nodes, :], tab, cand, _closest_on_segments, _tol(x.dtype))
+        x = x.at[..., c.edge_nodes, :].set(p)
+    return x.at[..., c.corner_nodes, :].set(c.x_orig[c.corner_nodes].astype(x.dtype))
 
 
 def project_near_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
-    """`project` in numpy (the candidate triangles and segments of each node, as under `jax.jit`; float64).
+    """`project` in numpy (the candidate triangles and segments of each node, as under `jax.jit`; float64): a
+    `NearProjector` that remembers nothing, so every node searches all its candidates.
 
     For displacements within a node's ring of boundary faces (a solver's iterates); `project_np` searches whole
-    patches and handles any displacement. The numpy copy of the constraints and their gathered candidates are
-    kept on `constraints` after the first call. **Returns** a new float64 array of shape ``(n_nodes, 3)``."""
-    c, rows = host_constraints(constraints)
-    return _project(np, c, np.array(points, dtype=np.float64), rows)
+    patches and handles any displacement. **Returns** a new float64 array of shape ``(n_nodes, 3)``."""
+    return NearProjector(constraints)(points)[0]
 
 
 class NearProjector:
@@ -365,27 +375,6 @@ def host_constraints(c: Constraints) -> tuple[Constraints, tuple]:
         cached = (h, rows)
         object.__setattr__(c, "_host_cache", cached)  # eqx.Module is frozen; a cache is not a field
     return cached
-
-
-def _project(xp, c: Constraints, x, rows=(None, None)):
-    """The body of `project` with the array module `xp` (`numpy`: `x` is updated in place; `rows` the gathered
-    candidates of `host_constraints`)."""
-    ns, ne = c.surface_nodes.shape[0], c.edge_nodes.shape[0]
-    for count, nodes, table, cand, closest, gathered in (
-        (ns, c.surface_nodes, c.triangles, c.surface_cand, _closest_on_triangles, rows[0]),
-        (ne, c.edge_nodes, c.segments, c.edge_cand, _closest_on_segments, rows[1]),
-    ):
-        if not count:
-            continue
-        p = _nearest(xp, x[..., nodes, :], table.astype(x.dtype), cand[:count], closest, _tol(x.dtype), gathered)
-        if xp is np:
-            x[..., nodes, :] = p
-        else:
-            x = x.at[..., nodes, :].set(p)
-    if xp is np:
-        x[..., c.corner_nodes, :] = c.x_orig[c.corner_nodes]
-        return x
-    return x.at[..., c.corner_nodes, :].set(c.x_orig[c.corner_nodes].astype(x.dtype))
 
 
 @eqx.filter_jit

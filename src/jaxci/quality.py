@@ -464,8 +464,12 @@ def pmean_objective(points, hexes, power: float) -> float:
     """
     pts = np.asarray(points, dtype=np.float64)
     conn = np.ascontiguousarray(np.asarray(hexes).T)
+    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(pts, conn, np)))
+    valid = det > 0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return float(_terms_and_grad(np, pts, conn, None, float(power))[0])
+        idet = np.where(valid, 1.0 / np.where(valid, det, 1.0), 0.0)  # as `objective_terms_and_grad` forms it
+        term = np.where(valid, fro2 * adj2 * idet * idet * (1.0 / 9.0), np.inf)
+        return float(_pmean_weights(np, term - 1.0, None, float(power))[0])
 
 
 def _pmean_weights(xp, e, real, power: float):

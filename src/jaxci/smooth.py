@@ -30,7 +30,7 @@ from .boundary import BoundaryInfo, classify_boundary
 from .elements import checked_objective
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .mesh import HexMesh
-from .optim.host import HOST_MAX
+from .optim.host import HOST_MAX, runs_on_host
 from .projection import Constraints, build_constraints, project_np
 from .quality import QualityReport, quality_report, transposed
 from .topology import colour_nodes, node_adjacency
@@ -147,8 +147,7 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
     sweep cap on unstructured meshes. `params` (the user's) win.
     """
     params = dict(params)
-    compiled = params.get("backend") == "jax" or (n_hexes >= AUTO_PRESMOOTH_FROM and params.get("backend") != "numpy")
-    if "presmooth" not in params and compiled:
+    if "presmooth" not in params and not runs_on_host(params.get("backend", "auto"), n_hexes, AUTO_PRESMOOTH_FROM - 1):
         params["presmooth"] = 3
     pre = int(params.get("presmooth", 0))
     desc = "L-BFGS on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")

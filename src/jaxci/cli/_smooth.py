@@ -46,7 +46,7 @@ def add_args(p) -> None:
                         "the nodes of such cells are put back: jaxci.guard)")
     p.add_argument("--objective", choices=["mean", "pmean"], default=None,
                    help="what the gradient methods minimise: mean (F, Eq. 3.1: the default) or pmean (the p-mean "
-                        "of the corner excesses, --param p=4 by default: pulls the worst element harder)")
+                        "of the corner excesses, --param p=2 by default: pulls the worst element harder)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object (with phase timings)")

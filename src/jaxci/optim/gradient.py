@@ -92,7 +92,7 @@ from ..quality import (
 from . import _params as _p
 from ._buckets import bucket, padded_connectivity, to_device
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED
-from .host import HOST_MAX, HostObjective
+from .host import HOST_MAX, HostObjective, runs_on_host
 from .host import lbfgs as host_lbfgs
 from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
     Parametrisation,
@@ -360,9 +360,7 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
 def use_host(method: str, p: GradientParams, n_hex: int, extra=None) -> bool:
     """Whether `minimise` runs `method` in numpy (`jaxci.optim.host`): L-BFGS on a hexahedral mesh with
     ``p.backend`` ``"numpy"``, or ``"auto"`` and at most `HOST_MAX` elements."""
-    if method != "lbfgs" or (extra is not None and extra.types) or p.backend == "jax":
-        return False
-    return p.backend == "numpy" or n_hex <= HOST_MAX
+    return method == "lbfgs" and runs_on_host(p.backend, n_hex, HOST_MAX, extra is not None and bool(extra.types))
 
 
 def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra):
@@ -447,14 +445,12 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     while runs < max_runs:
         cur = dataclasses.replace(run_par, strict=True) if strict else run_par
         fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
-        if on_host:  # one for every run: its projector remembers each node's triangle
+        if on_host:  # one objective for every run: its projector remembers each node's triangle
             host_fn = host_fn or HostObjective(run_par, np.asarray(conn), float(np.asarray(args[2])),
                                                power=p.p if p.objective == "pmean" else None)
-            fn = host_fn
-        if on_host:
-            y, k, result, hf, hk = host_lbfgs(fn, y, limit=p.max_steps - steps, max_rejected=_max_rejected(method, p),
-                                              rtol=p.rtol, atol=p.atol, history=int(p.history_length),
-                                              cap=p.max_move, ftol=p.ftol)
+            y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
+                                              max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
+                                              history=int(p.history_length), cap=p.max_move, ftol=p.ftol)
         else:
             y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))

@@ -45,6 +45,14 @@ HOST_MAX = 30_000
 #: 12.4 s cold, 9.9 s warm (numpy ~330 ms a step, XLA ~200-250 ms).
 UNTANGLE_HOST_MAX = 60_000
 
+def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
+    """Whether a solver with `backend` (``"auto"``, ``"numpy"``, ``"jax"``) runs in numpy: never on a mesh with
+    other cell types or with ``"jax"``, always with ``"numpy"``, with ``"auto"`` up to `limit` hexahedra."""
+    if mixed or backend == "jax":
+        return False
+    return backend == "numpy" or n_hex <= limit
+
+
 #: Armijo slope and step halving (optimistix's `BacktrackingArmijo` defaults).
 SLOPE = 0.1
 DECREASE = 0.5
@@ -63,9 +71,10 @@ class HostObjective:
     """
 
     par: Parametrisation
-    conn: np.ndarray
+    #: the transposed hexahedra ``(8, N)`` of the default kernel (None with a `kernel` of one's own)
+    conn: np.ndarray | None
     s: float
-    #: ``(f, k, grad) = kernel(points)`` (default: F, max kappa/3 and dF/dx of the hexahedra `conn` ``(8, N)``,
+    #: ``(f, k, grad) = kernel(points)`` (default: F, max kappa/3 and dF/dx of the hexahedra `conn`,
     #: `jaxci.quality.objective_terms_and_grad_np`); the untangling stage passes its energy
     kernel: Callable | None = None
     #: the boundary projection (default a new `NearProjector`; successive objectives may share one)
@@ -170,6 +179,9 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     ``"nonlinear_max_steps_reached"``, ``"nonfinite"``), and F and max kappa/3 of the accepted iterate after
     each step (entry 0: `y0`), numpy arrays of length ``steps + 1``.
     """
+    def finished(f, k):
+        return f <= ftol or (done is not None and bool(done(f, k)))
+
     y = np.array(y0, dtype=np.float64)
     value, g, f, k = fun(y)
     accept = getattr(fun, "accept", lambda: None)
@@ -180,9 +192,6 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     mem: list = []
     d = -g
     alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
-    def finished(f, k):
-        return f <= ftol or (done is not None and bool(done(f, k)))
-
     stop = finished(f, k)
     while not stop and steps < limit:
         if deadline is not None and time.perf_counter() > deadline:
@@ -249,12 +258,12 @@ def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndar
         def kernel(x):
             return hex_kernel(x, table, inv_len, eps, theta, True, np)
 
-        return HostObjective(par, table, 1.0, kernel, projector)
+        return HostObjective(par, None, 1.0, kernel, projector)
 
     v = np.zeros(par.n_free)
     fun = objective(1.0)
-    _, _, _, dmin0 = fun(v)
-    points = fun.points(v)
+    _, _, _, dmin0 = fun(v)  # the energy is finite (chi > 0): the evaluation is kept as `_last`
+    points = fun._last[1]
     eps = float(np.sqrt(1e-12 + 0.04 * min(dmin0, 0.0) ** 2))
     rounds = steps = 0
     h_eps, h_dmin, h_e = [], [], []

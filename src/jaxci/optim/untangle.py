@@ -59,7 +59,7 @@ from ..mixed import cell_label, extra_blocks, extra_cells, inverted_cells, no_ex
 from ..projection import Constraints, project_np
 from . import _params as _p
 from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
-from .host import UNTANGLE_HOST_MAX, untangle_rounds_np
+from .host import UNTANGLE_HOST_MAX, runs_on_host, untangle_rounds_np
 from .parametrisation import Parametrisation, make_parametrisation
 
 #: Upper bounds of `UntangleParams` (a typo must not hang a run): eps rounds, L-BFGS steps per round.
@@ -166,8 +166,7 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     rounds = steps = 0
     hist = [np.zeros(0)] * 3
     runs = []
-    on_host = bool(nf) and not blocks and (p.backend == "numpy"
-                                           or (p.backend == "auto" and len(hexes) <= UNTANGLE_HOST_MAX))
+    on_host = bool(nf) and runs_on_host(p.backend, len(hexes), UNTANGLE_HOST_MAX, bool(blocks))
     x = None
     if on_host:
         def report(r, dmin, eps, e):
