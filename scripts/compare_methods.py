@@ -456,6 +456,14 @@ def best_per_mesh(rows, tol=1e-4) -> dict:
     return out
 
 
+def _write(out: Path, doc: str, md: str) -> None:
+    """`out` .json and .md, each written atomically (`jaxci.results.write_text`)."""
+    from jaxci.results import write_text
+
+    write_text(out.with_suffix(".json"), doc)
+    write_text(out.with_suffix(".md"), md)
+
+
 def _git_state() -> str | None:
     """``<commit>`` of the checkout, ``+ uncommitted changes under src/`` when there are some; None without git."""
     import subprocess
@@ -488,11 +496,8 @@ def corpus_main(args) -> None:
     rows = corpus_rows(chosen, labels, args.dtype, args.cell_timeout, args.ci_max_sweeps, args.pmean_p,
                        log=lambda s: print(s, file=sys.stderr, flush=True))
     meta["total_wall_s"] = time.perf_counter() - t0
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(_jsonable({"meta": meta, "results": rows}), indent=1) + "\n")
     md = corpus_markdown(rows, meta)
-    out.with_suffix(".md").write_text(md)
+    _write(Path(args.out), json.dumps(_jsonable({"meta": meta, "results": rows}), indent=1) + "\n", md)
     print(md)
 
 
@@ -575,11 +580,8 @@ def main(argv=None):
                       f"{c['cold_s']:.2f} s  warm {c['warm_s']:.3f} s", file=sys.stderr, flush=True)
             else:
                 print(f"  {c['status']}", file=sys.stderr, flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps({"meta": meta, "results": results}, indent=1, default=float))
     md = markdown(results, meta)
-    out.with_suffix(".md").write_text(md)
+    _write(Path(args.out), json.dumps({"meta": meta, "results": results}, indent=1, default=float), md)
     print(md)
 
 
