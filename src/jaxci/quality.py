@@ -469,10 +469,10 @@ def pmean_objective(points, hexes, power: float) -> float:
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         idet = np.where(valid, 1.0 / np.where(valid, det, 1.0), 0.0)  # as `objective_terms_and_grad` forms it
         term = np.where(valid, fro2 * adj2 * idet * idet * (1.0 / 9.0), np.inf)
-        return float(_pmean_weights(np, term - 1.0, None, float(power))[0])
+        return float(pmean_weights(np, term - 1.0, None, float(power))[0])
 
 
-def _pmean_weights(xp, e, real, power: float):
+def pmean_weights(xp, e, real, power: float):
     """``(M_p, c)`` for the excesses `e` ``(8, N)`` (``inf`` where inverted) of the corners where `real`
     (None: all): the p-mean and per corner ``c_i = (e_i / M_p)^(p - 1)``, so that
     ``d M_p = mean_i c_i d e_i``. Scaled by the largest excess, so that e^p neither overflows nor underflows."""
@@ -519,7 +519,7 @@ def _terms_and_grad(xp, points, conn, weight, power=None):
         kmax = xp.sqrt(xp.max(xp.where(real, term, 0.0)))
         w2 = xp.where(real, 2.0 / (9.0 * n_corners), 0.0)
     if power is not None:  # the p-mean: each corner's gradient weighted by (e_i / M_p)^(p - 1)
-        f, weights = _pmean_weights(xp, term - 1.0, real, power)
+        f, weights = pmean_weights(xp, term - 1.0, real, power)
         w2 = w2 * weights
     p = w2 * adj2 * idet2
     q = w2 * fro2 * idet2

@@ -26,6 +26,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .. import native
 from ..projection import NearProjector, host_constraints
 from ..quality import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
@@ -85,7 +86,7 @@ class HostObjective:
     def __post_init__(self):
         par = self.par
         if self.kernel is None:
-            self.kernel = lambda x: objective_terms_and_grad_np(x, self.conn, self.power)
+            self.kernel = hex_objective_kernel(self.conn, self.power)
         self._cons, _ = host_constraints(par.cons)
         self._x0 = np.asarray(par.x0, np.float64)
         self._scale = np.asarray(par.scale, np.float64)
@@ -138,6 +139,16 @@ class HostObjective:
         out = self.s * f, self.s * lift_transpose_np(self._scale, self._cons, gx), f, kmax
         self._last = (np.array(v), x, out, hint)
         return out
+
+
+def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callable:
+    """``kernel(points) -> (F, max kappa/3, dF/dx)`` of the hexahedra `conn` (transposed, ``(8, N)``): the C
+    loop of `jaxci.native` where it is built, else `jaxci.quality.objective_terms_and_grad_np`; `power` p: the
+    p-mean objective instead of F."""
+    if native.AVAILABLE:
+        hexes = np.ascontiguousarray(np.asarray(conn).T, dtype=np.int64)
+        return lambda x: native.hex_terms_and_grad(x, hexes, power)
+    return lambda x: objective_terms_and_grad_np(x, conn, power)
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -250,12 +261,16 @@ def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndar
     result (as evaluated: on the boundary), and a dict ``rounds``, ``steps``, ``dmin0``, ``h_eps``, ``h_dmin``,
     ``h_e`` (numpy arrays, one entry per round).
     """
-    from ._untangle_loop import EPS_FLOOR, chi, hex_kernel
+    from ._untangle_loop import CORNERS_PER_NODE, EPS_FLOOR, chi, hex_kernel
 
     projector = NearProjector(par.cons)
+    if native.AVAILABLE:
+        table, inv_len = np.ascontiguousarray(table, dtype=np.int64), np.ascontiguousarray(inv_len, np.float64)
 
     def objective(eps):
         def kernel(x):
+            if native.AVAILABLE:
+                return native.untangle_energy(x, table, inv_len, eps, theta, True, CORNERS_PER_NODE)
             return hex_kernel(x, table, inv_len, eps, theta, True, np)
 
         return HostObjective(par, None, 1.0, kernel, projector)

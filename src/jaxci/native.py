@@ -1,0 +1,76 @@
+"""The numpy path's hexahedron kernels as fused C loops (`jaxci._ckernels`), with numpy's as the fallback.
+
+`jaxci.optim.host` evaluates F with its gradient (and the untangling stage its energy with its gradient) a few
+hundred times per run. Written with numpy, one evaluation is ~100 whole-array operations over every corner,
+memory-bound: 20-30 ms at 27,000 hexahedra on the 2-core CPU. The C extension does the same arithmetic in one
+loop over the elements, a corner's quantities in registers (numbers in docs/results/README.md, session 6). It is
+built at install time (`setup.py`, optional: without a C compiler the install succeeds and `AVAILABLE` is False,
+so the numpy kernels run); ``JAXCI_NATIVE=0`` turns it off (for comparisons).
+
+Arrays: float64 C-contiguous coordinates ``(n, 3)``; node indices int64.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+try:
+    if os.environ.get("JAXCI_NATIVE", "1") == "0":
+        raise ImportError("JAXCI_NATIVE=0")
+    from . import _ckernels as _c
+except ImportError:  # pragma: no cover - no compiler at install time
+    _c = None
+
+#: Whether the C kernels are there (else the callers run their numpy kernels).
+AVAILABLE = _c is not None
+
+
+def _f8(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _i8(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | None = None
+                       ) -> tuple[float, float, np.ndarray]:
+    """``(F, max kappa/3, dF/dx)`` of the hexahedra, as `jaxci.quality.objective_terms_and_grad_np`.
+
+    **Arguments:** `points` ``(n, 3)``; `hexes` ``(N, 8)`` (element-major: one element's nodes together);
+    `power` p: the p-mean ``M_p`` of the corner excesses instead of their mean F (two passes: the terms, then
+    the gradient weighted by ``(e_i / M_p)^(p - 1)``).
+
+    **Returns:** F (``inf`` if a corner has det <= 0: the gradient then leaves those corners out), max kappa/3,
+    and the gradient ``(n, 3)`` float64.
+    """
+    x, h = _f8(points), _i8(hexes)
+    n_corners = 8 * h.shape[0]
+    grad = np.zeros_like(x)
+    weight = 2.0 / (9.0 * n_corners) if n_corners else 0.0
+    if power is None:
+        s, tmax, bad = _c.hex_condition(x, h, weight, grad, None, None)
+        f = np.inf if bad else (s / n_corners if n_corners else 0.0)
+        return f, (np.inf if bad else float(np.sqrt(tmax))), grad
+    from .quality import pmean_weights
+
+    terms = np.empty((8, h.shape[0]))
+    _c.hex_condition(x, h, 0.0, None, None, terms)
+    m, c = pmean_weights(np, terms - 1.0, None, float(power))
+    if np.isfinite(m):
+        _c.hex_condition(x, h, weight, grad, np.ascontiguousarray(c, dtype=np.float64), None)
+    return float(m), float(np.sqrt(np.max(terms, initial=0.0))), grad
+
+
+def untangle_energy(points: np.ndarray, table: np.ndarray, inv_len: np.ndarray, eps: float, theta: float,
+                    grad: bool, per_node: float) -> tuple[float, float, np.ndarray | None]:
+    """``(energy, min det J, gradient or None)`` of `jaxci.optim._untangle_loop.hex_kernel`: the sum of the
+    corner energies divided by `per_node`, over the corner `table` ``(4, C)`` with `inv_len` ``(C,)``."""
+    x = _f8(points)
+    g = np.zeros_like(x) if grad else None
+    e, dmin = _c.untangle_energy(x, _i8(table), _f8(inv_len), float(eps), float(theta), g)
+    if g is not None:
+        g *= 1.0 / per_node
+    return e / per_node, dmin, g

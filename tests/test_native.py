@@ -1,0 +1,82 @@
+"""The C kernels of `jaxci.native` against the numpy kernels they replace on the host path (float64)."""
+
+import os
+
+import numpy as np
+import pytest
+
+from jaxci import native
+from jaxci.generate import perturb_box
+from jaxci.mesh import CORNER_NEIGHBOURS
+from jaxci.optim._untangle_loop import corner_table, hex_kernel
+from jaxci.quality import objective_terms_and_grad_np
+
+if not native.AVAILABLE:
+    if os.environ.get("CI") and os.environ.get("JAXCI_NATIVE", "1") != "0":
+        pytest.fail("jaxci._ckernels was not built (a C compiler is on CI's machine: the install must build it)")
+    pytest.skip("jaxci._ckernels not built (no C compiler at install time)", allow_module_level=True)
+
+
+def _mesh(amplitude: float, seed: int = 0):
+    return perturb_box(6, amplitude=amplitude, seed=seed)
+
+
+def test_corner_table_of_the_c_kernel_is_jaxcis():
+    src = open(os.path.join(os.path.dirname(native.__file__), "_ckernels.c")).read()
+    table = src[src.index("NB[8][3] = ") + len("NB[8][3] = "):src.index(";", src.index("NB[8][3]"))]
+    assert eval(table.replace("{", "[").replace("}", "]")) == CORNER_NEIGHBOURS.tolist()
+
+
+@pytest.mark.parametrize("power", [None, 2.0, 4.0])
+def test_objective_and_gradient_match_numpy(power):
+    m = _mesh(0.2)
+    x = np.asarray(m.points, np.float64)
+    f, k, g = objective_terms_and_grad_np(x, np.ascontiguousarray(m.hexes.T), power)
+    fc, kc, gc = native.hex_terms_and_grad(x, m.hexes, power)
+    assert np.isfinite(f) and fc == pytest.approx(f, rel=1e-12)
+    assert kc == pytest.approx(k, rel=1e-12)
+    np.testing.assert_allclose(gc, g, rtol=1e-10, atol=1e-13 * np.abs(g).max())
+
+
+def test_inverted_corner_gives_inf_and_the_gradient_of_the_others():
+    m = _mesh(0.2)
+    x = np.asarray(m.points, np.float64)
+    x[m.hexes[0, 0]] = x[m.hexes[0, 6]] + 0.1  # node 0 of element 0 beyond its opposite corner: inverted
+    f, k, g = objective_terms_and_grad_np(x, np.ascontiguousarray(m.hexes.T))
+    fc, kc, gc = native.hex_terms_and_grad(x, m.hexes)
+    assert f == fc == np.inf and kc == np.inf
+    np.testing.assert_allclose(gc, g, rtol=1e-10, atol=1e-13 * np.abs(g).max())
+
+
+@pytest.mark.parametrize("eps", [1.0, 1e-3, 1e-10])
+def test_untangling_energy_matches_numpy(eps):
+    m = _mesh(0.0)
+    x = np.asarray(m.points, np.float64) + np.random.default_rng(3).uniform(-0.1, 0.1, m.points.shape)  # tangled
+    table = corner_table(m.hexes)
+    inv_len = np.random.default_rng(0).uniform(0.5, 2.0, table.shape[1])
+    e, d, g = hex_kernel(x, table, inv_len, eps, 0.3, True, np)
+    ec, dc, gc = native.untangle_energy(x, table, inv_len, eps, 0.3, True, 32.0)
+    assert d < 0 and dc == d
+    assert ec == pytest.approx(float(e), rel=1e-12)
+    np.testing.assert_allclose(gc, g, rtol=1e-9, atol=1e-12 * np.abs(g).max())
+    assert native.untangle_energy(x, table, inv_len, eps, 0.3, False, 32.0)[2] is None
+
+
+def test_bad_arrays_are_refused_not_read_out_of_bounds():
+    from jaxci import _ckernels as c
+
+    m = _mesh(0.1)
+    x = np.asarray(m.points, np.float64)
+    h = np.ascontiguousarray(m.hexes, np.int64)
+    with pytest.raises(TypeError, match="float64"):
+        c.hex_condition(x.astype(np.float32), h, 1.0, None, None, None)
+    with pytest.raises(TypeError, match="int64"):
+        c.hex_condition(x, h.astype(np.int32), 1.0, None, None, None)
+    bad = h.copy()
+    bad[2, 3] = len(x)
+    with pytest.raises(IndexError, match="out of range"):
+        c.hex_condition(x, bad, 1.0, None, None, None)
+    with pytest.raises(ValueError, match="shapes disagree"):
+        c.hex_condition(x, h, 1.0, np.zeros((len(x) - 1, 3)), None, None)
+    with pytest.raises(ValueError, match="not C-contiguous|contiguous"):
+        c.hex_condition(np.asfortranarray(x), h, 1.0, None, None, None)
