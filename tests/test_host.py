@@ -148,6 +148,21 @@ def test_cli_small_mesh_compiles_nothing(tmp_path):
     assert doc["after"]["max_condition"] <= 1.0001 and doc["after"]["inverted_elements"] == 0
 
 
+def test_a_mesh_whose_nodes_are_all_fixed_returns_at_once_with_a_note():
+    """A single hexahedron (every node a boundary corner): nothing can move, so no method runs and nothing
+    compiles (it used to compile 45 small programs in the solver's set-up)."""
+    from jaxci import smooth
+    from jaxci.phases import compile_totals
+
+    mesh = perturb_box(1, amplitude=0.0)
+    mesh = mesh.with_points(mesh.points + np.array([[0.2, 0, 0]] + [[0, 0, 0]] * 7))
+    before = compile_totals()["compiled"]
+    res = smooth(mesh)
+    assert compile_totals()["compiled"] == before
+    assert res.iterations == 0 and np.array_equal(res.mesh.points, mesh.points)
+    assert any("no node can move (all 8 nodes are fixed" in n for n in res.notes), res.notes
+
+
 # ---------------------------------------------------------------------------------------------- p-mean objective
 @pytest.mark.parametrize("power", [1.0, 2.0, 6.0])
 def test_pmean_gradient_matches_finite_differences(power):

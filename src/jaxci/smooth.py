@@ -31,7 +31,7 @@ from .elements import checked_objective
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .mesh import HexMesh
 from .optim.host import HOST_MAX, runs_on_host
-from .projection import Constraints, build_constraints, project_np
+from .projection import Constraints, build_constraints, n_free, project_np
 from .quality import QualityReport, quality_report, transposed
 from .topology import colour_nodes, node_adjacency
 
@@ -394,6 +394,16 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                                     fixed_nodes=fixed_nodes, fixed_sets=fixed_sets)
             if untangled is not None:
                 problem = dataclasses.replace(problem, x0=jax.device_put(np.asarray(untangled, np_dtype)))
+        if n_free(problem.cons) == 0:  # every node fixed: no method can change anything
+            notes.extend(problem.info.notes)
+            notes.append(f"no node can move (all {mesh.n_nodes} nodes are fixed: boundary corners, fixed sets or "
+                         f"--fix-boundary): the mesh is returned as it is")
+            x = np.asarray(mesh.points if untangled is None else untangled, dtype=np.float64)
+            return x, SmoothResult(
+                mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]},
+                iterations=0, wall_time=0.0, method=method, params={}, before=before,
+                after=before if untangled is None else quality_report(mesh, x), boundary=problem.info.counts,
+                node_class=np.asarray(problem.info.node_class))
         with clock.phase("smooth"):
             x, iterations, history, resolved = _run_method(problem, method, seed, params)
             x = np.asarray(x, dtype=np.float64)
