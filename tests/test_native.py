@@ -80,3 +80,25 @@ def test_bad_arrays_are_refused_not_read_out_of_bounds():
         c.hex_condition(x, h, 1.0, np.zeros((len(x) - 1, 3)), None, None)
     with pytest.raises(ValueError, match="not C-contiguous|contiguous"):
         c.hex_condition(np.asfortranarray(x), h, 1.0, None, None, None)
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_threads_give_the_single_threaded_result(threads):
+    """Each thread has its own range of elements and its own gradient buffer: the same numbers to rounding."""
+    from jaxci import _ckernels as c
+
+    m = perturb_box(24, amplitude=0.2, seed=0)  # 13,824 hexahedra: 3 threads of >= 4096 elements
+    x = np.ascontiguousarray(m.points, np.float64)
+    h = np.ascontiguousarray(m.hexes, np.int64)
+    g1, g2 = np.zeros_like(x), np.zeros_like(x)
+    s1, t1, bad1 = c.hex_condition(x, h, 1.0, g1, None, None, 1)
+    s2, t2, bad2 = c.hex_condition(x, h, 1.0, g2, None, None, threads)
+    assert s2 == pytest.approx(s1, rel=1e-13) and t2 == t1 and bad1 == bad2 == 0
+    np.testing.assert_allclose(g2, g1, rtol=1e-12, atol=1e-14 * np.abs(g1).max())
+    table = corner_table(m.hexes).astype(np.int64)
+    inv_len = np.ones(table.shape[1])
+    u1, u2 = np.zeros_like(x), np.zeros_like(x)
+    e1, d1 = c.untangle_energy(x, table, inv_len, 0.1, 0.3, u1, 1)
+    e2, d2 = c.untangle_energy(x, table, inv_len, 0.1, 0.3, u2, threads)
+    assert e2 == pytest.approx(e1, rel=1e-13) and d2 == d1
+    np.testing.assert_allclose(u2, u1, rtol=1e-12, atol=1e-14 * np.abs(u1).max())

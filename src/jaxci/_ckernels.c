@@ -13,6 +13,10 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <pthread.h>
+#include <stddef.h>
+#include <stdlib.h>
+#include <string.h>
 
 /* CORNER_NEIGHBOURS of jaxci.mesh: the far ends of columns a, b, c of corner i (checked by a test). */
 static const int NB[8][3] = {{1, 3, 4}, {2, 0, 5}, {3, 1, 6}, {0, 2, 7},
@@ -38,42 +42,73 @@ static inline void cross(const double *x, const double *y, double *out) {
     out[2] = x[0] * y[1] - x[1] * y[0];
 }
 
-/* hex_condition(points (n, 3) f8, hexes (N, 8) i8, weight, grad (n, 3) f8 or None, corner_weight (8, N) f8 or
- * None, terms (8, N) f8 or None) -> (sum of (term - 1), max term, inverted corners).
- *
- * term = |A|^2 |adj A|^2 / (9 det^2) = (kappa/3)^2 per corner (inf where det <= 0, in `terms`). With `grad`, adds
- * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
- * gradient of F (w2 of jaxci.quality._terms_and_grad), corner_weight the p-mean's (e_i / M_p)^(p - 1). */
-static PyObject *hex_condition(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms;
-    double weight;
-    if (!PyArg_ParseTuple(args, "OOdOOO", &o_pts, &o_hex, &weight, &o_grad, &o_cw, &o_terms)) return NULL;
-    Py_buffer pts = {0}, hex = {0}, grad = {0}, cw = {0}, terms = {0};
-    int have_grad = o_grad != Py_None, have_cw = o_cw != Py_None, have_terms = o_terms != Py_None;
-    if (get_buffer(o_pts, &pts, "points", "d", 8, 0) < 0) return NULL;
-    if (get_buffer(o_hex, &hex, "hexes", "qlq", 8, 0) < 0) goto fail_pts;
-    if (have_grad && get_buffer(o_grad, &grad, "grad", "d", 8, 1) < 0) goto fail_hex;
-    if (have_cw && get_buffer(o_cw, &cw, "corner_weight", "d", 8, 0) < 0) goto fail_grad;
-    if (have_terms && get_buffer(o_terms, &terms, "terms", "d", 8, 1) < 0) goto fail_cw;
-    Py_ssize_t n = pts.len / 24, N = hex.len / 64;
-    if (pts.len != n * 24 || hex.len != N * 64 || (have_grad && grad.len != pts.len) ||
-        (have_cw && cw.len != N * 64) || (have_terms && terms.len != N * 64)) {
-        PyErr_SetString(PyExc_ValueError, "hex_condition: shapes disagree (points (n, 3), hexes (N, 8), grad (n, 3), "
-                                          "corner_weight and terms (8, N))");
-        goto fail_all;
-    }
-    const double *P = pts.buf, *CW = cw.buf;
-    const long long *H = hex.buf;
-    double *G = grad.buf, *T = terms.buf;
-    for (Py_ssize_t e = 0; e < N * 8; e++)
-        if (H[e] < 0 || H[e] >= n) {
-            PyErr_Format(PyExc_IndexError, "hex_condition: node index %lld out of range [0, %zd)", H[e], n);
-            goto fail_all;
+/* Up to MAX_THREADS POSIX threads per call, each over its own range of elements with its own gradient buffer
+ * (summed into the caller's at the end: no two threads write one node). A call over fewer than
+ * MIN_PER_THREAD elements per thread runs in the calling thread (creating a thread costs ~50 us). */
+#define MAX_THREADS 16
+#define MIN_PER_THREAD 4096
+
+static int threads_for(Py_ssize_t n_elements, int nthreads) {
+    int nt = nthreads < 1 ? 1 : (nthreads > MAX_THREADS ? MAX_THREADS : nthreads);
+    while (nt > 1 && n_elements / nt < MIN_PER_THREAD) nt--;
+    return nt;
+}
+
+/* Run worker(jobs[t]) for t < nt (job t of `size` bytes; its gradient pointer at byte `goff`), the first in
+ * this thread, with the GIL released. `G` (length `len`, or NULL): job 0 adds into it directly, the others into
+ * zeroed buffers added to it afterwards. -1 with MemoryError if a buffer cannot be had. */
+static int run_jobs(void *jobs, size_t size, int nt, void *(*worker)(void *), double *G, Py_ssize_t len,
+                    size_t goff) {
+    char *base = jobs;
+    double *bufs[MAX_THREADS] = {0};
+    if (G) {
+        *(double **)(base + goff) = G;
+        for (int t = 1; t < nt; t++) {
+            bufs[t] = calloc((size_t)len, sizeof(double));
+            if (!bufs[t]) {
+                for (int k = 1; k < t; k++) free(bufs[k]);
+                PyErr_NoMemory();
+                return -1;
+            }
+            *(double **)(base + t * size + goff) = bufs[t];
         }
-    double sum = 0.0, tmax = 0.0;
-    long long invalid = 0;
+    }
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t e = 0; e < N; e++) {
+    pthread_t tid[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int t = 1; t < nt; t++) started[t] = pthread_create(&tid[t], NULL, worker, base + t * size) == 0;
+    worker(base);
+    for (int t = 1; t < nt; t++) {
+        if (started[t]) pthread_join(tid[t], NULL);
+        else worker(base + t * size);  /* no thread to be had: this thread does that part too */
+    }
+    if (G)
+        for (int t = 1; t < nt; t++) {
+            for (Py_ssize_t k = 0; k < len; k++) G[k] += bufs[t][k];
+            free(bufs[t]);
+        }
+    Py_END_ALLOW_THREADS
+    return 0;
+}
+
+typedef struct {
+    const double *P, *CW;
+    const long long *H;
+    double *T, *G;
+    Py_ssize_t n, N, lo, hi;
+    double weight, sum, tmax;
+    long long invalid;
+} HexJob;
+
+/* Elements [lo, hi) of hex_condition; the gradient into the job's own G (NULL: none). */
+static void *hex_worker(void *arg) {
+    HexJob *j = arg;
+    const double *P = j->P, *CW = j->CW;
+    const long long *H = j->H;
+    double *T = j->T, *G = j->G, weight = j->weight, sum = 0.0, tmax = 0.0;
+    Py_ssize_t N = j->N;
+    long long invalid = 0;
+    for (Py_ssize_t e = j->lo; e < j->hi; e++) {
         const long long *h = H + 8 * e;
         double X[8][3], g[8][3];
         for (int k = 0; k < 8; k++) {
@@ -123,7 +158,59 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
             for (int k = 0; k < 8; k++)
                 for (int d = 0; d < 3; d++) G[3 * h[k] + d] += g[k][d];
     }
-    Py_END_ALLOW_THREADS
+    j->sum = sum;
+    j->tmax = tmax;
+    j->invalid = invalid;
+    return NULL;
+}
+
+/* hex_condition(points (n, 3) f8, hexes (N, 8) i8, weight, grad (n, 3) f8 or None, corner_weight (8, N) f8 or
+ * None, terms (8, N) f8 or None) -> (sum of (term - 1), max term, inverted corners).
+ *
+ * term = |A|^2 |adj A|^2 / (9 det^2) = (kappa/3)^2 per corner (inf where det <= 0, in `terms`). With `grad`, adds
+ * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
+ * gradient of F (w2 of jaxci.quality._terms_and_grad), corner_weight the p-mean's (e_i / M_p)^(p - 1). */
+static PyObject *hex_condition(PyObject *self, PyObject *args) {
+    PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms;
+    double weight;
+    int nthreads = 1;
+    if (!PyArg_ParseTuple(args, "OOdOOO|i", &o_pts, &o_hex, &weight, &o_grad, &o_cw, &o_terms, &nthreads))
+        return NULL;
+    Py_buffer pts = {0}, hex = {0}, grad = {0}, cw = {0}, terms = {0};
+    int have_grad = o_grad != Py_None, have_cw = o_cw != Py_None, have_terms = o_terms != Py_None;
+    if (get_buffer(o_pts, &pts, "points", "d", 8, 0) < 0) return NULL;
+    if (get_buffer(o_hex, &hex, "hexes", "qlq", 8, 0) < 0) goto fail_pts;
+    if (have_grad && get_buffer(o_grad, &grad, "grad", "d", 8, 1) < 0) goto fail_hex;
+    if (have_cw && get_buffer(o_cw, &cw, "corner_weight", "d", 8, 0) < 0) goto fail_grad;
+    if (have_terms && get_buffer(o_terms, &terms, "terms", "d", 8, 1) < 0) goto fail_cw;
+    Py_ssize_t n = pts.len / 24, N = hex.len / 64;
+    if (pts.len != n * 24 || hex.len != N * 64 || (have_grad && grad.len != pts.len) ||
+        (have_cw && cw.len != N * 64) || (have_terms && terms.len != N * 64)) {
+        PyErr_SetString(PyExc_ValueError, "hex_condition: shapes disagree (points (n, 3), hexes (N, 8), grad (n, 3), "
+                                          "corner_weight and terms (8, N))");
+        goto fail_all;
+    }
+    const double *P = pts.buf, *CW = cw.buf;
+    const long long *H = hex.buf;
+    double *G = grad.buf, *T = terms.buf;
+    for (Py_ssize_t e = 0; e < N * 8; e++)
+        if (H[e] < 0 || H[e] >= n) {
+            PyErr_Format(PyExc_IndexError, "hex_condition: node index %lld out of range [0, %zd)", H[e], n);
+            goto fail_all;
+        }
+    HexJob jobs[MAX_THREADS];
+    int nt = threads_for(N, nthreads);
+    for (int t = 0; t < nt; t++) {
+        jobs[t] = (HexJob){P, CW, H, T, NULL, n, N, N * t / nt, N * (t + 1) / nt, weight, 0.0, 0.0, 0};
+    }
+    if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, G, 3 * n, offsetof(HexJob, G)) < 0) goto fail_all;
+    double sum = 0.0, tmax = 0.0;
+    long long invalid = 0;
+    for (int t = 0; t < nt; t++) {
+        sum += jobs[t].sum;
+        if (jobs[t].tmax > tmax) tmax = jobs[t].tmax;
+        invalid += jobs[t].invalid;
+    }
     PyBuffer_Release(&pts); PyBuffer_Release(&hex);
     if (have_grad) PyBuffer_Release(&grad);
     if (have_cw) PyBuffer_Release(&cw);
@@ -142,36 +229,22 @@ fail_pts:
     return NULL;
 }
 
-/* untangle_energy(points (n, 3) f8, table (4, C) i8, inv_len (C,) f8, eps, theta, grad (n, 3) f8 or None)
- * -> (sum of the corner energies, min det J): the regularised Winslow energy of
- * jaxci.optim._untangle_loop.hex_kernel (before its division by 32); with `grad`, d(sum)/dx is ADDED to it. */
-static PyObject *untangle_energy(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_tab, *o_il, *o_grad;
-    double eps, theta;
-    if (!PyArg_ParseTuple(args, "OOOddO", &o_pts, &o_tab, &o_il, &eps, &theta, &o_grad)) return NULL;
-    Py_buffer pts = {0}, tab = {0}, il = {0}, grad = {0};
-    int have_grad = o_grad != Py_None;
-    if (get_buffer(o_pts, &pts, "points", "d", 8, 0) < 0) return NULL;
-    if (get_buffer(o_tab, &tab, "table", "qlq", 8, 0) < 0) goto fail_pts;
-    if (get_buffer(o_il, &il, "inv_len", "d", 8, 0) < 0) goto fail_tab;
-    if (have_grad && get_buffer(o_grad, &grad, "grad", "d", 8, 1) < 0) goto fail_il;
-    Py_ssize_t n = pts.len / 24, C = il.len / 8;
-    if (pts.len != n * 24 || tab.len != C * 32 || (have_grad && grad.len != pts.len)) {
-        PyErr_SetString(PyExc_ValueError, "untangle_energy: shapes disagree (points (n, 3), table (4, C), inv_len "
-                                          "(C,), grad (n, 3))");
-        goto fail_all;
-    }
-    const double *P = pts.buf, *IL = il.buf;
-    const long long *T = tab.buf;
-    double *G = grad.buf;
-    for (Py_ssize_t k = 0; k < 4 * C; k++)
-        if (T[k] < 0 || T[k] >= n) {
-            PyErr_Format(PyExc_IndexError, "untangle_energy: node index %lld out of range [0, %zd)", T[k], n);
-            goto fail_all;
-        }
-    double energy = 0.0, dmin = INFINITY, eps2 = eps * eps;
-    Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t k = 0; k < C; k++) {
+typedef struct {
+    const double *P, *IL;
+    const long long *T;
+    double *G;
+    Py_ssize_t C, lo, hi;
+    double eps, theta, energy, dmin;
+} UntangleJob;
+
+/* Corners [lo, hi) of untangle_energy; the gradient into the job's own G (NULL: none). */
+static void *untangle_worker(void *arg) {
+    UntangleJob *j = arg;
+    const double *P = j->P, *IL = j->IL;
+    const long long *T = j->T;
+    double *G = j->G, theta = j->theta, eps2 = j->eps * j->eps, energy = 0.0, dmin = INFINITY;
+    Py_ssize_t C = j->C;
+    for (Py_ssize_t k = j->lo; k < j->hi; k++) {
         long long i0 = T[k], i1 = T[C + k], i2 = T[2 * C + k], i3 = T[3 * C + k];
         double s_ = IL[k], a[3], b[3], c[3], u[3];
         for (int d = 0; d < 3; d++) {
@@ -205,7 +278,51 @@ static PyObject *untangle_energy(PyObject *self, PyObject *args) {
             G[3 * i3 + d] += gc;
         }
     }
-    Py_END_ALLOW_THREADS
+    j->energy = energy;
+    j->dmin = dmin;
+    return NULL;
+}
+
+/* untangle_energy(points (n, 3) f8, table (4, C) i8, inv_len (C,) f8, eps, theta, grad (n, 3) f8 or None)
+ * -> (sum of the corner energies, min det J): the regularised Winslow energy of
+ * jaxci.optim._untangle_loop.hex_kernel (before its division by 32); with `grad`, d(sum)/dx is ADDED to it. */
+static PyObject *untangle_energy(PyObject *self, PyObject *args) {
+    PyObject *o_pts, *o_tab, *o_il, *o_grad;
+    double eps, theta;
+    int nthreads = 1;
+    if (!PyArg_ParseTuple(args, "OOOddO|i", &o_pts, &o_tab, &o_il, &eps, &theta, &o_grad, &nthreads)) return NULL;
+    Py_buffer pts = {0}, tab = {0}, il = {0}, grad = {0};
+    int have_grad = o_grad != Py_None;
+    if (get_buffer(o_pts, &pts, "points", "d", 8, 0) < 0) return NULL;
+    if (get_buffer(o_tab, &tab, "table", "qlq", 8, 0) < 0) goto fail_pts;
+    if (get_buffer(o_il, &il, "inv_len", "d", 8, 0) < 0) goto fail_tab;
+    if (have_grad && get_buffer(o_grad, &grad, "grad", "d", 8, 1) < 0) goto fail_il;
+    Py_ssize_t n = pts.len / 24, C = il.len / 8;
+    if (pts.len != n * 24 || tab.len != C * 32 || (have_grad && grad.len != pts.len)) {
+        PyErr_SetString(PyExc_ValueError, "untangle_energy: shapes disagree (points (n, 3), table (4, C), inv_len "
+                                          "(C,), grad (n, 3))");
+        goto fail_all;
+    }
+    const double *P = pts.buf, *IL = il.buf;
+    const long long *T = tab.buf;
+    double *G = grad.buf;
+    for (Py_ssize_t k = 0; k < 4 * C; k++)
+        if (T[k] < 0 || T[k] >= n) {
+            PyErr_Format(PyExc_IndexError, "untangle_energy: node index %lld out of range [0, %zd)", T[k], n);
+            goto fail_all;
+        }
+    UntangleJob jobs[MAX_THREADS];
+    int nt = threads_for(C / 8, nthreads);
+    for (int t = 0; t < nt; t++) {
+        jobs[t] = (UntangleJob){P, IL, T, NULL, C, C * t / nt, C * (t + 1) / nt, eps, theta, 0.0, INFINITY};
+    }
+    if (run_jobs(jobs, sizeof(UntangleJob), nt, untangle_worker, G, 3 * n, offsetof(UntangleJob, G)) < 0)
+        goto fail_all;
+    double energy = 0.0, dmin = INFINITY;
+    for (int t = 0; t < nt; t++) {
+        energy += jobs[t].energy;
+        if (jobs[t].dmin < dmin) dmin = jobs[t].dmin;
+    }
     PyBuffer_Release(&pts); PyBuffer_Release(&tab); PyBuffer_Release(&il);
     if (have_grad) PyBuffer_Release(&grad);
     return Py_BuildValue("dd", energy, dmin);

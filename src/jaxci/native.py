@@ -27,6 +27,23 @@ except ImportError:  # pragma: no cover - no compiler at install time
 AVAILABLE = _c is not None
 
 
+def _threads() -> int:
+    """Threads per kernel call: ``JAXCI_THREADS``, else the CPUs this process may run on (at most 16). A call
+    over fewer than 4096 elements per thread uses fewer (`jaxci._ckernels`); results are deterministic for a
+    given number of threads (fixed ranges, fixed order of the sums)."""
+    try:
+        n = int(os.environ.get("JAXCI_THREADS", "0"))
+    except ValueError:
+        n = 0
+    if n <= 0:
+        n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(n, 16))
+
+
+#: Threads of the C kernels (`_threads`).
+THREADS = _threads()
+
+
 def _f8(a) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64)
 
@@ -51,16 +68,16 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
     grad = np.zeros_like(x)
     weight = 2.0 / (9.0 * n_corners) if n_corners else 0.0
     if power is None:
-        s, tmax, bad = _c.hex_condition(x, h, weight, grad, None, None)
+        s, tmax, bad = _c.hex_condition(x, h, weight, grad, None, None, THREADS)
         f = np.inf if bad else (s / n_corners if n_corners else 0.0)
         return f, (np.inf if bad else float(np.sqrt(tmax))), grad
     from .quality import pmean_weights
 
     terms = np.empty((8, h.shape[0]))
-    _c.hex_condition(x, h, 0.0, None, None, terms)
+    _c.hex_condition(x, h, 0.0, None, None, terms, THREADS)
     m, c = pmean_weights(np, terms - 1.0, None, float(power))
     if np.isfinite(m):
-        _c.hex_condition(x, h, weight, grad, np.ascontiguousarray(c, dtype=np.float64), None)
+        _c.hex_condition(x, h, weight, grad, np.ascontiguousarray(c, dtype=np.float64), None, THREADS)
     return float(m), float(np.sqrt(np.max(terms, initial=0.0))), grad
 
 
@@ -70,7 +87,7 @@ def untangle_energy(points: np.ndarray, table: np.ndarray, inv_len: np.ndarray, 
     corner energies divided by `per_node`, over the corner `table` ``(4, C)`` with `inv_len` ``(C,)``."""
     x = _f8(points)
     g = np.zeros_like(x) if grad else None
-    e, dmin = _c.untangle_energy(x, _i8(table), _f8(inv_len), float(eps), float(theta), g)
+    e, dmin = _c.untangle_energy(x, _i8(table), _f8(inv_len), float(eps), float(theta), g, THREADS)
     if g is not None:
         g *= 1.0 / per_node
     return e / per_node, dmin, g
