@@ -81,6 +81,12 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
     return float(m), float(np.sqrt(np.max(terms, initial=0.0))), grad
 
 
+def hex_sums(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float, int]:
+    """``(sum of (kappa/3)^2 - 1 over the valid corners, max (kappa/3)^2, inverted corners)`` of the hexahedra
+    `hexes` ``(N, 8)`` at `points` ``(n, 3)``: one pass, no gradient."""
+    return _c.hex_condition(_f8(points), _i8(hexes), 0.0, None, None, None, THREADS)
+
+
 def untangle_energy(points: np.ndarray, table: np.ndarray, inv_len: np.ndarray, eps: float, theta: float,
                     grad: bool, per_node: float) -> tuple[float, float, np.ndarray | None]:
     """``(energy, min det J, gradient or None)`` of `jaxci.optim._untangle_loop.hex_kernel`: the sum of the

@@ -32,19 +32,23 @@ from ..quality import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
-#: Largest hexahedral mesh `jaxci.optim.gradient.minimise` solves in numpy with ``backend="auto"``. Measured
-#: through ``jaxci smooth`` on perturbed boxes (amplitude 0.3, this 2-core CPU; numpy, then compiled with an
-#: empty / a warm compile cache): 4913 hexes 1.7 s against 3.0 / 1.8 s; 9261: 2.4 s against 3.3 / 1.8 s, where
-#: float32 L-BFGS stalled at max kappa/3 5.5e5 (float64: 1.0000); 17,576: 3.7 s against 3.4 / 2.2 s;
-#: cube30_pert (27,000, tangled; machine loaded): 5.2 s against 9.2 / 4.0 s. Above it the compiled loop (after
-#: smart-Laplace sweeps) wins once its compilation is cached.
-HOST_MAX = 30_000
+#: Largest hexahedral mesh `jaxci.optim.gradient.minimise` solves in numpy with ``backend="auto"``: 100,000
+#: with the C kernels of `jaxci.native`, 30,000 without. Measured through ``jaxci smooth`` on perturbed boxes
+#: (amplitude 0.3, this 2-core CPU; numpy, then compiled with an empty / a warm compile cache). numpy kernels
+#: (session 5): 4913 hexes 1.7 s against 3.0 / 1.8 s; 9261: 2.4 s against 3.3 / 1.8 s, where float32 L-BFGS
+#: stalled at max kappa/3 5.5e5 (float64: 1.0000); 17,576: 3.7 s against 3.4 / 2.2 s; cube30_pert (27,000,
+#: tangled; machine loaded): 5.2 s against 9.2 / 4.0 s. C kernels (session 6, smooth phase): 64,000 hexes
+#: 4.4 s against 9.1 / 4.5 s; 125,000: 9.2 s against 12.0 / 7.9 s; cube60_pert (216,000) 23-31 s against 18 s
+#: cold. Above it the compiled loop (after smart-Laplace sweeps) wins once its compilation is cached.
+HOST_MAX = 100_000 if native.AVAILABLE else 30_000
 
-#: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``. The compiled loop
-#: runs in float64 too, so numpy saves its compilation (1-2 s) for a somewhat dearer step: cube30_pert (27,000
-#: hexes) 0.7 s against 2.3 s cold, 0.6 s against 0.65 s warm; cube60_pert (216,000, 50 steps) 16.4 s against
-#: 12.4 s cold, 9.9 s warm (numpy ~330 ms a step, XLA ~200-250 ms).
-UNTANGLE_HOST_MAX = 60_000
+#: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``: 250,000 with the C
+#: kernels, 60,000 without. The compiled loop runs in float64 too, so numpy saves its compilation (1-2 s).
+#: numpy kernels: cube30_pert (27,000 hexes) 0.7 s against 2.3 s cold, 0.6 s against 0.65 s warm; cube60_pert
+#: (216,000, 50 steps) 16.4 s against 12.4 s cold, 9.9 s warm (numpy ~330 ms a step, XLA ~200-250 ms). C
+#: kernels (session 6, machine loaded): cube60_pert 8.4 s against 12.3 s cold.
+UNTANGLE_HOST_MAX = 250_000 if native.AVAILABLE else 60_000
+
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
     """Whether a solver with `backend` (``"auto"``, ``"numpy"``, ``"jax"``) runs in numpy: never on a mesh with
