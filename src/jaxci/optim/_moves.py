@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
+from .._lazy import jax, jnp, when_imported
 from ..boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..mixed import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
 from ..projection import Constraints, project_nodes
@@ -82,11 +81,11 @@ class ColouredStars:
     n_edge: int
 
 
-jax.tree_util.register_dataclass(
+when_imported("jax", lambda: jax.tree_util.register_dataclass(
     ColouredStars,
     data_fields=["nodes", "mask", "star", "smask", "basis", "dims", "plane", "xnodes", "xwinv", "xweight", "xmask"],
     meta_fields=["n_interior", "n_surface", "n_edge"],
-)
+))
 
 
 def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np.ndarray:
