@@ -72,10 +72,9 @@ from __future__ import annotations
 
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
+from ._lazy import jax, jit, jnp
 from .mesh import CORNER_NEIGHBOURS, HexMesh, corner_determinants
 
 #: The linear volume cell types jaxci measures, in report order.
@@ -364,13 +363,21 @@ def pyramid_tet_dets_t(points, conn):
     return jnp.stack([_invariants(_columns(X[t], Y[t], Z[t], CORNERS["tetra"][:1]))[0][0] for t in PYRAMID_TETS])
 
 
-@jax.jit
+@jit
 def _mixed_objective(points, conns: dict):
     terms = [corner_terms_t(points, conn, cell_type) for cell_type, conn in conns.items()]
     if len(terms) == 1:
         return jnp.mean(terms[0]) - 1.0
     total = sum(jnp.sum(t) for t in terms)
     return total / sum(t.size for t in terms) - 1.0
+
+
+def objective_on_host(mesh: HexMesh) -> bool:
+    """Whether `mixed_objective` of one set of coordinates of `mesh` runs on the host (numpy / C, no JAX)."""
+    from . import native
+
+    blocks = element_blocks(mesh)
+    return sum(len(c) for t, c in blocks.items() if t != "hexahedron" or not native.AVAILABLE) <= NUMPY_OBJECTIVE_MAX
 
 
 def mixed_objective(points, mesh: HexMesh):
@@ -389,8 +396,7 @@ def mixed_objective(points, mesh: HexMesh):
     from . import native
 
     blocks = element_blocks(mesh)
-    others = sum(len(c) for t, c in blocks.items() if t != "hexahedron" or not native.AVAILABLE)
-    if np.ndim(points) == 2 and others <= NUMPY_OBJECTIVE_MAX:
+    if np.ndim(points) == 2 and objective_on_host(mesh):
         # float64 on the host: no compilation (0.13 s of a small mesh's run) for a one-off evaluation; the
         # hexahedra by the C kernel where it is built (216,000 hexes: ~15 ms), the other cells by numpy
         pts = _np_points(points)

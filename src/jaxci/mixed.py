@@ -23,12 +23,10 @@ from __future__ import annotations
 
 import dataclasses
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from . import elements as E
+from ._lazy import jax, jnp, pytree_dataclass
 from .mesh import EDGES, HexMesh
 from .topology import unique_edges
 
@@ -77,11 +75,12 @@ def has_extra(mesh: HexMesh) -> bool:
 
 
 # ---------------------------------------------------------------------------------------------- global form
-class ExtraCells(eqx.Module):
+@pytree_dataclass(static=("types",))
+class ExtraCells:
     """The non-hexahedral cells of a mesh as a pytree: `types` (static) and `conns`, one transposed int32
     connectivity ``(k, N)`` per type. Empty (``types == ()``) for a hexahedral mesh."""
 
-    types: tuple[str, ...] = eqx.field(static=True)
+    types: tuple[str, ...]
     conns: tuple
 
     @property
@@ -93,7 +92,7 @@ class ExtraCells(eqx.Module):
 def extra_cells(mesh: HexMesh) -> ExtraCells:
     """`ExtraCells` of `mesh` (empty for a hexahedral mesh)."""
     blocks = extra_blocks(mesh)
-    return ExtraCells(tuple(blocks), tuple(jnp.asarray(np.ascontiguousarray(c.T).astype(np.int32))
+    return ExtraCells(tuple(blocks), tuple(jax.device_put(np.ascontiguousarray(c.T).astype(np.int32))
                                            for c in blocks.values()))
 
 

@@ -47,16 +47,25 @@ def _on_event(event: str, **_) -> None:
 
 def compile_totals() -> dict:
     """Compilation so far in this process: seconds of ``trace``, ``lower``, ``backend`` (XLA compile or
-    persistent-cache load), ``compiled`` (backend compilations, cache loads included) and ``cache_hits``."""
+    persistent-cache load), ``compiled`` (backend compilations, cache loads included) and ``cache_hits``.
+
+    The listener is registered when JAX is imported (`jaxci._lazy.when_imported`), not by this call: a run that
+    never imports JAX compiled nothing and does not import it to say so."""
     global _registered
     if not _registered:
-        from jax import monitoring
+        from ._lazy import when_imported
 
-        monitoring.register_event_duration_secs_listener(_on_duration)
-        monitoring.register_event_listener(_on_event)
         _registered = True
+        when_imported("jax", _register)
     with _lock:
         return dict(_totals)
+
+
+def _register() -> None:
+    from jax import monitoring
+
+    monitoring.register_event_duration_secs_listener(_on_duration)
+    monitoring.register_event_listener(_on_event)
 
 
 def process_age() -> float | None:

@@ -41,11 +41,10 @@ gathers, the fast form on XLA:CPU.
 # ruff: noqa: F722  (jaxtyping shape strings such as "n 3" are not forward references)
 from __future__ import annotations
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
+import dataclasses
+from typing import TYPE_CHECKING
+
 import numpy as np
-from jaxtyping import Array, Float, Int
 from scipy.spatial import cKDTree
 
 from ._closest import (
@@ -65,15 +64,21 @@ from ._closest import (
     _triangle_table,
     candidate_rows,
 )
+from ._lazy import filter_jit, jax, jnp, pytree_dataclass
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, face_normals
 from .mesh import HexMesh
+
+if TYPE_CHECKING:
+    from jaxtyping import Array, Float, Int
 from .topology import csr_gather, incidence
 
 
-class Constraints(eqx.Module):
+@pytree_dataclass
+class Constraints:
     """The boundary constraints of a mesh as a pytree of arrays, to pass INTO jitted functions.
 
-    Built by `build_constraints`. Index arrays are int32, geometry is in the float dtype chosen there.
+    Built by `build_constraints`. Index arrays are int32, geometry is in the float dtype chosen there; the
+    arrays are JAX arrays on the default device, or numpy arrays for the numpy path (``device=False``).
 
     **Fields:**
 
@@ -170,7 +175,7 @@ def _edge_tangents(points: np.ndarray, fedges: np.ndarray, edge: np.ndarray) -> 
     return _unit_rows(_unit_rows(points[edge] - points[prev]) + _unit_rows(points[nxt] - points[edge]))
 
 
-def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None) -> Constraints:
+def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: bool = True) -> Constraints:
     """Keep a copy of the boundary of `mesh` and precompute everything the projections need.
 
     **Arguments:**
@@ -179,6 +184,8 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None) -> Const
     - `info`: its `BoundaryInfo` (from `jaxci.boundary.classify_boundary`).
     - `dtype`: float dtype of the geometry arrays; default JAX's default float (float64 under
       ``jax_enable_x64``, else float32). Keyword only argument.
+    - `device`: put the arrays on JAX's default device (default; for jitted functions, which would copy numpy
+      arrays in at every call), or keep them in numpy (the numpy path: JAX is not imported).
 
     **Returns:** a `Constraints`.
     """
@@ -208,11 +215,13 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None) -> Const
     else:
         segs, seg_curve = np.zeros((_SEG_ROWS, 1)), np.full(1, -1)
 
+    put = jax.device_put if device else (lambda a: a)
+
     def i32(a):  # converted on the host: jnp.asarray compiles a small program per shape
-        return jax.device_put(np.asarray(a, dtype=np.int32))
+        return put(np.asarray(a, dtype=np.int32))
 
     def f(a):
-        return jax.device_put(np.asarray(a, dtype=np.dtype(dtype)))
+        return put(np.asarray(a, dtype=np.dtype(dtype)))
 
     return Constraints(
         x_orig=f(pts),
@@ -237,7 +246,7 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None) -> Const
 # ---------------------------------------------------------------------------------------------------- JAX
 
 
-@eqx.filter_jit
+@filter_jit
 def project(constraints: Constraints, points: Float[Array, "*batch n 3"]) -> Float[Array, "*batch n 3"]:
     """Project every node onto the original boundary (JAX; jit-able and differentiable).
 
@@ -368,16 +377,16 @@ def host_constraints(c: Constraints) -> tuple[Constraints, tuple]:
             a = np.asarray(a)
             return a.astype(np.float64) if np.issubdtype(a.dtype, np.floating) else a
 
-        h = jax.tree.map(conv, c)
+        h = dataclasses.replace(c, **{f.name: conv(getattr(c, f.name)) for f in dataclasses.fields(c)})
         ns, ne = h.surface_nodes.shape[0], h.edge_nodes.shape[0]
         rows = (candidate_rows(h.triangles, h.surface_cand[:ns]) if ns else None,
                 candidate_rows(h.segments, h.edge_cand[:ne]) if ne else None)
         cached = (h, rows)
-        object.__setattr__(c, "_host_cache", cached)  # eqx.Module is frozen; a cache is not a field
+        object.__setattr__(c, "_host_cache", cached)  # a frozen dataclass; a cache is not a field
     return cached
 
 
-@eqx.filter_jit
+@filter_jit
 def project_nodes(
     constraints: Constraints, node_idx: Int[Array, " m"], points: Float[Array, "*batch m 3"]
 ) -> Float[Array, "*batch m 3"]:
@@ -485,7 +494,7 @@ def _split(constraints: Constraints, u):
     )
 
 
-@eqx.filter_jit
+@filter_jit
 def params_to_points(
     constraints: Constraints, u: Float[Array, "*batch n_free"], x0: Float[Array, "*batch n 3"]
 ) -> Float[Array, "*batch n 3"]:
@@ -514,7 +523,7 @@ def params_to_points(
     return project(c, x)
 
 
-@eqx.filter_jit
+@filter_jit
 def points_to_params(
     constraints: Constraints, points: Float[Array, "*batch n 3"], x0: Float[Array, "*batch n 3"]
 ) -> Float[Array, "*batch n_free"]:

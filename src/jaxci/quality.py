@@ -31,10 +31,9 @@ import dataclasses
 import functools
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
+from ._lazy import is_jax_array, jax, jit, jnp
 from .errors import MeshError
 from .mesh import CORNER_NEIGHBOURS, HexMesh, as_hex_mesh, to_unit, unit_frame
 
@@ -68,7 +67,7 @@ def gather_corners(points, conn, xp=jnp):
 
 def transposed(hexes):
     """``(N, 8)`` hexahedra -> the ``(8, N)`` contiguous layout the kernels take (int32 unless x64 is on)."""
-    if isinstance(hexes, jax.Array):
+    if is_jax_array(hexes):
         return hexes.T
     # converted on the host and device_put: jnp.asarray of a numpy array compiles a small program per shape
     a = np.asarray(hexes)
@@ -128,7 +127,7 @@ def _batched(fn):
     return wrapper
 
 
-@jax.jit
+@jit
 @_batched
 def _corner_kernel(points, conn):
     cols = corner_columns(*gather_corners(points, conn))
@@ -187,7 +186,7 @@ def corner_condition(points, hexes, metric: str = "frobenius"):
     return _reference_condition(pts, jnp.asarray(hexes), metric == "2-norm")
 
 
-@functools.partial(jax.jit, static_argnums=2)
+@jit(static_argnums=2)
 def _reference_condition(points, hexes, two_norm: bool):
     a = corner_matrices(points, hexes)
     det = jnp.linalg.det(a)
@@ -201,7 +200,7 @@ def corner_scaled_jacobian(points, hexes):
     return jnp.where(l2 > 0, det / jnp.sqrt(jnp.where(l2 > 0, l2, 1.0)), 0.0)
 
 
-@jax.jit
+@jit
 @_batched
 def _centre_scaled_jacobian(points, conn):
     X, Y, Z = gather_corners(points, conn)
@@ -237,7 +236,7 @@ def element_mean_condition(points, hexes, metric: str = "frobenius"):
     return corner_condition(points, hexes, metric).mean(axis=-1)
 
 
-@jax.jit
+@jit
 @_batched
 def objective_t(points, conn):
     """`objective` on the transposed connectivity `conn` of shape ``(8, N)`` (jitted; what optimizers call)."""
@@ -503,7 +502,7 @@ def _terms_and_grad(xp, points, conn, weight, power=None):
     idet = xp.where(valid, 1.0 / xp.where(valid, det, 1.0), 0.0)
     idet2 = idet * idet
     term = xp.where(valid, fro2 * adj2 * idet2 * (1.0 / 9.0), xp.inf)
-    if xp is jnp:
+    if xp is not np:
         term = jax.lax.optimization_barrier(term)
     # the mean of term - 1 (small numbers near the optimum), not mean(term) - 1: in float32 over 8 M corners the
     # rounding of a sum of values near 1 swamped the decrease of F that the line search tests

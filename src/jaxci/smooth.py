@@ -16,16 +16,16 @@ goes through the untangling stage first where one is available, otherwise `Inver
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import numbers
 import time
 from collections.abc import Sequence
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from . import mixed
+from ._lazy import enable_x64, jax, jnp
 from .boundary import BoundaryInfo, classify_boundary
 from .elements import checked_objective
 from .errors import ConfigError, InvertedMeshError, MeshError
@@ -118,13 +118,15 @@ class Problem:
 
 
 def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.0, fix_boundary: bool = False,
-                  fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = ()) -> Problem:
+                  fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = (),
+                  device: bool = True) -> Problem:
     """Classify the boundary, build the constraints and the colouring of `mesh` (call inside the dtype context).
 
-    On a mixed mesh no two nodes of one colour share a cell of any type."""
+    On a mixed mesh no two nodes of one colour share a cell of any type. `device`: the arrays on JAX's default
+    device (default), or in numpy for a method that runs on the host (`host_run`: JAX is not imported)."""
     info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary, fixed_nodes=fixed_nodes,
                              fixed_sets=tuple(fixed_sets))
-    cons = build_constraints(mesh, info, dtype=dtype)
+    cons = build_constraints(mesh, info, dtype=dtype, device=device)
     extra = table = None
     if mixed.has_extra(mesh):
         cells = list(mixed.volume_cells(mesh).values())
@@ -132,9 +134,21 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
         extra, table = mixed.extra_cells(mesh), mixed.corner_table(mesh)
     else:
         colour = colour_nodes(mesh.hexes, mesh.n_nodes).colour
-    return Problem(mesh, info, cons, np.asarray(colour), transposed(mesh.hexes),
-                   jax.device_put(np.asarray(mesh.points, dtype)),
-                   dtype, extra, table)
+    put = jax.device_put if device else (lambda a: a)
+    conn = transposed(mesh.hexes) if device else np.ascontiguousarray(np.asarray(mesh.hexes).T)
+    return Problem(mesh, info, cons, np.asarray(colour), conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table)
+
+
+def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
+    """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
+    `jaxci.native`): L-BFGS without presmoothing on a hexahedral mesh that `jaxci.optim.host.runs_on_host`
+    takes, its reports and checks in numpy. JAX is then never imported (0.4-0.5 s of a small mesh's run)."""
+    from .elements import objective_on_host
+    from .quality import NUMPY_REPORT_MAX
+
+    return (method == "lbfgs" and not int(params.get("presmooth", 0)) and not mixed.has_extra(mesh)
+            and runs_on_host(params.get("backend", "auto"), mesh.n_hexes, HOST_MAX)
+            and mesh.n_hexes <= NUMPY_REPORT_MAX and objective_on_host(mesh))
 
 
 def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
@@ -343,7 +357,8 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                  untangle, untangle_params, params, notes, clock, keep_worst) -> tuple[np.ndarray, SmoothResult]:
     """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
     and wall time are filled in by `smooth`; `notes` is appended to, `clock` records the phases)."""
-    with clock.phase("report"), jax.enable_x64(True):
+    host = host_run(mesh, method, params)
+    with clock.phase("report"), enable_x64(not host):
         before = quality_report(mesh)
     untangled = None
     tangled = bool(before.inverted_corners) or bool(before.overall and before.overall["inverted"])
@@ -380,7 +395,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                                                        progress=lambda text: clock.progress("untangle", text))
         notes.extend(untangle_notes)
         if partial:
-            with clock.phase("checks"), jax.enable_x64(True):
+            with clock.phase("checks"), enable_x64(not host):
                 left = quality_report(mesh, untangled)
             if left.inverted_elements or left.inverted_corners:  # no shape improvement on a tangled mesh
                 return np.asarray(untangled, dtype=np.float64), SmoothResult(
@@ -388,12 +403,13 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                     iterations=0, wall_time=0.0, method=method, params={"untangle": "partial"}, before=before,
                     after=left, boundary=info.counts, node_class=np.asarray(info.node_class))
     np_dtype = _DTYPES[dtype]
-    with jax.enable_x64(dtype == "float64"):
+    with (contextlib.nullcontext() if host else jax.enable_x64(dtype == "float64")):
         with clock.phase("setup"):
             problem = build_problem(mesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
-                                    fixed_nodes=fixed_nodes, fixed_sets=fixed_sets)
+                                    fixed_nodes=fixed_nodes, fixed_sets=fixed_sets, device=not host)
             if untangled is not None:
-                problem = dataclasses.replace(problem, x0=jax.device_put(np.asarray(untangled, np_dtype)))
+                start = np.asarray(untangled, np_dtype)
+                problem = dataclasses.replace(problem, x0=start if host else jax.device_put(start))
         if n_free(problem.cons) == 0:  # every node fixed: no method can change anything
             notes.extend(problem.info.notes)
             notes.append(f"no node can move (all {mesh.n_nodes} nodes are fixed: boundary corners, fixed sets or "
@@ -414,7 +430,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         if run >= int(resolved[cap]):
             notes.append(f"{method} stopped at its cap of {resolved[cap]} iterations ({cap}) before it converged; "
                          f"--param {cap}=N lets it go further")
-    with clock.phase("checks"), jax.enable_x64(True):
+    with clock.phase("checks"), enable_x64(not host):
         power = float(resolved["p"]) if resolved.get("objective") == "pmean" else None
         if untangled is None:
             points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before, power)
@@ -503,7 +519,7 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_wor
     (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell type (`jaxci.elements.inverted`;
     of `jaxci.elements.mixed_objective`, or of the p-mean `jaxci.quality.pmean_objective` with `power`: the
     objective the method minimised)."""
-    cons64 = build_constraints(mesh, problem.info, dtype=np.float64)
+    cons64 = build_constraints(mesh, problem.info, dtype=np.float64, device=False)
     x = project_np(cons64, x)
     new = mixed.newly_inverted(mesh, mesh.points, x)
     objective = checked_objective(mesh, power)

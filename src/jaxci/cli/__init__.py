@@ -66,6 +66,16 @@ def _runtime_line() -> str:
     return f"jax {jax.__version__}; huge pages for glibc allocations {pages} (jaxci.runtime)"
 
 
+class _Version(argparse.Action):
+    """``--version``: the line is made when asked for (it imports JAX, which a run on the numpy path never does)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from .. import __version__
+
+        print(f"jaxci {__version__} ({_runtime_line()})")
+        parser.exit(0)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its usage errors as ONE line on stderr (``jaxci: error: ...``, exit 2), like every other
     error of the command; the usage is one ``--help`` away."""
@@ -75,10 +85,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .. import __version__
-
     parser = _Parser(prog="jaxci", description="Hexahedral mesh quality and smoothing in JAX.")
-    parser.add_argument("--version", action="version", version=f"jaxci {__version__} ({_runtime_line()})")
+    parser.add_argument("--version", action=_Version, nargs=0, help="show the version (and JAX's) and exit")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (mod, help_) in COMMANDS.items():

@@ -19,8 +19,9 @@ compiles a small ``jit(stage)`` program per shape and dtype in jax 0.10 (measure
 
 from __future__ import annotations
 
-import jax
 import numpy as np
+
+from .._lazy import jax
 
 #: The smallest size of the ladder.
 MIN_BUCKET = 8

@@ -16,12 +16,12 @@ cell types (rare) are differentiated by JAX.
 
 from __future__ import annotations
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
+import functools
+
 import numpy as np
 
 from .. import elements as E
+from .._lazy import filter_jit, jax, jnp
 from ..mesh import CORNER_NEIGHBOURS
 from ._params import MAX_REJECTED_UNCAPPED
 
@@ -93,7 +93,7 @@ def hex_kernel(x, table, inv_len, eps, theta, grad: bool, xp=jnp):
     c23 = ich ** (2.0 / 3.0)
     shape = (1.0 - theta) * (fro2 / 3.0) * c23
     volume = theta * (det * det + 1.0) * ich
-    barrier = jax.lax.optimization_barrier if xp is jnp else (lambda t: t)
+    barrier = jax.lax.optimization_barrier if xp is not np else (lambda t: t)
     energy = xp.sum(barrier(shape + volume)) / CORNERS_PER_NODE
     dmin = xp.min(barrier(det), initial=xp.inf)
     if not grad:
@@ -114,19 +114,28 @@ def hex_kernel(x, table, inv_len, eps, theta, grad: bool, xp=jnp):
     return energy, dmin, xp.stack(grads, axis=1)
 
 
-@jax.custom_jvp
 def hex_energy(x, table, inv_len, eps, theta):
     """The hexahedra's energy (sum of the corner energies / 32) and min det J, at coordinates `x` ``(n, 3)``;
     `table` the `corner_table` ``(4, C)``, `inv_len` ``(C,)`` one over each corner's element reference length.
-    Differentiable in `x` only (closed form: one kernel for the value and the gradient)."""
-    return hex_kernel(x, table, inv_len, eps, theta, False)[:2]
+    Differentiable in `x` only (closed form: one kernel for the value and the gradient: a `jax.custom_jvp`)."""
+    return _hex_energy()(x, table, inv_len, eps, theta)
 
 
-@hex_energy.defjvp
-def _hex_energy_jvp(primals, tangents):
-    x, table, inv_len, eps, theta = primals
-    energy, dmin, g = hex_kernel(x, table, inv_len, eps, theta, True)
-    return (energy, dmin), (jnp.sum(g * tangents[0]), jnp.zeros_like(dmin))
+@functools.cache
+def _hex_energy():
+    """`hex_energy` as a `jax.custom_jvp`, built on first use (importing this module imports no JAX)."""
+
+    @jax.custom_jvp
+    def energy(x, table, inv_len, eps, theta):
+        return hex_kernel(x, table, inv_len, eps, theta, False)[:2]
+
+    @energy.defjvp
+    def _jvp(primals, tangents):
+        x, table, inv_len, eps, theta = primals
+        e, dmin, g = hex_kernel(x, table, inv_len, eps, theta, True)
+        return (e, dmin), (jnp.sum(g * tangents[0]), jnp.zeros_like(dmin))
+
+    return energy
 
 
 def _extra_energy(x, extra, inv_lens, eps, theta):
@@ -198,7 +207,7 @@ def _direction(g, S, Y, rho, head, n_mem):
     return -r
 
 
-@eqx.filter_jit
+@filter_jit
 def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol, atol, state=None,
                     flat_reach=FLAT_REACH, *, history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED):
     """Every round of the untangling stage in one compiled loop of single energy-and-gradient evaluations.

@@ -74,10 +74,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
+from .._lazy import jax, jnp
 from ..errors import ConfigError
 from ..mixed import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
 from ..projection import project_np
@@ -233,20 +232,27 @@ def _corner_terms(x, conn):
     return squared_condition_from_invariants(*corner_invariants(*corner_columns(*gather_corners(x, conn))))
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def _objective_closed(points, conn, weight, power=None):
     """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent).
     `weight`: None, or ``(N,)`` element weights (0: a padding element, `objective_terms_and_grad`); `power`
-    (static): None for F, p for the p-mean (`jaxci.quality.pmean_objective`)."""
-    return objective_terms_and_grad(points, conn, weight, power)[:2]
+    (static): None for F, p for the p-mean (`jaxci.quality.pmean_objective`). A `jax.custom_jvp` built on first
+    use (importing this module imports no JAX)."""
+    return _objective_closed_jvp()(points, conn, weight, power)
 
 
-@_objective_closed.defjvp
-def _objective_closed_jvp(power, primals, tangents):
-    points, conn, weight = primals
-    dx = tangents[0]
-    f, k, g = objective_terms_and_grad(points, conn, weight, power)
-    return (f, k), (jnp.sum(g * dx), jnp.zeros_like(k))
+@functools.cache
+def _objective_closed_jvp():
+    @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+    def objective(points, conn, weight, power=None):
+        return objective_terms_and_grad(points, conn, weight, power)[:2]
+
+    @objective.defjvp
+    def _jvp(power, primals, tangents):
+        points, conn, weight = primals
+        f, k, g = objective_terms_and_grad(points, conn, weight, power)
+        return (f, k), (jnp.sum(g * tangents[0]), jnp.zeros_like(k))
+
+    return objective
 
 
 def _objective(x, conn, closed: bool, extra=None, weight=None, power=None):
@@ -346,7 +352,7 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
     extra = no_extra() if extra is None else extra
     n_hex = conn.shape[1] if n_hex is None else n_hex
     dtype = par.x0.dtype
-    s = to_device(np.asarray((8.0 * n_hex + extra.n_corners) / _CORNERS_PER_NODE), dtype)
+    s = to_device(np.asarray(_scale(n_hex, extra)), dtype)
     if method in LEAST_SQUARES:
         fn = _lsq_fn_excess if p.residual == "excess" else _lsq_fn
     else:
@@ -355,6 +361,11 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
     if p.objective == "pmean":  # a static float (filter_jit): one compilation per power
         args = (*args, float(p.p))
     return fn, args
+
+
+def _scale(n_hex: int, extra) -> float:
+    """s of `solver_args`: the objective the solvers minimise is ``s F`` (a per-node sum, as in the paper)."""
+    return (8.0 * n_hex + extra.n_corners) / _CORNERS_PER_NODE
 
 
 def use_host(method: str, p: GradientParams, n_hex: int, extra=None) -> bool:
@@ -444,14 +455,14 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     host_fn = None
     while runs < max_runs:
         cur = dataclasses.replace(run_par, strict=True) if strict else run_par
-        fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
         if on_host:  # one objective for every run: its projector remembers each node's triangle
-            host_fn = host_fn or HostObjective(run_par, np.asarray(conn), float(np.asarray(args[2])),
+            host_fn = host_fn or HostObjective(run_par, np.asarray(conn), _scale(n_hex, extra),
                                                power=p.p if p.objective == "pmean" else None)
             y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol)
         else:
+            fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
             y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
         k = int(k)
@@ -478,7 +489,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         if runs >= 2 and not gain > p.restart_tol * abs(f0):
             break
     if on_host and host_fn.best is not None and np.array_equal(host_fn.best[0], y):
-        x = to_device(host_fn.best[1], par.x0.dtype)  # the points of the best iterate as evaluated (on the boundary)
+        x = np.asarray(host_fn.best[1], par.x0.dtype)  # the points of the best iterate as evaluated (on the boundary)
     else:
         x = par.final_points(real(y))
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),

@@ -12,19 +12,18 @@ Setup is vectorised numpy (measured at 60^3 = 216,000 elements on this 2-core CP
 
 from __future__ import annotations
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .. import mixed
+from .._lazy import is_jax_array, jax, jnp, pytree_dataclass
 from ..boundary import BoundaryInfo
 from ..mesh import CORNER_NEIGHBOURS
 from ..projection import Constraints, n_free, project, project_np
 from ._buckets import bucket, free_index, free_layout, pad_constraints, pad_rows, to_device
 
 
-class Parametrisation(eqx.Module):
+@pytree_dataclass(static=("shortcut", "strict"))
+class Parametrisation:
     """Node coordinates from scaled free coordinates ``v``: ``project(cons, x0 + B (scale * v))``.
 
     Built by `make_parametrisation`; a pytree (pass it INTO jitted functions).
@@ -48,8 +47,8 @@ class Parametrisation(eqx.Module):
     flat_nodes: jax.Array
     flat_origin: jax.Array
     flat_radius: jax.Array
-    shortcut: bool = eqx.field(static=True)
-    strict: bool = eqx.field(static=True, default=False)
+    shortcut: bool
+    strict: bool = False
 
     @property
     def n_free(self) -> int:
@@ -285,13 +284,15 @@ def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *
         k = len(surf)
         radius[k:] = np.where(perp <= tol[k:], radius[k:], 0.0)
     shortcut = bool(len(nodes)) and bool(np.all(radius > 0))
-    # to_device: no compilation per shape (jnp.asarray of a numpy array compiles a small program for each)
+    # to_device: no compilation per shape (jnp.asarray of a numpy array compiles a small program for each); numpy
+    # constraints (the numpy path, `build_constraints(device=False)`) give a numpy parametrisation
+    put = to_device if is_jax_array(c.x_orig) else (lambda a, dt: np.asarray(a, dtype=np.dtype(dt)))
     return Parametrisation(
         cons=c,
-        x0=to_device(base, dtype),
-        scale=to_device(scale, dtype),
-        flat_nodes=to_device(nodes, np.int32),
-        flat_origin=to_device(origin, dtype),
-        flat_radius=to_device(radius, dtype),
+        x0=put(base, dtype),
+        scale=put(scale, dtype),
+        flat_nodes=put(nodes, np.int32),
+        flat_origin=put(origin, dtype),
+        flat_radius=put(radius, dtype),
         shortcut=shortcut,
     )

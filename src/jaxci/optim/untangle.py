@@ -47,16 +47,15 @@ from __future__ import annotations
 import dataclasses
 import time
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .. import elements as E
+from .._lazy import enable_x64, is_jax_array, jax
 from ..boundary import CORNER, BoundaryInfo
 from ..errors import InvertedMeshError
 from ..mesh import EDGES, HexMesh, corner_determinants
 from ..mixed import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
-from ..projection import Constraints, project_np
+from ..projection import Constraints, n_free, project_np
 from . import _params as _p
 from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
 from .host import UNTANGLE_HOST_MAX, runs_on_host, untangle_rounds_np
@@ -151,13 +150,10 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     hexes = mesh.hexes
     lens = _safe_lengths(element_lengths(mesh.points, hexes))
     blocks = extra_blocks(mesh)
-    extra = extra_cells(mesh) if blocks else no_extra()
-    # numpy in, device_put: jnp.asarray of a numpy array compiles a small 'stage' program per shape (jax 0.10)
-    table = jax.device_put(corner_table(hexes))
-    inv_len = jax.device_put(np.tile(1.0 / lens, 8))
-    inv_lens = tuple(jax.device_put((1.0 / _safe_lengths(element_lengths(mesh.points, c, t)))[None, :])
-                     for t, c in blocks.items())
-    par: Parametrisation = make_parametrisation(mesh, info, cons, scaled=True, dtype=jnp.float64)
+    on_host = bool(n_free(cons)) and runs_on_host(p.backend, len(hexes), UNTANGLE_HOST_MAX, bool(blocks))
+    if not on_host and not is_jax_array(cons.x_orig):  # numpy constraints (device=False) for the compiled loop
+        cons = jax.device_put(cons)
+    par: Parametrisation = make_parametrisation(mesh, info, cons, scaled=True, dtype=np.float64)
     if not len(par.flat_nodes):  # no boundary node moves: the points are the lift, nothing to project
         par = dataclasses.replace(par, shortcut=True)
     nf = par.n_free
@@ -166,7 +162,6 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     rounds = steps = 0
     hist = [np.zeros(0)] * 3
     runs = []
-    on_host = bool(nf) and runs_on_host(p.backend, len(hexes), UNTANGLE_HOST_MAX, bool(blocks))
     x = None
     if on_host:
         def report(r, dmin, eps, e):
@@ -182,6 +177,12 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
         hist = [st["h_eps"], st["h_dmin"], st["h_e"]]
         runs.append(("numpy", rounds, steps))
     elif nf:
+        extra = extra_cells(mesh) if blocks else no_extra()
+        # numpy in, device_put: jnp.asarray of a numpy array compiles a small 'stage' program per shape (jax 0.10)
+        table = jax.device_put(corner_table(hexes))
+        inv_len = jax.device_put(np.tile(1.0 / lens, 8))
+        inv_lens = tuple(jax.device_put((1.0 / _safe_lengths(element_lengths(mesh.points, c, t)))[None, :])
+                         for t, c in blocks.items())
         # strict first where every moving boundary node has a flat region: no projection compiled (a trial that
         # leaves a region is rejected); after a round that ends with a node near the edge of its region, the
         # rounds go on with the projection
@@ -241,8 +242,9 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
     inv0 = np.concatenate(list(inverted_cells(mesh, mesh.points).values()))
     n_corners0 = int((det0 <= 0).sum()) + sum(int((E.corner_determinant(mesh.points, c, t) <= 0).sum())
                                                for t, c in extra_blocks(mesh).items())
-    with jax.enable_x64(True):
-        cons = build_constraints(mesh, info, dtype=jnp.float64)
+    host = on_host(mesh, p)
+    with enable_x64(not host):
+        cons = build_constraints(mesh, info, dtype=np.float64, device=not host)
         x, rep = untangle(mesh, info, cons, p, progress=progress)
     budget = (f" (its time budget of {p.time_budget:g} s ran out)" if rep.get("out_of_time") else "")
     if not rep["untangled"] and partial:
@@ -280,6 +282,11 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
     return x, [note]
 
 
+def on_host(mesh: HexMesh, p: UntangleParams) -> bool:
+    """Whether the untangling stage of `mesh` with `p` runs in numpy (`jaxci.optim.host.untangle_rounds_np`)."""
+    return runs_on_host(p.backend, mesh.n_hexes, UNTANGLE_HOST_MAX, bool(extra_blocks(mesh)))
+
+
 def _elements(k: int) -> str:
     return f"{k} element is" if k == 1 else f"{k} elements are"
 
@@ -296,8 +303,8 @@ def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.nd
     """
     from ..projection import build_constraints
 
-    with jax.enable_x64(True):
-        cons = build_constraints(mesh, info, dtype=jnp.float64)
+    with enable_x64(not E.objective_on_host(mesh)):
+        cons = build_constraints(mesh, info, dtype=np.float64, device=False)
         x = project_np(cons, x)
         inv = int(sum(b.sum() for b in inverted_cells(mesh, x).values()))
         objective = E.checked_objective(mesh, power)  # F, or the p-mean the method minimised (`power`)
