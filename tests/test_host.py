@@ -148,6 +148,27 @@ def test_cli_small_mesh_compiles_nothing(tmp_path):
     assert doc["after"]["max_condition"] <= 1.0001 and doc["after"]["inverted_elements"] == 0
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("command", ["smooth", "quality"])
+def test_cli_small_mesh_never_imports_jax(tmp_path, command):
+    """`jaxci smooth` / `jaxci quality` of a tangled 1000-hex mesh run in numpy and C: JAX (0.4-0.5 s of import)
+    is never imported, nor equinox, optimistix or jaxtyping."""
+    from jaxci.io import write_mesh
+
+    mesh = perturb_box(10, amplitude=0.3, seed=1)
+    x = np.array(mesh.points)
+    x[mesh.hexes[555, 0]] = x[mesh.hexes[555, 6]] + 0.02  # an interior node past its cell: the untangling runs too
+    write_mesh(mesh.with_points(x), str(tmp_path / "in.vtk"))
+    args = [command, str(tmp_path / "in.vtk")] + ([str(tmp_path / "out.vtk")] if command == "smooth" else [])
+    code = (f"import sys; from jaxci.cli import main; rc = main({args!r}); "
+            "print(rc, sorted(m for m in ('jax', 'equinox', 'optimistix', 'jaxtyping') if m in sys.modules))")
+    env = dict(os.environ, JAXCI_CACHE_DIR=str(tmp_path / "cache"))
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert p.stdout.strip().splitlines()[-1] == "0 []", p.stdout + p.stderr
+    if command == "smooth":
+        assert "untangl" in p.stdout
+
+
 def test_a_mesh_whose_nodes_are_all_fixed_returns_at_once_with_a_note():
     """A single hexahedron (every node a boundary corner): nothing can move, so no method runs and nothing
     compiles (it used to compile 45 small programs in the solver's set-up)."""
