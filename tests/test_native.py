@@ -102,3 +102,30 @@ def test_threads_give_the_single_threaded_result(threads):
     e2, d2 = c.untangle_energy(x, table, inv_len, 0.1, 0.3, u2, threads)
     assert e2 == pytest.approx(e1, rel=1e-13) and d2 == d1
     np.testing.assert_allclose(u2, u1, rtol=1e-12, atol=1e-14 * np.abs(u1).max())
+
+
+def test_mixed_kernel_is_the_gradient_of_the_mixed_objective():
+    """Hexahedra, wedges, pyramids and tetrahedra: the C kernel's F is `jaxci.elements.mixed_objective` and its
+    gradient JAX's derivative of it; a pyramid whose sub-tetrahedron inverts makes F infinite."""
+    import jax
+    import jax.numpy as jnp
+    from test_mixed_smoothing import all_types_box
+
+    from jaxci.elements import _mixed_objective, element_blocks, mixed_objective
+
+    mesh = all_types_box()
+    blocks = element_blocks(mesh)
+    assert set(blocks) == {"hexahedron", "wedge", "pyramid", "tetra"}
+    kernel = native.MixedKernel(blocks)
+    x = np.asarray(mesh.points, np.float64)
+    f, k, g = kernel(x)
+    assert f == pytest.approx(float(mixed_objective(x, mesh)), rel=1e-12)
+    with jax.enable_x64(True):
+        conns = {t: jnp.asarray(np.ascontiguousarray(c.T)) for t, c in blocks.items()}
+        gj = np.asarray(jax.grad(lambda p: _mixed_objective(p, conns))(jnp.asarray(x)))
+    np.testing.assert_allclose(g, gj, rtol=1e-9, atol=1e-12 * np.abs(gj).max())
+    apex = blocks["pyramid"][0, 4]
+    base = blocks["pyramid"][0, :4]
+    y = x.copy()
+    y[apex] = x[base].mean(axis=0) - 0.5 * (x[apex] - x[base].mean(axis=0))  # the apex through its base
+    assert kernel(y)[0] == np.inf

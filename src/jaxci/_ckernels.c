@@ -42,6 +42,37 @@ static inline void cross(const double *x, const double *y, double *out) {
     out[2] = x[0] * y[1] - x[1] * y[0];
 }
 
+/* One corner with columns a, b, c: its term (kappa/3)^2 = |A|^2 |adj A|^2 / (9 det^2) in *term, and with
+ * w2 != 0, w2 (9/2) d term / d(a, b, c) in ga, gb, gc (jaxci.quality._terms_and_grad's p, q, r). Returns 0
+ * (nothing written but *term = inf) where det <= 0. */
+static inline int corner_term(const double *a, const double *b, const double *c, double w2, double *term,
+                              double *ga, double *gb, double *gc) {
+    double u[3], v[3], w[3];
+    cross(b, c, u); cross(c, a, v); cross(a, b, w);
+    double det = a[0] * u[0] + a[1] * u[1] + a[2] * u[2];
+    if (!(det > 0.0)) {
+        *term = INFINITY;
+        return 0;
+    }
+    double fro2 = 0.0, adj2 = 0.0;
+    for (int d = 0; d < 3; d++) {
+        fro2 += a[d] * a[d] + b[d] * b[d] + c[d] * c[d];
+        adj2 += u[d] * u[d] + v[d] * v[d] + w[d] * w[d];
+    }
+    double idet = 1.0 / det, idet2 = idet * idet;
+    *term = fro2 * adj2 * idet2 * (1.0 / 9.0);
+    if (w2 == 0.0) return 1;
+    double p = w2 * adj2 * idet2, q = w2 * fro2 * idet2, r = p * fro2 * idet;
+    double vxc[3], bxw[3], cxu[3], wxa[3], uxb[3], axv[3];
+    cross(v, c, vxc); cross(b, w, bxw); cross(c, u, cxu); cross(w, a, wxa); cross(u, b, uxb); cross(a, v, axv);
+    for (int d = 0; d < 3; d++) {
+        ga[d] = p * a[d] + q * (vxc[d] + bxw[d]) - r * u[d];
+        gb[d] = p * b[d] + q * (cxu[d] + wxa[d]) - r * v[d];
+        gc[d] = p * c[d] + q * (uxb[d] + axv[d]) - r * w[d];
+    }
+    return 1;
+}
+
 /* Up to MAX_THREADS POSIX threads per call, each over its own range of elements with its own gradient buffer
  * (summed into the caller's at the end: no two threads write one node). A call over fewer than
  * MIN_PER_THREAD elements per thread runs in the calling thread (creating a thread costs ~50 us). */
@@ -115,43 +146,27 @@ static void *hex_worker(void *arg) {
             for (int d = 0; d < 3; d++) { X[k][d] = P[3 * h[k] + d]; g[k][d] = 0.0; }
         }
         for (int i = 0; i < 8; i++) {
-            double a[3], b[3], c[3], u[3], v[3], w[3];
+            double a[3], b[3], c[3], ga[3], gb[3], gc[3], term;
             for (int d = 0; d < 3; d++) {
                 a[d] = X[NB[i][0]][d] - X[i][d];
                 b[d] = X[NB[i][1]][d] - X[i][d];
                 c[d] = X[NB[i][2]][d] - X[i][d];
             }
-            cross(b, c, u); cross(c, a, v); cross(a, b, w);
-            double det = a[0] * u[0] + a[1] * u[1] + a[2] * u[2];
-            double fro2 = 0.0, adj2 = 0.0;
-            for (int d = 0; d < 3; d++) {
-                fro2 += a[d] * a[d] + b[d] * b[d] + c[d] * c[d];
-                adj2 += u[d] * u[d] + v[d] * v[d] + w[d] * w[d];
-            }
-            if (!(det > 0.0)) {
+            double w2 = G ? (CW ? weight * CW[i * N + e] : weight) : 0.0;
+            int ok = corner_term(a, b, c, w2, &term, ga, gb, gc);
+            if (T) T[i * N + e] = term;
+            if (!ok) {
                 invalid++;
-                if (T) T[i * N + e] = INFINITY;
                 continue;
             }
-            double idet = 1.0 / det, idet2 = idet * idet;
-            double term = fro2 * adj2 * idet2 * (1.0 / 9.0);
-            if (T) T[i * N + e] = term;
             sum += term - 1.0;
             if (term > tmax) tmax = term;
-            if (!G) continue;
-            double w2 = CW ? weight * CW[i * N + e] : weight;
             if (w2 == 0.0) continue;
-            double p = w2 * adj2 * idet2, q = w2 * fro2 * idet2, r = p * fro2 * idet;
-            double vxc[3], bxw[3], cxu[3], wxa[3], uxb[3], axv[3];
-            cross(v, c, vxc); cross(b, w, bxw); cross(c, u, cxu); cross(w, a, wxa); cross(u, b, uxb); cross(a, v, axv);
             for (int d = 0; d < 3; d++) {
-                double ga = p * a[d] + q * (vxc[d] + bxw[d]) - r * u[d];
-                double gb = p * b[d] + q * (cxu[d] + wxa[d]) - r * v[d];
-                double gc = p * c[d] + q * (uxb[d] + axv[d]) - r * w[d];
-                g[NB[i][0]][d] += ga;
-                g[NB[i][1]][d] += gb;
-                g[NB[i][2]][d] += gc;
-                g[i][d] -= ga + gb + gc;
+                g[NB[i][0]][d] += ga[d];
+                g[NB[i][1]][d] += gb[d];
+                g[NB[i][2]][d] += gc[d];
+                g[i][d] -= ga[d] + gb[d] + gc[d];
             }
         }
         if (G)
@@ -224,6 +239,113 @@ fail_grad:
     if (have_grad) PyBuffer_Release(&grad);
 fail_hex:
     PyBuffer_Release(&hex);
+fail_pts:
+    PyBuffer_Release(&pts);
+    return NULL;
+}
+
+typedef struct {
+    const double *P, *WI;
+    const long long *T;
+    double *TE, *G;
+    Py_ssize_t C, lo, hi;
+    double weight, sum, tmax;
+    long long invalid;
+} CornerJob;
+
+/* Corners [lo, hi) of corner_condition; the gradient into the job's own G (NULL: none). */
+static void *corner_worker(void *arg) {
+    CornerJob *j = arg;
+    const double *P = j->P, *WI = j->WI;
+    const long long *T = j->T;
+    double *TE = j->TE, *G = j->G, w2 = G ? j->weight : 0.0, sum = 0.0, tmax = 0.0;
+    Py_ssize_t C = j->C;
+    long long invalid = 0;
+    for (Py_ssize_t k = j->lo; k < j->hi; k++) {
+        long long i[4] = {T[k], T[C + k], T[2 * C + k], T[3 * C + k]};
+        double e[3][3], J[3][3], g[3][3], term;
+        for (int m = 0; m < 3; m++)
+            for (int d = 0; d < 3; d++) e[m][d] = P[3 * i[m + 1] + d] - P[3 * i[0] + d];
+        for (int c = 0; c < 3; c++)  /* column c of J = A W^-1: sum_m (column m of A) W^-1[m][c] */
+            for (int d = 0; d < 3; d++) J[c][d] = e[0][d] * WI[c] + e[1][d] * WI[3 + c] + e[2][d] * WI[6 + c];
+        int ok = corner_term(J[0], J[1], J[2], w2, &term, g[0], g[1], g[2]);
+        if (TE) TE[k] = term;
+        if (!ok) {
+            invalid++;
+            continue;
+        }
+        sum += term - 1.0;
+        if (term > tmax) tmax = term;
+        if (w2 == 0.0) continue;
+        for (int m = 0; m < 3; m++)  /* d/d(column m of A) = sum_c d/d(column c of J) W^-1[m][c] */
+            for (int d = 0; d < 3; d++) {
+                double gm = g[0][d] * WI[3 * m] + g[1][d] * WI[3 * m + 1] + g[2][d] * WI[3 * m + 2];
+                G[3 * i[m + 1] + d] += gm;
+                G[3 * i[0] + d] -= gm;
+            }
+    }
+    j->sum = sum;
+    j->tmax = tmax;
+    j->invalid = invalid;
+    return NULL;
+}
+
+/* corner_condition(points (n, 3) f8, table (4, C) i8, winv (3, 3) f8, weight, grad (n, 3) f8 or None, terms (C,)
+ * f8 or None[, threads]) -> (sum of (term - 1), max term, inverted corners): hex_condition over a flat table of
+ * corners (row 0 the corner's node, rows 1-3 the far ends of its columns) of any cell type, each corner matrix
+ * taken relative to the type's ideal one, T = A W^-1 (jaxci.elements: wedges, pyramids, tetrahedra). */
+static PyObject *corner_condition(PyObject *self, PyObject *args) {
+    PyObject *o_pts, *o_tab, *o_wi, *o_grad, *o_terms;
+    double weight;
+    int nthreads = 1;
+    if (!PyArg_ParseTuple(args, "OOOdOO|i", &o_pts, &o_tab, &o_wi, &weight, &o_grad, &o_terms, &nthreads))
+        return NULL;
+    Py_buffer pts = {0}, tab = {0}, wi = {0}, grad = {0}, terms = {0};
+    int have_grad = o_grad != Py_None, have_terms = o_terms != Py_None;
+    if (get_buffer(o_pts, &pts, "points", "d", 8, 0) < 0) return NULL;
+    if (get_buffer(o_tab, &tab, "table", "qlq", 8, 0) < 0) goto fail_pts;
+    if (get_buffer(o_wi, &wi, "winv", "d", 8, 0) < 0) goto fail_tab;
+    if (have_grad && get_buffer(o_grad, &grad, "grad", "d", 8, 1) < 0) goto fail_wi;
+    if (have_terms && get_buffer(o_terms, &terms, "terms", "d", 8, 1) < 0) goto fail_grad;
+    Py_ssize_t n = pts.len / 24, C = tab.len / 32;
+    if (pts.len != n * 24 || tab.len != C * 32 || wi.len != 72 || (have_grad && grad.len != pts.len) ||
+        (have_terms && terms.len != C * 8)) {
+        PyErr_SetString(PyExc_ValueError, "corner_condition: shapes disagree (points (n, 3), table (4, C), winv "
+                                          "(3, 3), grad (n, 3), terms (C,))");
+        goto fail_all;
+    }
+    const long long *T = tab.buf;
+    for (Py_ssize_t k = 0; k < 4 * C; k++)
+        if (T[k] < 0 || T[k] >= n) {
+            PyErr_Format(PyExc_IndexError, "corner_condition: node index %lld out of range [0, %zd)", T[k], n);
+            goto fail_all;
+        }
+    CornerJob jobs[MAX_THREADS];
+    int nt = threads_for(C / 8, nthreads);
+    for (int t = 0; t < nt; t++)
+        jobs[t] = (CornerJob){pts.buf, wi.buf, T, terms.buf, NULL, C, C * t / nt, C * (t + 1) / nt, weight, 0.0,
+                              0.0, 0};
+    if (run_jobs(jobs, sizeof(CornerJob), nt, corner_worker, grad.buf, 3 * n, offsetof(CornerJob, G)) < 0)
+        goto fail_all;
+    double sum = 0.0, tmax = 0.0;
+    long long invalid = 0;
+    for (int t = 0; t < nt; t++) {
+        sum += jobs[t].sum;
+        if (jobs[t].tmax > tmax) tmax = jobs[t].tmax;
+        invalid += jobs[t].invalid;
+    }
+    PyBuffer_Release(&pts); PyBuffer_Release(&tab); PyBuffer_Release(&wi);
+    if (have_grad) PyBuffer_Release(&grad);
+    if (have_terms) PyBuffer_Release(&terms);
+    return Py_BuildValue("ddL", sum, tmax, invalid);
+fail_all:
+    if (have_terms) PyBuffer_Release(&terms);
+fail_grad:
+    if (have_grad) PyBuffer_Release(&grad);
+fail_wi:
+    PyBuffer_Release(&wi);
+fail_tab:
+    PyBuffer_Release(&tab);
 fail_pts:
     PyBuffer_Release(&pts);
     return NULL;
@@ -339,6 +461,7 @@ fail_pts:
 
 static PyMethodDef methods[] = {
     {"hex_condition", hex_condition, METH_VARARGS, "F terms of hexahedra, their sum, max and gradient"},
+    {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of a corner table and its gradient"},
     {NULL, NULL, 0, NULL},
 };

@@ -89,11 +89,12 @@ class ExtraCells:
         return int(sum(len(E.CORNERS[t]) * c.shape[1] for t, c in zip(self.types, self.conns, strict=True)))
 
 
-def extra_cells(mesh: HexMesh) -> ExtraCells:
-    """`ExtraCells` of `mesh` (empty for a hexahedral mesh)."""
+def extra_cells(mesh: HexMesh, device: bool = True) -> ExtraCells:
+    """`ExtraCells` of `mesh` (empty for a hexahedral mesh); `device`: JAX arrays (default) or numpy arrays (the
+    numpy path, `jaxci.native.MixedKernel`)."""
     blocks = extra_blocks(mesh)
-    return ExtraCells(tuple(blocks), tuple(jax.device_put(np.ascontiguousarray(c.T).astype(np.int32))
-                                           for c in blocks.values()))
+    put = jax.device_put if device else (lambda a: a)
+    return ExtraCells(tuple(blocks), tuple(put(np.ascontiguousarray(c.T).astype(np.int32)) for c in blocks.values()))
 
 
 def no_extra() -> ExtraCells:

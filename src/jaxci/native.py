@@ -81,6 +81,53 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
     return float(m), float(np.sqrt(np.max(terms, initial=0.0))), grad
 
 
+def corner_table(cells: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """The corners of `cells` ``(N, k)`` as a flat table ``(4, n_corners N)`` int64 for `corner_condition`: row 0
+    the corner's node, rows 1-3 the far ends of its columns (`corners`: rows ``[i, p, q, r]`` of
+    `jaxci.elements.CORNERS`); corner j of cell e at ``j N + e``."""
+    c = np.asarray(cells, dtype=np.int64)
+    return np.ascontiguousarray(np.stack([c[:, corners[:, m]].T.ravel() for m in range(4)]))
+
+
+class MixedKernel:
+    """``(F, max kappa/3, dF/dx) = kernel(points)`` over every cell of a hex-dominant mesh (`jaxci.elements`'
+    mixed objective: the mean over the corners of every hexahedron, wedge, pyramid and tetrahedron of
+    ``(kappa/3)^2 - 1``, each relative to its type's ideal corner; ``inf`` if a corner, or one of the four
+    tetrahedra of a pyramid, is inverted), for the numpy path of L-BFGS on mixed meshes.
+
+    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.elements.element_blocks`).
+    """
+
+    def __init__(self, blocks: dict):
+        from .elements import CORNERS, PYRAMID_TETS, TARGETS
+
+        self.hexes = _i8(blocks.get("hexahedron", np.zeros((0, 8))))
+        self.extra = [(corner_table(c, CORNERS[t]), _f8(np.linalg.inv(TARGETS[t])))
+                      for t, c in blocks.items() if t != "hexahedron" and len(c)]
+        pyr = np.asarray(blocks.get("pyramid", np.zeros((0, 5))), dtype=np.int64)
+        #: the pyramids' four tetrahedra as a corner table of their corner 0 (`PYRAMID_TETS`): a barrier
+        self.pyramid_tets = corner_table(np.concatenate([pyr[:, t] for t in PYRAMID_TETS]), CORNERS["tetra"][:1])
+        self.n_corners = 8 * len(self.hexes) + sum(t.shape[1] for t, _ in self.extra)
+
+    def __call__(self, points: np.ndarray) -> tuple[float, float, np.ndarray]:
+        x = _f8(points)
+        grad = np.zeros_like(x)
+        n = max(self.n_corners, 1)
+        weight = 2.0 / (9.0 * n)
+        total, tmax, bad = _c.hex_condition(x, self.hexes, weight, grad, None, None, THREADS)
+        for table, winv in self.extra:
+            s, t, b = _c.corner_condition(x, table, winv, weight, grad, None, THREADS)
+            total, tmax, bad = total + s, max(tmax, t), bad + b
+        if self.pyramid_tets.shape[1]:
+            bad += _c.corner_condition(x, self.pyramid_tets, _EYE, 0.0, None, None, THREADS)[2]
+        if bad:
+            return np.inf, np.inf, grad
+        return total / n, float(np.sqrt(tmax)), grad
+
+
+_EYE = np.eye(3)
+
+
 def hex_sums(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float, int]:
     """``(sum of (kappa/3)^2 - 1 over the valid corners, max (kappa/3)^2, inverted corners)`` of the hexahedra
     `hexes` ``(N, 8)`` at `points` ``(n, 3)``: one pass, no gradient."""

@@ -131,7 +131,7 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
     if mixed.has_extra(mesh):
         cells = list(mixed.volume_cells(mesh).values())
         colour = colour_nodes(mesh.hexes, mesh.n_nodes, node_adjacency(cells, mesh.n_nodes)).colour
-        extra, table = mixed.extra_cells(mesh), mixed.corner_table(mesh)
+        extra, table = mixed.extra_cells(mesh, device=device), mixed.corner_table(mesh)
     else:
         colour = colour_nodes(mesh.hexes, mesh.n_nodes).colour
     put = jax.device_put if device else (lambda a: a)
@@ -141,14 +141,21 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 
 def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
-    `jaxci.native`): L-BFGS without presmoothing on a hexahedral mesh that `jaxci.optim.host.runs_on_host`
-    takes, its reports and checks in numpy. JAX is then never imported (0.4-0.5 s of a small mesh's run)."""
+    `jaxci.native`): L-BFGS without presmoothing where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed
+    one only on F and with the C kernels), its reports and checks in numpy. JAX is then never imported (0.4-0.5 s
+    of a small mesh's run)."""
+    from . import native
     from .elements import objective_on_host
     from .quality import NUMPY_REPORT_MAX
 
-    return (method == "lbfgs" and not int(params.get("presmooth", 0)) and not mixed.has_extra(mesh)
-            and runs_on_host(params.get("backend", "auto"), mesh.n_hexes, HOST_MAX)
-            and mesh.n_hexes <= NUMPY_REPORT_MAX and objective_on_host(mesh))
+    if method != "lbfgs" or int(params.get("presmooth", 0)):
+        return False
+    extra = mixed.extra_blocks(mesh)
+    if extra and (not native.AVAILABLE or params.get("objective", "mean") != "mean"):
+        return False
+    n_cells = mesh.n_hexes + sum(len(c) for c in extra.values())
+    return (runs_on_host(params.get("backend", "auto"), n_cells, HOST_MAX) and mesh.n_hexes <= NUMPY_REPORT_MAX
+            and objective_on_host(mesh))
 
 
 def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:

@@ -76,6 +76,7 @@ import functools
 
 import numpy as np
 
+from .. import native
 from .._lazy import jax, jnp
 from ..errors import ConfigError
 from ..mixed import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
@@ -368,10 +369,22 @@ def _scale(n_hex: int, extra) -> float:
     return (8.0 * n_hex + extra.n_corners) / _CORNERS_PER_NODE
 
 
+def _host_mixed_kernel(conn, extra):
+    """The C kernel of F over every cell of a mixed mesh (`jaxci.native.MixedKernel`); None (the hexahedra's
+    kernel) for a hexahedral mesh."""
+    if not extra.types:
+        return None
+    blocks = {"hexahedron": np.asarray(conn).T, **{t: np.asarray(c).T for t, c in zip(extra.types, extra.conns,
+                                                                                        strict=True)}}
+    return native.MixedKernel(blocks)
+
+
 def use_host(method: str, p: GradientParams, n_hex: int, extra=None) -> bool:
     """Whether `minimise` runs `method` in numpy (`jaxci.optim.host`): L-BFGS on a hexahedral mesh with
     ``p.backend`` ``"numpy"``, or ``"auto"`` and at most `HOST_MAX` elements."""
-    return method == "lbfgs" and runs_on_host(p.backend, n_hex, HOST_MAX, extra is not None and bool(extra.types))
+    mixed = extra is not None and bool(extra.types)
+    n_cells = n_hex + (sum(int(c.shape[1]) for c in extra.conns) if mixed else 0)
+    return method == "lbfgs" and runs_on_host(p.backend, n_cells, HOST_MAX, mixed and not native.AVAILABLE)
 
 
 def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra):
@@ -457,6 +470,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         cur = dataclasses.replace(run_par, strict=True) if strict else run_par
         if on_host:  # one objective for every run: its projector remembers each node's triangle
             host_fn = host_fn or HostObjective(run_par, np.asarray(conn), _scale(n_hex, extra),
+                                               kernel=_host_mixed_kernel(conn, extra),
                                                power=p.p if p.objective == "pmean" else None)
             y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
@@ -533,7 +547,11 @@ def run_gradient(problem, method: str, params: dict):
         # exactly on the boundary again (float64), so that the flat-region shortcut of the parametrisation holds
         x0 = project_np(problem.cons, np.asarray(xl, dtype=np.float64))
     par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled, dtype=problem.dtype)
-    extra = extra_cells(problem.mesh) if has_extra(problem.mesh) else None
+    extra = None
+    if has_extra(problem.mesh):
+        extra = extra_cells(problem.mesh, device=False)
+        if not use_host(method, p, problem.mesh.n_hexes, extra):
+            extra = extra_cells(problem.mesh)
     x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra)
     if pre is None:
         return x, steps, hist, resolved
