@@ -459,9 +459,175 @@ fail_pts:
     return NULL;
 }
 
+/* ------------------------------------------------------------------------------------------ projection
+ * The numpy path's boundary projection (jaxci.projection.NearProjector): every active node to the nearest point
+ * of its candidate triangles (segments), starting with the one of its hint. Tables as in jaxci._closest: one
+ * row per precomputed quantity, one column per triangle (19 rows) or segment (8 rows). */
+enum { TC = 0, TE1 = 3, TE2 = 6, TN = 9, TG = 12, TOK = 15, TIS = 16, TID = 17, TL2 = 18 };
+enum { SA = 0, SD = 3, SI = 6, SL2 = 7 };
+
+static inline double dot3(const double *u, const double *v) { return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]; }
+
+static inline double clip01(double t) { return t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t); }
+
+/* Orthogonal projection of x onto the plane of triangle j into p; whether it falls inside (within tol). */
+static int plane_point(const double *x, const double *T, Py_ssize_t nt, Py_ssize_t j, double tol, double *p,
+                       double *h, double *w, double *d1) {
+#define R(r, k) T[((r) + (k)) * nt + j]
+    double e1[3] = {R(TE1, 0), R(TE1, 1), R(TE1, 2)}, e2[3] = {R(TE2, 0), R(TE2, 1), R(TE2, 2)};
+    double un[3] = {R(TN, 0), R(TN, 1), R(TN, 2)};
+    for (int d = 0; d < 3; d++) w[d] = x[d] - R(TC, d);
+    *d1 = dot3(w, e1);
+    double d2 = dot3(w, e2);
+    double sb = R(TG, 0) * *d1 - R(TG, 1) * d2, rb = R(TG, 2) * d2 - R(TG, 1) * *d1;
+    *h = dot3(w, un);
+    for (int d = 0; d < 3; d++) p[d] = x[d] - *h * un[d];
+    return R(TOK, 0) > 0.0 && sb >= -tol && rb >= -tol && sb + rb <= 1.0 + tol;
+#undef R
+}
+
+/* Nearest point of x on triangle j (jaxci._closest._closest_on_triangles): its score (squared distance, plus
+ * a rounding-level penalty for points on the spoke or the side) and the point in p. */
+static double closest_on_triangle(const double *x, const double *T, Py_ssize_t nt, Py_ssize_t j, double tol,
+                                  double bump, double *p) {
+#define R(r, k) T[((r) + (k)) * nt + j]
+    double w[3], h, d1, q[3], best;
+    int inside = plane_point(x, T, nt, j, tol, p, &h, w, &d1);
+    best = inside ? h * h : INFINITY;
+    double penalty = bump * R(TL2, 0);
+    double e1[3] = {R(TE1, 0), R(TE1, 1), R(TE1, 2)}, e2[3] = {R(TE2, 0), R(TE2, 1), R(TE2, 2)};
+    double c[3] = {R(TC, 0), R(TC, 1), R(TC, 2)};
+    double t = clip01(d1 * R(TIS, 0)), score = penalty;
+    for (int d = 0; d < 3; d++) {
+        q[d] = c[d] + t * e1[d];
+        score += (x[d] - q[d]) * (x[d] - q[d]);
+    }
+    if (score < best) {
+        best = score;
+        for (int d = 0; d < 3; d++) p[d] = q[d];
+    }
+    double side[3], we[3];
+    for (int d = 0; d < 3; d++) { side[d] = e2[d] - e1[d]; we[d] = w[d] - e1[d]; }
+    t = clip01(dot3(we, side) * R(TID, 0));
+    score = penalty;
+    for (int d = 0; d < 3; d++) {
+        q[d] = c[d] + e1[d] + t * side[d];
+        score += (x[d] - q[d]) * (x[d] - q[d]);
+    }
+    if (score < best) {
+        best = score;
+        for (int d = 0; d < 3; d++) p[d] = q[d];
+    }
+    return best;
+#undef R
+}
+
+/* Nearest point of x on segment j (jaxci._closest._closest_on_segments); with `inside`, whether the orthogonal
+ * projection falls inside it (jaxci._closest._line_point). */
+static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns, Py_ssize_t j, double tol,
+                                 double bump, double *p, int *inside) {
+#define R(r, k) T[((r) + (k)) * ns + j]
+    double a[3] = {R(SA, 0), R(SA, 1), R(SA, 2)}, dv[3] = {R(SD, 0), R(SD, 1), R(SD, 2)}, inv = R(SI, 0);
+    double xa[3] = {x[0] - a[0], x[1] - a[1], x[2] - a[2]};
+    double s = dot3(xa, dv) * inv;
+    *inside = inv > 0.0 && s >= -tol && s <= 1.0 + tol;
+    double t = *inside ? s : clip01(s), d2 = 0.0;
+    for (int d = 0; d < 3; d++) {
+        p[d] = a[d] + t * dv[d];
+        d2 += (x[d] - p[d]) * (x[d] - p[d]);
+    }
+    return *inside ? d2 : d2 + bump * R(SL2, 0);
+#undef R
+}
+
+/* near_project(x (n, 3) f8, nodes (m,) i8, active (a,) i8, hint (m,) i8, cand (rows, K) i8, table (R, nt) f8,
+ * kind (0 triangles, 1 segments), tol, bump) -> None: moves x[nodes[i]] for every i of `active` to its nearest
+ * point: the orthogonal projection onto its hint's cell where that falls inside, else the best of its K
+ * candidates (hint[i] := its column). As NearProjector.__call__ in numpy did. */
+static PyObject *near_project(PyObject *self, PyObject *args) {
+    PyObject *o_x, *o_nodes, *o_active, *o_hint, *o_cand, *o_tab;
+    int kind;
+    double tol, bump;
+    if (!PyArg_ParseTuple(args, "OOOOOOidd", &o_x, &o_nodes, &o_active, &o_hint, &o_cand, &o_tab, &kind, &tol,
+                          &bump))
+        return NULL;
+    Py_buffer x = {0}, nodes = {0}, active = {0}, hint = {0}, cand = {0}, tab = {0};
+    PyObject *ret = NULL;
+    if (get_buffer(o_x, &x, "x", "d", 8, 1) < 0) return NULL;
+    if (get_buffer(o_nodes, &nodes, "nodes", "qlq", 8, 0) < 0) goto out_x;
+    if (get_buffer(o_active, &active, "active", "qlq", 8, 0) < 0) goto out_nodes;
+    if (get_buffer(o_hint, &hint, "hint", "qlq", 8, 1) < 0) goto out_active;
+    if (get_buffer(o_cand, &cand, "cand", "qlq", 8, 0) < 0) goto out_hint;
+    if (get_buffer(o_tab, &tab, "table", "d", 8, 0) < 0) goto out_cand;
+    {
+        Py_ssize_t n = x.len / 24, m = nodes.len / 8, na = active.len / 8, rows = kind == 0 ? 19 : 8;
+        Py_ssize_t nc = tab.len / 8 / rows, K = cand.ndim == 2 ? cand.shape[1] : 0, nrows = K ? cand.len / 8 / K : 0;
+        const long long *N = nodes.buf, *A = active.buf, *CA = cand.buf;
+        long long *H = hint.buf;
+        if ((kind != 0 && kind != 1) || hint.len != nodes.len || tab.len != nc * rows * 8 || K < 1 || nrows < m) {
+            PyErr_SetString(PyExc_ValueError, "near_project: shapes disagree");
+            goto out_tab;
+        }
+        for (Py_ssize_t k = 0; k < na; k++)
+            if (A[k] < 0 || A[k] >= m || N[A[k]] < 0 || N[A[k]] >= n || H[A[k]] >= K) {
+                PyErr_SetString(PyExc_IndexError, "near_project: index out of range");
+                goto out_tab;
+            }
+        for (Py_ssize_t k = 0; k < m * K && k < cand.len / 8; k++)
+            if (CA[k] < 0 || CA[k] >= nc) {
+                PyErr_SetString(PyExc_IndexError, "near_project: candidate cell out of range");
+                goto out_tab;
+            }
+        double *X = x.buf;
+        const double *T = tab.buf;
+        for (Py_ssize_t k = 0; k < na; k++) {
+            Py_ssize_t i = A[k];
+            double *xi = X + 3 * N[i], p[3], h, w[3], d1;
+            int inside = 0;
+            if (H[i] >= 0) {
+                Py_ssize_t j = CA[i * K + H[i]];
+                if (kind == 0) inside = plane_point(xi, T, nc, j, tol, p, &h, w, &d1);
+                else closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
+            }
+            if (!inside) {
+                double best = INFINITY, q[3];
+                long long pick = 0;
+                for (Py_ssize_t c = 0; c < K; c++) {
+                    int in;
+                    double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[i * K + c], tol, bump, q)
+                                             : closest_on_segment(xi, T, nc, CA[i * K + c], tol, bump, q, &in);
+                    if (score < best || c == 0) {
+                        best = score;
+                        pick = c;
+                        for (int d = 0; d < 3; d++) p[d] = q[d];
+                    }
+                }
+                H[i] = pick;
+            }
+            for (int d = 0; d < 3; d++) xi[d] = p[d];
+        }
+        Py_INCREF(Py_None);
+        ret = Py_None;
+    }
+out_tab:
+    PyBuffer_Release(&tab);
+out_cand:
+    PyBuffer_Release(&cand);
+out_hint:
+    PyBuffer_Release(&hint);
+out_active:
+    PyBuffer_Release(&active);
+out_nodes:
+    PyBuffer_Release(&nodes);
+out_x:
+    PyBuffer_Release(&x);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"hex_condition", hex_condition, METH_VARARGS, "F terms of hexahedra, their sum, max and gradient"},
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
+    {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},
     {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of a corner table and its gradient"},
     {NULL, NULL, 0, NULL},
 };

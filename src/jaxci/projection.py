@@ -52,6 +52,7 @@ from ._closest import (
     _SEG_ROWS,
     _TN,
     _TRI_ROWS,
+    _bump,
     _closest_on_segments,
     _closest_on_triangles,
     _line_point,
@@ -300,9 +301,17 @@ class NearProjector:
     """
 
     def __init__(self, constraints: Constraints):
+        from . import native
+
         self.c, self.rows = host_constraints(constraints)
         # candidate column per surface node, per edge node; -1: not known (search all its candidates)
         self.hint = tuple(np.full(int(n.shape[0]), -1, np.int64) for n in (self.c.surface_nodes, self.c.edge_nodes))
+        #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
+        self._native = None if not native.AVAILABLE else tuple(
+            (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int64),
+             np.ascontiguousarray(table, np.float64))
+            for nodes, cand, table in ((self.c.surface_nodes, self.c.surface_cand, self.c.triangles),
+                                       (self.c.edge_nodes, self.c.edge_cand, self.c.segments)))
 
     def commit(self, hint) -> None:
         """Remember `hint` (from `__call__`) for the next projections."""
@@ -316,6 +325,18 @@ class NearProjector:
         c = self.c
         x = np.array(points, dtype=np.float64)
         tol = _tol(np.float64)
+        if self._native is not None:
+            from . import native
+
+            out = []
+            for kind, (nodes, cand, table) in enumerate(self._native):
+                hint = self.hint[kind].copy()
+                active = np.arange(len(nodes)) if keep is None else np.flatnonzero(~keep[nodes])
+                if len(active):
+                    native.near_project(x, nodes, active, hint, cand, table, kind, tol, _bump(np.float64))
+                out.append(hint)
+            x[c.corner_nodes] = c.x_orig[c.corner_nodes]
+            return x, tuple(out)
         kinds = ((c.surface_nodes, c.triangles, c.surface_cand, _closest_on_triangles, _plane_point),
                  (c.edge_nodes, c.segments, c.edge_cand, _closest_on_segments, _line_point))
         out = []
