@@ -320,3 +320,22 @@ def test_open_boundary_warns():
     assert (info.node_class[shared] == CORNER).all()
     # the other nodes of the duplicated element are on no boundary face: nothing marks them
     assert (info.node_class[mesh.hexes[0, [0, 3, 4, 7]]] == INTERIOR).all()
+
+
+def test_components_are_scipys():
+    """`jaxci.topology.components` (no scipy.sparse.csgraph import at start-up) labels as scipy does: random
+    graphs, isolated vertices, a long shuffled chain (many rounds of pointer jumping)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from jaxci.topology import components
+
+    rng = np.random.default_rng(0)
+    for n, m in [(1, 0), (10, 0), (50, 30), (1000, 900), (3000, 6000), (5000, 4999)]:
+        a, b = rng.integers(0, n, m), rng.integers(0, n, m)
+        if m == n - 1:
+            perm = rng.permutation(n)
+            a, b = perm[:-1], perm[1:]
+        count, labels = connected_components(sp.coo_matrix((np.ones(m), (a, b)), shape=(n, n)), directed=False)
+        got = components(n, a, b)
+        assert got[0] == count and np.array_equal(got[1], labels)

@@ -32,14 +32,12 @@ import warnings
 from collections.abc import Sequence
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from .errors import MeshError
 from .mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
 from .mixed import fixed_nodes as fixed_cell_nodes
 from .mixed import volume_cells
-from .topology import BoundaryTopology, boundary_topology
+from .topology import BoundaryTopology, boundary_topology, components
 
 #: Node classes (values of `BoundaryInfo.node_class`).
 INTERIOR = 0
@@ -135,13 +133,6 @@ def _local_position(faces: np.ndarray, f: np.ndarray, node: np.ndarray) -> np.nd
     return np.argmax(faces[f] == node[:, None], axis=1)
 
 
-def _components(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected components of the graph on `n` vertices with edges (a[j], b[j])."""
-    g = sp.coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
-    count, labels = connected_components(g, directed=False)
-    return int(count), labels.astype(np.int32)
-
-
 def classify_boundary(
     mesh: HexMesh,
     *,
@@ -214,7 +205,7 @@ def classify_boundary(
     tri = np.flatnonzero(faces[:, 3] == faces[:, 2])
     if len(tri):  # the repeated node of a triangle is one corner of it
         ca, cb = np.concatenate([ca, 4 * tri + 2]), np.concatenate([cb, 4 * tri + 3])
-    _, corner_comp = _components(4 * n_faces, ca, cb)
+    _, corner_comp = components(4 * n_faces, ca, cb)
     node_comp = np.unique(faces.ravel() * np.int64(4 * n_faces) + corner_comp)  # distinct (node, fan) pairs
     nm_vertex = np.bincount(node_comp // max(4 * n_faces, 1), minlength=n) > 1
 
@@ -240,13 +231,13 @@ def classify_boundary(
 
     # --- curves: feature edges joined at EDGE nodes
     joined = two[cls[v] == EDGE]
-    n_curves, edge_curve = _components(len(fedges), he[joined], he[joined + 1])
+    n_curves, edge_curve = components(len(fedges), he[joined], he[joined + 1])
     curve_id = np.full(n, -1, dtype=np.int32)
     curve_id[hn] = edge_curve[he]
 
     # --- patches: faces joined across manifold non-feature edges
     smooth = np.flatnonzero(~feature)
-    n_patches, face_patch = _components(n_faces, fa[smooth], fb[smooth])
+    n_patches, face_patch = components(n_faces, fa[smooth], fb[smooth])
     patch_id = np.full(n, -1, dtype=np.int32)
     patch_id[faces.ravel()] = np.repeat(face_patch, 4)
 

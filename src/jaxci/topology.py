@@ -360,3 +360,28 @@ def colour_nodes(
     padded[colour[order], slot] = order
     mask[colour[order], slot] = True
     return Colouring(colour=colour, groups=groups, padded=padded, mask=mask)
+
+
+def components(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of the undirected graph on `n` vertices with edges ``(a[j], b[j])``: ``(count,
+    labels)``, labels int32 numbered by each component's lowest vertex (as `scipy.sparse.csgraph`'s, without
+    importing it: 0.1 s of every command's start).
+
+    Hooking and pointer jumping: every vertex points to a vertex of lower or equal index in its component; each
+    round hooks the larger of two roots joined by an edge under the smaller, then compresses every path."""
+    parent = np.arange(n)
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    while len(a):
+        ra, rb = parent[a], parent[b]
+        differ = ra != rb
+        if not differ.any():
+            break
+        a, b, ra, rb = a[differ], b[differ], ra[differ], rb[differ]
+        np.minimum.at(parent, np.maximum(ra, rb), np.minimum(ra, rb))
+        while True:
+            up = parent[parent]
+            if np.array_equal(up, parent):
+                break
+            parent = up
+    roots, labels = np.unique(parent, return_inverse=True)
+    return len(roots), labels.astype(np.int32)
