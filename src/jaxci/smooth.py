@@ -119,13 +119,15 @@ class Problem:
 
 def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.0, fix_boundary: bool = False,
                   fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = (),
-                  device: bool = True) -> Problem:
+                  device: bool = True, info: BoundaryInfo | None = None) -> Problem:
     """Classify the boundary, build the constraints and the colouring of `mesh` (call inside the dtype context).
 
     On a mixed mesh no two nodes of one colour share a cell of any type. `device`: the arrays on JAX's default
-    device (default), or in numpy for a method that runs on the host (`host_run`: JAX is not imported)."""
-    info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary, fixed_nodes=fixed_nodes,
-                             fixed_sets=tuple(fixed_sets))
+    device (default), or in numpy for a method that runs on the host (`host_run`: JAX is not imported). `info`:
+    the `BoundaryInfo` of `mesh` with these arguments if it is at hand (the untangling stage's), else classified."""
+    if info is None:
+        info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
+                                 fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
     cons = build_constraints(mesh, info, dtype=dtype, device=device)
     extra = table = None
     if mixed.has_extra(mesh):
@@ -413,7 +415,8 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
     with (contextlib.nullcontext() if host else jax.enable_x64(dtype == "float64")):
         with clock.phase("setup"):
             problem = build_problem(mesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
-                                    fixed_nodes=fixed_nodes, fixed_sets=fixed_sets, device=not host)
+                                    fixed_nodes=fixed_nodes, fixed_sets=fixed_sets, device=not host,
+                                    info=None if untangled is None else info)
             if untangled is not None:
                 start = np.asarray(untangled, np_dtype)
                 problem = dataclasses.replace(problem, x0=start if host else jax.device_put(start))
