@@ -680,10 +680,86 @@ out_x:
     return ret;
 }
 
+/* lbfgs_direction(g (n,) f8, S (m, n) f8, Y (m, n) f8, rho (m,) f8, order (k,) i8, out (n,) f8) -> None: out =
+ * -H g by the L-BFGS two-loop recursion over the pairs (S[i], Y[i], rho[i] = 1 / S[i].Y[i]) for i in `order`
+ * (oldest first), the initial matrix scaled by s.y / y.y of the newest pair (jaxci.optim.host._direction). */
+static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
+    PyObject *o_g, *o_s, *o_y, *o_rho, *o_order, *o_out;
+    if (!PyArg_ParseTuple(args, "OOOOOO", &o_g, &o_s, &o_y, &o_rho, &o_order, &o_out)) return NULL;
+    Py_buffer g = {0}, S = {0}, Y = {0}, rho = {0}, order = {0}, out = {0};
+    PyObject *ret = NULL;
+    if (get_buffer(o_g, &g, "g", "d", 8, 0) < 0) return NULL;
+    if (get_buffer(o_s, &S, "S", "d", 8, 0) < 0) goto out_g;
+    if (get_buffer(o_y, &Y, "Y", "d", 8, 0) < 0) goto out_s;
+    if (get_buffer(o_rho, &rho, "rho", "d", 8, 0) < 0) goto out_y;
+    if (get_buffer(o_order, &order, "order", "qlq", 8, 0) < 0) goto out_rho;
+    if (get_buffer(o_out, &out, "out", "d", 8, 1) < 0) goto out_order;
+    {
+        Py_ssize_t n = g.len / 8, m = rho.len / 8, k = order.len / 8;
+        const long long *O = order.buf;
+        if (out.len != g.len || S.len != m * n * 8 || Y.len != S.len || k > m) {
+            PyErr_SetString(PyExc_ValueError, "lbfgs_direction: shapes disagree");
+            goto out_out;
+        }
+        for (Py_ssize_t t = 0; t < k; t++)
+            if (O[t] < 0 || O[t] >= m) {
+                PyErr_SetString(PyExc_IndexError, "lbfgs_direction: order out of range");
+                goto out_out;
+            }
+        const double *G = g.buf, *SS = S.buf, *YY = Y.buf, *R = rho.buf;
+        double *q = out.buf, alpha[64];
+        if (k > 64) {
+            PyErr_SetString(PyExc_ValueError, "lbfgs_direction: at most 64 pairs");
+            goto out_out;
+        }
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t i = 0; i < n; i++) q[i] = G[i];
+        for (Py_ssize_t t = k - 1; t >= 0; t--) {
+            const double *s = SS + O[t] * n, *y = YY + O[t] * n;
+            double dot = 0.0;
+            for (Py_ssize_t i = 0; i < n; i++) dot += s[i] * q[i];
+            alpha[t] = R[O[t]] * dot;
+            for (Py_ssize_t i = 0; i < n; i++) q[i] -= alpha[t] * y[i];
+        }
+        if (k) {
+            const double *s = SS + O[k - 1] * n, *y = YY + O[k - 1] * n;
+            double sy = 0.0, yy = 0.0;
+            for (Py_ssize_t i = 0; i < n; i++) { sy += s[i] * y[i]; yy += y[i] * y[i]; }
+            double gamma = sy / yy;
+            for (Py_ssize_t i = 0; i < n; i++) q[i] *= gamma;
+        }
+        for (Py_ssize_t t = 0; t < k; t++) {
+            const double *s = SS + O[t] * n, *y = YY + O[t] * n;
+            double dot = 0.0;
+            for (Py_ssize_t i = 0; i < n; i++) dot += y[i] * q[i];
+            double beta = R[O[t]] * dot;
+            for (Py_ssize_t i = 0; i < n; i++) q[i] += (alpha[t] - beta) * s[i];
+        }
+        for (Py_ssize_t i = 0; i < n; i++) q[i] = -q[i];
+        Py_END_ALLOW_THREADS
+        Py_INCREF(Py_None);
+        ret = Py_None;
+    }
+out_out:
+    PyBuffer_Release(&out);
+out_order:
+    PyBuffer_Release(&order);
+out_rho:
+    PyBuffer_Release(&rho);
+out_y:
+    PyBuffer_Release(&Y);
+out_s:
+    PyBuffer_Release(&S);
+out_g:
+    PyBuffer_Release(&g);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"hex_condition", hex_condition, METH_VARARGS, "F terms of hexahedra, their sum, max and gradient"},
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},
+    {"lbfgs_direction", lbfgs_direction, METH_VARARGS, "the L-BFGS two-loop recursion"},
     {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of a corner table and its gradient"},
     {NULL, NULL, 0, NULL},
 };

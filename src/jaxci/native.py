@@ -143,6 +143,13 @@ def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.
     _c.near_project(x, nodes, _i8(active), hint, cand, table, int(kind), float(tol), float(bump))
 
 
+def lbfgs_direction(g: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,
+                    out: np.ndarray) -> None:
+    """``out = -H g``: the L-BFGS two-loop recursion over the pairs ``(S[i], Y[i], rho[i])`` for ``i`` in `order`
+    (oldest first; at most 64), in C (`jaxci.optim.host`'s memory). Float64 arrays, `order` int64."""
+    _c.lbfgs_direction(g, S, Y, rho, order, out)
+
+
 def untangle_energy(points: np.ndarray, table: np.ndarray, inv_len: np.ndarray, eps: float, theta: float,
                     grad: bool, per_node: float) -> tuple[float, float, np.ndarray | None]:
     """``(energy, min det J, gradient or None)`` of `jaxci.optim._untangle_loop.hex_kernel`: the sum of the

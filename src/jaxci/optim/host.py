@@ -161,21 +161,50 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.einsum("i,i->", a, b))
 
 
-def _direction(g: np.ndarray, mem: list) -> np.ndarray:
-    """``-H g`` by the L-BFGS two-loop recursion over `mem` (pairs ``(s, y, 1 / s.y)``, oldest first)."""
-    q = g.copy()
-    alphas = []
-    for s, y, rho in reversed(mem):
-        a = rho * _dot(s, q)
-        alphas.append(a)
-        q -= a * y
-    if mem:
-        s, y, _ = mem[-1]
-        q *= _dot(s, y) / _dot(y, y)
-    for (s, y, rho), a in zip(mem, reversed(alphas), strict=True):
-        b = rho * _dot(y, q)
-        q += (a - b) * s
-    return -q
+class _Memory:
+    """The L-BFGS memory: up to `history` pairs ``(s, y, 1 / s.y)`` in ring buffers ``(history, n)``."""
+
+    def __init__(self, n: int, history: int):
+        self.history = history
+        self.S, self.Y, self.rho = np.empty((0, n)), np.empty((0, n)), np.zeros(0)  # grown as pairs come
+        self.order: list[int] = []  # slots, oldest first
+
+    def push(self, s: np.ndarray, y: np.ndarray, rho: float) -> None:
+        if len(self.order) == self.history:
+            slot = self.order.pop(0)
+        else:
+            slot = len(self.order)
+            if slot == len(self.rho):  # grow by doubling, up to `history` rows
+                extra = min(max(slot, 4), self.history - slot)
+                self.S = np.concatenate([self.S, np.empty((extra, self.S.shape[1]))])
+                self.Y = np.concatenate([self.Y, np.empty((extra, self.Y.shape[1]))])
+                self.rho = np.concatenate([self.rho, np.zeros(extra)])
+        self.S[slot], self.Y[slot], self.rho[slot] = s, y, rho
+        self.order.append(slot)
+
+    def clear(self) -> None:
+        self.order.clear()
+
+    def direction(self, g: np.ndarray) -> np.ndarray:
+        """``-H g`` by the two-loop recursion (initial Hessian scaled by ``s.y / y.y`` of the newest pair): the C
+        loop of `jaxci.native` where it is built."""
+        if native.AVAILABLE and len(self.order) <= 64:
+            out = np.empty_like(g)
+            native.lbfgs_direction(g, self.S, self.Y, self.rho, np.asarray(self.order, np.int64), out)
+            return out
+        q = g.copy()
+        alphas = []
+        for k in reversed(self.order):
+            a = self.rho[k] * _dot(self.S[k], q)
+            alphas.append(a)
+            q -= a * self.Y[k]
+        if self.order:
+            s, y = self.S[self.order[-1]], self.Y[self.order[-1]]
+            q *= _dot(s, y) / _dot(y, y)
+        for k, a in zip(self.order, reversed(alphas), strict=True):
+            b = self.rho[k] * _dot(self.Y[k], q)
+            q += (a - b) * self.S[k]
+        return -q
 
 
 def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
@@ -204,7 +233,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     if g is None:
         return y, 0, "nonfinite", np.asarray(hf), np.asarray(hk)
     accept()
-    mem: list = []
+    mem = _Memory(len(y), history)
     d = -g
     alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
     stop = finished(f, k)
@@ -222,15 +251,13 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             s, dy = y_try - y, g_try - g
             sy = _dot(s, dy)
             if sy > 1e-12 * np.sqrt(_dot(s, s) * _dot(dy, dy)):
-                mem.append((s, dy, 1.0 / sy))
-                if len(mem) > history:
-                    mem.pop(0)
+                mem.push(s, dy, 1.0 / sy)
             converged = (np.max(np.abs(s), initial=0.0) < atol + rtol * np.max(np.abs(y_try), initial=0.0)
                          and abs(v_try - value) < atol + rtol * abs(v_try))
             y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
             accept()
             alpha, rejected = 1.0, 0
-            d = _direction(g, mem)
+            d = mem.direction(g)
             if not _dot(g, d) < 0:  # not a descent direction: forget the curvature pairs
                 mem.clear()
                 d = -g
