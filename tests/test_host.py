@@ -274,3 +274,40 @@ def test_near_projector_leaves_kept_nodes_alone():
     pulled = proj.pullback(g, h_part, keep)
     np.testing.assert_array_equal(pulled[surf[::2]], g[surf[::2]])
     np.testing.assert_allclose(pulled[surf[1::2]], proj.pullback(g, h_full)[surf[1::2]], atol=1e-12)
+
+
+def test_pytrees_are_registered_when_jax_comes_after_jaxci():
+    """A process that imports jaxci first (no JAX) and JAX later: Constraints, Parametrisation, ExtraCells and
+    ColouredStars (registered by `_moves`) are JAX pytrees once JAX is imported (`jaxci._lazy`), and a jitted
+    function takes numpy constraints moved to the device."""
+    code = """
+import sys
+from jaxci.generate import perturb_box
+from jaxci.boundary import classify_boundary
+from jaxci.projection import build_constraints, project_np
+from jaxci.optim.parametrisation import make_parametrisation
+from jaxci.optim import _moves
+import numpy as np
+assert "jax" not in sys.modules
+mesh = perturb_box(3, amplitude=0.2, seed=0)
+info = classify_boundary(mesh)
+cons = build_constraints(mesh, info, dtype=np.float64, device=False)
+par = make_parametrisation(mesh, info, cons, dtype=np.float64)
+assert "jax" not in sys.modules and isinstance(cons.x_orig, np.ndarray)
+import jax
+jax.config.update("jax_enable_x64", True)
+from jaxci.mixed import ExtraCells
+fields = {f: np.zeros(1) for f in ("nodes", "mask", "star", "smask", "basis", "dims", "plane", "xnodes", "xwinv",
+                                   "xweight", "xmask")}
+assert len(jax.tree_util.tree_leaves(_moves.ColouredStars(**fields, n_interior=1, n_surface=0, n_edge=0))) == 11
+from jaxci.projection import project
+leaves = jax.tree_util.tree_leaves(cons)
+assert len(leaves) == 16, len(leaves)
+assert len(jax.tree_util.tree_leaves(par)) == 16 + 5
+assert jax.tree_util.tree_structure(ExtraCells((), ())).num_leaves == 0
+x = np.asarray(mesh.points) + 0.01
+np.testing.assert_allclose(np.asarray(project(jax.device_put(cons), x)), project_np(cons, x), atol=1e-12)
+print("ok")
+"""
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert p.returncode == 0 and p.stdout.strip() == "ok", p.stdout + p.stderr
