@@ -36,6 +36,53 @@ static int get_buffer(PyObject *obj, Py_buffer *view, const char *name, const ch
     return 0;
 }
 
+/* The array arguments of one call, acquired one after the other and released together (`release`); an absent
+ * optional one (None) stays empty. */
+typedef struct {
+    Py_buffer view;
+    int held;
+} Buf;
+
+static int acquire(Buf *b, PyObject *obj, const char *name, const char *fmt, int writable, int optional) {
+    if (obj == Py_None && optional) return 0;
+    if (get_buffer(obj, &b->view, name, fmt, 8, writable) < 0) return -1;
+    b->held = 1;
+    return 0;
+}
+
+static void release(Buf *b, int n) {
+    for (int i = 0; i < n; i++)
+        if (b[i].held) PyBuffer_Release(&b[i].view);
+}
+
+/* 0 if every one of the `count` indices I is in [0, n), else -1 with IndexError naming the function. */
+static int check_indices(const long long *I, Py_ssize_t count, Py_ssize_t n, const char *fn) {
+    for (Py_ssize_t k = 0; k < count; k++)
+        if (I[k] < 0 || I[k] >= n) {
+            PyErr_Format(PyExc_IndexError, "%s: node index %lld out of range [0, %zd)", fn, I[k], n);
+            return -1;
+        }
+    return 0;
+}
+
+/* What the condition workers add up: sum of (term - 1), max term, inverted corners (first in their jobs). */
+typedef struct {
+    double sum, tmax;
+    long long invalid;
+} Sums;
+
+/* The jobs' Sums (each `size` bytes, its Sums first) added up, as (sum, max, inverted). */
+static PyObject *total_sums(const void *jobs, size_t size, int nt) {
+    Sums out = {0.0, 0.0, 0};
+    for (int t = 0; t < nt; t++) {
+        const Sums *s = (const Sums *)((const char *)jobs + t * size);
+        out.sum += s->sum;
+        if (s->tmax > out.tmax) out.tmax = s->tmax;
+        out.invalid += s->invalid;
+    }
+    return Py_BuildValue("ddL", out.sum, out.tmax, out.invalid);
+}
+
 static inline void cross(const double *x, const double *y, double *out) {
     out[0] = x[1] * y[2] - x[2] * y[1];
     out[1] = x[2] * y[0] - x[0] * y[2];
@@ -123,12 +170,12 @@ static int run_jobs(void *jobs, size_t size, int nt, void *(*worker)(void *), do
 }
 
 typedef struct {
+    Sums s;
     const double *P, *CW;
     const long long *H;
     double *T, *G;
-    Py_ssize_t n, N, lo, hi;
-    double weight, sum, tmax;
-    long long invalid;
+    Py_ssize_t N, lo, hi;
+    double weight;
 } HexJob;
 
 /* x86-64 with GCC: an AVX2 clone of the loops below beside the baseline one, picked at load time (the eight
@@ -229,9 +276,7 @@ static void *hex_worker(void *arg) {
         for (int k = 0; k < 8; k++)
             for (int d = 0; d < 3; d++) G[3 * h[k] + d] += g[k][d];
     }
-    j->sum = sum;
-    j->tmax = tmax;
-    j->invalid = invalid;
+    j->s = (Sums){sum, tmax, invalid};
     return NULL;
 }
 
@@ -242,71 +287,43 @@ static void *hex_worker(void *arg) {
  * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
  * gradient of F (w2 of jaxci.quality._terms_and_grad), corner_weight the p-mean's (e_i / M_p)^(p - 1). */
 static PyObject *hex_condition(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms;
+    PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms, *ret = NULL;
     double weight;
     int nthreads = 1;
     if (!PyArg_ParseTuple(args, "OOdOOO|i", &o_pts, &o_hex, &weight, &o_grad, &o_cw, &o_terms, &nthreads))
         return NULL;
-    Py_buffer pts = {0}, hex = {0}, grad = {0}, cw = {0}, terms = {0};
-    int have_grad = o_grad != Py_None, have_cw = o_cw != Py_None, have_terms = o_terms != Py_None;
-    if (get_buffer(o_pts, &pts, "points", "d", 8, 0) < 0) return NULL;
-    if (get_buffer(o_hex, &hex, "hexes", "qlq", 8, 0) < 0) goto fail_pts;
-    if (have_grad && get_buffer(o_grad, &grad, "grad", "d", 8, 1) < 0) goto fail_hex;
-    if (have_cw && get_buffer(o_cw, &cw, "corner_weight", "d", 8, 0) < 0) goto fail_grad;
-    if (have_terms && get_buffer(o_terms, &terms, "terms", "d", 8, 1) < 0) goto fail_cw;
-    Py_ssize_t n = pts.len / 24, N = hex.len / 64;
-    if (pts.len != n * 24 || hex.len != N * 64 || (have_grad && grad.len != pts.len) ||
-        (have_cw && cw.len != N * 64) || (have_terms && terms.len != N * 64)) {
+    Buf B[5] = {{{0}}};
+    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
+        acquire(&B[2], o_grad, "grad", "d", 1, 1) < 0 || acquire(&B[3], o_cw, "corner_weight", "d", 0, 1) < 0 ||
+        acquire(&B[4], o_terms, "terms", "d", 1, 1) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64;
+    if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || (B[2].held && B[2].view.len != B[0].view.len) ||
+        (B[3].held && B[3].view.len != N * 64) || (B[4].held && B[4].view.len != N * 64)) {
         PyErr_SetString(PyExc_ValueError, "hex_condition: shapes disagree (points (n, 3), hexes (N, 8), grad (n, 3), "
                                           "corner_weight and terms (8, N))");
-        goto fail_all;
+        goto done;
     }
-    const double *P = pts.buf, *CW = cw.buf;
-    const long long *H = hex.buf;
-    double *G = grad.buf, *T = terms.buf;
-    for (Py_ssize_t e = 0; e < N * 8; e++)
-        if (H[e] < 0 || H[e] >= n) {
-            PyErr_Format(PyExc_IndexError, "hex_condition: node index %lld out of range [0, %zd)", H[e], n);
-            goto fail_all;
-        }
+    if (check_indices(B[1].view.buf, 8 * N, n, "hex_condition") < 0) goto done;
     HexJob jobs[MAX_THREADS];
     int nt = threads_for(N, nthreads);
-    for (int t = 0; t < nt; t++) {
-        jobs[t] = (HexJob){P, CW, H, T, NULL, n, N, N * t / nt, N * (t + 1) / nt, weight, 0.0, 0.0, 0};
-    }
-    if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, G, 3 * n, offsetof(HexJob, G)) < 0) goto fail_all;
-    double sum = 0.0, tmax = 0.0;
-    long long invalid = 0;
-    for (int t = 0; t < nt; t++) {
-        sum += jobs[t].sum;
-        if (jobs[t].tmax > tmax) tmax = jobs[t].tmax;
-        invalid += jobs[t].invalid;
-    }
-    PyBuffer_Release(&pts); PyBuffer_Release(&hex);
-    if (have_grad) PyBuffer_Release(&grad);
-    if (have_cw) PyBuffer_Release(&cw);
-    if (have_terms) PyBuffer_Release(&terms);
-    return Py_BuildValue("ddL", sum, tmax, invalid);
-fail_all:
-    if (have_terms) PyBuffer_Release(&terms);
-fail_cw:
-    if (have_cw) PyBuffer_Release(&cw);
-fail_grad:
-    if (have_grad) PyBuffer_Release(&grad);
-fail_hex:
-    PyBuffer_Release(&hex);
-fail_pts:
-    PyBuffer_Release(&pts);
-    return NULL;
+    for (int t = 0; t < nt; t++)
+        jobs[t] = (HexJob){{0.0, 0.0, 0}, B[0].view.buf, B[3].view.buf, B[1].view.buf, B[4].view.buf, NULL, N,
+                           N * t / nt, N * (t + 1) / nt, weight};
+    if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[2].view.buf, 3 * n, offsetof(HexJob, G)) < 0) goto done;
+    ret = total_sums(jobs, sizeof(HexJob), nt);
+done:
+    release(B, 5);
+    return ret;
 }
 
 typedef struct {
+    Sums s;
     const double *P, *WI;
     const long long *T;
     double *TE, *G;
     Py_ssize_t C, lo, hi;
-    double weight, sum, tmax;
-    long long invalid;
+    double weight;
 } CornerJob;
 
 /* Corners [lo, hi) of corner_condition; the gradient into the job's own G (NULL: none). */
@@ -340,9 +357,7 @@ static void *corner_worker(void *arg) {
                 G[3 * i[0] + d] -= gm;
             }
     }
-    j->sum = sum;
-    j->tmax = tmax;
-    j->invalid = invalid;
+    j->s = (Sums){sum, tmax, invalid};
     return NULL;
 }
 
@@ -351,60 +366,35 @@ static void *corner_worker(void *arg) {
  * corners (row 0 the corner's node, rows 1-3 the far ends of its columns) of any cell type, each corner matrix
  * taken relative to the type's ideal one, T = A W^-1 (jaxci.elements: wedges, pyramids, tetrahedra). */
 static PyObject *corner_condition(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_tab, *o_wi, *o_grad, *o_terms;
+    PyObject *o_pts, *o_tab, *o_wi, *o_grad, *o_terms, *ret = NULL;
     double weight;
     int nthreads = 1;
     if (!PyArg_ParseTuple(args, "OOOdOO|i", &o_pts, &o_tab, &o_wi, &weight, &o_grad, &o_terms, &nthreads))
         return NULL;
-    Py_buffer pts = {0}, tab = {0}, wi = {0}, grad = {0}, terms = {0};
-    int have_grad = o_grad != Py_None, have_terms = o_terms != Py_None;
-    if (get_buffer(o_pts, &pts, "points", "d", 8, 0) < 0) return NULL;
-    if (get_buffer(o_tab, &tab, "table", "qlq", 8, 0) < 0) goto fail_pts;
-    if (get_buffer(o_wi, &wi, "winv", "d", 8, 0) < 0) goto fail_tab;
-    if (have_grad && get_buffer(o_grad, &grad, "grad", "d", 8, 1) < 0) goto fail_wi;
-    if (have_terms && get_buffer(o_terms, &terms, "terms", "d", 8, 1) < 0) goto fail_grad;
-    Py_ssize_t n = pts.len / 24, C = tab.len / 32;
-    if (pts.len != n * 24 || tab.len != C * 32 || wi.len != 72 || (have_grad && grad.len != pts.len) ||
-        (have_terms && terms.len != C * 8)) {
+    Buf B[5] = {{{0}}};
+    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_tab, "table", "qlq", 0, 0) < 0 ||
+        acquire(&B[2], o_wi, "winv", "d", 0, 0) < 0 || acquire(&B[3], o_grad, "grad", "d", 1, 1) < 0 ||
+        acquire(&B[4], o_terms, "terms", "d", 1, 1) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 24, C = B[1].view.len / 32;
+    if (B[0].view.len != n * 24 || B[1].view.len != C * 32 || B[2].view.len != 72 ||
+        (B[3].held && B[3].view.len != B[0].view.len) || (B[4].held && B[4].view.len != C * 8)) {
         PyErr_SetString(PyExc_ValueError, "corner_condition: shapes disagree (points (n, 3), table (4, C), winv "
                                           "(3, 3), grad (n, 3), terms (C,))");
-        goto fail_all;
+        goto done;
     }
-    const long long *T = tab.buf;
-    for (Py_ssize_t k = 0; k < 4 * C; k++)
-        if (T[k] < 0 || T[k] >= n) {
-            PyErr_Format(PyExc_IndexError, "corner_condition: node index %lld out of range [0, %zd)", T[k], n);
-            goto fail_all;
-        }
+    if (check_indices(B[1].view.buf, 4 * C, n, "corner_condition") < 0) goto done;
     CornerJob jobs[MAX_THREADS];
     int nt = threads_for(C / 8, nthreads);
     for (int t = 0; t < nt; t++)
-        jobs[t] = (CornerJob){pts.buf, wi.buf, T, terms.buf, NULL, C, C * t / nt, C * (t + 1) / nt, weight, 0.0,
-                              0.0, 0};
-    if (run_jobs(jobs, sizeof(CornerJob), nt, corner_worker, grad.buf, 3 * n, offsetof(CornerJob, G)) < 0)
-        goto fail_all;
-    double sum = 0.0, tmax = 0.0;
-    long long invalid = 0;
-    for (int t = 0; t < nt; t++) {
-        sum += jobs[t].sum;
-        if (jobs[t].tmax > tmax) tmax = jobs[t].tmax;
-        invalid += jobs[t].invalid;
-    }
-    PyBuffer_Release(&pts); PyBuffer_Release(&tab); PyBuffer_Release(&wi);
-    if (have_grad) PyBuffer_Release(&grad);
-    if (have_terms) PyBuffer_Release(&terms);
-    return Py_BuildValue("ddL", sum, tmax, invalid);
-fail_all:
-    if (have_terms) PyBuffer_Release(&terms);
-fail_grad:
-    if (have_grad) PyBuffer_Release(&grad);
-fail_wi:
-    PyBuffer_Release(&wi);
-fail_tab:
-    PyBuffer_Release(&tab);
-fail_pts:
-    PyBuffer_Release(&pts);
-    return NULL;
+        jobs[t] = (CornerJob){{0.0, 0.0, 0}, B[0].view.buf, B[2].view.buf, B[1].view.buf, B[4].view.buf, NULL, C,
+                              C * t / nt, C * (t + 1) / nt, weight};
+    if (run_jobs(jobs, sizeof(CornerJob), nt, corner_worker, B[3].view.buf, 3 * n, offsetof(CornerJob, G)) < 0)
+        goto done;
+    ret = total_sums(jobs, sizeof(CornerJob), nt);
+done:
+    release(B, 5);
+    return ret;
 }
 
 typedef struct {
@@ -465,54 +455,37 @@ static void *untangle_worker(void *arg) {
  * -> (sum of the corner energies, min det J): the regularised Winslow energy of
  * jaxci.optim._untangle_loop.hex_kernel (before its division by 32); with `grad`, d(sum)/dx is ADDED to it. */
 static PyObject *untangle_energy(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_tab, *o_il, *o_grad;
+    PyObject *o_pts, *o_tab, *o_il, *o_grad, *ret = NULL;
     double eps, theta;
     int nthreads = 1;
     if (!PyArg_ParseTuple(args, "OOOddO|i", &o_pts, &o_tab, &o_il, &eps, &theta, &o_grad, &nthreads)) return NULL;
-    Py_buffer pts = {0}, tab = {0}, il = {0}, grad = {0};
-    int have_grad = o_grad != Py_None;
-    if (get_buffer(o_pts, &pts, "points", "d", 8, 0) < 0) return NULL;
-    if (get_buffer(o_tab, &tab, "table", "qlq", 8, 0) < 0) goto fail_pts;
-    if (get_buffer(o_il, &il, "inv_len", "d", 8, 0) < 0) goto fail_tab;
-    if (have_grad && get_buffer(o_grad, &grad, "grad", "d", 8, 1) < 0) goto fail_il;
-    Py_ssize_t n = pts.len / 24, C = il.len / 8;
-    if (pts.len != n * 24 || tab.len != C * 32 || (have_grad && grad.len != pts.len)) {
+    Buf B[4] = {{{0}}};
+    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_tab, "table", "qlq", 0, 0) < 0 ||
+        acquire(&B[2], o_il, "inv_len", "d", 0, 0) < 0 || acquire(&B[3], o_grad, "grad", "d", 1, 1) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 24, C = B[2].view.len / 8;
+    if (B[0].view.len != n * 24 || B[1].view.len != C * 32 || (B[3].held && B[3].view.len != B[0].view.len)) {
         PyErr_SetString(PyExc_ValueError, "untangle_energy: shapes disagree (points (n, 3), table (4, C), inv_len "
                                           "(C,), grad (n, 3))");
-        goto fail_all;
+        goto done;
     }
-    const double *P = pts.buf, *IL = il.buf;
-    const long long *T = tab.buf;
-    double *G = grad.buf;
-    for (Py_ssize_t k = 0; k < 4 * C; k++)
-        if (T[k] < 0 || T[k] >= n) {
-            PyErr_Format(PyExc_IndexError, "untangle_energy: node index %lld out of range [0, %zd)", T[k], n);
-            goto fail_all;
-        }
+    if (check_indices(B[1].view.buf, 4 * C, n, "untangle_energy") < 0) goto done;
     UntangleJob jobs[MAX_THREADS];
     int nt = threads_for(C / 8, nthreads);
-    for (int t = 0; t < nt; t++) {
-        jobs[t] = (UntangleJob){P, IL, T, NULL, C, C * t / nt, C * (t + 1) / nt, eps, theta, 0.0, INFINITY};
-    }
-    if (run_jobs(jobs, sizeof(UntangleJob), nt, untangle_worker, G, 3 * n, offsetof(UntangleJob, G)) < 0)
-        goto fail_all;
+    for (int t = 0; t < nt; t++)
+        jobs[t] = (UntangleJob){B[0].view.buf, B[2].view.buf, B[1].view.buf, NULL, C, C * t / nt, C * (t + 1) / nt,
+                                eps, theta, 0.0, INFINITY};
+    if (run_jobs(jobs, sizeof(UntangleJob), nt, untangle_worker, B[3].view.buf, 3 * n, offsetof(UntangleJob, G)) < 0)
+        goto done;
     double energy = 0.0, dmin = INFINITY;
     for (int t = 0; t < nt; t++) {
         energy += jobs[t].energy;
         if (jobs[t].dmin < dmin) dmin = jobs[t].dmin;
     }
-    PyBuffer_Release(&pts); PyBuffer_Release(&tab); PyBuffer_Release(&il);
-    if (have_grad) PyBuffer_Release(&grad);
-    return Py_BuildValue("dd", energy, dmin);
-fail_all:
-    if (have_grad) PyBuffer_Release(&grad);
-fail_il:
-    PyBuffer_Release(&il);
-fail_tab:
-    PyBuffer_Release(&tab);
-fail_pts:
-    PyBuffer_Release(&pts);
-    return NULL;
+    ret = Py_BuildValue("dd", energy, dmin);
+done:
+    release(B, 4);
+    return ret;
 }
 
 /* ------------------------------------------------------------------------------------------ projection
@@ -601,82 +574,66 @@ static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns
  * point: the orthogonal projection onto its hint's cell where that falls inside, else the best of its K
  * candidates (hint[i] := its column). As NearProjector.__call__ in numpy did. */
 static PyObject *near_project(PyObject *self, PyObject *args) {
-    PyObject *o_x, *o_nodes, *o_active, *o_hint, *o_cand, *o_tab;
+    PyObject *o_x, *o_nodes, *o_active, *o_hint, *o_cand, *o_tab, *ret = NULL;
     int kind;
     double tol, bump;
     if (!PyArg_ParseTuple(args, "OOOOOOidd", &o_x, &o_nodes, &o_active, &o_hint, &o_cand, &o_tab, &kind, &tol,
                           &bump))
         return NULL;
-    Py_buffer x = {0}, nodes = {0}, active = {0}, hint = {0}, cand = {0}, tab = {0};
-    PyObject *ret = NULL;
-    if (get_buffer(o_x, &x, "x", "d", 8, 1) < 0) return NULL;
-    if (get_buffer(o_nodes, &nodes, "nodes", "qlq", 8, 0) < 0) goto out_x;
-    if (get_buffer(o_active, &active, "active", "qlq", 8, 0) < 0) goto out_nodes;
-    if (get_buffer(o_hint, &hint, "hint", "qlq", 8, 1) < 0) goto out_active;
-    if (get_buffer(o_cand, &cand, "cand", "qlq", 8, 0) < 0) goto out_hint;
-    if (get_buffer(o_tab, &tab, "table", "d", 8, 0) < 0) goto out_cand;
-    {
-        Py_ssize_t n = x.len / 24, m = nodes.len / 8, na = active.len / 8, rows = kind == 0 ? 19 : 8;
-        Py_ssize_t nc = tab.len / 8 / rows, K = cand.ndim == 2 ? cand.shape[1] : 0, nrows = K ? cand.len / 8 / K : 0;
-        const long long *N = nodes.buf, *A = active.buf, *CA = cand.buf;
-        long long *H = hint.buf;
-        if ((kind != 0 && kind != 1) || hint.len != nodes.len || tab.len != nc * rows * 8 || K < 1 || nrows < m) {
-            PyErr_SetString(PyExc_ValueError, "near_project: shapes disagree");
-            goto out_tab;
-        }
-        for (Py_ssize_t k = 0; k < na; k++)
-            if (A[k] < 0 || A[k] >= m || N[A[k]] < 0 || N[A[k]] >= n || H[A[k]] >= K) {
-                PyErr_SetString(PyExc_IndexError, "near_project: index out of range");
-                goto out_tab;
-            }
-        for (Py_ssize_t k = 0; k < m * K && k < cand.len / 8; k++)
-            if (CA[k] < 0 || CA[k] >= nc) {
-                PyErr_SetString(PyExc_IndexError, "near_project: candidate cell out of range");
-                goto out_tab;
-            }
-        double *X = x.buf;
-        const double *T = tab.buf;
-        for (Py_ssize_t k = 0; k < na; k++) {
-            Py_ssize_t i = A[k];
-            double *xi = X + 3 * N[i], p[3], h, w[3], d1;
-            int inside = 0;
-            if (H[i] >= 0) {
-                Py_ssize_t j = CA[i * K + H[i]];
-                if (kind == 0) inside = plane_point(xi, T, nc, j, tol, p, &h, w, &d1);
-                else closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
-            }
-            if (!inside) {
-                double best = INFINITY, q[3];
-                long long pick = 0;
-                for (Py_ssize_t c = 0; c < K; c++) {
-                    int in;
-                    double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[i * K + c], tol, bump, q)
-                                             : closest_on_segment(xi, T, nc, CA[i * K + c], tol, bump, q, &in);
-                    if (score < best || c == 0) {
-                        best = score;
-                        pick = c;
-                        for (int d = 0; d < 3; d++) p[d] = q[d];
-                    }
-                }
-                H[i] = pick;
-            }
-            for (int d = 0; d < 3; d++) xi[d] = p[d];
-        }
-        Py_INCREF(Py_None);
-        ret = Py_None;
+    Buf B[6] = {{{0}}};
+    if (acquire(&B[0], o_x, "x", "d", 1, 0) < 0 || acquire(&B[1], o_nodes, "nodes", "qlq", 0, 0) < 0 ||
+        acquire(&B[2], o_active, "active", "qlq", 0, 0) < 0 || acquire(&B[3], o_hint, "hint", "qlq", 1, 0) < 0 ||
+        acquire(&B[4], o_cand, "cand", "qlq", 0, 0) < 0 || acquire(&B[5], o_tab, "table", "d", 0, 0) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8, na = B[2].view.len / 8, rows = kind == 0 ? 19 : 8;
+    Py_ssize_t nc = B[5].view.len / 8 / rows, K = B[4].view.ndim == 2 ? B[4].view.shape[1] : 0;
+    const long long *N = B[1].view.buf, *A = B[2].view.buf, *CA = B[4].view.buf;
+    long long *H = B[3].view.buf;
+    if ((kind != 0 && kind != 1) || B[3].view.len != B[1].view.len || B[5].view.len != nc * rows * 8 || K < 1 ||
+        B[4].view.len < m * K * 8) {
+        PyErr_SetString(PyExc_ValueError, "near_project: shapes disagree");
+        goto done;
     }
-out_tab:
-    PyBuffer_Release(&tab);
-out_cand:
-    PyBuffer_Release(&cand);
-out_hint:
-    PyBuffer_Release(&hint);
-out_active:
-    PyBuffer_Release(&active);
-out_nodes:
-    PyBuffer_Release(&nodes);
-out_x:
-    PyBuffer_Release(&x);
+    if (check_indices(A, na, m, "near_project") < 0 || check_indices(N, m, n, "near_project") < 0 ||
+        check_indices(CA, m * K, nc, "near_project") < 0)
+        goto done;
+    for (Py_ssize_t k = 0; k < na; k++)
+        if (H[A[k]] >= K) {
+            PyErr_SetString(PyExc_IndexError, "near_project: hint out of range");
+            goto done;
+        }
+    double *X = B[0].view.buf;
+    const double *T = B[5].view.buf;
+    for (Py_ssize_t k = 0; k < na; k++) {
+        Py_ssize_t i = A[k];
+        double *xi = X + 3 * N[i], p[3], h, w[3], d1;
+        int inside = 0;
+        if (H[i] >= 0) {
+            Py_ssize_t j = CA[i * K + H[i]];
+            if (kind == 0) inside = plane_point(xi, T, nc, j, tol, p, &h, w, &d1);
+            else closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
+        }
+        if (!inside) {
+            double best = INFINITY, q[3];
+            long long pick = 0;
+            for (Py_ssize_t c = 0; c < K; c++) {
+                int in;
+                double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[i * K + c], tol, bump, q)
+                                         : closest_on_segment(xi, T, nc, CA[i * K + c], tol, bump, q, &in);
+                if (score < best || c == 0) {
+                    best = score;
+                    pick = c;
+                    for (int d = 0; d < 3; d++) p[d] = q[d];
+                }
+            }
+            H[i] = pick;
+        }
+        for (int d = 0; d < 3; d++) xi[d] = p[d];
+    }
+    Py_INCREF(Py_None);
+    ret = Py_None;
+done:
+    release(B, 6);
     return ret;
 }
 
@@ -684,74 +641,52 @@ out_x:
  * -H g by the L-BFGS two-loop recursion over the pairs (S[i], Y[i], rho[i] = 1 / S[i].Y[i]) for i in `order`
  * (oldest first), the initial matrix scaled by s.y / y.y of the newest pair (jaxci.optim.host._direction). */
 static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
-    PyObject *o_g, *o_s, *o_y, *o_rho, *o_order, *o_out;
+    PyObject *o_g, *o_s, *o_y, *o_rho, *o_order, *o_out, *ret = NULL;
     if (!PyArg_ParseTuple(args, "OOOOOO", &o_g, &o_s, &o_y, &o_rho, &o_order, &o_out)) return NULL;
-    Py_buffer g = {0}, S = {0}, Y = {0}, rho = {0}, order = {0}, out = {0};
-    PyObject *ret = NULL;
-    if (get_buffer(o_g, &g, "g", "d", 8, 0) < 0) return NULL;
-    if (get_buffer(o_s, &S, "S", "d", 8, 0) < 0) goto out_g;
-    if (get_buffer(o_y, &Y, "Y", "d", 8, 0) < 0) goto out_s;
-    if (get_buffer(o_rho, &rho, "rho", "d", 8, 0) < 0) goto out_y;
-    if (get_buffer(o_order, &order, "order", "qlq", 8, 0) < 0) goto out_rho;
-    if (get_buffer(o_out, &out, "out", "d", 8, 1) < 0) goto out_order;
-    {
-        Py_ssize_t n = g.len / 8, m = rho.len / 8, k = order.len / 8;
-        const long long *O = order.buf;
-        if (out.len != g.len || S.len != m * n * 8 || Y.len != S.len || k > m) {
-            PyErr_SetString(PyExc_ValueError, "lbfgs_direction: shapes disagree");
-            goto out_out;
-        }
-        for (Py_ssize_t t = 0; t < k; t++)
-            if (O[t] < 0 || O[t] >= m) {
-                PyErr_SetString(PyExc_IndexError, "lbfgs_direction: order out of range");
-                goto out_out;
-            }
-        const double *G = g.buf, *SS = S.buf, *YY = Y.buf, *R = rho.buf;
-        double *q = out.buf, alpha[64];
-        if (k > 64) {
-            PyErr_SetString(PyExc_ValueError, "lbfgs_direction: at most 64 pairs");
-            goto out_out;
-        }
-        Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t i = 0; i < n; i++) q[i] = G[i];
-        for (Py_ssize_t t = k - 1; t >= 0; t--) {
-            const double *s = SS + O[t] * n, *y = YY + O[t] * n;
-            double dot = 0.0;
-            for (Py_ssize_t i = 0; i < n; i++) dot += s[i] * q[i];
-            alpha[t] = R[O[t]] * dot;
-            for (Py_ssize_t i = 0; i < n; i++) q[i] -= alpha[t] * y[i];
-        }
-        if (k) {
-            const double *s = SS + O[k - 1] * n, *y = YY + O[k - 1] * n;
-            double sy = 0.0, yy = 0.0;
-            for (Py_ssize_t i = 0; i < n; i++) { sy += s[i] * y[i]; yy += y[i] * y[i]; }
-            double gamma = sy / yy;
-            for (Py_ssize_t i = 0; i < n; i++) q[i] *= gamma;
-        }
-        for (Py_ssize_t t = 0; t < k; t++) {
-            const double *s = SS + O[t] * n, *y = YY + O[t] * n;
-            double dot = 0.0;
-            for (Py_ssize_t i = 0; i < n; i++) dot += y[i] * q[i];
-            double beta = R[O[t]] * dot;
-            for (Py_ssize_t i = 0; i < n; i++) q[i] += (alpha[t] - beta) * s[i];
-        }
-        for (Py_ssize_t i = 0; i < n; i++) q[i] = -q[i];
-        Py_END_ALLOW_THREADS
-        Py_INCREF(Py_None);
-        ret = Py_None;
+    Buf B[6] = {{{0}}};
+    if (acquire(&B[0], o_g, "g", "d", 0, 0) < 0 || acquire(&B[1], o_s, "S", "d", 0, 0) < 0 ||
+        acquire(&B[2], o_y, "Y", "d", 0, 0) < 0 || acquire(&B[3], o_rho, "rho", "d", 0, 0) < 0 ||
+        acquire(&B[4], o_order, "order", "qlq", 0, 0) < 0 || acquire(&B[5], o_out, "out", "d", 1, 0) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 8, m = B[3].view.len / 8, k = B[4].view.len / 8;
+    const long long *O = B[4].view.buf;
+    if (B[5].view.len != B[0].view.len || B[1].view.len != m * n * 8 || B[2].view.len != B[1].view.len || k > m ||
+        k > 64) {
+        PyErr_SetString(PyExc_ValueError, "lbfgs_direction: shapes disagree (or more than 64 pairs)");
+        goto done;
     }
-out_out:
-    PyBuffer_Release(&out);
-out_order:
-    PyBuffer_Release(&order);
-out_rho:
-    PyBuffer_Release(&rho);
-out_y:
-    PyBuffer_Release(&Y);
-out_s:
-    PyBuffer_Release(&S);
-out_g:
-    PyBuffer_Release(&g);
+    if (check_indices(O, k, m, "lbfgs_direction") < 0) goto done;
+    const double *G = B[0].view.buf, *SS = B[1].view.buf, *YY = B[2].view.buf, *R = B[3].view.buf;
+    double *q = B[5].view.buf, alpha[64];
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < n; i++) q[i] = G[i];
+    for (Py_ssize_t t = k - 1; t >= 0; t--) {
+        const double *s = SS + O[t] * n, *y = YY + O[t] * n;
+        double dot = 0.0;
+        for (Py_ssize_t i = 0; i < n; i++) dot += s[i] * q[i];
+        alpha[t] = R[O[t]] * dot;
+        for (Py_ssize_t i = 0; i < n; i++) q[i] -= alpha[t] * y[i];
+    }
+    if (k) {
+        const double *s = SS + O[k - 1] * n, *y = YY + O[k - 1] * n;
+        double sy = 0.0, yy = 0.0;
+        for (Py_ssize_t i = 0; i < n; i++) { sy += s[i] * y[i]; yy += y[i] * y[i]; }
+        double gamma = sy / yy;
+        for (Py_ssize_t i = 0; i < n; i++) q[i] *= gamma;
+    }
+    for (Py_ssize_t t = 0; t < k; t++) {
+        const double *s = SS + O[t] * n, *y = YY + O[t] * n;
+        double dot = 0.0;
+        for (Py_ssize_t i = 0; i < n; i++) dot += y[i] * q[i];
+        double beta = R[O[t]] * dot;
+        for (Py_ssize_t i = 0; i < n; i++) q[i] += (alpha[t] - beta) * s[i];
+    }
+    for (Py_ssize_t i = 0; i < n; i++) q[i] = -q[i];
+    Py_END_ALLOW_THREADS
+    Py_INCREF(Py_None);
+    ret = Py_None;
+done:
+    release(B, 6);
     return ret;
 }
 
