@@ -152,7 +152,7 @@ def test_cli_small_mesh_compiles_nothing(tmp_path):
 @pytest.mark.parametrize("command", ["smooth", "quality"])
 def test_cli_small_mesh_never_imports_jax(tmp_path, command):
     """`jaxci smooth` / `jaxci quality` of a tangled 1000-hex mesh run in numpy and C: JAX (0.4-0.5 s of import)
-    is never imported, nor equinox, optimistix or jaxtyping."""
+    is never imported, nor equinox, optimistix or jaxtyping, nor scipy.sparse or scipy.spatial (0.5 s)."""
     from jaxci.io import write_mesh
 
     mesh = perturb_box(10, amplitude=0.3, seed=1)
@@ -161,7 +161,8 @@ def test_cli_small_mesh_never_imports_jax(tmp_path, command):
     write_mesh(mesh.with_points(x), str(tmp_path / "in.vtk"))
     args = [command, str(tmp_path / "in.vtk")] + ([str(tmp_path / "out.vtk")] if command == "smooth" else [])
     code = (f"import sys; from jaxci.cli import main; rc = main({args!r}); "
-            "print(rc, sorted(m for m in ('jax', 'equinox', 'optimistix', 'jaxtyping') if m in sys.modules))")
+            "print(rc, sorted(m for m in ('jax', 'equinox', 'optimistix', 'jaxtyping', 'scipy.sparse', "
+            "'scipy.spatial') if m in sys.modules))")
     env = dict(os.environ, JAXCI_CACHE_DIR=str(tmp_path / "cache"))
     p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert p.stdout.strip().splitlines()[-1] == "0 []", p.stdout + p.stderr

@@ -16,6 +16,7 @@ from jaxci.mesh import (
     CellBlock,
     HexMesh,
     check_volume,
+    close_pairs,
     coincident_pairs,
     corner_determinants,
     from_unit,
@@ -157,6 +158,24 @@ def test_coincident_pairs():
     np.testing.assert_array_equal(coincident_pairs(p, tol=0.0), [[1, 3], [1, 4], [3, 4]])
     np.testing.assert_array_equal(coincident_pairs(p, nodes=[0, 1, 2]), [[0, 2]])
     assert box(2).coincident_nodes().shape == (0, 2) and not any("coincident" in n for n in box(2).notes)
+
+
+@pytest.mark.parametrize("r", [0.0, 1e-9, 0.02, 0.25])
+def test_close_pairs_match_a_kd_tree(r):
+    """`close_pairs` (a hashed grid, no scipy.spatial) finds exactly the pairs of scipy's k-d tree: random
+    points with near-duplicates, and a grid with exact duplicates whose pairs lie on cell faces."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    p = rng.random((2000, 3))
+    p[rng.integers(0, 2000, 300)] = p[rng.integers(0, 2000, 300)] + rng.normal(size=(300, 3)) * 1e-10
+    g = np.asarray(box(12).points) / 12
+    for pts in (p, np.concatenate([g, g[::5]])):
+        want = cKDTree(pts).query_pairs(r, output_type="ndarray")
+        got = close_pairs(pts, r)
+        assert (got[:, 0] < got[:, 1]).all()
+        m = len(pts)
+        assert np.array_equal(np.sort(got[:, 0] * m + got[:, 1]), np.unique(np.sort(want, axis=1) @ [m, 1]))
 
 
 def test_zero_volume_detected():

@@ -45,7 +45,6 @@ import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ._closest import (
     _SD,
@@ -71,7 +70,7 @@ from .mesh import HexMesh
 
 if TYPE_CHECKING:
     from jaxtyping import Array, Float, Int
-from .topology import csr_gather, incidence
+from .topology import csr_gather, incidence, unique_per_row
 
 
 @pytree_dataclass
@@ -138,14 +137,28 @@ def _ring_candidates(
     """For each of `nodes`, the cells (faces or segments) of its own group within its 2-ring, padded."""
     if not len(cells):
         return np.zeros((1, 1), dtype=np.int32)
-    inc = incidence(cells, n_nodes)
-    ring = ((inc[nodes] @ inc.T) @ inc).tocsr()
-    ring.sort_indices()
-    rows = np.repeat(np.arange(len(nodes)), np.diff(ring.indptr))
-    keep = cell_group[ring.indices] == node_group[nodes][rows]
+    indptr, indices = incidence(cells, n_nodes)
+    owner, c = csr_gather(indptr, indices, np.asarray(nodes, dtype=np.int64))  # the cells around each node
+    k = cells.shape[1]
+    near_p, near = unique_per_row(np.repeat(owner, k), cells[c].ravel(), len(nodes))  # their nodes (1-ring)
+    owner, c = csr_gather(indptr, indices, near)  # the cells around those
+    ring_p, ring = unique_per_row(np.repeat(np.arange(len(nodes)), np.diff(near_p))[owner], c, len(nodes))
+    rows = np.repeat(np.arange(len(nodes)), np.diff(ring_p))
+    keep = cell_group[ring] == node_group[nodes][rows]
     indptr = np.zeros(len(nodes) + 1, dtype=np.int64)
     np.cumsum(np.bincount(rows[keep], minlength=len(nodes)), out=indptr[1:])
-    return _pad_rows(indptr, ring.indices[keep])
+    return _pad_rows(indptr, ring[keep])
+
+
+def _node_sums(cells: np.ndarray, n_nodes: int, nodes: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """For each of `nodes`, the sum of `values` ``(n_cells, d)`` over the distinct cells it belongs to: shape
+    ``(len(nodes), d)`` (a triangle stored as ``[a, b, c, c]`` counts once for ``c``)."""
+    indptr, indices = incidence(cells, n_nodes)
+    owner, c = csr_gather(indptr, indices, np.asarray(nodes, dtype=np.int64))
+    ptr, c = unique_per_row(owner, c, len(nodes))
+    owner = np.repeat(np.arange(len(nodes)), np.diff(ptr))
+    return np.stack([np.bincount(owner, values[c, j], minlength=len(nodes)) for j in range(values.shape[1])],
+                    axis=1)
 
 
 def _unit_rows(v: np.ndarray) -> np.ndarray:
@@ -168,8 +181,7 @@ def _edge_tangents(points: np.ndarray, fedges: np.ndarray, edge: np.ndarray) -> 
     """Unit tangents (m, 3) of EDGE nodes from their two feature edges (bisecting a slight turn)."""
     if not len(edge):
         return np.zeros((0, 3))
-    inc = incidence(fedges, len(points))
-    owner, e = csr_gather(inc.indptr, inc.indices, edge)
+    owner, e = csr_gather(*incidence(fedges, len(points)), edge)
     other = np.where(fedges[e, 0] == edge[owner], fedges[e, 1], fedges[e, 0])
     first = np.r_[True, owner[1:] != owner[:-1]]  # each EDGE node has exactly two feature edges
     prev, nxt = other[first], other[~first]
@@ -204,7 +216,7 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     # normals of surface nodes: area-weighted over the faces around them (all in their own patch)
     normals = np.zeros((len(surf), 3))
     if len(faces) and len(surf):
-        normals = _unit_rows(np.asarray(incidence(faces, n).sign()[surf] @ face_normals(pts, faces)))
+        normals = _unit_rows(_node_sums(faces, n, surf, face_normals(pts, faces)))
     if len(faces):
         tris, tri_patch = _triangle_table(pts, faces), np.repeat(info.face_patch, 4)
     else:
@@ -446,6 +458,8 @@ def _search(table, cells, x, closest, centre_radius):
     The nearest cell centre at distance d0 bounds the distance to the nearest point; a cell whose centre is
     farther than d0 + (largest cell radius) cannot hold a nearer point.
     """
+    from scipy.spatial import cKDTree  # here, not at the top: its import is 0.3-0.5 s of a command's start
+
     centre, radius = centre_radius(table[:, cells])
     tree = cKDTree(centre)
     d0, _ = tree.query(x)

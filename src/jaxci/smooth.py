@@ -8,7 +8,8 @@ Whatever the method, `smooth` guarantees on return (checked in float64, not assu
 
 - no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase (else
   the input is returned, with a note saying why);
-- every boundary node lies on the ORIGINAL boundary (a final exact float64 projection).
+- every boundary node lies on the ORIGINAL boundary (a final exact float64 projection; on the host path the
+  solver's own float64 projection onto the original boundary's triangles and segments).
 
 A mesh with inverted elements cannot be smoothed by F (its objective is infinite): with ``untangle="auto"`` it
 goes through the untangling stage first where one is available, otherwise `InvertedMeshError` is raised.
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import numbers
 import time
 from collections.abc import Sequence
@@ -102,27 +104,36 @@ class SmoothResult:
 
 @dataclasses.dataclass(frozen=True)
 class Problem:
-    """Everything a method needs, built once: constraints, colouring, transposed connectivity, dtype; for a mixed
-    mesh the non-hexahedral cells (`extra`: `jaxci.mixed.ExtraCells`; `table`: `jaxci.mixed.CornerTable`), None
-    for a hexahedral one."""
+    """Everything a method needs, built once: constraints, transposed connectivity, dtype; for a mixed mesh the
+    non-hexahedral cells (`extra`: `jaxci.mixed.ExtraCells`; `table`: `jaxci.mixed.CornerTable`), None for a
+    hexahedral one; the colouring (`colour`) on first use."""
 
     mesh: HexMesh
     info: BoundaryInfo
     cons: Constraints
-    colour: np.ndarray
     conn: jnp.ndarray
     x0: jnp.ndarray
     dtype: type
     extra: mixed.ExtraCells | None = None
     table: mixed.CornerTable | None = None
 
+    @functools.cached_property
+    def colour(self) -> np.ndarray:
+        """The colour of every node, int32 ``(n_nodes,)``: no two nodes of one colour share a cell of any type
+        (`jaxci.topology.colour_nodes`; the methods that move nodes colour by colour, CI and the Laplacians).
+        Computed on first use: L-BFGS needs none, and node adjacency imports scipy.sparse."""
+        mesh = self.mesh
+        adjacency = node_adjacency(list(mixed.volume_cells(mesh).values()), mesh.n_nodes) if self.extra is not None \
+            else None
+        return np.asarray(colour_nodes(mesh.hexes, mesh.n_nodes, adjacency).colour)
+
 
 def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.0, fix_boundary: bool = False,
                   fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = (),
                   device: bool = True, info: BoundaryInfo | None = None) -> Problem:
-    """Classify the boundary, build the constraints and the colouring of `mesh` (call inside the dtype context).
+    """Classify the boundary and build the constraints of `mesh` (call inside the dtype context).
 
-    On a mixed mesh no two nodes of one colour share a cell of any type. `device`: the arrays on JAX's default
+    `device`: the arrays on JAX's default
     device (default), or in numpy for a method that runs on the host (`host_run`: JAX is not imported). `info`:
     the `BoundaryInfo` of `mesh` with these arguments if it is at hand (the untangling stage's), else classified."""
     if info is None:
@@ -131,14 +142,10 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
     cons = build_constraints(mesh, info, dtype=dtype, device=device)
     extra = table = None
     if mixed.has_extra(mesh):
-        cells = list(mixed.volume_cells(mesh).values())
-        colour = colour_nodes(mesh.hexes, mesh.n_nodes, node_adjacency(cells, mesh.n_nodes)).colour
         extra, table = mixed.extra_cells(mesh, device=device), mixed.corner_table(mesh)
-    else:
-        colour = colour_nodes(mesh.hexes, mesh.n_nodes).colour
     put = jax.device_put if device else (lambda a: a)
     conn = transposed(mesh.hexes) if device else np.ascontiguousarray(np.asarray(mesh.hexes).T)
-    return Problem(mesh, info, cons, np.asarray(colour), conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table)
+    return Problem(mesh, info, cons, conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table)
 
 
 def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
@@ -443,11 +450,11 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
     with clock.phase("checks"), enable_x64(not host):
         power = float(resolved["p"]) if resolved.get("objective") == "pmean" else None
         if untangled is None:
-            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before, power)
+            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before, power, projected=host)
         else:
             from .optim.untangle import enforce_after_untangling
 
-            points, check_notes = enforce_after_untangling(mesh, problem.info, untangled, x, power)
+            points, check_notes = enforce_after_untangling(mesh, problem.info, untangled, x, power, projected=host)
         notes.extend(check_notes)
         after = quality_report(mesh, points)
     res = SmoothResult(
@@ -523,14 +530,15 @@ def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
 
 
 def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_worst: bool = True,
-                        before: QualityReport | None = None, power: float | None = None
+                        before: QualityReport | None = None, power: float | None = None, projected: bool = False
                         ) -> tuple[np.ndarray, list[str]]:
-    """Exact float64 projection onto the original boundary, then the no-inversion, worst-cell
-    (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell type (`jaxci.elements.inverted`;
-    of `jaxci.elements.mixed_objective`, or of the p-mean `jaxci.quality.pmean_objective` with `power`: the
-    objective the method minimised)."""
-    cons64 = build_constraints(mesh, problem.info, dtype=np.float64, device=False)
-    x = project_np(cons64, x)
+    """Exact float64 projection onto the original boundary (not with `projected`: `x` comes from the host
+    solver, which evaluated it with every boundary node projected onto the original boundary in float64), then
+    the no-inversion, worst-cell (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell
+    type (`jaxci.elements.inverted`; of `jaxci.elements.mixed_objective`, or of the p-mean
+    `jaxci.quality.pmean_objective` with `power`: the objective the method minimised)."""
+    if not projected:
+        x = project_np(build_constraints(mesh, problem.info, dtype=np.float64, device=False), x)
     new = mixed.newly_inverted(mesh, mesh.points, x)
     objective = checked_objective(mesh, power)
     f0, f1 = objective(mesh.points), objective(x)

@@ -2,8 +2,10 @@
 
 Everything here depends on the connectivity only (never on coordinates) and scales to millions of hexahedra:
 no Python loop runs per element or per node. A face is keyed by its sorted node indices (two int64 keys, so up
-to about 3e9 nodes); node adjacency is the sparsity pattern of ``A A^T`` for the node-element incidence matrix
-``A`` (scipy's sparse product, much faster than sorting the 56 node pairs of every element).
+to about 3e9 nodes); the node-cell incidence is a CSR structure made by one stable sort (`incidence`); node
+adjacency is the sparsity pattern of ``A A^T`` for the node-element incidence matrix ``A`` (scipy's sparse
+product, much faster than sorting the 56 node pairs of every element; scipy is imported only there, by the
+methods that colour the nodes: its import is 0.25-0.5 s of a command's start).
 
 Faces of every linear volume cell (`CELL_FACES`: hexahedron 6 quadrilaterals, wedge 2 triangles + 3
 quadrilaterals, pyramid 1 quadrilateral + 4 triangles, tetrahedron 4 triangles) are listed counter-clockwise
@@ -19,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import scipy.sparse as sp
 
 #: The six faces of a VTK hexahedron (local node indices), each oriented outward for a right-handed element:
 #: -x, +x, -y, +y, -z, +z on the unit cube of `jaxci.mesh`. Shape ``(6, 4)``.
@@ -212,17 +213,20 @@ def unique_edges(pairs: np.ndarray) -> np.ndarray:
     return np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
 
 
-def incidence(cells: np.ndarray, n_nodes: int) -> sp.csr_matrix:
-    """The node-cell incidence matrix of shape ``(n_nodes, n_cells)``, int32 ones, CSR.
+def incidence(cells: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """The node-cell incidence in CSR form: the cells of node ``i`` are ``indices[indptr[i]:indptr[i + 1]]``,
+    in increasing order (a node listed twice by one cell lists that cell twice).
 
     **Arguments:** `cells` an integer array of shape ``(n_cells, k)`` (hexahedra, faces, edges); `n_nodes`.
+
+    **Returns:** ``(indptr, indices)``, int64 arrays of shapes ``(n_nodes + 1,)`` and ``(n_cells * k,)``.
     """
     cells = np.asarray(cells, dtype=np.int64)
-    n_cells, k = cells.shape
-    return sp.csr_matrix(
-        (np.ones(n_cells * k, dtype=np.int32), (cells.ravel(), np.repeat(np.arange(n_cells), k))),
-        shape=(int(n_nodes), n_cells),
-    )
+    k = cells.shape[1] if cells.ndim == 2 else 1
+    order = np.argsort(cells.ravel(), kind="stable")
+    indptr = np.zeros(int(n_nodes) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(cells.ravel(), minlength=int(n_nodes)), out=indptr[1:])
+    return indptr, order // max(k, 1)
 
 
 def node_adjacency(hexes, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -237,17 +241,38 @@ def node_adjacency(hexes, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
     **Returns:** ``(indptr, indices)``, int64 arrays of shapes ``(n_nodes + 1,)`` and ``(nnz,)``: the
     neighbours of node ``i`` are ``indices[indptr[i]:indptr[i + 1]]``, sorted.
     """
-    if isinstance(hexes, list | tuple):
-        a = sp.hstack([incidence(c, n_nodes) for c in hexes]).tocsr()
-    else:
-        a = incidence(hexes, n_nodes)
+    import scipy.sparse as sp
+
+    n = int(n_nodes)
+    blocks = list(hexes) if isinstance(hexes, list | tuple) else [hexes]
+    mats = []
+    for c in blocks:
+        c = np.asarray(c, dtype=np.int64)
+        mats.append(sp.csr_matrix((np.ones(c.size, dtype=np.int32), (c.ravel(), np.repeat(np.arange(len(c)),
+                                                                                            c.shape[1]))),
+                                  shape=(n, len(c))))
+    a = sp.hstack(mats).tocsr() if len(mats) > 1 else mats[0]
     g = (a @ a.T).tocsr()
     g.sort_indices()
-    rows = np.repeat(np.arange(int(n_nodes)), np.diff(g.indptr))
+    rows = np.repeat(np.arange(n), np.diff(g.indptr))
     keep = g.indices != rows
     indices = g.indices[keep].astype(np.int64)
-    indptr = np.zeros(int(n_nodes) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows[keep], minlength=int(n_nodes)), out=indptr[1:])
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows[keep], minlength=n), out=indptr[1:])
+    return indptr, indices
+
+
+def unique_per_row(owner: np.ndarray, values: np.ndarray, n_rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct `values` of each row as CSR, sorted: ``(indptr, indices)`` of shapes ``(n_rows + 1,)`` and
+    ``(nnz,)``, from entries ``(owner[j], values[j])`` (owner in [0, n_rows), values >= 0), one sort of int64
+    keys."""
+    owner, values = np.asarray(owner, dtype=np.int64), np.asarray(values, dtype=np.int64)
+    width = int(values.max(initial=-1)) + 1
+    key = np.sort(owner * max(width, 1) + values)
+    key = key[np.concatenate([[True], key[1:] != key[:-1]])] if len(key) else key
+    rows, indices = key // max(width, 1), key % max(width, 1)
+    indptr = np.zeros(int(n_rows) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=int(n_rows)), out=indptr[1:])
     return indptr, indices
 
 

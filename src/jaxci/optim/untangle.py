@@ -292,20 +292,21 @@ def _elements(k: int) -> str:
 
 
 def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.ndarray, x: np.ndarray,
-                             power: float | None = None):
+                             power: float | None = None, projected: bool = False):
     """`jaxci.smooth`'s final check when the start was untangled: no inverted corner, F not above the start's.
 
     **Arguments:** `mesh` the (tangled) input; `info` its `BoundaryInfo`; `untangled` the untangled start
     ``(n, 3)``; `x` the shape-improved coordinates ``(n, 3)``.
 
-    **Returns:** ``(points, notes)``: `x` projected onto the original boundary in float64, or `untangled` if that
-    has an inverted corner or a higher F than `untangled` (with a note saying so).
+    **Returns:** ``(points, notes)``: `x` projected onto the original boundary in float64 (as it is with
+    `projected`: the host solver's points, on the boundary already), or `untangled` if that has an inverted
+    corner or a higher F than `untangled` (with a note saying so).
     """
     from ..projection import build_constraints
 
     with enable_x64(not E.objective_on_host(mesh)):
-        cons = build_constraints(mesh, info, dtype=np.float64, device=False)
-        x = project_np(cons, x)
+        if not projected:
+            x = project_np(build_constraints(mesh, info, dtype=np.float64, device=False), x)
         inv = int(sum(b.sum() for b in inverted_cells(mesh, x).values()))
         objective = E.checked_objective(mesh, power)  # F, or the p-mean the method minimised (`power`)
         f0, f1 = objective(untangled), objective(x)
