@@ -127,6 +127,7 @@ def test_inverted_input_is_refused_clearly():
 @pytest.mark.parametrize("kw,match", [
     (dict(cohort=1), "cohort"), (dict(reduction=1.5), "reduction"), (dict(variations=0), "variations"),
     (dict(delta=0), "delta"), (dict(stage_switch=2), "stage_switch"), (dict(bogus=1), "bogus"),
+    (dict(pattern=1), "pattern"),
 ])
 def test_bad_parameters(kw, match):
     with pytest.raises(ConfigError, match=match):
@@ -152,6 +153,29 @@ def test_problem_colouring_is_valid():
     srt = np.sort(col, axis=1)
     assert not (srt[:, 1:] == srt[:, :-1]).any()
     assert float(q.objective(mesh.points, mesh.hexes)) > 0
+
+
+def test_pattern_move_takes_the_best_factor_along_the_sweep_and_never_a_worse_mesh():
+    """Local CI's pattern move: where the error is along the last sweep's displacement D, ``x + a D`` with the
+    right factor (8: D = -P / 8 for an error P) removes it at once; a D that only makes the mesh worse (or
+    inverts it) leaves x as it is."""
+    import jax.numpy as jnp
+
+    from jaxci.mixed import no_extra
+    from jaxci.optim.ci import PATTERN_FACTORS, _pattern_move
+
+    assert 8.0 in PATTERN_FACTORS
+    grid = perturb_box(4, amplitude=0.0)
+    mesh = perturb_box(4, amplitude=0.25, seed=2)
+    pb = build_problem(mesh, dtype=np.float64)
+    error = np.asarray(mesh.points) - np.asarray(grid.points)  # interior nodes only: the box's skin is kept
+    x = jnp.asarray(mesh.points)
+    f = q.objective(x, mesh.hexes)
+    y, fy = _pattern_move(x, jnp.asarray(-error / 8), f, pb.conn, pb.cons, no_extra())
+    assert float(fy) < 1e-12 < float(f)
+    np.testing.assert_allclose(np.asarray(y), np.asarray(grid.points), atol=1e-12)
+    y, fy = _pattern_move(x, jnp.asarray(error * 3), f, pb.conn, pb.cons, no_extra())
+    assert float(fy) == float(f) and np.array_equal(np.asarray(y), np.asarray(x))
 
 
 # ------------------------------------------------------------------------- global CI's defaults (issue 15, item 4)

@@ -21,8 +21,11 @@ objective (the mean of (kappa/3)^2 - 1 over the corners it moves). All nodes, ca
 one batched evaluation that computes only the corners a node touches. A node's best candidate replaces its
 position only if it lowers the local objective and inverts no corner; since nodes of a colour share no
 element, the mesh objective F decreases by the sum of the accepted decreases. Colours are swept in turn; each
-node keeps an interval width adapted to its last move (a trust region). Sweeps stop when F changes by less
-than `tol` relative, or F <= `ftol`, or after `max_sweeps`.
+node keeps an interval width adapted to its last move (a trust region). After each sweep a pattern move (Hooke
+& Jeeves) tries the whole mesh further along the sweep's displacement D, ``x + a D`` for a few factors a, and
+keeps the best if it lowers F: node-by-node moves remove long-wavelength error slowly (pave3 after untangling,
+30 sweeps: F 10% above L-BFGS's without it, 5% with it). Sweeps stop when F changes by less than `tol`
+relative, or F <= `ftol`, or after `max_sweeps`.
 
 **Global CI** (`global_ci`, faithful to the paper): each candidate is a whole mesh, a point in the space of all
 free coordinates (`jaxci.projection`'s parametrisation), of shape ``(C, n_free)``; its behaviour is F (Eq.
@@ -88,6 +91,9 @@ class CIParams:
     - `tol`: saturation: relative change of F per sweep (local) or spread of behaviours (global) (default 1e-6).
     - `ftol`: stop when F <= ftol (default 1e-10).
     - `patience`: global CI: saturation must hold for this many consecutive attempts (default 20).
+    - `pattern`: local CI: after every sweep, a pattern move along the sweep's displacement D (Hooke & Jeeves):
+      the mesh ``x + a D`` for each factor a of `PATTERN_FACTORS`, projected onto the boundary, is evaluated
+      (one cohort along one line) and the best taken where it lowers F (default True).
     """
 
     cohort: int = 4
@@ -102,6 +108,7 @@ class CIParams:
     tol: float = 1e-6
     ftol: float = 1e-10
     patience: int = 20
+    pattern: bool = True
 
     def __post_init__(self):
         L = "CI"
@@ -119,6 +126,7 @@ class CIParams:
             tol=_p.real(L, "tol", self.tol, 0),
             ftol=_p.real(L, "ftol", self.ftol, 0),
             patience=_p.integer(L, "patience", self.patience, 1, MAX_LOOP),
+            pattern=_p.boolean(L, "pattern", self.pattern),
         )
         if self.min_width > self.init_width:
             raise ConfigError(f"CI parameter min_width must be <= init_width ({self.init_width:g}), "
@@ -178,11 +186,13 @@ class _Static(typing.NamedTuple):
     attempts: int
     max_sweeps: int
     patience: int
+    pattern: bool
 
 
 def _split(p: CIParams, dtype) -> tuple[_Static, dict]:
     """Static part and traced part of `p`: changing reduction, widths or tolerances does not recompile."""
-    s = _Static(int(p.cohort), int(p.variations), int(p.attempts), int(p.max_sweeps), int(p.patience))
+    s = _Static(int(p.cohort), int(p.variations), int(p.attempts), int(p.max_sweeps), int(p.patience),
+                bool(p.pattern))
     d = {k: jnp.asarray(getattr(p, k), dtype) for k in
          ("reduction", "delta", "stage_switch", "init_width", "min_width", "tol", "ftol")}
     return s, d
@@ -251,6 +261,30 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict
     return x, width, jnp.sum(accept, dtype=jnp.int32)
 
 
+#: The factors a of local CI's pattern move ``x + a D`` (D the last sweep's displacement): a sweep moves every
+#: node towards its local optimum given its neighbours (a nonlinear Gauss-Seidel step), so it removes local error
+#: fast and smooth, long-wavelength error slowly, each sweep moving the mesh a little further along nearly the
+#: same D; a step of a few to a few tens of D removes that error at once.
+PATTERN_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+
+
+def _pattern_move(x, D, f, conn, cons: Constraints, extra: ExtraCells):
+    """``(x, f)`` after the pattern move: the best of ``project(x + a D)`` over `PATTERN_FACTORS` where its F is
+    below `f` (an inverted corner makes F infinite: never taken), else `x` and `f` unchanged."""
+    from ..projection import project
+
+    def trial(a):
+        y = project(cons, x + a * D)
+        return y, mixed_objective_t(y, conn, extra)
+
+    factors = jnp.asarray(PATTERN_FACTORS, x.dtype)
+    fy = jax.lax.map(lambda a: trial(a)[1], factors)
+    best = jnp.argmin(jnp.where(jnp.isfinite(fy), fy, jnp.inf))
+    y, fb = trial(factors[best])
+    take = jnp.isfinite(fb) & (fb < f)
+    return jnp.where(take, y, x), jnp.where(take, fb, f)
+
+
 @functools.partial(jax.jit, static_argnames=("s", "chunk"))
 def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static, d: dict, chunk: int,
                   extra: ExtraCells):
@@ -279,8 +313,11 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
             x, width, m = _local_ci_colour(jax.random.fold_in(ks, i), x, width, colour_slice(cs, i), cons, s, d, chunk)
             return x, width, moved + m
 
+        x_start = x
         x, width, moved = jax.lax.fori_loop(0, n_colours, colour, (x, width, jnp.int32(0)))
         f = mixed_objective_t(x, conn, extra)
+        if s.pattern:
+            x, f = _pattern_move(x, x - x_start, f, conn, cons, extra)
         it = it + 1
         hf, hk, hm = hf.at[it].set(f), hk.at[it].set(_max_condition(x, conn, extra)), hm.at[it].set(moved)
         done = (f <= d["ftol"]) | (f_prev - f <= d["tol"] * f_prev) | (moved == 0)
