@@ -115,3 +115,54 @@ def test_flat_regions_first_then_the_projection(hex5):
     for pts in (x, y, z):
         assert boundary_error(mesh, pts) <= 1e-9
         assert (corner_determinants(pts, mesh.hexes) > 0).all()
+
+
+# ----------------------------------------------------------------------------- --untangle-boundary (issue 15, item 1)
+def pit_slab():
+    """A 2 x 2 x 1 box whose top centre node is pushed below the bottom face: its four hexahedra are inverted,
+    and only boundary nodes touch them (the top centre a corner of the pit it makes, the rest the box's corners
+    and edges, the bottom centre held in the bottom plane), so no allowed move untangles them."""
+    from jaxci.generate import box
+
+    mesh = box(2, 2, 1)
+    p = np.array(mesh.points, dtype=np.float64)
+    top = np.flatnonzero((np.abs(p[:, 0] - 0.5 * p[:, 0].max()) < 1e-9) & (np.abs(p[:, 1] - 0.5 * p[:, 1].max()) < 1e-9)
+                         & (p[:, 2] == p[:, 2].max()))
+    p[top, 2] = -0.2 * p[:, 2].max()
+    return mesh.with_points(p)
+
+
+def test_untangle_boundary_frees_the_corner_and_edge_nodes_that_hold_an_inversion():
+    """Without the flag the stage fails and its message names the way out; with it the mesh is untangled by
+    sliding a few of the boundary's corner and edge nodes on the original surface, every other node of the
+    boundary stays where it was, and a note says how many moved. Nodes the user fixed are never freed."""
+    from jaxci.boundary import slide_on_surface
+
+    mesh = pit_slab()
+    with pytest.raises(InvertedMeshError, match="--untangle-boundary"):
+        smooth(mesh)
+    res = smooth(mesh, untangle_boundary=True)
+    assert res.after.inverted_elements == 0 and res.after.inverted_corners == 0
+    note = [n for n in res.notes if n.startswith("untangle_boundary:")]
+    assert len(note) == 1, res.notes
+    x0, x = np.asarray(mesh.points), np.asarray(res.mesh.points)
+    info = classify_boundary(mesh)
+    moved = np.flatnonzero((x != x0).any(axis=1) & (np.asarray(info.node_class) == 3))  # corners never move else
+    assert 0 < len(moved) <= int(note[0].split()[1]) <= 4, (moved, note)
+    # each moved corner lies on the original boundary surface (the patch it slid on)
+    cons = build_constraints(mesh, slide_on_surface(info, moved), dtype=np.float64, device=False)
+    np.testing.assert_allclose(project_np(cons, x)[moved], x[moved], atol=1e-12)
+    with pytest.raises(InvertedMeshError):
+        smooth(mesh, untangle_boundary=True, fix_boundary=True)
+    assert (np.asarray(info.node_class)[moved] == 3).all()  # slide_on_surface left `info` itself alone
+
+
+def test_untangle_boundary_from_the_command_line(tmp_path):
+    from jaxci.cli import main
+    from jaxci.io import write_mesh
+
+    write_mesh(pit_slab(), str(tmp_path / "in.vtu"))
+    assert main(["smooth", str(tmp_path / "in.vtu"), str(tmp_path / "a.vtu")]) == 2
+    assert not (tmp_path / "a.vtu").exists()
+    assert main(["smooth", str(tmp_path / "in.vtu"), str(tmp_path / "b.vtu"), "--untangle-boundary"]) == 0
+    assert read_mesh(str(tmp_path / "b.vtu")).n_hexes == 4

@@ -299,3 +299,45 @@ def classify_boundary(
         feature_angle=float(feature_angle),
         notes=tuple(notes),
     )
+
+
+def releasable_feature_nodes(mesh: HexMesh, info: BoundaryInfo, cells_nodes: np.ndarray,
+                             keep_fixed: np.ndarray) -> np.ndarray:
+    """The nodes among `cells_nodes` that the boundary's geometry alone fixes or ties to a curve (class CORNER or
+    EDGE in `info`, on a boundary face, not in `keep_fixed`, not a non-manifold or quadratic-cell node): those
+    ``--untangle-boundary`` lets slide on a surface (`slide_on_surface`). Sorted int64."""
+    faces = info.topology.faces
+    on_face = np.zeros(info.n_nodes, bool)
+    on_face[faces.ravel()] = True
+    cls = np.asarray(info.node_class)
+    ok = on_face & ((cls == CORNER) | (cls == EDGE))
+    ok[np.asarray(keep_fixed, dtype=np.int64)] = False
+    ok[np.asarray(info.topology.nonmanifold_nodes, dtype=np.int64)] = False
+    ok[fixed_cell_nodes(mesh)] = False
+    nodes = np.unique(np.asarray(cells_nodes, dtype=np.int64))
+    return nodes[ok[nodes]]
+
+
+def fix_nodes(info: BoundaryInfo, nodes: np.ndarray) -> BoundaryInfo:
+    """`info` with `nodes` fixed (class CORNER), as `classify_boundary`'s `fixed_nodes` would fix them."""
+    nodes = np.asarray(nodes, dtype=np.int64)
+    cls, patch, curve = np.array(info.node_class), np.array(info.patch_id), np.array(info.curve_id)
+    cls[nodes], patch[nodes], curve[nodes] = CORNER, -1, -1
+    return dataclasses.replace(info, node_class=cls, patch_id=patch, curve_id=curve)
+
+
+def slide_on_surface(info: BoundaryInfo, nodes: np.ndarray) -> BoundaryInfo:
+    """`info` with the boundary `nodes` made SURFACE nodes, each of the patch of the lowest-numbered boundary face
+    around it: a corner or an edge node then slides on that surface (projected onto its original faces) instead
+    of staying put or on its curve. What ``--untangle-boundary`` does for the untangling stage."""
+    nodes = np.asarray(nodes, dtype=np.int64)
+    faces = info.topology.faces
+    first = np.full(info.n_nodes, len(faces), dtype=np.int64)
+    np.minimum.at(first, faces.ravel(), np.repeat(np.arange(len(faces)), faces.shape[1]))
+    if len(nodes) and (first[nodes] >= len(faces)).any():
+        raise ValueError("slide_on_surface: a node is on no boundary face")
+    cls, patch, curve = np.array(info.node_class), np.array(info.patch_id), np.array(info.curve_id)
+    cls[nodes] = SURFACE
+    patch[nodes] = np.asarray(info.face_patch)[first[nodes]]
+    curve[nodes] = -1
+    return dataclasses.replace(info, node_class=cls, patch_id=patch, curve_id=curve)

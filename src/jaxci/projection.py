@@ -150,12 +150,15 @@ def _ring_candidates(
     return _pad_rows(indptr, ring[keep])
 
 
-def _node_sums(cells: np.ndarray, n_nodes: int, nodes: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """For each of `nodes`, the sum of `values` ``(n_cells, d)`` over the distinct cells it belongs to: shape
-    ``(len(nodes), d)`` (a triangle stored as ``[a, b, c, c]`` counts once for ``c``)."""
+def _node_sums(cells: np.ndarray, n_nodes: int, nodes: np.ndarray, values: np.ndarray, cell_group: np.ndarray,
+               node_group: np.ndarray) -> np.ndarray:
+    """For each of `nodes`, the sum of `values` ``(n_cells, d)`` over the distinct cells of its own group it
+    belongs to (``cell_group[cell] == node_group[node]``): shape ``(len(nodes), d)`` (a triangle stored as
+    ``[a, b, c, c]`` counts once for ``c``)."""
     indptr, indices = incidence(cells, n_nodes)
     owner, c = csr_gather(indptr, indices, np.asarray(nodes, dtype=np.int64))
-    ptr, c = unique_per_row(owner, c, len(nodes))
+    mine = cell_group[c] == node_group[np.asarray(nodes)[owner]]
+    ptr, c = unique_per_row(owner[mine], c[mine], len(nodes))
     owner = np.repeat(np.arange(len(nodes)), np.diff(ptr))
     return np.stack([np.bincount(owner, values[c, j], minlength=len(nodes)) for j in range(values.shape[1])],
                     axis=1)
@@ -213,10 +216,11 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     row = np.zeros(n, dtype=np.int32)
     row[surf] = np.arange(len(surf))
     row[edge] = np.arange(len(edge))
-    # normals of surface nodes: area-weighted over the faces around them (all in their own patch)
+    # normals of surface nodes: area-weighted over the faces of their own patch around them (every face around a
+    # surface node, except for a corner or edge node made a surface node by `jaxci.boundary.slide_on_surface`)
     normals = np.zeros((len(surf), 3))
     if len(faces) and len(surf):
-        normals = _unit_rows(_node_sums(faces, n, surf, face_normals(pts, faces)))
+        normals = _unit_rows(_node_sums(faces, n, surf, face_normals(pts, faces), info.face_patch, group))
     if len(faces):
         tris, tri_patch = _triangle_table(pts, faces), np.repeat(info.face_patch, 4)
     else:

@@ -28,7 +28,7 @@ import numpy as np
 
 from . import mixed
 from ._lazy import enable_x64, jax, jnp
-from .boundary import BoundaryInfo, classify_boundary
+from .boundary import BoundaryInfo, classify_boundary, fix_nodes
 from .elements import checked_objective
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .mesh import HexMesh
@@ -231,6 +231,7 @@ def smooth(
     fixed_nodes: Sequence[int] | None = None,
     fixed_sets: Sequence[str] = (),
     untangle: str = "auto",
+    untangle_boundary: bool = False,
     merge_coincident: bool = False,
     keep_worst: bool = True,
     clock=None,
@@ -259,6 +260,12 @@ def smooth(
       except with ``"partial"``: untangle what can be untangled (also around elements no allowed move can fix)
       and, if elements stay inverted, return that mesh without shape improvement (``result.after`` counts them,
       a note names them; the command exits with status 3). ``untangle_time_budget=S`` bounds the stage.
+    - `untangle_boundary`: let the corner and edge nodes of inverted cells slide on a boundary surface (one of
+      the patches around each) during the untangling stage, where the boundary's geometry alone fixes them or
+      ties them to a curve (never nodes fixed by `fix_boundary`, `fixed_nodes`, `fixed_sets` or coincident
+      nodes): the way out when inverted cells touch the boundary's corners so that nothing else can untangle
+      them. Those that moved stay where the stage left them during shape improvement (the boundary faces next to
+      them follow them; a note says how many and how far). Default False.
     - `merge_coincident`: merge coincident nodes first (`jaxci.mesh.merge_coincident`: the result has fewer
       nodes). Default False: coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface) are fixed, so
       they stay exactly coincident, and a note says how many.
@@ -288,7 +295,8 @@ def smooth(
     with clock.phase("validate"):
         mesh, method, seed, fixed_sets, untangle_params, params, auto = _validate(
             mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params,
-            {"fix_boundary": fix_boundary, "merge_coincident": merge_coincident, "keep_worst": keep_worst})
+            {"fix_boundary": fix_boundary, "merge_coincident": merge_coincident, "keep_worst": keep_worst,
+             "untangle_boundary": untangle_boundary})
     t0 = time.perf_counter()
     notes: list[str] = []
     if auto:
@@ -309,7 +317,7 @@ def smooth(
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
                                check_coincident=False)
     points, res = _smooth_unit(unit, method, seed, dtype, feature_angle, fix_boundary, fixed, fixed_sets,
-                               untangle, untangle_params, params, notes, clock, keep_worst)
+                               untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary)
     moved = (points != unit.points).any(axis=1)
     real = np.array(mesh.points)
     real[moved] = from_unit(points[moved], frame)
@@ -370,13 +378,15 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
 
 
 def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
-                 untangle, untangle_params, params, notes, clock, keep_worst) -> tuple[np.ndarray, SmoothResult]:
+                 untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary=False
+                 ) -> tuple[np.ndarray, SmoothResult]:
     """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
     and wall time are filled in by `smooth`; `notes` is appended to, `clock` records the phases)."""
     host = host_run(mesh, method, params)
     with clock.phase("report"), enable_x64(not host):
         before = quality_report(mesh)
     untangled = None
+    smesh = mesh  # the mesh whose boundary the shape improvement keeps (`untangle_boundary` may move it)
     tangled = bool(before.inverted_corners) or bool(before.overall and before.overall["inverted"])
     f_before = before.overall["objective"] if before.overall else before.objective
     if not tangled and untangle != "always" and f_before is not None and f_before <= OPTIMAL_F:
@@ -404,11 +414,23 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         with clock.phase("untangle"):
             info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                      fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
+            info_u, released = info, np.zeros(0, np.int64)
+            if untangle_boundary and not fix_boundary:
+                info_u, released = _release_features(mesh, info, fixed_nodes, fixed_sets)
             if not partial:
-                _refuse_stuck(mesh, info)
+                _refuse_stuck(mesh, info_u)
             # InvertedMeshError if it fails (unless partial)
-            untangled, untangle_notes = untangle_stage(mesh, info, up, partial=partial,
+            untangled, untangle_notes = untangle_stage(mesh, info_u, up, partial=partial,
                                                        progress=lambda text: clock.progress("untangle", text))
+            moved = released[(untangled[released] != mesh.points[released]).any(axis=1)]
+            if len(moved):
+                untangled = np.array(untangled, dtype=np.float64)
+                moved = _put_back(mesh, moved, untangled)
+            if len(moved):  # shape improvement keeps them where they are: a mesh whose boundary follows them
+                smesh = mesh.with_points(np.where(np.isin(np.arange(mesh.n_nodes), moved)[:, None], untangled,
+                                                  mesh.points))
+                info = fix_nodes(info, moved)  # the input's classification, with them fixed where they are
+                untangle_notes.append(_released_note(mesh, moved, untangled))
         notes.extend(untangle_notes)
         if partial:
             with clock.phase("checks"), enable_x64(not host):
@@ -418,10 +440,10 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                     mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]},
                     iterations=0, wall_time=0.0, method=method, params={"untangle": "partial"}, before=before,
                     after=left, boundary=info.counts, node_class=np.asarray(info.node_class))
-    np_dtype = _DTYPES[dtype]
+    np_dtype = np.float64 if host else _DTYPES[dtype]  # the host solver works in float64: exact start and boundary
     with (contextlib.nullcontext() if host else jax.enable_x64(dtype == "float64")):
         with clock.phase("setup"):
-            problem = build_problem(mesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
+            problem = build_problem(smesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                     fixed_nodes=fixed_nodes, fixed_sets=fixed_sets, device=not host,
                                     info=None if untangled is None else info)
             if untangled is not None:
@@ -454,7 +476,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         else:
             from .optim.untangle import enforce_after_untangling
 
-            points, check_notes = enforce_after_untangling(mesh, problem.info, untangled, x, power, projected=host)
+            points, check_notes = enforce_after_untangling(smesh, problem.info, untangled, x, power, projected=host)
         notes.extend(check_notes)
         after = quality_report(mesh, points)
     res = SmoothResult(
@@ -463,6 +485,49 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         node_class=np.asarray(problem.info.node_class),
     )
     return points, res
+
+
+def _release_features(mesh: HexMesh, info: BoundaryInfo, fixed_nodes, fixed_sets) -> tuple[BoundaryInfo, np.ndarray]:
+    """``untangle_boundary``: `info` with the corner and edge nodes of the inverted corners (det <= 0: a corner
+    node and its three edge neighbours) that only the boundary's geometry holds made surface nodes
+    (`jaxci.boundary.slide_on_surface`), and those nodes."""
+    from .boundary import releasable_feature_nodes, slide_on_surface
+    from .elements import CORNERS, corner_determinant, element_blocks
+
+    keep = [np.asarray(fixed_nodes, dtype=np.int64)]
+    keep += [np.asarray(mesh.point_sets[name], dtype=np.int64).ravel() for name in fixed_sets]
+    bad = [cells[:, CORNERS[t]][corner_determinant(mesh.points, cells, t) <= 0].ravel()
+           for t, cells in element_blocks(mesh).items()]
+    nodes = releasable_feature_nodes(mesh, info, np.concatenate(bad), np.concatenate(keep))
+    return slide_on_surface(info, nodes), nodes
+
+
+def _put_back(mesh: HexMesh, nodes: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """`x` with each of `nodes` (released feature nodes the untangling moved) back at its input position, one
+    after the other, wherever that leaves every cell around it valid: the feature nodes an untangled mesh does
+    not need moved stay put. Returns the nodes still moved."""
+    from .elements import element_blocks, inverted
+    from .topology import csr_gather, incidence
+
+    around = [(t, cells, incidence(cells, mesh.n_nodes)) for t, cells in element_blocks(mesh).items()]
+    still = []
+    for i in nodes:
+        old = x[i].copy()
+        x[i] = mesh.points[i]
+        if any(inverted(x, cells[csr_gather(*inc, np.array([i]))[1]], t).any() for t, cells, inc in around):
+            x[i] = old
+            still.append(i)
+    return np.asarray(still, dtype=np.int64)
+
+
+def _released_note(mesh: HexMesh, moved: np.ndarray, untangled: np.ndarray) -> str:
+    from .optim.untangle import element_lengths
+
+    h = float(np.median(element_lengths(mesh.points, mesh.hexes))) if mesh.n_hexes else 1.0
+    d = float(np.linalg.norm(untangled[moved] - mesh.points[moved], axis=1).max())
+    return (f"untangle_boundary: {len(moved)} corner and edge nodes of inverted elements slid on the boundary "
+            f"surface during untangling (up to {d / h:.3g} median edge lengths); shape improvement keeps them where "
+            f"they are, and the boundary faces next to them follow them")
 
 
 def _refuse_stuck(mesh: HexMesh, info: BoundaryInfo) -> None:
@@ -480,7 +545,8 @@ def _refuse_stuck(mesh: HexMesh, info: BoundaryInfo) -> None:
         f"{where}{n} inverted {'element cannot' if n == 1 else 'elements cannot'} be untangled: each has an inverted "
         f"corner whose four nodes are all fixed (boundary corners, fixed sets or --fix-boundary), so no allowed "
         f"move changes it ({', '.join(labels)}{', ...' if n > len(labels) else ''}); free those nodes (drop "
-        f"--fix-boundary / --fixed-set, or a smaller --feature-angle) or repair the elements in the mesher"
+        f"--fix-boundary / --fixed-set; --untangle-boundary lets the boundary's own corners and edge nodes slide "
+        f"on the surface) or repair the elements in the mesher"
     )
 
 

@@ -35,6 +35,11 @@ def add_args(p) -> None:
                         "untangling margin; never: refuse inverted input; partial: untangle what can be untangled "
                         "and, if elements stay inverted, write the mesh with them (no shape improvement) and exit "
                         "with status 3")
+    p.add_argument("--untangle-boundary", action="store_true",
+                   help="let the corner and edge nodes of inverted elements slide on a boundary surface while "
+                        "untangling, where only the boundary's shape holds them (never --fix-boundary or "
+                        "--fixed-set nodes): for inverted elements at the boundary's corners that nothing else "
+                        "can untangle")
     p.add_argument("--untangle-budget", type=float, default=None, metavar="SECONDS",
                    help="stop the untangling stage after this many seconds (meshes up to 60,000 hexahedra; "
                         "larger ones are bounded by --param untangle_max_rounds / untangle_inner_steps)")
@@ -127,6 +132,7 @@ def run(args) -> int:
         mesh = read_mesh(args.input)
     res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
+                 untangle_boundary=args.untangle_boundary,
                  merge_coincident=args.merge_coincident, keep_worst=not args.allow_worse_worst, clock=clock,
                  **params)
     with clock.phase("write"), removing_temporaries(args.output):

@@ -268,7 +268,8 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
             f"({int(inv0.sum())} {'was' if int(inv0.sum()) == 1 else 'were'} in the input; {rep['steps']} L-BFGS "
             f"steps; first: {cell_label(mesh, t0, bad[t0][0])}; {int(stuck.sum())} of their {len(nodes)} nodes are "
             f"fixed corners of the boundary); the input is left unchanged (untangle='partial' / --untangle partial "
-            f"returns the mesh with what could be untangled)"
+            f"returns the mesh with what could be untangled; untangle_boundary=True / --untangle-boundary lets the "
+            f"boundary's corner and edge nodes of inverted elements slide on the surface)"
         )
     if not inv0.any() and rep["rounds"] == 0:
         return x, [f"untangling: no inverted element and min det / L^3 = {rep['min_det'][0]:.3g} >= margin "
