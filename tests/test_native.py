@@ -52,14 +52,13 @@ def test_inverted_corner_gives_inf_and_the_gradient_of_the_others():
 def test_untangling_energy_matches_numpy(eps):
     m = _mesh(0.0)
     x = np.asarray(m.points, np.float64) + np.random.default_rng(3).uniform(-0.1, 0.1, m.points.shape)  # tangled
-    table = corner_table(m.hexes)
-    inv_len = np.random.default_rng(0).uniform(0.5, 2.0, table.shape[1])
-    e, d, g = hex_kernel(x, table, inv_len, eps, 0.3, True, np)
-    ec, dc, gc = native.untangle_energy(x, table, inv_len, eps, 0.3, True, 32.0)
+    inv_len = np.random.default_rng(0).uniform(0.5, 2.0, m.n_hexes)  # per element; the corner table repeats it
+    e, d, g = hex_kernel(x, corner_table(m.hexes), np.tile(inv_len, 8), eps, 0.3, True, np)
+    ec, dc, gc = native.untangle_energy(x, m.hexes, inv_len, eps, 0.3, True, 32.0)
     assert d < 0 and dc == d
     assert ec == pytest.approx(float(e), rel=1e-12)
     np.testing.assert_allclose(gc, g, rtol=1e-9, atol=1e-12 * np.abs(g).max())
-    assert native.untangle_energy(x, table, inv_len, eps, 0.3, False, 32.0)[2] is None
+    assert native.untangle_energy(x, m.hexes, inv_len, eps, 0.3, False, 32.0)[2] is None
 
 
 def test_bad_arrays_are_refused_not_read_out_of_bounds():
@@ -95,11 +94,10 @@ def test_threads_give_the_single_threaded_result(threads):
     s2, t2, bad2 = c.hex_condition(x, h, 1.0, g2, None, None, threads)
     assert s2 == pytest.approx(s1, rel=1e-13) and t2 == t1 and bad1 == bad2 == 0
     np.testing.assert_allclose(g2, g1, rtol=1e-12, atol=1e-14 * np.abs(g1).max())
-    table = corner_table(m.hexes).astype(np.int64)
-    inv_len = np.ones(table.shape[1])
+    inv_len = np.ones(len(h))
     u1, u2 = np.zeros_like(x), np.zeros_like(x)
-    e1, d1 = c.untangle_energy(x, table, inv_len, 0.1, 0.3, u1, 1)
-    e2, d2 = c.untangle_energy(x, table, inv_len, 0.1, 0.3, u2, threads)
+    e1, d1 = c.untangle_energy(x, h, inv_len, 0.1, 0.3, u1, 1)
+    e2, d2 = c.untangle_energy(x, h, inv_len, 0.1, 0.3, u2, threads)
     assert e2 == pytest.approx(e1, rel=1e-13) and d2 == d1
     np.testing.assert_allclose(u2, u1, rtol=1e-12, atol=1e-14 * np.abs(u1).max())
 

@@ -399,81 +399,103 @@ done:
 
 typedef struct {
     const double *P, *IL;
-    const long long *T;
+    const long long *H;
     double *G;
-    Py_ssize_t C, lo, hi;
+    Py_ssize_t lo, hi;
     double eps, theta, energy, dmin;
 } UntangleJob;
 
-/* Corners [lo, hi) of untangle_energy; the gradient into the job's own G (NULL: none). */
+/* Elements [lo, hi) of untangle_energy; the gradient into the job's own G (NULL: none). As hex_worker: the eight
+ * corners of an element side by side (structure of arrays), its eight nodes gathered and scattered once. */
+VECTOR_CLONES
 static void *untangle_worker(void *arg) {
     UntangleJob *j = arg;
     const double *P = j->P, *IL = j->IL;
-    const long long *T = j->T;
+    const long long *H = j->H;
     double *G = j->G, theta = j->theta, eps2 = j->eps * j->eps, energy = 0.0, dmin = INFINITY;
-    Py_ssize_t C = j->C;
-    for (Py_ssize_t k = j->lo; k < j->hi; k++) {
-        long long i0 = T[k], i1 = T[C + k], i2 = T[2 * C + k], i3 = T[3 * C + k];
-        double s_ = IL[k], a[3], b[3], c[3], u[3];
-        for (int d = 0; d < 3; d++) {
-            double x0 = P[3 * i0 + d];
-            a[d] = (P[3 * i1 + d] - x0) * s_;
-            b[d] = (P[3 * i2 + d] - x0) * s_;
-            c[d] = (P[3 * i3 + d] - x0) * s_;
+    for (Py_ssize_t e = j->lo; e < j->hi; e++) {
+        const long long *h = H + 8 * e;
+        double s_ = IL[e], X[3][8], a[3][8], b[3][8], c[3][8], u[3][8];
+        double det[8], fro2[8], sq[8], ich[8], c23[8], shape[8], volume[8];
+        for (int k = 0; k < 8; k++)
+            for (int d = 0; d < 3; d++) X[d][k] = P[3 * h[k] + d];
+        for (int d = 0; d < 3; d++)
+            for (int i = 0; i < 8; i++) {
+                a[d][i] = (X[d][NB[i][0]] - X[d][i]) * s_;
+                b[d][i] = (X[d][NB[i][1]] - X[d][i]) * s_;
+                c[d][i] = (X[d][NB[i][2]] - X[d][i]) * s_;
+            }
+        for (int i = 0; i < 8; i++) {
+            u[0][i] = b[1][i] * c[2][i] - b[2][i] * c[1][i];
+            u[1][i] = b[2][i] * c[0][i] - b[0][i] * c[2][i];
+            u[2][i] = b[0][i] * c[1][i] - b[1][i] * c[0][i];
+            det[i] = a[0][i] * u[0][i] + a[1][i] * u[1][i] + a[2][i] * u[2][i];
+            fro2[i] = 0.0;
+            for (int d = 0; d < 3; d++) fro2[i] += a[d][i] * a[d][i] + b[d][i] * b[d][i] + c[d][i] * c[d][i];
+            sq[i] = sqrt(eps2 + det[i] * det[i]);
+            ich[i] = 1.0 / (det[i] >= 0.0 ? 0.5 * (det[i] + sq[i]) : 0.5 * eps2 / (sq[i] - det[i]));
         }
-        cross(b, c, u);
-        double det = a[0] * u[0] + a[1] * u[1] + a[2] * u[2];
-        double fro2 = 0.0;
-        for (int d = 0; d < 3; d++) fro2 += a[d] * a[d] + b[d] * b[d] + c[d] * c[d];
-        double s = sqrt(eps2 + det * det);
-        double ich = 1.0 / (det >= 0.0 ? 0.5 * (det + s) : 0.5 * eps2 / (s - det));
-        double c23 = cbrt(ich);
-        c23 *= c23;
-        double shape = (1.0 - theta) * (fro2 / 3.0) * c23;
-        double volume = theta * (det * det + 1.0) * ich;
-        energy += shape + volume;
-        if (det < dmin) dmin = det;
+        for (int i = 0; i < 8; i++) {
+            double r = cbrt(ich[i]);
+            c23[i] = r * r;
+        }
+        for (int i = 0; i < 8; i++) {
+            shape[i] = (1.0 - theta) * (fro2[i] / 3.0) * c23[i];
+            volume[i] = theta * (det[i] * det[i] + 1.0) * ich[i];
+        }
+        for (int i = 0; i < 8; i++) {  /* in corner order, as the corner-by-corner sum */
+            energy += shape[i] + volume[i];
+            if (det[i] < dmin) dmin = det[i];
+        }
         if (!G) continue;
-        double p = (2.0 / 3.0) * (1.0 - theta) * c23 * s_;
-        double q = ((-(2.0 / 3.0) * shape - volume) / s + 2.0 * theta * det * ich) * s_;
-        double v[3], w[3];
-        cross(c, a, v); cross(a, b, w);
-        for (int d = 0; d < 3; d++) {
-            double ga = p * a[d] + q * u[d], gb = p * b[d] + q * v[d], gc = p * c[d] + q * w[d];
-            G[3 * i0 + d] -= ga + gb + gc;
-            G[3 * i1 + d] += ga;
-            G[3 * i2 + d] += gb;
-            G[3 * i3 + d] += gc;
+        double g[8][3] = {{0.0}};
+        for (int i = 0; i < 8; i++) {
+            double p = (2.0 / 3.0) * (1.0 - theta) * c23[i] * s_;
+            double q = ((-(2.0 / 3.0) * shape[i] - volume[i]) / sq[i] + 2.0 * theta * det[i] * ich[i]) * s_;
+            double v[3] = {c[1][i] * a[2][i] - c[2][i] * a[1][i], c[2][i] * a[0][i] - c[0][i] * a[2][i],
+                           c[0][i] * a[1][i] - c[1][i] * a[0][i]};
+            double w[3] = {a[1][i] * b[2][i] - a[2][i] * b[1][i], a[2][i] * b[0][i] - a[0][i] * b[2][i],
+                           a[0][i] * b[1][i] - a[1][i] * b[0][i]};
+            for (int d = 0; d < 3; d++) {
+                double ga = p * a[d][i] + q * u[d][i], gb = p * b[d][i] + q * v[d], gc = p * c[d][i] + q * w[d];
+                g[i][d] -= ga + gb + gc;
+                g[NB[i][0]][d] += ga;
+                g[NB[i][1]][d] += gb;
+                g[NB[i][2]][d] += gc;
+            }
         }
+        for (int k = 0; k < 8; k++)
+            for (int d = 0; d < 3; d++) G[3 * h[k] + d] += g[k][d];
     }
     j->energy = energy;
     j->dmin = dmin;
     return NULL;
 }
 
-/* untangle_energy(points (n, 3) f8, table (4, C) i8, inv_len (C,) f8, eps, theta, grad (n, 3) f8 or None)
+/* untangle_energy(points (n, 3) f8, hexes (N, 8) i8, inv_len (N,) f8, eps, theta, grad (n, 3) f8 or None)
  * -> (sum of the corner energies, min det J): the regularised Winslow energy of
- * jaxci.optim._untangle_loop.hex_kernel (before its division by 32); with `grad`, d(sum)/dx is ADDED to it. */
+ * jaxci.optim._untangle_loop.hex_kernel over the hexahedra's corners, each element's columns scaled by its
+ * inv_len (before the division by 32); with `grad`, d(sum)/dx is ADDED to it. */
 static PyObject *untangle_energy(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_tab, *o_il, *o_grad, *ret = NULL;
+    PyObject *o_pts, *o_hex, *o_il, *o_grad, *ret = NULL;
     double eps, theta;
     int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOOddO|i", &o_pts, &o_tab, &o_il, &eps, &theta, &o_grad, &nthreads)) return NULL;
+    if (!PyArg_ParseTuple(args, "OOOddO|i", &o_pts, &o_hex, &o_il, &eps, &theta, &o_grad, &nthreads)) return NULL;
     Buf B[4] = {{{0}}};
-    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_tab, "table", "qlq", 0, 0) < 0 ||
+    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
         acquire(&B[2], o_il, "inv_len", "d", 0, 0) < 0 || acquire(&B[3], o_grad, "grad", "d", 1, 1) < 0)
         goto done;
-    Py_ssize_t n = B[0].view.len / 24, C = B[2].view.len / 8;
-    if (B[0].view.len != n * 24 || B[1].view.len != C * 32 || (B[3].held && B[3].view.len != B[0].view.len)) {
-        PyErr_SetString(PyExc_ValueError, "untangle_energy: shapes disagree (points (n, 3), table (4, C), inv_len "
-                                          "(C,), grad (n, 3))");
+    Py_ssize_t n = B[0].view.len / 24, N = B[2].view.len / 8;
+    if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || (B[3].held && B[3].view.len != B[0].view.len)) {
+        PyErr_SetString(PyExc_ValueError, "untangle_energy: shapes disagree (points (n, 3), hexes (N, 8), inv_len "
+                                          "(N,), grad (n, 3))");
         goto done;
     }
-    if (check_indices(B[1].view.buf, 4 * C, n, "untangle_energy") < 0) goto done;
+    if (check_indices(B[1].view.buf, 8 * N, n, "untangle_energy") < 0) goto done;
     UntangleJob jobs[MAX_THREADS];
-    int nt = threads_for(C / 8, nthreads);
+    int nt = threads_for(N, nthreads);
     for (int t = 0; t < nt; t++)
-        jobs[t] = (UntangleJob){B[0].view.buf, B[2].view.buf, B[1].view.buf, NULL, C, C * t / nt, C * (t + 1) / nt,
+        jobs[t] = (UntangleJob){B[0].view.buf, B[2].view.buf, B[1].view.buf, NULL, N * t / nt, N * (t + 1) / nt,
                                 eps, theta, 0.0, INFINITY};
     if (run_jobs(jobs, sizeof(UntangleJob), nt, untangle_worker, B[3].view.buf, 3 * n, offsetof(UntangleJob, G)) < 0)
         goto done;
@@ -569,10 +591,42 @@ static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns
 #undef R
 }
 
+/* The bounding sphere of triangle (kind 0) or segment (kind 1) j: its centre in g, squared radius in r2 (the
+ * centroid and the farthest vertex; the midpoint and half the length); 0 for a degenerate cell, else 1. */
+static int bound_sphere(const double *T, Py_ssize_t nc, Py_ssize_t j, int kind, double *g, double *r2) {
+#define R(r, k) T[((r) + (k)) * nc + j]
+    if (kind == 0) {
+        double v[3][3];
+        for (int d = 0; d < 3; d++) {
+            v[0][d] = R(TC, d);
+            v[1][d] = R(TC, d) + R(TE1, d);
+            v[2][d] = R(TC, d) + R(TE2, d);
+            g[d] = (v[0][d] + v[1][d] + v[2][d]) / 3.0;
+        }
+        *r2 = 0.0;
+        for (int k = 0; k < 3; k++) {
+            double e = 0.0;
+            for (int d = 0; d < 3; d++) e += (v[k][d] - g[d]) * (v[k][d] - g[d]);
+            if (e > *r2) *r2 = e;
+        }
+        *r2 *= 1.0 + 1e-12;  /* rounding must not prune a cell that holds the nearest point */
+        return R(TOK, 0) > 0.0;
+    }
+    *r2 = 0.0;
+    for (int d = 0; d < 3; d++) {
+        g[d] = R(SA, d) + 0.5 * R(SD, d);
+        *r2 += 0.25 * R(SD, d) * R(SD, d);
+    }
+    *r2 *= 1.0 + 1e-12;
+    return R(SI, 0) > 0.0;
+#undef R
+}
+
 /* near_project(x (n, 3) f8, nodes (m,) i8, active (a,) i8, hint (m,) i8, cand (rows, K) i8, table (R, nt) f8,
  * kind (0 triangles, 1 segments), tol, bump) -> None: moves x[nodes[i]] for every i of `active` to its nearest
- * point: the orthogonal projection onto its hint's cell where that falls inside, else the best of its K
- * candidates (hint[i] := its column). As NearProjector.__call__ in numpy did. */
+ * point among its K candidates (hint[i] := its column): where the orthogonal projection onto its hint's cell
+ * falls inside, that unless a candidate whose bounding sphere comes nearer holds a nearer point, else the best
+ * of them all. */
 static PyObject *near_project(PyObject *self, PyObject *args) {
     PyObject *o_x, *o_nodes, *o_active, *o_hint, *o_cand, *o_tab, *ret = NULL;
     int kind;
@@ -610,8 +664,31 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
         int inside = 0;
         if (H[i] >= 0) {
             Py_ssize_t j = CA[i * K + H[i]];
-            if (kind == 0) inside = plane_point(xi, T, nc, j, tol, p, &h, w, &d1);
-            else closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
+            double best;
+            if (kind == 0) {
+                inside = plane_point(xi, T, nc, j, tol, p, &h, w, &d1);
+                best = h * h;
+            } else {
+                best = closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
+            }
+            /* another candidate may still be nearer (a point inside its cell's prism near a concave part of the
+             * boundary): only one whose bounding sphere comes nearer than `best` can be; without this check the
+             * projection jumped where the point left the prism, and the line search stalled there */
+            for (Py_ssize_t c = 0; inside && c < K; c++) {
+                double g[3], r2, dx2 = 0.0, q[3];
+                if (c == H[i] || !bound_sphere(T, nc, CA[i * K + c], kind, g, &r2)) continue;
+                for (int d = 0; d < 3; d++) dx2 += (xi[d] - g[d]) * (xi[d] - g[d]);
+                double gap = sqrt(dx2) - sqrt(r2);
+                if (gap > 0.0 && gap * gap >= best) continue;
+                int in;
+                double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[i * K + c], tol, bump, q)
+                                         : closest_on_segment(xi, T, nc, CA[i * K + c], tol, bump, q, &in);
+                if (score < best) {
+                    best = score;
+                    H[i] = c;
+                    for (int d = 0; d < 3; d++) p[d] = q[d];
+                }
+            }
         }
         if (!inside) {
             double best = INFINITY, q[3];
@@ -695,7 +772,7 @@ static PyMethodDef methods[] = {
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},
     {"lbfgs_direction", lbfgs_direction, METH_VARARGS, "the L-BFGS two-loop recursion"},
-    {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of a corner table and its gradient"},
+    {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of hexahedra and its gradient"},
     {NULL, NULL, 0, NULL},
 };
 

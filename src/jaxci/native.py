@@ -150,13 +150,15 @@ def lbfgs_direction(g: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray
     _c.lbfgs_direction(g, S, Y, rho, order, out)
 
 
-def untangle_energy(points: np.ndarray, table: np.ndarray, inv_len: np.ndarray, eps: float, theta: float,
+def untangle_energy(points: np.ndarray, hexes: np.ndarray, inv_len: np.ndarray, eps: float, theta: float,
                     grad: bool, per_node: float) -> tuple[float, float, np.ndarray | None]:
     """``(energy, min det J, gradient or None)`` of `jaxci.optim._untangle_loop.hex_kernel`: the sum of the
-    corner energies divided by `per_node`, over the corner `table` ``(4, C)`` with `inv_len` ``(C,)``."""
+    corner energies divided by `per_node`, over the corners of `hexes` ``(N, 8)`` with one over each element's
+    reference length `inv_len` ``(N,)`` (`hex_kernel`'s corner table would hold it 8 times). One pass over the
+    elements, their eight corners side by side: half the time of a pass over the corner table."""
     x = _f8(points)
     g = np.zeros_like(x) if grad else None
-    e, dmin = _c.untangle_energy(x, _i8(table), _f8(inv_len), float(eps), float(theta), g, THREADS)
+    e, dmin = _c.untangle_energy(x, _i8(hexes), _f8(inv_len), float(eps), float(theta), g, THREADS)
     if g is not None:
         g *= 1.0 / per_node
     return e / per_node, dmin, g

@@ -275,7 +275,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     return y, steps, result, np.asarray(hf, np.float64), np.asarray(hk, np.float64)
 
 
-def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndarray, *, theta: float,
+def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndarray, *, theta: float,
                        margin: float, max_rounds: int, inner_steps: int, rtol: float, atol: float,
                        history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED, deadline: float | None = None,
                        progress: Callable | None = None):
@@ -284,7 +284,9 @@ def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndar
     Each round minimises the regularised Winslow energy at its eps with `lbfgs` (no cap, the round's Armijo
     search and Cauchy test) from the previous round's result, stopping as soon as every corner has
     ``det J >= margin``; between rounds eps follows the schedule of `jaxci.optim.untangle`. The energy and its
-    gradient are the compiled path's closed-form kernel (`hex_kernel` with numpy). Hexahedral meshes only.
+    gradient are the compiled path's closed-form kernel (`hex_kernel` with numpy, or its C form
+    `jaxci.native.untangle_energy`). Hexahedral meshes only: `hexes` ``(N, 8)``, `inv_len` ``(N,)`` one over each
+    element's reference length.
     `deadline` (`time.perf_counter` seconds, optional): no step after it; `progress` (optional): called after
     each round with ``(round, min det J, eps, energy)``.
 
@@ -292,17 +294,19 @@ def untangle_rounds_np(par: Parametrisation, table: np.ndarray, inv_len: np.ndar
     result (as evaluated: on the boundary), and a dict ``rounds``, ``steps``, ``dmin0``, ``h_eps``, ``h_dmin``,
     ``h_e`` (numpy arrays, one entry per round).
     """
-    from ._untangle_loop import CORNERS_PER_NODE, EPS_FLOOR, chi, hex_kernel
+    from ._untangle_loop import CORNERS_PER_NODE, EPS_FLOOR, chi, corner_table, hex_kernel
 
     projector = NearProjector(par.cons)
     if native.AVAILABLE:
-        table, inv_len = np.ascontiguousarray(table, dtype=np.int64), np.ascontiguousarray(inv_len, np.float64)
+        hexes, inv_len = np.ascontiguousarray(hexes, dtype=np.int64), np.ascontiguousarray(inv_len, np.float64)
+    else:
+        table, inv_corner = corner_table(hexes), np.tile(inv_len, 8)
 
     def objective(eps):
         def kernel(x):
             if native.AVAILABLE:
-                return native.untangle_energy(x, table, inv_len, eps, theta, True, CORNERS_PER_NODE)
-            return hex_kernel(x, table, inv_len, eps, theta, True, np)
+                return native.untangle_energy(x, hexes, inv_len, eps, theta, True, CORNERS_PER_NODE)
+            return hex_kernel(x, table, inv_corner, eps, theta, True, np)
 
         return HostObjective(par, None, 1.0, kernel, projector)
 

@@ -169,7 +169,7 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
                 progress(f"round {r}: min det J {dmin:.3g} (target {p.margin:g}), eps {eps:.3g}, "
                          f"{time.perf_counter() - t0:.1f} s")
 
-        v, x, st = untangle_rounds_np(par, corner_table(hexes), np.tile(1.0 / lens, 8), theta=p.theta,
+        v, x, st = untangle_rounds_np(par, hexes, 1.0 / lens, theta=p.theta,
                                       margin=p.margin, max_rounds=p.max_rounds, inner_steps=p.inner_steps,
                                       rtol=p.rtol, atol=p.atol,
                                       deadline=t0 + p.time_budget if p.time_budget else None, progress=report)
