@@ -193,7 +193,7 @@ def skin(mesh) -> tuple[np.ndarray, np.ndarray]:
     """``(nodes, faces)`` of the boundary of the volume cells: jaxci's own topology (a triangle is a quadrilateral
     with its last node repeated), plain hexahedron faces as a fallback."""
     try:
-        from jaxci.boundary import mesh_topology
+        from jaxci.geometry.boundary import mesh_topology
 
         faces = np.asarray(mesh_topology(mesh).faces, dtype=np.int64)
     except Exception:  # noqa: BLE001 - only a fallback for a library in flux

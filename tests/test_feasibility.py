@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import jaxci
-from jaxci.boundary import classify_boundary
 from jaxci.errors import InvertedMeshError
 from jaxci.generate import box
+from jaxci.geometry.boundary import classify_boundary
 from jaxci.optim.feasibility import stuck_cells
 
 

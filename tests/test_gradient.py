@@ -17,9 +17,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxci.boundary import INTERIOR
 from jaxci.errors import ConfigError
 from jaxci.generate import box, perturb_box
+from jaxci.geometry.boundary import INTERIOR
+from jaxci.geometry.projection import params_to_points
 from jaxci.optim._solve import _solve
 from jaxci.optim._solve import make_solver as _solver
 from jaxci.optim.gradient import (
@@ -29,7 +30,6 @@ from jaxci.optim.gradient import (
     objective_and_grad,
     solver_args,
 )
-from jaxci.projection import params_to_points
 from jaxci.quality import objective_t, transposed
 from jaxci.smooth import build_problem, smooth
 

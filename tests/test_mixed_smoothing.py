@@ -1,5 +1,5 @@
 """Smoothing hex-dominant meshes: boundary faces of every cell type, mixed-node classes, the mixed objective in
-every method (jaxci.topology, jaxci.boundary, jaxci.mixed, jaxci.smooth)."""
+every method (jaxci.geometry.topology, jaxci.geometry.boundary, jaxci.mixed, jaxci.smooth)."""
 
 from __future__ import annotations
 
@@ -12,15 +12,15 @@ import pytest
 
 from jaxci import elements as E
 from jaxci import mixed
-from jaxci.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals, mesh_topology
 from jaxci.generate import box, perturb_box
+from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals, mesh_topology
+from jaxci.geometry.projection import build_constraints, project, project_np
+from jaxci.geometry.topology import CELL_FACES, HEX_FACES
 from jaxci.mesh import EDGES, CellBlock, HexMesh
 from jaxci.optim._local import gather_star
 from jaxci.optim._moves import colour_slice, coloured_stars, local_sum
-from jaxci.projection import build_constraints, project, project_np
 from jaxci.quality import objective_t, transposed
 from jaxci.smooth import METHODS, build_problem, smooth
-from jaxci.topology import CELL_FACES, HEX_FACES
 
 #: Unit cells of every type, node orders of `jaxci.elements`.
 UNIT = {

@@ -43,11 +43,11 @@ _LAZY = {
     "corner_condition": "quality",
     "element_condition": "quality",
     "element_scaled_jacobian": "quality",
-    "classify_boundary": "boundary",
-    "BoundaryInfo": "boundary",
-    "build_constraints": "projection",
-    "project": "projection",
-    "project_np": "projection",
+    "classify_boundary": "geometry.boundary",
+    "BoundaryInfo": "geometry.boundary",
+    "build_constraints": "geometry.projection",
+    "project": "geometry.projection",
+    "project_np": "geometry.projection",
     "CIParams": "optim.ci",
 }
 

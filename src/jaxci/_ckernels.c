@@ -489,8 +489,8 @@ done:
 }
 
 /* ------------------------------------------------------------------------------------------ projection
- * The numpy path's boundary projection (jaxci.projection.NearProjector): every active node to the nearest point
- * of its candidate triangles (segments), starting with the one of its hint. Tables as in jaxci._closest: one
+ * The numpy path's boundary projection (jaxci.geometry.projection.NearProjector): every active node to the nearest point
+ * of its candidate triangles (segments), starting with the one of its hint. Tables as in jaxci.geometry._closest: one
  * row per precomputed quantity, one column per triangle (19 rows) or segment (8 rows). */
 enum { TC = 0, TE1 = 3, TE2 = 6, TN = 9, TG = 12, TOK = 15, TIS = 16, TID = 17, TL2 = 18 };
 enum { SA = 0, SD = 3, SI = 6, SL2 = 7 };
@@ -515,7 +515,7 @@ static int plane_point(const double *x, const double *T, Py_ssize_t nt, Py_ssize
 #undef R
 }
 
-/* Nearest point of x on triangle j (jaxci._closest._closest_on_triangles): its score (squared distance, plus
+/* Nearest point of x on triangle j (jaxci.geometry._closest._closest_on_triangles): its score (squared distance, plus
  * a rounding-level penalty for points on the spoke or the side) and the point in p. */
 static double closest_on_triangle(const double *x, const double *T, Py_ssize_t nt, Py_ssize_t j, double tol,
                                   double bump, double *p) {
@@ -551,8 +551,8 @@ static double closest_on_triangle(const double *x, const double *T, Py_ssize_t n
 #undef R
 }
 
-/* Nearest point of x on segment j (jaxci._closest._closest_on_segments); with `inside`, whether the orthogonal
- * projection falls inside it (jaxci._closest._line_point). */
+/* Nearest point of x on segment j (jaxci.geometry._closest._closest_on_segments); with `inside`, whether the orthogonal
+ * projection falls inside it (jaxci.geometry._closest._line_point). */
 static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns, Py_ssize_t j, double tol,
                                  double bump, double *p, int *inside) {
 #define R(r, k) T[((r) + (k)) * ns + j]

@@ -27,8 +27,8 @@ import numpy as np
 
 from . import elements as E
 from ._lazy import jax, jnp, pytree_dataclass
+from .geometry.topology import unique_edges
 from .mesh import EDGES, HexMesh
-from .topology import unique_edges
 
 #: The non-hexahedral linear cell types that are measured and smoothed.
 EXTRA_TYPES = ("wedge", "pyramid", "tetra")

@@ -111,8 +111,8 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
     from matplotlib.colors import LogNorm
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
+    from .geometry.topology import boundary_topology
     from .quality import element_condition
-    from .topology import boundary_topology
 
     hexes = np.asarray(hexes)
     topo = boundary_topology(hexes, len(points_before))

@@ -351,7 +351,7 @@ def annotated_mesh(mesh, points, node_class=None, reference_points=None):
 
     Cell data ``element_condition`` (max corner kappa/3, inf for an inverted element) and ``scaled_jacobian``
     (Verdict's element scaled Jacobian), NaN on non-hexahedron blocks; point data ``node_class``
-    (`jaxci.boundary` classes) when given, and ``displacement`` = `points` - `reference_points` when given.
+    (`jaxci.geometry.boundary` classes) when given, and ``displacement`` = `points` - `reference_points` when given.
     """
     import jax
 

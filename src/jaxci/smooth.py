@@ -1,10 +1,10 @@
 """`jaxci.smooth`: one interface for every smoothing method, one history record for all of them.
 
 Every method works on the same problem: minimise the paper's F (Eq. 3.1) by moving nodes, corner nodes fixed,
-edge nodes on their feature curve, surface nodes on their surface (`jaxci.boundary`, `jaxci.projection`). On a
-hex-dominant mesh F is the mean over the corners of EVERY cell, hexahedra, wedges, pyramids and tetrahedra
-(`jaxci.elements.mixed_objective`, `jaxci.mixed`), and the nodes of linear non-hexahedral cells move too.
-Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
+edge nodes on their feature curve, surface nodes on their surface (`jaxci.geometry.boundary`,
+`jaxci.geometry.projection`). On a hex-dominant mesh F is the mean over the corners of EVERY cell, hexahedra, wedges,
+pyramids and tetrahedra (`jaxci.elements.mixed_objective`, `jaxci.mixed`), and the nodes of linear non-hexahedral cells
+move too. Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
 
 - no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase (else
   the input is returned, with a note saying why);
@@ -26,14 +26,14 @@ import numpy as np
 
 from . import mixed
 from ._lazy import enable_x64, jax, jnp
-from .boundary import BoundaryInfo, classify_boundary
 from .elements import checked_objective
 from .errors import ConfigError, InvertedMeshError, MeshError
+from .geometry.boundary import BoundaryInfo, classify_boundary
+from .geometry.projection import Constraints, build_constraints, n_free, project_np
+from .geometry.topology import colour_nodes, node_adjacency
 from .mesh import HexMesh
 from .optim.host import HOST_MAX, runs_on_host
-from .projection import Constraints, build_constraints, n_free, project_np
 from .quality import QualityReport, quality_report, transposed
-from .topology import colour_nodes, node_adjacency
 
 #: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
 #: (`auto_pipeline`).
@@ -64,7 +64,7 @@ class SmoothResult:
       ``max_condition`` lists, plus method-specific series (CI: ``best``, ``worst`` behaviour; ``moved``).
     - `iterations`, `wall_time` (seconds, including compilation), `method`, `params` (all hyperparameters).
     - `before`, `after`: `QualityReport` of input and output; `boundary`: node counts per class.
-    - `node_class`: class of every node (`jaxci.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
+    - `node_class`: class of every node (`jaxci.geometry.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
     - `notes`: what a user should know (invariant fallbacks, untangling, an iteration cap that stopped it, ...).
     - `phases`: where the time went (`jaxci.phases.PhaseClock.as_dict`: seconds, compile seconds and
       compilations per phase: ``validate``, ``report`` (quality before), ``untangle``, ``setup`` (boundary
@@ -206,7 +206,7 @@ def _run_method(problem: Problem, method: str, seed: int, params: dict):
 
 
 def free_scale(problem: Problem) -> jnp.ndarray:
-    """Local edge length per free coordinate (the `jaxci.projection` layout), shape ``(n_free,)``
+    """Local edge length per free coordinate (the `jaxci.geometry.projection` layout), shape ``(n_free,)``
     (`jaxci.optim.parametrisation.free_lengths`)."""
     from .optim.parametrisation import free_lengths
 

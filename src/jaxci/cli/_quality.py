@@ -19,7 +19,7 @@ def add_args(p) -> None:
 
 def report_dict(mesh, feature_angle: float = 40.0) -> dict:
     """The quality keys of a mesh, as `jaxci quality --json` prints them, with the node class counts."""
-    from ..boundary import classify_boundary
+    from ..geometry.boundary import classify_boundary
     from ..quality import quality_report
 
     d = quality_report(mesh).to_dict()

@@ -18,9 +18,9 @@ import dataclasses
 import numpy as np
 
 from .._lazy import jax, jnp, when_imported
-from ..boundary import CORNER, EDGE, INTERIOR, SURFACE
+from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
+from ..geometry.projection import Constraints, project_nodes
 from ..mixed import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
-from ..projection import Constraints, project_nodes
 from ._buckets import bucket, to_device
 from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars
 
@@ -336,7 +336,7 @@ def project_trials(cons: Constraints, cs_i: ColouredStars, trials):
     Interior slots are returned unchanged. Surface slots whose ring is planar and whose trials all stay inside
     the disk their ring covers (`planar_rings`) take the orthogonal projection onto the plane, which is then the
     exact nearest point of the patch; otherwise (one `lax.cond` per colour) every boundary slot goes through
-    `jaxci.projection.project_nodes` (nearest point of its patch or curve).
+    `jaxci.geometry.projection.project_nodes` (nearest point of its patch or curve).
     """
     a, b = cs_i.n_interior, cs_i.n_interior + cs_i.n_surface
     M, S, _ = trials.shape

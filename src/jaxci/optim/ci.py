@@ -25,7 +25,7 @@ node keeps an interval width adapted to its last move (a trust region). Sweeps s
 than `tol` relative, or F <= `ftol`, or after `max_sweeps`.
 
 **Global CI** (`global_ci`, faithful to the paper): each candidate is a whole mesh, a point in the space of all
-free coordinates (`jaxci.projection`'s parametrisation), of shape ``(C, n_free)``; its behaviour is F (Eq.
+free coordinates (`jaxci.geometry.projection`'s parametrisation), of shape ``(C, n_free)``; its behaviour is F (Eq.
 3.1) evaluated for all C x t variations at once. Intervals are per coordinate, of initial width
 ``init_width * h`` (h the local edge length).
 
@@ -46,8 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
+from ..geometry.projection import Constraints, params_to_points
 from ..mixed import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
-from ..projection import Constraints, params_to_points
 from . import _params as _p
 from ._local import gather_star
 from ._moves import ColouredStars, chunked_local_sum, colour_slice, local_count, local_scale, project_trials

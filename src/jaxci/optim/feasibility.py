@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import elements as E
-from ..boundary import CORNER, BoundaryInfo
+from ..geometry.boundary import CORNER, BoundaryInfo
 from ..mesh import HexMesh
 
 

@@ -1,7 +1,7 @@
 """Gradient baselines: optimistix minimisers and least-squares solvers on F over the free coordinates.
 
-The unknowns are the free coordinates of `jaxci.projection` (3 per interior node, 2 per surface node, 1 per edge
-node; corner nodes fixed), divided by the local edge length h of their node: ``u = h * v`` and the solvers see
+The unknowns are the free coordinates of `jaxci.geometry.projection` (3 per interior node, 2 per surface node, 1 per
+edge node; corner nodes fixed), divided by the local edge length h of their node: ``u = h * v`` and the solvers see
 ``v``. Node coordinates are ``project(x0 + B u)`` (`jaxci.optim.parametrisation.Parametrisation.points`), so
 every iterate lies on the original boundary. On a mixed mesh F is the mean over the corners of every cell
 (`jaxci.mixed`).
@@ -79,8 +79,8 @@ import numpy as np
 from .. import native
 from .._lazy import jax, jnp
 from ..errors import ConfigError
+from ..geometry.projection import project_np
 from ..mixed import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
-from ..projection import project_np
 from ..quality import (
     corner_columns,
     corner_invariants,

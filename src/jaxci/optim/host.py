@@ -27,7 +27,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .. import native
-from ..projection import NearProjector, host_constraints
+from ..geometry.projection import NearProjector, host_constraints
 from ..quality import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
@@ -69,9 +69,9 @@ class HostObjective:
 
     ``value = s F`` (the scaled objective the compiled path minimises), `grad` its gradient with respect to `v`
     (through the lift's linear map ``B`` and, where a node was projected, the projection onto its triangle's
-    plane or its segment's line: the derivative `jax.grad` takes through `jaxci.projection.project`);
+    plane or its segment's line: the derivative `jax.grad` takes through `jaxci.geometry.projection.project`);
     ``value = inf`` (`grad` None) if a corner is inverted. Node coordinates are ``project(x0 + B (scale v))``
-    with the candidate projection of the compiled path (`jaxci.projection.NearProjector`), skipped while every
+    with the candidate projection of the compiled path (`jaxci.geometry.projection.NearProjector`), skipped while every
     moving boundary node is inside its flat region.
     """
 

@@ -28,6 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
+from ..geometry.projection import Constraints
+from ..geometry.topology import unique_edges
 from ..mixed import (
     ExtraCells,
     corner_table,
@@ -38,7 +40,6 @@ from ..mixed import (
     mixed_objective_t,
     no_extra,
 )
-from ..projection import Constraints
 from ..quality import (
     condition_from_invariants,
     corner_columns,
@@ -46,7 +47,6 @@ from ..quality import (
     gather_corners,
     squared_condition_from_invariants,
 )
-from ..topology import unique_edges
 from . import _params as _p
 from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
 from ._local import gather_star

@@ -51,11 +51,11 @@ import numpy as np
 
 from .. import elements as E
 from .._lazy import enable_x64, is_jax_array, jax
-from ..boundary import CORNER, BoundaryInfo
 from ..errors import InvertedMeshError
+from ..geometry.boundary import CORNER, BoundaryInfo
+from ..geometry.projection import Constraints, n_free, project_np
 from ..mesh import EDGES, HexMesh, corner_determinants
 from ..mixed import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
-from ..projection import Constraints, n_free, project_np
 from . import _params as _p
 from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
 from .host import UNTANGLE_HOST_MAX, runs_on_host, untangle_rounds_np
@@ -235,7 +235,7 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
     original boundary (with `partial`, possibly some elements still inverted: the notes say how many), and
     sentences for `SmoothResult.notes`.
     """
-    from ..projection import build_constraints
+    from ..geometry.projection import build_constraints
 
     where = f"{mesh.source}: " if mesh.source else ""
     det0 = corner_determinants(mesh.points, mesh.hexes)
@@ -301,7 +301,7 @@ def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.nd
     **Returns:** ``(points, notes)``: `x` projected onto the original boundary in float64, or `untangled` if that
     has an inverted corner or a higher F than `untangled` (with a note saying so).
     """
-    from ..projection import build_constraints
+    from ..geometry.projection import build_constraints
 
     with enable_x64(not E.objective_on_host(mesh)):
         cons = build_constraints(mesh, info, dtype=np.float64, device=False)

@@ -1,8 +1,8 @@
 """Classification of the nodes of a hex-dominant mesh by how they may move: interior, surface, edge or corner.
 
 The boundary is the set of faces (quadrilaterals and triangles) used by exactly one volume cell of any type
-(`jaxci.topology`): a face a hexahedron shares with a wedge, pyramid or tetrahedron is interior. A boundary edge
-is a *feature edge* when the unit normals of its two boundary faces differ by more than the feature angle, or
+(`jaxci.geometry.topology`): a face a hexahedron shares with a wedge, pyramid or tetrahedron is interior. A boundary
+edge is a *feature edge* when the unit normals of its two boundary faces differ by more than the feature angle, or
 when it does not have exactly two boundary faces (a non-manifold or open edge). Then, per node:
 
 - CORNER (fixed): 1 or 3+ feature edges meet at it (a curve ends or curves meet), or 2 meet at an angle: the
@@ -33,10 +33,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .errors import MeshError
-from .mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
-from .mixed import fixed_nodes as fixed_cell_nodes
-from .mixed import volume_cells
+from ..errors import MeshError
+from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
+from ..mixed import fixed_nodes as fixed_cell_nodes
+from ..mixed import volume_cells
 from .topology import BoundaryTopology, boundary_topology, components
 
 #: Node classes (values of `BoundaryInfo.node_class`).
@@ -98,7 +98,7 @@ class BoundaryInfo:
 
 
 def mesh_topology(mesh: HexMesh) -> BoundaryTopology:
-    """`jaxci.topology.boundary_topology` of every volume cell of `mesh` (hexahedra, wedges, pyramids,
+    """`jaxci.geometry.topology.boundary_topology` of every volume cell of `mesh` (hexahedra, wedges, pyramids,
     tetrahedra; quadratic cells by their corner nodes)."""
     cells = volume_cells(mesh)
     cells.pop("hexahedron", None)

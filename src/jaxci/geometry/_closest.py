@@ -1,9 +1,9 @@
-"""Closest points on triangles and segments: the kernels of `jaxci.projection` (numpy and JAX alike).
+"""Closest points on triangles and segments: the kernels of `jaxci.geometry.projection` (numpy and JAX alike).
 
 Vectors are tuples of 3 arrays (structure of arrays: XLA:CPU is many times faster on scalar component arrays
 than on ``(..., 3)`` axes) and every function takes the array module `xp` (numpy or jax.numpy). The geometry
 is packed into tables with one row per precomputed quantity and one column per triangle or segment, gathered
-per candidate with 1-D gathers. See `jaxci.projection` for the method.
+per candidate with 1-D gathers. See `jaxci.geometry.projection` for the method.
 """
 
 from __future__ import annotations
@@ -177,7 +177,7 @@ def _nearest(xp, x, table, cand, closest, tol):
 
 def candidate_rows(table, cand) -> list:
     """The rows of `table` gathered at the candidates `cand` (m, K): a list of (m, K) arrays (kept between
-    projections by `jaxci.projection.host_constraints`: in numpy the gather was a third of a projection)."""
+    projections by `jaxci.geometry.projection.host_constraints`: in numpy the gather was a third of a projection)."""
     return [table[j][cand] for j in range(table.shape[0])]  # 1-D gathers, each (m, K)
 
 

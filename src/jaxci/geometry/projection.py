@@ -3,9 +3,9 @@
 **Geometry kept.** Every boundary quadrilateral of the input mesh is split into four triangles around its centroid
 (the mean of its corners): no diagonal is preferred, a planar quad gives four coplanar triangles (so planar patches
 are reproduced exactly), and a warped quad is approximated by a surface symmetric in its corners. A boundary
-triangle (of a wedge, pyramid or tetrahedron, stored as ``[a, b, c, c]``, `jaxci.topology`) is split around its
+triangle (of a wedge, pyramid or tetrahedron, stored as ``[a, b, c, c]``, `jaxci.geometry.topology`) is split around its
 centroid the same way and is reproduced exactly. Feature curves are kept as the polylines of their feature edges.
-Each triangle belongs to the patch of its quad, each segment to one curve (`jaxci.boundary`).
+Each triangle belongs to the patch of its quad, each segment to one curve (`jaxci.geometry.boundary`).
 
 **Projection.** A SURFACE node goes to the nearest point of its own patch, an EDGE node to the nearest point
 of its own curve, a CORNER node back to its original position; INTERIOR nodes do not move. Restricting the
@@ -47,6 +47,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._lazy import filter_jit, jax, jnp, pytree_dataclass
+from ..mesh import HexMesh
 from ._closest import (
     _SD,
     _SEG_ROWS,
@@ -65,9 +67,7 @@ from ._closest import (
     _triangle_table,
     candidate_rows,
 )
-from ._lazy import filter_jit, jax, jnp, pytree_dataclass
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, face_normals
-from .mesh import HexMesh
 
 if TYPE_CHECKING:
     from jaxtyping import Array, Float, Int
@@ -84,7 +84,7 @@ class Constraints:
     **Fields:**
 
     - `x_orig`: original node coordinates, shape ``(n_nodes, 3)`` (corners are restored to them).
-    - `node_class`: class of each node (`jaxci.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
+    - `node_class`: class of each node (`jaxci.geometry.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
     - `group`: patch id of SURFACE nodes, curve id of EDGE nodes, -1 otherwise; shape ``(n_nodes,)``.
     - `row`: position of a SURFACE (EDGE) node in `surface_nodes` (`edge_nodes`), 0 otherwise.
     - `interior_nodes`, `surface_nodes`, `edge_nodes`, `corner_nodes`: sorted node indices of each class.
@@ -182,7 +182,7 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     **Arguments:**
 
     - `mesh`: the mesh whose CURRENT coordinates are the original geometry to project onto.
-    - `info`: its `BoundaryInfo` (from `jaxci.boundary.classify_boundary`).
+    - `info`: its `BoundaryInfo` (from `jaxci.geometry.boundary.classify_boundary`).
     - `dtype`: float dtype of the geometry arrays; default JAX's default float (float64 under
       ``jax_enable_x64``, else float32). Keyword only argument.
     - `device`: put the arrays on JAX's default device (default; for jitted functions, which would copy numpy
@@ -301,7 +301,7 @@ class NearProjector:
     """
 
     def __init__(self, constraints: Constraints):
-        from . import native
+        from .. import native
 
         self.c, self.rows = host_constraints(constraints)
         # candidate column per surface node, per edge node; -1: not known (search all its candidates)
@@ -326,7 +326,7 @@ class NearProjector:
         x = np.array(points, dtype=np.float64)
         tol = _tol(np.float64)
         if self._native is not None:
-            from . import native
+            from .. import native
 
             out = []
             for kind, (nodes, cand, table) in enumerate(self._native):
