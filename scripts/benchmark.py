@@ -48,8 +48,8 @@ def _measure(args, device) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxci import quality as q
     from jaxci.generate import perturb_box
+    from jaxci.metrics import hexahedron as q
     from jaxci.smooth import smooth
 
     n = args.size

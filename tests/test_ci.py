@@ -11,13 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxci
-from jaxci import quality as q
 from jaxci.cli import main
 from jaxci.errors import ConfigError, InvertedMeshError
 from jaxci.experiment import load_config, run_experiment
 from jaxci.generate import perturb_box
 from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.mesh import corner_determinants
+from jaxci.metrics import hexahedron as q
 from jaxci.optim.ci import GLOBAL_DEFAULTS, CIParams
 from jaxci.shapes import annulus, l_block
 from jaxci.smooth import build_problem, method_params, smooth

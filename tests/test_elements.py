@@ -9,11 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxci import elements as E
-from jaxci import quality as q
 from jaxci.cli import main
 from jaxci.generate import perturb_box
 from jaxci.mesh import CellBlock, HexMesh
+from jaxci.metrics import elements as E
+from jaxci.metrics import hexahedron as q
 
 vtk = pytest.importorskip("vtk")
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy  # noqa: E402

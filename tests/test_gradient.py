@@ -21,6 +21,7 @@ from jaxci.errors import ConfigError
 from jaxci.generate import box, perturb_box
 from jaxci.geometry.boundary import INTERIOR
 from jaxci.geometry.projection import params_to_points
+from jaxci.metrics.hexahedron import objective_t, transposed
 from jaxci.optim._solve import _solve
 from jaxci.optim._solve import make_solver as _solver
 from jaxci.optim.gradient import (
@@ -30,7 +31,6 @@ from jaxci.optim.gradient import (
     objective_and_grad,
     solver_args,
 )
-from jaxci.quality import objective_t, transposed
 from jaxci.smooth import build_problem, smooth
 
 

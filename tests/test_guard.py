@@ -1,5 +1,5 @@
-"""The worst-element guard (`jaxci.guard`, `smooth(keep_worst=True)`, issue 15): the returned mesh's worst cell is
-no worse than the input's, whatever the method did, and only the nodes near the offending cells are put back."""
+"""The worst-element guard (`jaxci.metrics.guard`, `smooth(keep_worst=True)`, issue 15): the returned mesh's worst cell
+is no worse than the input's, whatever the method did, and only the nodes near the offending cells are put back."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import jaxci
-from jaxci import guard
 from jaxci.generate import perturb_box
+from jaxci.metrics import guard
 
 
 @pytest.fixture(scope="module")

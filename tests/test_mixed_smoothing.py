@@ -1,5 +1,5 @@
 """Smoothing hex-dominant meshes: boundary faces of every cell type, mixed-node classes, the mixed objective in
-every method (jaxci.geometry.topology, jaxci.geometry.boundary, jaxci.mixed, jaxci.smooth)."""
+every method (jaxci.geometry.topology, jaxci.geometry.boundary, jaxci.metrics.objective, jaxci.smooth)."""
 
 from __future__ import annotations
 
@@ -10,19 +10,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxci import elements as E
-from jaxci import mixed
 from jaxci.generate import box, perturb_box
 from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals, mesh_topology
 from jaxci.geometry.projection import build_constraints, project, project_np
 from jaxci.geometry.topology import CELL_FACES, HEX_FACES
 from jaxci.mesh import EDGES, CellBlock, HexMesh
+from jaxci.metrics import elements as E
+from jaxci.metrics import objective as mixed
+from jaxci.metrics.hexahedron import objective_t, transposed
 from jaxci.optim._local import gather_star
 from jaxci.optim._moves import colour_slice, coloured_stars, local_sum
-from jaxci.quality import objective_t, transposed
 from jaxci.smooth import METHODS, build_problem, smooth
 
-#: Unit cells of every type, node orders of `jaxci.elements`.
+#: Unit cells of every type, node orders of `jaxci.metrics.elements`.
 UNIT = {
     "hexahedron": np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]],
                            float),

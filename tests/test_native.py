@@ -8,8 +8,8 @@ import pytest
 from jaxci import native
 from jaxci.generate import perturb_box
 from jaxci.mesh import CORNER_NEIGHBOURS
+from jaxci.metrics.hexahedron import objective_terms_and_grad_np
 from jaxci.optim._untangle_loop import corner_table, hex_kernel
-from jaxci.quality import objective_terms_and_grad_np
 
 if not native.AVAILABLE:
     if os.environ.get("CI") and os.environ.get("JAXCI_NATIVE", "1") != "0":
@@ -105,13 +105,13 @@ def test_threads_give_the_single_threaded_result(threads):
 
 
 def test_mixed_kernel_is_the_gradient_of_the_mixed_objective():
-    """Hexahedra, wedges, pyramids and tetrahedra: the C kernel's F is `jaxci.elements.mixed_objective` and its
+    """Hexahedra, wedges, pyramids and tetrahedra: the C kernel's F is `jaxci.metrics.elements.mixed_objective` and its
     gradient JAX's derivative of it; a pyramid whose sub-tetrahedron inverts makes F infinite."""
     import jax
     import jax.numpy as jnp
     from test_mixed_smoothing import all_types_box
 
-    from jaxci.elements import _mixed_objective, element_blocks, mixed_objective
+    from jaxci.metrics.elements import _mixed_objective, element_blocks, mixed_objective
 
     mesh = all_types_box()
     blocks = element_blocks(mesh)

@@ -8,9 +8,9 @@ from helpers import MESQUITE, MESQUITE_FIGURES, random_valid_hexes, read_vtk_hex
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxci import quality as q
 from jaxci.generate import box, perturb_box
 from jaxci.mesh import hex_mesh
+from jaxci.metrics import hexahedron as q
 
 vtk = pytest.importorskip("vtk")
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy  # noqa: E402

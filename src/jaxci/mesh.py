@@ -117,7 +117,8 @@ class CellBlock:
 
 
 def corner_determinants(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
-    """det A_i of every corner of every hexahedron, in numpy float64 (validation; the fast path is jaxci.quality).
+    """det A_i of every corner of every hexahedron, in numpy float64 (validation; the fast path is
+    jaxci.metrics.hexahedron).
 
     **Arguments:** `points` of shape ``(n, 3)``; `hexes` of shape ``(N, 8)``.
 

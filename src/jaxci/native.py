@@ -54,7 +54,7 @@ def _i8(a) -> np.ndarray:
 
 def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | None = None
                        ) -> tuple[float, float, np.ndarray]:
-    """``(F, max kappa/3, dF/dx)`` of the hexahedra, as `jaxci.quality.objective_terms_and_grad_np`.
+    """``(F, max kappa/3, dF/dx)`` of the hexahedra, as `jaxci.metrics.hexahedron.objective_terms_and_grad_np`.
 
     **Arguments:** `points` ``(n, 3)``; `hexes` ``(N, 8)`` (element-major: one element's nodes together);
     `power` p: the p-mean ``M_p`` of the corner excesses instead of their mean F (two passes: the terms, then
@@ -71,7 +71,7 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
         s, tmax, bad = _c.hex_condition(x, h, weight, grad, None, None, THREADS)
         f = np.inf if bad else (s / n_corners if n_corners else 0.0)
         return f, (np.inf if bad else float(np.sqrt(tmax))), grad
-    from .quality import pmean_weights
+    from .metrics.hexahedron import pmean_weights
 
     terms = np.empty((8, h.shape[0]))
     _c.hex_condition(x, h, 0.0, None, None, terms, THREADS)
@@ -84,22 +84,22 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
 def corner_table(cells: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """The corners of `cells` ``(N, k)`` as a flat table ``(4, n_corners N)`` int64 for `corner_condition`: row 0
     the corner's node, rows 1-3 the far ends of its columns (`corners`: rows ``[i, p, q, r]`` of
-    `jaxci.elements.CORNERS`); corner j of cell e at ``j N + e``."""
+    `jaxci.metrics.elements.CORNERS`); corner j of cell e at ``j N + e``."""
     c = np.asarray(cells, dtype=np.int64)
     return np.ascontiguousarray(np.stack([c[:, corners[:, m]].T.ravel() for m in range(4)]))
 
 
 class MixedKernel:
-    """``(F, max kappa/3, dF/dx) = kernel(points)`` over every cell of a hex-dominant mesh (`jaxci.elements`'
+    """``(F, max kappa/3, dF/dx) = kernel(points)`` over every cell of a hex-dominant mesh (`jaxci.metrics.elements`'
     mixed objective: the mean over the corners of every hexahedron, wedge, pyramid and tetrahedron of
     ``(kappa/3)^2 - 1``, each relative to its type's ideal corner; ``inf`` if a corner, or one of the four
     tetrahedra of a pyramid, is inverted), for the numpy path of L-BFGS on mixed meshes.
 
-    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.elements.element_blocks`).
+    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.metrics.elements.element_blocks`).
     """
 
     def __init__(self, blocks: dict):
-        from .elements import CORNERS, PYRAMID_TETS, TARGETS
+        from .metrics.elements import CORNERS, PYRAMID_TETS, TARGETS
 
         self.hexes = _i8(blocks.get("hexahedron", np.zeros((0, 8))))
         self.extra = [(corner_table(c, CORNERS[t]), _f8(np.linalg.inv(TARGETS[t])))

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .quality import HISTOGRAM_EDGES
+from .metrics.hexahedron import HISTOGRAM_EDGES
 
 #: Surface plots are skipped for meshes with more boundary faces than this (matplotlib 3-D is slow).
 MAX_SURFACE_FACES = 20000
@@ -112,7 +112,7 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from .geometry.topology import boundary_topology
-    from .quality import element_condition
+    from .metrics.hexahedron import element_condition
 
     hexes = np.asarray(hexes)
     topo = boundary_topology(hexes, len(points_before))

@@ -3,8 +3,8 @@
 Every method works on the same problem: minimise the paper's F (Eq. 3.1) by moving nodes, corner nodes fixed,
 edge nodes on their feature curve, surface nodes on their surface (`jaxci.geometry.boundary`,
 `jaxci.geometry.projection`). On a hex-dominant mesh F is the mean over the corners of EVERY cell, hexahedra, wedges,
-pyramids and tetrahedra (`jaxci.elements.mixed_objective`, `jaxci.mixed`), and the nodes of linear non-hexahedral cells
-move too. Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
+pyramids and tetrahedra (`jaxci.metrics.elements.mixed_objective`, `jaxci.metrics.objective`), and the nodes of linear
+non-hexahedral cells move too. Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
 
 - no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase (else
   the input is returned, with a note saying why);
@@ -24,16 +24,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from . import mixed
 from ._lazy import enable_x64, jax, jnp
-from .elements import checked_objective
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .geometry.boundary import BoundaryInfo, classify_boundary
 from .geometry.projection import Constraints, build_constraints, n_free, project_np
 from .geometry.topology import colour_nodes, node_adjacency
 from .mesh import HexMesh
+from .metrics import objective as mixed
+from .metrics.elements import checked_objective
+from .metrics.hexahedron import QualityReport, quality_report, transposed
 from .optim.host import HOST_MAX, runs_on_host
-from .quality import QualityReport, quality_report, transposed
 
 #: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
 #: (`auto_pipeline`).
@@ -103,8 +103,8 @@ class SmoothResult:
 @dataclasses.dataclass(frozen=True)
 class Problem:
     """Everything a method needs, built once: constraints, colouring, transposed connectivity, dtype; for a mixed
-    mesh the non-hexahedral cells (`extra`: `jaxci.mixed.ExtraCells`; `table`: `jaxci.mixed.CornerTable`), None
-    for a hexahedral one."""
+    mesh the non-hexahedral cells (`extra`: `jaxci.metrics.objective.ExtraCells`; `table`:
+    `jaxci.metrics.objective.CornerTable`), None for a hexahedral one."""
 
     mesh: HexMesh
     info: BoundaryInfo
@@ -147,8 +147,8 @@ def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     one only on F and with the C kernels), its reports and checks in numpy. JAX is then never imported (0.4-0.5 s
     of a small mesh's run)."""
     from . import native
-    from .elements import objective_on_host
-    from .quality import NUMPY_REPORT_MAX
+    from .metrics.elements import objective_on_host
+    from .metrics.hexahedron import NUMPY_REPORT_MAX
 
     if method != "lbfgs" or int(params.get("presmooth", 0)):
         return False
@@ -256,7 +256,7 @@ def smooth(
       nodes). Default False: coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface) are fixed, so
       they stay exactly coincident, and a note says how many.
     - `keep_worst`: guarantee that the worst cell (max corner kappa/3, float64, every cell type) is no worse than
-      the input's (`jaxci.guard.keep_worst`: the nodes of cells that ended worse are put back, and a note says
+      the input's (`jaxci.metrics.guard.keep_worst`: the nodes of cells that ended worse are put back, and a note says
       what that cost in mean quality). False returns the method's result as it is.
     - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
@@ -526,9 +526,9 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_wor
                         before: QualityReport | None = None, power: float | None = None
                         ) -> tuple[np.ndarray, list[str]]:
     """Exact float64 projection onto the original boundary, then the no-inversion, worst-cell
-    (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell type (`jaxci.elements.inverted`;
-    of `jaxci.elements.mixed_objective`, or of the p-mean `jaxci.quality.pmean_objective` with `power`: the
-    objective the method minimised)."""
+    (`jaxci.metrics.guard.keep_worst`, if asked) and no-increase checks over every cell type
+    (`jaxci.metrics.elements.inverted`; of `jaxci.metrics.elements.mixed_objective`, or of the p-mean
+    `jaxci.metrics.hexahedron.pmean_objective` with `power`: the objective the method minimised)."""
     cons64 = build_constraints(mesh, problem.info, dtype=np.float64, device=False)
     x = project_np(cons64, x)
     new = mixed.newly_inverted(mesh, mesh.points, x)
@@ -539,7 +539,7 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_wor
         return np.array(mesh.points), [f"the result had newly inverted elements ({what}); the input is returned"]
     notes = []
     if keep_worst:
-        from .guard import keep_worst as guard
+        from .metrics.guard import keep_worst as guard
 
         # the input's worst cell from its report (valid input on this path: every corner counted), not recomputed
         w0 = None if before is None else (before.overall or {}).get("max_condition", before.max_condition)

@@ -47,7 +47,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..geometry.projection import Constraints, params_to_points
-from ..mixed import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
+from ..metrics.objective import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
 from . import _params as _p
 from ._local import gather_star
 from ._moves import ColouredStars, chunked_local_sum, colour_slice, local_count, local_scale, project_trials
@@ -304,7 +304,7 @@ def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
 def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams = CIParams(),
              extra: ExtraCells | None = None):
     """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity, `extra`
-    the non-hexahedral cells (`jaxci.mixed.extra_cells`; default none), whose corners `cs` must hold too
+    the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`; default none), whose corners `cs` must hold too
     (`coloured_stars(..., table)`): F and the local objectives are then over every corner.
 
     **Returns:** ``(points, sweeps, history)``: the smoothed coordinates ``(n, 3)``, the number of sweeps, and a

@@ -4,7 +4,7 @@ On a mesh of a few thousand hexahedra, XLA's compilation of the solver loop cost
 (`jaxci smooth` on a 2360-hex mesh, empty compile cache: 2.9 s compiling `_solve`, 0.6 s iterating; with a warm
 cache still 0.8 s tracing, lowering and loading it). The same algorithm run by numpy in float64 costs about
 1 ms per objective-and-gradient evaluation at that size (the closed-form kernel of
-`jaxci.quality.objective_terms_and_grad_np`, with glibc's huge-page tunable of `jaxci.runtime`), so the whole
+`jaxci.metrics.hexahedron.objective_terms_and_grad_np`, with glibc's huge-page tunable of `jaxci.runtime`), so the whole
 solve takes less than the compilation alone. `jaxci.optim.gradient.minimise` uses it for ``"lbfgs"`` on
 hexahedral meshes of at most `HOST_MAX` elements (``GradientParams(backend="auto")``; ``"jax"`` or ``"numpy"``
 force one).
@@ -28,7 +28,7 @@ import numpy as np
 
 from .. import native
 from ..geometry.projection import NearProjector, host_constraints
-from ..quality import objective_terms_and_grad_np
+from ..metrics.hexahedron import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
@@ -80,7 +80,7 @@ class HostObjective:
     conn: np.ndarray | None
     s: float
     #: ``(f, k, grad) = kernel(points)`` (default: F, max kappa/3 and dF/dx of the hexahedra `conn`,
-    #: `jaxci.quality.objective_terms_and_grad_np`); the untangling stage passes its energy
+    #: `jaxci.metrics.hexahedron.objective_terms_and_grad_np`); the untangling stage passes its energy
     kernel: Callable | None = None
     #: the boundary projection (default a new `NearProjector`; successive objectives may share one)
     projector: NearProjector | None = None
@@ -147,8 +147,8 @@ class HostObjective:
 
 def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callable:
     """``kernel(points) -> (F, max kappa/3, dF/dx)`` of the hexahedra `conn` (transposed, ``(8, N)``): the C
-    loop of `jaxci.native` where it is built, else `jaxci.quality.objective_terms_and_grad_np`; `power` p: the
-    p-mean objective instead of F."""
+    loop of `jaxci.native` where it is built, else `jaxci.metrics.hexahedron.objective_terms_and_grad_np`; `power` p:
+    the p-mean objective instead of F."""
     if native.AVAILABLE:
         hexes = np.ascontiguousarray(np.asarray(conn).T, dtype=np.int64)
         return lambda x: native.hex_terms_and_grad(x, hexes, power)

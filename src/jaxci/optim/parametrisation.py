@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import mixed
 from .._lazy import is_jax_array, jax, jnp, pytree_dataclass
 from ..geometry.boundary import BoundaryInfo
 from ..geometry.projection import Constraints, n_free, project, project_np
 from ..mesh import CORNER_NEIGHBOURS
+from ..metrics import objective as mixed
 from ._buckets import bucket, free_index, free_layout, pad_constraints, pad_rows, to_device
 
 
@@ -238,7 +238,7 @@ _EDGE_ENDS = np.array(sorted({(min(i, int(j)), max(i, int(j))) for i in range(8)
 def free_lengths(mesh, cons: Constraints, points=None) -> np.ndarray:
     """Local edge length of the node of every free coordinate (the `jaxci.geometry.projection` layout), float64
     ``(n_free,)``: `node_lengths` over the hexahedra; for a node of non-hexahedral cells only, the mean edge
-    length of its cells (`jaxci.mixed.node_lengths`); 0 for a node of no cell.
+    length of its cells (`jaxci.metrics.objective.node_lengths`); 0 for a node of no cell.
     """
     pts = mesh.points if points is None else points
     h = node_lengths(mesh.hexes, pts)

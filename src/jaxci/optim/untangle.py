@@ -36,10 +36,10 @@ and small helper programs before); 60^3 (1838 inverted, 50 steps): 19.7 -> 11.5 
 evaluation of the energy and its gradient costs what one of F does (60^3, float64: 266 against 255 ms).
 
 **Mixed meshes.** The corners of wedges, pyramids and tetrahedra count like the hexahedra's, with
-``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.elements.TARGETS`, so an ideal cell of edge L_e has
-``J = I``); each of the four sub-tetrahedra of a pyramid (`jaxci.elements.PYRAMID_TETS`, which must stay positive
-too) adds the volume term ``theta (det J^2 + 1) / chi`` only. "Untangled" means no inverted cell of any type
-(`jaxci.elements.inverted`).
+``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.metrics.elements.TARGETS`, so an ideal cell of edge L_e has
+``J = I``); each of the four sub-tetrahedra of a pyramid (`jaxci.metrics.elements.PYRAMID_TETS`, which must stay
+positive too) adds the volume term ``theta (det J^2 + 1) / chi`` only. "Untangled" means no inverted cell of any type
+(`jaxci.metrics.elements.inverted`).
 """
 
 from __future__ import annotations
@@ -49,13 +49,13 @@ import time
 
 import numpy as np
 
-from .. import elements as E
 from .._lazy import enable_x64, is_jax_array, jax
 from ..errors import InvertedMeshError
 from ..geometry.boundary import CORNER, BoundaryInfo
 from ..geometry.projection import Constraints, n_free, project_np
 from ..mesh import EDGES, HexMesh, corner_determinants
-from ..mixed import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
+from ..metrics import elements as E
+from ..metrics.objective import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
 from . import _params as _p
 from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
 from .host import UNTANGLE_HOST_MAX, runs_on_host, untangle_rounds_np

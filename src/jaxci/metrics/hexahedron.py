@@ -33,9 +33,9 @@ import math
 
 import numpy as np
 
-from ._lazy import is_jax_array, jax, jit, jnp
-from .errors import MeshError
-from .mesh import CORNER_NEIGHBOURS, HexMesh, as_hex_mesh, to_unit, unit_frame
+from .._lazy import is_jax_array, jax, jit, jnp
+from ..errors import MeshError
+from ..mesh import CORNER_NEIGHBOURS, HexMesh, as_hex_mesh, to_unit, unit_frame
 
 #: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
 HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
@@ -265,7 +265,7 @@ class QualityReport:
     `objective` is F (Eq. 3.1) over the valid corners, None if there are none. All these keys (and
     `n_elements`) are about the HEXAHEDRA only, as they always were.
 
-    Every volume cell type (`jaxci.elements`: hexahedron, wedge, pyramid, tetra; quadratic cells by their
+    Every volume cell type (`jaxci.metrics.elements`: hexahedron, wedge, pyramid, tetra; quadratic cells by their
     corner nodes) is in:
 
     - `by_type`: type -> {``count``, ``inverted`` (cells), ``max_condition``, ``mean_condition`` (corner kappa/3
@@ -275,7 +275,7 @@ class QualityReport:
       cells; pyramids: max corner kappa/3), ``objective`` (the type's mean of (kappa/3)^2 - 1 over its valid
       corners)};
     - `overall`: the same over all cells (no ``verdict_condition``); its ``objective`` is Eq. 3.1 over every
-      valid element corner, `jaxci.elements.mixed_objective` when no corner is inverted (on a hexahedral mesh:
+      valid element corner, `jaxci.metrics.elements.mixed_objective` when no corner is inverted (on a hexahedral mesh:
       `objective`).
     """
 
@@ -317,7 +317,7 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
     """The quality report of `mesh` (or of `mesh` with node coordinates `points` of shape ``(n, 3)``).
 
     Uses float64 when ``jax_enable_x64`` is on (the CLI turns it on), else float32; meshes of at most
-    `NUMPY_REPORT_MAX` hexahedra are measured in numpy float64 (`jaxci.elements`' kernel: no compilation, which
+    `NUMPY_REPORT_MAX` hexahedra are measured in numpy float64 (`jaxci.metrics.elements`' kernel: no compilation, which
     cost 0.4 s of a 729-element cold start). The coordinates are measured in the unit frame of
     `jaxci.mesh.unit_frame` (the metrics are scale-invariant): a mesh in metres, nanometres or light years gives
     the same report, without overflow or underflow.
@@ -374,7 +374,8 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
 
 def _by_type(mesh: HexMesh, points, hex_figures: dict) -> dict:
     """The `by_type` and `overall` fields of `quality_report`: `hex_figures` (the hexahedra's, computed above, in
-    the layout of `jaxci.elements.corner_figures`), `jaxci.elements.corner_figures` for the other types."""
+    the layout of `jaxci.metrics.elements.corner_figures`), `jaxci.metrics.elements.corner_figures` for the other
+    types."""
     from .elements import corner_figures, element_blocks, summary
 
     figs = {t: hex_figures if t == "hexahedron" else corner_figures(points, cells, t)

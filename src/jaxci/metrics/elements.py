@@ -25,7 +25,7 @@ The corner condition number is Knupp's condition number of the corner matrix rel
 the type's ideal cell, ``T = A W^-1``: ``kappa(T) = |T|_F |T^-1|_F = |T|_F |adj T|_F / det T`` (>= 3), reported as
 ``kappa/3`` in [1, inf), 1 exactly at every corner of the ideal cell (`TARGETS`, columns as above):
 
-- hexahedron: W = I (the unit cube); kappa/3 is `jaxci.quality`'s, the paper's;
+- hexahedron: W = I (the unit cube); kappa/3 is `jaxci.metrics.hexahedron`'s, the paper's;
 - wedge: the right prism on an equilateral triangle with height = edge, W = [[1, 1/2, 0], [0, sqrt(3)/2, 0],
   [0, 0, 1]];
 - pyramid: the square pyramid with all 8 edges equal (height 1/sqrt 2), W = [[1, 0, 1/2], [0, 1, 1/2],
@@ -42,7 +42,7 @@ has det <= 0).
 them against `vtkMeshQuality` to 1e-6 relative on random cells):
 
 - hexahedron: ``HexCondition`` = max corner kappa/3; ``HexScaledJacobian`` = min over the corners and the centre
-  (`jaxci.quality.element_scaled_jacobian`).
+  (`jaxci.metrics.hexahedron.element_scaled_jacobian`).
 - wedge (``V_WedgeMetric.cpp``): ``wedge_condition`` = ``wedge_max_aspect_frobenius`` = max over the 6 corners of
   the Frobenius aspect of A_i relative to the REGULAR TETRAHEDRON W_t, divided by Verdict's constant 1.16477 (the
   value at the ideal prism's corners, rounded; the ideal prism gets 1.0000034):
@@ -60,7 +60,7 @@ them against `vtkMeshQuality` to 1e-6 relative on random cells):
 **The mixed objective** (`mixed_objective`) generalises the paper's Eq. 3.1 to every cell type: the mean over all
 element corners (8 per hexahedron, 6 per wedge, 4 per pyramid, 4 per tetrahedron) of ``(kappa_i/3)^2 - 1`` with
 each type's kappa/3 above; 0 only for a mesh of ideal cells, ``inf`` if any corner has det <= 0. On a pure
-hexahedral mesh it is `jaxci.quality.objective` exactly.
+hexahedral mesh it is `jaxci.metrics.hexahedron.objective` exactly.
 
 Every function takes `points` of shape ``(n, 3)`` and a connectivity `cells` of shape ``(N, k)`` in the node order
 above. The per-cell measures are vectorised numpy in float64 (no compilation: the report and the checks of any mesh
@@ -74,8 +74,8 @@ import math
 
 import numpy as np
 
-from ._lazy import jax, jit, jnp
-from .mesh import CORNER_NEIGHBOURS, HexMesh, corner_determinants
+from .._lazy import jax, jit, jnp
+from ..mesh import CORNER_NEIGHBOURS, HexMesh, corner_determinants
 
 #: The linear volume cell types jaxci measures, in report order.
 ELEMENT_TYPES = ("hexahedron", "wedge", "pyramid", "tetra")
@@ -168,8 +168,8 @@ def _times_inverse(cols, w: np.ndarray):
 
 
 def _invariants(cols):
-    """det, |M|_F^2 and |adj M|_F^2 of corner matrices given column by column (`jaxci.quality`'s formula)."""
-    from .quality import corner_invariants
+    """det, |M|_F^2 and |adj M|_F^2 of corner matrices given column by column (`jaxci.metrics.hexahedron`'s formula)."""
+    from .hexahedron import corner_invariants
 
     return corner_invariants(*cols)
 
@@ -225,7 +225,7 @@ def corner_condition(points, cells, cell_type: str) -> np.ndarray:
     **Arguments:** `points` of shape ``(n, 3)``; `cells` of shape ``(N, k)``; `cell_type` one of `ELEMENT_TYPES`.
 
     **Returns:** float64 array of shape ``(N, n_corners)``, in [1, inf): 1 at the corners of the ideal cell
-    (`TARGETS`), ``inf`` where det A_i <= 0. For hexahedra it equals `jaxci.quality.corner_condition`.
+    (`TARGETS`), ``inf`` where det A_i <= 0. For hexahedra it equals `jaxci.metrics.hexahedron.corner_condition`.
     """
     _, det, fro2, adj2, _ = _corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
     return _kappa3(det, fro2, adj2)
@@ -340,10 +340,10 @@ def corner_terms_t(points, conn, cell_type: str):
     of `ELEMENT_TYPES` (static).
 
     **Returns:** shape ``(n_corners, N)``; ``inf`` where det A_i <= 0. For hexahedra it is
-    `jaxci.quality`'s kernel, unchanged.
+    `jaxci.metrics.hexahedron`'s kernel, unchanged.
     """
     if cell_type == "hexahedron":
-        from .quality import corner_columns, corner_invariants, gather_corners
+        from .hexahedron import corner_columns, corner_invariants, gather_corners
 
         return _sq_kappa3(jnp, *corner_invariants(*corner_columns(*gather_corners(points, conn))))
     cols = _times_inverse(_columns(*_nodes(jnp, points, conn), CORNERS[cell_type]), TARGETS[cell_type])
@@ -374,7 +374,7 @@ def _mixed_objective(points, conns: dict):
 
 def objective_on_host(mesh: HexMesh) -> bool:
     """Whether `mixed_objective` of one set of coordinates of `mesh` runs on the host (numpy / C, no JAX)."""
-    from . import native
+    from .. import native
 
     blocks = element_blocks(mesh)
     return sum(len(c) for t, c in blocks.items() if t != "hexahedron" or not native.AVAILABLE) <= NUMPY_OBJECTIVE_MAX
@@ -391,9 +391,9 @@ def mixed_objective(points, mesh: HexMesh):
       corners per cell); other cells are ignored.
 
     **Returns:** a scalar, or shape ``(C,)``: >= 0, 0 only for a mesh of ideal cells; ``inf`` if any corner has
-    det <= 0. On a mesh of hexahedra only it equals `jaxci.quality.objective` (Eq. 3.1).
+    det <= 0. On a mesh of hexahedra only it equals `jaxci.metrics.hexahedron.objective` (Eq. 3.1).
     """
-    from . import native
+    from .. import native
 
     blocks = element_blocks(mesh)
     if np.ndim(points) == 2 and objective_on_host(mesh):
@@ -426,10 +426,10 @@ def mixed_objective(points, mesh: HexMesh):
 def checked_objective(mesh: HexMesh, power: float | None = None):
     """The float64 objective `jaxci.smooth`'s final checks compare, as a function of the coordinates ``(n, 3)``
     -> float: F over every cell (`mixed_objective`), or with `power` the p-mean of the hexahedra
-    (`jaxci.quality.pmean_objective`: what ``objective="pmean"`` minimises)."""
+    (`jaxci.metrics.hexahedron.pmean_objective`: what ``objective="pmean"`` minimises)."""
     if power is None:
         return lambda x: float(mixed_objective(x, mesh))
-    from .quality import pmean_objective
+    from .hexahedron import pmean_objective
 
     return lambda x: pmean_objective(x, mesh.hexes, power)
 
@@ -441,7 +441,7 @@ def corner_figures(points, cells, cell_type: str) -> dict[str, np.ndarray]:
 
     **Returns:** a dict: ``kappa3`` corner kappa/3 (`corner_condition`, ``inf`` where det <= 0), shape
     ``(N, n_corners)``; ``inverted`` (`inverted`), ``scaled_jacobian`` (Verdict's element scaled Jacobian; for
-    hexahedra the min CORNER scaled Jacobian, the figure `jaxci.quality.QualityReport` always reported) and
+    hexahedra the min CORNER scaled Jacobian, the figure `jaxci.metrics.hexahedron.QualityReport` always reported) and
     ``verdict_condition`` (`element_condition`), each of shape ``(N,)``.
     """
     pts, conn = _np_points(points), _conn(cells, cell_type)

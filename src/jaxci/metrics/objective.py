@@ -1,13 +1,13 @@
 """Smoothing hex-dominant meshes: the wedges, pyramids and tetrahedra's share of the objective, for every method.
 
-The objective of a mixed mesh is `jaxci.elements.mixed_objective`: the mean over ALL element corners (8 per
+The objective of a mixed mesh is `jaxci.metrics.elements.mixed_objective`: the mean over ALL element corners (8 per
 hexahedron, 6 per wedge, 4 base corners per pyramid, 4 per tetrahedron) of ``(kappa_i/3)^2 - 1``, each corner
 relative to its type's ideal cell. A pyramid is also invalid when one of Verdict's four sub-tetrahedra
-(`jaxci.elements.PYRAMID_TETS`) has det <= 0; those determinants carry no objective term, only a barrier.
+(`jaxci.metrics.elements.PYRAMID_TETS`) has det <= 0; those determinants carry no objective term, only a barrier.
 
 Everything here is built to cost nothing on a pure hexahedral mesh: `ExtraCells` of such a mesh has no types
 (``types == ()``, a static field), and every function branches on that in Python, so the hexahedral code path
-(`jaxci.quality.objective_t`) runs unchanged and compiles to the same program.
+(`jaxci.metrics.hexahedron.objective_t`) runs unchanged and compiles to the same program.
 
 - `ExtraCells`: the transposed connectivities of the non-hexahedral cells, a pytree for the global objectives
   (gradient methods, global CI, histories): `mixed_objective_t`, `mixed_max_condition`, `extra_terms`.
@@ -25,10 +25,10 @@ import dataclasses
 
 import numpy as np
 
+from .._lazy import jax, jnp, pytree_dataclass
+from ..geometry.topology import unique_edges
+from ..mesh import EDGES, HexMesh
 from . import elements as E
-from ._lazy import jax, jnp, pytree_dataclass
-from .geometry.topology import unique_edges
-from .mesh import EDGES, HexMesh
 
 #: The non-hexahedral linear cell types that are measured and smoothed.
 EXTRA_TYPES = ("wedge", "pyramid", "tetra")
@@ -65,7 +65,7 @@ def fixed_nodes(mesh: HexMesh) -> np.ndarray:
 
 
 def extra_blocks(mesh: HexMesh) -> dict[str, np.ndarray]:
-    """The measured non-hexahedral cells (`jaxci.elements.element_blocks` without the hexahedra)."""
+    """The measured non-hexahedral cells (`jaxci.metrics.elements.element_blocks` without the hexahedra)."""
     return {t: c for t, c in E.element_blocks(mesh).items() if t != "hexahedron"}
 
 
@@ -108,7 +108,7 @@ def extra_terms(x, extra: ExtraCells) -> list:
 
 
 def extra_barrier(x, extra: ExtraCells):
-    """0, or ``inf`` when a pyramid sub-tetrahedron (`jaxci.elements.PYRAMID_TETS`) has det <= 0: a scalar."""
+    """0, or ``inf`` when a pyramid sub-tetrahedron (`jaxci.metrics.elements.PYRAMID_TETS`) has det <= 0: a scalar."""
     out = jnp.zeros((), x.dtype)
     for t, c in zip(extra.types, extra.conns, strict=True):
         if t == "pyramid":
@@ -127,13 +127,13 @@ def mixed_mean(hex_terms, extra: ExtraCells, x):
 
 
 def mixed_objective_t(x, conn, extra: ExtraCells):
-    """F over every corner (`jaxci.elements.mixed_objective`) from `x` ``(n, 3)``, the transposed hexahedra
-    `conn` ``(8, N)`` and `extra`; exactly `jaxci.quality.objective_t` when `extra` is empty."""
-    from .quality import objective_t
+    """F over every corner (`jaxci.metrics.elements.mixed_objective`) from `x` ``(n, 3)``, the transposed hexahedra
+    `conn` ``(8, N)`` and `extra`; exactly `jaxci.metrics.hexahedron.objective_t` when `extra` is empty."""
+    from .hexahedron import objective_t
 
     if not extra.types:
         return objective_t(x, conn)
-    from .quality import corner_columns, corner_invariants, gather_corners, squared_condition_from_invariants
+    from .hexahedron import corner_columns, corner_invariants, gather_corners, squared_condition_from_invariants
 
     term = squared_condition_from_invariants(*corner_invariants(*corner_columns(*gather_corners(x, conn))))
     return mixed_mean(jax.lax.optimization_barrier(term), extra, x) - 1.0
@@ -141,7 +141,7 @@ def mixed_objective_t(x, conn, extra: ExtraCells):
 
 def mixed_max_condition(x, conn, extra: ExtraCells):
     """Max kappa/3 over every corner (``inf`` if any is inverted, or a pyramid sub-tetrahedron)."""
-    from .quality import condition_from_invariants, corner_columns, corner_invariants, gather_corners
+    from .hexahedron import condition_from_invariants, corner_columns, corner_invariants, gather_corners
 
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     k = jnp.max(jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)))
@@ -221,7 +221,7 @@ def local_extra_terms(x, v, nodes, winv, weight, mask, y):
     **Returns:** shape ``(M, S)``: the local sum, ``inf`` where a corner (or pyramid sub-tetrahedron) of a real
     row has det <= 0.
     """
-    from .quality import corner_invariants, squared_condition_from_invariants
+    from .hexahedron import corner_invariants, squared_condition_from_invariants
 
     is_v = (nodes == v[:, None, None])[:, None]  # (M, 1, K, 4)
     P = [jnp.where(is_v, y[..., d][:, :, None, None], x[:, d][nodes][:, None]) for d in range(3)]  # (M, S, K, 4)
@@ -269,7 +269,7 @@ def edge_pairs(mesh: HexMesh) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------- checks (numpy)
 def inverted_cells(mesh: HexMesh, points) -> dict[str, np.ndarray]:
-    """Per measured type, which cells are inverted at `points` (`jaxci.elements.inverted`), bool ``(N,)``."""
+    """Per measured type, which cells are inverted at `points` (`jaxci.metrics.elements.inverted`), bool ``(N,)``."""
     return {t: E.inverted(points, c, t) for t, c in E.element_blocks(mesh).items()}
 
 
@@ -280,7 +280,7 @@ def newly_inverted(mesh: HexMesh, before, after) -> dict[str, int]:
 
 
 def cell_label(mesh: HexMesh, cell_type: str, k: int) -> str:
-    """A readable label of cell `k` (0-based over the blocks of `cell_type`, `jaxci.elements.element_blocks`'
+    """A readable label of cell `k` (0-based over the blocks of `cell_type`, `jaxci.metrics.elements.element_blocks`'
     order), with its file id if any: ``"wedge element 12 (index 3)"``."""
     k = int(k)
     for b in mesh.cells:

@@ -5,15 +5,15 @@ sphere from a FE package: max kappa/3 1.146 -> 1.154 with a better mean). A user
 first, so `keep_worst` puts back, node by node, the input positions of the nodes of every cell that ended worse
 than the input's worst cell, until none does: the cells whose nodes are all put back are input cells, so the loop
 ends at the latest with the input itself. Checked in float64, over every cell type (max corner kappa/3 of each
-cell, `jaxci.elements.corner_condition`; inverted cells count as infinitely bad).
+cell, `jaxci.metrics.elements.corner_condition`; inverted cells count as infinitely bad).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import HexMesh
 from . import elements as E
-from .mesh import HexMesh
 
 
 def cell_worst(mesh: HexMesh, points) -> dict[str, np.ndarray]:
