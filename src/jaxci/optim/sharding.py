@@ -23,7 +23,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from .metrics.hexahedron import (
+from ..metrics.hexahedron import (
     corner_columns,
     corner_invariants,
     gather_corners,
