@@ -105,7 +105,7 @@ def main(argv=None) -> int:
         }
         from pathlib import Path
 
-        from jaxci.results import write_text
+        from jaxci.experiments.results import write_text
 
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         write_text(Path(args.out), json.dumps({"meta": meta, "rows": rows}, indent=1))  # atomically

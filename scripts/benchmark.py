@@ -34,7 +34,7 @@ def child(args) -> dict:
     (`jaxci.errors.ConfigError` if that device is not there)."""
     import jax
 
-    from jaxci.experiment import select_device
+    from jaxci.experiments.runner import select_device
 
     device = select_device(args.device)
     with jax.default_device(device):

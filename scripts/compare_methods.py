@@ -457,8 +457,8 @@ def best_per_mesh(rows, tol=1e-4) -> dict:
 
 
 def _write(out: Path, doc: str, md: str) -> None:
-    """`out` .json and .md, each written atomically (`jaxci.results.write_text`)."""
-    from jaxci.results import write_text
+    """`out` .json and .md, each written atomically (`jaxci.experiments.results.write_text`)."""
+    from jaxci.experiments.results import write_text
 
     write_text(out.with_suffix(".json"), doc)
     write_text(out.with_suffix(".md"), md)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 import jaxci
 from jaxci.cli import main
 from jaxci.errors import ConfigError, InvertedMeshError
-from jaxci.experiment import load_config, run_experiment
+from jaxci.experiments.runner import load_config, run_experiment
 from jaxci.generate import perturb_box
 from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.mesh import corner_determinants

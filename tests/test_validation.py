@@ -211,7 +211,7 @@ def test_flat_mesh_refused_at_once():
      "init_width must be a finite number"),
 ])
 def test_config_refusals(tmp_path, text, match):
-    from jaxci.config import load_config
+    from jaxci.experiments.config import load_config
 
     path = tmp_path / "cfg.yaml"
     path.write_text(text)

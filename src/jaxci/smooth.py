@@ -501,7 +501,7 @@ def method_params(method: str, params: dict):
     """The checked parameter dataclass of `method` built from `params` (`ConfigError` naming the method and the
     parameter for an unknown name or a bad value). A parameter not given takes its METHOD's default: CI's come
     from `jaxci.optim.ci.CIParams.for_method` (``"ci"`` local CI's, ``"ci-global"`` the paper's global CI's),
-    the one source for `smooth`, ``jaxci smooth`` and YAML configs (`jaxci.config`)."""
+    the one source for `smooth`, ``jaxci smooth`` and YAML configs (`jaxci.experiments.config`)."""
     from .optim._params import make_params
 
     if params.get("objective", "mean") != "mean" and method not in ("bfgs", "lbfgs", "cg"):

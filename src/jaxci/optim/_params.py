@@ -2,8 +2,8 @@
 
 The parameter dataclasses (`jaxci.optim.ci.CIParams`, `jaxci.optim.gradient.GradientParams`,
 `jaxci.optim.laplace.LaplaceParams`, `jaxci.optim.untangle.UntangleParams`) call these in ``__post_init__``; the
-values come from Python, YAML (`jaxci.config`) or the command line (``--param KEY=VALUE``, parsed as JSON, else a
-string), so anything can arrive: a string, NaN, a bool, an integer of 40 digits. Each check names the parameter,
+values come from Python, YAML (`jaxci.experiments.config`) or the command line (``--param KEY=VALUE``, parsed as JSON,
+else a string), so anything can arrive: a string, NaN, a bool, an integer of 40 digits. Each check names the parameter,
 the valid range and the value given; an integral float (``4.0``) counts as the integer 4. Upper bounds keep a
 typo from hanging a run or exhausting memory (loop bounds, history arrays and batch shapes grow with them).
 

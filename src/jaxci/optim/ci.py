@@ -133,8 +133,8 @@ class CIParams:
         paper's, `GLOBAL_DEFAULTS` over the field defaults), with `params` (field names) over its defaults.
 
         The one source of CI defaults: `jaxci.smooth.method_params` (hence `jaxci.smooth`, ``jaxci smooth`` and
-        ``jaxci run``) and `jaxci.config`'s up-front check build CI parameters here. Raises `ConfigError` for
-        another method or a bad value, `TypeError` for an unknown field (`jaxci.optim._params.make_params` names
+        ``jaxci run``) and `jaxci.experiments.config`'s up-front check build CI parameters here. Raises `ConfigError`
+        for another method or a bad value, `TypeError` for an unknown field (`jaxci.optim._params.make_params` names
         it first)."""
         if method not in METHOD_DEFAULTS:
             raise ConfigError(f"CI parameters: unknown CI method {method!r}; choose one of "

@@ -1,4 +1,5 @@
-"""`jaxci.report`: the summary of an experiment, its CSV, and ``report.md`` in the layout of the paper's Tables.
+"""`jaxci.experiments.report`: the summary of an experiment, its CSV, and ``report.md`` in the layout of the paper's
+Tables.
 
 The paper (Sapre, Kulkarni, Shinde, "Finite Element Mesh Smoothing Using Cohort Intelligence") reports:
 
@@ -11,9 +12,9 @@ The paper (Sapre, Kulkarni, Shinde, "Finite Element Mesh Smoothing Using Cohort 
 per (mesh, method) are over the seeds of the experiment; the standard deviation is the sample one (N - 1,
 MATLAB's ``std``, which the paper used), 0 for a single run.
 
-It also holds the output side of `jaxci.experiment.run_experiment`: the `RunRecord` of a run, strict JSON
+It also holds the output side of `jaxci.experiments.runner.run_experiment`: the `RunRecord` of a run, strict JSON
 (`json_ready`) and the smoothed meshes with their quality fields (`annotated_mesh`, `write_vtus`); the output
-folder itself (atomic, never losing earlier results) is `jaxci.results`.
+folder itself (atomic, never losing earlier results) is `jaxci.experiments.results`.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics.hexahedron import HISTOGRAM_EDGES
+from ..metrics.hexahedron import HISTOGRAM_EDGES
 
 #: Table 1 of the paper: corner counts of the 27-element cube per kappa/3 bin.
 PAPER_TABLE1 = {
@@ -100,7 +101,7 @@ def build_summary(exp, records, device, *, partial: bool, total_runs: int, elaps
     """The ``summary.json`` object: config echo, versions, device, per-run records and aggregates."""
     import jax
 
-    from . import __version__
+    from .. import __version__
 
     cfg = exp.config
     return {
@@ -355,7 +356,7 @@ def annotated_mesh(mesh, points, node_class=None, reference_points=None):
     """
     import jax
 
-    from .metrics.hexahedron import element_condition, element_scaled_jacobian
+    from ..metrics.hexahedron import element_condition, element_scaled_jacobian
 
     pts = np.asarray(points, dtype=np.float64)
     hexes = mesh.hexes
@@ -382,7 +383,7 @@ def annotated_mesh(mesh, points, node_class=None, reference_points=None):
 
 
 def write_vtus(tmp: Path, rm, meth, seed: int, mesh, res) -> str:
-    from .io import write_mesh
+    from ..io import write_mesh
 
     folder = tmp / "meshes"
     folder.mkdir(exist_ok=True)
