@@ -11,12 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxci
+from jaxci.cells import corner_determinants
 from jaxci.cli import main
 from jaxci.errors import ConfigError, InvertedMeshError
 from jaxci.experiments.runner import load_config, run_experiment
 from jaxci.generate import perturb_box
 from jaxci.geometry.projection import build_constraints, project_np
-from jaxci.mesh import corner_determinants
 from jaxci.metrics import hexahedron as q
 from jaxci.optim.ci import GLOBAL_DEFAULTS, CIParams
 from jaxci.shapes import annulus, l_block

@@ -9,6 +9,7 @@ import pytest
 from helpers import unit_cube
 
 import jaxci
+from jaxci.cells import corner_determinants
 from jaxci.errors import MeshError
 from jaxci.generate import box, box_free_axes, perturb_box
 from jaxci.mesh import (
@@ -17,7 +18,6 @@ from jaxci.mesh import (
     HexMesh,
     check_volume,
     coincident_pairs,
-    corner_determinants,
     from_unit,
     hex_mesh,
     to_unit,

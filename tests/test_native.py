@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from jaxci import native
+from jaxci.cells import CORNER_NEIGHBOURS
 from jaxci.generate import perturb_box
-from jaxci.mesh import CORNER_NEIGHBOURS
 from jaxci.metrics.hexahedron import objective_terms_and_grad_np
 from jaxci.optim._untangle_loop import corner_table, hex_kernel
 

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from helpers import MESQUITE
 
+from jaxci.cells import corner_determinants
 from jaxci.errors import ConfigError, InvertedMeshError
 from jaxci.generate import perturb_box
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.io import read_mesh
-from jaxci.mesh import corner_determinants
 from jaxci.optim.untangle import UntangleParams, untangle
 from jaxci.phases import compile_totals
 from jaxci.smooth import smooth

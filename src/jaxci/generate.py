@@ -20,9 +20,10 @@ import numbers
 
 import numpy as np
 
+from .cells import corner_determinants
 from .errors import MeshError
 from .memory import check_fits, generate_bytes
-from .mesh import HexMesh, corner_determinants, hex_mesh
+from .mesh import HexMesh, hex_mesh
 from .optim._params import check_seed
 
 

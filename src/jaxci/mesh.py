@@ -27,23 +27,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .cells import EDGES, corner_determinants
 from .errors import MeshError
-
-#: For corner i of a hexahedron, the nodes whose differences with node i are the three columns of the corner
-#: matrix A_i (Verdict / VTK / Mesquite convention, see ``shared/reference/metrics.md``). Shape ``(8, 3)``.
-CORNER_NEIGHBOURS = np.array(
-    [
-        [1, 3, 4],
-        [2, 0, 5],
-        [3, 1, 6],
-        [0, 2, 7],
-        [7, 5, 0],
-        [4, 6, 1],
-        [5, 7, 2],
-        [6, 4, 3],
-    ],
-    dtype=np.int64,
-)
 
 #: Permutation that mirrors a hexahedron (swaps the two quadrilateral faces 0123 and 4567). It is its own
 #: inverse; it turns a left-handed element (all eight corner determinants negative) into a right-handed one.
@@ -51,17 +36,6 @@ MIRROR_HEX = np.array([4, 5, 6, 7, 0, 1, 2, 3], dtype=np.int64)
 
 #: Permutation of the 12 hexahedron edges (`EDGES`) that goes with `MIRROR_HEX`.
 MIRROR_HEX_EDGES = np.array([4, 5, 6, 7, 0, 1, 2, 3, 8, 9, 10, 11], dtype=np.int64)
-
-#: Edges (pairs of local corner nodes) of the linear volume cells, in the order of the midside nodes of VTK's
-#: quadratic cells (``hexahedron20``, ``wedge15``, ``pyramid13``, ``tetra10``) and of ANSYS's SOLID186/187.
-EDGES = {
-    "hexahedron": np.array(
-        [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]]
-    ),
-    "wedge": np.array([[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3], [0, 3], [1, 4], [2, 5]]),
-    "pyramid": np.array([[0, 1], [1, 2], [2, 3], [3, 0], [0, 4], [1, 4], [2, 4], [3, 4]]),
-    "tetra": np.array([[0, 1], [1, 2], [2, 0], [0, 3], [1, 3], [2, 3]]),
-}
 
 #: Relative distance from its edge's midpoint (to the edge length) below which a midside node counts as ON the
 #: midpoint (a straight edge; files keep 13-14 digits): `HexMesh.with_points` then puts it exactly there.
@@ -114,26 +88,6 @@ class CellBlock:
     data: np.ndarray
     ids: np.ndarray | None = None
     midside: np.ndarray | None = None
-
-
-def corner_determinants(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
-    """det A_i of every corner of every hexahedron, in numpy float64 (validation; the fast path is
-    jaxci.metrics.hexahedron).
-
-    **Arguments:** `points` of shape ``(n, 3)``; `hexes` of shape ``(N, 8)``.
-
-    **Returns:** an array of shape ``(N, 8)``.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    h = np.asarray(hexes)
-    X, Y, Z = (np.ascontiguousarray(p[:, d][h.T]) for d in range(3))  # (8, N) each: one row per local node
-    out = np.empty((h.shape[0], 8))
-    for i, (j, k, m) in enumerate(CORNER_NEIGHBOURS):  # columns a, b, c from node i; det = a . (b x c)
-        ax, ay, az = X[j] - X[i], Y[j] - Y[i], Z[j] - Z[i]
-        bx, by, bz = X[k] - X[i], Y[k] - Y[i], Z[k] - Z[i]
-        cx, cy, cz = X[m] - X[i], Y[m] - Y[i], Z[m] - Z[i]
-        out[:, i] = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-    return out
 
 
 def unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:

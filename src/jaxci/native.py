@@ -16,6 +16,8 @@ import os
 
 import numpy as np
 
+from .cells import CORNERS, PYRAMID_TETS, TARGETS, pmean_weights
+
 try:
     if os.environ.get("JAXCI_NATIVE", "1") == "0":
         raise ImportError("JAXCI_NATIVE=0")
@@ -71,8 +73,6 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
         s, tmax, bad = _c.hex_condition(x, h, weight, grad, None, None, THREADS)
         f = np.inf if bad else (s / n_corners if n_corners else 0.0)
         return f, (np.inf if bad else float(np.sqrt(tmax))), grad
-    from .metrics.hexahedron import pmean_weights
-
     terms = np.empty((8, h.shape[0]))
     _c.hex_condition(x, h, 0.0, None, None, terms, THREADS)
     m, c = pmean_weights(np, terms - 1.0, None, float(power))
@@ -84,7 +84,7 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
 def corner_table(cells: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """The corners of `cells` ``(N, k)`` as a flat table ``(4, n_corners N)`` int64 for `corner_condition`: row 0
     the corner's node, rows 1-3 the far ends of its columns (`corners`: rows ``[i, p, q, r]`` of
-    `jaxci.metrics.elements.CORNERS`); corner j of cell e at ``j N + e``."""
+    `jaxci.cells.CORNERS`); corner j of cell e at ``j N + e``."""
     c = np.asarray(cells, dtype=np.int64)
     return np.ascontiguousarray(np.stack([c[:, corners[:, m]].T.ravel() for m in range(4)]))
 
@@ -95,12 +95,10 @@ class MixedKernel:
     ``(kappa/3)^2 - 1``, each relative to its type's ideal corner; ``inf`` if a corner, or one of the four
     tetrahedra of a pyramid, is inverted), for the numpy path of L-BFGS on mixed meshes.
 
-    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.metrics.elements.element_blocks`).
+    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.cells.element_blocks`).
     """
 
     def __init__(self, blocks: dict):
-        from .metrics.elements import CORNERS, PYRAMID_TETS, TARGETS
-
         self.hexes = _i8(blocks.get("hexahedron", np.zeros((0, 8))))
         self.extra = [(corner_table(c, CORNERS[t]), _f8(np.linalg.inv(TARGETS[t])))
                       for t, c in blocks.items() if t != "hexahedron" and len(c)]

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ._lazy import enable_x64, jax, jnp
+from .cells import volume_cells
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .geometry.boundary import BoundaryInfo, classify_boundary
 from .geometry.projection import Constraints, build_constraints, n_free, project_np
@@ -131,7 +132,7 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
     cons = build_constraints(mesh, info, dtype=dtype, device=device)
     extra = table = None
     if mixed.has_extra(mesh):
-        cells = list(mixed.volume_cells(mesh).values())
+        cells = list(volume_cells(mesh).values())
         colour = colour_nodes(mesh.hexes, mesh.n_nodes, node_adjacency(cells, mesh.n_nodes)).colour
         extra, table = mixed.extra_cells(mesh, device=device), mixed.corner_table(mesh)
     else:

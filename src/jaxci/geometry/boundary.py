@@ -20,7 +20,7 @@ Patches and curves are computed from the geometry only; fixing nodes afterwards 
 Nodes of hexahedra and of linear wedges, pyramids and tetrahedra are classified alike and move. Nodes used by
 no volume cell are fixed, and so are the nodes of QUADRATIC wedges, pyramids and tetrahedra (midside nodes
 given, or meshio's ``wedge15``/``pyramid13``/``tetra10``/``hexahedron20`` blocks;
-`jaxci.metrics.objective.fixed_nodes`), with a note. (Quadratic hexahedra are hexahedra with midside nodes: their corner
+`jaxci.cells.fixed_nodes`), with a note. (Quadratic hexahedra are hexahedra with midside nodes: their corner
 nodes move and the midside nodes follow, `jaxci.mesh.HexMesh.with_points`.) A broken boundary (open or non-manifold) is
 reported with `warnings.warn` and in `BoundaryInfo.notes`, never raised: such edges and vertices become features and
 corners.
@@ -34,10 +34,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..cells import fixed_nodes as fixed_cell_nodes
+from ..cells import volume_cells
 from ..errors import MeshError
 from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
-from ..metrics.objective import fixed_nodes as fixed_cell_nodes
-from ..metrics.objective import volume_cells
 from .topology import BoundaryTopology, boundary_topology, components
 
 #: Node classes (values of `BoundaryInfo.node_class`).

@@ -11,7 +11,7 @@ block, and the element type names (``C3D8R``, ``C3D20H``, ...) are kept per bloc
 Element types: the 3-D continuum elements ``[A-Z]*C3D<n>[A-Z]*`` (``C3D8``, ``C3D8R``, ``C3D8I``, ``C3D8H``,
 ``C3D8RH``, ``DC3D8``, ...) with n = 4, 5, 6, 8 (tetra, pyramid, wedge, hexahedron; Abaqus numbers their nodes
 as VTK does) and the quadratic n = 10, 15, 20 (tetra, wedge, hexahedron with `CellBlock.midside` in Abaqus's
-order, which is `jaxci.mesh.EDGES`'s), and the shells, membranes, surfaces, trusses and beams of
+order, which is `jaxci.cells.EDGES`'s), and the shells, membranes, surfaces, trusses and beams of
 `SURFACE_TYPES`. Elements of any other type (``MASS``, ``SPRING2``, ``COH3D8``, ``SC8R``, ``C3D27``, ...) stay in
 the deck text but are not part of the mesh (their nodes are kept, never moved), counted in `HexMesh.notes`.
 

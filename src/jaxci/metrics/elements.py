@@ -12,7 +12,7 @@ Node orders are VTK's (VTK >= 9.7 for the wedge), all with positive volume (`vtk
 
 **Corner matrices (Knupp 2001, 2003; Mesquite's target-matrix metrics).** At corner i of a cell, A_i has as columns
 the edge vectors from node i to the three nodes `CORNERS[type][i, 1:]`; ``det A_i > 0`` at every corner of a
-valid cell. The hexahedron's corners are `jaxci.mesh.CORNER_NEIGHBOURS`; the others:
+valid cell. The hexahedron's corners are `jaxci.cells.CORNER_NEIGHBOURS`; the others:
 
 - wedge, 6 corners: 0: (1, 2, 3), 1: (2, 0, 4), 2: (0, 1, 5), 3: (5, 4, 0), 4: (3, 5, 1), 5: (4, 3, 2)
   (two edges of the corner's triangle, then the edge joining the triangles; Verdict uses the same triples);
@@ -75,31 +75,17 @@ import math
 import numpy as np
 
 from .._lazy import jax, jit, jnp
-from ..mesh import CORNER_NEIGHBOURS, HexMesh, corner_determinants
-
-#: The linear volume cell types jaxci measures, in report order.
-ELEMENT_TYPES = ("hexahedron", "wedge", "pyramid", "tetra")
-
-#: Nodes per cell of each type.
-NODES = {"hexahedron": 8, "wedge": 6, "pyramid": 5, "tetra": 4}
-
-#: Corner table of each type, shape ``(n_corners, 4)``: row ``[i, p, q, r]`` = the corner node i and the nodes
-#: whose differences with it are the columns of A_i, in that order.
-CORNERS = {
-    "hexahedron": np.concatenate([np.arange(8)[:, None], CORNER_NEIGHBOURS], axis=1),
-    "wedge": np.array([[0, 1, 2, 3], [1, 2, 0, 4], [2, 0, 1, 5], [3, 5, 4, 0], [4, 3, 5, 1], [5, 4, 3, 2]]),
-    "pyramid": np.array([[0, 1, 3, 4], [1, 2, 0, 4], [2, 3, 1, 4], [3, 0, 2, 4]]),
-    "tetra": np.array([[0, 1, 2, 3], [1, 2, 0, 3], [2, 0, 1, 3], [3, 0, 2, 1]]),
-}
-
-_S3 = math.sqrt(3.0) / 2.0
-#: Corner matrix W of the ideal cell of each type (columns as in `CORNERS`), shape ``(3, 3)``.
-TARGETS = {
-    "hexahedron": np.eye(3),
-    "wedge": np.array([[1.0, 0.5, 0.0], [0.0, _S3, 0.0], [0.0, 0.0, 1.0]]),
-    "pyramid": np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, math.sqrt(0.5)]]),
-    "tetra": np.array([[1.0, 0.5, 0.5], [0.0, _S3, _S3 / 3.0], [0.0, 0.0, math.sqrt(2.0 / 3.0)]]),
-}
+from ..cells import (
+    CORNERS,
+    ELEMENT_TYPES,
+    NODES,
+    PYRAMID_TETS,
+    TARGETS,
+    corner_determinants,
+    corner_invariants,
+    element_blocks,
+)
+from ..mesh import HexMesh
 
 #: The regular tetrahedron's corner matrix: the target of Verdict's aspect Frobenius (``wedge_condition``).
 _REGULAR_TET = TARGETS["tetra"]
@@ -110,10 +96,6 @@ VERDICT_WEDGE_NORMALISER = 1.16477
 #: Measured (2-core CPU, float64, perturbed boxes): 27,000 hexes 0.01-0.1 s in numpy against 0.24 s for JAX's
 #: first call (compilation); 216,000: 0.27 s against 0.25 s first, 0.01 s after.
 NUMPY_OBJECTIVE_MAX = 100_000
-
-#: The four tetrahedra of Verdict's pyramid Jacobian and scaled Jacobian (``make_pyramid_tets``).
-PYRAMID_TETS = np.array([[0, 1, 2, 4], [0, 2, 3, 4], [0, 1, 3, 4], [1, 2, 3, 4]])
-
 
 def _check_type(cell_type: str) -> None:
     if cell_type not in NODES:
@@ -168,9 +150,7 @@ def _times_inverse(cols, w: np.ndarray):
 
 
 def _invariants(cols):
-    """det, |M|_F^2 and |adj M|_F^2 of corner matrices given column by column (`jaxci.metrics.hexahedron`'s formula)."""
-    from .hexahedron import corner_invariants
-
+    """det, |M|_F^2 and |adj M|_F^2 of corner matrices given column by column (`jaxci.cells.corner_invariants`)."""
     return corner_invariants(*cols)
 
 
@@ -320,19 +300,6 @@ def element_condition(points, cells, cell_type: str) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------- mesh level
-def element_blocks(mesh: HexMesh) -> dict[str, np.ndarray]:
-    """The volume cells of `mesh` by type, blocks of a type concatenated in file order.
-
-    **Returns:** type -> connectivity of shape ``(N_type, k)``, in `ELEMENT_TYPES` order, only types present.
-    """
-    out = {}
-    for t in ELEMENT_TYPES:
-        blocks = [b.data for b in mesh.cells if b.type == t and len(b.data)]
-        if blocks:
-            out[t] = np.concatenate(blocks)
-    return out
-
-
 def corner_terms_t(points, conn, cell_type: str):
     """(kappa_i/3)^2 of every corner of the cells of one type, in JAX (jit-able, differentiable).
 
@@ -343,7 +310,7 @@ def corner_terms_t(points, conn, cell_type: str):
     `jaxci.metrics.hexahedron`'s kernel, unchanged.
     """
     if cell_type == "hexahedron":
-        from .hexahedron import corner_columns, corner_invariants, gather_corners
+        from .hexahedron import corner_columns, gather_corners
 
         return _sq_kappa3(jnp, *corner_invariants(*corner_columns(*gather_corners(points, conn))))
     cols = _times_inverse(_columns(*_nodes(jnp, points, conn), CORNERS[cell_type]), TARGETS[cell_type])

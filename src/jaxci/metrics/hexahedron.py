@@ -1,7 +1,7 @@
 """Corner Jacobians, condition numbers, scaled Jacobians and the paper's objective F, batched in JAX.
 
 Definitions (``shared/reference/metrics.md``, matching VTK/Verdict): at corner i of a hexahedron the matrix A_i
-has as columns the three edge vectors from node i to the nodes `jaxci.mesh.CORNER_NEIGHBOURS[i]`. With columns
+has as columns the three edge vectors from node i to the nodes `jaxci.cells.CORNER_NEIGHBOURS[i]`. With columns
 a, b, c:
 
 - det A = a . (b x c)  (> 0 for a valid corner; <= 0 is an inverted or degenerate corner);
@@ -34,8 +34,9 @@ import math
 import numpy as np
 
 from .._lazy import is_jax_array, jax, jit, jnp
+from ..cells import CORNER_NEIGHBOURS, corner_invariants, pmean_weights
 from ..errors import MeshError
-from ..mesh import CORNER_NEIGHBOURS, HexMesh, as_hex_mesh, to_unit, unit_frame
+from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
 
 #: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
 HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
@@ -85,18 +86,6 @@ def corner_columns(X, Y, Z):
         idx = np.array(nb)
         out.extend([X[idx] - X, Y[idx] - Y, Z[idx] - Z])
     return tuple(out)
-
-
-def corner_invariants(ax, ay, az, bx, by, bz, cx, cy, cz):
-    """det A, |A|_F^2 and |adj A|_F^2 of corner matrices given column by column (any common shape)."""
-    # b x c, c x a, a x b
-    ux, uy, uz = by * cz - bz * cy, bz * cx - bx * cz, bx * cy - by * cx
-    vx, vy, vz = cy * az - cz * ay, cz * ax - cx * az, cx * ay - cy * ax
-    wx, wy, wz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-    det = ax * ux + ay * uy + az * uz
-    fro2 = ax * ax + ay * ay + az * az + bx * bx + by * by + bz * bz + cx * cx + cy * cy + cz * cz
-    adj2 = ux * ux + uy * uy + uz * uz + vx * vx + vy * vy + vz * vz + wx * wx + wy * wy + wz * wz
-    return det, fro2, adj2
 
 
 def condition_from_invariants(det, fro2, adj2):
@@ -470,22 +459,6 @@ def pmean_objective(points, hexes, power: float) -> float:
         idet = np.where(valid, 1.0 / np.where(valid, det, 1.0), 0.0)  # as `objective_terms_and_grad` forms it
         term = np.where(valid, fro2 * adj2 * idet * idet * (1.0 / 9.0), np.inf)
         return float(pmean_weights(np, term - 1.0, None, float(power))[0])
-
-
-def pmean_weights(xp, e, real, power: float):
-    """``(M_p, c)`` for the excesses `e` ``(8, N)`` (``inf`` where inverted) of the corners where `real`
-    (None: all): the p-mean and per corner ``c_i = (e_i / M_p)^(p - 1)``, so that
-    ``d M_p = mean_i c_i d e_i``. Scaled by the largest excess, so that e^p neither overflows nor underflows."""
-    e = xp.maximum(e, 0.0)
-    if real is not None:
-        e = xp.where(real, e, 0.0)
-    n = e.size if real is None else 8.0 * xp.sum(real.astype(e.dtype))
-    top = xp.max(e)
-    safe = xp.where((top > 0) & (top < xp.inf), top, 1.0)
-    m = top * (xp.sum((e / safe) ** power) / n) ** (1.0 / power)
-    m = xp.where(top < xp.inf, m, xp.inf)
-    c = xp.where(m > 0, (e / xp.where(m > 0, m, 1.0)) ** (power - 1.0), 0.0)
-    return m, c
 
 
 def _terms_and_grad(xp, points, conn, weight, power=None):

@@ -21,7 +21,7 @@ import functools
 import numpy as np
 
 from .._lazy import filter_jit, jax, jnp
-from ..mesh import CORNER_NEIGHBOURS
+from ..cells import CORNER_NEIGHBOURS
 from ..metrics import elements as E
 from ._params import MAX_REJECTED_UNCAPPED
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..cells import element_blocks
 from ..geometry.boundary import CORNER, BoundaryInfo
 from ..mesh import HexMesh
 from ..metrics import elements as E
@@ -22,13 +23,13 @@ def stuck_cells(mesh: HexMesh, info: BoundaryInfo, points=None) -> dict[str, np.
     **Arguments:** `mesh`; `info` its `BoundaryInfo` (fixed nodes are class `CORNER`); `points` of shape
     ``(n_nodes, 3)`` (default: the mesh's).
 
-    **Returns:** type -> int64 array of cell indices within the type's blocks (`jaxci.metrics.elements.element_blocks`
+    **Returns:** type -> int64 array of cell indices within the type's blocks (`jaxci.cells.element_blocks`
     order), only types with some.
     """
     points = mesh.points if points is None else points
     fixed = np.asarray(info.node_class) == CORNER
     out = {}
-    for t, cells in E.element_blocks(mesh).items():
+    for t, cells in element_blocks(mesh).items():
         det = E.corner_determinant(points, cells, t)  # (N, n_corners)
         corner_nodes = cells[:, E.CORNERS[t]]  # (N, n_corners, 4)
         frozen = fixed[corner_nodes].all(axis=2)

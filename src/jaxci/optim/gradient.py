@@ -78,11 +78,11 @@ import numpy as np
 
 from .. import native
 from .._lazy import jax, jnp
+from ..cells import corner_invariants
 from ..errors import ConfigError
 from ..geometry.projection import project_np
 from ..metrics.hexahedron import (
     corner_columns,
-    corner_invariants,
     gather_corners,
     objective_and_grad,  # noqa: F401  (re-exported: the closed-form gradient the solvers use)
     objective_terms_and_grad,

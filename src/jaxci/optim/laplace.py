@@ -27,13 +27,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..cells import corner_invariants
 from ..errors import ConfigError
 from ..geometry.projection import Constraints
 from ..geometry.topology import unique_edges
 from ..metrics.hexahedron import (
     condition_from_invariants,
     corner_columns,
-    corner_invariants,
     gather_corners,
     squared_condition_from_invariants,
 )

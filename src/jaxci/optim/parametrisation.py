@@ -15,9 +15,9 @@ from __future__ import annotations
 import numpy as np
 
 from .._lazy import is_jax_array, jax, jnp, pytree_dataclass
+from ..cells import CORNER_NEIGHBOURS
 from ..geometry.boundary import BoundaryInfo
 from ..geometry.projection import Constraints, n_free, project, project_np
-from ..mesh import CORNER_NEIGHBOURS
 from ..metrics import objective as mixed
 from ._buckets import bucket, free_index, free_layout, pad_constraints, pad_rows, to_device
 

@@ -23,9 +23,9 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from ..cells import corner_invariants
 from ..metrics.hexahedron import (
     corner_columns,
-    corner_invariants,
     gather_corners,
     objective_t,
     squared_condition_from_invariants,

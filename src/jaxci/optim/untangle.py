@@ -50,10 +50,11 @@ import time
 import numpy as np
 
 from .._lazy import enable_x64, is_jax_array, jax
+from ..cells import EDGES, corner_determinants, element_blocks
 from ..errors import InvertedMeshError
 from ..geometry.boundary import CORNER, BoundaryInfo
 from ..geometry.projection import Constraints, n_free, project_np
-from ..mesh import EDGES, HexMesh, corner_determinants
+from ..mesh import HexMesh
 from ..metrics import elements as E
 from ..metrics.objective import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
 from . import _params as _p
@@ -107,7 +108,7 @@ class UntangleParams:
 
 
 def element_lengths(points: np.ndarray, hexes: np.ndarray, cell_type: str = "hexahedron") -> np.ndarray:
-    """Mean length of the edges of each cell (`jaxci.mesh.EDGES` of `cell_type`), shape ``(N,)`` (float64)."""
+    """Mean length of the edges of each cell (`jaxci.cells.EDGES` of `cell_type`), shape ``(N,)`` (float64)."""
     p = np.asarray(points, dtype=np.float64)
     e = np.asarray(hexes)[:, EDGES[cell_type]]  # (N, n_edges, 2)
     return np.linalg.norm(p[e[..., 1]] - p[e[..., 0]], axis=-1).mean(axis=1)
@@ -257,7 +258,7 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
                    f"inverted ({first}{', ...' if left > 5 else ''}) after {rep['rounds']} rounds; shape "
                    f"improvement skipped: the mesh is returned with them"]
     if not rep["untangled"]:
-        blocks = E.element_blocks(mesh)
+        blocks = element_blocks(mesh)
         bad = {t: np.flatnonzero(b) for t, b in inverted_cells(mesh, x).items() if b.any()}
         t0 = next(iter(bad))
         nodes = np.unique(np.concatenate([blocks[t][k].ravel() for t, k in bad.items()]))
