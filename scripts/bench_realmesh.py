@@ -24,7 +24,7 @@ one after the other, each as its own process:
 Per run it records the wall time, the child's CPU time (user + system) and peak RSS (``os.wait4``), exit status,
 the end of stderr, and for jaxci what ``--json`` says (iterations, its own wall time, notes, and a ``phases`` or
 ``timings`` dict where the command reports one). Every output is then measured here by the same code
-(`jaxci.io.read_mesh` + `jaxci.metrics.hexahedron.quality_report`, float64), as is the input: inverted elements, max and
+(`jaxci.io.read_mesh` + `jaxci.metrics.report.quality_report`, float64), as is the input: inverted elements, max and
 mean kappa/3, F, min scaled Jacobian, and how far the skin nodes moved (``boundary_moved``: more than 1e-9 of the
 bounding-box diagonal). Prints a table and writes JSON (`--out`, rewritten after every mesh).
 
@@ -283,7 +283,7 @@ def write_msq_copy(mesh, path: Path) -> dict:
 
 
 def quality(mesh) -> dict:
-    from jaxci.metrics.hexahedron import quality_report
+    from jaxci.metrics.report import quality_report
 
     d = quality_report(mesh).to_dict()
     return {k: d.get(k) for k in QUALITY_KEYS}
@@ -316,7 +316,7 @@ def measure_output(out: Path, ref_points: np.ndarray, skin_idx: np.ndarray, diag
 def prepare(entry, work: Path) -> tuple[dict, dict]:
     """Read the input with jaxci, measure it, write msqshape's copy and its domain flags."""
     from jaxci.io import read_mesh
-    from jaxci.metrics.hexahedron import quality_report
+    from jaxci.metrics.report import quality_report
 
     path = entry.ensure()
     t0 = time.perf_counter()

@@ -218,7 +218,7 @@ def corpus_job(job: dict) -> dict:
 
     from jaxci.errors import ConfigError, InvertedMeshError, JaxciError
     from jaxci.io import read_mesh
-    from jaxci.metrics.hexahedron import quality_report
+    from jaxci.metrics.report import quality_report
     from jaxci.smooth import smooth
 
     mesh = read_mesh(job["path"])

@@ -16,7 +16,8 @@ from jaxci.errors import ConfigError
 from jaxci.generate import perturb_box
 from jaxci.geometry.projection import NearProjector, project_near_np, project_np
 from jaxci.mesh import HexMesh
-from jaxci.metrics.hexahedron import objective_terms_and_grad, objective_terms_and_grad_np, quality_report, transposed
+from jaxci.metrics.hexahedron import objective_terms_and_grad, objective_terms_and_grad_np, transposed
+from jaxci.metrics.report import quality_report
 from jaxci.optim.gradient import GradientParams, minimise, use_host
 from jaxci.optim.host import HOST_MAX, lbfgs
 from jaxci.optim.parametrisation import make_parametrisation

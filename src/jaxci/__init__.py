@@ -37,8 +37,8 @@ except PackageNotFoundError:  # pragma: no cover
 _LAZY = {
     "read_mesh": "io",
     "write_mesh": "io",
-    "quality_report": "metrics.hexahedron",
-    "QualityReport": "metrics.hexahedron",
+    "quality_report": "metrics.report",
+    "QualityReport": "metrics.report",
     "objective": "metrics.hexahedron",
     "corner_condition": "metrics.hexahedron",
     "element_condition": "metrics.hexahedron",

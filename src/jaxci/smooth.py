@@ -33,7 +33,8 @@ from .geometry.topology import colour_nodes, node_adjacency
 from .mesh import HexMesh
 from .metrics import objective as mixed
 from .metrics.elements import checked_objective
-from .metrics.hexahedron import QualityReport, quality_report, transposed
+from .metrics.hexahedron import transposed
+from .metrics.report import QualityReport, quality_report
 from .optim.host import HOST_MAX, runs_on_host
 
 #: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
@@ -149,7 +150,7 @@ def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     of a small mesh's run)."""
     from . import native
     from .metrics.elements import objective_on_host
-    from .metrics.hexahedron import NUMPY_REPORT_MAX
+    from .metrics.report import NUMPY_REPORT_MAX
 
     if method != "lbfgs" or int(params.get("presmooth", 0)):
         return False

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..metrics.hexahedron import HISTOGRAM_EDGES
+from ..metrics.report import HISTOGRAM_EDGES
 
 #: Surface plots are skipped for meshes with more boundary faces than this (matplotlib 3-D is slow).
 MAX_SURFACE_FACES = 20000

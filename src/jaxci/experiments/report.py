@@ -3,7 +3,7 @@ Tables.
 
 The paper (Sapre, Kulkarni, Shinde, "Finite Element Mesh Smoothing Using Cohort Intelligence") reports:
 
-- Table 1: corners of the 27-element cube per kappa/3 bin (`jaxci.metrics.hexahedron.HISTOGRAM_EDGES`), originally,
+- Table 1: corners of the 27-element cube per kappa/3 bin (`jaxci.metrics.report.HISTOGRAM_EDGES`), originally,
   after stage 1 (roulette-wheel following) and after stage 2 (everyone follows the best);
 - Table 2: max kappa/3 of each case before and after;
 - Table 3: worst / best / mean max kappa/3 over 30 runs and the standard deviation of F.
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..metrics.hexahedron import HISTOGRAM_EDGES
+from ..metrics.report import HISTOGRAM_EDGES
 
 #: Table 1 of the paper: corner counts of the 27-element cube per kappa/3 bin.
 PAPER_TABLE1 = {

@@ -162,8 +162,9 @@ def _lengths2(cols):
     return a * b * c
 
 
-def _corner_kernel(points, conn, cell_type: str):
-    """det A_i, det T_i, |T|_F^2, |adj T|_F^2 (T = A W^-1) and |a|^2|b|^2|c|^2 per corner, each ``(N, n_corners)``."""
+def cell_corner_kernel(points, conn, cell_type: str):
+    """det A_i, det T_i, |T|_F^2, |adj T|_F^2 (T = A W^-1) and |a|^2|b|^2|c|^2 per corner, each ``(N, n_corners)``
+    (numpy float64; `points` ``(n, 3)`` float64, `conn` the transposed ``(k, N)`` connectivity)."""
     cols = _columns(*_nodes(np, points, conn), CORNERS[cell_type])
     det_a = _invariants(cols)[0]
     det_t, fro2, adj2 = _invariants(_times_inverse(cols, TARGETS[cell_type]))
@@ -196,7 +197,7 @@ def corner_determinant(points, cells, cell_type: str) -> np.ndarray:
     **Returns:** float64 array of shape ``(N, n_corners)`` (8, 6, 4, 4 corners); <= 0 at an inverted or
     degenerate corner.
     """
-    return _corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)[0]
+    return cell_corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)[0]
 
 
 def corner_condition(points, cells, cell_type: str) -> np.ndarray:
@@ -207,14 +208,14 @@ def corner_condition(points, cells, cell_type: str) -> np.ndarray:
     **Returns:** float64 array of shape ``(N, n_corners)``, in [1, inf): 1 at the corners of the ideal cell
     (`TARGETS`), ``inf`` where det A_i <= 0. For hexahedra it equals `jaxci.metrics.hexahedron.corner_condition`.
     """
-    _, det, fro2, adj2, _ = _corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
+    _, det, fro2, adj2, _ = cell_corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
     return _kappa3(det, fro2, adj2)
 
 
 def corner_scaled_jacobian(points, cells, cell_type: str) -> np.ndarray:
     """det A_i / (|a_i| |b_i| |c_i|) per corner: float64, shape ``(N, n_corners)``, in [-1, 1] (0 for a zero-length
     edge)."""
-    det, _, _, _, l2 = _corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
+    det, _, _, _, l2 = cell_corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
     return _ratio(det, l2)
 
 
@@ -227,7 +228,7 @@ def inverted(points, cells, cell_type: str) -> np.ndarray:
     pts, conn = _np_points(points), _conn(cells, cell_type)
     if cell_type == "hexahedron":  # the determinants alone (2.5x faster than the full kernel at 10^5 cells)
         return (corner_determinants(pts, np.asarray(cells, dtype=np.int64)) <= 0).any(axis=1)
-    bad = (_corner_kernel(pts, conn, cell_type)[0] <= 0).any(axis=1)
+    bad = (cell_corner_kernel(pts, conn, cell_type)[0] <= 0).any(axis=1)
     if cell_type == "pyramid":
         bad |= (_pyramid_tet_dets(pts, conn) <= 0).any(axis=1)
     return bad
@@ -375,7 +376,7 @@ def mixed_objective(points, mesh: HexMesh):
                     return np.float64(np.inf)
                 total, count = total + excess, count + 8 * len(c)
                 continue
-            term = _sq_kappa3(np, *_corner_kernel(pts, _conn(c, t), t)[1:4])
+            term = _sq_kappa3(np, *cell_corner_kernel(pts, _conn(c, t), t)[1:4])
             with np.errstate(invalid="ignore"):
                 total, count = total + float(np.sum(term - 1.0)), count + term.size
         return np.float64(total / count)
@@ -408,11 +409,11 @@ def corner_figures(points, cells, cell_type: str) -> dict[str, np.ndarray]:
 
     **Returns:** a dict: ``kappa3`` corner kappa/3 (`corner_condition`, ``inf`` where det <= 0), shape
     ``(N, n_corners)``; ``inverted`` (`inverted`), ``scaled_jacobian`` (Verdict's element scaled Jacobian; for
-    hexahedra the min CORNER scaled Jacobian, the figure `jaxci.metrics.hexahedron.QualityReport` always reported) and
+    hexahedra the min CORNER scaled Jacobian, the figure `jaxci.metrics.report.QualityReport` always reported) and
     ``verdict_condition`` (`element_condition`), each of shape ``(N,)``.
     """
     pts, conn = _np_points(points), _conn(cells, cell_type)
-    det_a, det, fro2, adj2, l2 = _corner_kernel(pts, conn, cell_type)
+    det_a, det, fro2, adj2, l2 = cell_corner_kernel(pts, conn, cell_type)
     k3 = _kappa3(det, fro2, adj2)
     bad = (det_a <= 0).any(axis=1)
     if cell_type == "pyramid":
