@@ -56,14 +56,14 @@ def test_smooth_applies_the_guard_to_any_method(case, monkeypatch):
 
     S = importlib.import_module("jaxci.smooth")  # the module (the package's `jaxci.smooth` is the function)
     mesh, _, bad, _ = case
-    real = S._run_method
+    real = S.run_method
     bad_unit = to_unit(bad, unit_frame(mesh.points))  # smooth works in the unit frame
 
     def worsening(problem, method, key, params):
         x, it, hist, resolved = real(problem, method, key, params)
         return bad_unit, it, hist, resolved
 
-    monkeypatch.setattr(S, "_run_method", worsening)
+    monkeypatch.setattr(S, "run_method", worsening)
     guarded = jaxci.smooth(mesh, "lbfgs", dtype="float64")
     raw = jaxci.smooth(mesh, "lbfgs", dtype="float64", keep_worst=False)
     assert raw.after.max_condition > raw.before.max_condition

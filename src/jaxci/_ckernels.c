@@ -515,7 +515,7 @@ static int plane_point(const double *x, const double *T, Py_ssize_t nt, Py_ssize
 #undef R
 }
 
-/* Nearest point of x on triangle j (jaxci.geometry._closest._closest_on_triangles): its score (squared distance, plus
+/* Nearest point of x on triangle j (jaxci.geometry._closest.closest_on_triangles): its score (squared distance, plus
  * a rounding-level penalty for points on the spoke or the side) and the point in p. */
 static double closest_on_triangle(const double *x, const double *T, Py_ssize_t nt, Py_ssize_t j, double tol,
                                   double bump, double *p) {
@@ -551,8 +551,8 @@ static double closest_on_triangle(const double *x, const double *T, Py_ssize_t n
 #undef R
 }
 
-/* Nearest point of x on segment j (jaxci.geometry._closest._closest_on_segments); with `inside`, whether the orthogonal
- * projection falls inside it (jaxci.geometry._closest._line_point). */
+/* Nearest point of x on segment j (jaxci.geometry._closest.closest_on_segments); with `inside`, whether the orthogonal
+ * projection falls inside it (jaxci.geometry._closest.line_point). */
 static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns, Py_ssize_t j, double tol,
                                  double bump, double *p, int *inside) {
 #define R(r, k) T[((r) + (k)) * ns + j]

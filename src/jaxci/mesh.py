@@ -212,7 +212,7 @@ class HexMesh:
         if bad.any():
             k = int(np.flatnonzero(bad)[0])
             raise MeshError(
-                f"{where}node {self._node_label(k)} has non-finite coordinates {pts[k].tolist()} "
+                f"{where}node {self.node_label(k)} has non-finite coordinates {pts[k].tolist()} "
                 f"({int(bad.sum())} such nodes)"
             )
         n = pts.shape[0]
@@ -230,7 +230,7 @@ class HexMesh:
                     row = int(np.flatnonzero((data < 0).any(axis=1) | (data >= n).any(axis=1))[0])
                     val = int(data[row][(data[row] < 0) | (data[row] >= n)][0])
                     raise MeshError(
-                        f"{where}{blk.type} element {self._cell_label(blk, row)} references node index {val}, "
+                        f"{where}{blk.type} element {self.block_label(blk, row)} references node index {val}, "
                         f"out of range [0, {n})"
                     )
             ids = None if blk.ids is None else np.asarray(blk.ids)
@@ -253,7 +253,7 @@ class HexMesh:
                 f"({int(rep.sum())} such elements)"
             )
         mirrored = self.hex_mirrored
-        _check_range(pts, hexes, where, self._node_label)
+        _check_range(pts, hexes, where, self.node_label)
         det = corner_determinants(to_unit(pts, unit_frame(pts)), hexes)  # no overflow at 1e300, no underflow
 
         left = (det < 0).all(axis=1)
@@ -280,7 +280,7 @@ class HexMesh:
         used = np.zeros(n, bool)
         for b in blocks:
             used[b.data.ravel()] = True
-        midside, _ = _midside_table(blocks, used, where, self._node_label)
+        midside, _ = _midside_table(blocks, used, where, self.node_label)
         used[midside] = True
         if not used.all():
             notes.append(f"{int((~used).sum())} unreferenced nodes (kept, never moved)")
@@ -306,18 +306,18 @@ class HexMesh:
         bad = (mid < -1) | (mid >= n)
         if bad.any():
             row = int(np.flatnonzero(bad.any(axis=1))[0])
-            raise MeshError(f"{where}{blk.type} element {HexMesh._cell_label(CellBlock(blk.type, data, ids), row)} "
+            raise MeshError(f"{where}{blk.type} element {HexMesh.block_label(CellBlock(blk.type, data, ids), row)} "
                             f"has midside node index {int(mid[row][bad[row]][0])}, out of range [0, {n})")
         return mid
 
     # ------------------------------------------------------------------ labels for messages
-    def _node_label(self, k: int) -> str:
+    def node_label(self, k: int) -> str:
         if self.node_ids is not None:
             return f"{int(np.asarray(self.node_ids)[k])} (index {k})"
         return str(k)
 
     @staticmethod
-    def _cell_label(blk: CellBlock, row: int) -> str:
+    def block_label(blk: CellBlock, row: int) -> str:
         if blk.ids is not None:
             return f"{int(np.asarray(blk.ids)[row])} (index {row})"
         return str(row)
@@ -328,7 +328,7 @@ class HexMesh:
             if b.type != "hexahedron":
                 continue
             if k < len(b.data):
-                return HexMesh._cell_label(b, k)
+                return HexMesh.block_label(b, k)
             k -= len(b.data)
         raise IndexError(k)
 
@@ -372,7 +372,7 @@ class HexMesh:
         used = np.zeros(self.n_nodes, bool)
         for b in self.cells:
             used[b.data.ravel()] = True
-        return _midside_table(self.cells, used, "", self._node_label)
+        return _midside_table(self.cells, used, "", self.node_label)
 
     @property
     def other_cell_types(self) -> list[str]:
@@ -452,7 +452,7 @@ def _midside_table(blocks, corner_used: np.ndarray, where: str, label) -> tuple[
 
     def elem(r) -> str:
         blk = blocks[int(r[3])]
-        return f"{blk.type} element {HexMesh._cell_label(blk, int(r[4]))}"
+        return f"{blk.type} element {HexMesh.block_label(blk, int(r[4]))}"
 
     corner = corner_used[t[:, 0]]
     if corner.any():
@@ -504,7 +504,7 @@ def _check_range(pts: np.ndarray, hexes: np.ndarray, where: str, label) -> None:
 def coincident_note(mesh: HexMesh, pairs: np.ndarray) -> str:
     """The sentence of `HexMesh.notes` about coincident nodes (`HexMesh.coincident_nodes`)."""
     n = len(np.unique(pairs))
-    a, b = (mesh._node_label(int(k)) for k in pairs[0])
+    a, b = (mesh.node_label(int(k)) for k in pairs[0])
     return (f"{len(pairs)} pairs of coincident nodes ({n} nodes closer than {COINCIDENT_TOLERANCE:g} x the "
             f"bounding-box diagonal: an unmerged interface?), first: nodes {a} and {b}; smoothing keeps them fixed "
             f"(--merge-coincident or jaxci.mesh.merge_coincident merges them)")
@@ -551,7 +551,7 @@ def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMes
                                                                     -1))
                   for b in mesh.cells)
     merged = int(n - keep.sum())
-    first = mesh._node_label(int(pairs[0, 1])), mesh._node_label(int(pairs[0, 0]))
+    first = mesh.node_label(int(pairs[0, 1])), mesh.node_label(int(pairs[0, 0]))
     groups = len(np.unique(target[~keep]))
     note = (f"merged {groups} groups of coincident nodes ({merged + groups} nodes closer than {tol:g} x the "
             f"bounding-box diagonal) into one node each, first: node {first[0]} into {first[1]}; {n} -> "
@@ -577,9 +577,9 @@ def as_hex_mesh(obj, caller: str) -> HexMesh:
         return obj
     cls = type(obj)
     if cls.__name__ == "Mesh" and cls.__module__.split(".")[0] == "meshio":
-        from .io._meshio import _from_meshio
+        from .io._meshio import from_meshio
 
-        return _from_meshio(obj, "<meshio.Mesh>")
+        return from_meshio(obj, "<meshio.Mesh>")
     hint = "read a file with jaxci.read_mesh(path) or build one with jaxci.hex_mesh(points, hexes)"
     if isinstance(obj, (str, bytes, os.PathLike)):
         raise UsageError(f"{caller} expects a jaxci HexMesh, got the path {os.fsdecode(obj)!r}; read the file with "

@@ -179,7 +179,7 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
     return "lbfgs", params, desc
 
 
-def _run_method(problem: Problem, method: str, seed: int, params: dict):
+def run_method(problem: Problem, method: str, seed: int, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
     of the randomised methods (only there: building it compiles a program)."""
     if method in ("ci", "ci-global"):
@@ -298,7 +298,7 @@ def smooth(
     if len(pairs):
         fixed = np.union1d(fixed, pairs.ravel())
         notes.append(f"{len(pairs)} pairs of coincident nodes ({len(np.unique(pairs))} nodes, first: "
-                     f"{mesh._node_label(int(pairs[0, 0]))} and {mesh._node_label(int(pairs[0, 1]))}) fixed, so they "
+                     f"{mesh.node_label(int(pairs[0, 0]))} and {mesh.node_label(int(pairs[0, 1]))}) fixed, so they "
                      f"stay coincident (--merge-coincident, or merge_coincident=True, merges them)")
     frame = unit_frame(mesh.points)
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
@@ -433,7 +433,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                 after=before if untangled is None else quality_report(mesh, x), boundary=problem.info.counts,
                 node_class=np.asarray(problem.info.node_class))
         with clock.phase("smooth"):
-            x, iterations, history, resolved = _run_method(problem, method, seed, params)
+            x, iterations, history, resolved = run_method(problem, method, seed, params)
             x = np.asarray(x, dtype=np.float64)
     notes.extend(problem.info.notes)
     cap = _CAPS.get(method)

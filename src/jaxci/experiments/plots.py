@@ -159,10 +159,10 @@ def write_figures(folder: Path, exp, records, results: dict) -> dict:
 
     **Returns:** ``{"files": [relative paths], "skipped": [reasons]}`` for the summary.
     """
-    from .report import PAPER_TABLE1, _table1_choice
+    from .report import PAPER_TABLE1, table1_choice
 
     files, skipped = [], []
-    t1 = _table1_choice(exp)
+    t1 = table1_choice(exp)
     for rm in exp.meshes:
         series = []
         for meth in exp.methods:

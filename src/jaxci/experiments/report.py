@@ -114,7 +114,7 @@ def build_summary(exp, records, device, *, partial: bool, total_runs: int, elaps
         "meshes": [{"name": m.name, "file": str(m.path) if m.path else None, "paper_case": m.paper_case}
                    for m in exp.meshes],
         "methods": [{"name": m.label, "method": m.method, "params": m.params} for m in exp.methods],
-        "table1": _table1_choice(exp),
+        "table1": table1_choice(exp),
         "versions": {"jaxci": __version__, "jax": jax.__version__, "numpy": np.__version__,
                      "python": platform.python_version()},
         "device": {"requested": cfg.device, "platform": device.platform, "kind": getattr(device, "device_kind", ""),
@@ -125,7 +125,7 @@ def build_summary(exp, records, device, *, partial: bool, total_runs: int, elaps
     }
 
 
-def _table1_choice(exp) -> dict:
+def table1_choice(exp) -> dict:
     """Mesh and stage columns of Table 1: the config's ``report.table1``, else the 27-element case (or the first
     mesh) and no stage mapping (every method gets a column)."""
     t1 = exp.config.report.table1

@@ -50,22 +50,22 @@ from scipy.spatial import cKDTree
 from .._lazy import filter_jit, jax, jnp, pytree_dataclass
 from ..mesh import HexMesh
 from ._closest import (
-    _SD,
-    _SEG_ROWS,
-    _TN,
-    _TRI_ROWS,
-    _bump,
-    _closest_on_segments,
-    _closest_on_triangles,
-    _line_point,
-    _nearest,
-    _plane_point,
-    _segment_centres,
-    _segment_table,
-    _tol,
-    _triangle_centres,
-    _triangle_table,
+    SD,
+    SEG_ROWS,
+    TN,
+    TRI_ROWS,
     candidate_rows,
+    closest_on_segments,
+    closest_on_triangles,
+    inside_tolerance,
+    line_point,
+    nearest_candidates,
+    plane_point,
+    segment_bump,
+    segment_centres,
+    segment_table,
+    triangle_centres,
+    triangle_table,
 )
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, face_normals
 
@@ -206,15 +206,15 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     if len(faces) and len(surf):
         normals = _unit_rows(np.asarray(incidence(faces, n).sign()[surf] @ face_normals(pts, faces)))
     if len(faces):
-        tris, tri_patch = _triangle_table(pts, faces), np.repeat(info.face_patch, 4)
+        tris, tri_patch = triangle_table(pts, faces), np.repeat(info.face_patch, 4)
     else:
-        tris, tri_patch = np.zeros((_TRI_ROWS, 1)), np.full(1, -1)
+        tris, tri_patch = np.zeros((TRI_ROWS, 1)), np.full(1, -1)
     quad_cand = _ring_candidates(faces, n, surf, info.face_patch, group)
     tri_cand = (4 * quad_cand[:, :, None] + np.arange(4)).reshape(len(quad_cand), -1)
     if len(fedges):
-        segs, seg_curve = _segment_table(pts, fedges), info.edge_curve
+        segs, seg_curve = segment_table(pts, fedges), info.edge_curve
     else:
-        segs, seg_curve = np.zeros((_SEG_ROWS, 1)), np.full(1, -1)
+        segs, seg_curve = np.zeros((SEG_ROWS, 1)), np.full(1, -1)
 
     put = jax.device_put if device else (lambda a: a)
 
@@ -267,11 +267,12 @@ def project(constraints: Constraints, points: Float[Array, "*batch n 3"]) -> Flo
     ns, ne = c.surface_nodes.shape[0], c.edge_nodes.shape[0]
     if ns:
         tab, cand = c.triangles.astype(x.dtype), c.surface_cand[:ns]
-        p = _nearest(jnp, x[..., c.surface_nodes, :], tab, cand, _closest_on_triangles, _tol(x.dtype))
+        p = nearest_candidates(jnp, x[..., c.surface_nodes, :], tab, cand, closest_on_triangles,
+                               inside_tolerance(x.dtype))
         x = x.at[..., c.surface_nodes, :].set(p)
     if ne:
         tab, cand = c.segments.astype(x.dtype), c.edge_cand[:ne]
-        p = _nearest(jnp, x[..., c.edge_nodes, :], tab, cand, _closest_on_segments, _tol(x.dtype))
+        p = nearest_candidates(jnp, x[..., c.edge_nodes, :], tab, cand, closest_on_segments, inside_tolerance(x.dtype))
         x = x.at[..., c.edge_nodes, :].set(p)
     return x.at[..., c.corner_nodes, :].set(c.x_orig[c.corner_nodes].astype(x.dtype))
 
@@ -324,7 +325,7 @@ class NearProjector:
         is its own projection (their hint stays as it was)."""
         c = self.c
         x = np.array(points, dtype=np.float64)
-        tol = _tol(np.float64)
+        tol = inside_tolerance(np.float64)
         if self._native is not None:
             from .. import native
 
@@ -333,12 +334,12 @@ class NearProjector:
                 hint = self.hint[kind].copy()
                 active = np.arange(len(nodes)) if keep is None else np.flatnonzero(~keep[nodes])
                 if len(active):
-                    native.near_project(x, nodes, active, hint, cand, table, kind, tol, _bump(np.float64))
+                    native.near_project(x, nodes, active, hint, cand, table, kind, tol, segment_bump(np.float64))
                 out.append(hint)
             x[c.corner_nodes] = c.x_orig[c.corner_nodes]
             return x, tuple(out)
-        kinds = ((c.surface_nodes, c.triangles, c.surface_cand, _closest_on_triangles, _plane_point),
-                 (c.edge_nodes, c.segments, c.edge_cand, _closest_on_segments, _line_point))
+        kinds = ((c.surface_nodes, c.triangles, c.surface_cand, closest_on_triangles, plane_point),
+                 (c.edge_nodes, c.segments, c.edge_cand, closest_on_segments, line_point))
         out = []
         for kind, (nodes, table, cand, closest, orthogonal) in enumerate(kinds):
             hint = self.hint[kind].copy()
@@ -374,8 +375,8 @@ class NearProjector:
         edge node its component along its segment (the derivative of the projection onto a plane or a line);
         nodes of `keep` unchanged. A new array."""
         c, g = self.c, np.array(g)
-        for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, c.surface_cand, _TN),
-                                                          (c.edge_nodes, c.segments, c.edge_cand, _SD))):
+        for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, c.surface_cand, TN),
+                                                          (c.edge_nodes, c.segments, c.edge_cand, SD))):
             rows = np.flatnonzero(hint[kind] >= 0) if keep is None else np.flatnonzero((hint[kind] >= 0)
                                                                                        & ~keep[nodes])
             if not len(rows):
@@ -430,9 +431,9 @@ def project_nodes(
     idx = jnp.asarray(node_idx)
     cls, row = c.node_class[idx][:, None], c.row[idx]
     cand = c.surface_cand[jnp.minimum(row, c.surface_cand.shape[0] - 1)]
-    ps = _nearest(jnp, x, c.triangles.astype(x.dtype), cand, _closest_on_triangles, _tol(x.dtype))
+    ps = nearest_candidates(jnp, x, c.triangles.astype(x.dtype), cand, closest_on_triangles, inside_tolerance(x.dtype))
     cand = c.edge_cand[jnp.minimum(row, c.edge_cand.shape[0] - 1)]
-    pe = _nearest(jnp, x, c.segments.astype(x.dtype), cand, _closest_on_segments, _tol(x.dtype))
+    pe = nearest_candidates(jnp, x, c.segments.astype(x.dtype), cand, closest_on_segments, inside_tolerance(x.dtype))
     fixed = c.x_orig[idx].astype(x.dtype)
     return jnp.where(cls == SURFACE, ps, jnp.where(cls == EDGE, pe, jnp.where(cls == CORNER, fixed, x)))
 
@@ -453,7 +454,7 @@ def _search(table, cells, x, closest, centre_radius):
     lens = np.fromiter((len(v) for v in lists), dtype=np.int64, count=len(lists))
     flat = np.fromiter((i for v in lists for i in v), dtype=np.int64, count=int(lens.sum()))
     owner = np.repeat(np.arange(len(x)), lens)
-    p, score = closest(np, tuple(x[owner].T), table[:, cells[flat]], _tol(np.float64))
+    p, score = closest(np, tuple(x[owner].T), table[:, cells[flat]], inside_tolerance(np.float64))
     order = np.lexsort((score, owner))
     first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
     return np.stack(p, axis=1)[first]
@@ -476,8 +477,8 @@ def project_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
     x = np.array(points, dtype=np.float64)
     group = np.asarray(c.group)
     for nodes, table, cell_group, closest, centres in (
-        (c.surface_nodes, c.triangles, c.triangle_patch, _closest_on_triangles, _triangle_centres),
-        (c.edge_nodes, c.segments, c.segment_curve, _closest_on_segments, _segment_centres),
+        (c.surface_nodes, c.triangles, c.triangle_patch, closest_on_triangles, triangle_centres),
+        (c.edge_nodes, c.segments, c.segment_curve, closest_on_segments, segment_centres),
     ):
         nodes = np.asarray(nodes)
         table = np.asarray(table, dtype=np.float64)

@@ -76,7 +76,7 @@ def element_family(name: str) -> tuple[str, int, int] | None:
 
 
 # ---------------------------------------------------------------------------------------------------- the text
-def _split_line(line: str) -> tuple[str, str]:
+def split_line(line: str) -> tuple[str, str]:
     """A line and its line ending."""
     body = line.rstrip("\r\n")
     return body, line[len(body):]
@@ -106,7 +106,7 @@ def flatten(path: str, depth: int = 0, where: str = "") -> tuple[list[str], list
     lines, origin, included = [], [], []
     text = read_text(path, "Abaqus deck", errors="surrogateescape")
     for lineno, line in enumerate(text.splitlines(keepends=True), 1):
-        body, _ = _split_line(line)
+        body, _ = split_line(line)
         if _is_keyword(body) and _keyword(body)[0] == "INCLUDE":
             name = _keyword(body)[1].get("INPUT")
             at = f"{path}, line {lineno}"
@@ -175,7 +175,7 @@ class Deck:
     def _parse(self) -> None:
         i, n = 0, len(self.lines)
         while i < n:
-            body, _ = _split_line(self.lines[i])
+            body, _ = split_line(self.lines[i])
             if not _is_keyword(body):
                 i += 1  # data lines before the first keyword, comments, blank lines
                 continue
@@ -183,10 +183,10 @@ class Deck:
             while text.rstrip().endswith(",") and i + 1 < n and not _is_keyword(self.lines[i + 1]) \
                     and not self.lines[i + 1].lstrip().startswith("**"):
                 i += 1  # a keyword line continued on the next line
-                text = text.rstrip() + _split_line(self.lines[i])[0]
+                text = text.rstrip() + split_line(self.lines[i])[0]
             i += 1
             data = []
-            while i < n and not _is_keyword(_split_line(self.lines[i])[0]):
+            while i < n and not _is_keyword(split_line(self.lines[i])[0]):
                 s = self.lines[i].strip()
                 if s and not s.startswith("**"):
                     data.append(i)
@@ -212,7 +212,7 @@ class Deck:
             self.other_keywords[name] = self.other_keywords.get(name, 0) + 1
 
     def _fields(self, i: int) -> list[str]:
-        toks = [t.strip() for t in _split_line(self.lines[i])[0].split(",")]
+        toks = [t.strip() for t in split_line(self.lines[i])[0].split(",")]
         while toks and not toks[-1]:
             toks.pop()
         return toks

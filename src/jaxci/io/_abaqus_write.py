@@ -42,7 +42,7 @@ import numpy as np
 
 from ..errors import MeshWriteError
 from ..mesh import HexMesh, mirrored_block
-from ._abaqus import DEFAULT_NAMES, _split_line, element_family, parse_deck
+from ._abaqus import DEFAULT_NAMES, element_family, parse_deck, split_line
 from ._deck import deck_losses, first_duplicate, model_difference
 from ._meshio import LossyWriteWarning
 
@@ -65,7 +65,7 @@ def _rows(values: list[int]) -> str:
 
 def _coordinate_line(line: str, xyz) -> str:
     """A ``*NODE`` data line with new coordinates; fields whose value did not change keep their text."""
-    body, end = _split_line(line)
+    body, end = split_line(line)
     parts = body.split(",")
     for k, v in enumerate(xyz):
         j = k + 1

@@ -284,7 +284,7 @@ def _cell_midside(b: Bricks, mask: np.ndarray, mid_conn: np.ndarray, cell_type: 
     return mid_conn[mask][:, cols]
 
 
-def _expand(items: list[int]) -> np.ndarray:
+def expand_ranges(items: list[int]) -> np.ndarray:
     """CMBLOCK items to numbers: a negative item -j after i means i+1..j."""
     out, prev = [], None
     for v in items:
@@ -396,11 +396,11 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
             raise MeshWriteError(f"{where}: {what} id {ids[dup[1]]} is used twice; ANSYS ids must be unique")
         if len(ids) and ids.min() < 1:
             raise MeshWriteError(f"{where}: {what} id {ids.min()} is not positive; ANSYS ids start at 1")
-    routines = element_routines(mesh, b.attrs[:, 1], _has_midside(b))
+    routines = element_routines(mesh, b.attrs[:, 1], has_midside(b))
     return dataclasses.replace(b, etypes=np.array(sorted(routines.items()), np.int64).reshape(-1, 2)), dropped
 
 
-def _has_midside(b: Bricks) -> np.ndarray:
+def has_midside(b: Bricks) -> np.ndarray:
     """Which bricks have a midside node of their own (not a merged corner position), shape ``(m,)``."""
     mid = b.midside
     if mid is None or not len(mid):

@@ -196,14 +196,14 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
     elif fmt == "xdmf":
         check_xdmf(path, m)
     try:
-        return _from_meshio(m, path)
+        return from_meshio(m, path)
     except JaxciError:
         raise
     except (ValueError, TypeError, IndexError) as exc:
         raise MeshReadError(f"{path}: inconsistent {_TITLES[fmt]} file ({_describe(exc)})") from exc
 
 
-def _from_meshio(m: meshio.Mesh, path: Path) -> HexMesh:
+def from_meshio(m: meshio.Mesh, path: Path) -> HexMesh:
     points = np.asarray(m.points)
     n = len(points)
     if n == 0:

@@ -256,6 +256,6 @@ def cell_label(mesh: HexMesh, cell_type: str, k: int) -> str:
         if b.type != cell_type or not len(b.data):
             continue
         if k < len(b.data):
-            return f"{cell_type} element {HexMesh._cell_label(b, k)}"
+            return f"{cell_type} element {HexMesh.block_label(b, k)}"
         k -= len(b.data)
     raise IndexError(k)

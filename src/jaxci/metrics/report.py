@@ -104,7 +104,7 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
             raise MeshError(f"quality_report: points have shape {pts.shape}, the mesh has {mesh.points.shape}")
         if not np.isfinite(pts).all():
             k = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
-            raise MeshError(f"quality_report: node {mesh._node_label(k)} has non-finite coordinates "
+            raise MeshError(f"quality_report: node {mesh.node_label(k)} has non-finite coordinates "
                             f"{pts[k].tolist()}")
     pts = to_unit(pts, unit_frame(pts))
     hexes = mesh.hexes

@@ -111,7 +111,7 @@ def check_seed(seed, what: str = "seed") -> int:
 
 
 #: Consecutive rejected trials after which a solver whose steps are capped (`max_move`) stops
-#: (`jaxci.optim._solve._solve`, `jaxci.optim.host.lbfgs`): the trial is then below 2^-20 of `max_move`; in
+#: (`jaxci.optim._solve.solve_loop`, `jaxci.optim.host.lbfgs`): the trial is then below 2^-20 of `max_move`; in
 #: float32 that is F's rounding noise at the optimum (measured: 28 rejected trials ended every L-BFGS run at
 #: 30^3 after it had converged, each a full objective and gradient evaluation). Uncapped solvers (and LM,
 #: Gauss-Newton) get `MAX_REJECTED_UNCAPPED`: their first raw-gradient trial can be 2^35 times too long.

@@ -343,7 +343,7 @@ BUCKETED = ("bfgs", "lbfgs", "cg")
 
 def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None, weight=None,
                 n_hex: int | None = None):
-    """The objective function and its `args` for `_solve` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``).
+    """The objective function and its `args` for `solve_loop` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``).
 
     `extra`: the non-hexahedral cells (`jaxci.metrics.objective.ExtraCells`; default none): F is then the mean over
     every corner (`jaxci.metrics.elements.mixed_objective`) and ``s = n_corners / 32``. `weight` ``(N,)`` and `n_hex`:
@@ -446,7 +446,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     n_hex = int(conn.shape[1])
     on_host = use_host(method, p, n_hex, extra)
     if not on_host:  # optimistix and the compiled loop (imported here: 0.08 s the numpy path does without)
-        from ._solve import _solve, make_solver
+        from ._solve import make_solver, solve_loop
 
         solver = make_solver(method, p)
     run_par, run_conn, weight, index = (par, conn, None, None) if on_host else _bucketed(method, par, conn, p, extra)
@@ -478,7 +478,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol)
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
-            y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps),
+            y, k, result, hf, hk = solve_loop(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
         k = int(k)
         seg_f, seg_k = np.asarray(hf)[: k + 1], np.asarray(hk)[: k + 1]  # sliced on the host: no compilation

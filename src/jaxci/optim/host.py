@@ -1,7 +1,7 @@
 """L-BFGS in numpy for small hexahedral meshes: the gradient solver without compilation.
 
 On a mesh of a few thousand hexahedra, XLA's compilation of the solver loop costs far more than the solve
-(`jaxci smooth` on a 2360-hex mesh, empty compile cache: 2.9 s compiling `_solve`, 0.6 s iterating; with a warm
+(`jaxci smooth` on a 2360-hex mesh, empty compile cache: 2.9 s compiling `solve_loop`, 0.6 s iterating; with a warm
 cache still 0.8 s tracing, lowering and loading it). The same algorithm run by numpy in float64 costs about
 1 ms per objective-and-gradient evaluation at that size (the closed-form kernel of
 `jaxci.metrics.hexahedron.objective_terms_and_grad_np`, with glibc's huge-page tunable of `jaxci.runtime`), so the whole
@@ -218,7 +218,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     stop once ``done(F, k)`` holds at an accepted iterate (k the second number `fun` reports); `deadline`
     (optional, `time.perf_counter` seconds): stop after the first step past it (result ``"time budget"``).
 
-    **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve._solve`: the accepted
+    **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the accepted
     iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
     ``"nonlinear_max_steps_reached"``, ``"nonfinite"``), and F and max kappa/3 of the accepted iterate after
     each step (entry 0: `y0`), numpy arrays of length ``steps + 1``.
