@@ -241,7 +241,7 @@ def smooth(
       L-BFGS, with smart-Laplace sweeps first on large meshes), ``"ci"`` batched local Cohort Intelligence,
       ``"ci-global"`` the paper's global CI; ``"bfgs"``, ``"lbfgs"``, ``"cg"``, ``"lm"``, ``"gauss-newton"``
       the optimistix baselines (`jaxci.optim.gradient`); ``"laplace"``, ``"smart-laplace"`` (`jaxci.optim.laplace`).
-    - `seed`: an integer in [0, 2**32 - 1] (`jaxci.optim._params.check_seed`), the seed of the `jax.random` key
+    - `seed`: an integer in [0, 2**32 - 1] (`jaxci.generate.check_seed`), the seed of the `jax.random` key
       of stochastic methods (same seed, same result; distinct seeds, distinct keys). The key uses the ``"rbg"``
       generator (XLA's RngBitGenerator): its code compiles in a tenth of the time of threefry's.
     - `dtype`: ``"float32"`` (default, fast) or ``"float64"``.
@@ -320,9 +320,9 @@ def smooth(
 def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params, flags: dict):
     """`smooth`'s argument checks, before any work: ``(mesh, method, seed, fixed_sets, untangle_params, params,
     auto)`` with the `auto_pipeline` resolved (`auto`: its description, else "")."""
+    from .generate import check_seed
     from .memory import check_fits, smooth_bytes
     from .mesh import as_hex_mesh, check_volume
-    from .optim._params import check_seed
 
     mesh = as_hex_mesh(mesh, "smooth")
     if not isinstance(method, str) or method not in METHODS:

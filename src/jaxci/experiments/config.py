@@ -49,7 +49,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ..errors import ConfigError, JaxciError
-from ..optim._params import MAX_SEED
+from ..generate import MAX_SEED
 from .config_errors import Locator, check_duplicates, pydantic_message
 
 #: Most runs (seeds) of one config.

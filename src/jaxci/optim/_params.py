@@ -8,7 +8,7 @@ the valid range and the value given; an integral float (``4.0``) counts as the i
 typo from hanging a run or exhausting memory (loop bounds, history arrays and batch shapes grow with them).
 
 `make_params` builds a dataclass from a dict of keyword parameters, listing the valid names for an unknown one and
-naming the method in every message. `check_seed` is the one seed rule of jaxci.
+naming the method in every message. (The one seed rule of jaxci, `check_seed`, is `jaxci.generate`'s.)
 """
 
 from __future__ import annotations
@@ -19,10 +19,6 @@ import numbers
 from collections.abc import Mapping
 
 from ..errors import ConfigError, UsageError
-
-#: Largest seed: seeds are integers in [0, MAX_SEED]. A `jax.random` key from an integer keeps 32 bits of it
-#: (2**32 and 0 gave the same key), so larger seeds are refused rather than silently aliased.
-MAX_SEED = 2**32 - 1
 
 
 def _is_int(value) -> bool:
@@ -98,16 +94,6 @@ def make_params(cls, params: Mapping, method: str, *, prefix: str = "", what: st
         return cls(**kwargs)
     except ConfigError as e:
         raise ConfigError(f"{what}: {e}") from None
-
-
-def check_seed(seed, what: str = "seed") -> int:
-    """`seed` as an int in ``[0, MAX_SEED]`` (`ConfigError` otherwise: a float, a string, None, a bool, a negative
-    or a larger integer). Every accepted seed gives its own `jax.random` key and numpy generator."""
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
-        raise ConfigError(f"{what} must be an integer in [0, 2**32 - 1], got {seed!r}")
-    if not 0 <= int(seed) <= MAX_SEED:
-        raise ConfigError(f"{what} must be an integer in [0, 2**32 - 1] (= {MAX_SEED}), got {seed!r}")
-    return int(seed)
 
 
 #: Consecutive rejected trials after which a solver whose steps are capped (`max_move`) stops
