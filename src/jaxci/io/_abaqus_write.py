@@ -43,7 +43,8 @@ import numpy as np
 from ..errors import MeshWriteError
 from ..mesh import HexMesh, mirrored_block
 from ._abaqus import DEFAULT_NAMES, element_family, parse_deck, split_line
-from ._deck import deck_losses, first_duplicate, model_difference
+from ._deck import first_duplicate, model_difference
+from ._losses import deck_losses
 from ._meshio import LossyWriteWarning
 
 #: Set names written as they are; others are written in double quotes (Abaqus's form for labels with spaces).

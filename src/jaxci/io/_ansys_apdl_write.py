@@ -72,7 +72,8 @@ from ._ansys import (
     to_hexmesh,
 )
 from ._ansys_apdl import CMBLOCK_FORMAT, COMPONENT_NAME, EBLOCK_FORMAT, NBLOCK_FORMAT, DeckReader
-from ._deck import deck_losses, model_difference
+from ._deck import model_difference
+from ._losses import deck_losses
 from ._meshio import LossyWriteWarning
 
 

@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import JaxciError, MeshReadError, MeshWriteError
 from ..mesh import MIRROR_HEX, CellBlock, HexMesh
 from ._counts import check_gmsh, check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
-from ._deck import deck_losses
+from ._losses import deck_losses
 
 #: Prefix of the point / cell data that carry a point / cell set in formats without sets.
 SET_PREFIX = "set:"
