@@ -1,7 +1,7 @@
 """Inverted cells that no allowed move can fix, found before any iteration.
 
 A corner's determinant depends on four nodes only: the corner node and its three neighbours along the cell's
-edges (`jaxci.metrics.elements.CORNERS`). An inverted corner (det <= 0) whose four nodes are all fixed (corners of the
+edges (`jaxci.cells.CORNERS`). An inverted corner (det <= 0) whose four nodes are all fixed (corners of the
 boundary, nodes of `fix_boundary`, `fixed_nodes` or `fixed_sets`, coincident nodes) keeps its determinant
 whatever the smoother does, so its cell can never become valid: the untangling stage would only run to its cap.
 `stuck_cells` finds those cells in one vectorised pass, so `jaxci.smooth` can say at once which they are and why.

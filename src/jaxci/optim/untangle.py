@@ -36,8 +36,8 @@ and small helper programs before); 60^3 (1838 inverted, 50 steps): 19.7 -> 11.5 
 evaluation of the energy and its gradient costs what one of F does (60^3, float64: 266 against 255 ms).
 
 **Mixed meshes.** The corners of wedges, pyramids and tetrahedra count like the hexahedra's, with
-``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.metrics.elements.TARGETS`, so an ideal cell of edge L_e has
-``J = I``); each of the four sub-tetrahedra of a pyramid (`jaxci.metrics.elements.PYRAMID_TETS`, which must stay
+``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.cells.TARGETS`, so an ideal cell of edge L_e has
+``J = I``); each of the four sub-tetrahedra of a pyramid (`jaxci.cells.PYRAMID_TETS`, which must stay
 positive too) adds the volume term ``theta (det J^2 + 1) / chi`` only. "Untangled" means no inverted cell of any type
 (`jaxci.metrics.elements.inverted`).
 """
