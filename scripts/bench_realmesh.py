@@ -24,7 +24,7 @@ one after the other, each as its own process:
 Per run it records the wall time, the child's CPU time (user + system) and peak RSS (``os.wait4``), exit status,
 the end of stderr, and for jaxci what ``--json`` says (iterations, its own wall time, notes, and a ``phases`` or
 ``timings`` dict where the command reports one). Every output is then measured here by the same code
-(`jaxci.io.read_mesh` + `jaxci.quality.quality_report`, float64), as is the input: inverted elements, max and
+(`jaxci.io.read_mesh` + `jaxci.metrics.report.quality_report`, float64), as is the input: inverted elements, max and
 mean kappa/3, F, min scaled Jacobian, and how far the skin nodes moved (``boundary_moved``: more than 1e-9 of the
 bounding-box diagonal). Prints a table and writes JSON (`--out`, rewritten after every mesh).
 
@@ -193,7 +193,7 @@ def skin(mesh) -> tuple[np.ndarray, np.ndarray]:
     """``(nodes, faces)`` of the boundary of the volume cells: jaxci's own topology (a triangle is a quadrilateral
     with its last node repeated), plain hexahedron faces as a fallback."""
     try:
-        from jaxci.boundary import mesh_topology
+        from jaxci.geometry.boundary import mesh_topology
 
         faces = np.asarray(mesh_topology(mesh).faces, dtype=np.int64)
     except Exception:  # noqa: BLE001 - only a fallback for a library in flux
@@ -283,7 +283,7 @@ def write_msq_copy(mesh, path: Path) -> dict:
 
 
 def quality(mesh) -> dict:
-    from jaxci.quality import quality_report
+    from jaxci.metrics.report import quality_report
 
     d = quality_report(mesh).to_dict()
     return {k: d.get(k) for k in QUALITY_KEYS}
@@ -316,7 +316,7 @@ def measure_output(out: Path, ref_points: np.ndarray, skin_idx: np.ndarray, diag
 def prepare(entry, work: Path) -> tuple[dict, dict]:
     """Read the input with jaxci, measure it, write msqshape's copy and its domain flags."""
     from jaxci.io import read_mesh
-    from jaxci.quality import quality_report
+    from jaxci.metrics.report import quality_report
 
     path = entry.ensure()
     t0 = time.perf_counter()
@@ -554,7 +554,7 @@ def main(argv=None) -> int:
                              warm_other=not args.no_warm_other, similar=args.similar, sizes=args.sizes,
                              moved_rel=MOVED_REL),
                notes=["timings from one run each on this machine; CPU = user + system of the child (os.wait4), "
-                      "peak_rss_mb = its ru_maxrss", "quality measured by jaxci.quality.quality_report (float64) on "
+                      "peak_rss_mb = its ru_maxrss", "quality measured by jaxci.quality_report (float64) on "
                       "every output file, msqshape's included"],
                meshes=[])
     out = Path(args.out)

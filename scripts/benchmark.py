@@ -34,7 +34,7 @@ def child(args) -> dict:
     (`jaxci.errors.ConfigError` if that device is not there)."""
     import jax
 
-    from jaxci.experiment import select_device
+    from jaxci.experiments.runner import select_device
 
     device = select_device(args.device)
     with jax.default_device(device):
@@ -48,8 +48,8 @@ def _measure(args, device) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxci import quality as q
     from jaxci.generate import perturb_box
+    from jaxci.metrics import hexahedron as q
     from jaxci.smooth import smooth
 
     n = args.size

@@ -13,7 +13,7 @@ and three times for the first seed:
   and XLA compilation);
 - ``warm_s``: the same call again, end to end (boundary classification, constraints, colouring, the method,
   the float64 checks and quality reports; compiled code reused), minimum of `--repeats`;
-- ``solve_s``: the method alone on a prebuilt `Problem` (`_run_method`), minimum of `--repeats`.
+- ``solve_s``: the method alone on a prebuilt `Problem` (`run_method`), minimum of `--repeats`.
 
 Seeds after the first are run while the cell's time (`--cell-budget` seconds, counted after the first seed's
 timings) lasts: the ``seeds`` column says how many ran. A cell whose first run takes over 20 s is timed warm
@@ -106,7 +106,7 @@ def run_cell(label, cases, kwargs, dtype, repeats, budget, pmean_p=2.0):
     import jax
 
     from jaxci.errors import ConfigError, InvertedMeshError
-    from jaxci.smooth import _run_method, auto_pipeline, build_problem, smooth
+    from jaxci.smooth import auto_pipeline, build_problem, run_method, smooth
 
     method, params = method_of(label, pmean_p)
     kwargs = {**kwargs, **params}
@@ -139,7 +139,7 @@ def run_cell(label, cases, kwargs, dtype, repeats, budget, pmean_p=2.0):
                                     else (method, params))
 
                     def go(pr=pr, seed=seed, run_m=run_m, run_p=run_p):
-                        x = _run_method(pr, run_m, seed, run_p)[0]
+                        x = run_method(pr, run_m, seed, run_p)[0]
                         jax.block_until_ready(x)
 
                     go()
@@ -218,7 +218,7 @@ def corpus_job(job: dict) -> dict:
 
     from jaxci.errors import ConfigError, InvertedMeshError, JaxciError
     from jaxci.io import read_mesh
-    from jaxci.quality import quality_report
+    from jaxci.metrics.report import quality_report
     from jaxci.smooth import smooth
 
     mesh = read_mesh(job["path"])
@@ -457,8 +457,8 @@ def best_per_mesh(rows, tol=1e-4) -> dict:
 
 
 def _write(out: Path, doc: str, md: str) -> None:
-    """`out` .json and .md, each written atomically (`jaxci.results.write_text`)."""
-    from jaxci.results import write_text
+    """`out` .json and .md, each written atomically (`jaxci.experiments.results.write_text`)."""
+    from jaxci.experiments.results import write_text
 
     write_text(out.with_suffix(".json"), doc)
     write_text(out.with_suffix(".md"), md)

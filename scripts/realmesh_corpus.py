@@ -452,7 +452,7 @@ def make_gmsh(shape: str, target: int) -> tuple[np.ndarray, np.ndarray]:
 def describe(entry: Entry) -> dict:
     """Read `entry` with jaxci and return its size and quality as read (float64)."""
     from jaxci.io import read_mesh
-    from jaxci.quality import quality_report
+    from jaxci.metrics.report import quality_report
 
     mesh = read_mesh(entry.ensure())
     rep = quality_report(mesh)

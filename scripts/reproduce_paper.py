@@ -26,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from jaxci.cli import main as jaxci_main
-    from jaxci.experiment import load_config, resolve_output
+    from jaxci.experiments.runner import load_config, resolve_output
 
     argv_run = ["run", args.config, "--quiet"]
     if args.out:

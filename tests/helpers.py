@@ -43,7 +43,7 @@ def unit_cube() -> np.ndarray:
 
 def random_valid_hexes(rng: np.random.Generator, n: int, amplitude: float = 0.25) -> np.ndarray:
     """`n` random valid hexahedra (unit cube corners moved by up to `amplitude`, kept if all det > 0), (n, 8, 3)."""
-    from jaxci.mesh import corner_determinants
+    from jaxci.cells import corner_determinants
 
     out = []
     while len(out) < n:

@@ -1,4 +1,5 @@
-"""Topology (boundary faces, adjacency, colouring) and node classification (jaxci.topology, jaxci.boundary)."""
+"""Topology (boundary faces, adjacency, colouring) and node classification (jaxci.geometry.topology,
+jaxci.geometry.boundary)."""
 
 from __future__ import annotations
 
@@ -10,12 +11,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxci.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals
 from jaxci.errors import MeshError
 from jaxci.generate import box
+from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals
+from jaxci.geometry.topology import HEX_FACES, boundary_topology, colour_nodes, node_adjacency
 from jaxci.mesh import CellBlock, HexMesh, hex_mesh
 from jaxci.shapes import annulus, bevelled_box, l_block
-from jaxci.topology import HEX_FACES, boundary_topology, colour_nodes, node_adjacency
 
 MESQUITE = Path(__file__).resolve().parents[2] / "shared" / "data" / "mesquite"
 
@@ -323,12 +324,12 @@ def test_open_boundary_warns():
 
 
 def test_components_are_scipys():
-    """`jaxci.topology.components` (no scipy.sparse.csgraph import at start-up) labels as scipy does: random
+    """`jaxci.geometry.topology.components` (no scipy.sparse.csgraph import at start-up) labels as scipy does: random
     graphs, isolated vertices, a long shuffled chain (many rounds of pointer jumping)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    from jaxci.topology import components
+    from jaxci.geometry.topology import components
 
     rng = np.random.default_rng(0)
     for n, m in [(1, 0), (10, 0), (50, 30), (1000, 900), (3000, 6000), (5000, 4999)]:

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 import jaxci
+from jaxci.cells import EDGES
 from jaxci.cli import main
 from jaxci.errors import MeshError, MeshReadError, MeshWriteError
 from jaxci.io import LossyWriteWarning, read_mesh, write_mesh
-from jaxci.mesh import EDGES, MIRROR_HEX, CellBlock, HexMesh
+from jaxci.mesh import MIRROR_HEX, CellBlock, HexMesh
 from jaxci.smooth import smooth  # not jaxci.smooth: once the module is imported, that name is the module
 
 mapdl_archive = pytest.importorskip("mapdl_archive")

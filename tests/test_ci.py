@@ -11,14 +11,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxci
-from jaxci import quality as q
+from jaxci.cells import corner_determinants
 from jaxci.cli import main
 from jaxci.errors import ConfigError, InvertedMeshError
-from jaxci.experiment import load_config, run_experiment
+from jaxci.experiments.runner import load_config, run_experiment
 from jaxci.generate import perturb_box
-from jaxci.mesh import corner_determinants
+from jaxci.geometry.projection import build_constraints, project_np
+from jaxci.metrics import hexahedron as q
 from jaxci.optim.ci import GLOBAL_DEFAULTS, CIParams
-from jaxci.projection import build_constraints, project_np
 from jaxci.shapes import annulus, l_block
 from jaxci.smooth import build_problem, method_params, smooth
 
@@ -26,7 +26,7 @@ FAST = dict(max_sweeps=12)
 
 
 def boundary_error(mesh_in, mesh_out, **kw) -> float:
-    from jaxci.boundary import classify_boundary
+    from jaxci.geometry.boundary import classify_boundary
 
     cons = build_constraints(mesh_in, classify_boundary(mesh_in, **kw), dtype=np.float64)
     x = np.asarray(mesh_out.points)
@@ -99,7 +99,7 @@ def test_local_ci_on_l_block_and_annulus_keeps_boundary():
     rng = np.random.default_rng(0)
     for mesh0, corners in ((l_block(2), 12), (annulus(12, 2, 2), 0)):
         # perturb interior nodes only (the boundary is the truth to keep)
-        from jaxci.boundary import INTERIOR, classify_boundary
+        from jaxci.geometry.boundary import INTERIOR, classify_boundary
 
         info = classify_boundary(mesh0)
         pts = mesh0.points.copy()
@@ -161,7 +161,7 @@ def test_pattern_move_takes_the_best_factor_along_the_sweep_and_never_a_worse_me
     inverts it) leaves x as it is."""
     import jax.numpy as jnp
 
-    from jaxci.mixed import no_extra
+    from jaxci.metrics.objective import no_extra
     from jaxci.optim.ci import PATTERN_FACTORS, _pattern_move
 
     assert 8.0 in PATTERN_FACTORS

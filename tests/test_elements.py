@@ -9,11 +9,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxci import elements as E
-from jaxci import quality as q
 from jaxci.cli import main
 from jaxci.generate import perturb_box
 from jaxci.mesh import CellBlock, HexMesh
+from jaxci.metrics import elements as E
+from jaxci.metrics import hexahedron as q
+from jaxci.metrics.report import quality_report
 
 vtk = pytest.importorskip("vtk")
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy  # noqa: E402
@@ -201,7 +202,7 @@ def test_mixed_objective_is_the_mean_over_all_corners():
 # ------------------------------------------------------------------------------------------------ report, CLI
 def test_report_by_type_and_overall():
     mesh = mixed_mesh()
-    r = q.quality_report(mesh)
+    r = quality_report(mesh)
     assert list(r.by_type) == ["hexahedron", "wedge", "pyramid", "tetra"]
     for t, fig in r.by_type.items():
         cells = [b.data for b in mesh.cells if b.type == t][0]
@@ -224,7 +225,7 @@ def test_report_by_type_and_overall():
 
 def test_report_of_a_hex_mesh_and_an_inverted_wedge():
     box = perturb_box(2, amplitude=0.2, seed=1)
-    r = q.quality_report(box)
+    r = quality_report(box)
     assert list(r.by_type) == ["hexahedron"]
     h = r.by_type["hexahedron"]
     assert (h["max_condition"], h["mean_condition"], h["min_scaled_jacobian"]) == pytest.approx(
@@ -233,7 +234,7 @@ def test_report_of_a_hex_mesh_and_an_inverted_wedge():
     wedge = IDEAL["wedge"][[3, 4, 5, 0, 1, 2]] + 5.0
     mesh = HexMesh(np.concatenate([box.points, wedge]),
                    (box.cells[0], CellBlock("wedge", np.arange(6)[None] + box.n_nodes)))
-    d = q.quality_report(mesh).to_dict()
+    d = quality_report(mesh).to_dict()
     assert d["by_type"]["wedge"] == {"count": 1, "inverted": 1, "max_condition": None, "mean_condition": None,
                                      "min_scaled_jacobian": pytest.approx(-1.0), "objective": None,
                                      "verdict_condition": None}

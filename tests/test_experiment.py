@@ -18,7 +18,7 @@ from helpers import CUBE27_EXPERIMENT, interrupted_on_call
 
 from jaxci.cli import main
 from jaxci.errors import ConfigError
-from jaxci.experiment import load_config
+from jaxci.experiments.runner import load_config
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((REPO / "configs").glob("*.yaml"))
@@ -304,7 +304,7 @@ def test_load_config_is_yaml_equivalent(tmp_path):
 def test_stage1_is_prefix_of_stage2(tmp_path):
     """The report's Table 1 mapping: global CI with stage_switch 1.0 for A attempts is exactly the first A
     attempts of a run with 2A attempts and stage_switch 0.5 (same seed)."""
-    from jaxci.experiment import run_experiment
+    from jaxci.experiments.runner import run_experiment
 
     glob_ = "init_width: 0.05, reduction: 0.99, cohort: 3, variations: 3"
     text = f"""\

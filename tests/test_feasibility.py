@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import jaxci
-from jaxci.boundary import classify_boundary
 from jaxci.errors import InvertedMeshError
 from jaxci.generate import box
+from jaxci.geometry.boundary import classify_boundary
 from jaxci.optim.feasibility import stuck_cells
 
 
@@ -38,7 +38,7 @@ def test_fixed_nodes_make_it_stuck_and_it_is_said_at_once():
     info = classify_boundary(mesh, fix_boundary=True, fixed_nodes=everything)
     stuck = stuck_cells(mesh, info)
     assert set(stuck) == {"hexahedron"}
-    inverted = np.flatnonzero(jaxci.elements.inverted(mesh.points, mesh.hexes, "hexahedron"))
+    inverted = np.flatnonzero(jaxci.metrics.elements.inverted(mesh.points, mesh.hexes, "hexahedron"))
     np.testing.assert_array_equal(stuck["hexahedron"], inverted)  # every node is fixed
     t0 = time.perf_counter()
     with pytest.raises(InvertedMeshError, match=r"inverted elements cannot be untangled: .*four nodes are all fixed"):
@@ -71,13 +71,13 @@ def _two_tangles():
 
 def test_partial_untangling_returns_what_could_be_untangled():
     mesh, a, b, fixed = _two_tangles()
-    inverted0 = jaxci.elements.inverted(mesh.points, mesh.hexes, "hexahedron")
+    inverted0 = jaxci.metrics.elements.inverted(mesh.points, mesh.hexes, "hexahedron")
     near_b = (mesh.hexes == b).any(axis=1)
     assert inverted0[near_b].any() and inverted0[~near_b].any()
     with pytest.raises(InvertedMeshError, match="cannot be untangled"):  # the default: refused at once
         jaxci.smooth(mesh, fixed_nodes=fixed)
     res = jaxci.smooth(mesh, fixed_nodes=fixed, untangle="partial")
-    after = jaxci.elements.inverted(res.mesh.points, mesh.hexes, "hexahedron")
+    after = jaxci.metrics.elements.inverted(res.mesh.points, mesh.hexes, "hexahedron")
     assert not after[near_b].any()  # the free tangle is untangled ...
     assert after.sum() == res.after.inverted_elements > 0  # ... the stuck one is left, and counted
     np.testing.assert_array_equal(res.mesh.points[fixed], mesh.points[fixed])

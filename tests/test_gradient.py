@@ -17,11 +17,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxci.boundary import INTERIOR
 from jaxci.errors import ConfigError
 from jaxci.generate import box, perturb_box
-from jaxci.optim._solve import _solve
+from jaxci.geometry.boundary import INTERIOR
+from jaxci.geometry.projection import params_to_points
+from jaxci.metrics.hexahedron import objective_t, transposed
 from jaxci.optim._solve import make_solver as _solver
+from jaxci.optim._solve import solve_loop
 from jaxci.optim.gradient import (
     GradientParams,
     make_parametrisation,
@@ -29,8 +31,6 @@ from jaxci.optim.gradient import (
     objective_and_grad,
     solver_args,
 )
-from jaxci.projection import params_to_points
-from jaxci.quality import objective_t, transposed
 from jaxci.smooth import build_problem, smooth
 
 
@@ -94,7 +94,7 @@ def test_loop_matches_optx_minimise():
     p = GradientParams()
     fn, args = solver_args("lbfgs", par, pr.conn, p)
     v0 = jnp.zeros(par.n_free)
-    y, steps, result, hf, _ = _solve(_solver("lbfgs", p), fn, v0, args, 2000)
+    y, steps, result, hf, _ = solve_loop(_solver("lbfgs", p), fn, v0, args, 2000)
     sol = optx.minimise(fn, _solver("lbfgs", p), v0, args, has_aux=True, max_steps=2000, throw=False)
     assert int(steps) == int(sol.stats["num_steps"])
     assert sol.result == optx.RESULTS.successful and result == optx.RESULTS.successful
@@ -155,9 +155,9 @@ def test_strict_run_continues_with_the_projection_near_a_flat_region_edge(monkey
 
     def spy(solver, fn, y, args, *rest):
         seen.append(args[0].strict)
-        return _solve(solver, fn, y, args, *rest)
+        return solve_loop(solver, fn, y, args, *rest)
 
-    monkeypatch.setattr(S, "_solve", spy)
+    monkeypatch.setattr(S, "solve_loop", spy)
     p = GradientParams(restart_tol=0.0, backend="jax")  # the compiled loop; no early stop: the reach test decides
     x1, _, _, _ = minimise("lbfgs", par, pr.conn, p)
     assert seen and all(seen)  # a box: no node near the edge of its flat region, every run (restarts too) strict

@@ -1,5 +1,5 @@
-"""The worst-element guard (`jaxci.guard`, `smooth(keep_worst=True)`, issue 15): the returned mesh's worst cell is
-no worse than the input's, whatever the method did, and only the nodes near the offending cells are put back."""
+"""The worst-element guard (`jaxci.metrics.guard`, `smooth(keep_worst=True)`, issue 15): the returned mesh's worst cell
+is no worse than the input's, whatever the method did, and only the nodes near the offending cells are put back."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import jaxci
-from jaxci import guard
 from jaxci.generate import perturb_box
+from jaxci.metrics import guard
 
 
 @pytest.fixture(scope="module")
@@ -56,14 +56,14 @@ def test_smooth_applies_the_guard_to_any_method(case, monkeypatch):
 
     S = importlib.import_module("jaxci.smooth")  # the module (the package's `jaxci.smooth` is the function)
     mesh, _, bad, _ = case
-    real = S._run_method
+    real = S.run_method
     bad_unit = to_unit(bad, unit_frame(mesh.points))  # smooth works in the unit frame
 
     def worsening(problem, method, key, params):
         x, it, hist, resolved = real(problem, method, key, params)
         return bad_unit, it, hist, resolved
 
-    monkeypatch.setattr(S, "_run_method", worsening)
+    monkeypatch.setattr(S, "run_method", worsening)
     guarded = jaxci.smooth(mesh, "lbfgs", dtype="float64")
     raw = jaxci.smooth(mesh, "lbfgs", dtype="float64", keep_worst=False)
     assert raw.after.max_condition > raw.before.max_condition

@@ -14,12 +14,13 @@ import pytest
 
 from jaxci.errors import ConfigError
 from jaxci.generate import perturb_box
+from jaxci.geometry.projection import NearProjector, project_near_np, project_np
 from jaxci.mesh import HexMesh
+from jaxci.metrics.hexahedron import objective_terms_and_grad, objective_terms_and_grad_np, transposed
+from jaxci.metrics.report import quality_report
 from jaxci.optim.gradient import GradientParams, minimise, use_host
 from jaxci.optim.host import HOST_MAX, lbfgs
 from jaxci.optim.parametrisation import make_parametrisation
-from jaxci.projection import NearProjector, project_near_np, project_np
-from jaxci.quality import objective_terms_and_grad, objective_terms_and_grad_np, quality_report, transposed
 from jaxci.shapes import annulus
 from jaxci.smooth import build_problem, smooth
 
@@ -217,7 +218,7 @@ def test_pmean_pulls_the_worst_element_harder_than_the_mean(backend):
     kw = dict(dtype="float64", backend=backend, keep_worst=False, fix_boundary=True)
     mean = smooth(mesh, "lbfgs", **kw)
     pm = smooth(mesh, "lbfgs", objective="pmean", **kw)
-    from jaxci.quality import pmean_objective
+    from jaxci.metrics.hexahedron import pmean_objective
 
     assert mean.after.inverted_elements == pm.after.inverted_elements == 0
     assert pm.after.max_condition < mean.after.max_condition - 0.1
@@ -286,8 +287,8 @@ def test_pytrees_are_registered_when_jax_comes_after_jaxci():
     code = """
 import sys
 from jaxci.generate import perturb_box
-from jaxci.boundary import classify_boundary
-from jaxci.projection import build_constraints, project_np
+from jaxci.geometry.boundary import classify_boundary
+from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.optim.parametrisation import make_parametrisation
 from jaxci.optim import _moves
 import numpy as np
@@ -299,11 +300,11 @@ par = make_parametrisation(mesh, info, cons, dtype=np.float64)
 assert "jax" not in sys.modules and isinstance(cons.x_orig, np.ndarray)
 import jax
 jax.config.update("jax_enable_x64", True)
-from jaxci.mixed import ExtraCells
+from jaxci.metrics.objective import ExtraCells
 fields = {f: np.zeros(1) for f in ("nodes", "mask", "star", "smask", "basis", "dims", "plane", "xnodes", "xwinv",
                                    "xweight", "xmask")}
 assert len(jax.tree_util.tree_leaves(_moves.ColouredStars(**fields, n_interior=1, n_surface=0, n_edge=0))) == 11
-from jaxci.projection import project
+from jaxci.geometry.projection import project
 leaves = jax.tree_util.tree_leaves(cons)
 assert len(leaves) == 16, len(leaves)
 assert len(jax.tree_util.tree_leaves(par)) == 16 + 5

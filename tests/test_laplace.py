@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from jaxci.cells import corner_determinants
 from jaxci.errors import ConfigError
 from jaxci.generate import box, grid_hexes, perturb_box
-from jaxci.mesh import corner_determinants, hex_mesh
+from jaxci.mesh import hex_mesh
 from jaxci.optim.laplace import edge_neighbours, run_laplace
 from jaxci.smooth import build_problem, smooth
 

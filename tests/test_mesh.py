@@ -9,6 +9,7 @@ import pytest
 from helpers import unit_cube
 
 import jaxci
+from jaxci.cells import corner_determinants
 from jaxci.errors import MeshError
 from jaxci.generate import box, box_free_axes, perturb_box
 from jaxci.mesh import (
@@ -18,7 +19,6 @@ from jaxci.mesh import (
     check_volume,
     close_pairs,
     coincident_pairs,
-    corner_determinants,
     from_unit,
     hex_mesh,
     to_unit,

@@ -1,5 +1,5 @@
 """Smoothing hex-dominant meshes: boundary faces of every cell type, mixed-node classes, the mixed objective in
-every method (jaxci.topology, jaxci.boundary, jaxci.mixed, jaxci.smooth)."""
+every method (jaxci.geometry.topology, jaxci.geometry.boundary, jaxci.metrics.objective, jaxci.smooth)."""
 
 from __future__ import annotations
 
@@ -10,19 +10,20 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxci import elements as E
-from jaxci import mixed
-from jaxci.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals, mesh_topology
+from jaxci.cells import EDGES, volume_cells
 from jaxci.generate import box, perturb_box
-from jaxci.mesh import EDGES, CellBlock, HexMesh
+from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals, mesh_topology
+from jaxci.geometry.projection import build_constraints, project, project_np
+from jaxci.geometry.topology import CELL_FACES, HEX_FACES
+from jaxci.mesh import CellBlock, HexMesh
+from jaxci.metrics import elements as E
+from jaxci.metrics import objective as mixed
+from jaxci.metrics.hexahedron import objective_t, transposed
 from jaxci.optim._local import gather_star
 from jaxci.optim._moves import colour_slice, coloured_stars, local_sum
-from jaxci.projection import build_constraints, project, project_np
-from jaxci.quality import objective_t, transposed
 from jaxci.smooth import METHODS, build_problem, smooth
-from jaxci.topology import CELL_FACES, HEX_FACES
 
-#: Unit cells of every type, node orders of `jaxci.elements`.
+#: Unit cells of every type, node orders of `jaxci.metrics.elements`.
 UNIT = {
     "hexahedron": np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]],
                            float),
@@ -61,7 +62,7 @@ def all_types_box(seed: int = 1) -> HexMesh:
 def reference_boundary(mesh: HexMesh) -> set:
     """Boundary faces by brute force: faces (as node sets) used by exactly one cell of any type."""
     count: dict = {}
-    for t, cells in mixed.volume_cells(mesh).items():
+    for t, cells in volume_cells(mesh).items():
         for cell in cells:
             for f in CELL_FACES[t]:
                 key = frozenset(cell[f].tolist())
@@ -127,7 +128,7 @@ def test_mixed_nodes_are_classified_like_hex_nodes(make):
 def test_mixed_colouring_separates_every_cell():
     mesh = all_types_box()
     pb = build_problem(mesh)
-    for t, cells in mixed.volume_cells(mesh).items():
+    for t, cells in volume_cells(mesh).items():
         c = pb.colour[cells]
         assert (np.sort(c, axis=1)[:, 1:] != np.sort(c, axis=1)[:, :-1]).all(), t
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from jaxci import native
+from jaxci.cells import CORNER_NEIGHBOURS
 from jaxci.generate import perturb_box
-from jaxci.mesh import CORNER_NEIGHBOURS
+from jaxci.metrics.hexahedron import objective_terms_and_grad_np
 from jaxci.optim._untangle_loop import corner_table, hex_kernel
-from jaxci.quality import objective_terms_and_grad_np
 
 if not native.AVAILABLE:
     if os.environ.get("CI") and os.environ.get("JAXCI_NATIVE", "1") != "0":
@@ -103,13 +103,13 @@ def test_threads_give_the_single_threaded_result(threads):
 
 
 def test_mixed_kernel_is_the_gradient_of_the_mixed_objective():
-    """Hexahedra, wedges, pyramids and tetrahedra: the C kernel's F is `jaxci.elements.mixed_objective` and its
+    """Hexahedra, wedges, pyramids and tetrahedra: the C kernel's F is `jaxci.metrics.elements.mixed_objective` and its
     gradient JAX's derivative of it; a pyramid whose sub-tetrahedron inverts makes F infinite."""
     import jax
     import jax.numpy as jnp
     from test_mixed_smoothing import all_types_box
 
-    from jaxci.elements import _mixed_objective, element_blocks, mixed_objective
+    from jaxci.metrics.elements import _mixed_objective, element_blocks, mixed_objective
 
     mesh = all_types_box()
     blocks = element_blocks(mesh)
@@ -130,13 +130,13 @@ def test_mixed_kernel_is_the_gradient_of_the_mixed_objective():
 
 
 def test_near_projector_in_c_is_the_numpy_one():
-    """`jaxci.projection.NearProjector` with the C search against its numpy search on a paved mesh with curved
+    """`jaxci.geometry.projection.NearProjector` with the C search against its numpy search on a paved mesh with curved
     walls: the same points bit for bit and the same triangles, with and without hints and kept nodes."""
     from helpers import MESQUITE
 
-    from jaxci.boundary import classify_boundary
+    from jaxci.geometry.boundary import classify_boundary
+    from jaxci.geometry.projection import NearProjector, build_constraints
     from jaxci.io import read_mesh
-    from jaxci.projection import NearProjector, build_constraints
 
     mesh = read_mesh(str(MESQUITE / "pave3.e.vtk"))
     cons = build_constraints(mesh, classify_boundary(mesh), dtype=np.float64, device=False)

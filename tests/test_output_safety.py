@@ -19,7 +19,7 @@ import pytest
 from helpers import CUBE27_EXPERIMENT, interrupted_on_call
 
 from jaxci.cli import main
-from jaxci.results import MARKER, foreign_entries
+from jaxci.experiments.results import MARKER, foreign_entries
 
 QUICK = CUBE27_EXPERIMENT + "figures: false\n"
 #: QUICK's first run, then a long one (local CI on a perturbed 24^3 box: 10 s or more on 2 cores).

@@ -1,4 +1,4 @@
-"""Projection onto the original boundary and the free-coordinate parametrisation (jaxci.projection)."""
+"""Projection onto the original boundary and the free-coordinate parametrisation (jaxci.geometry.projection)."""
 
 from __future__ import annotations
 
@@ -14,10 +14,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxci.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary
 from jaxci.generate import box, perturb_box
-from jaxci.mesh import hex_mesh
-from jaxci.projection import (
+from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary
+from jaxci.geometry.projection import (
     build_constraints,
     n_free,
     params_to_points,
@@ -26,6 +25,7 @@ from jaxci.projection import (
     project_nodes,
     project_np,
 )
+from jaxci.mesh import hex_mesh
 from jaxci.shapes import annulus, bevelled_box, l_block
 
 jax.config.update("jax_enable_x64", True)
@@ -57,7 +57,7 @@ def moved(name: str, seed: int, amplitude: float) -> np.ndarray:
 def plane_distance(mesh, info, x, nodes):
     """Distance of x[nodes] to the nearest PLANE of a boundary face of each node's own patch (piecewise planar
     patches), shape (len(nodes),)."""
-    from jaxci.boundary import face_normals
+    from jaxci.geometry.boundary import face_normals
 
     f = info.topology.faces
     nrm = face_normals(mesh.points, f)

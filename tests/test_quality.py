@@ -8,9 +8,10 @@ from helpers import MESQUITE, MESQUITE_FIGURES, random_valid_hexes, read_vtk_hex
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxci import quality as q
 from jaxci.generate import box, perturb_box
 from jaxci.mesh import hex_mesh
+from jaxci.metrics import hexahedron as q
+from jaxci.metrics.report import quality_report
 
 vtk = pytest.importorskip("vtk")
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy  # noqa: E402
@@ -80,7 +81,7 @@ def test_mesquite_meshes_match_vtk(name):
 def test_mesquite_readme_figures(name):
     n_hex, n_nodes, inv_c, inv_e, kmax, F, sj = MESQUITE_FIGURES[name]
     pts, hexes = read_vtk_hexes(MESQUITE / name)
-    r = q.quality_report(hex_mesh(pts, hexes))
+    r = quality_report(hex_mesh(pts, hexes))
     assert (r.n_elements, r.n_nodes, r.inverted_corners, r.inverted_elements) == (n_hex, n_nodes, inv_c, inv_e)
     if kmax is not None:
         assert r.max_condition == pytest.approx(kmax, abs=1e-3)
@@ -110,7 +111,7 @@ def test_unit_cube_is_ideal():
 
 def test_structured_box_is_ideal_and_histogram():
     m = box(4, 3, 2, size=(4.0, 3.0, 2.0))
-    r = q.quality_report(m)
+    r = quality_report(m)
     assert r.max_condition == pytest.approx(1.0) and r.objective == pytest.approx(0.0, abs=1e-14)
     assert r.histogram[0][2] == 8 * 24 and r.inverted_corners == 0
 
@@ -121,7 +122,7 @@ def test_inverted_corner_is_reported_not_averaged():
     bad[6] = [0.2, 0.2, 0.2]  # pulled through the element: corner 6 inverted
     assert np.isinf(np.asarray(q.corner_condition(bad, hexes))).any()
     assert np.isinf(q.objective(bad, hexes))
-    r = q.quality_report(hex_mesh(bad, hexes))
+    r = quality_report(hex_mesh(bad, hexes))
     assert r.inverted_elements == 1 and r.inverted_corners >= 1
     assert r.max_condition is None and r.mean_condition is None  # no valid element
     assert r.objective is not None and np.isfinite(r.objective)  # over the valid corners only

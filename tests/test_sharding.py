@@ -14,8 +14,8 @@ SCRIPT = textwrap.dedent(
     import numpy as np, jax.numpy as jnp
     assert len(jax.devices()) == 4, jax.devices()
     from jaxci.generate import perturb_box
-    from jaxci import quality as q
-    from jaxci.sharding import device_mesh, shard_elements, weighted_objective, sharded_candidates_objective
+    from jaxci.metrics import hexahedron as q
+    from jaxci.optim.sharding import device_mesh, shard_elements, weighted_objective, sharded_candidates_objective
     m = perturb_box(5, 4, 3, amplitude=0.3, seed=1)  # 60 hexes: padded to a multiple of 4 is not needed ...
     m2 = perturb_box(3, 3, 3, amplitude=0.3, seed=2)  # ... 27 hexes: padded to 28
     for mesh in (m, m2):

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 from helpers import MESQUITE
 
-from jaxci.boundary import classify_boundary
+from jaxci.cells import corner_determinants
 from jaxci.errors import ConfigError, InvertedMeshError
 from jaxci.generate import perturb_box
+from jaxci.geometry.boundary import classify_boundary
+from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.io import read_mesh
-from jaxci.mesh import corner_determinants
 from jaxci.optim.untangle import UntangleParams, untangle
 from jaxci.phases import compile_totals
-from jaxci.projection import build_constraints, project_np
 from jaxci.smooth import smooth
 
 
@@ -136,7 +136,7 @@ def test_untangle_boundary_frees_the_corner_and_edge_nodes_that_hold_an_inversio
     """Without the flag the stage fails and its message names the way out; with it the mesh is untangled by
     sliding a few of the boundary's corner and edge nodes on the original surface, every other node of the
     boundary stays where it was, and a note says how many moved. Nodes the user fixed are never freed."""
-    from jaxci.boundary import slide_on_surface
+    from jaxci.geometry.boundary import slide_on_surface
 
     mesh = pit_slab()
     with pytest.raises(InvertedMeshError, match="--untangle-boundary"):

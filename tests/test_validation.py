@@ -18,7 +18,7 @@ from jaxci.errors import ConfigError, InvertedMeshError, JaxciError, MeshError, 
 from jaxci.generate import box, perturb_box
 from jaxci.io import read_mesh, write_mesh
 from jaxci.mesh import hex_mesh, merge_coincident
-from jaxci.quality import quality_report
+from jaxci.metrics.report import quality_report
 
 
 def split_box(n: int = 4, amplitude: float = 0.2, seed: int = 1, scale: float = 1.0, offset: float = 0.0):
@@ -211,7 +211,7 @@ def test_flat_mesh_refused_at_once():
      "init_width must be a finite number"),
 ])
 def test_config_refusals(tmp_path, text, match):
-    from jaxci.config import load_config
+    from jaxci.experiments.config import load_config
 
     path = tmp_path / "cfg.yaml"
     path.write_text(text)

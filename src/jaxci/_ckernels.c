@@ -4,7 +4,7 @@
  * with its gradient, a few hundred times per run. Written with numpy they are ~100 array operations over every
  * corner (20-30 ms at 27,000 hexahedra on the 2-core CPU, memory-bound); one loop over the elements that keeps
  * a corner's quantities in registers does the same arithmetic in a few ms. Same formulas as
- * jaxci.quality._terms_and_grad and jaxci.optim._untangle_loop.hex_kernel (tested against them in float64).
+ * jaxci.metrics.hexahedron._terms_and_grad and jaxci.optim._untangle_loop.hex_kernel (tested against them in float64).
  *
  * Arguments are Python buffers (numpy arrays: C-contiguous float64 / int64), checked here; no numpy C API, so
  * the build needs only the Python headers. Built by setup.py as an optional extension: without a C compiler
@@ -90,7 +90,7 @@ static inline void cross(const double *x, const double *y, double *out) {
 }
 
 /* One corner with columns a, b, c: its term (kappa/3)^2 = |A|^2 |adj A|^2 / (9 det^2) in *term, and with
- * w2 != 0, w2 (9/2) d term / d(a, b, c) in ga, gb, gc (jaxci.quality._terms_and_grad's p, q, r). Returns 0
+ * w2 != 0, w2 (9/2) d term / d(a, b, c) in ga, gb, gc (jaxci.metrics.hexahedron._terms_and_grad's p, q, r). Returns 0
  * (nothing written but *term = inf) where det <= 0. */
 static inline int corner_term(const double *a, const double *b, const double *c, double w2, double *term,
                               double *ga, double *gb, double *gc) {
@@ -285,7 +285,7 @@ static void *hex_worker(void *arg) {
  *
  * term = |A|^2 |adj A|^2 / (9 det^2) = (kappa/3)^2 per corner (inf where det <= 0, in `terms`). With `grad`, adds
  * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
- * gradient of F (w2 of jaxci.quality._terms_and_grad), corner_weight the p-mean's (e_i / M_p)^(p - 1). */
+ * gradient of F (w2 of jaxci.metrics.hexahedron._terms_and_grad), corner_weight the p-mean's (e_i / M_p)^(p - 1). */
 static PyObject *hex_condition(PyObject *self, PyObject *args) {
     PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms, *ret = NULL;
     double weight;
@@ -364,7 +364,7 @@ static void *corner_worker(void *arg) {
 /* corner_condition(points (n, 3) f8, table (4, C) i8, winv (3, 3) f8, weight, grad (n, 3) f8 or None, terms (C,)
  * f8 or None[, threads]) -> (sum of (term - 1), max term, inverted corners): hex_condition over a flat table of
  * corners (row 0 the corner's node, rows 1-3 the far ends of its columns) of any cell type, each corner matrix
- * taken relative to the type's ideal one, T = A W^-1 (jaxci.elements: wedges, pyramids, tetrahedra). */
+ * taken relative to the type's ideal one, T = A W^-1 (jaxci.metrics.elements: wedges, pyramids, tetrahedra). */
 static PyObject *corner_condition(PyObject *self, PyObject *args) {
     PyObject *o_pts, *o_tab, *o_wi, *o_grad, *o_terms, *ret = NULL;
     double weight;
@@ -511,8 +511,8 @@ done:
 }
 
 /* ------------------------------------------------------------------------------------------ projection
- * The numpy path's boundary projection (jaxci.projection.NearProjector): every active node to the nearest point
- * of its candidate triangles (segments), starting with the one of its hint. Tables as in jaxci._closest: one
+ * The numpy path's boundary projection (jaxci.geometry.projection.NearProjector): every active node to the nearest point
+ * of its candidate triangles (segments), starting with the one of its hint. Tables as in jaxci.geometry._closest: one
  * row per precomputed quantity, one column per triangle (19 rows) or segment (8 rows). */
 enum { TC = 0, TE1 = 3, TE2 = 6, TN = 9, TG = 12, TOK = 15, TIS = 16, TID = 17, TL2 = 18 };
 enum { SA = 0, SD = 3, SI = 6, SL2 = 7 };
@@ -537,7 +537,7 @@ static int plane_point(const double *x, const double *T, Py_ssize_t nt, Py_ssize
 #undef R
 }
 
-/* Nearest point of x on triangle j (jaxci._closest._closest_on_triangles): its score (squared distance, plus
+/* Nearest point of x on triangle j (jaxci.geometry._closest.closest_on_triangles): its score (squared distance, plus
  * a rounding-level penalty for points on the spoke or the side) and the point in p. */
 static double closest_on_triangle(const double *x, const double *T, Py_ssize_t nt, Py_ssize_t j, double tol,
                                   double bump, double *p) {
@@ -573,8 +573,8 @@ static double closest_on_triangle(const double *x, const double *T, Py_ssize_t n
 #undef R
 }
 
-/* Nearest point of x on segment j (jaxci._closest._closest_on_segments); with `inside`, whether the orthogonal
- * projection falls inside it (jaxci._closest._line_point). */
+/* Nearest point of x on segment j (jaxci.geometry._closest.closest_on_segments); with `inside`, whether the orthogonal
+ * projection falls inside it (jaxci.geometry._closest.line_point). */
 static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns, Py_ssize_t j, double tol,
                                  double bump, double *p, int *inside) {
 #define R(r, k) T[((r) + (k)) * ns + j]

@@ -20,10 +20,24 @@ import numbers
 
 import numpy as np
 
-from .errors import MeshError
+from .cells import corner_determinants
+from .errors import ConfigError, MeshError
 from .memory import check_fits, generate_bytes
-from .mesh import HexMesh, corner_determinants, hex_mesh
-from .optim._params import check_seed
+from .mesh import HexMesh, hex_mesh
+
+#: Largest seed: seeds are integers in [0, MAX_SEED]. A `jax.random` key from an integer keeps 32 bits of it
+#: (2**32 and 0 gave the same key), so larger seeds are refused rather than silently aliased.
+MAX_SEED = 2**32 - 1
+
+
+def check_seed(seed, what: str = "seed") -> int:
+    """`seed` as an int in ``[0, MAX_SEED]`` (`ConfigError` otherwise: a float, a string, None, a bool, a negative
+    or a larger integer). Every accepted seed gives its own `jax.random` key and numpy generator."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise ConfigError(f"{what} must be an integer in [0, 2**32 - 1], got {seed!r}")
+    if not 0 <= int(seed) <= MAX_SEED:
+        raise ConfigError(f"{what} must be an integer in [0, 2**32 - 1] (= {MAX_SEED}), got {seed!r}")
+    return int(seed)
 
 
 def grid_hexes(ni: int, nj: int, nk: int, periodic_j: bool = False) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 A box of 1000^3 elements, or a file of 10^9 hexahedra, would run for minutes and then die of `MemoryError` (or be
 killed) part way through. jaxci refuses such a job up front, with the estimate: where a config is validated
-(`jaxci.config`: generated boxes), in the box builders (`jaxci.generate`) and in `jaxci.smooth.smooth`.
+(`jaxci.experiments.config`: generated boxes), in the box builders (`jaxci.generate`) and in `jaxci.smooth.smooth`.
 
 The figures were measured on this project's 2-core CPU machine (jax 0.10, XLA CPU): one process per case builds a
 perturbed box of n^3 elements (amplitude 0.2) and smooths it (ci with max_sweeps=3, ci-global attempts=3, lbfgs

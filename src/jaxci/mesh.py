@@ -27,23 +27,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .cells import EDGES, corner_determinants
 from .errors import MeshError
-
-#: For corner i of a hexahedron, the nodes whose differences with node i are the three columns of the corner
-#: matrix A_i (Verdict / VTK / Mesquite convention, see ``shared/reference/metrics.md``). Shape ``(8, 3)``.
-CORNER_NEIGHBOURS = np.array(
-    [
-        [1, 3, 4],
-        [2, 0, 5],
-        [3, 1, 6],
-        [0, 2, 7],
-        [7, 5, 0],
-        [4, 6, 1],
-        [5, 7, 2],
-        [6, 4, 3],
-    ],
-    dtype=np.int64,
-)
 
 #: Permutation that mirrors a hexahedron (swaps the two quadrilateral faces 0123 and 4567). It is its own
 #: inverse; it turns a left-handed element (all eight corner determinants negative) into a right-handed one.
@@ -51,17 +36,6 @@ MIRROR_HEX = np.array([4, 5, 6, 7, 0, 1, 2, 3], dtype=np.int64)
 
 #: Permutation of the 12 hexahedron edges (`EDGES`) that goes with `MIRROR_HEX`.
 MIRROR_HEX_EDGES = np.array([4, 5, 6, 7, 0, 1, 2, 3, 8, 9, 10, 11], dtype=np.int64)
-
-#: Edges (pairs of local corner nodes) of the linear volume cells, in the order of the midside nodes of VTK's
-#: quadratic cells (``hexahedron20``, ``wedge15``, ``pyramid13``, ``tetra10``) and of ANSYS's SOLID186/187.
-EDGES = {
-    "hexahedron": np.array(
-        [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]]
-    ),
-    "wedge": np.array([[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3], [0, 3], [1, 4], [2, 5]]),
-    "pyramid": np.array([[0, 1], [1, 2], [2, 3], [3, 0], [0, 4], [1, 4], [2, 4], [3, 4]]),
-    "tetra": np.array([[0, 1], [1, 2], [2, 0], [0, 3], [1, 3], [2, 3]]),
-}
 
 #: Relative distance from its edge's midpoint (to the edge length) below which a midside node counts as ON the
 #: midpoint (a straight edge; files keep 13-14 digits): `HexMesh.with_points` then puts it exactly there.
@@ -114,25 +88,6 @@ class CellBlock:
     data: np.ndarray
     ids: np.ndarray | None = None
     midside: np.ndarray | None = None
-
-
-def corner_determinants(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
-    """det A_i of every corner of every hexahedron, in numpy float64 (validation; the fast path is jaxci.quality).
-
-    **Arguments:** `points` of shape ``(n, 3)``; `hexes` of shape ``(N, 8)``.
-
-    **Returns:** an array of shape ``(N, 8)``.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    h = np.asarray(hexes)
-    X, Y, Z = (np.ascontiguousarray(p[:, d][h.T]) for d in range(3))  # (8, N) each: one row per local node
-    out = np.empty((h.shape[0], 8))
-    for i, (j, k, m) in enumerate(CORNER_NEIGHBOURS):  # columns a, b, c from node i; det = a . (b x c)
-        ax, ay, az = X[j] - X[i], Y[j] - Y[i], Z[j] - Z[i]
-        bx, by, bz = X[k] - X[i], Y[k] - Y[i], Z[k] - Z[i]
-        cx, cy, cz = X[m] - X[i], Y[m] - Y[i], Z[m] - Z[i]
-        out[:, i] = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-    return out
 
 
 def unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -307,7 +262,7 @@ class HexMesh:
         if bad.any():
             k = int(np.flatnonzero(bad)[0])
             raise MeshError(
-                f"{where}node {self._node_label(k)} has non-finite coordinates {pts[k].tolist()} "
+                f"{where}node {self.node_label(k)} has non-finite coordinates {pts[k].tolist()} "
                 f"({int(bad.sum())} such nodes)"
             )
         n = pts.shape[0]
@@ -325,7 +280,7 @@ class HexMesh:
                     row = int(np.flatnonzero((data < 0).any(axis=1) | (data >= n).any(axis=1))[0])
                     val = int(data[row][(data[row] < 0) | (data[row] >= n)][0])
                     raise MeshError(
-                        f"{where}{blk.type} element {self._cell_label(blk, row)} references node index {val}, "
+                        f"{where}{blk.type} element {self.block_label(blk, row)} references node index {val}, "
                         f"out of range [0, {n})"
                     )
             ids = None if blk.ids is None else np.asarray(blk.ids)
@@ -348,7 +303,7 @@ class HexMesh:
                 f"({int(rep.sum())} such elements)"
             )
         mirrored = self.hex_mirrored
-        _check_range(pts, hexes, where, self._node_label)
+        _check_range(pts, hexes, where, self.node_label)
         det = corner_determinants(to_unit(pts, unit_frame(pts)), hexes)  # no overflow at 1e300, no underflow
 
         left = (det < 0).all(axis=1)
@@ -375,7 +330,7 @@ class HexMesh:
         used = np.zeros(n, bool)
         for b in blocks:
             used[b.data.ravel()] = True
-        midside, _ = _midside_table(blocks, used, where, self._node_label)
+        midside, _ = _midside_table(blocks, used, where, self.node_label)
         used[midside] = True
         if not used.all():
             notes.append(f"{int((~used).sum())} unreferenced nodes (kept, never moved)")
@@ -401,18 +356,18 @@ class HexMesh:
         bad = (mid < -1) | (mid >= n)
         if bad.any():
             row = int(np.flatnonzero(bad.any(axis=1))[0])
-            raise MeshError(f"{where}{blk.type} element {HexMesh._cell_label(CellBlock(blk.type, data, ids), row)} "
+            raise MeshError(f"{where}{blk.type} element {HexMesh.block_label(CellBlock(blk.type, data, ids), row)} "
                             f"has midside node index {int(mid[row][bad[row]][0])}, out of range [0, {n})")
         return mid
 
     # ------------------------------------------------------------------ labels for messages
-    def _node_label(self, k: int) -> str:
+    def node_label(self, k: int) -> str:
         if self.node_ids is not None:
             return f"{int(np.asarray(self.node_ids)[k])} (index {k})"
         return str(k)
 
     @staticmethod
-    def _cell_label(blk: CellBlock, row: int) -> str:
+    def block_label(blk: CellBlock, row: int) -> str:
         if blk.ids is not None:
             return f"{int(np.asarray(blk.ids)[row])} (index {row})"
         return str(row)
@@ -423,7 +378,7 @@ class HexMesh:
             if b.type != "hexahedron":
                 continue
             if k < len(b.data):
-                return HexMesh._cell_label(b, k)
+                return HexMesh.block_label(b, k)
             k -= len(b.data)
         raise IndexError(k)
 
@@ -467,7 +422,7 @@ class HexMesh:
         used = np.zeros(self.n_nodes, bool)
         for b in self.cells:
             used[b.data.ravel()] = True
-        return _midside_table(self.cells, used, "", self._node_label)
+        return _midside_table(self.cells, used, "", self.node_label)
 
     @property
     def other_cell_types(self) -> list[str]:
@@ -547,7 +502,7 @@ def _midside_table(blocks, corner_used: np.ndarray, where: str, label) -> tuple[
 
     def elem(r) -> str:
         blk = blocks[int(r[3])]
-        return f"{blk.type} element {HexMesh._cell_label(blk, int(r[4]))}"
+        return f"{blk.type} element {HexMesh.block_label(blk, int(r[4]))}"
 
     corner = corner_used[t[:, 0]]
     if corner.any():
@@ -599,7 +554,7 @@ def _check_range(pts: np.ndarray, hexes: np.ndarray, where: str, label) -> None:
 def coincident_note(mesh: HexMesh, pairs: np.ndarray) -> str:
     """The sentence of `HexMesh.notes` about coincident nodes (`HexMesh.coincident_nodes`)."""
     n = len(np.unique(pairs))
-    a, b = (mesh._node_label(int(k)) for k in pairs[0])
+    a, b = (mesh.node_label(int(k)) for k in pairs[0])
     return (f"{len(pairs)} pairs of coincident nodes ({n} nodes closer than {COINCIDENT_TOLERANCE:g} x the "
             f"bounding-box diagonal: an unmerged interface?), first: nodes {a} and {b}; smoothing keeps them fixed "
             f"(--merge-coincident or jaxci.mesh.merge_coincident merges them)")
@@ -646,7 +601,7 @@ def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMes
                                                                     -1))
                   for b in mesh.cells)
     merged = int(n - keep.sum())
-    first = mesh._node_label(int(pairs[0, 1])), mesh._node_label(int(pairs[0, 0]))
+    first = mesh.node_label(int(pairs[0, 1])), mesh.node_label(int(pairs[0, 0]))
     groups = len(np.unique(target[~keep]))
     note = (f"merged {groups} groups of coincident nodes ({merged + groups} nodes closer than {tol:g} x the "
             f"bounding-box diagonal) into one node each, first: node {first[0]} into {first[1]}; {n} -> "
@@ -672,9 +627,9 @@ def as_hex_mesh(obj, caller: str) -> HexMesh:
         return obj
     cls = type(obj)
     if cls.__name__ == "Mesh" and cls.__module__.split(".")[0] == "meshio":
-        from .io._meshio import _from_meshio
+        from .io._meshio import from_meshio
 
-        return _from_meshio(obj, "<meshio.Mesh>")
+        return from_meshio(obj, "<meshio.Mesh>")
     hint = "read a file with jaxci.read_mesh(path) or build one with jaxci.hex_mesh(points, hexes)"
     if isinstance(obj, (str, bytes, os.PathLike)):
         raise UsageError(f"{caller} expects a jaxci HexMesh, got the path {os.fsdecode(obj)!r}; read the file with "

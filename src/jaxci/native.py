@@ -16,6 +16,8 @@ import os
 
 import numpy as np
 
+from .cells import CORNERS, PYRAMID_TETS, TARGETS, pmean_weights
+
 try:
     if os.environ.get("JAXCI_NATIVE", "1") == "0":
         raise ImportError("JAXCI_NATIVE=0")
@@ -54,7 +56,7 @@ def _i8(a) -> np.ndarray:
 
 def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | None = None
                        ) -> tuple[float, float, np.ndarray]:
-    """``(F, max kappa/3, dF/dx)`` of the hexahedra, as `jaxci.quality.objective_terms_and_grad_np`.
+    """``(F, max kappa/3, dF/dx)`` of the hexahedra, as `jaxci.metrics.hexahedron.objective_terms_and_grad_np`.
 
     **Arguments:** `points` ``(n, 3)``; `hexes` ``(N, 8)`` (element-major: one element's nodes together);
     `power` p: the p-mean ``M_p`` of the corner excesses instead of their mean F (two passes: the terms, then
@@ -71,8 +73,6 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
         s, tmax, bad = _c.hex_condition(x, h, weight, grad, None, None, THREADS)
         f = np.inf if bad else (s / n_corners if n_corners else 0.0)
         return f, (np.inf if bad else float(np.sqrt(tmax))), grad
-    from .quality import pmean_weights
-
     terms = np.empty((8, h.shape[0]))
     _c.hex_condition(x, h, 0.0, None, None, terms, THREADS)
     m, c = pmean_weights(np, terms - 1.0, None, float(power))
@@ -84,23 +84,21 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
 def corner_table(cells: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """The corners of `cells` ``(N, k)`` as a flat table ``(4, n_corners N)`` int64 for `corner_condition`: row 0
     the corner's node, rows 1-3 the far ends of its columns (`corners`: rows ``[i, p, q, r]`` of
-    `jaxci.elements.CORNERS`); corner j of cell e at ``j N + e``."""
+    `jaxci.cells.CORNERS`); corner j of cell e at ``j N + e``."""
     c = np.asarray(cells, dtype=np.int64)
     return np.ascontiguousarray(np.stack([c[:, corners[:, m]].T.ravel() for m in range(4)]))
 
 
 class MixedKernel:
-    """``(F, max kappa/3, dF/dx) = kernel(points)`` over every cell of a hex-dominant mesh (`jaxci.elements`'
+    """``(F, max kappa/3, dF/dx) = kernel(points)`` over every cell of a hex-dominant mesh (`jaxci.metrics.elements`'
     mixed objective: the mean over the corners of every hexahedron, wedge, pyramid and tetrahedron of
     ``(kappa/3)^2 - 1``, each relative to its type's ideal corner; ``inf`` if a corner, or one of the four
     tetrahedra of a pyramid, is inverted), for the numpy path of L-BFGS on mixed meshes.
 
-    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.elements.element_blocks`).
+    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.cells.element_blocks`).
     """
 
     def __init__(self, blocks: dict):
-        from .elements import CORNERS, PYRAMID_TETS, TARGETS
-
         self.hexes = _i8(blocks.get("hexahedron", np.zeros((0, 8))))
         self.extra = [(corner_table(c, CORNERS[t]), _f8(np.linalg.inv(TARGETS[t])))
                       for t, c in blocks.items() if t != "hexahedron" and len(c)]
@@ -136,10 +134,10 @@ def hex_sums(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float, int]:
 
 def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.ndarray, cand: np.ndarray,
                  table: np.ndarray, kind: int, tol: float, bump: float) -> None:
-    """`jaxci.projection.NearProjector`'s search in C, in place: every node ``nodes[i]`` for ``i`` in `active`
+    """`jaxci.geometry.projection.NearProjector`'s search in C, in place: every node ``nodes[i]`` for ``i`` in `active`
     to the orthogonal projection onto its hint's cell (``cand[i, hint[i]]``) where that falls inside, else to
     the nearest point of its candidates (``hint[i]`` := the column). `kind` 0: triangles (`table` of 19 rows),
-    1: segments (8 rows); `tol`, `bump` as `jaxci._closest`. `x` float64 ``(n, 3)``, index arrays int64."""
+    1: segments (8 rows); `tol`, `bump` as `jaxci.geometry._closest`. `x` float64 ``(n, 3)``, index arrays int64."""
     _c.near_project(x, nodes, _i8(active), hint, cand, table, int(kind), float(tol), float(bump))
 
 

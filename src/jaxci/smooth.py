@@ -1,10 +1,10 @@
 """`jaxci.smooth`: one interface for every smoothing method, one history record for all of them.
 
 Every method works on the same problem: minimise the paper's F (Eq. 3.1) by moving nodes, corner nodes fixed,
-edge nodes on their feature curve, surface nodes on their surface (`jaxci.boundary`, `jaxci.projection`). On a
-hex-dominant mesh F is the mean over the corners of EVERY cell, hexahedra, wedges, pyramids and tetrahedra
-(`jaxci.elements.mixed_objective`, `jaxci.mixed`), and the nodes of linear non-hexahedral cells move too.
-Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
+edge nodes on their feature curve, surface nodes on their surface (`jaxci.geometry.boundary`,
+`jaxci.geometry.projection`). On a hex-dominant mesh F is the mean over the corners of EVERY cell, hexahedra, wedges,
+pyramids and tetrahedra (`jaxci.metrics.elements.mixed_objective`, `jaxci.metrics.objective`), and the nodes of linear
+non-hexahedral cells move too. Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
 
 - no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase (else
   the input is returned, with a note saying why);
@@ -26,16 +26,18 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from . import mixed
 from ._lazy import enable_x64, jax, jnp
-from .boundary import BoundaryInfo, classify_boundary, fix_nodes
-from .elements import checked_objective
+from .cells import volume_cells
 from .errors import ConfigError, InvertedMeshError, MeshError
+from .geometry.boundary import BoundaryInfo, classify_boundary, fix_nodes
+from .geometry.projection import Constraints, build_constraints, n_free, project_np
+from .geometry.topology import colour_nodes, node_adjacency
 from .mesh import HexMesh
+from .metrics import objective as mixed
+from .metrics.elements import checked_objective
+from .metrics.hexahedron import transposed
+from .metrics.report import QualityReport, quality_report
 from .optim.host import HOST_MAX, runs_on_host
-from .projection import Constraints, build_constraints, n_free, project_np
-from .quality import QualityReport, quality_report, transposed
-from .topology import colour_nodes, node_adjacency
 
 #: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
 #: (`auto_pipeline`).
@@ -66,7 +68,7 @@ class SmoothResult:
       ``max_condition`` lists, plus method-specific series (CI: ``best``, ``worst`` behaviour; ``moved``).
     - `iterations`, `wall_time` (seconds, including compilation), `method`, `params` (all hyperparameters).
     - `before`, `after`: `QualityReport` of input and output; `boundary`: node counts per class.
-    - `node_class`: class of every node (`jaxci.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
+    - `node_class`: class of every node (`jaxci.geometry.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
     - `notes`: what a user should know (invariant fallbacks, untangling, an iteration cap that stopped it, ...).
     - `phases`: where the time went (`jaxci.phases.PhaseClock.as_dict`: seconds, compile seconds and
       compilations per phase: ``validate``, ``report`` (quality before), ``untangle``, ``setup`` (boundary
@@ -105,8 +107,8 @@ class SmoothResult:
 @dataclasses.dataclass(frozen=True)
 class Problem:
     """Everything a method needs, built once: constraints, transposed connectivity, dtype; for a mixed mesh the
-    non-hexahedral cells (`extra`: `jaxci.mixed.ExtraCells`; `table`: `jaxci.mixed.CornerTable`), None for a
-    hexahedral one; the colouring (`colour`) on first use."""
+    non-hexahedral cells (`extra`: `jaxci.metrics.objective.ExtraCells`; `table`:
+    `jaxci.metrics.objective.CornerTable`), None for a hexahedral one; the colouring (`colour`) on first use."""
 
     mesh: HexMesh
     info: BoundaryInfo
@@ -120,10 +122,10 @@ class Problem:
     @functools.cached_property
     def colour(self) -> np.ndarray:
         """The colour of every node, int32 ``(n_nodes,)``: no two nodes of one colour share a cell of any type
-        (`jaxci.topology.colour_nodes`; the methods that move nodes colour by colour, CI and the Laplacians).
+        (`jaxci.geometry.topology.colour_nodes`; the methods that move nodes colour by colour, CI and the Laplacians).
         Computed on first use: L-BFGS needs none, and node adjacency imports scipy.sparse."""
         mesh = self.mesh
-        adjacency = node_adjacency(list(mixed.volume_cells(mesh).values()), mesh.n_nodes) if self.extra is not None \
+        adjacency = node_adjacency(list(volume_cells(mesh).values()), mesh.n_nodes) if self.extra is not None \
             else None
         return np.asarray(colour_nodes(mesh.hexes, mesh.n_nodes, adjacency).colour)
 
@@ -154,8 +156,8 @@ def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     one only on F and with the C kernels), its reports and checks in numpy. JAX is then never imported (0.4-0.5 s
     of a small mesh's run)."""
     from . import native
-    from .elements import objective_on_host
-    from .quality import NUMPY_REPORT_MAX
+    from .metrics.elements import objective_on_host
+    from .metrics.report import NUMPY_REPORT_MAX
 
     if method != "lbfgs" or int(params.get("presmooth", 0)):
         return False
@@ -184,7 +186,7 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
     return "lbfgs", params, desc
 
 
-def _run_method(problem: Problem, method: str, seed: int, params: dict):
+def run_method(problem: Problem, method: str, seed: int, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
     of the randomised methods (only there: building it compiles a program)."""
     if method in ("ci", "ci-global"):
@@ -213,7 +215,7 @@ def _run_method(problem: Problem, method: str, seed: int, params: dict):
 
 
 def free_scale(problem: Problem) -> jnp.ndarray:
-    """Local edge length per free coordinate (the `jaxci.projection` layout), shape ``(n_free,)``
+    """Local edge length per free coordinate (the `jaxci.geometry.projection` layout), shape ``(n_free,)``
     (`jaxci.optim.parametrisation.free_lengths`)."""
     from .optim.parametrisation import free_lengths
 
@@ -247,7 +249,7 @@ def smooth(
       L-BFGS, with smart-Laplace sweeps first on large meshes), ``"ci"`` batched local Cohort Intelligence,
       ``"ci-global"`` the paper's global CI; ``"bfgs"``, ``"lbfgs"``, ``"cg"``, ``"lm"``, ``"gauss-newton"``
       the optimistix baselines (`jaxci.optim.gradient`); ``"laplace"``, ``"smart-laplace"`` (`jaxci.optim.laplace`).
-    - `seed`: an integer in [0, 2**32 - 1] (`jaxci.optim._params.check_seed`), the seed of the `jax.random` key
+    - `seed`: an integer in [0, 2**32 - 1] (`jaxci.generate.check_seed`), the seed of the `jax.random` key
       of stochastic methods (same seed, same result; distinct seeds, distinct keys). The key uses the ``"rbg"``
       generator (XLA's RngBitGenerator): its code compiles in a tenth of the time of threefry's.
     - `dtype`: ``"float32"`` (default, fast) or ``"float64"``.
@@ -270,7 +272,7 @@ def smooth(
       nodes). Default False: coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface) are fixed, so
       they stay exactly coincident, and a note says how many.
     - `keep_worst`: guarantee that the worst cell (max corner kappa/3, float64, every cell type) is no worse than
-      the input's (`jaxci.guard.keep_worst`: the nodes of cells that ended worse are put back, and a note says
+      the input's (`jaxci.metrics.guard.keep_worst`: the nodes of cells that ended worse are put back, and a note says
       what that cost in mean quality). False returns the method's result as it is.
     - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
@@ -311,7 +313,7 @@ def smooth(
     if len(pairs):
         fixed = np.union1d(fixed, pairs.ravel())
         notes.append(f"{len(pairs)} pairs of coincident nodes ({len(np.unique(pairs))} nodes, first: "
-                     f"{mesh._node_label(int(pairs[0, 0]))} and {mesh._node_label(int(pairs[0, 1]))}) fixed, so they "
+                     f"{mesh.node_label(int(pairs[0, 0]))} and {mesh.node_label(int(pairs[0, 1]))}) fixed, so they "
                      f"stay coincident (--merge-coincident, or merge_coincident=True, merges them)")
     frame = unit_frame(mesh.points)
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
@@ -333,9 +335,9 @@ def smooth(
 def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params, flags: dict):
     """`smooth`'s argument checks, before any work: ``(mesh, method, seed, fixed_sets, untangle_params, params,
     auto)`` with the `auto_pipeline` resolved (`auto`: its description, else "")."""
+    from .generate import check_seed
     from .memory import check_fits, smooth_bytes
     from .mesh import as_hex_mesh, check_volume
-    from .optim._params import check_seed
 
     mesh = as_hex_mesh(mesh, "smooth")
     if not isinstance(method, str) or method not in METHODS:
@@ -460,7 +462,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                 after=before if untangled is None else quality_report(mesh, x), boundary=problem.info.counts,
                 node_class=np.asarray(problem.info.node_class))
         with clock.phase("smooth"):
-            x, iterations, history, resolved = _run_method(problem, method, seed, params)
+            x, iterations, history, resolved = run_method(problem, method, seed, params)
             x = np.asarray(x, dtype=np.float64)
     notes.extend(problem.info.notes)
     cap = _CAPS.get(method)
@@ -490,9 +492,10 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
 def _release_features(mesh: HexMesh, info: BoundaryInfo, fixed_nodes, fixed_sets) -> tuple[BoundaryInfo, np.ndarray]:
     """``untangle_boundary``: `info` with the corner and edge nodes of the inverted corners (det <= 0: a corner
     node and its three edge neighbours) that only the boundary's geometry holds made surface nodes
-    (`jaxci.boundary.slide_on_surface`), and those nodes."""
-    from .boundary import releasable_feature_nodes, slide_on_surface
-    from .elements import CORNERS, corner_determinant, element_blocks
+    (`jaxci.geometry.boundary.slide_on_surface`), and those nodes."""
+    from .cells import CORNERS, element_blocks
+    from .geometry.boundary import releasable_feature_nodes, slide_on_surface
+    from .metrics.elements import corner_determinant
 
     keep = [np.asarray(fixed_nodes, dtype=np.int64)]
     keep += [np.asarray(mesh.point_sets[name], dtype=np.int64).ravel() for name in fixed_sets]
@@ -506,8 +509,9 @@ def _put_back(mesh: HexMesh, nodes: np.ndarray, x: np.ndarray) -> np.ndarray:
     """`x` with each of `nodes` (released feature nodes the untangling moved) back at its input position, one
     after the other, wherever that leaves every cell around it valid: the feature nodes an untangled mesh does
     not need moved stay put. Returns the nodes still moved."""
-    from .elements import element_blocks, inverted
-    from .topology import csr_gather, incidence
+    from .cells import element_blocks
+    from .geometry.topology import csr_gather, incidence
+    from .metrics.elements import inverted
 
     around = [(t, cells, incidence(cells, mesh.n_nodes)) for t, cells in element_blocks(mesh).items()]
     still = []
@@ -574,7 +578,7 @@ def method_params(method: str, params: dict):
     """The checked parameter dataclass of `method` built from `params` (`ConfigError` naming the method and the
     parameter for an unknown name or a bad value). A parameter not given takes its METHOD's default: CI's come
     from `jaxci.optim.ci.CIParams.for_method` (``"ci"`` local CI's, ``"ci-global"`` the paper's global CI's),
-    the one source for `smooth`, ``jaxci smooth`` and YAML configs (`jaxci.config`)."""
+    the one source for `smooth`, ``jaxci smooth`` and YAML configs (`jaxci.experiments.config`)."""
     from .optim._params import make_params
 
     if params.get("objective", "mean") != "mean" and method not in ("bfgs", "lbfgs", "cg"):
@@ -600,9 +604,9 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_wor
                         ) -> tuple[np.ndarray, list[str]]:
     """Exact float64 projection onto the original boundary (not with `projected`: `x` comes from the host
     solver, which evaluated it with every boundary node projected onto the original boundary in float64), then
-    the no-inversion, worst-cell (`jaxci.guard.keep_worst`, if asked) and no-increase checks over every cell
-    type (`jaxci.elements.inverted`; of `jaxci.elements.mixed_objective`, or of the p-mean
-    `jaxci.quality.pmean_objective` with `power`: the objective the method minimised)."""
+    the no-inversion, worst-cell (`jaxci.metrics.guard.keep_worst`, if asked) and no-increase checks over every
+    cell type (`jaxci.metrics.elements.inverted`; of `jaxci.metrics.elements.mixed_objective`, or of the p-mean
+    `jaxci.metrics.hexahedron.pmean_objective` with `power`: the objective the method minimised)."""
     if not projected:
         x = project_np(build_constraints(mesh, problem.info, dtype=np.float64, device=False), x)
     new = mixed.newly_inverted(mesh, mesh.points, x)
@@ -613,7 +617,7 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_wor
         return np.array(mesh.points), [f"the result had newly inverted elements ({what}); the input is returned"]
     notes = []
     if keep_worst:
-        from .guard import keep_worst as guard
+        from .metrics.guard import keep_worst as guard
 
         # the input's worst cell from its report (valid input on this path: every corner counted), not recomputed
         w0 = None if before is None else (before.overall or {}).get("max_condition", before.max_condition)

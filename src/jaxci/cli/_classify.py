@@ -21,7 +21,7 @@ def add_args(p) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from ..boundary import classify_boundary
+    from ..geometry.boundary import classify_boundary
     from ..io import read_mesh, write_mesh
     from ._files import check_output
     from ._interrupt import removing_temporaries

@@ -7,8 +7,8 @@ nothing when imported, and nothing when `main` runs outside the main thread) ins
 
 - a handler for SIGINT and SIGTERM that records the first signal and raises `KeyboardInterrupt` in the main
   thread: the normal path, where the command's own clean-up runs (``jaxci run`` writes its finished runs). A
-  `jaxci.results.uninterrupted` block (the renames that swap a results folder) gets the interrupt at its end.
-  jaxlib polls for signals while it waits for a computation, so the handler usually runs at once; but it may
+  `jaxci.experiments.results.uninterrupted` block (the renames that swap a results folder) gets the interrupt at its
+  end. jaxlib polls for signals while it waits for a computation, so the handler usually runs at once; but it may
   run inside JAX's garbage-collector callback, where Python ignores exceptions: then (`_swallowed_in`, or
   `sys.unraisablehook` for the cases it misses) a one-shot `sys.setprofile` hook raises the interrupt at the
   first call or return outside such a callback;
@@ -97,9 +97,9 @@ class Guard:
             self._raise(frame)
 
     def _raise(self, frame) -> None:
-        """Raise the interrupt in `frame`, at the end of a `jaxci.results.uninterrupted` block, or, where Python
-        would ignore it, at the first profile event outside such a place."""
-        from ..results import defer_interrupt
+        """Raise the interrupt in `frame`, at the end of a `jaxci.experiments.results.uninterrupted` block, or, where
+        Python would ignore it, at the first profile event outside such a place."""
+        from ..experiments.results import defer_interrupt
 
         if _swallowed_in(frame):
             sys.setprofile(self._profile)
@@ -244,7 +244,7 @@ def on_interrupt(fn):
 @contextlib.contextmanager
 def removing_temporaries(target: str | os.PathLike):
     """Within the block, an emergency exit removes the temporary files and folders of an atomic write of
-    `target` (``.<name>.*.tmp`` beside it, as `jaxci.io.write_mesh` and `jaxci.results.write_text` make)
+    `target` (``.<name>.*.tmp`` beside it, as `jaxci.io.write_mesh` and `jaxci.experiments.results.write_text` make)
     that appeared during the block."""
     target = Path(target)
     folder = target.parent

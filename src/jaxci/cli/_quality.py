@@ -1,8 +1,8 @@
-"""`jaxci quality MESH [--json]`: the mesh report of `jaxci.quality.quality_report`.
+"""`jaxci quality MESH [--json]`: the mesh report of `jaxci.metrics.report.quality_report`.
 
 The table gives the hexahedra's figures (the paper's: max/mean k/3, F of Eq. 3.1, min scaled Jacobian), then one
 row per volume cell type and one for all of them (``by_type`` / ``overall`` of the JSON; k/3 relative to each
-type's ideal cell, F the mixed objective of `jaxci.elements`), then the hexahedra's corner histogram.
+type's ideal cell, F the mixed objective of `jaxci.metrics.elements`), then the hexahedra's corner histogram.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ def add_args(p) -> None:
 
 def report_dict(mesh, feature_angle: float = 40.0) -> dict:
     """The quality keys of a mesh, as `jaxci quality --json` prints them, with the node class counts."""
-    from ..boundary import classify_boundary
-    from ..quality import quality_report
+    from ..geometry.boundary import classify_boundary
+    from ..metrics.report import quality_report
 
     d = quality_report(mesh).to_dict()
     counts = classify_boundary(mesh, feature_angle=feature_angle).counts

@@ -1,10 +1,11 @@
-"""`jaxci run CONFIG [--out DIR] [--force] [--seeds N] [--quiet]`: run an experiment config (`jaxci.experiment`).
+"""`jaxci run CONFIG [--out DIR] [--force] [--seeds N] [--quiet]`: run an experiment config
+(`jaxci.experiments.runner`).
 
 Exit codes: 0 all runs done, 1 some runs failed (listed on stderr, recorded in the summary), 2 a bad config or
 output folder (nothing written), 130 on SIGINT (Ctrl-C) and 143 on SIGTERM: the finished runs are written,
 marked ``"partial": true``, even when the signal comes during a long computation (`_interrupt`).
 
-DIR (`jaxci.results`): a new folder, or with ``--force`` an empty one or earlier jaxci results (marker file
+DIR (`jaxci.experiments.results`): a new folder, or with ``--force`` an empty one or earlier jaxci results (marker file
 ``.jaxci-results``) holding nothing else; never the current folder or one holding an input. Earlier results
 are replaced only by a complete run: an interrupted run, or one where every run failed, is written beside them
 to ``DIR.partial-N`` / ``DIR.failed-N`` (first free N) and stderr says so.
@@ -16,7 +17,7 @@ import sys
 
 
 def add_args(p) -> None:
-    p.add_argument("config", help="experiment config (YAML); see configs/ and jaxci.config")
+    p.add_argument("config", help="experiment config (YAML); see configs/ and jaxci.experiments.config")
     p.add_argument("--out", metavar="DIR", help="output folder (default: the config's output, else "
                    "results/<config name>)")
     p.add_argument("--force", action="store_true",
@@ -61,7 +62,7 @@ def _kept_line(res) -> str:
 
 
 def run(args) -> int:
-    from ..experiment import ExperimentResult, load_config, run_experiment
+    from ..experiments.runner import ExperimentResult, load_config, run_experiment
     from ._interrupt import on_interrupt
 
     exp = load_config(args.config)

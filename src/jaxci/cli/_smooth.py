@@ -48,7 +48,7 @@ def add_args(p) -> None:
                         "kept fixed, so they stay exactly coincident")
     p.add_argument("--allow-worse-worst", action="store_true",
                    help="return the method's result even if its worst cell is worse than the input's (by default "
-                        "the nodes of such cells are put back: jaxci.guard)")
+                        "the nodes of such cells are put back: jaxci.metrics.guard)")
     p.add_argument("--objective", choices=["mean", "pmean"], default=None,
                    help="what the gradient methods minimise: mean (F, Eq. 3.1: the default) or pmean (the p-mean "
                         "of the corner excesses, --param p=2 by default: pulls the worst element harder)")

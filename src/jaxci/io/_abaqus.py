@@ -11,7 +11,7 @@ block, and the element type names (``C3D8R``, ``C3D20H``, ...) are kept per bloc
 Element types: the 3-D continuum elements ``[A-Z]*C3D<n>[A-Z]*`` (``C3D8``, ``C3D8R``, ``C3D8I``, ``C3D8H``,
 ``C3D8RH``, ``DC3D8``, ...) with n = 4, 5, 6, 8 (tetra, pyramid, wedge, hexahedron; Abaqus numbers their nodes
 as VTK does) and the quadratic n = 10, 15, 20 (tetra, wedge, hexahedron with `CellBlock.midside` in Abaqus's
-order, which is `jaxci.mesh.EDGES`'s), and the shells, membranes, surfaces, trusses and beams of
+order, which is `jaxci.cells.EDGES`'s), and the shells, membranes, surfaces, trusses and beams of
 `SURFACE_TYPES`. Elements of any other type (``MASS``, ``SPRING2``, ``COH3D8``, ``SC8R``, ``C3D27``, ...) stay in
 the deck text but are not part of the mesh (their nodes are kept, never moved), counted in `HexMesh.notes`.
 
@@ -76,7 +76,7 @@ def element_family(name: str) -> tuple[str, int, int] | None:
 
 
 # ---------------------------------------------------------------------------------------------------- the text
-def _split_line(line: str) -> tuple[str, str]:
+def split_line(line: str) -> tuple[str, str]:
     """A line and its line ending."""
     body = line.rstrip("\r\n")
     return body, line[len(body):]
@@ -106,7 +106,7 @@ def flatten(path: str, depth: int = 0, where: str = "") -> tuple[list[str], list
     lines, origin, included = [], [], []
     text = read_text(path, "Abaqus deck", errors="surrogateescape")
     for lineno, line in enumerate(text.splitlines(keepends=True), 1):
-        body, _ = _split_line(line)
+        body, _ = split_line(line)
         if _is_keyword(body) and _keyword(body)[0] == "INCLUDE":
             name = _keyword(body)[1].get("INPUT")
             at = f"{path}, line {lineno}"
@@ -175,7 +175,7 @@ class Deck:
     def _parse(self) -> None:
         i, n = 0, len(self.lines)
         while i < n:
-            body, _ = _split_line(self.lines[i])
+            body, _ = split_line(self.lines[i])
             if not _is_keyword(body):
                 i += 1  # data lines before the first keyword, comments, blank lines
                 continue
@@ -183,10 +183,10 @@ class Deck:
             while text.rstrip().endswith(",") and i + 1 < n and not _is_keyword(self.lines[i + 1]) \
                     and not self.lines[i + 1].lstrip().startswith("**"):
                 i += 1  # a keyword line continued on the next line
-                text = text.rstrip() + _split_line(self.lines[i])[0]
+                text = text.rstrip() + split_line(self.lines[i])[0]
             i += 1
             data = []
-            while i < n and not _is_keyword(_split_line(self.lines[i])[0]):
+            while i < n and not _is_keyword(split_line(self.lines[i])[0]):
                 s = self.lines[i].strip()
                 if s and not s.startswith("**"):
                     data.append(i)
@@ -212,7 +212,7 @@ class Deck:
             self.other_keywords[name] = self.other_keywords.get(name, 0) + 1
 
     def _fields(self, i: int) -> list[str]:
-        toks = [t.strip() for t in _split_line(self.lines[i])[0].split(",")]
+        toks = [t.strip() for t in split_line(self.lines[i])[0].split(",")]
         while toks and not toks[-1]:
             toks.pop()
         return toks

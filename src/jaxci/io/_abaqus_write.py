@@ -42,8 +42,9 @@ import numpy as np
 
 from ..errors import MeshWriteError
 from ..mesh import HexMesh, mirrored_block
-from ._abaqus import DEFAULT_NAMES, _split_line, element_family, parse_deck
-from ._deck import deck_losses, first_duplicate, model_difference
+from ._abaqus import DEFAULT_NAMES, element_family, parse_deck, split_line
+from ._deck import first_duplicate, model_difference
+from ._losses import deck_losses
 from ._meshio import LossyWriteWarning
 
 #: Set names written as they are; others are written in double quotes (Abaqus's form for labels with spaces).
@@ -65,7 +66,7 @@ def _rows(values: list[int]) -> str:
 
 def _coordinate_line(line: str, xyz) -> str:
     """A ``*NODE`` data line with new coordinates; fields whose value did not change keep their text."""
-    body, end = _split_line(line)
+    body, end = split_line(line)
     parts = body.split(",")
     for k, v in enumerate(xyz):
         j = k + 1

@@ -19,7 +19,7 @@ Any other repeated-node pattern is an error. ANSYS node numbers become `HexMesh.
 ``ansys:esy``, ``ansys:sec``.
 
 **Quadratic elements.** The midside nodes Q R S T (edges IJ JK KL LI), U V W X (MN NO OP PM), Y Z A B (IM JN KO LP)
-of a 20-node brick become `CellBlock.midside` of its cell, in `jaxci.mesh.EDGES` order (the same order for a
+of a 20-node brick become `CellBlock.midside` of its cell, in `jaxci.cells.EDGES` order (the same order for a
 hexahedron); a node number 0 (a dropped midside node) becomes -1. The degenerate forms follow ANSYS's SOLID186
 pattern (`MIDSIDE_FROM_BRICK`): wedge ``Q R K T U V O X Y Z A A``, pyramid ``Q R S T M M M M Y Z A B``,
 tetrahedron ``Q R K T M M M M Y Z A A`` (a merged midside position may also be 0); anything else is refused.
@@ -55,7 +55,7 @@ _FROM_BRICK = {
     "tetra": ([0, 1, 2, 4], 4),
 }
 #: For each jaxci cell type, the brick midside columns (0..11 = Q..B) that hold the cell's midside nodes in
-#: `jaxci.mesh.EDGES` order, and the (column, what it must equal) pattern of the merged positions: a corner column
+#: `jaxci.cells.EDGES` order, and the (column, what it must equal) pattern of the merged positions: a corner column
 #: 0..7 of I..P (or 0, no node) or ``("mid", c)``: the same node as midside column c.
 MIDSIDE_FROM_BRICK = {
     "hexahedron": (list(range(12)), []),
@@ -284,7 +284,7 @@ def _cell_midside(b: Bricks, mask: np.ndarray, mid_conn: np.ndarray, cell_type: 
     return mid_conn[mask][:, cols]
 
 
-def _expand(items: list[int]) -> np.ndarray:
+def expand_ranges(items: list[int]) -> np.ndarray:
     """CMBLOCK items to numbers: a negative item -j after i means i+1..j."""
     out, prev = [], None
     for v in items:
@@ -396,11 +396,11 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
             raise MeshWriteError(f"{where}: {what} id {ids[dup[1]]} is used twice; ANSYS ids must be unique")
         if len(ids) and ids.min() < 1:
             raise MeshWriteError(f"{where}: {what} id {ids.min()} is not positive; ANSYS ids start at 1")
-    routines = element_routines(mesh, b.attrs[:, 1], _has_midside(b))
+    routines = element_routines(mesh, b.attrs[:, 1], has_midside(b))
     return dataclasses.replace(b, etypes=np.array(sorted(routines.items()), np.int64).reshape(-1, 2)), dropped
 
 
-def _has_midside(b: Bricks) -> np.ndarray:
+def has_midside(b: Bricks) -> np.ndarray:
     """Which bricks have a midside node of their own (not a merged corner position), shape ``(m,)``."""
     mid = b.midside
     if mid is None or not len(mid):

@@ -30,29 +30,29 @@ from ._ansys import (
     TET4,
     TET10,
     Bricks,
-    _expand,
+    expand_ranges,
     to_hexmesh,
 )
 from ._ansys_listing import read_text_lines
 from ._deck import MAX_ID, read_text
 
 _FORMAT_ITEM = re.compile(r"(\d*)([IEFGD])(\d+)(?:\.\d+)?(?:E\d+)?", re.IGNORECASE)
-_NBLOCK_FORMAT = "(3i9,6e21.13e3)"
-_EBLOCK_FORMAT = "(19i9)"
+NBLOCK_FORMAT = "(3i9,6e21.13e3)"
+EBLOCK_FORMAT = "(19i9)"
 _EBLOCK_FIXED = 11  # MAT TYPE REAL SECNUM ESYS birth/death solid-ref shape node-count 0 element-number
 _NODE_COUNTS = (4, 8, 10, 20)
-_CMBLOCK_FORMAT = "(8i10)"
+CMBLOCK_FORMAT = "(8i10)"
 #: Commands that carry no model data worth a note (session control, the block terminator of CDWRITE).
 _HARMLESS = {"FINISH", "NUMOFF", "DOF", "TYPE", "MAT", "REAL", "ESYS", "SECNUM", "CSYS", "ANTYPE"}
 #: ANSYS component names: a letter, then letters, digits and underscores, 32 characters at most.
-_COMPONENT_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}")
+COMPONENT_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,31}")
 
 
 def _fortran_widths(line: str, where: str) -> list[tuple[bool, int]]:
     """(is_integer, width) of every field of a Fortran format line such as ``(3i9,6e21.13e3)``."""
     body = line.strip()
     if not (body.startswith("(") and body.endswith(")")):
-        raise MeshReadError(f"{where}: expected a Fortran format line such as {_NBLOCK_FORMAT}, got {body!r}")
+        raise MeshReadError(f"{where}: expected a Fortran format line such as {NBLOCK_FORMAT}, got {body!r}")
     fields = []
     for item in body[1:-1].split(","):
         m = _FORMAT_ITEM.fullmatch(item.strip())
@@ -99,7 +99,7 @@ def _block_header(line: str, lineno: int, path: str) -> tuple[str, int | None]:
     return name, count
 
 
-class _Reader:
+class DeckReader:
     """One pass over the lines of an APDL file, collecting blocks and records with their line numbers."""
 
     def __init__(self, path: str, lines: list[str] | None = None) -> None:
@@ -200,7 +200,7 @@ class _Reader:
             raise MeshReadError(f"{self.where(start)}: CMBLOCK {name} announces {count} items but holds "
                                 f"{len(items)}")
         if kind in ("NODE", "ELEM", "ELEMENT"):
-            self.components.append((name, "NODE" if kind == "NODE" else "ELEM", _expand(items),
+            self.components.append((name, "NODE" if kind == "NODE" else "ELEM", expand_ranges(items),
                                     self.where(start)))
         else:
             self.skipped[f"CMBLOCK {kind}"] = self.skipped.get(f"CMBLOCK {kind}", 0) + 1
@@ -356,7 +356,7 @@ def read_apdl(path: str | os.PathLike) -> HexMesh:
     """
     path = os.fspath(path)
     text = read_text(path, "APDL file")
-    reader = _Reader(path, text.splitlines())
+    reader = DeckReader(path, text.splitlines())
     reader.run()
     notes = []
     if reader.skipped:
@@ -370,7 +370,7 @@ def read_apdl(path: str | os.PathLike) -> HexMesh:
 
 def other_commands(text: str) -> list[str]:
     """The APDL commands of a file's text that jaxci does not model (``MPDATA x3``, ...), most frequent first."""
-    reader = _Reader("(text)", text.splitlines())
+    reader = DeckReader("(text)", text.splitlines())
     try:
         reader.run()
     except MeshReadError:

@@ -67,12 +67,13 @@ from ._ansys import (
     TET4,
     TET10,
     Bricks,
-    _has_midside,
     from_hexmesh,
+    has_midside,
     to_hexmesh,
 )
-from ._ansys_apdl import _CMBLOCK_FORMAT, _COMPONENT_NAME, _EBLOCK_FORMAT, _NBLOCK_FORMAT, _Reader
-from ._deck import deck_losses, model_difference
+from ._ansys_apdl import CMBLOCK_FORMAT, COMPONENT_NAME, EBLOCK_FORMAT, NBLOCK_FORMAT, DeckReader
+from ._deck import model_difference
+from ._losses import deck_losses
 from ._meshio import LossyWriteWarning
 
 
@@ -91,7 +92,7 @@ def _file_cells(mesh: HexMesh) -> list[CellBlock]:
 
 
 def _compress(ids: np.ndarray) -> list[int]:
-    """Sorted numbers as CMBLOCK items: a run i, i+1, ..., j becomes i, -j (the inverse of `_expand`)."""
+    """Sorted numbers as CMBLOCK items: a run i, i+1, ..., j becomes i, -j (the inverse of `expand_ranges`)."""
     ids = np.unique(np.asarray(ids, np.int64))
     if not len(ids):
         return []
@@ -113,7 +114,7 @@ def int_width(largest: int, least: int) -> int:
 def _cmblock(name: str, kind: str, ids: np.ndarray) -> list[str]:
     items = _compress(ids)
     w = int_width(max((abs(v) for v in items), default=0) * 10, 10)  # room for the '-' of a range end
-    out = [f"CMBLOCK,{name},{kind},{len(items):8d}", _CMBLOCK_FORMAT if w == 10 else f"(8i{w})"]
+    out = [f"CMBLOCK,{name},{kind},{len(items):8d}", CMBLOCK_FORMAT if w == 10 else f"(8i{w})"]
     out += ["".join(f"{v:{w}d}" for v in items[i : i + 8]) for i in range(0, len(items), 8)]
     return out
 
@@ -123,7 +124,7 @@ def _element_rows(b: Bricks, path: str, w: int) -> list[str]:
     integer fields of width `w`."""
     routine = dict(b.etypes.tolist())
     typ = b.attrs[:, 1]
-    own_mid = _has_midside(b)
+    own_mid = has_midside(b)
     mat, _, rel, esy, sec = b.attrs.T
     extra = b.extra if b.extra is not None else np.zeros((len(typ), 3), np.int64)
     out = []
@@ -201,7 +202,7 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
     if len(b.elem_ids) == 0:
         raise MeshWriteError(f"{path}: the mesh has no cells that ANSYS bricks can hold")
     lost = [f"cells {', '.join(dropped)}"] if dropped else []
-    bad_names = sorted(n for n in (*mesh.point_sets, *mesh.cell_sets) if not _COMPONENT_NAME.fullmatch(n))
+    bad_names = sorted(n for n in (*mesh.point_sets, *mesh.cell_sets) if not COMPONENT_NAME.fullmatch(n))
     if bad_names:
         lost.append(f"sets {bad_names} (not valid ANSYS component names)")
 
@@ -212,7 +213,7 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
         out += [f"KEYOPT,{t},{k},{v}" for t, k, v in np.asarray(b.keyopts, np.int64).reshape(-1, 3).tolist()]
     wn = int_width(b.node_ids.max(), 9)  # ANSYS's i9, wider for node numbers of 9 digits or more
     out += [f"NBLOCK,6,SOLID,{b.node_ids.max():10d},{len(b.node_ids):10d}",
-            _NBLOCK_FORMAT if wn == 9 else _NBLOCK_FORMAT.replace("3i9", f"3i{wn}")]
+            NBLOCK_FORMAT if wn == 9 else NBLOCK_FORMAT.replace("3i9", f"3i{wn}")]
     if b.angles is not None and (b.angles != 0).any():
         out += [
             f"{nid:{wn}d}{0:{wn}d}{0:{wn}d}" + "".join(_e21(v) for v in (*xyz, *ang))
@@ -226,17 +227,17 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
     largest = max(int(np.abs(a).max(initial=0)) for a in (b.node_ids, b.elem_ids, b.attrs, b.extra))
     we = int_width(largest, 9)
     out += ["N,R5.3,LOC,       -1,", f"EBLOCK,19,SOLID,{b.elem_ids.max():10d},{len(b.elem_ids):10d}",
-            _EBLOCK_FORMAT if we == 9 else f"(19i{we})"]
+            EBLOCK_FORMAT if we == 9 else f"(19i{we})"]
     out += _element_rows(b, path, we)
     out += [f"{-1:{we}d}"]
     node_ids = b.node_ids
     for name, idx in mesh.point_sets.items():
-        if _COMPONENT_NAME.fullmatch(name):
+        if COMPONENT_NAME.fullmatch(name):
             out += _cmblock(name, "NODE", node_ids[np.asarray(idx, np.int64)])
     if mesh.cell_sets:
         ids_of = [blk.ids for blk in _element_blocks_with_ids(mesh, b)]
         for name, per_block in mesh.cell_sets.items():
-            if _COMPONENT_NAME.fullmatch(name):
+            if COMPONENT_NAME.fullmatch(name):
                 ids = [ids_of[i][np.asarray(rows, np.int64)] for i, rows in enumerate(per_block)
                        if ids_of[i] is not None and rows is not None]
                 out += _cmblock(name, "ELEM", np.concatenate(ids) if ids else np.zeros(0, np.int64))
@@ -304,7 +305,7 @@ def _in_place(mesh: HexMesh, text: str) -> tuple[str | None, str | None]:
     """(None, the file's text with the mesh's node coordinates) when `mesh` is the file's mesh with moved nodes,
     else (what differs, None)."""
     label = f"the text of {mesh.source or 'the mesh'}"
-    reader = _Reader(label, text.splitlines())
+    reader = DeckReader(label, text.splitlines())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         reader.run()

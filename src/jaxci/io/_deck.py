@@ -4,7 +4,8 @@ A mesh read from an Abaqus deck or an ANSYS archive carries the file's text as f
 ``ansys:deck``): materials, sections, loads, steps and every other line jaxci does not model. When such a mesh is
 written to the same kind of file and differs from the deck only in its node coordinates (`model_difference`), the
 writer rewrites the coordinates of the node lines and keeps every other line byte for byte. Otherwise it writes the
-mesh afresh and `deck_losses` says, in a `LossyWriteWarning` issued before writing, what of the deck is lost.
+mesh afresh and `jaxci.io._losses.deck_losses` says, in a `LossyWriteWarning` issued before writing, what of
+the deck is lost.
 """
 
 from __future__ import annotations
@@ -148,31 +149,3 @@ def model_difference(mesh: HexMesh, deck: HexMesh, cell_data=(), point_data=(), 
         if (x is None) != (y is None) or (x is not None and not np.array_equal(np.asarray(x), np.asarray(y))):
             return f"its {name!r} differ from the deck's"
     return None
-
-
-def deck_losses(mesh: HexMesh, fmt: str) -> list[tuple[str, str]]:
-    """What the source decks carried by `mesh` (field data ``abaqus:deck``, ``ansys:deck``) hold that a file of
-    format `fmt` written afresh does not: ``(deck format, phrase)`` per deck, for a `LossyWriteWarning`."""
-    from ._abaqus import deck_extras
-    from ._ansys_apdl import other_commands
-
-    out = []
-    deck = mesh.field_data.get("abaqus:deck")
-    if isinstance(deck, str):
-        keywords, types = deck_extras(deck)
-        if fmt == "abaqus":
-            types = []  # a fresh Abaqus deck keeps the element types
-        what = ([f"the keyword blocks {_listed(keywords)}"] if keywords else []) + (
-            [f"the element types {', '.join(types)}"] if types else [])
-        if what:
-            out.append(("abaqus", f"{' and '.join(what)} of the source Abaqus deck"))
-    deck = mesh.field_data.get("ansys:deck")
-    if isinstance(deck, str):
-        commands = other_commands(deck)
-        if commands:
-            out.append(("apdl", f"the other APDL commands of the source file ({_listed(commands)})"))
-    return out
-
-
-def _listed(names: list[str], most: int = 8) -> str:
-    return ", ".join(names[:most]) + (f", ... ({len(names)} in all)" if len(names) > most else "")

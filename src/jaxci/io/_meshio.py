@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import JaxciError, MeshReadError, MeshWriteError
 from ..mesh import MIRROR_HEX, CellBlock, HexMesh
 from ._counts import check_gmsh, check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
-from ._deck import deck_losses
+from ._losses import deck_losses
 
 #: Prefix of the point / cell data that carry a point / cell set in formats without sets.
 SET_PREFIX = "set:"
@@ -196,14 +196,14 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
     elif fmt == "xdmf":
         check_xdmf(path, m)
     try:
-        return _from_meshio(m, path)
+        return from_meshio(m, path)
     except JaxciError:
         raise
     except (ValueError, TypeError, IndexError) as exc:
         raise MeshReadError(f"{path}: inconsistent {_TITLES[fmt]} file ({_describe(exc)})") from exc
 
 
-def _from_meshio(m: meshio.Mesh, path: Path) -> HexMesh:
+def from_meshio(m: meshio.Mesh, path: Path) -> HexMesh:
     points = np.asarray(m.points)
     n = len(points)
     if n == 0:

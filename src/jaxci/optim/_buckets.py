@@ -4,7 +4,7 @@ compiled program.
 JAX compiles a jitted function once per argument SHAPE, and its persistent compilation cache (the CLI's
 ``JAXCI_CACHE_DIR``) is keyed by the lowered program, shapes included: without padding a second mesh of
 nearly the same size recompiles the whole solver loop (measured, L-BFGS, 1000-hex boxes, 2-core CPU: 17 s of
-XLA compilation for `jaxci.optim._solve._solve`). Every size below is rounded up to the next size of the
+XLA compilation for `jaxci.optim._solve.solve_loop`). Every size below is rounded up to the next size of the
 ladder ``8, 12, 16, 24, 32, 48, 64, ...`` (powers of two and 1.5 times powers of two: at most 50% and on
 average about 20% padding), so a mesh of 810 and one of 900 hexahedra both run the 1024-element program.
 
@@ -83,16 +83,16 @@ def padded_connectivity(hexes: np.ndarray, n_elements: int) -> tuple[np.ndarray,
 
 
 def pad_constraints(cons, n_nodes: int):
-    """`cons` (`jaxci.projection.Constraints`) padded for a mesh of `n_nodes` nodes (more than it has: node
+    """`cons` (`jaxci.geometry.projection.Constraints`) padded for a mesh of `n_nodes` nodes (more than it has: node
     ``n_real`` is the dummy every padded entry points to), numpy-built, every size on the ladder.
 
-    Padded nodes are CORNER nodes at the origin: `jaxci.projection.project` puts them back there. Padded
+    Padded nodes are CORNER nodes at the origin: `jaxci.geometry.projection.project` puts them back there. Padded
     entries of the interior, surface, edge and corner node lists are the dummy node (zero basis and tangent:
     they never move it); padded candidate rows and columns repeat an entry (the padded triangles and segments
     copy the first one and belong to no patch or curve).
     """
-    from ..boundary import CORNER
-    from ..projection import Constraints
+    from ..geometry.boundary import CORNER
+    from ..geometry.projection import Constraints
 
     n = cons.x_orig.shape[0]
     if n_nodes <= n:

@@ -18,7 +18,8 @@ import dataclasses
 import numpy as np
 
 from .._lazy import jax, jnp
-from ..quality import corner_invariants, squared_condition_from_invariants
+from ..cells import corner_invariants
+from ..metrics.hexahedron import squared_condition_from_invariants
 
 #: ROTATE_TO_SLOT[a] relabels a VTK hexahedron (new local i = old local ROTATE_TO_SLOT[a][i]) by a proper
 #: rotation of the reference cube that brings old local node a to slot 0.

@@ -6,8 +6,8 @@ INTERIOR node, the two surface tangents (third column 0) for a SURFACE node, the
 ignored, so every trial lies on the node's constraint. CORNER and fixed nodes never move.
 
 On a mixed mesh the local objective of a node also counts the corners of the wedges, pyramids and tetrahedra
-around it (`ColouredStars.xnodes`..., rows of `jaxci.mixed.CornerTable`; a pyramid sub-tetrahedron counts only
-as a barrier): `local_sum`, `local_count`, `local_scale`. On a hexahedral mesh those arrays have a zero-size
+around it (`ColouredStars.xnodes`..., rows of `jaxci.metrics.objective.CornerTable`; a pyramid sub-tetrahedron counts
+only as a barrier): `local_sum`, `local_count`, `local_scale`. On a hexahedral mesh those arrays have a zero-size
 axis and the functions are the hexahedral ones (a static branch).
 """
 
@@ -18,9 +18,9 @@ import dataclasses
 import numpy as np
 
 from .._lazy import jax, jnp, when_imported
-from ..boundary import CORNER, EDGE, INTERIOR, SURFACE
-from ..mixed import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
-from ..projection import Constraints, project_nodes
+from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
+from ..geometry.projection import Constraints, project_nodes
+from ..metrics.objective import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
 from ._buckets import bucket, to_device
 from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars
 
@@ -61,7 +61,7 @@ class ColouredStars:
       its ring of faces covers; radius 0 (never used) otherwise. Inside that disk, the orthogonal projection
       onto the plane IS the nearest point of the patch, so the triangle search can be skipped (exactly).
     - `xnodes` ``(n_colours, M, Kx, 4)``, `xwinv` ``(n_colours, M, Kx, 9)``, `xweight`, `xmask`
-      ``(n_colours, M, Kx)``: the non-hexahedral corners around each node (`jaxci.mixed.CornerTable` rows);
+      ``(n_colours, M, Kx)``: the non-hexahedral corners around each node (`jaxci.metrics.objective.CornerTable` rows);
       Kx = 0 on a hexahedral mesh.
     """
 
@@ -147,8 +147,8 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     """Group the movable nodes (class != CORNER) by `colour`, by class within a colour, with stars and bases.
 
     `faces` are the boundary faces (``BoundaryInfo.topology.faces``), for the planar-ring shortcut; `table` the
-    non-hexahedral corners (`jaxci.mixed.corner_table`; default none). The colouring must not give one colour to
-    two nodes of any cell (hexahedron or not).
+    non-hexahedral corners (`jaxci.metrics.objective.corner_table`; default none). The colouring must not give one
+    colour to two nodes of any cell (hexahedron or not).
     """
     cls = np.asarray(cons.node_class)
     n = len(cls)
@@ -336,7 +336,7 @@ def project_trials(cons: Constraints, cs_i: ColouredStars, trials):
     Interior slots are returned unchanged. Surface slots whose ring is planar and whose trials all stay inside
     the disk their ring covers (`planar_rings`) take the orthogonal projection onto the plane, which is then the
     exact nearest point of the patch; otherwise (one `lax.cond` per colour) every boundary slot goes through
-    `jaxci.projection.project_nodes` (nearest point of its patch or curve).
+    `jaxci.geometry.projection.project_nodes` (nearest point of its patch or curve).
     """
     a, b = cs_i.n_interior, cs_i.n_interior + cs_i.n_surface
     M, S, _ = trials.shape

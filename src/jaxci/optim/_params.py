@@ -2,13 +2,13 @@
 
 The parameter dataclasses (`jaxci.optim.ci.CIParams`, `jaxci.optim.gradient.GradientParams`,
 `jaxci.optim.laplace.LaplaceParams`, `jaxci.optim.untangle.UntangleParams`) call these in ``__post_init__``; the
-values come from Python, YAML (`jaxci.config`) or the command line (``--param KEY=VALUE``, parsed as JSON, else a
-string), so anything can arrive: a string, NaN, a bool, an integer of 40 digits. Each check names the parameter,
+values come from Python, YAML (`jaxci.experiments.config`) or the command line (``--param KEY=VALUE``, parsed as JSON,
+else a string), so anything can arrive: a string, NaN, a bool, an integer of 40 digits. Each check names the parameter,
 the valid range and the value given; an integral float (``4.0``) counts as the integer 4. Upper bounds keep a
 typo from hanging a run or exhausting memory (loop bounds, history arrays and batch shapes grow with them).
 
 `make_params` builds a dataclass from a dict of keyword parameters, listing the valid names for an unknown one and
-naming the method in every message. `check_seed` is the one seed rule of jaxci.
+naming the method in every message. (The one seed rule of jaxci, `check_seed`, is `jaxci.generate`'s.)
 """
 
 from __future__ import annotations
@@ -19,10 +19,6 @@ import numbers
 from collections.abc import Mapping
 
 from ..errors import ConfigError, UsageError
-
-#: Largest seed: seeds are integers in [0, MAX_SEED]. A `jax.random` key from an integer keeps 32 bits of it
-#: (2**32 and 0 gave the same key), so larger seeds are refused rather than silently aliased.
-MAX_SEED = 2**32 - 1
 
 
 def _is_int(value) -> bool:
@@ -100,18 +96,8 @@ def make_params(cls, params: Mapping, method: str, *, prefix: str = "", what: st
         raise ConfigError(f"{what}: {e}") from None
 
 
-def check_seed(seed, what: str = "seed") -> int:
-    """`seed` as an int in ``[0, MAX_SEED]`` (`ConfigError` otherwise: a float, a string, None, a bool, a negative
-    or a larger integer). Every accepted seed gives its own `jax.random` key and numpy generator."""
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
-        raise ConfigError(f"{what} must be an integer in [0, 2**32 - 1], got {seed!r}")
-    if not 0 <= int(seed) <= MAX_SEED:
-        raise ConfigError(f"{what} must be an integer in [0, 2**32 - 1] (= {MAX_SEED}), got {seed!r}")
-    return int(seed)
-
-
 #: Consecutive rejected trials after which a solver whose steps are capped (`max_move`) stops
-#: (`jaxci.optim._solve._solve`, `jaxci.optim.host.lbfgs`): the trial is then below 2^-20 of `max_move`; in
+#: (`jaxci.optim._solve.solve_loop`, `jaxci.optim.host.lbfgs`): the trial is then below 2^-20 of `max_move`; in
 #: float32 that is F's rounding noise at the optimum (measured: 28 rejected trials ended every L-BFGS run at
 #: 30^3 after it had converged, each a full objective and gradient evaluation). Uncapped solvers (and LM,
 #: Gauss-Newton) get `MAX_REJECTED_UNCAPPED`: their first raw-gradient trial can be 2^35 times too long.

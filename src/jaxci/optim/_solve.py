@@ -16,7 +16,7 @@ from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED  # noqa: F401  (re-expo
 
 
 @eqx.filter_jit
-def _solve(solver, fn, y0, args, max_steps: int, limit=None, max_rejected: int = MAX_REJECTED_UNCAPPED):
+def solve_loop(solver, fn, y0, args, max_steps: int, limit=None, max_rejected: int = MAX_REJECTED_UNCAPPED):
     """optimistix's iteration (init, step, terminate in a bounded loop), recording per step what `fn` reports.
 
     `fn(y, args)` returns ``(value, (f, k, stop))``: the solver minimises `value`; `f` (tracked: the best

@@ -20,9 +20,9 @@ import functools
 
 import numpy as np
 
-from .. import elements as E
 from .._lazy import filter_jit, jax, jnp
-from ..mesh import CORNER_NEIGHBOURS
+from ..cells import CORNER_NEIGHBOURS
+from ..metrics import elements as E
 from ._params import MAX_REJECTED_UNCAPPED
 
 #: Corners one interior node moves (8 elements x 4 corners): the energy is a per-node sum (as F in
@@ -75,8 +75,8 @@ def hex_kernel(x, table, inv_len, eps, theta, grad: bool, xp=jnp):
     node to the node of row 1, so its gradient goes to that node with + and to the corner's node with -.
 
     Written over the flat corner table (12 gathers, one elementwise loop, one scatter-add per component), not
-    the ``(8, N)`` rows of `jaxci.quality` (whose row permutations and 24 scatters made XLA compile the value and
-    gradient in 1.7-1.8 CPU s against 0.46 s here, with the same run time: 35 against 38 ms at 30^3, 294 against
+    the ``(8, N)`` rows of `jaxci.metrics.hexahedron` (whose row permutations and 24 scatters made XLA compile the value
+    and gradient in 1.7-1.8 CPU s against 0.46 s here, with the same run time: 35 against 38 ms at 30^3, 294 against
     297 ms at 60^3, float64). `xp`: the array module, `jax.numpy` (default) or `numpy`
     (`jaxci.optim.host.untangle_rounds_np`).
     """

@@ -28,7 +28,7 @@ keeps the best if it lowers F: node-by-node moves remove long-wavelength error s
 relative, or F <= `ftol`, or after `max_sweeps`.
 
 **Global CI** (`global_ci`, faithful to the paper): each candidate is a whole mesh, a point in the space of all
-free coordinates (`jaxci.projection`'s parametrisation), of shape ``(C, n_free)``; its behaviour is F (Eq.
+free coordinates (`jaxci.geometry.projection`'s parametrisation), of shape ``(C, n_free)``; its behaviour is F (Eq.
 3.1) evaluated for all C x t variations at once. Intervals are per coordinate, of initial width
 ``init_width * h`` (h the local edge length).
 
@@ -49,8 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
-from ..mixed import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
-from ..projection import Constraints, params_to_points
+from ..geometry.projection import Constraints, params_to_points
+from ..metrics.objective import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
 from . import _params as _p
 from ._local import gather_star
 from ._moves import ColouredStars, chunked_local_sum, colour_slice, local_count, local_scale, project_trials
@@ -141,8 +141,8 @@ class CIParams:
         paper's, `GLOBAL_DEFAULTS` over the field defaults), with `params` (field names) over its defaults.
 
         The one source of CI defaults: `jaxci.smooth.method_params` (hence `jaxci.smooth`, ``jaxci smooth`` and
-        ``jaxci run``) and `jaxci.config`'s up-front check build CI parameters here. Raises `ConfigError` for
-        another method or a bad value, `TypeError` for an unknown field (`jaxci.optim._params.make_params` names
+        ``jaxci run``) and `jaxci.experiments.config`'s up-front check build CI parameters here. Raises `ConfigError`
+        for another method or a bad value, `TypeError` for an unknown field (`jaxci.optim._params.make_params` names
         it first)."""
         if method not in METHOD_DEFAULTS:
             raise ConfigError(f"CI parameters: unknown CI method {method!r}; choose one of "
@@ -271,7 +271,7 @@ PATTERN_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 def _pattern_move(x, D, f, conn, cons: Constraints, extra: ExtraCells):
     """``(x, f)`` after the pattern move: the best of ``project(x + a D)`` over `PATTERN_FACTORS` where its F is
     below `f` (an inverted corner makes F infinite: never taken), else `x` and `f` unchanged."""
-    from ..projection import project
+    from ..geometry.projection import project
 
     def trial(a):
         y = project(cons, x + a * D)
@@ -341,7 +341,7 @@ def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
 def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams = CIParams(),
              extra: ExtraCells | None = None):
     """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity, `extra`
-    the non-hexahedral cells (`jaxci.mixed.extra_cells`; default none), whose corners `cs` must hold too
+    the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`; default none), whose corners `cs` must hold too
     (`coloured_stars(..., table)`): F and the local objectives are then over every corner.
 
     **Returns:** ``(points, sweeps, history)``: the smoothed coordinates ``(n, 3)``, the number of sweeps, and a

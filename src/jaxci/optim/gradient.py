@@ -1,10 +1,10 @@
 """Gradient baselines: optimistix minimisers and least-squares solvers on F over the free coordinates.
 
-The unknowns are the free coordinates of `jaxci.projection` (3 per interior node, 2 per surface node, 1 per edge
-node; corner nodes fixed), divided by the local edge length h of their node: ``u = h * v`` and the solvers see
+The unknowns are the free coordinates of `jaxci.geometry.projection` (3 per interior node, 2 per surface node, 1 per
+edge node; corner nodes fixed), divided by the local edge length h of their node: ``u = h * v`` and the solvers see
 ``v``. Node coordinates are ``project(x0 + B u)`` (`jaxci.optim.parametrisation.Parametrisation.points`), so
 every iterate lies on the original boundary. On a mixed mesh F is the mean over the corners of every cell
-(`jaxci.mixed`).
+(`jaxci.metrics.objective`).
 
 **Step cap and stalls** (`jaxci.optim._solve`). BFGS, L-BFGS and CG trials move no free coordinate more than
 ``max_move`` (0.5) local edge lengths, and a capped solver stops after 20 consecutive rejected trials. Measured
@@ -62,7 +62,7 @@ more than 8 minutes at 3000). BFGS keeps a dense n_free x n_free inverse Hessian
 seconds per hundred steps at 2400 unknowns; use L-BFGS or CG for anything but small meshes.
 
 **Closed-form gradient.** `objective_and_grad` is d F / d x in closed form (per corner d kappa^2 / d columns,
-accumulated per element node and scattered into the nodes; `jaxci.quality`). It agrees with `jax.grad` to
+accumulated per element node and scattered into the nodes; `jaxci.metrics.hexahedron`). It agrees with `jax.grad` to
 rounding and is
 what the solvers use by default (``GradientParams(gradient="closed")``, through a `jax.custom_jvp`); ``"autodiff"``
 is `jax.grad` through the forward kernel (same values to rounding; 1.3-1.5x slower from 27k elements up, see
@@ -78,17 +78,17 @@ import numpy as np
 
 from .. import native
 from .._lazy import jax, jnp
+from ..cells import corner_invariants
 from ..errors import ConfigError
-from ..mixed import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
-from ..projection import project_np
-from ..quality import (
+from ..geometry.projection import project_np
+from ..metrics.hexahedron import (
     corner_columns,
-    corner_invariants,
     gather_corners,
     objective_and_grad,  # noqa: F401  (re-exported: the closed-form gradient the solvers use)
     objective_terms_and_grad,
     squared_condition_from_invariants,
 )
+from ..metrics.objective import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
 from . import _params as _p
 from ._buckets import bucket, padded_connectivity, to_device
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED
@@ -166,12 +166,12 @@ class GradientParams:
       `jaxci.optim.host.HOST_MAX` elements; the compiled loop above), ``"numpy"`` (`jaxci.optim.host`, any size)
       or ``"jax"`` (the compiled loop). Other methods and mixed meshes always run compiled.
     - `objective`: BFGS, L-BFGS, CG on hexahedral meshes: ``"mean"`` (default: F, Eq. 3.1, the mean of the corner
-      excesses ``e = (kappa/3)^2 - 1``) or ``"pmean"`` (``M_p = (mean e^p)^(1/p)``, `jaxci.quality.pmean_objective`:
-      the worst corners weigh more, the worst element is pulled harder); `p` its power (default 2, 1 to 64;
-      ``p = 1`` is F). The history's ``objective`` is then M_p. Measured (float64 L-BFGS, to convergence): a
-      perturbed 6^3 box with its boundary fixed, max kappa/3 3.63 (mean) -> 3.10 / 3.06 (p = 2 / 4; mean kappa/3
-      1.084 -> 1.102 / 1.140; 49 -> 191 / 2000 steps: p = 4 ran to the step cap); a wavy annulus (curved walls)
-      1.401 -> 1.319 / 1.287 (mean 1.2226 -> 1.2232 / 1.2240). p = 2 takes most of the gain at a fraction of the
+      excesses ``e = (kappa/3)^2 - 1``) or ``"pmean"`` (``M_p = (mean e^p)^(1/p)``,
+      `jaxci.metrics.hexahedron.pmean_objective`: the worst corners weigh more, the worst element is pulled harder); `p`
+      its power (default 2, 1 to 64; ``p = 1`` is F). The history's ``objective`` is then M_p. Measured (float64 L-BFGS,
+      to convergence): a perturbed 6^3 box with its boundary fixed, max kappa/3 3.63 (mean) -> 3.10 / 3.06 (p = 2 / 4;
+      mean kappa/3 1.084 -> 1.102 / 1.140; 49 -> 191 / 2000 steps: p = 4 ran to the step cap); a wavy annulus (curved
+      walls) 1.401 -> 1.319 / 1.287 (mean 1.2226 -> 1.2232 / 1.2240). p = 2 takes most of the gain at a fraction of the
       steps and of the cost in mean quality.
     """
 
@@ -236,8 +236,8 @@ def _corner_terms(x, conn):
 def _objective_closed(points, conn, weight, power=None):
     """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent).
     `weight`: None, or ``(N,)`` element weights (0: a padding element, `objective_terms_and_grad`); `power`
-    (static): None for F, p for the p-mean (`jaxci.quality.pmean_objective`). A `jax.custom_jvp` built on first
-    use (importing this module imports no JAX)."""
+    (static): None for F, p for the p-mean (`jaxci.metrics.hexahedron.pmean_objective`). A `jax.custom_jvp` built on
+    first use (importing this module imports no JAX)."""
     return _objective_closed_jvp()(points, conn, weight, power)
 
 
@@ -258,8 +258,8 @@ def _objective_closed_jvp():
 
 def _objective(x, conn, closed: bool, extra=None, weight=None, power=None):
     """F and max kappa/3 of coordinates `x` (``inf`` for an inverted mesh); over every corner of the hexahedra and
-    of `extra` (`jaxci.mixed.ExtraCells`, static types) when it has cells. `weight` (hexahedral meshes only):
-    None, or ``(N,)`` element weights, 0 for the padding elements of a size class (`jaxci.optim._buckets`): they
+    of `extra` (`jaxci.metrics.objective.ExtraCells`, static types) when it has cells. `weight` (hexahedral meshes
+    only): None, or ``(N,)`` element weights, 0 for the padding elements of a size class (`jaxci.optim._buckets`): they
     add nothing and F is the mean over the real corners."""
     if closed:  # one kernel for F, its gradient and the max
         f, kmax = _objective_closed(x, conn, weight, power)
@@ -343,11 +343,11 @@ BUCKETED = ("bfgs", "lbfgs", "cg")
 
 def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None, weight=None,
                 n_hex: int | None = None):
-    """The objective function and its `args` for `_solve` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``).
+    """The objective function and its `args` for `solve_loop` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``).
 
-    `extra`: the non-hexahedral cells (`jaxci.mixed.ExtraCells`; default none): F is then the mean over every
-    corner (`jaxci.elements.mixed_objective`) and ``s = n_corners / 32``. `weight` ``(N,)`` and `n_hex`: the
-    element weights of a padded connectivity (0: padding) and the number of real hexahedra (default: every
+    `extra`: the non-hexahedral cells (`jaxci.metrics.objective.ExtraCells`; default none): F is then the mean over
+    every corner (`jaxci.metrics.elements.mixed_objective`) and ``s = n_corners / 32``. `weight` ``(N,)`` and `n_hex`:
+    the element weights of a padded connectivity (0: padding) and the number of real hexahedra (default: every
     element of `conn` is real).
     """
     extra = no_extra() if extra is None else extra
@@ -409,7 +409,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     - `par`: the `Parametrisation` (`make_parametrisation`).
     - `conn`: transposed connectivity ``(8, N)``.
     - `p`: `GradientParams`.
-    - `extra`: the wedges, pyramids and tetrahedra (`jaxci.mixed.ExtraCells`, default none): F over every corner.
+    - `extra`: the wedges, pyramids and tetrahedra (`jaxci.metrics.objective.ExtraCells`, default none): F over every
+      corner.
 
     **Returns:** ``(points, iterations, history, params)``: coordinates ``(n, 3)`` (the best valid iterate), the
     number of solver steps, a dict of numpy arrays of length ``iterations + 1`` (entry 0 = input):
@@ -445,7 +446,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     n_hex = int(conn.shape[1])
     on_host = use_host(method, p, n_hex, extra)
     if not on_host:  # optimistix and the compiled loop (imported here: 0.08 s the numpy path does without)
-        from ._solve import _solve, make_solver
+        from ._solve import make_solver, solve_loop
 
         solver = make_solver(method, p)
     run_par, run_conn, weight, index = (par, conn, None, None) if on_host else _bucketed(method, par, conn, p, extra)
@@ -477,7 +478,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol)
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
-            y, k, result, hf, hk = _solve(solver, fn, y, args, int(p.max_steps),
+            y, k, result, hf, hk = solve_loop(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
         k = int(k)
         seg_f, seg_k = np.asarray(hf)[: k + 1], np.asarray(hk)[: k + 1]  # sliced on the host: no compilation

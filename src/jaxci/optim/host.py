@@ -1,10 +1,10 @@
 """L-BFGS in numpy for small hexahedral meshes: the gradient solver without compilation.
 
 On a mesh of a few thousand hexahedra, XLA's compilation of the solver loop costs far more than the solve
-(`jaxci smooth` on a 2360-hex mesh, empty compile cache: 2.9 s compiling `_solve`, 0.6 s iterating; with a warm
+(`jaxci smooth` on a 2360-hex mesh, empty compile cache: 2.9 s compiling `solve_loop`, 0.6 s iterating; with a warm
 cache still 0.8 s tracing, lowering and loading it). The same algorithm run by numpy in float64 costs about
 1 ms per objective-and-gradient evaluation at that size (the closed-form kernel of
-`jaxci.quality.objective_terms_and_grad_np`, with glibc's huge-page tunable of `jaxci.runtime`), so the whole
+`jaxci.metrics.hexahedron.objective_terms_and_grad_np`, with glibc's huge-page tunable of `jaxci.runtime`), so the whole
 solve takes less than the compilation alone. `jaxci.optim.gradient.minimise` uses it for ``"lbfgs"`` on
 hexahedral meshes of at most `HOST_MAX` elements (``GradientParams(backend="auto")``; ``"jax"`` or ``"numpy"``
 force one).
@@ -27,8 +27,8 @@ from collections.abc import Callable
 import numpy as np
 
 from .. import native
-from ..projection import NearProjector, host_constraints
-from ..quality import objective_terms_and_grad_np
+from ..geometry.projection import NearProjector, host_constraints
+from ..metrics.hexahedron import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
@@ -69,9 +69,9 @@ class HostObjective:
 
     ``value = s F`` (the scaled objective the compiled path minimises), `grad` its gradient with respect to `v`
     (through the lift's linear map ``B`` and, where a node was projected, the projection onto its triangle's
-    plane or its segment's line: the derivative `jax.grad` takes through `jaxci.projection.project`);
+    plane or its segment's line: the derivative `jax.grad` takes through `jaxci.geometry.projection.project`);
     ``value = inf`` (`grad` None) if a corner is inverted. Node coordinates are ``project(x0 + B (scale v))``
-    with the candidate projection of the compiled path (`jaxci.projection.NearProjector`), skipped while every
+    with the candidate projection of the compiled path (`jaxci.geometry.projection.NearProjector`), skipped while every
     moving boundary node is inside its flat region.
     """
 
@@ -80,7 +80,7 @@ class HostObjective:
     conn: np.ndarray | None
     s: float
     #: ``(f, k, grad) = kernel(points)`` (default: F, max kappa/3 and dF/dx of the hexahedra `conn`,
-    #: `jaxci.quality.objective_terms_and_grad_np`); the untangling stage passes its energy
+    #: `jaxci.metrics.hexahedron.objective_terms_and_grad_np`); the untangling stage passes its energy
     kernel: Callable | None = None
     #: the boundary projection (default a new `NearProjector`; successive objectives may share one)
     projector: NearProjector | None = None
@@ -147,8 +147,8 @@ class HostObjective:
 
 def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callable:
     """``kernel(points) -> (F, max kappa/3, dF/dx)`` of the hexahedra `conn` (transposed, ``(8, N)``): the C
-    loop of `jaxci.native` where it is built, else `jaxci.quality.objective_terms_and_grad_np`; `power` p: the
-    p-mean objective instead of F."""
+    loop of `jaxci.native` where it is built, else `jaxci.metrics.hexahedron.objective_terms_and_grad_np`; `power` p:
+    the p-mean objective instead of F."""
     if native.AVAILABLE:
         hexes = np.ascontiguousarray(np.asarray(conn).T, dtype=np.int64)
         return lambda x: native.hex_terms_and_grad(x, hexes, power)
@@ -218,7 +218,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     stop once ``done(F, k)`` holds at an accepted iterate (k the second number `fun` reports); `deadline`
     (optional, `time.perf_counter` seconds): stop after the first step past it (result ``"time budget"``).
 
-    **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve._solve`: the accepted
+    **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the accepted
     iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
     ``"nonlinear_max_steps_reached"``, ``"nonfinite"``), and F and max kappa/3 of the accepted iterate after
     each step (entry 0: `y0`), numpy arrays of length ``steps + 1``.

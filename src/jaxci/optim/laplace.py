@@ -27,8 +27,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..cells import corner_invariants
 from ..errors import ConfigError
-from ..mixed import (
+from ..geometry.projection import Constraints
+from ..geometry.topology import unique_edges
+from ..metrics.hexahedron import (
+    condition_from_invariants,
+    corner_columns,
+    gather_corners,
+    squared_condition_from_invariants,
+)
+from ..metrics.objective import (
     ExtraCells,
     corner_table,
     edge_pairs,
@@ -38,15 +47,6 @@ from ..mixed import (
     mixed_objective_t,
     no_extra,
 )
-from ..projection import Constraints
-from ..quality import (
-    condition_from_invariants,
-    corner_columns,
-    corner_invariants,
-    gather_corners,
-    squared_condition_from_invariants,
-)
-from ..topology import unique_edges
 from . import _params as _p
 from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
 from ._local import gather_star
@@ -108,7 +108,7 @@ def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = 
     """Nodes joined to each node by a hexahedron edge, each once, padded.
 
     **Arguments:** `hexes` of shape ``(N, 8)``; `n_nodes`; `edges`: optional node pairs ``(E, 2)`` of further
-    cell edges (a mixed mesh's `jaxci.mixed.edge_pairs`), joined to the hexahedron edges.
+    cell edges (a mixed mesh's `jaxci.metrics.objective.edge_pairs`), joined to the hexahedron edges.
 
     **Returns:** ``(nbr, mask)`` of shape ``(n_nodes, K)`` (K the largest number of edge neighbours; padding
     repeats the node itself and is False in `mask`).
@@ -229,8 +229,8 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     - `cs`: `ColouredStars` of the mesh (`coloured_stars`); `nbr`, `nmask`: ``(n_colours, M, K)`` edge
       neighbours of the nodes of `cs` and their mask (`coloured_neighbours`).
     - `cons`: the `Constraints`; `p`: `LaplaceParams`; `smart`: the smart variant.
-    - `extra`: keyword only; the non-hexahedral cells (`jaxci.mixed.extra_cells`, default none), whose corners
-      `cs` must hold too: F in the history is then over every corner.
+    - `extra`: keyword only; the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`, default none), whose
+      corners `cs` must hold too: F in the history is then over every corner.
 
     **Returns:** ``(points, sweeps, history, params)``: coordinates ``(n, 3)``, the number of sweeps, numpy
     arrays of length ``sweeps + 1`` (entry 0 = input): ``objective`` (F; ``inf`` once an element is inverted),

@@ -1,7 +1,7 @@
 """The free coordinates of a mesh as one flat vector, for the gradient solvers and the untangler.
 
-The unknowns are the free coordinates of `jaxci.projection` (3 per interior node, 2 per surface node, 1 per edge
-node; corner nodes fixed), divided by the local edge length h of their node: ``u = h * v`` and the solvers see
+The unknowns are the free coordinates of `jaxci.geometry.projection` (3 per interior node, 2 per surface node, 1 per
+edge node; corner nodes fixed), divided by the local edge length h of their node: ``u = h * v`` and the solvers see
 ``v``. Node coordinates are ``project(x0 + B u)`` (`Parametrisation.points`), so every iterate lies on the
 original boundary. Where every moving boundary node stays inside the flat (planar or straight) part of the
 boundary around it, the projection is the identity and is skipped (`Parametrisation.shortcut`).
@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import mixed
 from .._lazy import is_jax_array, jax, jnp, pytree_dataclass
-from ..boundary import BoundaryInfo
-from ..mesh import CORNER_NEIGHBOURS
-from ..projection import Constraints, n_free, project, project_np
+from ..cells import CORNER_NEIGHBOURS
+from ..geometry.boundary import BoundaryInfo
+from ..geometry.projection import Constraints, n_free, project, project_np
+from ..metrics import objective as mixed
 from ._buckets import bucket, free_index, free_layout, pad_constraints, pad_rows, to_device
 
 
@@ -37,8 +37,8 @@ class Parametrisation:
 
     While every boundary node lies inside its flat region, ``x0 + B u`` is already on the boundary and its
     projection is itself, so `points` skips the search over candidate triangles (exactly: same value, same
-    derivative ``B``); otherwise it calls `jaxci.projection.project` (exact value; with `shortcut` the derivative
-    is still ``B``, the tangent map, so that the backward pass keeps no residuals of the projection).
+    derivative ``B``); otherwise it calls `jaxci.geometry.projection.project` (exact value; with `shortcut` the
+    derivative is still ``B``, the tangent map, so that the backward pass keeps no residuals of the projection).
     """
 
     cons: Constraints
@@ -83,8 +83,8 @@ class Parametrisation:
         return self._reach(self._lift_np(v))
 
     def final_points(self, v):
-        """`points` of `v`, in numpy float64 outside `jax.jit` (the exact `jaxci.projection.project_np` only where
-        a node left its flat region), returned in the dtype of `x0`: compiling `points` for this one call cost
+        """`points` of `v`, in numpy float64 outside `jax.jit` (the exact `jaxci.geometry.projection.project_np` only
+        where a node left its flat region), returned in the dtype of `x0`: compiling `points` for this one call cost
         0.5 s of the 729-element cold start, running it op by op 1 s."""
         x = self._lift_np(v)
         if not (self.shortcut and self._reach(x) < 1.0):
@@ -236,9 +236,9 @@ _EDGE_ENDS = np.array(sorted({(min(i, int(j)), max(i, int(j))) for i in range(8)
 
 
 def free_lengths(mesh, cons: Constraints, points=None) -> np.ndarray:
-    """Local edge length of the node of every free coordinate (the `jaxci.projection` layout), float64
+    """Local edge length of the node of every free coordinate (the `jaxci.geometry.projection` layout), float64
     ``(n_free,)``: `node_lengths` over the hexahedra; for a node of non-hexahedral cells only, the mean edge
-    length of its cells (`jaxci.mixed.node_lengths`); 0 for a node of no cell.
+    length of its cells (`jaxci.metrics.objective.node_lengths`); 0 for a node of no cell.
     """
     pts = mesh.points if points is None else points
     h = node_lengths(mesh.hexes, pts)

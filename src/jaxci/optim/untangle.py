@@ -36,10 +36,10 @@ and small helper programs before); 60^3 (1838 inverted, 50 steps): 19.7 -> 11.5 
 evaluation of the energy and its gradient costs what one of F does (60^3, float64: 266 against 255 ms).
 
 **Mixed meshes.** The corners of wedges, pyramids and tetrahedra count like the hexahedra's, with
-``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.elements.TARGETS`, so an ideal cell of edge L_e has
-``J = I``); each of the four sub-tetrahedra of a pyramid (`jaxci.elements.PYRAMID_TETS`, which must stay positive
-too) adds the volume term ``theta (det J^2 + 1) / chi`` only. "Untangled" means no inverted cell of any type
-(`jaxci.elements.inverted`).
+``J = A W^-1 / L_e`` (W the type's ideal corner, `jaxci.cells.TARGETS`, so an ideal cell of edge L_e has
+``J = I``); each of the four sub-tetrahedra of a pyramid (`jaxci.cells.PYRAMID_TETS`, which must stay
+positive too) adds the volume term ``theta (det J^2 + 1) / chi`` only. "Untangled" means no inverted cell of any type
+(`jaxci.metrics.elements.inverted`).
 """
 
 from __future__ import annotations
@@ -49,13 +49,14 @@ import time
 
 import numpy as np
 
-from .. import elements as E
 from .._lazy import enable_x64, is_jax_array, jax
-from ..boundary import CORNER, BoundaryInfo
+from ..cells import EDGES, corner_determinants, element_blocks
 from ..errors import InvertedMeshError
-from ..mesh import EDGES, HexMesh, corner_determinants
-from ..mixed import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
-from ..projection import Constraints, n_free, project_np
+from ..geometry.boundary import CORNER, BoundaryInfo
+from ..geometry.projection import Constraints, n_free, project_np
+from ..mesh import HexMesh
+from ..metrics import elements as E
+from ..metrics.objective import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
 from . import _params as _p
 from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
 from .host import UNTANGLE_HOST_MAX, runs_on_host, untangle_rounds_np
@@ -107,7 +108,7 @@ class UntangleParams:
 
 
 def element_lengths(points: np.ndarray, hexes: np.ndarray, cell_type: str = "hexahedron") -> np.ndarray:
-    """Mean length of the edges of each cell (`jaxci.mesh.EDGES` of `cell_type`), shape ``(N,)`` (float64)."""
+    """Mean length of the edges of each cell (`jaxci.cells.EDGES` of `cell_type`), shape ``(N,)`` (float64)."""
     p = np.asarray(points, dtype=np.float64)
     e = np.asarray(hexes)[:, EDGES[cell_type]]  # (N, n_edges, 2)
     return np.linalg.norm(p[e[..., 1]] - p[e[..., 0]], axis=-1).mean(axis=1)
@@ -235,7 +236,7 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
     original boundary (with `partial`, possibly some elements still inverted: the notes say how many), and
     sentences for `SmoothResult.notes`.
     """
-    from ..projection import build_constraints
+    from ..geometry.projection import build_constraints
 
     where = f"{mesh.source}: " if mesh.source else ""
     det0 = corner_determinants(mesh.points, mesh.hexes)
@@ -257,7 +258,7 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
                    f"inverted ({first}{', ...' if left > 5 else ''}) after {rep['rounds']} rounds; shape "
                    f"improvement skipped: the mesh is returned with them"]
     if not rep["untangled"]:
-        blocks = E.element_blocks(mesh)
+        blocks = element_blocks(mesh)
         bad = {t: np.flatnonzero(b) for t, b in inverted_cells(mesh, x).items() if b.any()}
         t0 = next(iter(bad))
         nodes = np.unique(np.concatenate([blocks[t][k].ravel() for t, k in bad.items()]))
@@ -303,7 +304,7 @@ def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.nd
     `projected`: the host solver's points, on the boundary already), or `untangled` if that has an inverted
     corner or a higher F than `untangled` (with a note saying so).
     """
-    from ..projection import build_constraints
+    from ..geometry.projection import build_constraints
 
     with enable_x64(not E.objective_on_host(mesh)):
         if not projected:

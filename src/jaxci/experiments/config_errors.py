@@ -1,6 +1,6 @@
 """Where a config error is: YAML key paths to ``file:line``, duplicate keys, pydantic errors as one message.
 
-Used by `jaxci.config` (loading) and `jaxci.experiment` (the output folder's line); knows no schema.
+Used by `jaxci.experiments.config` (loading) and `jaxci.experiments.runner` (the output folder's line); knows no schema.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 class Locator:

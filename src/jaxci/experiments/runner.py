@@ -1,19 +1,19 @@
-"""`jaxci.experiment`: smoothing experiments run and recorded.
+"""`jaxci.experiments.runner`: smoothing experiments run and recorded.
 
 `run_experiment` smooths every (mesh, method, seed) of an `Experiment` (a YAML config read and validated by
-`jaxci.config.load_config`, re-exported here; the config format is described in `jaxci.config`) with
-`jaxci.smooth.smooth` and writes one output folder. The output folder is checked before anything runs
-(`jaxci.results.stage`): one that exists (without ``force``), that is not a jaxci results folder (with
+`jaxci.experiments.config.load_config`, re-exported here; the config format is described in `jaxci.experiments.config`)
+with `jaxci.smooth.smooth` and writes one output folder. The output folder is checked before anything runs
+(`jaxci.experiments.results.stage`): one that exists (without ``force``), that is not a jaxci results folder (with
 ``force``: a folder is replaced only if it holds earlier jaxci results and nothing else), that holds an input or
 the current folder, or that cannot be written is a `jaxci.errors.ConfigError`, as is ``device: gpu`` on a
 machine with no GPU.
 
 Output folder (written to a temporary sibling folder, renamed into place at the end; every file via a
 temporary file and `os.replace`): ``summary.json``, ``runs.csv``, ``history.json``, ``report.md`` (the paper's
-Tables 1-3 beside ours, `jaxci.report`), ``figures/*.png`` (`jaxci.plots`), ``meshes/*.vtu`` and the marker
-``.jaxci-results`` (`jaxci.results.MARKER`). A `KeyboardInterrupt` keeps the finished runs: the folder is still
-written, with ``"partial": true`` and no figures (so that an interrupt acts at once); earlier results are
-replaced only by a complete run (a partial one, or one where every run failed, goes beside them,
+Tables 1-3 beside ours, `jaxci.experiments.report`), ``figures/*.png`` (`jaxci.experiments.plots`), ``meshes/*.vtu`` and
+the marker ``.jaxci-results`` (`jaxci.experiments.results.MARKER`). A `KeyboardInterrupt` keeps the finished runs: the
+folder is still written, with ``"partial": true`` and no figures (so that an interrupt acts at once); earlier results
+are replaced only by a complete run (a partial one, or one where every run failed, goes beside them,
 ``<out>.partial-N`` / ``<out>.failed-N``). A run that fails (a `JaxciError` such as an inverted mesh with no
 untangling, or an unexpected exception unless ``strict``) is recorded with its message and the other runs go
 on.
@@ -34,10 +34,10 @@ from typing import Any
 
 import yaml
 
+from ..errors import ConfigError, JaxciError
 from .config import MAX_RUNS, Experiment, ResolvedMesh, ResolvedMethod
-from .config import load_config as load_config  # re-exported: ``from jaxci.experiment import load_config``
+from .config import load_config as load_config  # re-exported: ``from jaxci.experiments.runner import load_config``
 from .config_errors import Locator
-from .errors import ConfigError, JaxciError
 from .report import RunRecord, json_ready, write_vtus
 from .results import Staged, stage, write_text
 
@@ -104,7 +104,7 @@ def run_experiment(
     - `out`: the output folder (default: the config's ``output``, else ``results/<config stem>``). Keyword
       arguments below are keyword only.
     - `force`: replace an existing output folder, only if it holds earlier jaxci results and nothing else, and
-      only once the new run is complete (`jaxci.results`).
+      only once the new run is complete (`jaxci.experiments.results`).
     - `seeds`: run seeds ``0..seeds-1`` instead of the config's.
     - `progress`: called as ``progress(done, total, description)`` before each run and once at the end.
     - `strict`: re-raise an unexpected exception of a run (a bug) instead of recording it as a failed run.
@@ -241,7 +241,7 @@ class _Run:
 
 def _one_run(exp: Experiment, rm: ResolvedMesh, seed: int, meth: ResolvedMethod, inputs: dict, strict: bool):
     """Smooth one (mesh, seed, method); returns ``(RunRecord, SmoothResult or None)``."""
-    from .smooth import smooth
+    from ..smooth import smooth
 
     rec = RunRecord(mesh=rm.name, label=meth.label, method=meth.method, seed=seed, status="failed")
     b = rm.boundary

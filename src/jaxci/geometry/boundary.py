@@ -1,8 +1,8 @@
 """Classification of the nodes of a hex-dominant mesh by how they may move: interior, surface, edge or corner.
 
 The boundary is the set of faces (quadrilaterals and triangles) used by exactly one volume cell of any type
-(`jaxci.topology`): a face a hexahedron shares with a wedge, pyramid or tetrahedron is interior. A boundary edge
-is a *feature edge* when the unit normals of its two boundary faces differ by more than the feature angle, or
+(`jaxci.geometry.topology`): a face a hexahedron shares with a wedge, pyramid or tetrahedron is interior. A boundary
+edge is a *feature edge* when the unit normals of its two boundary faces differ by more than the feature angle, or
 when it does not have exactly two boundary faces (a non-manifold or open edge). Then, per node:
 
 - CORNER (fixed): 1 or 3+ feature edges meet at it (a curve ends or curves meet), or 2 meet at an angle: the
@@ -19,10 +19,11 @@ Patches and curves are computed from the geometry only; fixing nodes afterwards 
 
 Nodes of hexahedra and of linear wedges, pyramids and tetrahedra are classified alike and move. Nodes used by
 no volume cell are fixed, and so are the nodes of QUADRATIC wedges, pyramids and tetrahedra (midside nodes
-given, or meshio's ``wedge15``/``pyramid13``/``tetra10``/``hexahedron20`` blocks; `jaxci.mixed.fixed_nodes`),
-with a note. (Quadratic hexahedra are hexahedra with midside nodes: their corner nodes move and the midside
-nodes follow, `jaxci.mesh.HexMesh.with_points`.) A broken boundary (open or non-manifold) is reported with
-`warnings.warn` and in `BoundaryInfo.notes`, never raised: such edges and vertices become features and corners.
+given, or meshio's ``wedge15``/``pyramid13``/``tetra10``/``hexahedron20`` blocks;
+`jaxci.cells.fixed_nodes`), with a note. (Quadratic hexahedra are hexahedra with midside nodes: their corner
+nodes move and the midside nodes follow, `jaxci.mesh.HexMesh.with_points`.) A broken boundary (open or non-manifold) is
+reported with `warnings.warn` and in `BoundaryInfo.notes`, never raised: such edges and vertices become features and
+corners.
 """
 
 from __future__ import annotations
@@ -33,10 +34,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .errors import MeshError
-from .mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
-from .mixed import fixed_nodes as fixed_cell_nodes
-from .mixed import volume_cells
+from ..cells import fixed_nodes as fixed_cell_nodes
+from ..cells import volume_cells
+from ..errors import MeshError
+from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
 from .topology import BoundaryTopology, boundary_topology, components
 
 #: Node classes (values of `BoundaryInfo.node_class`).
@@ -98,7 +99,7 @@ class BoundaryInfo:
 
 
 def mesh_topology(mesh: HexMesh) -> BoundaryTopology:
-    """`jaxci.topology.boundary_topology` of every volume cell of `mesh` (hexahedra, wedges, pyramids,
+    """`jaxci.geometry.topology.boundary_topology` of every volume cell of `mesh` (hexahedra, wedges, pyramids,
     tetrahedra; quadratic cells by their corner nodes)."""
     cells = volume_cells(mesh)
     cells.pop("hexahedron", None)

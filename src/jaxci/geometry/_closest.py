@@ -1,9 +1,9 @@
-"""Closest points on triangles and segments: the kernels of `jaxci.projection` (numpy and JAX alike).
+"""Closest points on triangles and segments: the kernels of `jaxci.geometry.projection` (numpy and JAX alike).
 
 Vectors are tuples of 3 arrays (structure of arrays: XLA:CPU is many times faster on scalar component arrays
 than on ``(..., 3)`` axes) and every function takes the array module `xp` (numpy or jax.numpy). The geometry
 is packed into tables with one row per precomputed quantity and one column per triangle or segment, gathered
-per candidate with 1-D gathers. See `jaxci.projection` for the method.
+per candidate with 1-D gathers. See `jaxci.geometry.projection` for the method.
 """
 
 from __future__ import annotations
@@ -28,12 +28,12 @@ def _where3(xp, c, u, v):
     return (xp.where(c, u[0], v[0]), xp.where(c, u[1], v[1]), xp.where(c, u[2], v[2]))
 
 
-def _tol(dtype) -> float:
+def inside_tolerance(dtype) -> float:
     """Relative tolerance of the inside tests."""
     return 256.0 * float(np.finfo(np.dtype(dtype)).eps)
 
 
-def _bump(dtype) -> float:
+def segment_bump(dtype) -> float:
     """Score penalty of a segment point, times the squared size of its cell: an inside projection onto a
     triangle (or segment) wins unless the other point is nearer by more than rounding noise."""
     return (64.0 * float(np.finfo(np.dtype(dtype)).eps)) ** 2
@@ -41,21 +41,21 @@ def _bump(dtype) -> float:
 
 # Rows of the packed triangle table (structure of arrays; one column per triangle (c, a, b) of a boundary face,
 # c its centroid, a and b consecutive corners; the 4 triangles of face f are columns 4 f .. 4 f + 3; a boundary
-# triangle is the face [a, b, c, c], see `_triangle_table`).
+# triangle is the face [a, b, c, c], see `triangle_table`).
 # Everything that depends on the original geometry only is precomputed: the kernel has no division or root.
 _TC = 0  # centroid c (x y z)
 _TE1 = 3  # spoke e1 = a - c
 _TE2 = 6  # spoke e2 = b - c
-_TN = 9  # unit normal
+TN = 9  # unit normal
 _TG = 12  # (g22, g12, g11) / |e1 x e2|^2, g the Gram matrix of (e1, e2)
 _TOK = 15  # 1.0 for a non-degenerate triangle
 _TIS = 16  # 1 / |e1|^2 (0 for a zero-length spoke)
 _TID = 17  # 1 / |b - a|^2 (0 for a zero-length side)
 _TL2 = 18  # squared size of the quad (its longest spoke), scales the segment penalty
-_TRI_ROWS = 19
+TRI_ROWS = 19
 # Rows of the packed segment table: start a, direction d = b - a, 1 / |d|^2 (0 if degenerate), |d|^2.
-_SA, _SD, _SI, _SL2 = 0, 3, 6, 7
-_SEG_ROWS = 8
+_SA, SD, _SI, _SL2 = 0, 3, 6, 7
+SEG_ROWS = 8
 
 
 def _segment_point(x, a, d, t, penalty):
@@ -71,16 +71,16 @@ def _keep_better(xp, best, new):
     return _where3(xp, take, new[0], best[0]), xp.where(take, new[1], best[1])
 
 
-def _closest_on_triangles(xp, x, t, tol):
+def closest_on_triangles(xp, x, t, tol):
     """Nearest points of `x` on triangles given by the 19 rows `t` of the triangle table, broadcast together.
 
     The candidates are the orthogonal projection onto the triangle if it falls inside, the nearest point of the
     spoke c-a and that of the side a-b (the other spoke is the next triangle's). Returns (point as 3 arrays,
     score), the score being the squared distance plus, for spoke and side points, a rounding-level penalty.
     """
-    penalty = _bump(t[_TL2].dtype) * t[_TL2]
+    penalty = segment_bump(t[_TL2].dtype) * t[_TL2]
     c, e1, e2 = (tuple(t[k : k + 3]) for k in (_TC, _TE1, _TE2))
-    p, h, inside, w, d1 = _plane_point(x, t, tol)
+    p, h, inside, w, d1 = plane_point(x, t, tol)
     best = (p, xp.where(inside, h * h, xp.inf))
     best = _keep_better(xp, best, _segment_point(x, c, e1, xp.clip(d1 * t[_TIS], 0, 1), penalty))
     side = _sub3(e2, e1)
@@ -88,10 +88,10 @@ def _closest_on_triangles(xp, x, t, tol):
     return _keep_better(xp, best, _segment_point(x, _axpy3(1.0, e1, c), side, xp.clip(u, 0, 1), penalty))
 
 
-def _plane_point(x, t, tol):
+def plane_point(x, t, tol):
     """The orthogonal projection of `x` onto the planes of triangles `t`: ``(point, signed distance h, inside,
     x - c, (x - c) . e1)``; `inside` where it falls inside the triangle (within `tol`)."""
-    c, e1, e2, un = (tuple(t[k : k + 3]) for k in (_TC, _TE1, _TE2, _TN))
+    c, e1, e2, un = (tuple(t[k : k + 3]) for k in (_TC, _TE1, _TE2, TN))
     g22, g12, g11 = t[_TG], t[_TG + 1], t[_TG + 2]
     w = _sub3(x, c)
     d1, d2 = _dot3(w, e1), _dot3(w, e2)
@@ -102,24 +102,24 @@ def _plane_point(x, t, tol):
     return _axpy3(-h, un, x), h, inside, w, d1
 
 
-def _line_point(x, t, tol):
+def line_point(x, t, tol):
     """The orthogonal projection of `x` onto the lines of segments `t`: ``(point, inside)``."""
-    a, d, inv = tuple(t[_SA : _SA + 3]), tuple(t[_SD : _SD + 3]), t[_SI]
+    a, d, inv = tuple(t[_SA : _SA + 3]), tuple(t[SD : SD + 3]), t[_SI]
     s = _dot3(_sub3(x, a), d) * inv
     return _axpy3(s, d, a), (inv > 0) & (s >= -tol) & (s <= 1 + tol)
 
 
-def _closest_on_segments(xp, x, t, tol):
+def closest_on_segments(xp, x, t, tol):
     """Nearest points of `x` on segments given by the 8 rows `t` of the segment table; as for triangles (a
     point projecting inside the segment scores its squared distance, a clamped end point gets the penalty)."""
-    a, d, inv = tuple(t[_SA : _SA + 3]), tuple(t[_SD : _SD + 3]), t[_SI]
+    a, d, inv = tuple(t[_SA : _SA + 3]), tuple(t[SD : SD + 3]), t[_SI]
     s = _dot3(_sub3(x, a), d) * inv
     inside = (inv > 0) & (s >= -tol) & (s <= 1 + tol)
     p, d2 = _segment_point(x, a, d, xp.where(inside, s, xp.clip(s, 0, 1)), 0)
-    return p, xp.where(inside, d2, d2 + _bump(t[_SL2].dtype) * t[_SL2])
+    return p, xp.where(inside, d2, d2 + segment_bump(t[_SL2].dtype) * t[_SL2])
 
 
-def _triangle_table(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def triangle_table(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """The packed triangle table of the faces `faces` (F, 4): shape (19, 4 F), float64.
 
     A face ``[a, b, c, c]`` is a triangle: its centre is its centroid (a + b + c) / 3, and its 4 triangles are
@@ -140,10 +140,10 @@ def _triangle_table(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     ok = nn > 1e-24 * g11 * g22
     inv = np.divide(1.0, nn, out=np.zeros_like(nn), where=ok)
     ll = ((e2 - e1) ** 2).sum(1)
-    out = np.zeros((_TRI_ROWS, len(c)), dtype=np.float64)
+    out = np.zeros((TRI_ROWS, len(c)), dtype=np.float64)
     out[_TC : _TC + 3], out[_TE1 : _TE1 + 3], out[_TE2 : _TE2 + 3] = c.T, e1.T, e2.T
     # n / |n|: exactly +-1 along an axis for an axis-aligned triangle (sqrt(x^2) == |x| in IEEE arithmetic)
-    out[_TN : _TN + 3] = np.divide(n, np.sqrt(nn)[:, None], out=np.zeros_like(n), where=ok[:, None]).T
+    out[TN : TN + 3] = np.divide(n, np.sqrt(nn)[:, None], out=np.zeros_like(n), where=ok[:, None]).T
     out[_TG], out[_TG + 1], out[_TG + 2] = g22 * inv, g12 * inv, g11 * inv
     out[_TOK] = ok
     out[_TIS] = np.divide(1.0, g11, out=np.zeros_like(g11), where=g11 > 0)
@@ -152,21 +152,21 @@ def _triangle_table(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
-def _segment_table(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
+def segment_table(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """The packed segment table of `edges` (S, 2): shape (8, S), float64."""
     a, d = points[edges[:, 0]], points[edges[:, 1]] - points[edges[:, 0]]
     ll = (d * d).sum(1)
-    out = np.zeros((_SEG_ROWS, len(edges)), dtype=np.float64)
-    out[_SA : _SA + 3], out[_SD : _SD + 3] = a.T, d.T
+    out = np.zeros((SEG_ROWS, len(edges)), dtype=np.float64)
+    out[_SA : _SA + 3], out[SD : SD + 3] = a.T, d.T
     out[_SI] = np.divide(1.0, ll, out=np.zeros_like(ll), where=ll > 0)
     out[_SL2] = ll
     return out
 
 
-def _nearest(xp, x, table, cand, closest, tol):
+def nearest_candidates(xp, x, table, cand, closest, tol):
     """Nearest candidate points: `x` (..., m, 3), candidate columns `cand` (m, K) of `table` -> (..., m, 3).
 
-    `closest` is `_closest_on_triangles` or `_closest_on_segments`, `tol` the inside tolerance (`_tol`).
+    `closest` is `closest_on_triangles` or `closest_on_segments`, `tol` the inside tolerance (`inside_tolerance`).
     """
     rows = candidate_rows(table, cand)
     xs = tuple(x[..., j][..., None] for j in range(3))  # each (..., m, 1)
@@ -177,16 +177,16 @@ def _nearest(xp, x, table, cand, closest, tol):
 
 def candidate_rows(table, cand) -> list:
     """The rows of `table` gathered at the candidates `cand` (m, K): a list of (m, K) arrays (kept between
-    projections by `jaxci.projection.host_constraints`: in numpy the gather was a third of a projection)."""
+    projections by `jaxci.geometry.projection.host_constraints`: in numpy the gather was a third of a projection)."""
     return [table[j][cand] for j in range(table.shape[0])]  # 1-D gathers, each (m, K)
 
 
-def _triangle_centres(t: np.ndarray):
+def triangle_centres(t: np.ndarray):
     c, e1, e2 = t[_TC : _TC + 3].T, t[_TE1 : _TE1 + 3].T, t[_TE2 : _TE2 + 3].T
     centre = c + (e1 + e2) / 3.0
     return centre, np.max([np.linalg.norm(v - centre, axis=1) for v in (c, c + e1, c + e2)], axis=0)
 
 
-def _segment_centres(t: np.ndarray):
-    d = t[_SD : _SD + 3].T
+def segment_centres(t: np.ndarray):
+    d = t[SD : SD + 3].T
     return t[_SA : _SA + 3].T + 0.5 * d, 0.5 * np.linalg.norm(d, axis=1)

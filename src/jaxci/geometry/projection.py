@@ -3,9 +3,9 @@
 **Geometry kept.** Every boundary quadrilateral of the input mesh is split into four triangles around its centroid
 (the mean of its corners): no diagonal is preferred, a planar quad gives four coplanar triangles (so planar patches
 are reproduced exactly), and a warped quad is approximated by a surface symmetric in its corners. A boundary
-triangle (of a wedge, pyramid or tetrahedron, stored as ``[a, b, c, c]``, `jaxci.topology`) is split around its
+triangle (of a wedge, pyramid or tetrahedron, stored as ``[a, b, c, c]``, `jaxci.geometry.topology`) is split around its
 centroid the same way and is reproduced exactly. Feature curves are kept as the polylines of their feature edges.
-Each triangle belongs to the patch of its quad, each segment to one curve (`jaxci.boundary`).
+Each triangle belongs to the patch of its quad, each segment to one curve (`jaxci.geometry.boundary`).
 
 **Projection.** A SURFACE node goes to the nearest point of its own patch, an EDGE node to the nearest point
 of its own curve, a CORNER node back to its original position; INTERIOR nodes do not move. Restricting the
@@ -46,27 +46,27 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .._lazy import filter_jit, jax, jnp, pytree_dataclass
+from ..mesh import HexMesh
 from ._closest import (
-    _SD,
-    _SEG_ROWS,
-    _TN,
-    _TRI_ROWS,
-    _bump,
-    _closest_on_segments,
-    _closest_on_triangles,
-    _line_point,
-    _nearest,
-    _plane_point,
-    _segment_centres,
-    _segment_table,
-    _tol,
-    _triangle_centres,
-    _triangle_table,
+    SD,
+    SEG_ROWS,
+    TN,
+    TRI_ROWS,
     candidate_rows,
+    closest_on_segments,
+    closest_on_triangles,
+    inside_tolerance,
+    line_point,
+    nearest_candidates,
+    plane_point,
+    segment_bump,
+    segment_centres,
+    segment_table,
+    triangle_centres,
+    triangle_table,
 )
-from ._lazy import filter_jit, jax, jnp, pytree_dataclass
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, face_normals
-from .mesh import HexMesh
 
 if TYPE_CHECKING:
     from jaxtyping import Array, Float, Int
@@ -83,7 +83,7 @@ class Constraints:
     **Fields:**
 
     - `x_orig`: original node coordinates, shape ``(n_nodes, 3)`` (corners are restored to them).
-    - `node_class`: class of each node (`jaxci.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
+    - `node_class`: class of each node (`jaxci.geometry.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
     - `group`: patch id of SURFACE nodes, curve id of EDGE nodes, -1 otherwise; shape ``(n_nodes,)``.
     - `row`: position of a SURFACE (EDGE) node in `surface_nodes` (`edge_nodes`), 0 otherwise.
     - `interior_nodes`, `surface_nodes`, `edge_nodes`, `corner_nodes`: sorted node indices of each class.
@@ -197,7 +197,7 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     **Arguments:**
 
     - `mesh`: the mesh whose CURRENT coordinates are the original geometry to project onto.
-    - `info`: its `BoundaryInfo` (from `jaxci.boundary.classify_boundary`).
+    - `info`: its `BoundaryInfo` (from `jaxci.geometry.boundary.classify_boundary`).
     - `dtype`: float dtype of the geometry arrays; default JAX's default float (float64 under
       ``jax_enable_x64``, else float32). Keyword only argument.
     - `device`: put the arrays on JAX's default device (default; for jitted functions, which would copy numpy
@@ -217,20 +217,20 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     row[surf] = np.arange(len(surf))
     row[edge] = np.arange(len(edge))
     # normals of surface nodes: area-weighted over the faces of their own patch around them (every face around a
-    # surface node, except for a corner or edge node made a surface node by `jaxci.boundary.slide_on_surface`)
+    # surface node, except for a corner or edge node made a surface node by `jaxci.geometry.boundary.slide_on_surface`)
     normals = np.zeros((len(surf), 3))
     if len(faces) and len(surf):
         normals = _unit_rows(_node_sums(faces, n, surf, face_normals(pts, faces), info.face_patch, group))
     if len(faces):
-        tris, tri_patch = _triangle_table(pts, faces), np.repeat(info.face_patch, 4)
+        tris, tri_patch = triangle_table(pts, faces), np.repeat(info.face_patch, 4)
     else:
-        tris, tri_patch = np.zeros((_TRI_ROWS, 1)), np.full(1, -1)
+        tris, tri_patch = np.zeros((TRI_ROWS, 1)), np.full(1, -1)
     quad_cand = _ring_candidates(faces, n, surf, info.face_patch, group)
     tri_cand = (4 * quad_cand[:, :, None] + np.arange(4)).reshape(len(quad_cand), -1)
     if len(fedges):
-        segs, seg_curve = _segment_table(pts, fedges), info.edge_curve
+        segs, seg_curve = segment_table(pts, fedges), info.edge_curve
     else:
-        segs, seg_curve = np.zeros((_SEG_ROWS, 1)), np.full(1, -1)
+        segs, seg_curve = np.zeros((SEG_ROWS, 1)), np.full(1, -1)
 
     put = jax.device_put if device else (lambda a: a)
 
@@ -283,11 +283,12 @@ def project(constraints: Constraints, points: Float[Array, "*batch n 3"]) -> Flo
     ns, ne = c.surface_nodes.shape[0], c.edge_nodes.shape[0]
     if ns:
         tab, cand = c.triangles.astype(x.dtype), c.surface_cand[:ns]
-        p = _nearest(jnp, x[..., c.surface_nodes, :], tab, cand, _closest_on_triangles, _tol(x.dtype))
+        p = nearest_candidates(jnp, x[..., c.surface_nodes, :], tab, cand, closest_on_triangles,
+                               inside_tolerance(x.dtype))
         x = x.at[..., c.surface_nodes, :].set(p)
     if ne:
         tab, cand = c.segments.astype(x.dtype), c.edge_cand[:ne]
-        p = _nearest(jnp, x[..., c.edge_nodes, :], tab, cand, _closest_on_segments, _tol(x.dtype))
+        p = nearest_candidates(jnp, x[..., c.edge_nodes, :], tab, cand, closest_on_segments, inside_tolerance(x.dtype))
         x = x.at[..., c.edge_nodes, :].set(p)
     return x.at[..., c.corner_nodes, :].set(c.x_orig[c.corner_nodes].astype(x.dtype))
 
@@ -321,13 +322,13 @@ class NearProjector:
     """
 
     def __init__(self, constraints: Constraints):
-        from . import native
+        from .. import native
 
         self.c, self.rows = host_constraints(constraints)
         # candidate column per surface node, per edge node; -1: not known (search all its candidates)
         self.hint = tuple(np.full(int(n.shape[0]), -1, np.int64) for n in (self.c.surface_nodes, self.c.edge_nodes))
         #: per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search
-        self.spheres = (_sphere(self.c.triangles, _triangle_centres), _sphere(self.c.segments, _segment_centres))
+        self.spheres = (_sphere(self.c.triangles, triangle_centres), _sphere(self.c.segments, segment_centres))
         #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
         self._native = None if not native.AVAILABLE else tuple(
             (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int64),
@@ -346,21 +347,21 @@ class NearProjector:
         is its own projection (their hint stays as it was)."""
         c = self.c
         x = np.array(points, dtype=np.float64)
-        tol = _tol(np.float64)
+        tol = inside_tolerance(np.float64)
         if self._native is not None:
-            from . import native
+            from .. import native
 
             out = []
             for kind, (nodes, cand, table) in enumerate(self._native):
                 hint = self.hint[kind].copy()
                 active = np.arange(len(nodes)) if keep is None else np.flatnonzero(~keep[nodes])
                 if len(active):
-                    native.near_project(x, nodes, active, hint, cand, table, kind, tol, _bump(np.float64))
+                    native.near_project(x, nodes, active, hint, cand, table, kind, tol, segment_bump(np.float64))
                 out.append(hint)
             x[c.corner_nodes] = c.x_orig[c.corner_nodes]
             return x, tuple(out)
-        kinds = ((c.surface_nodes, c.triangles, c.surface_cand, _closest_on_triangles, _plane_point),
-                 (c.edge_nodes, c.segments, c.edge_cand, _closest_on_segments, _line_point))
+        kinds = ((c.surface_nodes, c.triangles, c.surface_cand, closest_on_triangles, plane_point),
+                 (c.edge_nodes, c.segments, c.edge_cand, closest_on_segments, line_point))
         out = []
         for kind, (nodes, table, cand, closest, orthogonal) in enumerate(kinds):
             hint = self.hint[kind].copy()
@@ -402,8 +403,8 @@ class NearProjector:
         edge node its component along its segment (the derivative of the projection onto a plane or a line);
         nodes of `keep` unchanged. A new array."""
         c, g = self.c, np.array(g)
-        for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, c.surface_cand, _TN),
-                                                          (c.edge_nodes, c.segments, c.edge_cand, _SD))):
+        for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, c.surface_cand, TN),
+                                                          (c.edge_nodes, c.segments, c.edge_cand, SD))):
             rows = np.flatnonzero(hint[kind] >= 0) if keep is None else np.flatnonzero((hint[kind] >= 0)
                                                                                        & ~keep[nodes])
             if not len(rows):
@@ -463,9 +464,9 @@ def project_nodes(
     idx = jnp.asarray(node_idx)
     cls, row = c.node_class[idx][:, None], c.row[idx]
     cand = c.surface_cand[jnp.minimum(row, c.surface_cand.shape[0] - 1)]
-    ps = _nearest(jnp, x, c.triangles.astype(x.dtype), cand, _closest_on_triangles, _tol(x.dtype))
+    ps = nearest_candidates(jnp, x, c.triangles.astype(x.dtype), cand, closest_on_triangles, inside_tolerance(x.dtype))
     cand = c.edge_cand[jnp.minimum(row, c.edge_cand.shape[0] - 1)]
-    pe = _nearest(jnp, x, c.segments.astype(x.dtype), cand, _closest_on_segments, _tol(x.dtype))
+    pe = nearest_candidates(jnp, x, c.segments.astype(x.dtype), cand, closest_on_segments, inside_tolerance(x.dtype))
     fixed = c.x_orig[idx].astype(x.dtype)
     return jnp.where(cls == SURFACE, ps, jnp.where(cls == EDGE, pe, jnp.where(cls == CORNER, fixed, x)))
 
@@ -488,7 +489,7 @@ def _search(table, cells, x, closest, centre_radius):
     lens = np.fromiter((len(v) for v in lists), dtype=np.int64, count=len(lists))
     flat = np.fromiter((i for v in lists for i in v), dtype=np.int64, count=int(lens.sum()))
     owner = np.repeat(np.arange(len(x)), lens)
-    p, score = closest(np, tuple(x[owner].T), table[:, cells[flat]], _tol(np.float64))
+    p, score = closest(np, tuple(x[owner].T), table[:, cells[flat]], inside_tolerance(np.float64))
     order = np.lexsort((score, owner))
     first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
     return np.stack(p, axis=1)[first]
@@ -511,8 +512,8 @@ def project_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
     x = np.array(points, dtype=np.float64)
     group = np.asarray(c.group)
     for nodes, table, cell_group, closest, centres in (
-        (c.surface_nodes, c.triangles, c.triangle_patch, _closest_on_triangles, _triangle_centres),
-        (c.edge_nodes, c.segments, c.segment_curve, _closest_on_segments, _segment_centres),
+        (c.surface_nodes, c.triangles, c.triangle_patch, closest_on_triangles, triangle_centres),
+        (c.edge_nodes, c.segments, c.segment_curve, closest_on_segments, segment_centres),
     ):
         nodes = np.asarray(nodes)
         table = np.asarray(table, dtype=np.float64)

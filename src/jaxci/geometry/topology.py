@@ -9,7 +9,7 @@ methods that colour the nodes: its import is 0.25-0.5 s of a command's start).
 
 Faces of every linear volume cell (`CELL_FACES`: hexahedron 6 quadrilaterals, wedge 2 triangles + 3
 quadrilaterals, pyramid 1 quadrilateral + 4 triangles, tetrahedron 4 triangles) are listed counter-clockwise
-seen from outside a valid cell (VTK node orders, `jaxci.elements`). Faces are stored as 4 nodes: a TRIANGLE
+seen from outside a valid cell (VTK node orders, `jaxci.metrics.elements`). Faces are stored as 4 nodes: a TRIANGLE
 repeats its last node (``[a, b, c, c]``), so ``(x2 - x0) x (x3 - x1)`` is twice the area times the outward unit
 normal for triangles and (planar) quadrilaterals alike, and splitting a face into the triangles (centre,
 corner i, corner i+1) covers it exactly (one of them degenerate for a triangle). A face shared by two cells of
@@ -38,7 +38,7 @@ HEX_FACES = np.array(
 
 
 #: The faces of every linear volume cell type (local node indices, outward for a valid cell, triangles padded by
-#: repeating their last node), shape ``(n_faces, 4)``; the types' node orders are `jaxci.elements`'.
+#: repeating their last node), shape ``(n_faces, 4)``; the types' node orders are `jaxci.metrics.elements`'.
 CELL_FACES = {
     "hexahedron": HEX_FACES,
     "wedge": np.array([[0, 2, 1, 1], [3, 4, 5, 5], [0, 1, 4, 3], [1, 2, 5, 4], [2, 0, 3, 5]], dtype=np.int64),
@@ -117,7 +117,7 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryT
     - `hexes`: connectivity in VTK node order, integer array of shape ``(n_hexes, 8)``.
     - `n_nodes`: number of nodes (one more than the largest index).
     - `others`: optional mapping ``{"wedge": (N, 6), "pyramid": (N, 5), "tetra": (N, 4)}`` of the other linear
-      volume cells (corner nodes; `jaxci.elements` node orders): their faces bound the volume too, and a face
+      volume cells (corner nodes; `jaxci.metrics.elements` node orders): their faces bound the volume too, and a face
       they share with a hexahedron (or each other) is interior.
 
     **Returns:** a `BoundaryTopology`.

@@ -23,7 +23,13 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from .quality import corner_columns, corner_invariants, gather_corners, objective_t, squared_condition_from_invariants
+from ..cells import corner_invariants
+from ..metrics.hexahedron import (
+    corner_columns,
+    gather_corners,
+    objective_t,
+    squared_condition_from_invariants,
+)
 
 AXIS = "d"
 
@@ -79,7 +85,7 @@ def sharded_candidates_objective(candidates, conn, mesh: Mesh | None = None):
 
     **Arguments:** `candidates` of shape ``(C, n, 3)`` with C a multiple of the device count; `conn` ``(8, N)``.
 
-    **Returns:** shape ``(C,)``, equal to `jaxci.quality.objective_t` per candidate.
+    **Returns:** shape ``(C,)``, equal to `jaxci.metrics.hexahedron.objective_t` per candidate.
     """
     mesh = device_mesh() if mesh is None else mesh
 

@@ -1,13 +1,13 @@
 """Smoothing hex-dominant meshes: the wedges, pyramids and tetrahedra's share of the objective, for every method.
 
-The objective of a mixed mesh is `jaxci.elements.mixed_objective`: the mean over ALL element corners (8 per
+The objective of a mixed mesh is `jaxci.metrics.elements.mixed_objective`: the mean over ALL element corners (8 per
 hexahedron, 6 per wedge, 4 base corners per pyramid, 4 per tetrahedron) of ``(kappa_i/3)^2 - 1``, each corner
 relative to its type's ideal cell. A pyramid is also invalid when one of Verdict's four sub-tetrahedra
-(`jaxci.elements.PYRAMID_TETS`) has det <= 0; those determinants carry no objective term, only a barrier.
+(`jaxci.cells.PYRAMID_TETS`) has det <= 0; those determinants carry no objective term, only a barrier.
 
 Everything here is built to cost nothing on a pure hexahedral mesh: `ExtraCells` of such a mesh has no types
 (``types == ()``, a static field), and every function branches on that in Python, so the hexahedral code path
-(`jaxci.quality.objective_t`) runs unchanged and compiles to the same program.
+(`jaxci.metrics.hexahedron.objective_t`) runs unchanged and compiles to the same program.
 
 - `ExtraCells`: the transposed connectivities of the non-hexahedral cells, a pytree for the global objectives
   (gradient methods, global CI, histories): `mixed_objective_t`, `mixed_max_condition`, `extra_terms`.
@@ -16,7 +16,7 @@ Everything here is built to cost nothing on a pure hexahedral mesh: `ExtraCells`
   `local_extra_terms` evaluates the rows around a node for trial positions of that node.
 
 Nodes of QUADRATIC non-hexahedral cells (``wedge15``, ``pyramid13``, ``tetra10``: midside nodes given) stay
-fixed (`fixed_nodes`): moving their corners would need their midside nodes re-placed on curved edges.
+fixed (`jaxci.cells.fixed_nodes`): moving their corners would need their midside nodes re-placed on curved edges.
 """
 
 from __future__ import annotations
@@ -25,48 +25,17 @@ import dataclasses
 
 import numpy as np
 
+from .._lazy import jax, jnp, pytree_dataclass
+from ..cells import CORNERS, EDGES, PYRAMID_TETS, TARGETS, corner_invariants, element_blocks, volume_cells
+from ..geometry.topology import unique_edges
+from ..mesh import HexMesh
 from . import elements as E
-from ._lazy import jax, jnp, pytree_dataclass
-from .mesh import EDGES, HexMesh
-from .topology import unique_edges
-
-#: The non-hexahedral linear cell types that are measured and smoothed.
-EXTRA_TYPES = ("wedge", "pyramid", "tetra")
-
-#: meshio's quadratic volume cell types kept as their own blocks -> their linear type (the first k nodes are the
-#: corners, in VTK order). Their nodes are never moved.
-QUADRATIC_TYPES = {"hexahedron20": "hexahedron", "hexahedron27": "hexahedron", "wedge15": "wedge",
-                   "pyramid13": "pyramid", "tetra10": "tetra"}
 
 
 # ---------------------------------------------------------------------------------------------- cell blocks
-def volume_cells(mesh: HexMesh) -> dict[str, np.ndarray]:
-    """Corner connectivity of every volume cell, by linear type (what bounds the volume, for the topology).
-
-    **Returns:** type (``"hexahedron"``, ``"wedge"``, ``"pyramid"``, ``"tetra"``) -> int64 array ``(N, k)``, only
-    types present; quadratic meshio blocks (`QUADRATIC_TYPES`) contribute their corner nodes.
-    """
-    out: dict[str, list] = {}
-    for b in mesh.cells:
-        t = QUADRATIC_TYPES.get(b.type, b.type)
-        if t in E.NODES and len(b.data):
-            out.setdefault(t, []).append(np.asarray(b.data, np.int64)[:, : E.NODES[t]])
-    return {t: np.concatenate(out[t]) for t in E.ELEMENT_TYPES if t in out}
-
-
-def fixed_nodes(mesh: HexMesh) -> np.ndarray:
-    """Nodes that stay fixed because a quadratic non-hexahedral cell (or a meshio quadratic block) uses them.
-
-    **Returns:** sorted unique int64 node indices.
-    """
-    parts = [np.asarray(b.data).ravel() for b in mesh.cells if len(b.data) and (
-        b.type in QUADRATIC_TYPES or (b.type in EXTRA_TYPES and b.midside is not None))]
-    return np.unique(np.concatenate(parts)).astype(np.int64) if parts else np.zeros(0, np.int64)
-
-
 def extra_blocks(mesh: HexMesh) -> dict[str, np.ndarray]:
-    """The measured non-hexahedral cells (`jaxci.elements.element_blocks` without the hexahedra)."""
-    return {t: c for t, c in E.element_blocks(mesh).items() if t != "hexahedron"}
+    """The measured non-hexahedral cells (`jaxci.cells.element_blocks` without the hexahedra)."""
+    return {t: c for t, c in element_blocks(mesh).items() if t != "hexahedron"}
 
 
 def has_extra(mesh: HexMesh) -> bool:
@@ -86,7 +55,7 @@ class ExtraCells:
     @property
     def n_corners(self) -> int:
         """Number of objective corners (6, 4, 4 per wedge, pyramid, tetrahedron)."""
-        return int(sum(len(E.CORNERS[t]) * c.shape[1] for t, c in zip(self.types, self.conns, strict=True)))
+        return int(sum(len(CORNERS[t]) * c.shape[1] for t, c in zip(self.types, self.conns, strict=True)))
 
 
 def extra_cells(mesh: HexMesh, device: bool = True) -> ExtraCells:
@@ -108,7 +77,7 @@ def extra_terms(x, extra: ExtraCells) -> list:
 
 
 def extra_barrier(x, extra: ExtraCells):
-    """0, or ``inf`` when a pyramid sub-tetrahedron (`jaxci.elements.PYRAMID_TETS`) has det <= 0: a scalar."""
+    """0, or ``inf`` when a pyramid sub-tetrahedron (`jaxci.cells.PYRAMID_TETS`) has det <= 0: a scalar."""
     out = jnp.zeros((), x.dtype)
     for t, c in zip(extra.types, extra.conns, strict=True):
         if t == "pyramid":
@@ -127,13 +96,13 @@ def mixed_mean(hex_terms, extra: ExtraCells, x):
 
 
 def mixed_objective_t(x, conn, extra: ExtraCells):
-    """F over every corner (`jaxci.elements.mixed_objective`) from `x` ``(n, 3)``, the transposed hexahedra
-    `conn` ``(8, N)`` and `extra`; exactly `jaxci.quality.objective_t` when `extra` is empty."""
-    from .quality import objective_t
+    """F over every corner (`jaxci.metrics.elements.mixed_objective`) from `x` ``(n, 3)``, the transposed hexahedra
+    `conn` ``(8, N)`` and `extra`; exactly `jaxci.metrics.hexahedron.objective_t` when `extra` is empty."""
+    from .hexahedron import objective_t
 
     if not extra.types:
         return objective_t(x, conn)
-    from .quality import corner_columns, corner_invariants, gather_corners, squared_condition_from_invariants
+    from .hexahedron import corner_columns, gather_corners, squared_condition_from_invariants
 
     term = squared_condition_from_invariants(*corner_invariants(*corner_columns(*gather_corners(x, conn))))
     return mixed_mean(jax.lax.optimization_barrier(term), extra, x) - 1.0
@@ -141,7 +110,7 @@ def mixed_objective_t(x, conn, extra: ExtraCells):
 
 def mixed_max_condition(x, conn, extra: ExtraCells):
     """Max kappa/3 over every corner (``inf`` if any is inverted, or a pyramid sub-tetrahedron)."""
-    from .quality import condition_from_invariants, corner_columns, corner_invariants, gather_corners
+    from .hexahedron import condition_from_invariants, corner_columns, gather_corners
 
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     k = jnp.max(jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)))
@@ -175,9 +144,9 @@ def corner_table(mesh: HexMesh) -> CornerTable:
     """The `CornerTable` of the wedges, pyramids and tetrahedra of `mesh` (0 rows for a hexahedral mesh)."""
     nodes, winv, weight = [np.zeros((0, 4), np.int64)], [np.zeros((0, 9))], [np.zeros(0)]
     for t, cells in extra_blocks(mesh).items():
-        tables = [(E.CORNERS[t], np.linalg.inv(E.TARGETS[t]), 1.0)]
+        tables = [(CORNERS[t], np.linalg.inv(TARGETS[t]), 1.0)]
         if t == "pyramid":
-            tables.append((E.PYRAMID_TETS[:, [0, 1, 2, 3]], np.eye(3), 0.0))
+            tables.append((PYRAMID_TETS[:, [0, 1, 2, 3]], np.eye(3), 0.0))
         for tab, wi, w in tables:
             rows = cells[:, tab].reshape(-1, 4)
             nodes.append(rows)
@@ -221,7 +190,7 @@ def local_extra_terms(x, v, nodes, winv, weight, mask, y):
     **Returns:** shape ``(M, S)``: the local sum, ``inf`` where a corner (or pyramid sub-tetrahedron) of a real
     row has det <= 0.
     """
-    from .quality import corner_invariants, squared_condition_from_invariants
+    from .hexahedron import squared_condition_from_invariants
 
     is_v = (nodes == v[:, None, None])[:, None]  # (M, 1, K, 4)
     P = [jnp.where(is_v, y[..., d][:, :, None, None], x[:, d][nodes][:, None]) for d in range(3)]  # (M, S, K, 4)
@@ -269,8 +238,8 @@ def edge_pairs(mesh: HexMesh) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------- checks (numpy)
 def inverted_cells(mesh: HexMesh, points) -> dict[str, np.ndarray]:
-    """Per measured type, which cells are inverted at `points` (`jaxci.elements.inverted`), bool ``(N,)``."""
-    return {t: E.inverted(points, c, t) for t, c in E.element_blocks(mesh).items()}
+    """Per measured type, which cells are inverted at `points` (`jaxci.metrics.elements.inverted`), bool ``(N,)``."""
+    return {t: E.inverted(points, c, t) for t, c in element_blocks(mesh).items()}
 
 
 def newly_inverted(mesh: HexMesh, before, after) -> dict[str, int]:
@@ -280,13 +249,13 @@ def newly_inverted(mesh: HexMesh, before, after) -> dict[str, int]:
 
 
 def cell_label(mesh: HexMesh, cell_type: str, k: int) -> str:
-    """A readable label of cell `k` (0-based over the blocks of `cell_type`, `jaxci.elements.element_blocks`'
+    """A readable label of cell `k` (0-based over the blocks of `cell_type`, `jaxci.cells.element_blocks`'
     order), with its file id if any: ``"wedge element 12 (index 3)"``."""
     k = int(k)
     for b in mesh.cells:
         if b.type != cell_type or not len(b.data):
             continue
         if k < len(b.data):
-            return f"{cell_type} element {HexMesh._cell_label(b, k)}"
+            return f"{cell_type} element {HexMesh.block_label(b, k)}"
         k -= len(b.data)
     raise IndexError(k)

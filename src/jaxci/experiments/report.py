@@ -1,8 +1,9 @@
-"""`jaxci.report`: the summary of an experiment, its CSV, and ``report.md`` in the layout of the paper's Tables.
+"""`jaxci.experiments.report`: the summary of an experiment, its CSV, and ``report.md`` in the layout of the paper's
+Tables.
 
 The paper (Sapre, Kulkarni, Shinde, "Finite Element Mesh Smoothing Using Cohort Intelligence") reports:
 
-- Table 1: corners of the 27-element cube per kappa/3 bin (`jaxci.quality.HISTOGRAM_EDGES`), originally,
+- Table 1: corners of the 27-element cube per kappa/3 bin (`jaxci.metrics.report.HISTOGRAM_EDGES`), originally,
   after stage 1 (roulette-wheel following) and after stage 2 (everyone follows the best);
 - Table 2: max kappa/3 of each case before and after;
 - Table 3: worst / best / mean max kappa/3 over 30 runs and the standard deviation of F.
@@ -11,9 +12,9 @@ The paper (Sapre, Kulkarni, Shinde, "Finite Element Mesh Smoothing Using Cohort 
 per (mesh, method) are over the seeds of the experiment; the standard deviation is the sample one (N - 1,
 MATLAB's ``std``, which the paper used), 0 for a single run.
 
-It also holds the output side of `jaxci.experiment.run_experiment`: the `RunRecord` of a run, strict JSON
+It also holds the output side of `jaxci.experiments.runner.run_experiment`: the `RunRecord` of a run, strict JSON
 (`json_ready`) and the smoothed meshes with their quality fields (`annotated_mesh`, `write_vtus`); the output
-folder itself (atomic, never losing earlier results) is `jaxci.results`.
+folder itself (atomic, never losing earlier results) is `jaxci.experiments.results`.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .quality import HISTOGRAM_EDGES
+from ..metrics.report import HISTOGRAM_EDGES
 
 #: Table 1 of the paper: corner counts of the 27-element cube per kappa/3 bin.
 PAPER_TABLE1 = {
@@ -100,7 +101,7 @@ def build_summary(exp, records, device, *, partial: bool, total_runs: int, elaps
     """The ``summary.json`` object: config echo, versions, device, per-run records and aggregates."""
     import jax
 
-    from . import __version__
+    from .. import __version__
 
     cfg = exp.config
     return {
@@ -113,7 +114,7 @@ def build_summary(exp, records, device, *, partial: bool, total_runs: int, elaps
         "meshes": [{"name": m.name, "file": str(m.path) if m.path else None, "paper_case": m.paper_case}
                    for m in exp.meshes],
         "methods": [{"name": m.label, "method": m.method, "params": m.params} for m in exp.methods],
-        "table1": _table1_choice(exp),
+        "table1": table1_choice(exp),
         "versions": {"jaxci": __version__, "jax": jax.__version__, "numpy": np.__version__,
                      "python": platform.python_version()},
         "device": {"requested": cfg.device, "platform": device.platform, "kind": getattr(device, "device_kind", ""),
@@ -124,7 +125,7 @@ def build_summary(exp, records, device, *, partial: bool, total_runs: int, elaps
     }
 
 
-def _table1_choice(exp) -> dict:
+def table1_choice(exp) -> dict:
     """Mesh and stage columns of Table 1: the config's ``report.table1``, else the 27-element case (or the first
     mesh) and no stage mapping (every method gets a column)."""
     t1 = exp.config.report.table1
@@ -351,11 +352,11 @@ def annotated_mesh(mesh, points, node_class=None, reference_points=None):
 
     Cell data ``element_condition`` (max corner kappa/3, inf for an inverted element) and ``scaled_jacobian``
     (Verdict's element scaled Jacobian), NaN on non-hexahedron blocks; point data ``node_class``
-    (`jaxci.boundary` classes) when given, and ``displacement`` = `points` - `reference_points` when given.
+    (`jaxci.geometry.boundary` classes) when given, and ``displacement`` = `points` - `reference_points` when given.
     """
     import jax
 
-    from .quality import element_condition, element_scaled_jacobian
+    from ..metrics.hexahedron import element_condition, element_scaled_jacobian
 
     pts = np.asarray(points, dtype=np.float64)
     hexes = mesh.hexes
@@ -382,7 +383,7 @@ def annotated_mesh(mesh, points, node_class=None, reference_points=None):
 
 
 def write_vtus(tmp: Path, rm, meth, seed: int, mesh, res) -> str:
-    from .io import write_mesh
+    from ..io import write_mesh
 
     folder = tmp / "meshes"
     folder.mkdir(exist_ok=True)

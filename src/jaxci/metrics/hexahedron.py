@@ -1,7 +1,7 @@
 """Corner Jacobians, condition numbers, scaled Jacobians and the paper's objective F, batched in JAX.
 
 Definitions (``shared/reference/metrics.md``, matching VTK/Verdict): at corner i of a hexahedron the matrix A_i
-has as columns the three edge vectors from node i to the nodes `jaxci.mesh.CORNER_NEIGHBOURS[i]`. With columns
+has as columns the three edge vectors from node i to the nodes `jaxci.cells.CORNER_NEIGHBOURS[i]`. With columns
 a, b, c:
 
 - det A = a . (b x c)  (> 0 for a valid corner; <= 0 is an inverted or degenerate corner);
@@ -27,23 +27,12 @@ of shape ``(N, 8)``, and returns arrays with the same leading candidate axis. Ca
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import math
 
 import numpy as np
 
-from ._lazy import is_jax_array, jax, jit, jnp
-from .errors import MeshError
-from .mesh import CORNER_NEIGHBOURS, HexMesh, as_hex_mesh, to_unit, unit_frame
-
-#: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
-HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
-
-#: `quality_report` measures meshes of at most this many hexahedra in numpy (no compilation). Measured (2-core
-#: CPU, float64, perturbed boxes; first call / second call): 27,000 hexes 0.04 / 0.04 s in numpy against
-#: 0.84 / 0.07 s in JAX; 216,000: 0.25-0.69 / 0.25 s against 0.92 / 0.24 s.
-NUMPY_REPORT_MAX = 250_000
+from .._lazy import is_jax_array, jax, jit, jnp
+from ..cells import CORNER_NEIGHBOURS, corner_invariants, pmean_weights
 
 #: Names of the per-corner condition metrics `corner_condition` accepts.
 METRICS = ("frobenius", "frobenius-cond", "2-norm")
@@ -87,18 +76,6 @@ def corner_columns(X, Y, Z):
     return tuple(out)
 
 
-def corner_invariants(ax, ay, az, bx, by, bz, cx, cy, cz):
-    """det A, |A|_F^2 and |adj A|_F^2 of corner matrices given column by column (any common shape)."""
-    # b x c, c x a, a x b
-    ux, uy, uz = by * cz - bz * cy, bz * cx - bx * cz, bx * cy - by * cx
-    vx, vy, vz = cy * az - cz * ay, cz * ax - cx * az, cx * ay - cy * ax
-    wx, wy, wz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-    det = ax * ux + ay * uy + az * uz
-    fro2 = ax * ax + ay * ay + az * az + bx * bx + by * by + bz * bz + cx * cx + cy * cy + cz * cz
-    adj2 = ux * ux + uy * uy + uz * uz + vx * vx + vy * vy + vz * vz + wx * wx + wy * wy + wz * wz
-    return det, fro2, adj2
-
-
 def condition_from_invariants(det, fro2, adj2):
     """kappa/3 from `corner_invariants` output; ``inf`` where det <= 0."""
     valid = det > 0
@@ -129,7 +106,9 @@ def _batched(fn):
 
 @jit
 @_batched
-def _corner_kernel(points, conn):
+def corner_kernel(points, conn):
+    """det A_i, |A_i|_F^2, |adj A_i|_F^2 and |a|^2|b|^2|c|^2 per corner (jitted; `conn` the transposed ``(8, N)``
+    connectivity), each of shape ``(..., N, 8)``."""
     cols = corner_columns(*gather_corners(points, conn))
     det, fro2, adj2 = corner_invariants(*cols)
     ax, ay, az, bx, by, bz, cx, cy, cz = cols
@@ -139,7 +118,8 @@ def _corner_kernel(points, conn):
     return det.T, fro2.T, adj2.T, (la * lb * lc).T
 
 
-def _as_points(points, dtype=None):
+def as_points(points, dtype=None):
+    """`points` as a JAX array of a floating dtype (`dtype`, else the default float)."""
     arr = jnp.asarray(points, dtype=dtype)
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         arr = arr.astype(jnp.result_type(float))
@@ -154,7 +134,7 @@ def corner_matrices(points, hexes):
 
     **Returns:** shape ``(..., N, 8, 3, 3)``; ``A[..., e, i, :, j]`` is column j of corner i of element e.
     """
-    pts = _as_points(points)
+    pts = as_points(points)
     hx = jnp.asarray(hexes)
     x = pts[..., hx, :]  # (..., N, 8, 3)
     nb = jnp.asarray(CORNER_NEIGHBOURS)
@@ -164,7 +144,7 @@ def corner_matrices(points, hexes):
 
 def corner_determinant(points, hexes):
     """det A_i per corner, shape ``(..., N, 8)`` (<= 0: inverted or degenerate corner)."""
-    return _corner_kernel(_as_points(points), transposed(hexes))[0]
+    return corner_kernel(as_points(points), transposed(hexes))[0]
 
 
 def corner_condition(points, hexes, metric: str = "frobenius"):
@@ -177,9 +157,9 @@ def corner_condition(points, hexes, metric: str = "frobenius"):
       ``"frobenius-cond"``: ``jnp.linalg.cond(A, 'fro') / 3``, the same number by the reference route;
       ``"2-norm"``: ``jnp.linalg.cond(A)``, the SVD (spectral) condition number, another metric in [1, inf).
     """
-    pts = _as_points(points)
+    pts = as_points(points)
     if metric == "frobenius":
-        det, fro2, adj2, _ = _corner_kernel(pts, transposed(hexes))
+        det, fro2, adj2, _ = corner_kernel(pts, transposed(hexes))
         return condition_from_invariants(det, fro2, adj2)
     if metric not in METRICS:
         raise ValueError(f"unknown condition metric {metric!r}; choose one of {', '.join(METRICS)}")
@@ -196,7 +176,7 @@ def _reference_condition(points, hexes, two_norm: bool):
 
 def corner_scaled_jacobian(points, hexes):
     """det A_i / (|a||b||c|) per corner, shape ``(..., N, 8)``, in [-1, 1] (0 where an edge has length 0)."""
-    det, _, _, l2 = _corner_kernel(_as_points(points), transposed(hexes))
+    det, _, _, l2 = corner_kernel(as_points(points), transposed(hexes))
     return jnp.where(l2 > 0, det / jnp.sqrt(jnp.where(l2 > 0, l2, 1.0)), 0.0)
 
 
@@ -222,7 +202,7 @@ def _centre_scaled_jacobian(points, conn):
 
 def element_scaled_jacobian(points, hexes):
     """Verdict's ``hex_scaled_jacobian``: min over the 8 corners and the centre (principal axes), ``(..., N)``."""
-    centre = _centre_scaled_jacobian(_as_points(points), transposed(hexes))
+    centre = _centre_scaled_jacobian(as_points(points), transposed(hexes))
     return jnp.minimum(corner_scaled_jacobian(points, hexes).min(axis=-1), centre)
 
 
@@ -253,138 +233,7 @@ def objective(points, hexes):
     **Returns:** a scalar, or shape ``(C,)``; >= 0, 0 only for perfect cubes, ``inf`` if any corner has
     det <= 0 (so that no optimizer can accept an inverted mesh as an improvement).
     """
-    return objective_t(_as_points(points), transposed(hexes))
-
-
-# ---------------------------------------------------------------------------------------------- report
-@dataclasses.dataclass(frozen=True)
-class QualityReport:
-    """What `jaxci quality` prints: counts, inverted corners/elements, condition figures, Table 1 histogram.
-
-    Condition figures are kappa/3 (Frobenius, Verdict convention) over VALID corners and elements only;
-    `objective` is F (Eq. 3.1) over the valid corners, None if there are none. All these keys (and
-    `n_elements`) are about the HEXAHEDRA only, as they always were.
-
-    Every volume cell type (`jaxci.elements`: hexahedron, wedge, pyramid, tetra; quadratic cells by their
-    corner nodes) is in:
-
-    - `by_type`: type -> {``count``, ``inverted`` (cells), ``max_condition``, ``mean_condition`` (corner kappa/3
-      relative to the type's ideal cell, over the corners of valid cells), ``min_scaled_jacobian`` (Verdict's
-      element scaled Jacobian; for hexahedra the min corner one, as `min_scaled_jacobian`),
-      ``verdict_condition`` (max of VTK's ``HexCondition`` / ``WedgeCondition`` / ``TetCondition`` over valid
-      cells; pyramids: max corner kappa/3), ``objective`` (the type's mean of (kappa/3)^2 - 1 over its valid
-      corners)};
-    - `overall`: the same over all cells (no ``verdict_condition``); its ``objective`` is Eq. 3.1 over every
-      valid element corner, `jaxci.elements.mixed_objective` when no corner is inverted (on a hexahedral mesh:
-      `objective`).
-    """
-
-    n_nodes: int
-    n_elements: int
-    inverted_corners: int
-    inverted_elements: int
-    max_condition: float | None
-    mean_condition: float | None
-    objective: float | None
-    min_scaled_jacobian: float | None
-    histogram: tuple[tuple[float, float, int], ...]
-    worst_element: int | None = None
-    other_cells: dict | None = None
-    by_type: dict | None = None
-    overall: dict | None = None
-
-    def to_dict(self) -> dict:
-        """The JSON object of ``jaxci quality --json`` (histogram as a list of {low, high, count})."""
-        d = dataclasses.asdict(self)
-        d["histogram"] = [
-            {"low": lo, "high": (None if math.isinf(hi) else hi), "count": c} for lo, hi, c in self.histogram
-        ]
-        return d
-
-
-def corner_histogram(kappa3: np.ndarray) -> tuple[tuple[float, float, int], ...]:
-    """Counts of corner kappa/3 values (finite ones) in the paper's Table 1 bins `HISTOGRAM_EDGES`."""
-    k = np.asarray(kappa3, dtype=np.float64).ravel()
-    k = k[np.isfinite(k)]
-    edges = np.asarray(HISTOGRAM_EDGES)
-    # values a rounding error below 1 belong to the first bin
-    idx = np.clip(np.searchsorted(edges, k, side="right") - 1, 0, len(edges) - 2)
-    counts = np.bincount(idx, minlength=len(edges) - 1)
-    return tuple((float(edges[i]), float(edges[i + 1]), int(counts[i])) for i in range(len(edges) - 1))
-
-
-def quality_report(mesh: HexMesh, points=None) -> QualityReport:
-    """The quality report of `mesh` (or of `mesh` with node coordinates `points` of shape ``(n, 3)``).
-
-    Uses float64 when ``jax_enable_x64`` is on (the CLI turns it on), else float32; meshes of at most
-    `NUMPY_REPORT_MAX` hexahedra are measured in numpy float64 (`jaxci.elements`' kernel: no compilation, which
-    cost 0.4 s of a 729-element cold start). The coordinates are measured in the unit frame of
-    `jaxci.mesh.unit_frame` (the metrics are scale-invariant): a mesh in metres, nanometres or light years gives
-    the same report, without overflow or underflow.
-
-    **Arguments:** `mesh` a `HexMesh` (a `meshio.Mesh` is converted; anything else raises `UsageError`);
-    `points` optional coordinates of shape ``(n_nodes, 3)``, finite (`MeshError` otherwise).
-    """
-    mesh = as_hex_mesh(mesh, "quality_report")
-    if points is None:
-        pts = mesh.points
-    else:
-        pts = np.asarray(points, dtype=np.float64)
-        if pts.shape != mesh.points.shape:
-            raise MeshError(f"quality_report: points have shape {pts.shape}, the mesh has {mesh.points.shape}")
-        if not np.isfinite(pts).all():
-            k = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
-            raise MeshError(f"quality_report: node {mesh._node_label(k)} has non-finite coordinates "
-                            f"{pts[k].tolist()}")
-    pts = to_unit(pts, unit_frame(pts))
-    hexes = mesh.hexes
-    if mesh.n_hexes <= NUMPY_REPORT_MAX:
-        from .elements import _corner_kernel as np_kernel
-
-        det, _, fro2, adj2, l2 = np_kernel(np.asarray(pts, dtype=np.float64), np.ascontiguousarray(np.asarray(hexes).T),
-                                           "hexahedron")
-    else:
-        det, fro2, adj2, l2 = (np.asarray(a) for a in _corner_kernel(_as_points(pts), transposed(hexes)))
-    valid = det > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        kappa3 = np.where(valid, np.sqrt(fro2 * adj2) / (3.0 * np.where(valid, det, 1.0)), np.inf)
-        sj = np.where(l2 > 0, det / np.sqrt(np.where(l2 > 0, l2, 1.0)), 0.0)
-    inv_el = ~valid.all(axis=1)
-    n_valid = int(valid.sum())
-    elem_max = kappa3.max(axis=1)
-    ok = ~inv_el
-    worst = int(np.argmax(np.where(ok, elem_max, -np.inf))) if ok.any() else None
-    return QualityReport(
-        n_nodes=mesh.n_nodes,
-        n_elements=mesh.n_hexes,
-        inverted_corners=int((~valid).sum()),
-        inverted_elements=int(inv_el.sum()),
-        max_condition=float(elem_max[ok].max()) if ok.any() else None,
-        mean_condition=float(kappa3[ok].mean()) if ok.any() else None,
-        objective=float(np.mean(kappa3[valid] ** 2) - 1.0) if n_valid else None,
-        min_scaled_jacobian=float(sj.min()),
-        histogram=corner_histogram(kappa3[valid]),
-        worst_element=worst,
-        other_cells={t: int(sum(len(b.data) for b in mesh.cells if b.type == t)) for t in mesh.other_cell_types}
-        or None,
-        **_by_type(mesh, pts, {"kappa3": kappa3, "inverted": inv_el, "scaled_jacobian": sj.min(axis=1),
-                               "verdict_condition": elem_max}),
-    )
-
-
-def _by_type(mesh: HexMesh, points, hex_figures: dict) -> dict:
-    """The `by_type` and `overall` fields of `quality_report`: `hex_figures` (the hexahedra's, computed above, in
-    the layout of `jaxci.elements.corner_figures`), `jaxci.elements.corner_figures` for the other types."""
-    from .elements import corner_figures, element_blocks, summary
-
-    figs = {t: hex_figures if t == "hexahedron" else corner_figures(points, cells, t)
-            for t, cells in element_blocks(mesh).items()}
-    by_type = {}
-    for t, f in figs.items():
-        ok = ~f["inverted"]
-        by_type[t] = {**summary([f]), "verdict_condition": float(f["verdict_condition"][ok].max()) if ok.any()
-                      else None}
-    return {"by_type": by_type, "overall": summary(list(figs.values()))}
+    return objective_t(as_points(points), transposed(hexes))
 
 
 # ---------------------------------------------------------------------------------------------- gradient of F
@@ -469,22 +318,6 @@ def pmean_objective(points, hexes, power: float) -> float:
         idet = np.where(valid, 1.0 / np.where(valid, det, 1.0), 0.0)  # as `objective_terms_and_grad` forms it
         term = np.where(valid, fro2 * adj2 * idet * idet * (1.0 / 9.0), np.inf)
         return float(pmean_weights(np, term - 1.0, None, float(power))[0])
-
-
-def pmean_weights(xp, e, real, power: float):
-    """``(M_p, c)`` for the excesses `e` ``(8, N)`` (``inf`` where inverted) of the corners where `real`
-    (None: all): the p-mean and per corner ``c_i = (e_i / M_p)^(p - 1)``, so that
-    ``d M_p = mean_i c_i d e_i``. Scaled by the largest excess, so that e^p neither overflows nor underflows."""
-    e = xp.maximum(e, 0.0)
-    if real is not None:
-        e = xp.where(real, e, 0.0)
-    n = e.size if real is None else 8.0 * xp.sum(real.astype(e.dtype))
-    top = xp.max(e)
-    safe = xp.where((top > 0) & (top < xp.inf), top, 1.0)
-    m = top * (xp.sum((e / safe) ** power) / n) ** (1.0 / power)
-    m = xp.where(top < xp.inf, m, xp.inf)
-    c = xp.where(m > 0, (e / xp.where(m > 0, m, 1.0)) ** (power - 1.0), 0.0)
-    return m, c
 
 
 def _terms_and_grad(xp, points, conn, weight, power=None):

@@ -5,22 +5,23 @@ sphere from a FE package: max kappa/3 1.146 -> 1.154 with a better mean). A user
 first, so `keep_worst` puts back, node by node, the input positions of the nodes of every cell that ended worse
 than the input's worst cell, until none does: the cells whose nodes are all put back are input cells, so the loop
 ends at the latest with the input itself. Checked in float64, over every cell type (max corner kappa/3 of each
-cell, `jaxci.elements.corner_condition`; inverted cells count as infinitely bad).
+cell, `jaxci.metrics.elements.corner_condition`; inverted cells count as infinitely bad).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..cells import element_blocks
+from ..mesh import HexMesh
 from . import elements as E
-from .mesh import HexMesh
 
 
 def cell_worst(mesh: HexMesh, points) -> dict[str, np.ndarray]:
     """Per measured cell type, each cell's max corner kappa/3 at `points` (``inf`` where a corner is inverted),
     float64 arrays of shape ``(N_type,)``."""
     out = {}
-    for t, cells in E.element_blocks(mesh).items():
+    for t, cells in element_blocks(mesh).items():
         k = E.corner_condition(points, cells, t).max(axis=1)
         out[t] = np.where(np.isnan(k), np.inf, k)
     return out
@@ -49,7 +50,7 @@ def keep_worst(mesh: HexMesh, before, after, *, rtol: float = 1e-12,
     limit = w0 * (1.0 + rtol)
     if not np.isfinite(w0) or w1 <= limit:
         return after.copy(), 0, w0, w1
-    blocks = E.element_blocks(mesh)
+    blocks = element_blocks(mesh)
     back = np.zeros(len(before), bool)
     x = after.copy()
     while True:

@@ -12,7 +12,7 @@ Node orders are VTK's (VTK >= 9.7 for the wedge), all with positive volume (`vtk
 
 **Corner matrices (Knupp 2001, 2003; Mesquite's target-matrix metrics).** At corner i of a cell, A_i has as columns
 the edge vectors from node i to the three nodes `CORNERS[type][i, 1:]`; ``det A_i > 0`` at every corner of a
-valid cell. The hexahedron's corners are `jaxci.mesh.CORNER_NEIGHBOURS`; the others:
+valid cell. The hexahedron's corners are `jaxci.cells.CORNER_NEIGHBOURS`; the others:
 
 - wedge, 6 corners: 0: (1, 2, 3), 1: (2, 0, 4), 2: (0, 1, 5), 3: (5, 4, 0), 4: (3, 5, 1), 5: (4, 3, 2)
   (two edges of the corner's triangle, then the edge joining the triangles; Verdict uses the same triples);
@@ -25,7 +25,7 @@ The corner condition number is Knupp's condition number of the corner matrix rel
 the type's ideal cell, ``T = A W^-1``: ``kappa(T) = |T|_F |T^-1|_F = |T|_F |adj T|_F / det T`` (>= 3), reported as
 ``kappa/3`` in [1, inf), 1 exactly at every corner of the ideal cell (`TARGETS`, columns as above):
 
-- hexahedron: W = I (the unit cube); kappa/3 is `jaxci.quality`'s, the paper's;
+- hexahedron: W = I (the unit cube); kappa/3 is `jaxci.metrics.hexahedron`'s, the paper's;
 - wedge: the right prism on an equilateral triangle with height = edge, W = [[1, 1/2, 0], [0, sqrt(3)/2, 0],
   [0, 0, 1]];
 - pyramid: the square pyramid with all 8 edges equal (height 1/sqrt 2), W = [[1, 0, 1/2], [0, 1, 1/2],
@@ -42,7 +42,7 @@ has det <= 0).
 them against `vtkMeshQuality` to 1e-6 relative on random cells):
 
 - hexahedron: ``HexCondition`` = max corner kappa/3; ``HexScaledJacobian`` = min over the corners and the centre
-  (`jaxci.quality.element_scaled_jacobian`).
+  (`jaxci.metrics.hexahedron.element_scaled_jacobian`).
 - wedge (``V_WedgeMetric.cpp``): ``wedge_condition`` = ``wedge_max_aspect_frobenius`` = max over the 6 corners of
   the Frobenius aspect of A_i relative to the REGULAR TETRAHEDRON W_t, divided by Verdict's constant 1.16477 (the
   value at the ideal prism's corners, rounded; the ideal prism gets 1.0000034):
@@ -60,7 +60,7 @@ them against `vtkMeshQuality` to 1e-6 relative on random cells):
 **The mixed objective** (`mixed_objective`) generalises the paper's Eq. 3.1 to every cell type: the mean over all
 element corners (8 per hexahedron, 6 per wedge, 4 per pyramid, 4 per tetrahedron) of ``(kappa_i/3)^2 - 1`` with
 each type's kappa/3 above; 0 only for a mesh of ideal cells, ``inf`` if any corner has det <= 0. On a pure
-hexahedral mesh it is `jaxci.quality.objective` exactly.
+hexahedral mesh it is `jaxci.metrics.hexahedron.objective` exactly.
 
 Every function takes `points` of shape ``(n, 3)`` and a connectivity `cells` of shape ``(N, k)`` in the node order
 above. The per-cell measures are vectorised numpy in float64 (no compilation: the report and the checks of any mesh
@@ -74,32 +74,18 @@ import math
 
 import numpy as np
 
-from ._lazy import jax, jit, jnp
-from .mesh import CORNER_NEIGHBOURS, HexMesh, corner_determinants
-
-#: The linear volume cell types jaxci measures, in report order.
-ELEMENT_TYPES = ("hexahedron", "wedge", "pyramid", "tetra")
-
-#: Nodes per cell of each type.
-NODES = {"hexahedron": 8, "wedge": 6, "pyramid": 5, "tetra": 4}
-
-#: Corner table of each type, shape ``(n_corners, 4)``: row ``[i, p, q, r]`` = the corner node i and the nodes
-#: whose differences with it are the columns of A_i, in that order.
-CORNERS = {
-    "hexahedron": np.concatenate([np.arange(8)[:, None], CORNER_NEIGHBOURS], axis=1),
-    "wedge": np.array([[0, 1, 2, 3], [1, 2, 0, 4], [2, 0, 1, 5], [3, 5, 4, 0], [4, 3, 5, 1], [5, 4, 3, 2]]),
-    "pyramid": np.array([[0, 1, 3, 4], [1, 2, 0, 4], [2, 3, 1, 4], [3, 0, 2, 4]]),
-    "tetra": np.array([[0, 1, 2, 3], [1, 2, 0, 3], [2, 0, 1, 3], [3, 0, 2, 1]]),
-}
-
-_S3 = math.sqrt(3.0) / 2.0
-#: Corner matrix W of the ideal cell of each type (columns as in `CORNERS`), shape ``(3, 3)``.
-TARGETS = {
-    "hexahedron": np.eye(3),
-    "wedge": np.array([[1.0, 0.5, 0.0], [0.0, _S3, 0.0], [0.0, 0.0, 1.0]]),
-    "pyramid": np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, math.sqrt(0.5)]]),
-    "tetra": np.array([[1.0, 0.5, 0.5], [0.0, _S3, _S3 / 3.0], [0.0, 0.0, math.sqrt(2.0 / 3.0)]]),
-}
+from .._lazy import jax, jit, jnp
+from ..cells import (
+    CORNERS,
+    ELEMENT_TYPES,
+    NODES,
+    PYRAMID_TETS,
+    TARGETS,
+    corner_determinants,
+    corner_invariants,
+    element_blocks,
+)
+from ..mesh import HexMesh
 
 #: The regular tetrahedron's corner matrix: the target of Verdict's aspect Frobenius (``wedge_condition``).
 _REGULAR_TET = TARGETS["tetra"]
@@ -110,10 +96,6 @@ VERDICT_WEDGE_NORMALISER = 1.16477
 #: Measured (2-core CPU, float64, perturbed boxes): 27,000 hexes 0.01-0.1 s in numpy against 0.24 s for JAX's
 #: first call (compilation); 216,000: 0.27 s against 0.25 s first, 0.01 s after.
 NUMPY_OBJECTIVE_MAX = 100_000
-
-#: The four tetrahedra of Verdict's pyramid Jacobian and scaled Jacobian (``make_pyramid_tets``).
-PYRAMID_TETS = np.array([[0, 1, 2, 4], [0, 2, 3, 4], [0, 1, 3, 4], [1, 2, 3, 4]])
-
 
 def _check_type(cell_type: str) -> None:
     if cell_type not in NODES:
@@ -168,9 +150,7 @@ def _times_inverse(cols, w: np.ndarray):
 
 
 def _invariants(cols):
-    """det, |M|_F^2 and |adj M|_F^2 of corner matrices given column by column (`jaxci.quality`'s formula)."""
-    from .quality import corner_invariants
-
+    """det, |M|_F^2 and |adj M|_F^2 of corner matrices given column by column (`jaxci.cells.corner_invariants`)."""
     return corner_invariants(*cols)
 
 
@@ -182,8 +162,9 @@ def _lengths2(cols):
     return a * b * c
 
 
-def _corner_kernel(points, conn, cell_type: str):
-    """det A_i, det T_i, |T|_F^2, |adj T|_F^2 (T = A W^-1) and |a|^2|b|^2|c|^2 per corner, each ``(N, n_corners)``."""
+def cell_corner_kernel(points, conn, cell_type: str):
+    """det A_i, det T_i, |T|_F^2, |adj T|_F^2 (T = A W^-1) and |a|^2|b|^2|c|^2 per corner, each ``(N, n_corners)``
+    (numpy float64; `points` ``(n, 3)`` float64, `conn` the transposed ``(k, N)`` connectivity)."""
     cols = _columns(*_nodes(np, points, conn), CORNERS[cell_type])
     det_a = _invariants(cols)[0]
     det_t, fro2, adj2 = _invariants(_times_inverse(cols, TARGETS[cell_type]))
@@ -216,7 +197,7 @@ def corner_determinant(points, cells, cell_type: str) -> np.ndarray:
     **Returns:** float64 array of shape ``(N, n_corners)`` (8, 6, 4, 4 corners); <= 0 at an inverted or
     degenerate corner.
     """
-    return _corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)[0]
+    return cell_corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)[0]
 
 
 def corner_condition(points, cells, cell_type: str) -> np.ndarray:
@@ -225,16 +206,16 @@ def corner_condition(points, cells, cell_type: str) -> np.ndarray:
     **Arguments:** `points` of shape ``(n, 3)``; `cells` of shape ``(N, k)``; `cell_type` one of `ELEMENT_TYPES`.
 
     **Returns:** float64 array of shape ``(N, n_corners)``, in [1, inf): 1 at the corners of the ideal cell
-    (`TARGETS`), ``inf`` where det A_i <= 0. For hexahedra it equals `jaxci.quality.corner_condition`.
+    (`TARGETS`), ``inf`` where det A_i <= 0. For hexahedra it equals `jaxci.metrics.hexahedron.corner_condition`.
     """
-    _, det, fro2, adj2, _ = _corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
+    _, det, fro2, adj2, _ = cell_corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
     return _kappa3(det, fro2, adj2)
 
 
 def corner_scaled_jacobian(points, cells, cell_type: str) -> np.ndarray:
     """det A_i / (|a_i| |b_i| |c_i|) per corner: float64, shape ``(N, n_corners)``, in [-1, 1] (0 for a zero-length
     edge)."""
-    det, _, _, _, l2 = _corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
+    det, _, _, _, l2 = cell_corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
     return _ratio(det, l2)
 
 
@@ -247,7 +228,7 @@ def inverted(points, cells, cell_type: str) -> np.ndarray:
     pts, conn = _np_points(points), _conn(cells, cell_type)
     if cell_type == "hexahedron":  # the determinants alone (2.5x faster than the full kernel at 10^5 cells)
         return (corner_determinants(pts, np.asarray(cells, dtype=np.int64)) <= 0).any(axis=1)
-    bad = (_corner_kernel(pts, conn, cell_type)[0] <= 0).any(axis=1)
+    bad = (cell_corner_kernel(pts, conn, cell_type)[0] <= 0).any(axis=1)
     if cell_type == "pyramid":
         bad |= (_pyramid_tet_dets(pts, conn) <= 0).any(axis=1)
     return bad
@@ -320,19 +301,6 @@ def element_condition(points, cells, cell_type: str) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------- mesh level
-def element_blocks(mesh: HexMesh) -> dict[str, np.ndarray]:
-    """The volume cells of `mesh` by type, blocks of a type concatenated in file order.
-
-    **Returns:** type -> connectivity of shape ``(N_type, k)``, in `ELEMENT_TYPES` order, only types present.
-    """
-    out = {}
-    for t in ELEMENT_TYPES:
-        blocks = [b.data for b in mesh.cells if b.type == t and len(b.data)]
-        if blocks:
-            out[t] = np.concatenate(blocks)
-    return out
-
-
 def corner_terms_t(points, conn, cell_type: str):
     """(kappa_i/3)^2 of every corner of the cells of one type, in JAX (jit-able, differentiable).
 
@@ -340,10 +308,10 @@ def corner_terms_t(points, conn, cell_type: str):
     of `ELEMENT_TYPES` (static).
 
     **Returns:** shape ``(n_corners, N)``; ``inf`` where det A_i <= 0. For hexahedra it is
-    `jaxci.quality`'s kernel, unchanged.
+    `jaxci.metrics.hexahedron`'s kernel, unchanged.
     """
     if cell_type == "hexahedron":
-        from .quality import corner_columns, corner_invariants, gather_corners
+        from .hexahedron import corner_columns, gather_corners
 
         return _sq_kappa3(jnp, *corner_invariants(*corner_columns(*gather_corners(points, conn))))
     cols = _times_inverse(_columns(*_nodes(jnp, points, conn), CORNERS[cell_type]), TARGETS[cell_type])
@@ -374,7 +342,7 @@ def _mixed_objective(points, conns: dict):
 
 def objective_on_host(mesh: HexMesh) -> bool:
     """Whether `mixed_objective` of one set of coordinates of `mesh` runs on the host (numpy / C, no JAX)."""
-    from . import native
+    from .. import native
 
     blocks = element_blocks(mesh)
     return sum(len(c) for t, c in blocks.items() if t != "hexahedron" or not native.AVAILABLE) <= NUMPY_OBJECTIVE_MAX
@@ -391,9 +359,9 @@ def mixed_objective(points, mesh: HexMesh):
       corners per cell); other cells are ignored.
 
     **Returns:** a scalar, or shape ``(C,)``: >= 0, 0 only for a mesh of ideal cells; ``inf`` if any corner has
-    det <= 0. On a mesh of hexahedra only it equals `jaxci.quality.objective` (Eq. 3.1).
+    det <= 0. On a mesh of hexahedra only it equals `jaxci.metrics.hexahedron.objective` (Eq. 3.1).
     """
-    from . import native
+    from .. import native
 
     blocks = element_blocks(mesh)
     if np.ndim(points) == 2 and objective_on_host(mesh):
@@ -408,7 +376,7 @@ def mixed_objective(points, mesh: HexMesh):
                     return np.float64(np.inf)
                 total, count = total + excess, count + 8 * len(c)
                 continue
-            term = _sq_kappa3(np, *_corner_kernel(pts, _conn(c, t), t)[1:4])
+            term = _sq_kappa3(np, *cell_corner_kernel(pts, _conn(c, t), t)[1:4])
             with np.errstate(invalid="ignore"):
                 total, count = total + float(np.sum(term - 1.0)), count + term.size
         return np.float64(total / count)
@@ -426,10 +394,10 @@ def mixed_objective(points, mesh: HexMesh):
 def checked_objective(mesh: HexMesh, power: float | None = None):
     """The float64 objective `jaxci.smooth`'s final checks compare, as a function of the coordinates ``(n, 3)``
     -> float: F over every cell (`mixed_objective`), or with `power` the p-mean of the hexahedra
-    (`jaxci.quality.pmean_objective`: what ``objective="pmean"`` minimises)."""
+    (`jaxci.metrics.hexahedron.pmean_objective`: what ``objective="pmean"`` minimises)."""
     if power is None:
         return lambda x: float(mixed_objective(x, mesh))
-    from .quality import pmean_objective
+    from .hexahedron import pmean_objective
 
     return lambda x: pmean_objective(x, mesh.hexes, power)
 
@@ -441,11 +409,11 @@ def corner_figures(points, cells, cell_type: str) -> dict[str, np.ndarray]:
 
     **Returns:** a dict: ``kappa3`` corner kappa/3 (`corner_condition`, ``inf`` where det <= 0), shape
     ``(N, n_corners)``; ``inverted`` (`inverted`), ``scaled_jacobian`` (Verdict's element scaled Jacobian; for
-    hexahedra the min CORNER scaled Jacobian, the figure `jaxci.quality.QualityReport` always reported) and
+    hexahedra the min CORNER scaled Jacobian, the figure `jaxci.metrics.report.QualityReport` always reported) and
     ``verdict_condition`` (`element_condition`), each of shape ``(N,)``.
     """
     pts, conn = _np_points(points), _conn(cells, cell_type)
-    det_a, det, fro2, adj2, l2 = _corner_kernel(pts, conn, cell_type)
+    det_a, det, fro2, adj2, l2 = cell_corner_kernel(pts, conn, cell_type)
     k3 = _kappa3(det, fro2, adj2)
     bad = (det_a <= 0).any(axis=1)
     if cell_type == "pyramid":

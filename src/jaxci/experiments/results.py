@@ -1,4 +1,5 @@
-"""`jaxci.results`: the output folder of `jaxci.experiment.run_experiment`, written so that no data is lost.
+"""`jaxci.experiments.results`: the output folder of `jaxci.experiments.runner.run_experiment`, written so that no data
+is lost.
 
 Rules (`stage` checks them before anything runs; a refusal is a `ConfigError` and nothing is written):
 
@@ -29,7 +30,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 #: The marker file of a results folder: JSON ``{"jaxci_results": 1, "jaxci": version, "partial": bool,
 #: "entries": [relative paths, folders ending in "/"]}``.
@@ -171,7 +172,7 @@ def _walk(folder: Path):
 
 def write_marker(folder: Path, *, partial: bool) -> None:
     """Write `MARKER` into `folder`, listing everything in it."""
-    from . import __version__
+    from .. import __version__
 
     entries = [e for e in _walk(folder) if e != MARKER]
     write_text(folder / MARKER, json.dumps({"jaxci_results": 1, "jaxci": __version__, "partial": partial,

@@ -1,7 +1,7 @@
-"""`jaxci.config`: experiment configs in YAML, their schema, validated up front and loaded.
+"""`jaxci.experiments.config`: experiment configs in YAML, their schema, validated up front and loaded.
 
 A config names meshes, methods and seeds; `load_config` reads and checks it into an `Experiment`, which
-`jaxci.experiment.run_experiment` runs. Example (every key shown; only `mesh` and `methods` are required):
+`jaxci.experiments.runner.run_experiment` runs. Example (every key shown; only `mesh` and `methods` are required):
 
 ```yaml
 description: the paper's 27-element cube
@@ -30,7 +30,7 @@ method parameters (by constructing the method's parameter dataclass), missing me
 `jaxci.errors.ConfigError` naming the file, the line and the key path, e.g.
 ``paper.yaml:14: methods[0].params.cohort: ...``.
 
-This module knows nothing of running: `jaxci.experiment` imports it, never the reverse.
+This module knows nothing of running: `jaxci.experiments.runner` imports it, never the reverse.
 """
 
 from __future__ import annotations
@@ -48,9 +48,9 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from ..errors import ConfigError, JaxciError
+from ..generate import MAX_SEED
 from .config_errors import Locator, check_duplicates, pydantic_message
-from .errors import ConfigError, JaxciError
-from .optim._params import MAX_SEED
 
 #: Most runs (seeds) of one config.
 MAX_RUNS = 100_000
@@ -74,7 +74,7 @@ class GenerateSpec(_Model):
 
     @model_validator(mode="after")
     def _values(self):
-        from .generate import PAPER_CASES
+        from ..generate import PAPER_CASES
 
         if self.case is not None and self.case not in PAPER_CASES:
             raise ValueError(f"case: unknown case {self.case!r}; choose one of {', '.join(PAPER_CASES)}")
@@ -229,7 +229,7 @@ class ResolvedMesh:
         """The input `HexMesh` of the run with `seed` (generated meshes are perturbed by it)."""
         if self.mesh is not None:
             return self.mesh
-        from .generate import paper_case, perturb_box
+        from ..generate import paper_case, perturb_box
 
         g = self.spec.generate
         s = seed if g.seed is None else g.seed
@@ -299,7 +299,7 @@ def method_param_class(method: str):
         return None
     module, _, name = _PARAM_CLASSES[method].partition(":")
     try:
-        return getattr(importlib.import_module(f".{module}", __package__), name)
+        return getattr(importlib.import_module(f"jaxci.{module}"), name)
     except (ImportError, AttributeError):
         return None
 
@@ -344,9 +344,9 @@ def load_config(path: str | os.PathLike) -> Experiment:
     missing or malformed file, unknown keys, wrong types or values, unknown methods or method parameters,
     missing or unreadable mesh files.
     """
-    from .generate import PAPER_CASES
-    from .memory import check_fits, ci_trials, smooth_bytes
-    from .smooth import METHODS
+    from ..generate import PAPER_CASES
+    from ..memory import check_fits, ci_trials, smooth_bytes
+    from ..smooth import METHODS
 
     path = Path(path)
     try:
@@ -400,7 +400,7 @@ def load_config(path: str | os.PathLike) -> Experiment:
         blk = ("mesh", i, "boundary") if spec.boundary else ("boundary",)
         mesh = None
         if mpath is not None:
-            from .io import read_mesh
+            from ..io import read_mesh
 
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")

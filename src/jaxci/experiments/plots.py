@@ -1,4 +1,4 @@
-"""`jaxci.plots`: the figures of an experiment, drawn with matplotlib's Agg backend (no display needed).
+"""`jaxci.experiments.plots`: the figures of an experiment, drawn with matplotlib's Agg backend (no display needed).
 
 Per mesh: ``convergence_<mesh>.png`` (objective F and max kappa/3 per iteration, log scale, one colour per
 method: the first seed bold, the other seeds faint), ``histogram_<mesh>.png`` (corners per Table 1 bin before
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .quality import HISTOGRAM_EDGES
+from ..metrics.report import HISTOGRAM_EDGES
 
 #: Surface plots are skipped for meshes with more boundary faces than this (matplotlib 3-D is slow).
 MAX_SURFACE_FACES = 20000
@@ -111,8 +111,8 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
     from matplotlib.colors import LogNorm
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from .quality import element_condition
-    from .topology import boundary_topology
+    from ..geometry.topology import boundary_topology
+    from ..metrics.hexahedron import element_condition
 
     hexes = np.asarray(hexes)
     topo = boundary_topology(hexes, len(points_before))
@@ -154,15 +154,15 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
 def write_figures(folder: Path, exp, records, results: dict) -> dict:
     """Draw every figure of an experiment into `folder`.
 
-    **Arguments:** `folder`; `exp` the `jaxci.config.Experiment`; `records` its `RunRecord` list; `results`
+    **Arguments:** `folder`; `exp` the `jaxci.experiments.config.Experiment`; `records` its `RunRecord` list; `results`
     ``(input HexMesh, SmoothResult)`` of the first seed per ``(mesh name, method label)``.
 
     **Returns:** ``{"files": [relative paths], "skipped": [reasons]}`` for the summary.
     """
-    from .report import PAPER_TABLE1, _table1_choice
+    from .report import PAPER_TABLE1, table1_choice
 
     files, skipped = [], []
-    t1 = _table1_choice(exp)
+    t1 = table1_choice(exp)
     for rm in exp.meshes:
         series = []
         for meth in exp.methods:
