@@ -591,60 +591,30 @@ static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns
 #undef R
 }
 
-/* The bounding sphere of triangle (kind 0) or segment (kind 1) j: its centre in g, squared radius in r2 (the
- * centroid and the farthest vertex; the midpoint and half the length); 0 for a degenerate cell, else 1. */
-static int bound_sphere(const double *T, Py_ssize_t nc, Py_ssize_t j, int kind, double *g, double *r2) {
-#define R(r, k) T[((r) + (k)) * nc + j]
-    if (kind == 0) {
-        double v[3][3];
-        for (int d = 0; d < 3; d++) {
-            v[0][d] = R(TC, d);
-            v[1][d] = R(TC, d) + R(TE1, d);
-            v[2][d] = R(TC, d) + R(TE2, d);
-            g[d] = (v[0][d] + v[1][d] + v[2][d]) / 3.0;
-        }
-        *r2 = 0.0;
-        for (int k = 0; k < 3; k++) {
-            double e = 0.0;
-            for (int d = 0; d < 3; d++) e += (v[k][d] - g[d]) * (v[k][d] - g[d]);
-            if (e > *r2) *r2 = e;
-        }
-        *r2 *= 1.0 + 1e-12;  /* rounding must not prune a cell that holds the nearest point */
-        return R(TOK, 0) > 0.0;
-    }
-    *r2 = 0.0;
-    for (int d = 0; d < 3; d++) {
-        g[d] = R(SA, d) + 0.5 * R(SD, d);
-        *r2 += 0.25 * R(SD, d) * R(SD, d);
-    }
-    *r2 *= 1.0 + 1e-12;
-    return R(SI, 0) > 0.0;
-#undef R
-}
-
 /* near_project(x (n, 3) f8, nodes (m,) i8, active (a,) i8, hint (m,) i8, cand (rows, K) i8, table (R, nt) f8,
- * kind (0 triangles, 1 segments), tol, bump) -> None: moves x[nodes[i]] for every i of `active` to its nearest
+ * spheres (nt, 4) f8 (each cell's bounding sphere: centre, radius), kind (0 triangles, 1 segments), tol, bump) -> None: moves x[nodes[i]] for every i of `active` to its nearest
  * point among its K candidates (hint[i] := its column): where the orthogonal projection onto its hint's cell
  * falls inside, that unless a candidate whose bounding sphere comes nearer holds a nearer point, else the best
  * of them all. */
 static PyObject *near_project(PyObject *self, PyObject *args) {
-    PyObject *o_x, *o_nodes, *o_active, *o_hint, *o_cand, *o_tab, *ret = NULL;
+    PyObject *o_x, *o_nodes, *o_active, *o_hint, *o_cand, *o_tab, *o_sph, *ret = NULL;
     int kind;
     double tol, bump;
-    if (!PyArg_ParseTuple(args, "OOOOOOidd", &o_x, &o_nodes, &o_active, &o_hint, &o_cand, &o_tab, &kind, &tol,
-                          &bump))
+    if (!PyArg_ParseTuple(args, "OOOOOOOidd", &o_x, &o_nodes, &o_active, &o_hint, &o_cand, &o_tab, &o_sph, &kind,
+                          &tol, &bump))
         return NULL;
-    Buf B[6] = {{{0}}};
+    Buf B[7] = {{{0}}};
     if (acquire(&B[0], o_x, "x", "d", 1, 0) < 0 || acquire(&B[1], o_nodes, "nodes", "qlq", 0, 0) < 0 ||
         acquire(&B[2], o_active, "active", "qlq", 0, 0) < 0 || acquire(&B[3], o_hint, "hint", "qlq", 1, 0) < 0 ||
-        acquire(&B[4], o_cand, "cand", "qlq", 0, 0) < 0 || acquire(&B[5], o_tab, "table", "d", 0, 0) < 0)
+        acquire(&B[4], o_cand, "cand", "qlq", 0, 0) < 0 || acquire(&B[5], o_tab, "table", "d", 0, 0) < 0 ||
+        acquire(&B[6], o_sph, "spheres", "d", 0, 0) < 0)
         goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8, na = B[2].view.len / 8, rows = kind == 0 ? 19 : 8;
     Py_ssize_t nc = B[5].view.len / 8 / rows, K = B[4].view.ndim == 2 ? B[4].view.shape[1] : 0;
     const long long *N = B[1].view.buf, *A = B[2].view.buf, *CA = B[4].view.buf;
     long long *H = B[3].view.buf;
     if ((kind != 0 && kind != 1) || B[3].view.len != B[1].view.len || B[5].view.len != nc * rows * 8 || K < 1 ||
-        B[4].view.len < m * K * 8) {
+        B[4].view.len < m * K * 8 || B[6].view.len != nc * 32) {
         PyErr_SetString(PyExc_ValueError, "near_project: shapes disagree");
         goto done;
     }
@@ -657,7 +627,7 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
             goto done;
         }
     double *X = B[0].view.buf;
-    const double *T = B[5].view.buf;
+    const double *T = B[5].view.buf, *S = B[6].view.buf;
     for (Py_ssize_t k = 0; k < na; k++) {
         Py_ssize_t i = A[k];
         double *xi = X + 3 * N[i], p[3], h, w[3], d1;
@@ -672,19 +642,22 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
                 best = closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
             }
             /* another candidate may still be nearer (a point inside its cell's prism near a concave part of the
-             * boundary): only one whose bounding sphere comes nearer than `best` can be; without this check the
-             * projection jumped where the point left the prism, and the line search stalled there */
+             * boundary): only one whose bounding sphere (S: centre, radius) comes nearer than `best` can be;
+             * without this check the projection jumped where the point left the prism, and the line search
+             * stalled there */
+            double reach = sqrt(best);
             for (Py_ssize_t c = 0; inside && c < K; c++) {
-                double g[3], r2, dx2 = 0.0, q[3];
-                if (c == H[i] || !bound_sphere(T, nc, CA[i * K + c], kind, g, &r2)) continue;
-                for (int d = 0; d < 3; d++) dx2 += (xi[d] - g[d]) * (xi[d] - g[d]);
-                double gap = sqrt(dx2) - sqrt(r2);
-                if (gap > 0.0 && gap * gap >= best) continue;
+                const double *sc = S + 4 * CA[i * K + c];
+                double dx2 = 0.0, q[3], lim = sc[3] + reach;
+                if (c == H[i]) continue;
+                for (int d = 0; d < 3; d++) dx2 += (xi[d] - sc[d]) * (xi[d] - sc[d]);
+                if (dx2 >= lim * lim) continue;
                 int in;
                 double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[i * K + c], tol, bump, q)
                                          : closest_on_segment(xi, T, nc, CA[i * K + c], tol, bump, q, &in);
                 if (score < best) {
                     best = score;
+                    reach = sqrt(best);
                     H[i] = c;
                     for (int d = 0; d < 3; d++) p[d] = q[d];
                 }
@@ -710,7 +683,7 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
     Py_INCREF(Py_None);
     ret = Py_None;
 done:
-    release(B, 6);
+    release(B, 7);
     return ret;
 }
 

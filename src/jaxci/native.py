@@ -133,12 +133,14 @@ def hex_sums(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float, int]:
 
 
 def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.ndarray, cand: np.ndarray,
-                 table: np.ndarray, kind: int, tol: float, bump: float) -> None:
+                 table: np.ndarray, spheres: np.ndarray, kind: int, tol: float, bump: float) -> None:
     """`jaxci.geometry.projection.NearProjector`'s search in C, in place: every node ``nodes[i]`` for ``i`` in `active`
     to the orthogonal projection onto its hint's cell (``cand[i, hint[i]]``) where that falls inside, else to
-    the nearest point of its candidates (``hint[i]`` := the column). `kind` 0: triangles (`table` of 19 rows),
-    1: segments (8 rows); `tol`, `bump` as `jaxci.geometry._closest`. `x` float64 ``(n, 3)``, index arrays int64."""
-    _c.near_project(x, nodes, _i8(active), hint, cand, table, int(kind), float(tol), float(bump))
+    the nearest point of its candidates (``hint[i]`` := the column); a candidate whose bounding sphere (`spheres`
+    ``(nt, 4)``: centre, radius) comes nearer than the hint's projection is searched too. `kind` 0: triangles
+    (`table` of 19 rows), 1: segments (8 rows); `tol`, `bump` as `jaxci.geometry._closest`. `x` float64
+    ``(n, 3)``, index arrays int64."""
+    _c.near_project(x, nodes, _i8(active), hint, cand, table, spheres, int(kind), float(tol), float(bump))
 
 
 def lbfgs_direction(g: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,

@@ -332,9 +332,11 @@ class NearProjector:
         #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
         self._native = None if not native.AVAILABLE else tuple(
             (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int64),
-             np.ascontiguousarray(table, np.float64))
-            for nodes, cand, table in ((self.c.surface_nodes, self.c.surface_cand, self.c.triangles),
-                                       (self.c.edge_nodes, self.c.edge_cand, self.c.segments)))
+             np.ascontiguousarray(table, np.float64), np.ascontiguousarray(np.column_stack(sphere), np.float64))
+            for nodes, cand, table, sphere in ((self.c.surface_nodes, self.c.surface_cand, self.c.triangles,
+                                                self.spheres[0]),
+                                               (self.c.edge_nodes, self.c.edge_cand, self.c.segments,
+                                                self.spheres[1])))
 
     def commit(self, hint) -> None:
         """Remember `hint` (from `__call__`) for the next projections."""
@@ -352,11 +354,12 @@ class NearProjector:
             from .. import native
 
             out = []
-            for kind, (nodes, cand, table) in enumerate(self._native):
+            for kind, (nodes, cand, table, spheres) in enumerate(self._native):
                 hint = self.hint[kind].copy()
                 active = np.arange(len(nodes)) if keep is None else np.flatnonzero(~keep[nodes])
                 if len(active):
-                    native.near_project(x, nodes, active, hint, cand, table, kind, tol, segment_bump(np.float64))
+                    native.near_project(x, nodes, active, hint, cand, table, spheres, kind, tol,
+                                        segment_bump(np.float64))
                 out.append(hint)
             x[c.corner_nodes] = c.x_orig[c.corner_nodes]
             return x, tuple(out)
