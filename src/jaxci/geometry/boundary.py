@@ -321,10 +321,15 @@ def releasable_feature_nodes(mesh: HexMesh, info: BoundaryInfo, cells_nodes: np.
 
 def fix_nodes(info: BoundaryInfo, nodes: np.ndarray) -> BoundaryInfo:
     """`info` with `nodes` fixed (class CORNER), as `classify_boundary`'s `fixed_nodes` would fix them."""
+    return _reclassify(info, nodes, CORNER, -1)
+
+
+def _reclassify(info: BoundaryInfo, nodes: np.ndarray, cls: int, patch) -> BoundaryInfo:
+    """`info` with `nodes` of class `cls`, on patch `patch` (scalar or per node), on no curve."""
     nodes = np.asarray(nodes, dtype=np.int64)
-    cls, patch, curve = np.array(info.node_class), np.array(info.patch_id), np.array(info.curve_id)
-    cls[nodes], patch[nodes], curve[nodes] = CORNER, -1, -1
-    return dataclasses.replace(info, node_class=cls, patch_id=patch, curve_id=curve)
+    node_class, patch_id, curve_id = np.array(info.node_class), np.array(info.patch_id), np.array(info.curve_id)
+    node_class[nodes], patch_id[nodes], curve_id[nodes] = cls, patch, -1
+    return dataclasses.replace(info, node_class=node_class, patch_id=patch_id, curve_id=curve_id)
 
 
 def slide_on_surface(info: BoundaryInfo, nodes: np.ndarray) -> BoundaryInfo:
@@ -337,8 +342,4 @@ def slide_on_surface(info: BoundaryInfo, nodes: np.ndarray) -> BoundaryInfo:
     np.minimum.at(first, faces.ravel(), np.repeat(np.arange(len(faces)), faces.shape[1]))
     if len(nodes) and (first[nodes] >= len(faces)).any():
         raise ValueError("slide_on_surface: a node is on no boundary face")
-    cls, patch, curve = np.array(info.node_class), np.array(info.patch_id), np.array(info.curve_id)
-    cls[nodes] = SURFACE
-    patch[nodes] = np.asarray(info.face_patch)[first[nodes]]
-    curve[nodes] = -1
-    return dataclasses.replace(info, node_class=cls, patch_id=patch, curve_id=curve)
+    return _reclassify(info, nodes, SURFACE, np.asarray(info.face_patch)[first[nodes]])
