@@ -135,9 +135,9 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
                   device: bool = True, info: BoundaryInfo | None = None) -> Problem:
     """Classify the boundary and build the constraints of `mesh` (call inside the dtype context).
 
-    `device`: the arrays on JAX's default
-    device (default), or in numpy for a method that runs on the host (`host_run`: JAX is not imported). `info`:
-    the `BoundaryInfo` of `mesh` with these arguments if it is at hand (the untangling stage's), else classified."""
+    `device`: the arrays on JAX's default device (default), or in numpy for a method that runs on the host
+    (`host_run`: JAX is not imported). `info`: the `BoundaryInfo` of `mesh` with these arguments if it is at hand
+    (the untangling stage's), else classified."""
     if info is None:
         info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                  fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
@@ -408,6 +408,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         )
     if tangled or untangle == "always":
         from .optim._params import make_params
+        from .optim.feasibility import put_back, release_features, released_note
         from .optim.untangle import UntangleParams, untangle_stage
 
         up = make_params(UntangleParams, untangle_params, "untangling", prefix="untangle_",
@@ -418,7 +419,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                                      fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
             info_u, released = info, np.zeros(0, np.int64)
             if untangle_boundary and not fix_boundary:
-                info_u, released = _release_features(mesh, info, fixed_nodes, fixed_sets)
+                info_u, released = release_features(mesh, info, fixed_nodes, fixed_sets)
             if not partial:
                 _refuse_stuck(mesh, info_u)
             # InvertedMeshError if it fails (unless partial)
@@ -427,12 +428,12 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
             moved = released[(untangled[released] != mesh.points[released]).any(axis=1)]
             if len(moved):
                 untangled = np.array(untangled, dtype=np.float64)
-                moved = _put_back(mesh, moved, untangled)
+                moved = put_back(mesh, moved, untangled)
             if len(moved):  # shape improvement keeps them where they are: a mesh whose boundary follows them
                 smesh = mesh.with_points(np.where(np.isin(np.arange(mesh.n_nodes), moved)[:, None], untangled,
                                                   mesh.points))
                 info = fix_nodes(info, moved)  # the input's classification, with them fixed where they are
-                untangle_notes.append(_released_note(mesh, moved, untangled))
+                untangle_notes.append(released_note(mesh, moved, untangled))
         notes.extend(untangle_notes)
         if partial:
             with clock.phase("checks"), enable_x64(not host):
@@ -487,51 +488,6 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         node_class=np.asarray(problem.info.node_class),
     )
     return points, res
-
-
-def _release_features(mesh: HexMesh, info: BoundaryInfo, fixed_nodes, fixed_sets) -> tuple[BoundaryInfo, np.ndarray]:
-    """``untangle_boundary``: `info` with the corner and edge nodes of the inverted corners (det <= 0: a corner
-    node and its three edge neighbours) that only the boundary's geometry holds made surface nodes
-    (`jaxci.geometry.boundary.slide_on_surface`), and those nodes."""
-    from .cells import CORNERS, element_blocks
-    from .geometry.boundary import releasable_feature_nodes, slide_on_surface
-    from .metrics.elements import corner_determinant
-
-    keep = [np.asarray(fixed_nodes, dtype=np.int64)]
-    keep += [np.asarray(mesh.point_sets[name], dtype=np.int64).ravel() for name in fixed_sets]
-    bad = [cells[:, CORNERS[t]][corner_determinant(mesh.points, cells, t) <= 0].ravel()
-           for t, cells in element_blocks(mesh).items()]
-    nodes = releasable_feature_nodes(mesh, info, np.concatenate(bad), np.concatenate(keep))
-    return slide_on_surface(info, nodes), nodes
-
-
-def _put_back(mesh: HexMesh, nodes: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """`x` with each of `nodes` (released feature nodes the untangling moved) back at its input position, one
-    after the other, wherever that leaves every cell around it valid: the feature nodes an untangled mesh does
-    not need moved stay put. Returns the nodes still moved."""
-    from .cells import element_blocks
-    from .geometry.topology import csr_gather, incidence
-    from .metrics.elements import inverted
-
-    around = [(t, cells, incidence(cells, mesh.n_nodes)) for t, cells in element_blocks(mesh).items()]
-    still = []
-    for i in nodes:
-        old = x[i].copy()
-        x[i] = mesh.points[i]
-        if any(inverted(x, cells[csr_gather(*inc, np.array([i]))[1]], t).any() for t, cells, inc in around):
-            x[i] = old
-            still.append(i)
-    return np.asarray(still, dtype=np.int64)
-
-
-def _released_note(mesh: HexMesh, moved: np.ndarray, untangled: np.ndarray) -> str:
-    from .optim.untangle import element_lengths
-
-    h = float(np.median(element_lengths(mesh.points, mesh.hexes))) if mesh.n_hexes else 1.0
-    d = float(np.linalg.norm(untangled[moved] - mesh.points[moved], axis=1).max())
-    return (f"untangle_boundary: {len(moved)} corner and edge nodes of inverted elements slid on the boundary "
-            f"surface during untangling (up to {d / h:.3g} median edge lengths); shape improvement keeps them where "
-            f"they are, and the boundary faces next to them follow them")
 
 
 def _refuse_stuck(mesh: HexMesh, info: BoundaryInfo) -> None:
