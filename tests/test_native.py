@@ -177,3 +177,22 @@ def test_lbfgs_direction_in_c_is_the_two_loop_recursion(history, monkeypatch):
         monkeypatch.setattr(native, "AVAILABLE", True)
         np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-14 * np.abs(ref).max())
     assert len(mem.order) == history and sorted(mem.order) == list(range(history))
+
+
+def test_untangling_without_the_extension_takes_the_same_path(monkeypatch):
+    """The untangling stage on the host without the C extension (numpy's `hex_kernel` over the corner table)
+    untangles what it untangles with it, in the same number of rounds."""
+    from helpers import MESQUITE
+
+    from jaxci.io import read_mesh
+    from jaxci.smooth import smooth
+
+    mesh = read_mesh(str(MESQUITE / "hex_5_tangled.vtk"))
+    with_c = smooth(mesh)
+    monkeypatch.setattr(native, "AVAILABLE", False)
+    without = smooth(mesh)
+    for res in (with_c, without):
+        assert res.after.inverted_elements == 0 and res.after.max_condition < 1.001
+    rounds = [next(n for n in r.notes if n.startswith("untangling:")).split(" rounds")[0].split()[-1]
+              for r in (with_c, without)]
+    assert rounds[0] == rounds[1], rounds
