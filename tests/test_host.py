@@ -315,3 +315,21 @@ print("ok")
 """
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert p.returncode == 0 and p.stdout.strip() == "ok", p.stdout + p.stderr
+
+
+def test_host_path_keeps_fixed_nodes_bit_for_bit():
+    """Corners of a box whose coordinates float32 cannot hold (scaled by 0.37, shifted by 0.1): the host solver
+    works in float64 from the exact input, so nodes that cannot move keep their coordinates bit for bit, and the
+    boundary nodes stay on the box's faces without a final k-d tree projection."""
+    from jaxci.geometry.boundary import CORNER, classify_boundary
+
+    mesh = perturb_box(6, amplitude=0.2, seed=1)
+    mesh = mesh.with_points(np.asarray(mesh.points) * 0.37 + 0.1)
+    res = smooth(mesh)
+    assert res.after.max_condition < 1.0001
+    x0, x = np.asarray(mesh.points), np.asarray(res.mesh.points)
+    corner = np.asarray(classify_boundary(mesh).node_class) == CORNER
+    assert corner.sum() == 8 and np.array_equal(x[corner], x0[corner])
+    lo, hi = x0.min(axis=0), x0.max(axis=0)
+    on_face = (np.isclose(x0, lo, atol=0, rtol=0) | np.isclose(x0, hi, atol=0, rtol=0))
+    np.testing.assert_array_equal(x[on_face], x0[on_face])  # each boundary node keeps its face's coordinate
