@@ -430,8 +430,9 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                 untangled = np.array(untangled, dtype=np.float64)
                 moved = put_back(mesh, moved, untangled)
             if len(moved):  # shape improvement keeps them where they are: a mesh whose boundary follows them
-                smesh = mesh.with_points(np.where(np.isin(np.arange(mesh.n_nodes), moved)[:, None], untangled,
-                                                  mesh.points))
+                points = np.array(mesh.points, dtype=np.float64)
+                points[moved] = untangled[moved]
+                smesh = mesh.with_points(points)
                 info = fix_nodes(info, moved)  # the input's classification, with them fixed where they are
                 untangle_notes.append(released_note(mesh, moved, untangled))
         notes.extend(untangle_notes)

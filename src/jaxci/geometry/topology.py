@@ -207,10 +207,16 @@ def unique_edges(pairs: np.ndarray) -> np.ndarray:
     ``np.unique`` of the keys (numpy 2).
     """
     e = np.sort(np.asarray(pairs, dtype=np.int64).reshape(-1, 2), axis=1)
-    n = int(e.max(initial=-1)) + 1
-    key = np.sort(e[:, 0] * n + e[:, 1])
+    return np.stack(_distinct_pairs(e[:, 0], e[:, 1]), axis=1)
+
+
+def _distinct_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct pairs ``(a[j], b[j])`` (non-negative int64), in lexicographic order: one sort of the int64
+    keys ``a * (max b + 1) + b`` with repeats dropped."""
+    width = max(int(b.max(initial=-1)) + 1, 1)
+    key = np.sort(a * width + b)
     key = key[np.concatenate([[True], key[1:] != key[:-1]])] if len(key) else key
-    return np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
+    return key // width, key % width
 
 
 def incidence(cells: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -266,11 +272,7 @@ def unique_per_row(owner: np.ndarray, values: np.ndarray, n_rows: int) -> tuple[
     """The distinct `values` of each row as CSR, sorted: ``(indptr, indices)`` of shapes ``(n_rows + 1,)`` and
     ``(nnz,)``, from entries ``(owner[j], values[j])`` (owner in [0, n_rows), values >= 0), one sort of int64
     keys."""
-    owner, values = np.asarray(owner, dtype=np.int64), np.asarray(values, dtype=np.int64)
-    width = int(values.max(initial=-1)) + 1
-    key = np.sort(owner * max(width, 1) + values)
-    key = key[np.concatenate([[True], key[1:] != key[:-1]])] if len(key) else key
-    rows, indices = key // max(width, 1), key % max(width, 1)
+    rows, indices = _distinct_pairs(np.asarray(owner, dtype=np.int64), np.asarray(values, dtype=np.int64))
     indptr = np.zeros(int(n_rows) + 1, dtype=np.int64)
     np.cumsum(np.bincount(rows, minlength=int(n_rows)), out=indptr[1:])
     return indptr, indices
