@@ -740,12 +740,101 @@ done:
     return ret;
 }
 
+/* ------------------------------------------------------------------------------------------ local moves
+ * local_sums(points (n,3) f8, star (M,K,8) i8, count (M,) i8, trials (M,S,3) f8, out (M,S) f8) -> None: for
+ * node slot m with its first count[m] star elements (relabelled so that the node is local slot 0,
+ * jaxci.optim._local.node_stars) and the node at trials[m, s], out[m, s] = the sum of (kappa/3)^2 over the four
+ * corners of each element whose matrix holds slot 0 (AFFECTED_CORNERS of jaxci.optim._local), inf if one has
+ * det <= 0: jaxci.optim._local.local_terms, one pass. Per element, the two columns its corners 1, 3 and 4 hold
+ * fixed are set up once for all trials. */
+
+static PyObject *local_sums(PyObject *self, PyObject *args) {
+    PyObject *o_pts, *o_star, *o_cnt, *o_tr, *o_out, *ret = NULL;
+    if (!PyArg_ParseTuple(args, "OOOOO", &o_pts, &o_star, &o_cnt, &o_tr, &o_out)) return NULL;
+    Buf B[5] = {{{0}}};
+    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_star, "star", "qlq", 0, 0) < 0 ||
+        acquire(&B[2], o_cnt, "count", "qlq", 0, 0) < 0 || acquire(&B[3], o_tr, "trials", "d", 0, 0) < 0 ||
+        acquire(&B[4], o_out, "out", "d", 1, 0) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 24, M = B[2].view.len / 8, S = M ? B[4].view.len / 8 / M : 0;
+    Py_ssize_t K = M ? B[1].view.len / 64 / M : 0;
+    if (B[0].view.len != n * 24 || B[1].view.len != M * K * 64 || B[3].view.len != M * S * 24 ||
+        B[4].view.len != M * S * 8) {
+        PyErr_SetString(PyExc_ValueError, "local_sums: shapes disagree (points (n, 3), star (M, K, 8), count (M,), "
+                                          "trials (M, S, 3), out (M, S))");
+        goto done;
+    }
+    const long long *ST = B[1].view.buf, *CNT = B[2].view.buf;
+    if (check_indices(ST, M * K * 8, n, "local_sums") < 0) goto done;
+    for (Py_ssize_t m = 0; m < M; m++)
+        if (CNT[m] < 0 || CNT[m] > K) {
+            PyErr_SetString(PyExc_IndexError, "local_sums: count out of range [0, K]");
+            goto done;
+        }
+    const double *X = B[0].view.buf, *TR = B[3].view.buf;
+    double *OUT = B[4].view.buf;
+    for (Py_ssize_t m = 0; m < M; m++) {
+        double *o = OUT + m * S;
+        const double *Y = TR + 3 * m * S;
+        for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
+        for (Py_ssize_t k = 0; k < CNT[m]; k++) {
+            /* element k's other nodes (slot 0 is the moving node) and what its corners 1, 3, 4 hold fixed: two
+             * columns each, their cross product F (det = the moving column . F) and squared norms */
+            const long long *e = ST + (m * K + k) * 8;
+            const double *P1 = X + 3 * e[1], *P2 = X + 3 * e[2], *P3 = X + 3 * e[3], *P4 = X + 3 * e[4],
+                         *P5 = X + 3 * e[5], *P7 = X + 3 * e[7];
+            double a1[3], c1[3], b3[3], c3[3], a4[3], b4[3], F1[3], F3[3], F4[3];
+            for (int d = 0; d < 3; d++) {
+                a1[d] = P2[d] - P1[d]; c1[d] = P5[d] - P1[d];
+                b3[d] = P2[d] - P3[d]; c3[d] = P7[d] - P3[d];
+                a4[d] = P7[d] - P4[d]; b4[d] = P5[d] - P4[d];
+            }
+            cross(c1, a1, F1); cross(b3, c3, F3); cross(a4, b4, F4);
+            double r1 = dot3(a1, a1) + dot3(c1, c1), r3 = dot3(b3, b3) + dot3(c3, c3), r4 = dot3(a4, a4) + dot3(b4, b4);
+            double n1 = dot3(F1, F1), n3 = dot3(F3, F3), n4 = dot3(F4, F4);
+            for (Py_ssize_t s = 0; s < S; s++) {
+                const double *y = Y + 3 * s;
+                double a[3], b[3], c[3], u[3], v[3], w[3], total = 0.0, det, fro2, adj2;
+                /* corner 0: columns P1 - y, P3 - y, P4 - y */
+                for (int d = 0; d < 3; d++) { a[d] = P1[d] - y[d]; b[d] = P3[d] - y[d]; c[d] = P4[d] - y[d]; }
+                cross(b, c, u); cross(c, a, v); cross(a, b, w);
+                det = dot3(a, u);
+                fro2 = dot3(a, a) + dot3(b, b) + dot3(c, c);
+                adj2 = dot3(u, u) + dot3(v, v) + dot3(w, w);
+                total += det > 0.0 ? fro2 * adj2 / (det * det) : INFINITY;
+                /* corner 1: (P2 - P1, y - P1, P5 - P1) */
+                for (int d = 0; d < 3; d++) b[d] = y[d] - P1[d];
+                cross(b, c1, u); cross(a1, b, w);
+                det = dot3(b, F1);
+                total += det > 0.0 ? (r1 + dot3(b, b)) * (dot3(u, u) + n1 + dot3(w, w)) / (det * det) : INFINITY;
+                /* corner 3: (y - P3, P2 - P3, P7 - P3) */
+                for (int d = 0; d < 3; d++) a[d] = y[d] - P3[d];
+                cross(c3, a, v); cross(a, b3, w);
+                det = dot3(a, F3);
+                total += det > 0.0 ? (r3 + dot3(a, a)) * (n3 + dot3(v, v) + dot3(w, w)) / (det * det) : INFINITY;
+                /* corner 4: (P7 - P4, P5 - P4, y - P4) */
+                for (int d = 0; d < 3; d++) c[d] = y[d] - P4[d];
+                cross(b4, c, u); cross(c, a4, v);
+                det = dot3(c, F4);
+                total += det > 0.0 ? (r4 + dot3(c, c)) * (dot3(u, u) + dot3(v, v) + n4) / (det * det) : INFINITY;
+                o[s] += total * (1.0 / 9.0);
+            }
+        }
+    }
+    Py_INCREF(Py_None);
+    ret = Py_None;
+done:
+    release(B, 5);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"hex_condition", hex_condition, METH_VARARGS, "F terms of hexahedra, their sum, max and gradient"},
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},
     {"lbfgs_direction", lbfgs_direction, METH_VARARGS, "the L-BFGS two-loop recursion"},
     {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of hexahedra and its gradient"},
+    {"local_sums", local_sums, METH_VARARGS, "local objective sums of trial positions of nodes in their stars"},
     {NULL, NULL, 0, NULL},
 };
 

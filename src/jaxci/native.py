@@ -162,3 +162,13 @@ def untangle_energy(points: np.ndarray, hexes: np.ndarray, inv_len: np.ndarray, 
     if g is not None:
         g *= 1.0 / per_node
     return e / per_node, dmin, g
+
+
+def local_sums(points: np.ndarray, star: np.ndarray, count: np.ndarray, trials: np.ndarray) -> np.ndarray:
+    """`jaxci.optim._local.local_terms` in C: ``(M, S)`` sums of (kappa/3)^2 over the corners each node slot
+    moves, its first ``count[m]`` star elements ``star[m]`` ``(M, K, 8)`` (relabelled, the node in slot 0), with
+    the node at ``trials[m, s]`` ``(M, S, 3)``; inf where a corner has det <= 0."""
+    trials = _f8(trials)
+    out = np.empty(trials.shape[:2])
+    _c.local_sums(_f8(points), _i8(star), _i8(count), trials, out)
+    return out

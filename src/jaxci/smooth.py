@@ -123,7 +123,7 @@ class Problem:
     def colour(self) -> np.ndarray:
         """The colour of every node, int32 ``(n_nodes,)``: no two nodes of one colour share a cell of any type
         (`jaxci.geometry.topology.colour_nodes`; the methods that move nodes colour by colour, CI and the Laplacians).
-        Computed on first use: L-BFGS needs none, and node adjacency imports scipy.sparse."""
+        Computed on first use: L-BFGS needs none."""
         mesh = self.mesh
         adjacency = node_adjacency(list(volume_cells(mesh).values()), mesh.n_nodes) if self.extra is not None \
             else None
@@ -153,20 +153,25 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
     `jaxci.native`): L-BFGS without presmoothing where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed
-    one only on F and with the C kernels), its reports and checks in numpy. JAX is then never imported (0.4-0.5 s
-    of a small mesh's run)."""
+    one only on F and with the C kernels), local CI where `jaxci.optim.host_ci.host_ci_applies`, their reports
+    and checks in numpy. JAX is then never imported (0.4-0.5 s of a small mesh's run)."""
     from . import native
     from .metrics.elements import objective_on_host
     from .metrics.report import NUMPY_REPORT_MAX
 
+    extra = mixed.extra_blocks(mesh)
+    if mesh.n_hexes > NUMPY_REPORT_MAX or not objective_on_host(mesh):
+        return False
+    if method == "ci":
+        from .optim.host_ci import host_ci_applies
+
+        return host_ci_applies(params.get("backend", "auto"), mesh.n_hexes, bool(extra))
     if method != "lbfgs" or int(params.get("presmooth", 0)):
         return False
-    extra = mixed.extra_blocks(mesh)
     if extra and (not native.AVAILABLE or params.get("objective", "mean") != "mean"):
         return False
     n_cells = mesh.n_hexes + sum(len(c) for c in extra.values())
-    return (runs_on_host(params.get("backend", "auto"), n_cells, HOST_MAX) and mesh.n_hexes <= NUMPY_REPORT_MAX
-            and objective_on_host(mesh))
+    return runs_on_host(params.get("backend", "auto"), n_cells, HOST_MAX)
 
 
 def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
@@ -189,6 +194,13 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
 def run_method(problem: Problem, method: str, seed: int, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
     of the randomised methods (only there: building it compiles a program)."""
+    if method == "ci" and isinstance(problem.x0, np.ndarray):  # the host problem of `host_run`
+        from .optim.host_ci import local_ci_np
+
+        p = method_params(method, params)
+        x, it, hist = local_ci_np(problem.x0, problem.mesh.hexes, problem.cons, problem.colour,
+                                  problem.info.topology.faces, p, seed)
+        return x, it, hist, dataclasses.asdict(p)
     if method in ("ci", "ci-global"):
         key = jax.random.key(seed, impl="rbg")
         from .optim._moves import coloured_stars
@@ -542,7 +554,7 @@ def method_params(method: str, params: dict):
         raise ConfigError(f"objective {params['objective']!r} is for the gradient methods bfgs, lbfgs and cg (and "
                           f"the default pipeline), not {method!r}")
     if method in ("ci", "ci-global"):
-        from .optim.ci import ci_params
+        from .optim.ci_params import ci_params
 
         return ci_params(method, params)
     if method in ("laplace", "smart-laplace"):

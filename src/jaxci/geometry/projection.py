@@ -342,6 +342,18 @@ class NearProjector:
         """Remember `hint` (from `__call__`) for the next projections."""
         self.hint = hint
 
+    def project_rows(self, kind: int, rows: np.ndarray, points: np.ndarray, hint: np.ndarray) -> None:
+        """Project `points` (float64 ``(r, 3)``, in place) each onto the candidates of one boundary node: point i
+        onto those of row ``rows[i]`` of `kind` (0: the surface nodes, 1: the edge nodes), starting from the
+        candidate column ``hint[i]`` (int64, -1: search all; updated in place): the trial positions of the local
+        moves of `jaxci.optim.host_ci`. The C search only (`jaxci.native.AVAILABLE`)."""
+        from .. import native
+
+        nodes, cand, table, spheres = self._native[kind]
+        idx = np.arange(len(rows), dtype=np.int64)
+        native.near_project(points, idx, idx, hint, np.ascontiguousarray(cand[rows]), table, spheres, kind,
+                            inside_tolerance(np.float64), segment_bump(np.float64))
+
     def __call__(self, points: np.ndarray, keep: np.ndarray | None = None):
         """``(x, hint)``: the projected coordinates (a new float64 ``(n, 3)`` array) and the candidate column
         each boundary node ended on (for `commit` and `pullback`; -1 where unknown). `keep` (optional, boolean

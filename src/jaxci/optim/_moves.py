@@ -25,8 +25,8 @@ from ._buckets import bucket, to_device
 from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars
 
 
-def node_bases(cons: Constraints) -> jnp.ndarray:
-    """Per-node move basis, shape ``(n_nodes, 3, 3)`` (columns = free directions; zeros for fixed ones)."""
+def node_bases(cons: Constraints) -> np.ndarray:
+    """Per-node move basis, numpy ``(n_nodes, 3, 3)`` (columns = free directions; zeros for fixed ones)."""
     cls = np.asarray(cons.node_class)
     n = len(cls)
     B = np.zeros((n, 3, 3))
@@ -37,7 +37,7 @@ def node_bases(cons: Constraints) -> jnp.ndarray:
         B[surf, :, 1] = np.asarray(cons.surface_basis)[:, 1]
     if len(edge):
         B[edge, :, 0] = np.asarray(cons.edge_tangent)
-    return jnp.asarray(B, dtype=cons.x_orig.dtype)
+    return B.astype(np.asarray(cons.x_orig).dtype)
 
 
 def free_dims(cons: Constraints) -> np.ndarray:
@@ -143,12 +143,13 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
 
 
 def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, faces: np.ndarray,
-                   table: CornerTable | None = None) -> ColouredStars:
+                   table: CornerTable | None = None, device: bool = True) -> ColouredStars:
     """Group the movable nodes (class != CORNER) by `colour`, by class within a colour, with stars and bases.
 
     `faces` are the boundary faces (``BoundaryInfo.topology.faces``), for the planar-ring shortcut; `table` the
     non-hexahedral corners (`jaxci.metrics.objective.corner_table`; default none). The colouring must not give one
-    colour to two nodes of any cell (hexahedron or not).
+    colour to two nodes of any cell (hexahedron or not). `device` False: numpy arrays (the host sweep of
+    `jaxci.optim.host_ci`; indices int64), else device arrays.
     """
     cls = np.asarray(cons.node_class)
     n = len(cls)
@@ -173,23 +174,29 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
         rows, rmask = rows[safe], rmask[safe] & mask[..., None]
         xnodes, xwinv, xweight, xmask = table.nodes[rows], table.winv[rows], table.weight[rows], rmask
     # to_device: no compilation per shape (jnp.asarray of a numpy array compiles a small program for each)
+    put = to_device if device else _host_array
     return ColouredStars(
-        nodes=to_device(nodes, np.int32),
-        mask=to_device(mask),
-        star=to_device(stars.star[safe], np.int32),
-        smask=to_device(stars.mask[safe] & mask[..., None]),
-        basis=to_device(B[safe], dtype),
-        dims=to_device(np.where(mask, dims[safe], 0), np.int32),
-        plane=to_device(planar_rings(np.asarray(cons.x_orig, np.float64), faces, cons)[safe] * mask[..., None],
-                        dtype),
-        xnodes=to_device(xnodes, np.int32),
-        xwinv=to_device(xwinv, dtype),
-        xweight=to_device(xweight, dtype),
-        xmask=to_device(xmask),
+        nodes=put(nodes, np.int32),
+        mask=put(mask),
+        star=put(stars.star[safe], np.int32),
+        smask=put(stars.mask[safe] & mask[..., None]),
+        basis=put(B[safe], dtype),
+        dims=put(np.where(mask, dims[safe], 0), np.int32),
+        plane=put(planar_rings(np.asarray(cons.x_orig, np.float64), faces, cons)[safe] * mask[..., None], dtype),
+        xnodes=put(xnodes, np.int32),
+        xwinv=put(xwinv, dtype),
+        xweight=put(xweight, dtype),
+        xmask=put(xmask),
         n_interior=parts[0].nodes.shape[1],
         n_surface=parts[1].nodes.shape[1],
         n_edge=parts[2].nodes.shape[1],
     )
+
+
+def _host_array(a, dtype=None) -> np.ndarray:
+    """`a` as numpy for the host sweep: floats in `dtype`, indices int64."""
+    a = np.asarray(a)
+    return a if dtype is None or np.issubdtype(np.dtype(dtype), np.integer) else a.astype(dtype)
 
 
 def slot_sizes(cs: ColouredStars) -> tuple[int, int, int]:

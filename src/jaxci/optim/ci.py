@@ -38,144 +38,28 @@ result, bit for bit on CPU.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import types
 import typing
-from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ConfigError
 from ..geometry.projection import Constraints, params_to_points
 from ..metrics.objective import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
-from . import _params as _p
 from ._local import gather_star
 from ._moves import ColouredStars, chunked_local_sum, colour_slice, local_count, local_scale, project_trials
-
-#: Upper bounds of `CIParams` (a typo must not hang a run or exhaust memory): cohort and variations each, their
-#: product (trial positions evaluated at once per node and attempt: batch shapes grow with it), loop bounds
-#: (attempts, sweeps, patience), interval widths (fractions of the local edge length).
-MAX_COHORT, MAX_TRIALS, MAX_LOOP, MAX_WIDTH = 256, 4096, 1_000_000, 1e3
-
-
-@dataclasses.dataclass(frozen=True)
-class CIParams:
-    """Hyperparameters of Cohort Intelligence (both forms). Validated on construction (`ConfigError`: types,
-    finite values, ranges; an integral float counts as an int).
-
-    Each form has its own defaults: the field defaults below are local CI's (``"ci"``); global CI
-    (``"ci-global"``) replaces some of them (`GLOBAL_DEFAULTS`). `CIParams.for_method` builds either, and every
-    entry point (`jaxci.smooth`, ``jaxci smooth --method ci-global``, YAML configs) goes through it, so a field the
-    user does not give takes its method's default.
-
-    The local defaults (C = 4, t = 4, 4 attempts per colour visit) were chosen by measurement on the perturbed
-    729-element cube (scripts/reproduce_paper.py): C = 6, t = 8, 8 attempts needs the same number of sweeps to
-    reach max kappa/3 <= 1.001 and <= 1.0001 at 5-8x the cost; C = 2 or t = 2 need more sweeps.
-
-    Fields (default local / global where they differ):
-
-    - `cohort`: C, candidates per cohort (default 4 / 5; 2 to 256).
-    - `variations`: t, variations sampled per candidate and attempt (default 4 / 5; 1 to 256; C t <= 4096).
-    - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.8 / 0.998).
-    - `delta`: > 0, regulariser of the follow probabilities 1/(g + delta) (default 1e-3).
-    - `attempts`: learning attempts per cohort run (local: per colour visit, default 4; global: total, default
-      1000; at most 10^6, as `max_sweeps` and `patience`).
-    - `stage_switch`: fraction in [0, 1] of the attempts that follow by roulette (stage 1); the rest follow the
-      best (stage 2). Default 0.5 / 0.2.
-    - `init_width`: initial interval width as a fraction of the local edge length h (default 0.5 / 0.03).
-    - `min_width`: local CI: smallest interval width, fraction of h (default 1e-6).
-    - `max_sweeps`: local CI: maximum colour sweeps (default 200).
-    - `tol`: saturation: relative change of F per sweep (local) or spread of behaviours (global) (default 1e-6).
-    - `ftol`: stop when F <= ftol (default 1e-10).
-    - `patience`: global CI: saturation must hold for this many consecutive attempts (default 20).
-    - `pattern`: local CI: after every sweep, a pattern move along the sweep's displacement D (Hooke & Jeeves):
-      the mesh ``x + a D`` for each factor a of `PATTERN_FACTORS`, projected onto the boundary, is evaluated
-      (one cohort along one line) and the best taken where it lowers F (default True).
-    """
-
-    cohort: int = 4
-    variations: int = 4
-    reduction: float = 0.8
-    delta: float = 1e-3
-    attempts: int = 4
-    stage_switch: float = 0.5
-    init_width: float = 0.5
-    min_width: float = 1e-6
-    max_sweeps: int = 200
-    tol: float = 1e-6
-    ftol: float = 1e-10
-    patience: int = 20
-    pattern: bool = True
-
-    def __post_init__(self):
-        L = "CI"
-        _p.normalise(
-            self,
-            cohort=_p.integer(L, "cohort", self.cohort, 2, MAX_COHORT),
-            variations=_p.integer(L, "variations", self.variations, 1, MAX_COHORT),
-            reduction=_p.real(L, "reduction", self.reduction, 0, 1, lo_open=True, hi_open=True),
-            delta=_p.real(L, "delta", self.delta, 0, lo_open=True),
-            attempts=_p.integer(L, "attempts", self.attempts, 1, MAX_LOOP),
-            stage_switch=_p.real(L, "stage_switch", self.stage_switch, 0, 1),
-            init_width=_p.real(L, "init_width", self.init_width, 0, MAX_WIDTH, lo_open=True),
-            min_width=_p.real(L, "min_width", self.min_width, 0, MAX_WIDTH, lo_open=True),
-            max_sweeps=_p.integer(L, "max_sweeps", self.max_sweeps, 1, MAX_LOOP),
-            tol=_p.real(L, "tol", self.tol, 0),
-            ftol=_p.real(L, "ftol", self.ftol, 0),
-            patience=_p.integer(L, "patience", self.patience, 1, MAX_LOOP),
-            pattern=_p.boolean(L, "pattern", self.pattern),
-        )
-        if self.min_width > self.init_width:
-            raise ConfigError(f"CI parameter min_width must be <= init_width ({self.init_width:g}), "
-                              f"got {self.min_width!r}")
-        if self.cohort * self.variations > MAX_TRIALS:
-            raise ConfigError(f"CI parameters cohort x variations = {self.cohort} x {self.variations} trial "
-                              f"positions per node and attempt must be at most {MAX_TRIALS}")
-
-    @classmethod
-    def for_method(cls, method: str = "ci", **params) -> CIParams:
-        """The parameters of CI form `method`: ``"ci"`` (local, the field defaults) or ``"ci-global"`` (the
-        paper's, `GLOBAL_DEFAULTS` over the field defaults), with `params` (field names) over its defaults.
-
-        The one source of CI defaults: `jaxci.smooth.method_params` (hence `jaxci.smooth`, ``jaxci smooth`` and
-        ``jaxci run``) and `jaxci.experiments.config`'s up-front check build CI parameters here. Raises `ConfigError`
-        for another method or a bad value, `TypeError` for an unknown field (`jaxci.optim._params.make_params` names
-        it first)."""
-        if method not in METHOD_DEFAULTS:
-            raise ConfigError(f"CI parameters: unknown CI method {method!r}; choose one of "
-                              f"{', '.join(map(repr, METHOD_DEFAULTS))}")
-        return cls(**{**METHOD_DEFAULTS[method], **params})
-
-
-#: Global CI's defaults where they differ from the field defaults of `CIParams` (local CI's): the paper's
-#: algorithm (two stages, roulette then follow-the-best; greedy; intervals shrunk by a constant factor) with the
-#: budget and schedule measured on its three cubes, 30 seeds each (docs/results/paper_global_ci.md; the paper
-#: gives none of them): 5 candidates x 5 variations (25 evaluations of F per attempt) and 1000 learning attempts,
-#: initial intervals 0.03 h wide per free coordinate, shrunk by 0.998 per attempt (to 13.5% at attempt 1000;
-#: 0.995, the earlier configs' value, shrank them to 0.7% and stalled cube729 near max kappa/3 1.6), roulette
-#: for the first 20% of the attempts, then everyone follows the best: the paper's "after few learning attempts,
-#: all candidates follow global best" (following the best converges faster than the roulette, whose
-#: probabilities 1/F are nearly uniform over a cohort of close behaviours).
-GLOBAL_DEFAULTS: Mapping[str, float] = types.MappingProxyType(
-    {"cohort": 5, "variations": 5, "reduction": 0.998, "attempts": 1000, "stage_switch": 0.2, "init_width": 0.03})
-
-#: The defaults of each CI form: method name -> the fields that differ from `CIParams`'s own (read-only).
-METHOD_DEFAULTS: Mapping[str, Mapping[str, float]] = types.MappingProxyType(
-    {"ci": types.MappingProxyType({}), "ci-global": GLOBAL_DEFAULTS})
-
-
-def ci_params(method: str, params: Mapping) -> CIParams:
-    """`CIParams.for_method` from a mapping of the user's parameters (`params`: field names to values), checked
-    as `jaxci.optim._params.make_params` checks them: an unknown name is listed with the valid ones, and every
-    `ConfigError` names `method` (``"ci"`` or ``"ci-global"``). `jaxci.smooth.method_params` calls it."""
-    if method not in METHOD_DEFAULTS:
-        CIParams.for_method(method)  # the error naming the CI methods
-    if isinstance(params, Mapping):  # else make_params says what is wrong with it
-        params = {**METHOD_DEFAULTS[method], **params}
-    return _p.make_params(CIParams, params, method)
+from .ci_params import (  # noqa: F401  (the parameters, re-exported: jaxci.optim.ci.CIParams is public)
+    GLOBAL_DEFAULTS,
+    MAX_COHORT,
+    MAX_LOOP,
+    MAX_TRIALS,
+    MAX_WIDTH,
+    METHOD_DEFAULTS,
+    PATTERN_FACTORS,
+    CIParams,
+    ci_params,
+)
 
 
 class _Static(typing.NamedTuple):
@@ -261,13 +145,6 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict
     return x, width, jnp.sum(accept, dtype=jnp.int32)
 
 
-#: The factors a of local CI's pattern move ``x + a D`` (D the last sweep's displacement): a sweep moves every
-#: node towards its local optimum given its neighbours (a nonlinear Gauss-Seidel step), so it removes local error
-#: fast and smooth, long-wavelength error slowly, each sweep moving the mesh a little further along nearly the
-#: same D; a step of a few to a few tens of D removes that error at once.
-PATTERN_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
-
-
 def _pattern_move(x, D, f, conn, cons: Constraints, extra: ExtraCells):
     """``(x, f)`` after the pattern move: the best of ``project(x + a D)`` over `PATTERN_FACTORS` where its F is
     below `f` (an inverted corner makes F infinite: never taken), else `x` and `f` unchanged."""
@@ -338,17 +215,18 @@ def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
     return int(max(1, min(p.cohort * p.variations, budget // max(1, M * K * 4))))
 
 
-def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams = CIParams(),
+def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams | None = None,
              extra: ExtraCells | None = None):
     """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity, `extra`
     the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`; default none), whose corners `cs` must hold too
-    (`coloured_stars(..., table)`): F and the local objectives are then over every corner.
+    (`coloured_stars(..., table)`): F and the local objectives are then over every corner; `p` default `CIParams()`.
 
     **Returns:** ``(points, sweeps, history)``: the smoothed coordinates ``(n, 3)``, the number of sweeps, and a
     dict of numpy arrays of length ``sweeps + 1`` (entry 0 = input): ``objective``, ``max_condition``,
     ``moved`` (nodes moved in the sweep).
     """
     extra = no_extra() if extra is None else extra
+    p = CIParams() if p is None else p
     x, n, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, *_split(p, points.dtype), _auto_chunk(cs, p),
                                      extra)
     n = int(n)

@@ -1,0 +1,251 @@
+"""Local CI in numpy and C for hexahedral meshes: the sweep of `jaxci.optim.ci.local_ci` without compilation.
+
+The compiled sweep is one XLA program per mesh size class; on a 2-core CPU it takes 10-12 s to compile (a
+command's whole budget on a small mesh, and most of the main job), then about 0.1 s a sweep at 10^3 hexahedra.
+Here the same algorithm runs colour by colour in numpy, its one hot loop (the local objective of every trial
+position: four corners of every element around the node) in C (`jaxci.native.local_sums`), the boundary
+projection of the trials by the C search of `jaxci.geometry.projection.NearProjector`: nothing to compile.
+
+The iteration is the compiled one (`jaxci.optim.ci._local_ci_colour`, `_local_ci_run`): per colour, for every
+node, a cohort of C candidates improves for T learning attempts (each follows a candidate by roulette on
+1/(g + delta) for the first ``stage_switch`` share of the attempts, then the best; samples t trials in its
+interval, shrunk by ``reduction`` per attempt, in the node's free directions; projects them onto its surface or
+edge; keeps the best if it is better); the node takes the cohort's best if it lowers its local objective (so F
+never increases: a colour's nodes share no element). Widths adapt per node (4 x the move after an accepted
+move, halved otherwise, within ``[min_width, init_width] h``); after each sweep the pattern move (`PATTERN_FACTORS`)
+and the same stops (``F <= ftol``, relative decrease below ``tol``, no node moved, ``max_sweeps``). Random numbers
+come from numpy's PCG64 seeded by the run's seed: same seed, same result, but not the compiled path's stream.
+Everything is float64.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .. import native
+from ..geometry.projection import Constraints, NearProjector
+from ._moves import coloured_stars
+from .ci_params import PATTERN_FACTORS, CIParams
+
+#: Largest hexahedral mesh on which local CI runs on the host with ``backend="auto"`` (with the C kernels):
+#: measured in docs/results/README.md (session 8).
+HOST_CI_MAX = 100_000
+
+
+def host_ci_applies(backend: str, n_hex: int, mixed: bool) -> bool:
+    """Whether local CI with `backend` (``"auto"``, ``"numpy"``, ``"jax"``) runs on the host: hexahedral meshes
+    only, with the C kernels, ``"numpy"`` always, ``"auto"`` up to `HOST_CI_MAX` hexahedra."""
+    if mixed or backend == "jax" or not native.AVAILABLE:
+        return False
+    return backend == "numpy" or n_hex <= HOST_CI_MAX
+
+
+@dataclasses.dataclass(frozen=True)
+class _Colour:
+    """The movable nodes of one colour (numpy): `nodes` ``(M,)``; `star` ``(M, K, 8)`` their relabelled
+    elements, the first ``count[m]`` real; `basis` ``(M, 3, 3)``; `free` ``(M, 3)`` 1 for a free direction;
+    `plane` ``(M, 7)`` (`jaxci.optim._moves.planar_rings`); the slots ``[a, b)`` are surface nodes, ``[b, M)``
+    edge nodes (rows `srow`, `erow` of the projector's surface and edge lists)."""
+
+    nodes: np.ndarray
+    star: np.ndarray
+    count: np.ndarray
+    basis: np.ndarray
+    free: np.ndarray
+    plane: np.ndarray
+    a: int
+    b: int
+    srow: np.ndarray
+    erow: np.ndarray
+
+
+def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
+    """The colours of `jaxci.optim._moves.coloured_stars`, padding slots dropped."""
+    cs = coloured_stars(hexes, cons, colour, faces, device=False)
+    n = len(np.asarray(cons.node_class))
+    rows = [np.full(n + 1, -1, np.int64) for _ in range(2)]
+    for r, nodes in zip(rows, (cons.surface_nodes, cons.edge_nodes), strict=True):
+        nodes = np.asarray(nodes)
+        r[nodes] = np.arange(len(nodes))
+    out = []
+    bounds = np.cumsum([0, cs.n_interior, cs.n_surface, cs.n_edge])
+    for i in range(cs.nodes.shape[0]):
+        keep = np.flatnonzero(cs.mask[i])
+        if not len(keep):
+            continue
+        nodes = np.asarray(cs.nodes[i][keep], np.int64)
+        a, b = np.searchsorted(keep, bounds[1:3])
+        out.append(_Colour(
+            nodes=nodes, star=np.ascontiguousarray(cs.star[i][keep], np.int64),
+            count=np.asarray(cs.smask[i][keep].sum(axis=1), np.int64),
+            basis=np.asarray(cs.basis[i][keep], np.float64),
+            free=(np.arange(3)[None] < np.asarray(cs.dims[i][keep])[:, None]).astype(np.float64),
+            plane=np.asarray(cs.plane[i][keep], np.float64), a=int(a), b=int(b),
+            srow=rows[0][nodes[a:b]], erow=rows[1][nodes[b:]]))
+    return out
+
+
+def _local_length(x: np.ndarray, col: _Colour) -> np.ndarray:
+    """Mean length of the edges at each node of `col` over its real star elements, ``(M,)``."""
+    st = col.star
+    d = x[st[:, :, (1, 3, 4)]] - x[st[:, :, :1]]  # (M, K, 3, 3)
+    length = np.sqrt(np.einsum("mkjd,mkjd->mk", d, d))
+    real = np.arange(st.shape[1])[None] < col.count[:, None]
+    return np.where(real, length, 0.0).sum(axis=1) / (3.0 * np.maximum(col.count, 1))
+
+
+class _Sweeper:
+    """One local CI run's state: coordinates, widths, the projector (and its remembered cells), the RNG."""
+
+    def __init__(self, points, hexes, cons: Constraints, colour, faces, p: CIParams, seed: int):
+        self.x = np.array(points, dtype=np.float64)
+        self.hexes = np.ascontiguousarray(hexes, dtype=np.int64)
+        self.p = p
+        self.rng = np.random.default_rng(seed)
+        self.colours = _colours(hexes, cons, colour, faces)
+        self.projector = NearProjector(cons)
+        self.width = np.zeros(len(self.x))
+        for col in self.colours:
+            self.width[col.nodes] = p.init_width * _local_length(self.x, col)
+
+    def objective(self, x: np.ndarray) -> tuple[float, float]:
+        """``(F, max kappa/3)`` at `x` (F infinite if a corner is inverted)."""
+        total, tmax, bad = native.hex_sums(x, self.hexes)
+        return (np.inf if bad else total / (8 * len(self.hexes))), float(np.sqrt(tmax))
+
+    def _project(self, col: _Colour, trials: np.ndarray, hint: np.ndarray) -> np.ndarray:
+        """`trials` ``(M, S, 3)`` projected onto each node's surface or edge (interior slots unchanged; a surface
+        trial inside its planar disk by the orthogonal projection, exact there); `hint` ``(M, S)`` the cell
+        columns of the boundary trials, updated."""
+        a, b = col.a, col.b
+        if a == len(col.nodes):
+            return trials
+        out = trials.copy()
+        if b > a:
+            t = out[a:b]
+            o, nrm, r = col.plane[a:b, None, :3], col.plane[a:b, None, 3:6], col.plane[a:b, None, 6]
+            flat = t - nrm * np.sum((t - o) * nrm, axis=-1, keepdims=True)
+            inside = np.sum((flat - o) ** 2, axis=-1) < (0.999 * r) ** 2
+            t[inside] = flat[inside]
+            m, s = np.nonzero(~inside)
+            if len(m):
+                pts = np.ascontiguousarray(t[m, s])
+                h = np.ascontiguousarray(hint[a + m, s])
+                self.projector.project_rows(0, col.srow[m], pts, h)
+                t[m, s], hint[a + m, s] = pts, h
+        if len(col.nodes) > b:
+            S = out.shape[1]
+            pts = np.ascontiguousarray(out[b:].reshape(-1, 3))
+            h = np.ascontiguousarray(hint[b:].reshape(-1))
+            self.projector.project_rows(1, np.repeat(col.erow, S), pts, h)
+            out[b:], hint[b:] = pts.reshape(-1, S, 3), h.reshape(-1, S)
+        return out
+
+    def _follow(self, fc: np.ndarray, roulette: bool) -> np.ndarray:
+        """The candidate each candidate follows, ``(M, C)``: by roulette on 1/(g + delta), or the best."""
+        M, C = fc.shape
+        if not roulette:
+            return np.broadcast_to(np.argmin(fc, axis=1)[:, None], (M, C))
+        prob = 1.0 / (fc + self.p.delta)  # an inverted candidate (inf) has probability 0
+        cum = np.cumsum(prob, axis=1)
+        draw = self.rng.random((M, C, 1)) * cum[:, None, -1:]
+        return np.minimum((draw >= cum[:, None, :]).sum(axis=-1), C - 1)
+
+    def visit(self, col: _Colour) -> int:
+        """One cohort run for every node of `col`; returns the number of nodes moved."""
+        p, x = self.p, self.x
+        C, t, T = p.cohort, p.variations, p.attempts
+        M = len(col.nodes)
+        ncorner = np.maximum(4 * col.count, 1).astype(np.float64)
+        x0 = x[col.nodes]
+        w0 = self.width[col.nodes]
+        h = _local_length(x, col)
+        f0 = native.local_sums(x, col.star, col.count, x0[:, None])[:, 0] / ncorner - 1.0
+        cand = np.repeat(x0[:, None], C, axis=1)  # (M, C, 3)
+        fc = np.repeat(f0[:, None], C, axis=1)
+        hints = self._hints(col)
+        ch = np.repeat(hints[:, None], C, axis=1)  # the cell column of each candidate (boundary slots)
+        n_roulette = round(p.stage_switch * T)
+        rows = np.arange(M)[:, None]
+        for k in range(T):
+            follow = self._follow(fc, k < n_roulette)
+            centre = cand[rows, follow]
+            w = w0 * p.reduction ** (k + 1)
+            u = (self.rng.random((M, C, t, 3)) - 0.5) * (w[:, None, None, None] * col.free[:, None, None])
+            a = col.a  # an interior node's basis is the identity
+            u[a:] = np.einsum("mij,mctj->mcti", col.basis[a:], u[a:])
+            trials = (centre[:, :, None] + u).reshape(M, C * t, 3)
+            th = np.repeat(ch[rows, follow], t, axis=1)
+            trials = self._project(col, trials, th)
+            ft = (native.local_sums(x, col.star, col.count, trials) / ncorner[:, None] - 1.0).reshape(M, C, t)
+            j = np.argmin(ft, axis=-1)
+            fb = np.take_along_axis(ft, j[..., None], axis=-1)[..., 0]
+            pick = (np.arange(C)[None] * t + j)
+            yb = trials[rows, pick]
+            better = fb < fc
+            cand = np.where(better[..., None], yb, cand)
+            fc = np.where(better, fb, fc)
+            ch = np.where(better, th[rows, pick], ch)
+        c = np.argmin(fc, axis=1)
+        fbest, ybest = fc[np.arange(M), c], cand[np.arange(M), c]
+        accept = (fbest < f0) & np.isfinite(fbest)
+        new = np.where(accept[:, None], ybest, x0)
+        x[col.nodes] = new
+        move = np.linalg.norm(new - x0, axis=-1)
+        self.width[col.nodes] = np.clip(np.where(accept, 4.0 * move, 0.5 * w0), p.min_width * h, p.init_width * h)
+        self._remember(col, np.where(accept, ch[np.arange(M), c], hints))
+        return int(accept.sum())
+
+    def _hints(self, col: _Colour) -> np.ndarray:
+        """The projector's remembered cell column of every slot of `col` (-1 for interior slots)."""
+        out = np.full(len(col.nodes), -1, np.int64)
+        out[col.a : col.b] = self.projector.hint[0][col.srow]
+        out[col.b :] = self.projector.hint[1][col.erow]
+        return out
+
+    def _remember(self, col: _Colour, hints: np.ndarray) -> None:
+        self.projector.hint[0][col.srow] = hints[col.a : col.b]
+        self.projector.hint[1][col.erow] = hints[col.b :]
+
+    def pattern(self, D: np.ndarray, f: float) -> float:
+        """The pattern move along the sweep's displacement `D` (`jaxci.optim.ci._pattern_move`): the best
+        projected ``x + a D`` if it lowers `f`; returns F."""
+        best = (f, None, None)
+        for a in PATTERN_FACTORS:
+            y, hint = self.projector(self.x + a * D)
+            fy = self.objective(y)[0]
+            if fy < best[0]:
+                best = (fy, y, hint)
+        if best[1] is not None:
+            self.x = best[1]
+            self.projector.commit(best[2])
+        return best[0]
+
+
+def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | None = None, seed: int = 0):
+    """Local CI on the host from `points` ``(n, 3)`` of the hexahedra `hexes` ``(N, 8)``, `cons` the numpy
+    float64 constraints, `colour` the node colouring, `faces` the boundary faces (for the planar shortcut).
+
+    **Returns:** ``(points, sweeps, history)`` as `jaxci.optim.ci.local_ci` (float64 points).
+    """
+    p = CIParams() if p is None else p
+    sw = _Sweeper(points, hexes, cons, colour, faces, p, seed)
+    f, kmax = sw.objective(sw.x)
+    hist_f, hist_k, hist_m = [f], [kmax], [0]
+    done = f <= p.ftol
+    while not done and len(hist_f) <= p.max_sweeps:
+        start = sw.x.copy()
+        moved = sum(sw.visit(col) for col in sw.colours)
+        f_new = sw.objective(sw.x)[0]
+        if p.pattern:
+            f_new = sw.pattern(sw.x - start, f_new)
+        hist_f.append(f_new)
+        hist_k.append(sw.objective(sw.x)[1])  # one pass more per sweep: 1/60 of a sweep's corner evaluations
+        hist_m.append(moved)
+        done = f_new <= p.ftol or f - f_new <= p.tol * f or moved == 0
+        f = f_new
+    n = len(hist_f) - 1
+    return sw.x, n, {"objective": np.asarray(hist_f), "max_condition": np.asarray(hist_k),
+                     "moved": np.asarray(hist_m, np.int32)}

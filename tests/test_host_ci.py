@@ -1,0 +1,95 @@
+"""Local CI on the host (`jaxci.optim.host_ci`): the C local sums, the same algorithm as the compiled sweep,
+nothing compiled or imported from JAX, the boundary kept."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import jaxci
+from jaxci import native
+from jaxci.errors import ConfigError
+from jaxci.generate import perturb_box
+from jaxci.smooth import smooth
+
+pytestmark = pytest.mark.skipif(not native.AVAILABLE, reason="the C kernels are not built")
+
+
+def test_local_sums_equal_the_local_terms_of_the_compiled_sweep():
+    """`native.local_sums` gives `jaxci.optim._local.local_terms` (float64) for trial positions of every node,
+    inf exactly where a corner inverts (trials far enough to fold some elements)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxci.optim._local import gather_star, local_terms, node_stars
+
+    mesh = perturb_box(5, amplitude=0.3, seed=3)
+    x, hexes = np.asarray(mesh.points), np.asarray(mesh.hexes)
+    stars = node_stars(hexes, len(x))
+    trials = x[:, None] + np.random.default_rng(0).normal(size=(len(x), 7, 3)) * 0.06
+    with jax.enable_x64(True):
+        ref = np.asarray(local_terms(gather_star(jnp.asarray(x), jnp.asarray(stars.star)), jnp.asarray(stars.mask),
+                                     jnp.asarray(trials)))
+    got = native.local_sums(x, stars.star, stars.mask.sum(axis=1), trials)
+    finite = np.isfinite(ref)
+    assert 0.2 < finite.mean() < 0.95  # both kinds of trials are there
+    assert np.array_equal(np.isfinite(got), finite)
+    np.testing.assert_allclose(got[finite], ref[finite], rtol=1e-12)
+
+
+def test_host_and_compiled_local_ci_reach_the_same_optimum_in_as_many_sweeps():
+    """The paper's 27-element cube, float64: the host sweep (numpy's random stream) and the compiled one (JAX's)
+    both reach the ideal grid (F <= ftol) in about the same number of sweeps, F never rising."""
+    mesh = jaxci.paper_case("cube27", seed=1)
+    runs = {b: smooth(mesh, "ci", seed=0, dtype="float64", backend=b) for b in ("numpy", "jax")}
+    for res in runs.values():
+        assert res.after.max_condition < 1.0001 and res.after.inverted_elements == 0
+        hist = np.asarray(res.history["objective"])
+        assert np.all(np.diff(hist) <= 1e-12 * hist[0])
+    assert abs(runs["numpy"].iterations - runs["jax"].iterations) <= 0.3 * runs["jax"].iterations
+    assert runs["numpy"].params["backend"] == "numpy"
+
+
+def test_host_local_ci_is_deterministic_per_seed():
+    mesh = perturb_box(4, amplitude=0.3, seed=2)
+    a, b, c = (smooth(mesh, "ci", seed=s, max_sweeps=5) for s in (7, 7, 8))
+    assert np.array_equal(a.mesh.points, b.mesh.points)
+    assert not np.array_equal(a.mesh.points, c.mesh.points)
+
+
+def test_host_local_ci_keeps_corners_and_faces_exactly():
+    """Sliding boundary of a perturbed box: corners bit for bit, every face node on its face plane to 1e-15."""
+    mesh = perturb_box(6, amplitude=0.3, seed=0)
+    res = smooth(mesh, "ci", max_sweeps=20)
+    x0, x = np.asarray(mesh.points), np.asarray(res.mesh.points)
+    for d in range(3):
+        for side in (0.0, 1.0):
+            on = x0[:, d] == side
+            assert np.all(np.abs(x[on, d] - side) <= 1e-15)
+    corners = np.all((x0 == 0) | (x0 == 1), axis=1)
+    assert np.array_equal(x[corners], x0[corners])
+    assert res.after.objective < 0.05 * res.before.objective and res.after.inverted_elements == 0
+
+
+def test_backend_is_checked():
+    with pytest.raises(ConfigError, match="backend"):
+        smooth(perturb_box(2), "ci", backend="gpu")
+
+
+@pytest.mark.slow
+def test_cli_local_ci_on_a_small_mesh_never_imports_jax(tmp_path):
+    """``jaxci smooth --method ci`` on a 1000-hex box runs in numpy and C: no JAX import, nothing compiled."""
+    from jaxci.io import write_mesh
+
+    write_mesh(perturb_box(10, amplitude=0.3, seed=1), str(tmp_path / "in.vtk"))
+    args = ["smooth", str(tmp_path / "in.vtk"), str(tmp_path / "out.vtk"), "--method", "ci", "--param",
+            "max_sweeps=10"]
+    code = (f"import sys; from jaxci.cli import main; rc = main({args!r}); "
+            "print(rc, sorted(m for m in ('jax', 'scipy.sparse', 'scipy.spatial') if m in sys.modules))")
+    env = dict(os.environ, JAXCI_CACHE_DIR=str(tmp_path / "cache"))
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert p.stdout.strip().splitlines()[-1] == "0 []", p.stdout + p.stderr
