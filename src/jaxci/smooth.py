@@ -153,8 +153,9 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
     `jaxci.native`): L-BFGS without presmoothing where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed
-    one only on F and with the C kernels), local CI where `jaxci.optim.host_ci.host_ci_applies`, their reports
-    and checks in numpy. JAX is then never imported (0.4-0.5 s of a small mesh's run)."""
+    one only on F and with the C kernels), local CI and the Laplacians where
+    `jaxci.optim.host_local.host_local_applies`; their reports and checks in numpy. JAX is then never imported
+    (0.4-0.5 s of a small mesh's run)."""
     from . import native
     from .metrics.elements import objective_on_host
     from .metrics.report import NUMPY_REPORT_MAX
@@ -162,10 +163,10 @@ def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     extra = mixed.extra_blocks(mesh)
     if mesh.n_hexes > NUMPY_REPORT_MAX or not objective_on_host(mesh):
         return False
-    if method == "ci":
-        from .optim.host_ci import host_ci_applies
+    if method in ("ci", "laplace", "smart-laplace"):
+        from .optim.host_local import host_local_applies
 
-        return host_ci_applies(params.get("backend", "auto"), mesh.n_hexes, bool(extra))
+        return host_local_applies(params.get("backend", "auto"), mesh.n_hexes, bool(extra))
     if method != "lbfgs" or int(params.get("presmooth", 0)):
         return False
     if extra and (not native.AVAILABLE or params.get("objective", "mean") != "mean"):
@@ -194,12 +195,14 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
 def run_method(problem: Problem, method: str, seed: int, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
     of the randomised methods (only there: building it compiles a program)."""
-    if method == "ci" and isinstance(problem.x0, np.ndarray):  # the host problem of `host_run`
-        from .optim.host_ci import local_ci_np
+    if method in ("ci", "laplace", "smart-laplace") and isinstance(problem.x0, np.ndarray):  # `host_run`'s
+        from .optim.host_local import laplace_np, local_ci_np
 
         p = method_params(method, params)
-        x, it, hist = local_ci_np(problem.x0, problem.mesh.hexes, problem.cons, problem.colour,
-                                  problem.info.topology.faces, p, seed)
+        args = (problem.x0, problem.mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, p)
+        if method != "ci":
+            return laplace_np(*args, smart=method == "smart-laplace")
+        x, it, hist = local_ci_np(*args, seed)
         return x, it, hist, dataclasses.asdict(p)
     if method in ("ci", "ci-global"):
         key = jax.random.key(seed, impl="rbg")

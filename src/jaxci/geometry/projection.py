@@ -346,7 +346,7 @@ class NearProjector:
         """Project `points` (float64 ``(r, 3)``, in place) each onto the candidates of one boundary node: point i
         onto those of row ``rows[i]`` of `kind` (0: the surface nodes, 1: the edge nodes), starting from the
         candidate column ``hint[i]`` (int64, -1: search all; updated in place): the trial positions of the local
-        moves of `jaxci.optim.host_ci`. The C search only (`jaxci.native.AVAILABLE`)."""
+        moves of `jaxci.optim.host_local`. The C search only (`jaxci.native.AVAILABLE`)."""
         from .. import native
 
         nodes, cand, table, spheres = self._native[kind]

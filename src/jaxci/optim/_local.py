@@ -19,6 +19,7 @@ import numpy as np
 
 from .._lazy import jax, jnp
 from ..cells import corner_invariants
+from ..geometry.topology import unique_edges
 from ..metrics.hexahedron import squared_condition_from_invariants
 
 #: ROTATE_TO_SLOT[a] relabels a VTK hexahedron (new local i = old local ROTATE_TO_SLOT[a][i]) by a proper
@@ -170,3 +171,36 @@ def colour_batches(colour: np.ndarray, movable: np.ndarray, n_nodes: int, colour
         nodes[i, : len(g)] = g
         mask[i, : len(g)] = True
     return ColourBatches(nodes=nodes, mask=mask)
+
+
+#: The 12 edges of a hexahedron in VTK node order.
+HEX_EDGES = np.array(
+    [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64
+)
+
+
+def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes joined to each node by a hexahedron edge, each once, padded.
+
+    **Arguments:** `hexes` of shape ``(N, 8)``; `n_nodes`; `edges`: optional node pairs ``(E, 2)`` of further
+    cell edges (a mixed mesh's `jaxci.metrics.objective.edge_pairs`), joined to the hexahedron edges.
+
+    **Returns:** ``(nbr, mask)`` of shape ``(n_nodes, K)`` (K the largest number of edge neighbours; padding
+    repeats the node itself and is False in `mask`).
+    """
+    hexes = np.asarray(hexes, dtype=np.int64)
+    e = hexes[:, HEX_EDGES].reshape(-1, 2)
+    if edges is not None:
+        e = np.concatenate([e, np.asarray(edges, np.int64).reshape(-1, 2)])
+    e = unique_edges(e)
+    key = np.sort(np.concatenate([e[:, 0] * n_nodes + e[:, 1], e[:, 1] * n_nodes + e[:, 0]]))  # by (node, neighbour)
+    src, dst = key // n_nodes, key % n_nodes
+    deg = np.bincount(src, minlength=n_nodes)
+    K = max(int(deg.max(initial=0)), 1)
+    start = np.concatenate([[0], np.cumsum(deg)[:-1]])
+    k = np.arange(len(key)) - start[src]
+    nbr = np.repeat(np.arange(n_nodes)[:, None], K, axis=1)
+    nbr[src, k] = dst
+    mask = np.zeros((n_nodes, K), bool)
+    mask[src, k] = True
+    return nbr, mask

@@ -149,7 +149,7 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     `faces` are the boundary faces (``BoundaryInfo.topology.faces``), for the planar-ring shortcut; `table` the
     non-hexahedral corners (`jaxci.metrics.objective.corner_table`; default none). The colouring must not give one
     colour to two nodes of any cell (hexahedron or not). `device` False: numpy arrays (the host sweep of
-    `jaxci.optim.host_ci`; indices int64), else device arrays.
+    `jaxci.optim.host_local`; indices int64), else device arrays.
     """
     cls = np.asarray(cons.node_class)
     n = len(cls)

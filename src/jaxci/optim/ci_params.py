@@ -1,6 +1,6 @@
 """The hyperparameters of Cohort Intelligence (`CIParams`) and their defaults per form, without JAX.
 
-`jaxci.optim.ci` (the compiled sweeps) and `jaxci.optim.host_ci` (local CI on the host, which must not import
+`jaxci.optim.ci` (the compiled sweeps) and `jaxci.optim.host_local` (local CI on the host, which must not import
 JAX) both read them; `jaxci.optim.ci` re-exports every name.
 """
 
@@ -56,7 +56,7 @@ class CIParams:
       the mesh ``x + a D`` for each factor a of `PATTERN_FACTORS`, projected onto the boundary, is evaluated
       (one cohort along one line) and the best taken where it lowers F (default True).
     - `backend`: local CI on a hexahedral mesh: ``"auto"`` (default: on the host, numpy and C, nothing to
-      compile, up to `jaxci.optim.host_ci.HOST_CI_MAX` hexahedra where the C kernels are built; compiled
+      compile, up to `jaxci.optim.host_local.HOST_CI_MAX` hexahedra where the C kernels are built; compiled
       otherwise), ``"numpy"`` (always on the host) or ``"jax"`` (always compiled). Same algorithm, different
       random streams. Global CI always runs compiled.
     """

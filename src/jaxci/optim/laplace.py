@@ -21,16 +21,13 @@ evaluation per colour, `jax.lax` loops under one `jax.jit`) until the largest mo
 from __future__ import annotations
 
 import dataclasses
-import functools
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
+from .._lazy import jax, jit, jnp
 from ..cells import corner_invariants
 from ..errors import ConfigError
 from ..geometry.projection import Constraints
-from ..geometry.topology import unique_edges
 from ..metrics.hexahedron import (
     condition_from_invariants,
     corner_columns,
@@ -49,7 +46,7 @@ from ..metrics.objective import (
 )
 from . import _params as _p
 from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
-from ._local import gather_star
+from ._local import HEX_EDGES, edge_neighbours, gather_star  # noqa: F401  (re-exported)
 from ._moves import (
     ColouredStars,
     colour_slice,
@@ -64,12 +61,6 @@ from ._moves import (
 
 #: Method names of this module.
 METHODS = ("laplace", "smart-laplace")
-
-#: The 12 edges of a hexahedron in VTK node order.
-HEX_EDGES = np.array(
-    [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64
-)
-
 
 #: Most sweeps (the history arrays have max_sweeps + 1 entries): a typo must not hang a run or exhaust memory.
 MAX_SWEEPS = 1_000_000
@@ -86,12 +77,16 @@ class LaplaceParams:
     - `buckets`: on a hexahedral mesh, run the sweeps on the problem padded to its size class
       (`jaxci.optim._buckets`; default True), so that meshes of similar size share one compiled sweep loop and
       the persistent compilation cache; the padding changes no result beyond rounding (False: exact shapes).
+    - `backend`: on a hexahedral mesh, ``"auto"`` (default: the sweeps on the host, numpy and C, nothing to
+      compile, up to `jaxci.optim.host_local.HOST_LOCAL_MAX` hexahedra where the C kernels are built; compiled
+      otherwise), ``"numpy"`` (always on the host) or ``"jax"`` (always compiled).
     """
 
     max_sweeps: int = 500
     tol: float = 1e-5
     backtrack: int = 3
     buckets: bool = True
+    backend: str = "auto"
 
     def __post_init__(self):
         L = "Laplace"
@@ -101,34 +96,8 @@ class LaplaceParams:
             tol=_p.real(L, "tol", self.tol, 0),
             backtrack=_p.integer(L, "backtrack", self.backtrack, 1, 16),
             buckets=_p.boolean(L, "buckets", self.buckets),
+            backend=_p.choice(L, "backend", self.backend, ("auto", "jax", "numpy")),
         )
-
-
-def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Nodes joined to each node by a hexahedron edge, each once, padded.
-
-    **Arguments:** `hexes` of shape ``(N, 8)``; `n_nodes`; `edges`: optional node pairs ``(E, 2)`` of further
-    cell edges (a mixed mesh's `jaxci.metrics.objective.edge_pairs`), joined to the hexahedron edges.
-
-    **Returns:** ``(nbr, mask)`` of shape ``(n_nodes, K)`` (K the largest number of edge neighbours; padding
-    repeats the node itself and is False in `mask`).
-    """
-    hexes = np.asarray(hexes, dtype=np.int64)
-    e = hexes[:, HEX_EDGES].reshape(-1, 2)
-    if edges is not None:
-        e = np.concatenate([e, np.asarray(edges, np.int64).reshape(-1, 2)])
-    e = unique_edges(e)
-    key = np.sort(np.concatenate([e[:, 0] * n_nodes + e[:, 1], e[:, 1] * n_nodes + e[:, 0]]))  # by (node, neighbour)
-    src, dst = key // n_nodes, key % n_nodes
-    deg = np.bincount(src, minlength=n_nodes)
-    K = max(int(deg.max(initial=0)), 1)
-    start = np.concatenate([[0], np.cumsum(deg)[:-1]])
-    k = np.arange(len(key)) - start[src]
-    nbr = np.repeat(np.arange(n_nodes)[:, None], K, axis=1)
-    nbr[src, k] = dst
-    mask = np.zeros((n_nodes, K), bool)
-    mask[src, k] = True
-    return nbr, mask
 
 
 
@@ -176,7 +145,7 @@ def _history_terms(x, conn, extra: ExtraCells, weight):
     return f, k
 
 
-@functools.partial(jax.jit, static_argnames=("smart", "p"))
+@jit(static_argnames=("smart", "p"))
 def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smart: bool, p: LaplaceParams,
                  extra: ExtraCells, weight=None, n_colours=None):
     """The sweeps under one jit. `weight` ``(N,)`` and `n_colours` (traced): for a problem padded to its size

@@ -1,4 +1,6 @@
-"""Local CI in numpy and C for hexahedral meshes: the sweep of `jaxci.optim.ci.local_ci` without compilation.
+"""The local (coloured, node by node) methods in numpy and C for hexahedral meshes, without compilation: local CI
+(`local_ci_np`, the sweep of `jaxci.optim.ci.local_ci`) and the (smart) Laplacian (`laplace_np`, that of
+`jaxci.optim.laplace.laplace`).
 
 The compiled sweep is one XLA program per mesh size class; on a 2-core CPU it takes 10-12 s to compile (a
 command's whole budget on a small mesh, and most of the main job), then about 0.1 s a sweep at 10^3 hexahedra.
@@ -15,7 +17,9 @@ never increases: a colour's nodes share no element). Widths adapt per node (4 x 
 move, halved otherwise, within ``[min_width, init_width] h``); after each sweep the pattern move (`PATTERN_FACTORS`)
 and the same stops (``F <= ftol``, relative decrease below ``tol``, no node moved, ``max_sweeps``). Random numbers
 come from numpy's PCG64 seeded by the run's seed: same seed, same result, but not the compiled path's stream.
-Everything is float64.
+Everything is float64. `laplace_np` sweeps the colours the same way with the Laplacian's one move per node
+(the centroid of its edge neighbours, in its free directions, projected; the smart one tries the steps 1, 1/2,
+... at once and takes the longest that lowers the node's local sum).
 """
 
 from __future__ import annotations
@@ -26,20 +30,23 @@ import numpy as np
 
 from .. import native
 from ..geometry.projection import Constraints, NearProjector
+from ._local import edge_neighbours
 from ._moves import coloured_stars
 from .ci_params import PATTERN_FACTORS, CIParams
+from .laplace import LaplaceParams
 
-#: Largest hexahedral mesh on which local CI runs on the host with ``backend="auto"`` (with the C kernels):
-#: measured in docs/results/README.md (session 8).
-HOST_CI_MAX = 100_000
+#: Largest hexahedral mesh on which the local methods run on the host with ``backend="auto"`` (with the C
+#: kernels): measured in docs/results/README.md (session 8).
+HOST_LOCAL_MAX = 100_000
 
 
-def host_ci_applies(backend: str, n_hex: int, mixed: bool) -> bool:
-    """Whether local CI with `backend` (``"auto"``, ``"numpy"``, ``"jax"``) runs on the host: hexahedral meshes
-    only, with the C kernels, ``"numpy"`` always, ``"auto"`` up to `HOST_CI_MAX` hexahedra."""
+def host_local_applies(backend: str, n_hex: int, mixed: bool) -> bool:
+    """Whether a local method (CI, the Laplacians) with `backend` (``"auto"``, ``"numpy"``, ``"jax"``) runs on
+    the host: hexahedral meshes only, with the C kernels, ``"numpy"`` always, ``"auto"`` up to `HOST_LOCAL_MAX`
+    hexahedra."""
     if mixed or backend == "jax" or not native.AVAILABLE:
         return False
-    return backend == "numpy" or n_hex <= HOST_CI_MAX
+    return backend == "numpy" or n_hex <= HOST_LOCAL_MAX
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,9 +104,10 @@ def _local_length(x: np.ndarray, col: _Colour) -> np.ndarray:
 
 
 class _Sweeper:
-    """One local CI run's state: coordinates, widths, the projector (and its remembered cells), the RNG."""
+    """One local run's state: coordinates, the colours, the projector (and its remembered cells); for CI the
+    widths and the RNG."""
 
-    def __init__(self, points, hexes, cons: Constraints, colour, faces, p: CIParams, seed: int):
+    def __init__(self, points, hexes, cons: Constraints, colour, faces, p, seed: int = 0):
         self.x = np.array(points, dtype=np.float64)
         self.hexes = np.ascontiguousarray(hexes, dtype=np.int64)
         self.p = p
@@ -107,8 +115,9 @@ class _Sweeper:
         self.colours = _colours(hexes, cons, colour, faces)
         self.projector = NearProjector(cons)
         self.width = np.zeros(len(self.x))
-        for col in self.colours:
-            self.width[col.nodes] = p.init_width * _local_length(self.x, col)
+        if isinstance(p, CIParams):
+            for col in self.colours:
+                self.width[col.nodes] = p.init_width * _local_length(self.x, col)
 
     def objective(self, x: np.ndarray) -> tuple[float, float]:
         """``(F, max kappa/3)`` at `x` (F infinite if a corner is inverted)."""
@@ -198,6 +207,34 @@ class _Sweeper:
         self._remember(col, np.where(accept, ch[np.arange(M), c], hints))
         return int(accept.sum())
 
+    def laplace_visit(self, col: _Colour, nbr: np.ndarray, nmask: np.ndarray, h: np.ndarray, smart: bool) -> float:
+        """Every node of `col` towards the centroid of its edge neighbours `nbr` ``(M, K)`` (real where `nmask`);
+        returns the largest move over the nodes' lengths `h` ``(M,)``."""
+        x = self.x
+        x0 = x[col.nodes]
+        w = nmask[..., None].astype(np.float64)
+        centroid = (x[nbr] * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)
+        d = np.einsum("mij,mj->mi", col.basis, np.einsum("mji,mj->mi", col.basis, centroid - x0))
+        n_steps = self.p.backtrack if smart else 1
+        steps = 0.5 ** np.arange(n_steps)
+        hints = self._hints(col)
+        th = np.repeat(hints[:, None], n_steps, axis=1)
+        trials = self._project(col, x0[:, None] + steps[None, :, None] * d[:, None], th)
+        rows = np.arange(len(x0))
+        if smart:
+            f0 = native.local_sums(x, col.star, col.count, x0[:, None])[:, 0]
+            ft = native.local_sums(x, col.star, col.count, trials)
+            ok = (ft < f0[:, None]) & np.isfinite(ft)
+            j = np.argmax(ok, axis=1)  # the longest acceptable step
+            accept = ok.any(axis=1)
+        else:
+            j = np.zeros(len(x0), np.int64)
+            accept = np.ones(len(x0), bool)
+        new = np.where(accept[:, None], trials[rows, j], x0)
+        x[col.nodes] = new
+        self._remember(col, np.where(accept, th[rows, j], hints))
+        return float((np.linalg.norm(new - x0, axis=-1) / h).max(initial=0.0))
+
     def _hints(self, col: _Colour) -> np.ndarray:
         """The projector's remembered cell column of every slot of `col` (-1 for interior slots)."""
         out = np.full(len(col.nodes), -1, np.int64)
@@ -249,3 +286,33 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
     n = len(hist_f) - 1
     return sw.x, n, {"objective": np.asarray(hist_f), "max_condition": np.asarray(hist_k),
                      "moved": np.asarray(hist_m, np.int32)}
+
+
+def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams | None = None, *,
+               smart: bool = False):
+    """The (smart) Laplacian on the host from `points` ``(n, 3)``; arguments as `local_ci_np`.
+
+    **Returns:** ``(points, sweeps, history, params)`` as `jaxci.optim.laplace.laplace` (float64 points; F and
+    max kappa/3 are ``inf`` once the plain Laplacian has inverted a corner).
+    """
+    p = LaplaceParams() if p is None else p
+    sw = _Sweeper(points, hexes, cons, colour, faces, p)
+    nbr, nmask = edge_neighbours(hexes, len(sw.x))
+    per_colour = []
+    for col in sw.colours:
+        h = _local_length(sw.x, col)
+        per_colour.append((nbr[col.nodes], nmask[col.nodes], np.where(h > 0, h, 1.0)))
+    f, kmax = sw.objective(sw.x)
+    hist_f, hist_k, hist_m = [f], [kmax if np.isfinite(f) else np.inf], [0.0]
+    while len(hist_f) <= p.max_sweeps:
+        move = max((sw.laplace_visit(col, *extra, smart) for col, extra in zip(sw.colours, per_colour, strict=True)),
+                   default=0.0)
+        f, kmax = sw.objective(sw.x)
+        hist_f.append(f)
+        hist_k.append(kmax if np.isfinite(f) else np.inf)
+        hist_m.append(move)
+        if move <= p.tol:
+            break
+    n = len(hist_f) - 1
+    hist = {"objective": np.asarray(hist_f), "max_condition": np.asarray(hist_k), "max_move": np.asarray(hist_m)}
+    return sw.x, n, hist, {"method": "smart-laplace" if smart else "laplace", **dataclasses.asdict(p)}
