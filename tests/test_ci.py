@@ -180,16 +180,22 @@ def test_pattern_move_takes_the_best_factor_along_the_sweep_and_never_a_worse_me
 
 # ------------------------------------------------------------------------- global CI's defaults (issue 15, item 4)
 def _spy_global_ci(monkeypatch, seen: list, attempts: int = 3) -> None:
-    """Record the `CIParams` every global CI run receives; run it for `attempts` attempts only (quick)."""
-    from jaxci.optim import ci
+    """Record the `CIParams` every global CI run receives, compiled or on the host; run it for `attempts`
+    attempts only (quick)."""
+    from jaxci.optim import ci, host_global
 
-    real = ci.global_ci
+    real, real_np = ci.global_ci, host_global.global_ci_np
 
     def spy(key, points, conn, cons, scale, p, extra=None):
         seen.append(p)
         return real(key, points, conn, cons, scale, dataclasses.replace(p, attempts=attempts), extra)
 
+    def spy_np(points, hexes, cons, scale, p, *args):
+        seen.append(p)
+        return real_np(points, hexes, cons, scale, dataclasses.replace(p, attempts=attempts), *args)
+
     monkeypatch.setattr(ci, "global_ci", spy)
+    monkeypatch.setattr(host_global, "global_ci_np", spy_np)
 
 
 def test_global_ci_defaults_are_one_source_for_api_cli_and_yaml(tmp_path, monkeypatch, capsys):

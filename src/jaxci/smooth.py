@@ -153,7 +153,7 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
     `jaxci.native`): L-BFGS without presmoothing where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed
-    one only on F and with the C kernels), local CI and the Laplacians where
+    one only on F and with the C kernels), CI (both forms) and the Laplacians where
     `jaxci.optim.host_local.host_local_applies`; their reports and checks in numpy. JAX is then never imported
     (0.4-0.5 s of a small mesh's run)."""
     from . import native
@@ -163,7 +163,7 @@ def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     extra = mixed.extra_blocks(mesh)
     if mesh.n_hexes > NUMPY_REPORT_MAX or not objective_on_host(mesh):
         return False
-    if method in ("ci", "laplace", "smart-laplace"):
+    if method in ("ci", "ci-global", "laplace", "smart-laplace"):
         from .optim.host_local import host_local_applies
 
         return host_local_applies(params.get("backend", "auto"), mesh.n_hexes, bool(extra))
@@ -195,11 +195,18 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
 def run_method(problem: Problem, method: str, seed: int, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
     of the randomised methods (only there: building it compiles a program)."""
-    if method in ("ci", "laplace", "smart-laplace") and isinstance(problem.x0, np.ndarray):  # `host_run`'s
+    if isinstance(problem.x0, np.ndarray) and method in ("ci", "ci-global", "laplace", "smart-laplace"):  # host_run
+        from .optim.host_global import global_ci_np
         from .optim.host_local import laplace_np, local_ci_np
+        from .optim.parametrisation import free_lengths
 
         p = method_params(method, params)
-        args = (problem.x0, problem.mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, p)
+        mesh = problem.mesh
+        if method == "ci-global":
+            x, it, hist = global_ci_np(problem.x0, mesh.hexes, problem.cons, free_lengths(mesh, problem.cons), p,
+                                       seed, problem.info.topology.faces)
+            return x, it, hist, dataclasses.asdict(p)
+        args = (problem.x0, mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, p)
         if method != "ci":
             return laplace_np(*args, smart=method == "smart-laplace")
         x, it, hist = local_ci_np(*args, seed)

@@ -330,6 +330,7 @@ class NearProjector:
         #: per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search
         self.spheres = (_sphere(self.c.triangles, triangle_centres), _sphere(self.c.segments, segment_centres))
         #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
+        self._tiled = {}  # `project_many`'s index arrays per (kind, number of meshes)
         self._native = None if not native.AVAILABLE else tuple(
             (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int64),
              np.ascontiguousarray(table, np.float64), np.ascontiguousarray(np.column_stack(sphere), np.float64))
@@ -341,6 +342,28 @@ class NearProjector:
     def commit(self, hint) -> None:
         """Remember `hint` (from `__call__`) for the next projections."""
         self.hint = hint
+
+    def project_many(self, points: np.ndarray, keep: np.ndarray | None = None) -> None:
+        """Project the boundary nodes of S meshes `points` (float64 ``(S, n, 3)``, in place) as `__call__` does,
+        each starting from the remembered cells (not changed): one C search over all of them (the trial meshes of
+        `jaxci.optim.host_global`); `keep` (optional, boolean ``(S, n)``): nodes left where they are. The C
+        search only (`jaxci.native.AVAILABLE`)."""
+        from .. import native
+
+        S, n = points.shape[:2]
+        flat = points.reshape(-1, 3)
+        for kind, (nodes, cand, table, spheres) in enumerate(self._native):
+            if not len(nodes):
+                continue
+            key = (kind, S)
+            if key not in self._tiled:
+                self._tiled[key] = ((np.arange(S)[:, None] * n + nodes[None]).ravel(), np.tile(cand, (S, 1)))
+            many, cands = self._tiled[key]
+            active = np.arange(len(many)) if keep is None else np.flatnonzero(~keep[:, nodes].ravel())
+            if len(active):
+                native.near_project(flat, many, active, np.tile(self.hint[kind], S), cands, table, spheres, kind,
+                                    inside_tolerance(np.float64), segment_bump(np.float64))
+        points[:, self.c.corner_nodes] = self.c.x_orig[self.c.corner_nodes]
 
     def project_rows(self, kind: int, rows: np.ndarray, points: np.ndarray, hint: np.ndarray) -> None:
         """Project `points` (float64 ``(r, 3)``, in place) each onto the candidates of one boundary node: point i

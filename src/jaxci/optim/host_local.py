@@ -103,6 +103,18 @@ def _local_length(x: np.ndarray, col: _Colour) -> np.ndarray:
     return np.where(real, length, 0.0).sum(axis=1) / (3.0 * np.maximum(col.count, 1))
 
 
+def follow_candidates(rng: np.random.Generator, g: np.ndarray, delta: float, roulette: bool) -> np.ndarray:
+    """The candidate each candidate of a cohort follows, for behaviours `g` ``(..., C)`` (>= 0, inf for an
+    inverted candidate): by roulette on 1/(g + delta) (an inverted one has probability 0), or the best; shape
+    ``(..., C)`` (`jaxci.optim.ci`'s ``_follow``)."""
+    C = g.shape[-1]
+    if not roulette:
+        return np.broadcast_to(np.argmin(g, axis=-1)[..., None], g.shape)
+    cum = np.cumsum(1.0 / (g + delta), axis=-1)
+    draw = rng.random(g.shape + (1,)) * cum[..., None, -1:]
+    return np.minimum((draw >= cum[..., None, :]).sum(axis=-1), C - 1)
+
+
 class _Sweeper:
     """One local run's state: coordinates, the colours, the projector (and its remembered cells); for CI the
     widths and the RNG."""
@@ -114,6 +126,7 @@ class _Sweeper:
         self.rng = np.random.default_rng(seed)
         self.colours = _colours(hexes, cons, colour, faces)
         self.projector = NearProjector(cons)
+        self.projector.commit(self.projector(self.x)[1])  # every boundary node's cell at the start
         self.width = np.zeros(len(self.x))
         if isinstance(p, CIParams):
             for col in self.colours:
@@ -152,16 +165,6 @@ class _Sweeper:
             out[b:], hint[b:] = pts.reshape(-1, S, 3), h.reshape(-1, S)
         return out
 
-    def _follow(self, fc: np.ndarray, roulette: bool) -> np.ndarray:
-        """The candidate each candidate follows, ``(M, C)``: by roulette on 1/(g + delta), or the best."""
-        M, C = fc.shape
-        if not roulette:
-            return np.broadcast_to(np.argmin(fc, axis=1)[:, None], (M, C))
-        prob = 1.0 / (fc + self.p.delta)  # an inverted candidate (inf) has probability 0
-        cum = np.cumsum(prob, axis=1)
-        draw = self.rng.random((M, C, 1)) * cum[:, None, -1:]
-        return np.minimum((draw >= cum[:, None, :]).sum(axis=-1), C - 1)
-
     def visit(self, col: _Colour) -> int:
         """One cohort run for every node of `col`; returns the number of nodes moved."""
         p, x = self.p, self.x
@@ -179,7 +182,7 @@ class _Sweeper:
         n_roulette = round(p.stage_switch * T)
         rows = np.arange(M)[:, None]
         for k in range(T):
-            follow = self._follow(fc, k < n_roulette)
+            follow = follow_candidates(self.rng, fc, p.delta, k < n_roulette)
             centre = cand[rows, follow]
             w = w0 * p.reduction ** (k + 1)
             u = (self.rng.random((M, C, t, 3)) - 0.5) * (w[:, None, None, None] * col.free[:, None, None])

@@ -1,0 +1,94 @@
+"""The paper's global CI in numpy and C for hexahedral meshes: `jaxci.optim.ci.global_ci` without compilation.
+
+Each candidate is a whole mesh, a point of the free coordinates (the layout of `jaxci.geometry.projection`);
+its behaviour is F. The compiled loop takes 9-10 s to compile per mesh size and attempt budget on a 2-core CPU
+(the main job compiled it five times), and evaluates the C x t trial meshes of an attempt one after the other
+(`jax.lax.map`); here each trial mesh is lifted, projected onto the boundary by the C search of
+`jaxci.geometry.projection.NearProjector` and evaluated by the C kernel of `jaxci.native` (tens of
+microseconds on the paper's cubes). The iteration is the compiled one: follow by roulette on 1/(F + delta) for
+the first ``stage_switch`` share of the attempts, then the best; t trials per candidate in its interval
+(``init_width h`` per coordinate, shrunk by ``reduction`` per attempt); greedy replacement; saturation for
+`patience` attempts or F <= ftol stops it. numpy's PCG64 stream, seeded by the run's seed; float64.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import native
+from ..geometry.projection import Constraints, NearProjector, host_constraints
+from ._moves import planar_rings
+from .ci_params import CIParams
+from .host_local import follow_candidates
+
+
+def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int = 0, faces=None):
+    """Global CI on the host from `points` ``(n, 3)`` of the hexahedra `hexes` ``(N, 8)``; `scale` ``(n_free,)``
+    the local edge length per free coordinate (`jaxci.optim.parametrisation.free_lengths`); `faces` the
+    boundary faces (optional): a surface node whose ring of faces is planar and that stays inside the disk the
+    ring covers (`jaxci.optim._moves.planar_rings`) is projected onto that plane, its exact nearest point, with
+    no search.
+
+    **Returns:** ``(points, attempts, history)`` as `jaxci.optim.ci.global_ci` (float64 points).
+    """
+    hc, _ = host_constraints(cons)
+    x0 = np.array(points, dtype=np.float64)
+    hexes = np.ascontiguousarray(hexes, dtype=np.int64)
+    scale = np.asarray(scale, np.float64)
+    projector = NearProjector(cons)
+    projector.commit(projector(x0)[1])  # every boundary node's cell at the start: the searches start there
+    n_corners = 8 * len(hexes)
+    rng = np.random.default_rng(seed)
+
+    ni, ns = len(hc.interior_nodes), len(hc.surface_nodes)
+    plane = planar_rings(x0, np.asarray(faces), hc) if faces is not None else np.zeros((len(x0), 7))
+    flat = np.flatnonzero(plane[:, 6] > 0)
+    origin, normal, r2 = plane[flat, :3], plane[flat, 3:6], (0.999 * plane[flat, 6]) ** 2
+
+    def meshes(U):  # (S, n_free) -> (S, n, 3): project(x0 + B u) for each row u
+        X = np.repeat(x0[None], len(U), axis=0)
+        X[:, hc.interior_nodes] += U[:, : 3 * ni].reshape(len(U), ni, 3)
+        X[:, hc.surface_nodes] += np.einsum("tsk,skd->tsd", U[:, 3 * ni : 3 * ni + 2 * ns].reshape(len(U), ns, 2),
+                                            hc.surface_basis)
+        X[:, hc.edge_nodes] += U[:, 3 * ni + 2 * ns :, None] * hc.edge_tangent
+        keep = np.zeros(X.shape[:2], bool)
+        if len(flat):
+            d = X[:, flat] - origin
+            on = d - normal * np.einsum("tsd,sd->ts", d, normal)[..., None]  # onto the plane
+            inside = np.einsum("tsd,tsd->ts", on, on) < r2
+            X[:, flat] = np.where(inside[..., None], origin + on, X[:, flat])
+            keep[:, flat] = inside
+        projector.project_many(X, keep)
+        return X
+
+    def behaviours(U):  # (S, n_free) -> F (S,), max kappa/3 (S,)
+        out = np.array([native.hex_sums(x, hexes) for x in meshes(U)])
+        return np.where(out[:, 2] > 0, np.inf, out[:, 0] / n_corners), np.sqrt(out[:, 1])
+
+    C, t, T = p.cohort, p.variations, p.attempts
+    f0, k0 = (v[0] for v in behaviours(np.zeros((1, len(scale)))))
+    cand = np.zeros((C, len(scale)))
+    fc, kc = np.full(C, f0), np.full(C, k0)
+    hist = [(f0, f0, k0)]
+    n_roulette = round(p.stage_switch * T)
+    calm = 0
+    while len(hist) <= T and not fc.min() <= p.ftol:
+        a = len(hist) - 1
+        best_before = fc.min()
+        follow = follow_candidates(rng, fc, p.delta, a < n_roulette)
+        w = p.init_width * scale * p.reduction ** (a + 1)
+        U = cand[follow][:, None] + (rng.random((C, t, len(scale))) - 0.5) * w
+        ft, kt = (v.reshape(C, t) for v in behaviours(U.reshape(C * t, -1)))
+        j = np.argmin(ft, axis=1)
+        fb = ft[np.arange(C), j]
+        better = fb < fc
+        cand[better] = U[better, j[better]]
+        fc, kc = np.where(better, fb, fc), np.where(better, kt[np.arange(C), j], kc)
+        hist.append((fc.min(), fc.max(), kc[np.argmin(fc)]))
+        tol = p.tol * max(fc.min(), p.ftol)
+        calm = calm + 1 if fc.max() - fc.min() <= tol and best_before - fc.min() <= tol else 0
+        if calm >= p.patience:
+            break
+    h = np.asarray(hist)
+    x = meshes(cand[np.argmin(fc)][None])[0]
+    return x, len(hist) - 1, {"objective": h[:, 0], "best": h[:, 0], "worst": h[:, 1], "max_condition": h[:, 2]}
