@@ -637,31 +637,40 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
             double best;
             if (kind == 0) {
                 inside = plane_point(xi, T, nc, j, tol, p, &h, w, &d1);
-                best = h * h;
+                best = inside ? h * h : closest_on_triangle(xi, T, nc, j, tol, bump, p);
             } else {
                 best = closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
             }
-            /* another candidate may still be nearer (a point inside its cell's prism near a concave part of the
-             * boundary): only one whose bounding sphere (S: centre, radius) comes nearer than `best` can be;
-             * without this check the projection jumped where the point left the prism, and the line search
-             * stalled there */
+            /* another candidate may be nearer (a point inside its cell's prism near a concave part of the
+             * boundary, or one that left the hint's cell): only one whose bounding sphere (S: centre, radius)
+             * comes nearer than `best` can be, and for triangles one whose plane does; without this check the
+             * projection jumped where the point left the prism, and the line search stalled there. The result
+             * is the full search's nearest point, found among a few candidates. */
             double reach = sqrt(best);
-            for (Py_ssize_t c = 0; inside && c < K; c++) {
+            for (Py_ssize_t c = 0; c < K; c++) {
                 const double *sc = S + 4 * CA[i * K + c];
-                double dx2 = 0.0, q[3], lim = sc[3] + reach;
+                double dx2 = 0.0, q[3], slack = 1e-12 * sc[3], lim = sc[3] + reach + slack;
                 if (c == H[i]) continue;
                 for (int d = 0; d < 3; d++) dx2 += (xi[d] - sc[d]) * (xi[d] - sc[d]);
-                if (dx2 >= lim * lim) continue;
+                if (dx2 > lim * lim) continue; /* ties stay: outside its cell, the first of equal ones is taken
+                                                  * (as the full search does); inside, the remembered one */
+                if (kind == 0) {
+                    Py_ssize_t jc = CA[i * K + c];
+                    double hp = 0.0;
+                    for (int d = 0; d < 3; d++) hp += (xi[d] - T[(TC + d) * nc + jc]) * T[(TN + d) * nc + jc];
+                    if (fabs(hp) > reach + slack) continue; /* slack: rounding must not prune a tie at a vertex */
+                }
                 int in;
                 double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[i * K + c], tol, bump, q)
                                          : closest_on_segment(xi, T, nc, CA[i * K + c], tol, bump, q, &in);
-                if (score < best) {
+                if (score < best || (!inside && score == best && c < H[i])) {
                     best = score;
                     reach = sqrt(best);
                     H[i] = c;
                     for (int d = 0; d < 3; d++) p[d] = q[d];
                 }
             }
+            inside = 1; /* found */
         }
         if (!inside) {
             double best = INFINITY, q[3];
