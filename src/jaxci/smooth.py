@@ -108,7 +108,8 @@ class SmoothResult:
 class Problem:
     """Everything a method needs, built once: constraints, transposed connectivity, dtype; for a mixed mesh the
     non-hexahedral cells (`extra`: `jaxci.metrics.objective.ExtraCells`; `table`:
-    `jaxci.metrics.objective.CornerTable`), None for a hexahedral one; the colouring (`colour`) on first use."""
+    `jaxci.metrics.objective.CornerTable`), None for a hexahedral one; the colouring (`colour`) on first use;
+    `devices`: None (one device) or the `jax.sharding.Mesh` the compiled methods shard the elements over."""
 
     mesh: HexMesh
     info: BoundaryInfo
@@ -118,6 +119,7 @@ class Problem:
     dtype: type
     extra: mixed.ExtraCells | None = None
     table: mixed.CornerTable | None = None
+    devices: object = None
 
     @functools.cached_property
     def colour(self) -> np.ndarray:
@@ -132,12 +134,12 @@ class Problem:
 
 def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.0, fix_boundary: bool = False,
                   fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = (),
-                  device: bool = True, info: BoundaryInfo | None = None) -> Problem:
+                  device: bool = True, info: BoundaryInfo | None = None, devices=None) -> Problem:
     """Classify the boundary and build the constraints of `mesh` (call inside the dtype context).
 
     `device`: the arrays on JAX's default device (default), or in numpy for a method that runs on the host
     (`host_run`: JAX is not imported). `info`: the `BoundaryInfo` of `mesh` with these arguments if it is at hand
-    (the untangling stage's), else classified."""
+    (the untangling stage's), else classified. `devices`: `Problem.devices`."""
     if info is None:
         info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                  fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
@@ -147,7 +149,7 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
         extra, table = mixed.extra_cells(mesh, device=device), mixed.corner_table(mesh)
     put = jax.device_put if device else (lambda a: a)
     conn = transposed(mesh.hexes) if device else np.ascontiguousarray(np.asarray(mesh.hexes).T)
-    return Problem(mesh, info, cons, conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table)
+    return Problem(mesh, info, cons, conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table, devices)
 
 
 def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
@@ -259,6 +261,7 @@ def smooth(
     merge_coincident: bool = False,
     keep_worst: bool = True,
     clock=None,
+    devices=None,
     **params,
 ) -> SmoothResult:
     """Smooth the hexahedra of `mesh` by moving nodes; connectivity never changes.
@@ -296,6 +299,11 @@ def smooth(
     - `keep_worst`: guarantee that the worst cell (max corner kappa/3, float64, every cell type) is no worse than
       the input's (`jaxci.metrics.guard.keep_worst`: the nodes of cells that ended worse are put back, and a note says
       what that cost in mean quality). False returns the method's result as it is.
+    - `devices`: None (default: one device; small meshes' L-BFGS on the host in numpy), or a device count,
+      ``"all"`` or a list of devices (`jaxci.optim.sharding.resolve_devices`): L-BFGS (with its presmoothing),
+      BFGS, CG and the Laplacians of a hexahedral mesh run compiled with the elements sharded over them, node
+      data replicated; same result as on one device to float tolerance (a note says so; the result's
+      ``params["devices"]`` is the count).
     - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,
@@ -317,14 +325,20 @@ def smooth(
 
     clock = PhaseClock() if clock is None else clock
     with clock.phase("validate"):
+        shard, params, shard_note = _sharding(method, devices, params)  # first: L-BFGS's backend picks `auto`
         mesh, method, seed, fixed_sets, untangle_params, params, auto = _validate(
             mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params,
             {"fix_boundary": fix_boundary, "merge_coincident": merge_coincident, "keep_worst": keep_worst,
              "untangle_boundary": untangle_boundary})
+        if shard is not None and mixed.has_extra(mesh):
+            raise ConfigError("devices: only hexahedral meshes run sharded (this one has other cell types); leave "
+                              "devices out")
     t0 = time.perf_counter()
     notes: list[str] = []
     if auto:
         notes.append(f"default method (auto): {auto}; choose another with --method / method=")
+    if shard is not None:
+        notes.append(shard_note)
     if merge_coincident:
         merged = merge(mesh)
         if merged is not mesh:
@@ -341,7 +355,8 @@ def smooth(
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
                                check_coincident=False)
     points, res = _smooth_unit(unit, method, seed, dtype, feature_angle, fix_boundary, fixed, fixed_sets,
-                               untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary)
+                               untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary,
+                               shard)
     moved = (points != unit.points).any(axis=1)
     real = np.array(mesh.points)
     real[moved] = from_unit(points[moved], frame)
@@ -349,9 +364,23 @@ def smooth(
         res, mesh=mesh.with_points(real), wall_time=time.perf_counter() - t0,
         method="auto" if auto else method,
         params={**res.params, "seed": seed, "dtype": dtype, "feature_angle": feature_angle,
-                "fix_boundary": fix_boundary, **({"pipeline": auto} if auto else {})},
+                "fix_boundary": fix_boundary, **({"pipeline": auto} if auto else {}),
+                **({} if shard is None else {"devices": int(shard.devices.size)})},
         notes=tuple(notes), phases=clock.as_dict(),
     )
+
+
+def _sharding(method, devices, params: dict):
+    """``(device mesh, params, note)`` of a ``devices=`` request (`jaxci.optim.sharding.sharded_params`);
+    ``(None, params, "")`` without one (JAX is then not imported here) or for an unknown method (`_validate`
+    says so)."""
+    if devices is None or method not in METHODS:
+        return None, params, ""
+    from .optim.sharding import resolve_devices, sharded_params
+
+    shard = resolve_devices(devices)
+    params, note = sharded_params(method, params, shard)
+    return shard, params, note
 
 
 def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params, flags: dict):
@@ -402,8 +431,8 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
 
 
 def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
-                 untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary=False
-                 ) -> tuple[np.ndarray, SmoothResult]:
+                 untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary=False,
+                 devices=None) -> tuple[np.ndarray, SmoothResult]:
     """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
     and wall time are filled in by `smooth`; `notes` is appended to, `clock` records the phases)."""
     host = host_run(mesh, method, params)
@@ -471,7 +500,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         with clock.phase("setup"):
             problem = build_problem(smesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                     fixed_nodes=fixed_nodes, fixed_sets=fixed_sets, device=not host,
-                                    info=None if untangled is None else info)
+                                    info=None if untangled is None else info, devices=devices)
             if untangled is not None:
                 start = np.asarray(untangled, np_dtype)
                 problem = dataclasses.replace(problem, x0=start if host else jax.device_put(start))

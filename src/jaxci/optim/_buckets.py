@@ -27,16 +27,18 @@ from .._lazy import jax
 MIN_BUCKET = 8
 
 
-def bucket(n: int, minimum: int = MIN_BUCKET) -> int:
+def bucket(n: int, minimum: int = MIN_BUCKET, multiple: int = 1) -> int:
     """The smallest size of the ladder ``minimum, ..., 2^k, 3 * 2^(k-1), 2^(k+1), ...`` that is at least `n`
-    (0 stays 0: an empty class keeps its static branch)."""
+    (0 stays 0: an empty class keeps its static branch), rounded up to a multiple of `multiple` (the device
+    count of a sharded run, `jaxci.optim.sharding`: every device gets as many elements)."""
     n = int(n)
     if n <= 0:
         return 0
     n = max(n, int(minimum))
     p = 1 << (n - 1).bit_length()  # the power of two >= n
     q = 3 * p // 4
-    return q if q >= n and p >= 4 else p
+    b = q if q >= n and p >= 4 else p
+    return -(-b // int(multiple)) * int(multiple)
 
 
 def to_device(a, dtype=None) -> jax.Array:

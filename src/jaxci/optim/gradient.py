@@ -387,20 +387,21 @@ def use_host(method: str, p: GradientParams, n_hex: int, extra=None) -> bool:
     return method == "lbfgs" and runs_on_host(p.backend, n_cells, HOST_MAX, mixed and not native.AVAILABLE)
 
 
-def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra):
+def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra, n_devices: int = 0):
     """``(par, conn, weight, index)`` to run: `par` and `conn` padded to their size class
     (`pad_parametrisation`, `jaxci.optim._buckets.padded_connectivity`; `index`: the real free coordinates in
-    the padded vector) for `BUCKETED` methods on a hexahedral mesh with ``p.buckets``; else as given (`weight`
-    and `index` None)."""
-    if not (p.buckets and method in BUCKETED and not extra.types):
+    the padded vector) for `BUCKETED` methods on a hexahedral mesh with ``p.buckets`` or sharded over
+    `n_devices` (the elements then a multiple of it); else as given (`weight` and `index` None)."""
+    if not ((p.buckets or n_devices) and method in BUCKETED and not extra.types):
         return par, conn, None, None
     padded, index = pad_parametrisation(par)
     hexes = np.asarray(conn).T
-    c, w = padded_connectivity(hexes, bucket(len(hexes)))
+    c, w = padded_connectivity(hexes, bucket(len(hexes), multiple=max(n_devices, 1)))
     return padded, to_device(c, np.asarray(conn).dtype), to_device(w, par.x0.dtype), index
 
 
-def minimise(method: str, par: Parametrisation, conn, p: GradientParams = GradientParams(), extra=None):
+def minimise(method: str, par: Parametrisation, conn, p: GradientParams = GradientParams(), extra=None,
+             devices=None):
     """Run one gradient baseline from ``par.points(0)``.
 
     **Arguments:**
@@ -411,6 +412,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
     - `p`: `GradientParams`.
     - `extra`: the wedges, pyramids and tetrahedra (`jaxci.metrics.objective.ExtraCells`, default none): F over every
       corner.
+    - `devices`: None (one device), or a `jax.sharding.Mesh` (`jaxci.optim.sharding.resolve_devices`): the
+      compiled loop with the elements sharded over it (`jaxci.optim.sharding.place_problem`), never the host path.
 
     **Returns:** ``(points, iterations, history, params)``: coordinates ``(n, 3)`` (the best valid iterate), the
     number of solver steps, a dict of numpy arrays of length ``iterations + 1`` (entry 0 = input):
@@ -444,12 +447,18 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
         return x, 0, {"objective": np.asarray([f]), "max_condition": np.asarray([k]),
                       "solver_result": "no free coordinates"}, params
     n_hex = int(conn.shape[1])
-    on_host = use_host(method, p, n_hex, extra)
+    on_host = devices is None and use_host(method, p, n_hex, extra)
     if not on_host:  # optimistix and the compiled loop (imported here: 0.08 s the numpy path does without)
         from ._solve import make_solver, solve_loop
 
         solver = make_solver(method, p)
-    run_par, run_conn, weight, index = (par, conn, None, None) if on_host else _bucketed(method, par, conn, p, extra)
+    n_dev = 0 if devices is None else int(devices.devices.size)
+    run_par, run_conn, weight, index = (par, conn, None, None) if on_host else _bucketed(method, par, conn, p, extra,
+                                                                                          n_dev)
+    if n_dev:
+        from .sharding import place_problem, replicate
+
+        run_conn, weight, run_par = place_problem(run_conn, weight, run_par, devices)
 
     def real(y):  # the real free coordinates of the iterate (numpy)
         y = np.asarray(y)
@@ -478,6 +487,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol)
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
+            y = replicate(y, devices) if n_dev else y  # one input sharding for every run: one compilation
             y, k, result, hf, hk = solve_loop(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
         k = int(k)
@@ -553,7 +563,7 @@ def run_gradient(problem, method: str, params: dict):
         extra = extra_cells(problem.mesh, device=False)
         if not use_host(method, p, problem.mesh.n_hexes, extra):
             extra = extra_cells(problem.mesh)
-    x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra)
+    x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra, problem.devices)
     if pre is None:
         return x, steps, hist, resolved
     hist = {**hist, "presmooth": int(sweeps)}

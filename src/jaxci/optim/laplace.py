@@ -189,7 +189,7 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
 
 
 def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: LaplaceParams = LaplaceParams(),
-            *, smart: bool = False, extra: ExtraCells | None = None):
+            *, smart: bool = False, extra: ExtraCells | None = None, devices=None):
     """Run the (smart) Laplacian from `points` ``(n, 3)``.
 
     **Arguments:**
@@ -200,6 +200,9 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     - `cons`: the `Constraints`; `p`: `LaplaceParams`; `smart`: the smart variant.
     - `extra`: keyword only; the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`, default none), whose
       corners `cs` must hold too: F in the history is then over every corner.
+    - `devices`: keyword only; None (one device) or a `jax.sharding.Mesh` (hexahedral meshes): padded as for
+      ``p.buckets``, the elements (F and max kappa/3 of the history) sharded over it, the node data and stars
+      replicated (`jaxci.optim.sharding.place_problem`).
 
     **Returns:** ``(points, sweeps, history, params)``: coordinates ``(n, 3)``, the number of sweeps, numpy
     arrays of length ``sweeps + 1`` (entry 0 = input): ``objective`` (F; ``inf`` once an element is inverted),
@@ -208,8 +211,14 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     """
     extra = no_extra() if extra is None else extra
     n = int(points.shape[0])
-    if p.buckets and not extra.types:  # padded to the size class: one compiled loop for meshes of similar size
-        points, conn, cs, nbr, nmask, cons, weight, n_col = _padded(points, conn, cs, nbr, nmask, cons)
+    if (p.buckets or devices is not None) and not extra.types:  # padded to the size class: one compiled loop
+        n_dev = 1 if devices is None else int(devices.devices.size)
+        points, conn, cs, nbr, nmask, cons, weight, n_col = _padded(points, conn, cs, nbr, nmask, cons, n_dev)
+        if devices is not None:
+            from .sharding import place_problem
+
+            conn, weight, (points, cs, nbr, nmask, cons, n_col) = place_problem(
+                conn, weight, (points, cs, nbr, nmask, cons, n_col), devices)
         x, s, hf, hk, hm = _laplace_run(points, conn, cs, nbr, nmask, cons, bool(smart), p, extra, weight, n_col)
         x = to_device(np.asarray(x)[:n])  # sliced on the host: no compilation
     else:
@@ -220,16 +229,16 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     return x, s, hist, {"method": "smart-laplace" if smart else "laplace", **dataclasses.asdict(p)}
 
 
-def _padded(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints):
+def _padded(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, multiple: int = 1):
     """The arguments of `_laplace_run` padded to their size class (`jaxci.optim._buckets`): nodes (padding nodes
     at the origin, CORNER nodes of the padded `Constraints`, referenced by no real element), elements (repeats of
     element 0 with weight 0), colours, slots and star and neighbour widths (`jaxci.optim._moves.pad_stars`).
-    Returns them with the element weights and the real colour count."""
+    Returns them with the element weights and the real colour count; the elements a multiple of `multiple`."""
     x = np.asarray(points)
     n = x.shape[0]
     n_pad = bucket(n + 1)
     hexes = np.asarray(conn).T
-    c, w = padded_connectivity(hexes, bucket(len(hexes)))
+    c, w = padded_connectivity(hexes, bucket(len(hexes), multiple=multiple))
     k_pad = bucket(np.asarray(nmask).shape[2], 4)
     nbr_p = pad_slots(pad_width(np.asarray(nbr), k_pad), cs, 0)
     nmask_p = pad_slots(pad_width(np.asarray(nmask), k_pad, False), cs, False)
@@ -268,4 +277,4 @@ def run_laplace(problem, method: str, params: dict):
         nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes)
         extra = None
     return laplace(problem.x0, problem.conn, cs, nbr, nmask, problem.cons, p, smart=method == "smart-laplace",
-                   extra=extra)
+                   extra=extra, devices=problem.devices)

@@ -11,6 +11,13 @@ On one host, every local device is used (GPUs, or CPU devices made with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=4``). On several hosts, call `init_distributed` first in
 every process (it wraps `jax.distributed.initialize`, which reads the coordinator address, process count and
 id from the cluster environment or its arguments); then `jax.devices()` spans all hosts and the same code runs.
+
+**Sharded smoothing** (`jaxci.smooth(..., devices=...)`, ``jaxci smooth --devices N|all``): `resolve_devices`
+turns the request into a `Mesh`; `sharded_params` checks the method and sends L-BFGS to its compiled loop
+(never the numpy host path, which runs on one CPU); `jaxci.optim.gradient.minimise` and the smart-Laplace
+presmoothing (`jaxci.optim.laplace.laplace`) pad the elements to a multiple of the device count and place their
+arguments with `place_problem`: the element arrays sharded, everything indexed by node replicated. The solver's
+loop (and the sweeps) then compile once, as one SPMD program over every device.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from ..cells import corner_invariants
+from ..errors import ConfigError
 from ..metrics.hexahedron import (
     corner_columns,
     gather_corners,
@@ -43,6 +51,95 @@ def device_mesh(devices=None) -> Mesh:
     """A 1-D `Mesh` over `devices` (default: all of `jax.devices()`), axis name ``"d"``."""
     devs = np.asarray(jax.devices() if devices is None else devices)
     return Mesh(devs, (AXIS,))
+
+
+#: The methods that run sharded (`sharded_params`): the compiled optimistix loop and the (smart) Laplacian
+#: (also the presmoothing of the first three).
+SHARDED_METHODS = ("auto", "lbfgs", "bfgs", "cg", "laplace", "smart-laplace")
+
+#: How to get several devices on one CPU (said when too few exist).
+FORCE_HINT = ("on a CPU, XLA_FLAGS=--xla_force_host_platform_device_count=N set before JAX starts makes N "
+              "devices of its cores")
+
+
+def resolve_devices(devices) -> Mesh:
+    """The 1-D device `Mesh` of a ``devices=`` request (`ConfigError` for a bad one, saying what exists).
+
+    **Arguments:** `devices`: a positive int N (the first N of `jax.devices()`), ``"all"`` (every device, of
+    every host after `init_distributed`), or a sequence of `jax.Device` objects or of indices into
+    `jax.devices()`.
+    """
+    have = jax.devices()
+    what = f"{len(have)} {have[0].platform} device{'s' if len(have) != 1 else ''}"
+    if isinstance(devices, str):
+        if devices != "all":
+            raise ConfigError(f"devices must be a positive integer, 'all' or a list of devices, got {devices!r}")
+        return device_mesh(have)
+    if isinstance(devices, bool) or not isinstance(devices, (int, np.integer, list, tuple)):
+        raise ConfigError(f"devices must be a positive integer, 'all' or a list of devices, got {devices!r}")
+    if not isinstance(devices, (list, tuple)):
+        n = int(devices)
+        if n < 1:
+            raise ConfigError(f"devices must be at least 1, got {n}")
+        if n > len(have):
+            raise ConfigError(f"devices={n}, but only {what} exist; {FORCE_HINT}")
+        return device_mesh(have[:n])
+    if not devices:
+        raise ConfigError("devices is an empty list")
+    chosen = []
+    for d in devices:
+        if isinstance(d, (int, np.integer)) and not isinstance(d, bool):
+            if not 0 <= int(d) < len(have):
+                raise ConfigError(f"device index {d} is out of range: {what} exist (indices 0 to {len(have) - 1})")
+            d = have[int(d)]
+        if d not in have:
+            raise ConfigError(f"{d!r} is not one of the {what} of this process ({FORCE_HINT})")
+        chosen.append(d)
+    if len(set(chosen)) != len(chosen):
+        raise ConfigError(f"devices lists a device twice: {devices!r}")
+    return device_mesh(chosen)
+
+
+def sharded_params(method: str, params: dict, mesh: Mesh) -> tuple[dict, str]:
+    """`params` for a sharded run of `method` on `mesh` and the note that says how it runs.
+
+    L-BFGS (and the default pipeline) get ``backend="jax"``: the compiled loop, never the numpy host path (one
+    CPU, no devices), so that small and large meshes run the same sharded program. `ConfigError` for a method
+    that does not run sharded and for ``backend="numpy"`` (`jaxci.smooth` refuses mixed meshes: the element
+    weights that padding needs are the hexahedra's).
+    """
+    if method not in SHARDED_METHODS:
+        raise ConfigError(f"devices is for the methods {', '.join(SHARDED_METHODS)}, not {method!r}")
+    params = dict(params)
+    if method in ("auto", "lbfgs"):
+        if params.get("backend", "auto") == "numpy":
+            raise ConfigError("backend='numpy' runs on the host, one CPU: it cannot be sharded over devices; "
+                              "leave devices out or use backend='jax'")
+        params["backend"] = "jax"
+    devs = mesh.devices.ravel()
+    host = ("; the numpy host path for small meshes is not used" if method in ("auto", "lbfgs") else "")
+    note = (f"sharded over {len(devs)} {devs[0].platform} device{'s' if len(devs) != 1 else ''}: elements split "
+            f"evenly (padded with weight-0 copies), node data replicated; compiled JAX path{host}")
+    return params, note
+
+
+def replicate(tree, mesh: Mesh):
+    """Every array of `tree` (a pytree) replicated on every device of `mesh`."""
+    return jax.device_put(tree, NamedSharding(mesh, P()))
+
+
+def place_problem(conn, weight, replicated, mesh: Mesh):
+    """The arguments of a compiled loop placed on `mesh`: ``(conn, weight, replicated)``.
+
+    **Arguments:** `conn` ``(8, N)`` transposed connectivity and `weight` ``(N,)`` element weights, N a multiple
+    of the device count (`jaxci.optim._buckets.bucket` with ``multiple``): sharded along N; `replicated`: a
+    pytree of everything else (coordinates, constraints, stars ...): replicated.
+    """
+    n_dev = mesh.devices.size
+    if conn.shape[1] % n_dev:
+        raise ValueError(f"{conn.shape[1]} elements do not split over {n_dev} devices")
+    return (jax.device_put(conn, NamedSharding(mesh, P(None, AXIS))),
+            jax.device_put(weight, NamedSharding(mesh, P(AXIS))), replicate(replicated, mesh))
 
 
 def shard_elements(points, hexes, mesh: Mesh | None = None):
