@@ -1,10 +1,12 @@
-"""`jaxci smooth IN OUT [--method M] [--seed S] [--json] [--verbose] [--force]`: smooth a mesh, write it as OUT.
+"""`jaxci smooth IN OUT [--method M] [--seed S] [--devices N|all] [--json] [--verbose] [--force]`: smooth a mesh,
+write it as OUT.
 
 Without ``--method`` the default pipeline runs (``auto``: `jaxci.smooth.auto_pipeline`), and the output says
 which. ``--json`` reports the time of each phase (``phases``: ``startup`` (process start, imports and JAX set-up),
 ``read``, then `jaxci.smooth`'s ``validate``, ``report``, ``untangle``, ``setup``, ``smooth``, ``checks``, and
 ``write``; each with its compilation seconds and count); ``--verbose`` prints one line per phase on stderr as it
-ends (with a spinner while it runs on a terminal).
+ends (with a spinner while it runs on a terminal). ``--devices`` shards the elements over several devices
+(`jaxci.smooth`'s ``devices``; on a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` makes N).
 
 OUT is checked before the smoothing (`_files.check_output`: never the input, an existing file only with
 ``--force``) and written atomically; an interrupt leaves no OUT and no temporary file.
@@ -52,6 +54,9 @@ def add_args(p) -> None:
     p.add_argument("--objective", choices=["mean", "pmean"], default=None,
                    help="what the gradient methods minimise: mean (F, Eq. 3.1: the default) or pmean (the p-mean "
                         "of the corner excesses, --param p=2 by default: pulls the worst element harder)")
+    p.add_argument("--devices", default=None, metavar="N|all",
+                   help="run on N devices (or all), the elements sharded over them: L-BFGS (and the default "
+                        "pipeline), BFGS, CG and the Laplacians, compiled; default: one device")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object (with phase timings)")
@@ -73,6 +78,21 @@ def _parse_params(items: list[str]) -> dict:
         except json.JSONDecodeError:
             out[key] = value
     return out
+
+
+def _devices(text: str | None):
+    """``--devices`` as `jaxci.smooth`'s ``devices``: None, ``"all"`` or a positive int (`ConfigError` else)."""
+    if text is None or text == "all":
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        from ..errors import ConfigError
+
+        raise ConfigError(f"--devices expects a positive number of devices or 'all', got {text!r}")
+    return n
 
 
 def _phase_printer(enabled: bool):
@@ -119,6 +139,7 @@ def run(args) -> int:
     from ._quality import format_table
 
     params = _parse_params(args.param)
+    devices = _devices(args.devices)
     if args.untangle_budget is not None:
         params["untangle_time_budget"] = args.untangle_budget
     if args.objective is not None:
@@ -134,7 +155,7 @@ def run(args) -> int:
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
                  untangle_boundary=args.untangle_boundary,
                  merge_coincident=args.merge_coincident, keep_worst=not args.allow_worse_worst, clock=clock,
-                 **params)
+                 devices=devices, **params)
     with clock.phase("write"), removing_temporaries(args.output):
         write_mesh(res.mesh, args.output)
     phases = clock.as_dict()

@@ -71,6 +71,7 @@ def resolve_devices(devices) -> Mesh:
     """
     have = jax.devices()
     what = f"{len(have)} {have[0].platform} device{'s' if len(have) != 1 else ''}"
+    exist = f"{what} {'exist' if len(have) != 1 else 'exists'}"
     if isinstance(devices, str):
         if devices != "all":
             raise ConfigError(f"devices must be a positive integer, 'all' or a list of devices, got {devices!r}")
@@ -82,7 +83,7 @@ def resolve_devices(devices) -> Mesh:
         if n < 1:
             raise ConfigError(f"devices must be at least 1, got {n}")
         if n > len(have):
-            raise ConfigError(f"devices={n}, but only {what} exist; {FORCE_HINT}")
+            raise ConfigError(f"devices={n}, but only {exist}; {FORCE_HINT}")
         return device_mesh(have[:n])
     if not devices:
         raise ConfigError("devices is an empty list")
@@ -90,7 +91,7 @@ def resolve_devices(devices) -> Mesh:
     for d in devices:
         if isinstance(d, (int, np.integer)) and not isinstance(d, bool):
             if not 0 <= int(d) < len(have):
-                raise ConfigError(f"device index {d} is out of range: {what} exist (indices 0 to {len(have) - 1})")
+                raise ConfigError(f"device index {d} is out of range: {exist} (indices 0 to {len(have) - 1})")
             d = have[int(d)]
         if d not in have:
             raise ConfigError(f"{d!r} is not one of the {what} of this process ({FORCE_HINT})")
@@ -118,8 +119,9 @@ def sharded_params(method: str, params: dict, mesh: Mesh) -> tuple[dict, str]:
         params["backend"] = "jax"
     devs = mesh.devices.ravel()
     host = ("; the numpy host path for small meshes is not used" if method in ("auto", "lbfgs") else "")
-    note = (f"sharded over {len(devs)} {devs[0].platform} device{'s' if len(devs) != 1 else ''}: elements split "
-            f"evenly (padded with weight-0 copies), node data replicated; compiled JAX path{host}")
+    where = (f"sharded over {len(devs)} {devs[0].platform} devices: elements split evenly (padded with weight-0 "
+             f"copies), node data replicated" if len(devs) > 1 else f"on 1 {devs[0].platform} device")
+    note = f"{where}; compiled JAX path{host}"
     return params, note
 
 
