@@ -1,0 +1,117 @@
+"""`jaxci.smooth(..., devices=...)` and ``jaxci smooth --devices``: sharded and single-device runs give the same
+mesh, the same guarantees, and the sharded solver loop compiles once.
+
+The multi-device checks run in ONE subprocess with ``XLA_FLAGS=--xla_force_host_platform_device_count=4`` (the
+flag is read when JAX starts); compilations are counted there with `jax.monitoring`'s duration events, as in
+`tests/test_compile_buckets.py`.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+import jaxci
+from jaxci.errors import ConfigError
+from jaxci.generate import perturb_box
+from jaxci.smooth import smooth
+
+SCRIPT = textwrap.dedent(
+    """
+    import collections, contextlib, io
+    from jax import monitoring
+    COUNTS = collections.Counter()
+
+    def on_duration(event, duration, fun_name="?", **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            COUNTS[fun_name] += 1
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    import jax
+    import numpy as np
+    assert len(jax.devices()) == 4, jax.devices()
+    from jaxci.errors import ConfigError
+    from jaxci.generate import perturb_box
+    from jaxci.geometry.boundary import INTERIOR
+    from jaxci.smooth import smooth
+
+    def loops(counts):
+        return {k: v for k, v in counts.items() if "solve_loop" in k or "laplace_run" in k}
+
+    m = perturb_box(6, 5, 4, amplitude=0.3, seed=1)  # 120 hexes: 128 padded elements, 32 per device
+    runs = {}
+    for dev in (1, 4):
+        COUNTS.clear()
+        # boundary fixed: a smaller program to compile (no projection), so that the test takes ~20 s
+        r = smooth(m, "lbfgs", devices=dev, dtype="float64", presmooth=2, fix_boundary=True)
+        runs[dev] = (r, loops(COUNTS))
+    (r1, c1), (r4, c4) = runs[1], runs[4]
+    # the sharded run compiles the sweeps and the solver loop once each, as the single-device run does
+    assert c4 == {"jit(_laplace_run)": 1, "jit(solve_loop)": 1} == c1, (c1, c4)
+    assert r4.params["devices"] == 4 and r4.params["backend"] == "jax" and r4.history["presmooth"] == 2
+    assert any("sharded over 4 cpu devices" in n and "host path" in n for n in r4.notes), r4.notes
+    # same mesh to float tolerance, same validity
+    assert np.allclose(r1.mesh.points, r4.mesh.points, rtol=0, atol=1e-9), np.abs(r1.mesh.points - r4.mesh.points).max()
+    assert abs(r1.iterations - r4.iterations) <= 2, (r1.iterations, r4.iterations)
+    for r in (r1, r4):
+        assert r.after.inverted_corners == 0 and r.after.objective < r.before.objective
+        assert r.after.max_condition <= r.before.max_condition
+    assert abs(r1.after.max_condition - r4.after.max_condition) <= 1e-9
+    # the fixed (boundary) nodes stay where they were, bit for bit; the interior ones moved
+    fixed = np.asarray(r4.node_class) != INTERIOR
+    assert np.array_equal(r4.mesh.points[fixed], m.points[fixed])
+    assert (r4.mesh.points[~fixed] != m.points[~fixed]).all()
+    # a second sharded run of the same size compiles no loop again
+    COUNTS.clear()
+    again = smooth(perturb_box(6, 5, 4, amplitude=0.3, seed=2), "lbfgs", devices="all", dtype="float64", presmooth=2,
+                   fix_boundary=True)
+    assert loops(COUNTS) == {}, COUNTS
+    assert again.after.inverted_corners == 0
+    # more devices than exist: a clear error that says how many exist; from the command: one line, exit 2
+    try:
+        smooth(m, "lbfgs", devices=8)
+        raise AssertionError("devices=8 ran")
+    except ConfigError as e:
+        assert "only 4 cpu devices exist" in str(e), e
+    from jaxci.cli import main
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        rc = main(["smooth", "in.vtu", "out.vtu", "--devices", "9"])
+    assert rc == 2 and "only 4 cpu devices exist" in err.getvalue() and "Traceback" not in err.getvalue(), \\
+        (rc, err.getvalue())
+    print("SHARDED-SMOOTH-OK")
+    """
+)
+
+
+def test_sharded_smooth_matches_single_device_and_compiles_once(tmp_path):
+    from jaxci.io import write_mesh
+
+    write_mesh(perturb_box(3, 3, 3, amplitude=0.2, seed=0), str(tmp_path / "in.vtu"))
+    src = os.path.dirname(os.path.dirname(jaxci.__file__))  # the jaxci under test, whatever the working directory
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
+               PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+    r = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=300,
+                       cwd=tmp_path)
+    assert r.returncode == 0 and "SHARDED-SMOOTH-OK" in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
+
+
+@pytest.mark.parametrize("devices, message", [
+    (0, "at least 1"), ("two", "positive integer, 'all'"), (True, "positive integer"), ([], "empty"),
+    (10**6, "but only"), ([0, 0], "twice"), ([10**6], "out of range"),
+])
+def test_bad_devices_are_refused_before_any_work(devices, message):
+    with pytest.raises(ConfigError, match=message):
+        smooth(perturb_box(2, 2, 2, amplitude=0.1, seed=0), "lbfgs", devices=devices)
+
+
+@pytest.mark.parametrize("method, params, message", [
+    ("ci", {}, "not 'ci'"), ("lbfgs", {"backend": "numpy"}, "backend='numpy'"),
+])
+def test_methods_that_cannot_run_sharded_are_refused(method, params, message):
+    with pytest.raises(ConfigError, match=message):
+        smooth(perturb_box(2, 2, 2, amplitude=0.1, seed=0), method, devices=1, **params)
