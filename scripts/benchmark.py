@@ -11,7 +11,14 @@ times the objective kernel alone on the mesh (corner evaluations per second). De
 (unchanged code on a GPU machine). The children run with transparent huge pages for glibc's large allocations
 where that applies (`jaxci.runtime`; ``--hugepages off`` to compare). Prints a table and writes JSON (`--out`).
 
+``--devices 1 2 4`` runs every (size, method) once per device count, sharded (`jaxci.smooth`'s ``devices``: the
+elements split over the devices, `jaxci.optim.sharding`); each child is started with
+``XLA_FLAGS=--xla_force_host_platform_device_count=N`` so that a CPU has N devices (on a GPU machine the GPUs
+are counted instead). Each row records its ``devices``, the time and the peak resident memory (also per
+hexahedron); without ``--devices`` the runs are as before (one device, no ``devices`` argument).
+
     python scripts/benchmark.py --sizes 10 20 30 60 100 --methods lbfgs ci smart-laplace
+    python scripts/benchmark.py --sizes 30 --methods lbfgs --devices 1 2 4
 """
 
 from __future__ import annotations
@@ -57,8 +64,10 @@ def _measure(args, device) -> dict:
     mesh = perturb_box(n, amplitude=args.amplitude, seed=args.seed, redraw_inverted=True)
     t_gen = time.perf_counter() - t0
     params = json.loads(args.params) if args.params else {}
+    if args.devices:
+        params["devices"] = args.devices
     out = dict(size=n, hexes=mesh.n_hexes, nodes=mesh.n_nodes, method=args.method, dtype=args.dtype,
-               device=str(device), backend=device.platform, jax=jax.__version__,
+               devices=args.devices, device=str(device), backend=device.platform, jax=jax.__version__,
                generate_s=t_gen, params=params, glibc_tunables=os.environ.get("GLIBC_TUNABLES"))
     t0 = time.perf_counter()
     res = smooth(mesh, args.method, dtype=args.dtype, **params)
@@ -110,6 +119,7 @@ def _measure(args, device) -> dict:
             reps += 1
         out["objective_mcorners_per_s"] = 8 * mesh.n_hexes * reps / (time.perf_counter() - t0) / 1e6
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out["peak_rss_bytes_per_hex"] = out["peak_rss_mb"] * 2**20 / mesh.n_hexes
     return out
 
 
@@ -119,7 +129,8 @@ def _write(args, rows) -> None:
     tmp = args.out + ".tmp"
     with open(tmp, "w") as f:
         json.dump(dict(benchmark="scaling", amplitude=args.amplitude, seed=args.seed, dtype=args.dtype,
-                       full_upto=args.full_upto, cpu_count=os.cpu_count(), rows=rows), f, indent=1)
+                       full_upto=args.full_upto, devices=args.devices, cpu_count=os.cpu_count(), rows=rows), f,
+                  indent=1)
     os.replace(tmp, args.out)
 
 
@@ -139,11 +150,15 @@ def main(argv=None):
     ap.add_argument("--out", default="results/benchmark.json")
     ap.add_argument("--hugepages", choices=["on", "off"], default="on",
                     help="run the children with GLIBC_TUNABLES=glibc.malloc.hugetlb=1 where it applies (jaxci.runtime)")
+    ap.add_argument("--devices", type=int, nargs="+", default=None, metavar="N",
+                    help="device counts to run each (size, method) on, sharded (forced CPU devices on a CPU); "
+                         "default: one device, unsharded")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--method", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
+        args.devices = args.devices[0] if args.devices else None
         from jaxci.errors import JaxciError
 
         try:
@@ -155,42 +170,46 @@ def main(argv=None):
     from jaxci.runtime import hugepage_environment
 
     rows = []
-    head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'cold s':>8} {'warm s':>8} {'it':>5} {'final k/3':>10} "
-            f"{'t(1.01) s':>10} {'t(1.0001) s':>12} {'peak MB':>8} {'Mcorner/s':>10}")
+    head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'dev':>4} {'cold s':>8} {'warm s':>8} {'it':>5} "
+            f"{'final k/3':>10} {'t(1.01) s':>10} {'t(1.0001) s':>12} {'peak MB':>8} {'Mcorner/s':>10}")
     print(head)
-    for n in args.sizes:
-        for method in args.methods:
-            cmd = [sys.executable, __file__, "--child", "--size", str(n), "--method", method, "--amplitude",
-                   str(args.amplitude), "--seed", str(args.seed), "--dtype", args.dtype, "--device", args.device,
-                   "--params", args.params, "--full-upto", str(args.full_upto)]
-            try:
-                env = (hugepage_environment() if args.hugepages == "on" else None) or {**os.environ}
-                if args.hugepages == "off":  # also drop the tunable if this process was started with it
-                    kept = [t for t in env.get("GLIBC_TUNABLES", "").split(":") if t and "malloc.hugetlb" not in t]
-                    env["GLIBC_TUNABLES"] = ":".join(kept)
-                p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
-                line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
-                row = json.loads(line[-1][7:]) if line else dict(size=n, method=method, error=p.stderr[-2000:])
-            except subprocess.TimeoutExpired:
-                row = dict(size=n, method=method, error=f"timed out after {args.timeout} s")
-            rows.append(row)
-            _write(args, rows)  # after every row: a long run interrupted later keeps what it measured
-            if "error" in row:
-                print(f"{n:>5} {'':>8} {method:>14}  FAILED: {row['error'].strip().splitlines()[-1][:80]}",
-                      flush=True)
-                continue
+    for n, method, devices in [(n, m, d) for n in args.sizes for m in args.methods for d in args.devices or [None]]:
+        cmd = [sys.executable, __file__, "--child", "--size", str(n), "--method", method, "--amplitude",
+               str(args.amplitude), "--seed", str(args.seed), "--dtype", args.dtype, "--device", args.device,
+               "--params", args.params, "--full-upto", str(args.full_upto)]
+        cmd += ["--devices", str(devices)] if devices else []
+        try:
+            env = (hugepage_environment() if args.hugepages == "on" else None) or {**os.environ}
+            if args.hugepages == "off":  # also drop the tunable if this process was started with it
+                kept = [t for t in env.get("GLIBC_TUNABLES", "").split(":") if t and "malloc.hugetlb" not in t]
+                env["GLIBC_TUNABLES"] = ":".join(kept)
+            if devices:  # read when JAX starts in the child: a CPU gets this many devices
+                env["XLA_FLAGS"] = " ".join(filter(None, [env.get("XLA_FLAGS"), "--xla_force_host_platform_"
+                                                           f"device_count={devices}"]))
+            p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
+            line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
+            row = json.loads(line[-1][7:]) if line else dict(size=n, method=method, devices=devices,
+                                                             error=p.stderr[-2000:])
+        except subprocess.TimeoutExpired:
+            row = dict(size=n, method=method, devices=devices, error=f"timed out after {args.timeout} s")
+        rows.append(row)
+        _write(args, rows)  # after every row: a long run interrupted later keeps what it measured
+        if "error" in row:
+            last = row["error"].strip().splitlines()[-1][:80]
+            print(f"{n:>5} {'':>8} {method:>14} {devices or '-':>4}  FAILED: {last}", flush=True)
+            continue
 
-            def t(key, row=row):
-                v = row.get(key)
-                if not v:
-                    return "-"
-                return f"({v['iterations']} it)" if v["seconds"] is None else f"{v['seconds']:.2f}"
+        def t(key, row=row):
+            v = row.get(key)
+            if not v:
+                return "-"
+            return f"({v['iterations']} it)" if v["seconds"] is None else f"{v['seconds']:.2f}"
 
-            warm = "-" if row["warm_s"] is None else f"{row['warm_s']:.2f}"
-            print(f"{n:>5} {row['hexes']:>8} {method:>14} {row['cold_s']:>8.2f} {warm:>8} "
-                  f"{row['iterations']:>5} {row['after_max_condition']:>10.6f} {t('to_1.01'):>10} "
-                  f"{t('to_1.0001'):>12} {row['peak_rss_mb']:>8.0f} "
-                  f"{row['objective_mcorners_per_s']:>10.0f}", flush=True)
+        warm = "-" if row["warm_s"] is None else f"{row['warm_s']:.2f}"
+        print(f"{n:>5} {row['hexes']:>8} {method:>14} {devices or '-':>4} {row['cold_s']:>8.2f} {warm:>8} "
+              f"{row['iterations']:>5} {row['after_max_condition']:>10.6f} {t('to_1.01'):>10} "
+              f"{t('to_1.0001'):>12} {row['peak_rss_mb']:>8.0f} "
+              f"{row['objective_mcorners_per_s']:>10.0f}", flush=True)
     print(f"wrote {args.out}")
 
 

@@ -33,6 +33,16 @@ def test_benchmark_measures_and_writes_json(tmp_path):
     assert "wrote" in stdout
 
 
+@pytest.mark.slow
+def test_benchmark_runs_each_device_count_sharded(tmp_path):
+    """``--devices 2``: the child gets 2 forced CPU devices and runs sharded; the row says so, with its peak."""
+    _, data = _bench(tmp_path, "--devices", "2", "--full-upto", "2")  # one cold run per row
+    (row,) = data["rows"]
+    assert data["devices"] == [2] and row["devices"] == 2 and row["params"] == {"devices": 2}
+    assert row["after_max_condition"] <= 1.0001 and row["inverted_after"] == 0
+    assert row["peak_rss_mb"] > 0 and row["peak_rss_bytes_per_hex"] == pytest.approx(row["peak_rss_mb"] * 2**20 / 27)
+
+
 def test_benchmark_without_the_device_asked_for_says_so(tmp_path):
     import jax
 
