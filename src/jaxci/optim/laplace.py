@@ -201,8 +201,9 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     - `extra`: keyword only; the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`, default none), whose
       corners `cs` must hold too: F in the history is then over every corner.
     - `devices`: keyword only; None (one device) or a `jax.sharding.Mesh` (hexahedral meshes): padded as for
-      ``p.buckets``, the elements (F and max kappa/3 of the history) sharded over it, the node data and stars
-      replicated (`jaxci.optim.sharding.place_problem`).
+      ``p.buckets``, the elements (F and max kappa/3 of the history) and the node slots of every colour (the
+      sweeps' work) sharded over it, the coordinates and constraints replicated
+      (`jaxci.optim.sharding.place_problem`).
 
     **Returns:** ``(points, sweeps, history, params)``: coordinates ``(n, 3)``, the number of sweeps, numpy
     arrays of length ``sweeps + 1`` (entry 0 = input): ``objective`` (F; ``inf`` once an element is inverted),
@@ -217,8 +218,8 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
         if devices is not None:
             from .sharding import place_problem
 
-            conn, weight, (points, cs, nbr, nmask, cons, n_col) = place_problem(
-                conn, weight, (points, cs, nbr, nmask, cons, n_col), devices)
+            conn, weight, (points, cons, n_col), (cs, nbr, nmask) = place_problem(
+                conn, weight, (points, cons, n_col), devices, (cs, nbr, nmask))
         x, s, hf, hk, hm = _laplace_run(points, conn, cs, nbr, nmask, cons, bool(smart), p, extra, weight, n_col)
         x = to_device(np.asarray(x)[:n])  # sliced on the host: no compilation
     else:

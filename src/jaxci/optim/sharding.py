@@ -130,18 +130,29 @@ def replicate(tree, mesh: Mesh):
     return jax.device_put(tree, NamedSharding(mesh, P()))
 
 
-def place_problem(conn, weight, replicated, mesh: Mesh):
-    """The arguments of a compiled loop placed on `mesh`: ``(conn, weight, replicated)``.
+def place_problem(conn, weight, replicated, mesh: Mesh, slots=None):
+    """The arguments of a compiled loop placed on `mesh`: ``(conn, weight, replicated)``, and `slots` placed
+    too if given.
 
     **Arguments:** `conn` ``(8, N)`` transposed connectivity and `weight` ``(N,)`` element weights, N a multiple
     of the device count (`jaxci.optim._buckets.bucket` with ``multiple``): sharded along N; `replicated`: a
-    pytree of everything else (coordinates, constraints, stars ...): replicated.
+    pytree of everything else (coordinates, constraints ...): replicated; `slots`: a pytree of arrays
+    ``(n_colours, M, ...)`` (the colour classes' node slots and stars, `jaxci.optim._moves.ColouredStars`, and
+    the edge neighbours): sharded along M where M is a multiple of the device count (the ladder's sizes are
+    multiples of 4), else replicated. Measured (5 smart-Laplace sweeps at 30^3 on 4 forced CPU
+    devices, 2 cores): slots replicated 2.4-2.8 s (every device repeats every sweep), sharded 1.06 s; one
+    device 1.11 s.
     """
     n_dev = mesh.devices.size
     if conn.shape[1] % n_dev:
         raise ValueError(f"{conn.shape[1]} elements do not split over {n_dev} devices")
-    return (jax.device_put(conn, NamedSharding(mesh, P(None, AXIS))),
-            jax.device_put(weight, NamedSharding(mesh, P(AXIS))), replicate(replicated, mesh))
+    placed = (jax.device_put(conn, NamedSharding(mesh, P(None, AXIS))),
+              jax.device_put(weight, NamedSharding(mesh, P(AXIS))), replicate(replicated, mesh))
+    if slots is None:
+        return placed
+    m = {a.shape[1] for a in jax.tree.leaves(slots)}
+    split = len(m) == 1 and next(iter(m)) % n_dev == 0
+    return (*placed, jax.device_put(slots, NamedSharding(mesh, P(None, AXIS) if split else P())))
 
 
 def shard_elements(points, hexes, mesh: Mesh | None = None):
