@@ -48,10 +48,12 @@ SCRIPT = textwrap.dedent(
         COUNTS.clear()
         # boundary fixed: a smaller program to compile (no projection), so that the test takes ~20 s
         r = smooth(m, "lbfgs", devices=dev, dtype="float64", presmooth=2, fix_boundary=True)
-        runs[dev] = (r, loops(COUNTS))
-    (r1, c1), (r4, c4) = runs[1], runs[4]
-    # the sharded run compiles the sweeps and the solver loop once each, as the single-device run does
+        runs[dev] = (r, loops(COUNTS), sum(COUNTS.values()))
+    (r1, c1, _), (r4, c4, all4) = runs[1], runs[4]
+    # the sharded run compiles the sweeps and the solver loop once each, as the single-device run does, and
+    # nothing else (its arrays are placed on the devices from the host: no resharding programs)
     assert c4 == {"jit(_laplace_run)": 1, "jit(solve_loop)": 1} == c1, (c1, c4)
+    assert all4 == 2, all4
     assert r4.params["devices"] == 4 and r4.params["backend"] == "jax" and r4.history["presmooth"] == 2
     assert any("sharded over 4 cpu devices" in n and "host path" in n for n in r4.notes), r4.notes
     # same mesh to float tolerance, same validity
