@@ -117,3 +117,57 @@ def test_bad_devices_are_refused_before_any_work(devices, message):
 def test_methods_that_cannot_run_sharded_are_refused(method, params, message):
     with pytest.raises(ConfigError, match=message):
         smooth(perturb_box(2, 2, 2, amplitude=0.1, seed=0), method, devices=1, **params)
+
+
+PROCESS = textwrap.dedent(
+    """
+    import sys
+    import jax
+    from jaxci.optim.sharding import init_distributed
+    port, pid, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+    init_distributed(f"localhost:{port}", 2, pid, initialization_timeout=120)
+    assert jax.process_count() == 2 and len(jax.devices()) == 2 and len(jax.local_devices()) == 1
+    import numpy as np
+    from jaxci.generate import perturb_box
+    from jaxci.smooth import smooth
+    m = perturb_box(6, 5, 4, amplitude=0.3, seed=1)
+    r = smooth(m, "lbfgs", devices="all", dtype="float64", fix_boundary=True)  # one element half per process
+    assert r.params["devices"] == 2 and r.after.inverted_corners == 0
+    np.save(f"{out}/sharded{pid}.npy", r.mesh.points)
+    if pid == 0:  # the reference: this process's own device alone
+        np.save(f"{out}/single.npy", smooth(m, "lbfgs", devices=jax.local_devices(), dtype="float64",
+                                            fix_boundary=True).mesh.points)
+    print("PROCESS-OK")
+    """
+)
+
+
+@pytest.mark.slow
+def test_two_processes_on_localhost_give_the_single_device_mesh(tmp_path):
+    """The multi-host launch (`jaxci.optim.sharding.init_distributed`, one process per host, a coordinator
+    address) with two processes on this host, one CPU device each: every process gets the single-device mesh."""
+    import socket
+
+    import numpy as np
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = str(s.getsockname()[1])
+    src = os.path.dirname(os.path.dirname(jaxci.__file__))
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="",
+               PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+    procs = [subprocess.Popen([sys.executable, "-c", PROCESS, port, str(i), str(tmp_path)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = []
+    try:
+        for p in procs:
+            outs.append(p.communicate(timeout=300))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for p, (out, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0 and "PROCESS-OK" in out, err[-3000:]
+    single = np.load(tmp_path / "single.npy")
+    for i in range(2):
+        assert np.allclose(np.load(tmp_path / f"sharded{i}.npy"), single, rtol=0, atol=1e-9)

@@ -42,9 +42,19 @@ from ..metrics.hexahedron import (
 AXIS = "d"
 
 
-def init_distributed(**kwargs) -> None:
-    """Join a multi-host JAX job (`jax.distributed.initialize(**kwargs)`); call once per process, first."""
-    jax.distributed.initialize(**kwargs)
+def init_distributed(coordinator_address: str | None = None, num_processes: int | None = None,
+                     process_id: int | None = None, **kwargs) -> None:
+    """Join a multi-process JAX job; call once per process, before anything else uses JAX.
+
+    `jax.distributed.initialize` with these arguments (None: read from the cluster environment, e.g. SLURM or
+    Open MPI; `kwargs` go through, e.g. ``initialization_timeout``). On CPUs the processes' collectives go
+    through gloo (``jax_cpu_collectives_implementation``, JAX's default in 0.10). Then `jax.devices()` lists
+    every process's devices, and ``jaxci.smooth(mesh, ..., devices="all")``, called by every process with the
+    same mesh, runs one program over all of them; each process gets the whole result (tested with two
+    processes on one host: the same mesh as on one device).
+    """
+    jax.distributed.initialize(coordinator_address=coordinator_address, num_processes=num_processes,
+                               process_id=process_id, **kwargs)
 
 
 def device_mesh(devices=None) -> Mesh:
