@@ -49,6 +49,7 @@ _LAZY = {
     "project": "geometry.projection",
     "project_np": "geometry.projection",
     "CIParams": "optim.ci",
+    "init_distributed": "optim.sharding",
 }
 
 __all__ = [
