@@ -16,8 +16,10 @@ id from the cluster environment or its arguments); then `jax.devices()` spans al
 turns the request into a `Mesh`; `sharded_params` checks the method and sends L-BFGS to its compiled loop
 (never the numpy host path, which runs on one CPU); `jaxci.optim.gradient.minimise` and the smart-Laplace
 presmoothing (`jaxci.optim.laplace.laplace`) pad the elements to a multiple of the device count and place their
-arguments with `place_problem`: the element arrays sharded, everything indexed by node replicated. The solver's
-loop (and the sweeps) then compile once, as one SPMD program over every device.
+arguments with `place_problem`: the element arrays (and the sweeps' node slots of every colour) sharded, the
+rest (coordinates, constraints, the solver's vectors) replicated. The solver's loop and the sweeps then compile
+once each, as one SPMD program over every device. docs/sharding.md has the measurements and the multi-host
+launch.
 """
 
 from __future__ import annotations
@@ -129,8 +131,9 @@ def sharded_params(method: str, params: dict, mesh: Mesh) -> tuple[dict, str]:
         params["backend"] = "jax"
     devs = mesh.devices.ravel()
     host = ("; the numpy host path for small meshes is not used" if method in ("auto", "lbfgs") else "")
-    where = (f"sharded over {len(devs)} {devs[0].platform} devices: elements split evenly (padded with weight-0 "
-             f"copies), node data replicated" if len(devs) > 1 else f"on 1 {devs[0].platform} device")
+    where = (f"sharded over {len(devs)} {devs[0].platform} devices: elements (and the smart Laplacian's node "
+             f"slots) split evenly (padded with weight-0 copies), node data replicated" if len(devs) > 1
+             else f"on 1 {devs[0].platform} device")
     note = f"{where}; compiled JAX path{host}"
     return params, note
 
