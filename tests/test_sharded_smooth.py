@@ -171,3 +171,12 @@ def test_two_processes_on_localhost_give_the_single_device_mesh(tmp_path):
     single = np.load(tmp_path / "single.npy")
     for i in range(2):
         assert np.allclose(np.load(tmp_path / f"sharded{i}.npy"), single, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["auto", "lbfgs", "laplace", "smart-laplace"])
+def test_methods_with_a_host_path_run_compiled_when_sharded(method):
+    """Without devices these run small meshes on the host (numpy and C); with devices, never (the note says so)."""
+    from jaxci.optim.sharding import resolve_devices, sharded_params
+
+    params, note = sharded_params(method, {"max_sweeps": 3} if "laplace" in method else {}, resolve_devices(1))
+    assert params["backend"] == "jax" and "host path" in note and "compiled JAX path" in note

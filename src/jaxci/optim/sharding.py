@@ -69,6 +69,10 @@ def device_mesh(devices=None) -> Mesh:
 #: (also the presmoothing of the first three).
 SHARDED_METHODS = ("auto", "lbfgs", "bfgs", "cg", "laplace", "smart-laplace")
 
+#: The sharded methods that small meshes run on the host without ``devices`` (``backend="auto"``): with it they
+#: get ``backend="jax"``.
+HOST_METHODS = ("auto", "lbfgs", "laplace", "smart-laplace")
+
 #: How to get several devices on one CPU (said when too few exist).
 FORCE_HINT = ("on a CPU, XLA_FLAGS=--xla_force_host_platform_device_count=N set before JAX starts makes N "
               "devices of its cores")
@@ -116,21 +120,22 @@ def resolve_devices(devices) -> Mesh:
 def sharded_params(method: str, params: dict, mesh: Mesh) -> tuple[dict, str]:
     """`params` for a sharded run of `method` on `mesh` and the note that says how it runs.
 
-    L-BFGS (and the default pipeline) get ``backend="jax"``: the compiled loop, never the numpy host path (one
-    CPU, no devices), so that small and large meshes run the same sharded program. `ConfigError` for a method
+    L-BFGS, the Laplacians and the default pipeline (`HOST_METHODS`) get ``backend="jax"``: the compiled loop,
+    never the numpy host path (one CPU, no devices), so that small and large meshes run the same sharded
+    program. `ConfigError` for a method
     that does not run sharded and for ``backend="numpy"`` (`jaxci.smooth` refuses mixed meshes: the element
     weights that padding needs are the hexahedra's).
     """
     if method not in SHARDED_METHODS:
         raise ConfigError(f"devices is for the methods {', '.join(SHARDED_METHODS)}, not {method!r}")
     params = dict(params)
-    if method in ("auto", "lbfgs"):
+    if method in HOST_METHODS:
         if params.get("backend", "auto") == "numpy":
             raise ConfigError("backend='numpy' runs on the host, one CPU: it cannot be sharded over devices; "
                               "leave devices out or use backend='jax'")
         params["backend"] = "jax"
     devs = mesh.devices.ravel()
-    host = ("; the numpy host path for small meshes is not used" if method in ("auto", "lbfgs") else "")
+    host = "; the numpy host path for small meshes is not used" if method in HOST_METHODS else ""
     where = (f"sharded over {len(devs)} {devs[0].platform} devices: elements (and the smart Laplacian's node "
              f"slots) split evenly (padded with weight-0 copies), node data replicated" if len(devs) > 1
              else f"on 1 {devs[0].platform} device")
