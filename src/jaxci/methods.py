@@ -1,0 +1,195 @@
+"""The problem every smoothing method works on (`Problem`, `build_problem`) and the dispatch to a method
+(`run_method`, `method_params`), where it runs (`host_run`: numpy and C, or compiled), and the default pipeline
+(`auto_pipeline`). `jaxci.smooth` is the one interface over them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import numpy as np
+
+from ._lazy import jax, jnp
+from .cells import volume_cells
+from .errors import ConfigError
+from .geometry.boundary import BoundaryInfo, classify_boundary
+from .geometry.projection import Constraints, build_constraints
+from .geometry.topology import colour_nodes, node_adjacency
+from .mesh import HexMesh
+from .metrics import objective as mixed
+from .metrics.hexahedron import transposed
+from .optim.host import HOST_MAX, runs_on_host
+
+#: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
+#: (`auto_pipeline`).
+METHODS = ("auto", "ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton", "laplace", "smart-laplace")
+
+#: Hexahedra from which the default pipeline runs smart-Laplace sweeps before L-BFGS: where L-BFGS runs compiled
+#: in float32 (above `jaxci.optim.host.HOST_MAX`). Below it L-BFGS runs in numpy float64, which needs no sweeps
+#: (measured on a perturbed 21^3 box with a corner of kappa/3 7.7e5: float32 L-BFGS alone stalled at 5.5e5
+#: after 40 steps, float64 reached 1.0000 in 188 steps; `auto_pipeline`).
+AUTO_PRESMOOTH_FROM = HOST_MAX + 1
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """Everything a method needs, built once: constraints, transposed connectivity, dtype; for a mixed mesh the
+    non-hexahedral cells (`extra`: `jaxci.metrics.objective.ExtraCells`; `table`:
+    `jaxci.metrics.objective.CornerTable`), None for a hexahedral one; the colouring (`colour`) on first use;
+    `devices`: None (one device) or the `jax.sharding.Mesh` the compiled methods shard the elements over."""
+
+    mesh: HexMesh
+    info: BoundaryInfo
+    cons: Constraints
+    conn: jnp.ndarray
+    x0: jnp.ndarray
+    dtype: type
+    extra: mixed.ExtraCells | None = None
+    table: mixed.CornerTable | None = None
+    devices: object = None
+
+    @functools.cached_property
+    def colour(self) -> np.ndarray:
+        """The colour of every node, int32 ``(n_nodes,)``: no two nodes of one colour share a cell of any type
+        (`jaxci.geometry.topology.colour_nodes`; the methods that move nodes colour by colour, CI and the Laplacians).
+        Computed on first use: L-BFGS needs none."""
+        mesh = self.mesh
+        adjacency = node_adjacency(list(volume_cells(mesh).values()), mesh.n_nodes) if self.extra is not None \
+            else None
+        return np.asarray(colour_nodes(mesh.hexes, mesh.n_nodes, adjacency).colour)
+
+
+def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.0, fix_boundary: bool = False,
+                  fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = (),
+                  device: bool = True, info: BoundaryInfo | None = None, devices=None) -> Problem:
+    """Classify the boundary and build the constraints of `mesh` (call inside the dtype context).
+
+    `device`: the arrays on JAX's default device (default), or in numpy for a method that runs on the host
+    (`host_run`: JAX is not imported). `info`: the `BoundaryInfo` of `mesh` with these arguments if it is at hand
+    (the untangling stage's), else classified. `devices`: `Problem.devices`."""
+    if info is None:
+        info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
+                                 fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
+    cons = build_constraints(mesh, info, dtype=dtype, device=device)
+    extra = table = None
+    if mixed.has_extra(mesh):
+        extra, table = mixed.extra_cells(mesh, device=device), mixed.corner_table(mesh)
+    put = jax.device_put if device else (lambda a: a)
+    conn = transposed(mesh.hexes) if device else np.ascontiguousarray(np.asarray(mesh.hexes).T)
+    return Problem(mesh, info, cons, conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table, devices)
+
+
+def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
+    """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
+    `jaxci.native`): L-BFGS without presmoothing where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed
+    one only on F and with the C kernels), CI (both forms) and the Laplacians where
+    `jaxci.optim.host_local.host_local_applies`; their reports and checks in numpy. JAX is then never imported
+    (0.4-0.5 s of a small mesh's run)."""
+    from . import native
+    from .metrics.elements import objective_on_host
+    from .metrics.report import NUMPY_REPORT_MAX
+
+    extra = mixed.extra_blocks(mesh)
+    if mesh.n_hexes > NUMPY_REPORT_MAX or not objective_on_host(mesh):
+        return False
+    if method in ("ci", "ci-global", "laplace", "smart-laplace"):
+        from .optim.host_local import host_local_applies
+
+        return host_local_applies(params.get("backend", "auto"), mesh.n_hexes, bool(extra))
+    if method != "lbfgs" or int(params.get("presmooth", 0)):
+        return False
+    if extra and (not native.AVAILABLE or params.get("objective", "mean") != "mean"):
+        return False
+    n_cells = mesh.n_hexes + sum(len(c) for c in extra.values())
+    return runs_on_host(params.get("backend", "auto"), n_cells, HOST_MAX)
+
+
+def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
+    """The default pipeline (``method="auto"``): ``(method, params, description)``.
+
+    Chosen by measurement on real and generated meshes (docs/results/README.md, sessions 4 and 5): L-BFGS on F
+    after the untangling stage (when the input has inverted elements); where L-BFGS runs compiled (from
+    `AUTO_PRESMOOTH_FROM` hexahedra on, or ``backend="jax"``), 3 smart-Laplace sweeps first (they fix the worst
+    corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13 after them). Local CI ran to its
+    sweep cap on unstructured meshes. `params` (the user's) win.
+    """
+    params = dict(params)
+    if "presmooth" not in params and not runs_on_host(params.get("backend", "auto"), n_hexes, AUTO_PRESMOOTH_FROM - 1):
+        params["presmooth"] = 3
+    pre = int(params.get("presmooth", 0))
+    desc = "L-BFGS on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")
+    return "lbfgs", params, desc
+
+
+def run_method(problem: Problem, method: str, seed: int, params: dict):
+    """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
+    of the randomised methods (only there: building it compiles a program)."""
+    if isinstance(problem.x0, np.ndarray) and method in ("ci", "ci-global", "laplace", "smart-laplace"):  # host_run
+        from .optim.host_global import global_ci_np
+        from .optim.host_local import laplace_np, local_ci_np
+        from .optim.parametrisation import free_lengths
+
+        p = method_params(method, params)
+        mesh = problem.mesh
+        if method == "ci-global":
+            x, it, hist = global_ci_np(problem.x0, mesh.hexes, problem.cons, free_lengths(mesh, problem.cons), p,
+                                       seed, problem.info.topology.faces)
+            return x, it, hist, dataclasses.asdict(p)
+        args = (problem.x0, mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, p)
+        if method != "ci":
+            return laplace_np(*args, smart=method == "smart-laplace")
+        x, it, hist = local_ci_np(*args, seed)
+        return x, it, hist, dataclasses.asdict(p)
+    if method in ("ci", "ci-global"):
+        key = jax.random.key(seed, impl="rbg")
+        from .optim._moves import coloured_stars
+        from .optim.ci import global_ci, local_ci
+
+        p = method_params(method, params)
+        if method == "ci":
+            cs = coloured_stars(problem.mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces,
+                                problem.table)
+            x, it, hist = local_ci(key, problem.x0, problem.conn, cs, problem.cons, p, problem.extra)
+        else:
+            x, it, hist = global_ci(key, problem.x0, problem.conn, problem.cons, free_scale(problem), p,
+                                    problem.extra)
+        return x, it, hist, dataclasses.asdict(p)
+    if method in ("bfgs", "lbfgs", "cg", "lm", "gauss-newton"):
+        from .optim.gradient import run_gradient
+
+        return run_gradient(problem, method, params)
+    if method in ("laplace", "smart-laplace"):
+        from .optim.laplace import run_laplace
+
+        return run_laplace(problem, method, params)
+    raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+
+
+def free_scale(problem: Problem) -> jnp.ndarray:
+    """Local edge length per free coordinate (the `jaxci.geometry.projection` layout), shape ``(n_free,)``
+    (`jaxci.optim.parametrisation.free_lengths`)."""
+    from .optim.parametrisation import free_lengths
+
+    return jax.device_put(np.asarray(free_lengths(problem.mesh, problem.cons), problem.dtype))
+
+
+def method_params(method: str, params: dict):
+    """The checked parameter dataclass of `method` built from `params` (`ConfigError` naming the method and the
+    parameter for an unknown name or a bad value). A parameter not given takes its METHOD's default: CI's come
+    from `jaxci.optim.ci.CIParams.for_method` (``"ci"`` local CI's, ``"ci-global"`` the paper's global CI's),
+    the one source for `smooth`, ``jaxci smooth`` and YAML configs (`jaxci.experiments.config`)."""
+    from .optim._params import make_params
+
+    if params.get("objective", "mean") != "mean" and method not in ("bfgs", "lbfgs", "cg"):
+        raise ConfigError(f"objective {params['objective']!r} is for the gradient methods bfgs, lbfgs and cg (and "
+                          f"the default pipeline), not {method!r}")
+    if method in ("ci", "ci-global"):
+        from .optim.ci_params import ci_params
+
+        return ci_params(method, params)
+    if method in ("laplace", "smart-laplace"):
+        from .optim.laplace import LaplaceParams as cls
+    else:
+        from .optim.gradient import GradientParams as cls
+    return make_params(cls, params, method)
