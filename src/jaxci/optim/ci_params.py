@@ -13,9 +13,6 @@ from collections.abc import Mapping
 from ..errors import ConfigError
 from . import _params as _p
 
-#: Where local CI runs (`CIParams.backend`).
-BACKENDS = ("auto", "jax", "numpy")
-
 #: Upper bounds of `CIParams` (a typo must not hang a run or exhaust memory): cohort and variations each, their
 #: product (trial positions evaluated at once per node and attempt: batch shapes grow with it), loop bounds
 #: (attempts, sweeps, patience), interval widths (fractions of the local edge length).
@@ -93,7 +90,7 @@ class CIParams:
             ftol=_p.real(L, "ftol", self.ftol, 0),
             patience=_p.integer(L, "patience", self.patience, 1, MAX_LOOP),
             pattern=_p.boolean(L, "pattern", self.pattern),
-            backend=_p.choice(L, "backend", self.backend, BACKENDS),
+            backend=_p.choice(L, "backend", self.backend, _p.BACKENDS),
         )
         if self.min_width > self.init_width:
             raise ConfigError(f"CI parameter min_width must be <= init_width ({self.init_width:g}), "

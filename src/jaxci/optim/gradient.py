@@ -105,8 +105,6 @@ from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
 METHODS = ("bfgs", "lbfgs", "cg", "lm", "gauss-newton")
 #: The least-squares methods (dense Jacobian, small meshes only).
 LEAST_SQUARES = ("lm", "gauss-newton")
-#: Where L-BFGS runs (`GradientParams.backend`).
-BACKENDS = ("auto", "jax", "numpy")
 
 #: What the solvers minimise (`GradientParams.objective`), and the largest p-mean power.
 OBJECTIVES = ("mean", "pmean")
@@ -215,7 +213,7 @@ class GradientParams:
             residual=_p.choice(L, "residual", self.residual, ("excess", "kappa")),
             presmooth=_p.integer(L, "presmooth", self.presmooth, 0, MAX_PRESMOOTH),
             buckets=_p.boolean(L, "buckets", self.buckets),
-            backend=_p.choice(L, "backend", self.backend, BACKENDS),
+            backend=_p.choice(L, "backend", self.backend, _p.BACKENDS),
             objective=_p.choice(L, "objective", self.objective, OBJECTIVES),
             p=_p.real(L, "p", self.p, 1.0, MAX_POWER),
         )

@@ -96,7 +96,7 @@ class LaplaceParams:
             tol=_p.real(L, "tol", self.tol, 0),
             backtrack=_p.integer(L, "backtrack", self.backtrack, 1, 16),
             buckets=_p.boolean(L, "buckets", self.buckets),
-            backend=_p.choice(L, "backend", self.backend, ("auto", "jax", "numpy")),
+            backend=_p.choice(L, "backend", self.backend, _p.BACKENDS),
         )
 
 
