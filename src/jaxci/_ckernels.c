@@ -596,6 +596,71 @@ static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns
  * point among its K candidates (hint[i] := its column): where the orthogonal projection onto its hint's cell
  * falls inside, that unless a candidate whose bounding sphere comes nearer holds a nearer point, else the best
  * of them all. */
+/* One point `xi` (in place) to the nearest point of its candidate cells CA[0..K) (columns of the table T of nc
+ * cells; S their bounding spheres), starting from the remembered column *H (-1: none; updated): the search of
+ * near_project for one node, shared with the local moves (ci_visit). */
+static void project_one(double *xi, const long long *CA, Py_ssize_t K, long long *H, const double *T, Py_ssize_t nc,
+                        const double *S, int kind, double tol, double bump) {
+    double p[3], h, w[3], d1;
+    int inside = 0;
+    if (*H >= 0) {
+        Py_ssize_t j = CA[*H];
+        double best;
+        if (kind == 0) {
+            inside = plane_point(xi, T, nc, j, tol, p, &h, w, &d1);
+            best = inside ? h * h : closest_on_triangle(xi, T, nc, j, tol, bump, p);
+        } else {
+            best = closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
+        }
+        /* another candidate may be nearer (a point inside its cell's prism near a concave part of the
+         * boundary, or one that left the hint's cell): only one whose bounding sphere (S: centre, radius)
+         * comes nearer than `best` can be, and for triangles one whose plane does; without this check the
+         * projection jumped where the point left the prism, and the line search stalled there. The result
+         * is the full search's nearest point, found among a few candidates. */
+        double reach = sqrt(best);
+        for (Py_ssize_t c = 0; c < K; c++) {
+            const double *sc = S + 4 * CA[c];
+            double dx2 = 0.0, q[3], slack = 1e-12 * sc[3], lim = sc[3] + reach + slack;
+            if (c == *H) continue;
+            for (int d = 0; d < 3; d++) dx2 += (xi[d] - sc[d]) * (xi[d] - sc[d]);
+            if (dx2 > lim * lim) continue; /* ties stay: outside its cell, the first of equal ones is taken
+                                              * (as the full search does); inside, the remembered one */
+            if (kind == 0) {
+                Py_ssize_t jc = CA[c];
+                double hp = 0.0;
+                for (int d = 0; d < 3; d++) hp += (xi[d] - T[(TC + d) * nc + jc]) * T[(TN + d) * nc + jc];
+                if (fabs(hp) > reach + slack) continue; /* slack: rounding must not prune a tie at a vertex */
+            }
+            int in;
+            double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[c], tol, bump, q)
+                                     : closest_on_segment(xi, T, nc, CA[c], tol, bump, q, &in);
+            if (score < best || (!inside && score == best && c < *H)) {
+                best = score;
+                reach = sqrt(best);
+                *H = c;
+                for (int d = 0; d < 3; d++) p[d] = q[d];
+            }
+        }
+        inside = 1; /* found */
+    }
+    if (!inside) {
+        double best = INFINITY, q[3];
+        long long pick = 0;
+        for (Py_ssize_t c = 0; c < K; c++) {
+            int in;
+            double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[c], tol, bump, q)
+                                     : closest_on_segment(xi, T, nc, CA[c], tol, bump, q, &in);
+            if (score < best || c == 0) {
+                best = score;
+                pick = c;
+                for (int d = 0; d < 3; d++) p[d] = q[d];
+            }
+        }
+        *H = pick;
+    }
+    for (int d = 0; d < 3; d++) xi[d] = p[d];
+}
+
 static PyObject *near_project(PyObject *self, PyObject *args) {
     PyObject *o_x, *o_nodes, *o_active, *o_hint, *o_cand, *o_tab, *o_sph, *ret = NULL;
     int kind;
@@ -630,64 +695,7 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
     const double *T = B[5].view.buf, *S = B[6].view.buf;
     for (Py_ssize_t k = 0; k < na; k++) {
         Py_ssize_t i = A[k];
-        double *xi = X + 3 * N[i], p[3], h, w[3], d1;
-        int inside = 0;
-        if (H[i] >= 0) {
-            Py_ssize_t j = CA[i * K + H[i]];
-            double best;
-            if (kind == 0) {
-                inside = plane_point(xi, T, nc, j, tol, p, &h, w, &d1);
-                best = inside ? h * h : closest_on_triangle(xi, T, nc, j, tol, bump, p);
-            } else {
-                best = closest_on_segment(xi, T, nc, j, tol, bump, p, &inside);
-            }
-            /* another candidate may be nearer (a point inside its cell's prism near a concave part of the
-             * boundary, or one that left the hint's cell): only one whose bounding sphere (S: centre, radius)
-             * comes nearer than `best` can be, and for triangles one whose plane does; without this check the
-             * projection jumped where the point left the prism, and the line search stalled there. The result
-             * is the full search's nearest point, found among a few candidates. */
-            double reach = sqrt(best);
-            for (Py_ssize_t c = 0; c < K; c++) {
-                const double *sc = S + 4 * CA[i * K + c];
-                double dx2 = 0.0, q[3], slack = 1e-12 * sc[3], lim = sc[3] + reach + slack;
-                if (c == H[i]) continue;
-                for (int d = 0; d < 3; d++) dx2 += (xi[d] - sc[d]) * (xi[d] - sc[d]);
-                if (dx2 > lim * lim) continue; /* ties stay: outside its cell, the first of equal ones is taken
-                                                  * (as the full search does); inside, the remembered one */
-                if (kind == 0) {
-                    Py_ssize_t jc = CA[i * K + c];
-                    double hp = 0.0;
-                    for (int d = 0; d < 3; d++) hp += (xi[d] - T[(TC + d) * nc + jc]) * T[(TN + d) * nc + jc];
-                    if (fabs(hp) > reach + slack) continue; /* slack: rounding must not prune a tie at a vertex */
-                }
-                int in;
-                double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[i * K + c], tol, bump, q)
-                                         : closest_on_segment(xi, T, nc, CA[i * K + c], tol, bump, q, &in);
-                if (score < best || (!inside && score == best && c < H[i])) {
-                    best = score;
-                    reach = sqrt(best);
-                    H[i] = c;
-                    for (int d = 0; d < 3; d++) p[d] = q[d];
-                }
-            }
-            inside = 1; /* found */
-        }
-        if (!inside) {
-            double best = INFINITY, q[3];
-            long long pick = 0;
-            for (Py_ssize_t c = 0; c < K; c++) {
-                int in;
-                double score = kind == 0 ? closest_on_triangle(xi, T, nc, CA[i * K + c], tol, bump, q)
-                                         : closest_on_segment(xi, T, nc, CA[i * K + c], tol, bump, q, &in);
-                if (score < best || c == 0) {
-                    best = score;
-                    pick = c;
-                    for (int d = 0; d < 3; d++) p[d] = q[d];
-                }
-            }
-            H[i] = pick;
-        }
-        for (int d = 0; d < 3; d++) xi[d] = p[d];
+        project_one(X + 3 * N[i], CA + i * K, K, H + i, T, nc, S, kind, tol, bump);
     }
     Py_INCREF(Py_None);
     ret = Py_None;
@@ -757,6 +765,58 @@ done:
  * det <= 0: jaxci.optim._local.local_terms, one pass. Per element, the two columns its corners 1, 3 and 4 hold
  * fixed are set up once for all trials. */
 
+/* What one element of a node's star holds fixed while the node (its local slot 0) moves: the nodes of corner 0's
+ * columns, and for corners 1, 3 and 4 their two fixed columns, the cross product F of those (det = the moving
+ * column . F) and their squared norms. */
+typedef struct {
+    double P1[3], P3[3], P4[3], a1[3], c1[3], F1[3], b3[3], c3[3], F3[3], a4[3], b4[3], F4[3], r1, r3, r4, n1, n3, n4;
+} Elem;
+
+static void elem_setup(const double *X, const long long *e, Elem *E) {
+    const double *P1 = X + 3 * e[1], *P2 = X + 3 * e[2], *P3 = X + 3 * e[3], *P4 = X + 3 * e[4],
+                 *P5 = X + 3 * e[5], *P7 = X + 3 * e[7];
+    for (int d = 0; d < 3; d++) {
+        E->P1[d] = P1[d]; E->P3[d] = P3[d]; E->P4[d] = P4[d];
+        E->a1[d] = P2[d] - P1[d]; E->c1[d] = P5[d] - P1[d];
+        E->b3[d] = P2[d] - P3[d]; E->c3[d] = P7[d] - P3[d];
+        E->a4[d] = P7[d] - P4[d]; E->b4[d] = P5[d] - P4[d];
+    }
+    cross(E->c1, E->a1, E->F1); cross(E->b3, E->c3, E->F3); cross(E->a4, E->b4, E->F4);
+    E->r1 = dot3(E->a1, E->a1) + dot3(E->c1, E->c1);
+    E->r3 = dot3(E->b3, E->b3) + dot3(E->c3, E->c3);
+    E->r4 = dot3(E->a4, E->a4) + dot3(E->b4, E->b4);
+    E->n1 = dot3(E->F1, E->F1); E->n3 = dot3(E->F3, E->F3); E->n4 = dot3(E->F4, E->F4);
+}
+
+/* 9 x the sum of (kappa/3)^2 over the four corners of the element that move with its slot 0 at y (inf if one
+ * has det <= 0). */
+static inline double elem_sum(const Elem *E, const double *y) {
+    double a[3], b[3], c[3], u[3], v[3], w[3], total = 0.0, det, fro2, adj2;
+    /* corner 0: columns P1 - y, P3 - y, P4 - y */
+    for (int d = 0; d < 3; d++) { a[d] = E->P1[d] - y[d]; b[d] = E->P3[d] - y[d]; c[d] = E->P4[d] - y[d]; }
+    cross(b, c, u); cross(c, a, v); cross(a, b, w);
+    det = dot3(a, u);
+    fro2 = dot3(a, a) + dot3(b, b) + dot3(c, c);
+    adj2 = dot3(u, u) + dot3(v, v) + dot3(w, w);
+    total += det > 0.0 ? fro2 * adj2 / (det * det) : INFINITY;
+    /* corner 1: (P2 - P1, y - P1, P5 - P1) */
+    for (int d = 0; d < 3; d++) b[d] = y[d] - E->P1[d];
+    cross(b, E->c1, u); cross(E->a1, b, w);
+    det = dot3(b, E->F1);
+    total += det > 0.0 ? (E->r1 + dot3(b, b)) * (dot3(u, u) + E->n1 + dot3(w, w)) / (det * det) : INFINITY;
+    /* corner 3: (y - P3, P2 - P3, P7 - P3) */
+    for (int d = 0; d < 3; d++) a[d] = y[d] - E->P3[d];
+    cross(E->c3, a, v); cross(a, E->b3, w);
+    det = dot3(a, E->F3);
+    total += det > 0.0 ? (E->r3 + dot3(a, a)) * (E->n3 + dot3(v, v) + dot3(w, w)) / (det * det) : INFINITY;
+    /* corner 4: (P7 - P4, P5 - P4, y - P4) */
+    for (int d = 0; d < 3; d++) c[d] = y[d] - E->P4[d];
+    cross(E->b4, c, u); cross(c, E->a4, v);
+    det = dot3(c, E->F4);
+    total += det > 0.0 ? (E->r4 + dot3(c, c)) * (dot3(u, u) + dot3(v, v) + E->n4) / (det * det) : INFINITY;
+    return total;
+}
+
 static PyObject *local_sums(PyObject *self, PyObject *args) {
     PyObject *o_pts, *o_star, *o_cnt, *o_tr, *o_out, *ret = NULL;
     if (!PyArg_ParseTuple(args, "OOOOO", &o_pts, &o_star, &o_cnt, &o_tr, &o_out)) return NULL;
@@ -787,53 +847,274 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
         const double *Y = TR + 3 * m * S;
         for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
         for (Py_ssize_t k = 0; k < CNT[m]; k++) {
-            /* element k's other nodes (slot 0 is the moving node) and what its corners 1, 3, 4 hold fixed: two
-             * columns each, their cross product F (det = the moving column . F) and squared norms */
-            const long long *e = ST + (m * K + k) * 8;
-            const double *P1 = X + 3 * e[1], *P2 = X + 3 * e[2], *P3 = X + 3 * e[3], *P4 = X + 3 * e[4],
-                         *P5 = X + 3 * e[5], *P7 = X + 3 * e[7];
-            double a1[3], c1[3], b3[3], c3[3], a4[3], b4[3], F1[3], F3[3], F4[3];
-            for (int d = 0; d < 3; d++) {
-                a1[d] = P2[d] - P1[d]; c1[d] = P5[d] - P1[d];
-                b3[d] = P2[d] - P3[d]; c3[d] = P7[d] - P3[d];
-                a4[d] = P7[d] - P4[d]; b4[d] = P5[d] - P4[d];
-            }
-            cross(c1, a1, F1); cross(b3, c3, F3); cross(a4, b4, F4);
-            double r1 = dot3(a1, a1) + dot3(c1, c1), r3 = dot3(b3, b3) + dot3(c3, c3), r4 = dot3(a4, a4) + dot3(b4, b4);
-            double n1 = dot3(F1, F1), n3 = dot3(F3, F3), n4 = dot3(F4, F4);
-            for (Py_ssize_t s = 0; s < S; s++) {
-                const double *y = Y + 3 * s;
-                double a[3], b[3], c[3], u[3], v[3], w[3], total = 0.0, det, fro2, adj2;
-                /* corner 0: columns P1 - y, P3 - y, P4 - y */
-                for (int d = 0; d < 3; d++) { a[d] = P1[d] - y[d]; b[d] = P3[d] - y[d]; c[d] = P4[d] - y[d]; }
-                cross(b, c, u); cross(c, a, v); cross(a, b, w);
-                det = dot3(a, u);
-                fro2 = dot3(a, a) + dot3(b, b) + dot3(c, c);
-                adj2 = dot3(u, u) + dot3(v, v) + dot3(w, w);
-                total += det > 0.0 ? fro2 * adj2 / (det * det) : INFINITY;
-                /* corner 1: (P2 - P1, y - P1, P5 - P1) */
-                for (int d = 0; d < 3; d++) b[d] = y[d] - P1[d];
-                cross(b, c1, u); cross(a1, b, w);
-                det = dot3(b, F1);
-                total += det > 0.0 ? (r1 + dot3(b, b)) * (dot3(u, u) + n1 + dot3(w, w)) / (det * det) : INFINITY;
-                /* corner 3: (y - P3, P2 - P3, P7 - P3) */
-                for (int d = 0; d < 3; d++) a[d] = y[d] - P3[d];
-                cross(c3, a, v); cross(a, b3, w);
-                det = dot3(a, F3);
-                total += det > 0.0 ? (r3 + dot3(a, a)) * (n3 + dot3(v, v) + dot3(w, w)) / (det * det) : INFINITY;
-                /* corner 4: (P7 - P4, P5 - P4, y - P4) */
-                for (int d = 0; d < 3; d++) c[d] = y[d] - P4[d];
-                cross(b4, c, u); cross(c, a4, v);
-                det = dot3(c, F4);
-                total += det > 0.0 ? (r4 + dot3(c, c)) * (dot3(u, u) + dot3(v, v) + n4) / (det * det) : INFINITY;
-                o[s] += total * (1.0 / 9.0);
-            }
+            Elem E;
+            elem_setup(X, ST + (m * K + k) * 8, &E);
+            for (Py_ssize_t s = 0; s < S; s++) o[s] += elem_sum(&E, Y + 3 * s) * (1.0 / 9.0);
         }
     }
     Py_INCREF(Py_None);
     ret = Py_None;
 done:
     release(B, 5);
+    return ret;
+}
+
+/* ------------------------------------------------------------------------------------------ local CI
+ * ci_visit: one cohort run of local CI for every node of one colour (jaxci.optim.host_local, the algorithm of
+ * jaxci.optim.ci._local_ci_colour), in place on x (n,3) and width (n,); returns the number of nodes moved.
+ * Nodes of one colour share no element, so each node's cohort runs alone, against the current x. Random numbers:
+ * xoshiro256** seeded by splitmix64 from `seed`. */
+typedef struct {
+    unsigned long long s[4];
+} Rng;
+
+static unsigned long long splitmix(unsigned long long *x) {
+    unsigned long long z = (*x += 0x9e3779b97f4a7c15ULL);
+    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
+    z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
+    return z ^ (z >> 31);
+}
+
+static inline unsigned long long rotl(unsigned long long x, int k) { return (x << k) | (x >> (64 - k)); }
+
+static inline double uniform(Rng *r) { /* [0, 1) */
+    unsigned long long *s = r->s, out = rotl(s[1] * 5, 7) * 9, t = s[1] << 17;
+    s[2] ^= s[0]; s[3] ^= s[1]; s[1] ^= s[2]; s[0] ^= s[3]; s[2] ^= t; s[3] = rotl(s[3], 45);
+    return (double)(out >> 11) * 0x1.0p-53;
+}
+
+/* The cell tables of one boundary kind: candidate columns (rows x K), table (nc columns), spheres. */
+typedef struct {
+    const long long *cand;
+    Py_ssize_t rows, K, nc;
+    const double *table, *spheres;
+    long long *hint;
+} Cells;
+
+/* One ci_visit call's arguments, shared by its threads (each over its own range of node slots). */
+typedef struct {
+    double *X, *WIDTH;
+    const double *BASIS, *FREE, *PLANE;
+    const long long *NODES, *ST, *CNT, *ROW, *KIND;
+    Cells *cells;
+    Py_ssize_t K, lo, hi;
+    int C, t, T, n_roulette;
+    double reduction, delta, init_width, min_width, tol, bump;
+    unsigned long long seed;
+    long long moved;
+    int failed;
+} CiJob;
+
+static void *ci_worker(void *arg) {
+    CiJob *J = arg;
+    double *X = J->X, *WIDTH = J->WIDTH;
+    const double *BASIS = J->BASIS, *FREE = J->FREE, *PLANE = J->PLANE;
+    const long long *ST = J->ST, *CNT = J->CNT, *ROW = J->ROW, *KIND = J->KIND, *NODES = J->NODES;
+    Cells *cells = J->cells;
+    Py_ssize_t K = J->K;
+    int C = J->C, t = J->t, T = J->T, n_roulette = J->n_roulette;
+    double reduction = J->reduction, delta = J->delta, init_width = J->init_width, min_width = J->min_width,
+           tol = J->tol, bump = J->bump;
+    Elem *E = malloc(sizeof(Elem) * (K ? K : 1));
+    double *work = malloc(sizeof(double) * (size_t)C * 10);
+    long long *iwork = malloc(sizeof(long long) * (size_t)C * 3);
+    if (!E || !work || !iwork) {
+        J->failed = 1;
+        free(E); free(work); free(iwork);
+        return NULL;
+    }
+    double *cand = work, *centre = work + 3 * C, *fc = work + 6 * C, *cum = work + 7 * C;
+    long long *ch = iwork, *chint = iwork + C, *follow = iwork + 2 * C;
+    for (Py_ssize_t m = J->lo; m < J->hi; m++) {
+        Rng rng; /* each node its own stream: the same result on any number of threads */
+        unsigned long long sm = J->seed ^ (0x9e3779b97f4a7c15ULL * (unsigned long long)(m + 1));
+        for (int i = 0; i < 4; i++) rng.s[i] = splitmix(&sm);
+        double *xv = X + 3 * NODES[m], x0[3] = {xv[0], xv[1], xv[2]}, w0 = WIDTH[NODES[m]], h = 0.0;
+        const double *basis = BASIS + 9 * m, *fr = FREE + 3 * m, *pl = PLANE + 7 * m;
+        long long kd = KIND[m];
+        Cells *cl = kd ? &cells[kd - 1] : NULL;
+        const long long *crow = cl ? cl->cand + ROW[m] * cl->K : NULL;
+        Py_ssize_t cnt = CNT[m];
+        for (Py_ssize_t k = 0; k < cnt; k++) {
+            elem_setup(X, ST + (m * K + k) * 8, &E[k]);
+            for (int j = 0; j < 3; j++) {
+                const double *P = j == 0 ? E[k].P1 : (j == 1 ? E[k].P3 : E[k].P4);
+                double d2 = 0.0;
+                for (int d = 0; d < 3; d++) d2 += (P[d] - x0[d]) * (P[d] - x0[d]);
+                h += sqrt(d2);
+            }
+        }
+        h /= 3.0 * (double)(cnt > 0 ? cnt : 1);
+        double ncorner = (double)(4 * cnt > 0 ? 4 * cnt : 1), f0 = 0.0;
+        for (Py_ssize_t k = 0; k < cnt; k++) f0 += elem_sum(&E[k], x0) * (1.0 / 9.0);
+        f0 = f0 / ncorner - 1.0;
+        long long hint0 = cl ? cl->hint[ROW[m]] : -1;
+        for (int c = 0; c < C; c++) {
+            for (int d = 0; d < 3; d++) cand[3 * c + d] = x0[d];
+            fc[c] = f0;
+            ch[c] = hint0;
+        }
+        for (int a = 0; a < T; a++) {
+            if (a < n_roulette) { /* roulette on 1 / (g + delta): an inverted candidate (inf) has probability 0 */
+                double total = 0.0;
+                for (int c = 0; c < C; c++) cum[c] = (total += 1.0 / (fc[c] + delta));
+                for (int c = 0; c < C; c++) {
+                    double draw = uniform(&rng) * total;
+                    int j = 0;
+                    while (j < C && draw >= cum[j]) j++;
+                    follow[c] = j < C ? j : C - 1;
+                }
+            } else {
+                int best = 0;
+                for (int c = 1; c < C; c++)
+                    if (fc[c] < fc[best]) best = c;
+                for (int c = 0; c < C; c++) follow[c] = best;
+            }
+            for (int c = 0; c < C; c++) {
+                for (int d = 0; d < 3; d++) centre[3 * c + d] = cand[3 * follow[c] + d];
+                chint[c] = ch[follow[c]];
+            }
+            double w = w0 * pow(reduction, (double)(a + 1));
+            for (int c = 0; c < C; c++) {
+                double fb = INFINITY, yb[3] = {0.0, 0.0, 0.0};
+                long long hb = chint[c];
+                for (int j = 0; j < t; j++) {
+                    double u[3], y[3];
+                    long long hy = chint[c];
+                    for (int d = 0; d < 3; d++) u[d] = (uniform(&rng) - 0.5) * w * fr[d];
+                    for (int i = 0; i < 3; i++)
+                        y[i] = centre[3 * c + i] + basis[3 * i] * u[0] + basis[3 * i + 1] * u[1] + basis[3 * i + 2] * u[2];
+                    if (kd == 1 && pl[6] > 0.0) { /* inside its planar disk: the plane projection is exact */
+                        double q = (y[0] - pl[0]) * pl[3] + (y[1] - pl[1]) * pl[4] + (y[2] - pl[2]) * pl[5], r2 = 0.0,
+                               f[3];
+                        for (int d = 0; d < 3; d++) {
+                            f[d] = y[d] - q * pl[3 + d];
+                            r2 += (f[d] - pl[d]) * (f[d] - pl[d]);
+                        }
+                        if (r2 < (0.999 * pl[6]) * (0.999 * pl[6]))
+                            for (int d = 0; d < 3; d++) y[d] = f[d];
+                        else
+                            project_one(y, crow, cl->K, &hy, cl->table, cl->nc, cl->spheres, 0, tol, bump);
+                    } else if (kd) {
+                        project_one(y, crow, cl->K, &hy, cl->table, cl->nc, cl->spheres, (int)kd - 1, tol, bump);
+                    }
+                    double f = 0.0;
+                    for (Py_ssize_t k = 0; k < cnt && f < INFINITY; k++) f += elem_sum(&E[k], y) * (1.0 / 9.0);
+                    f = f / ncorner - 1.0;
+                    if (f < fb) {
+                        fb = f;
+                        hb = hy;
+                        for (int d = 0; d < 3; d++) yb[d] = y[d];
+                    }
+                }
+                if (fb < fc[c]) {
+                    fc[c] = fb;
+                    ch[c] = hb;
+                    for (int d = 0; d < 3; d++) cand[3 * c + d] = yb[d];
+                }
+            }
+        }
+        int best = 0;
+        for (int c = 1; c < C; c++)
+            if (fc[c] < fc[best]) best = c;
+        int accept = fc[best] < f0 && isfinite(fc[best]);
+        double move2 = 0.0;
+        if (accept) {
+            for (int d = 0; d < 3; d++) {
+                move2 += (cand[3 * best + d] - x0[d]) * (cand[3 * best + d] - x0[d]);
+                xv[d] = cand[3 * best + d];
+            }
+            if (cl) cl->hint[ROW[m]] = ch[best];
+        }
+        double wn = accept ? 4.0 * sqrt(move2) : 0.5 * w0, lo = min_width * h, hi = init_width * h;
+        WIDTH[NODES[m]] = wn < lo ? lo : (wn > hi ? hi : wn);
+        J->moved += accept;
+    }
+    free(E); free(work); free(iwork);
+    return NULL;
+}
+
+static PyObject *ci_visit(PyObject *self, PyObject *args) {
+    PyObject *o[18], *ret = NULL;
+    int C, t, T, n_roulette;
+    double reduction, delta, init_width, min_width, tol, bump;
+    unsigned long long seed;
+    int nthreads = 1;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOOOiiiiddddddK|i", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
+                          &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16], &o[17], &C,
+                          &t, &T, &n_roulette, &reduction, &delta, &init_width, &min_width, &tol, &bump, &seed, &nthreads))
+        return NULL;
+    static const char *names[18] = {"x", "width", "nodes", "star", "count", "basis", "free", "plane", "row", "kind",
+                                    "hint_s", "hint_e", "cand_s", "table_s", "spheres_s", "cand_e", "table_e",
+                                    "spheres_e"};
+    static const int writable[18] = {1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0};
+    static const int integer[18] = {0, 0, 1, 1, 1, 0, 0, 0, 1, 1, 1, 1, 1, 0, 0, 1, 0, 0};
+    Buf B[18] = {{{0}}};
+    for (int i = 0; i < 18; i++)
+        if (acquire(&B[i], o[i], names[i], integer[i] ? "qlq" : "d", writable[i], 0) < 0) goto done;
+    Py_ssize_t n = B[0].view.len / 24, M = B[2].view.len / 8, K = M ? B[3].view.len / 64 / M : 0;
+    Cells cells[2];
+    for (int k = 0; k < 2; k++) {
+        Buf *c = &B[12 + 3 * k];
+        cells[k].rows = c->view.ndim == 2 ? c->view.shape[0] : 0; /* may hold padding rows beyond the hints' */
+        cells[k].K = c->view.ndim == 2 ? c->view.shape[1] : 0;
+        cells[k].nc = B[14 + 3 * k].view.len / 32;
+        cells[k].cand = c->view.buf;
+        cells[k].table = B[13 + 3 * k].view.buf;
+        cells[k].spheres = B[14 + 3 * k].view.buf;
+        cells[k].hint = B[10 + k].view.buf;
+        if (c->view.len != cells[k].rows * cells[k].K * 8 || B[10 + k].view.len / 8 > cells[k].rows ||
+            B[13 + 3 * k].view.len != cells[k].nc * (k == 0 ? 19 : 8) * 8 ||
+            check_indices(cells[k].cand, cells[k].rows * cells[k].K, cells[k].nc, "ci_visit") < 0) {
+            if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "ci_visit: the cell tables disagree");
+            goto done;
+        }
+    }
+    if (B[0].view.len != n * 24 || B[1].view.len != n * 8 || B[3].view.len != M * K * 64 || B[4].view.len != M * 8 ||
+        B[5].view.len != M * 72 || B[6].view.len != M * 24 || B[7].view.len != M * 56 || B[8].view.len != M * 8 ||
+        B[9].view.len != M * 8 || C < 1 || t < 1 || T < 0) {
+        PyErr_SetString(PyExc_ValueError, "ci_visit: shapes disagree");
+        goto done;
+    }
+    const long long *NODES = B[2].view.buf, *ST = B[3].view.buf, *CNT = B[4].view.buf, *ROW = B[8].view.buf,
+                    *KIND = B[9].view.buf;
+    if (check_indices(NODES, M, n, "ci_visit") < 0 || check_indices(ST, M * K * 8, n, "ci_visit") < 0) goto done;
+    for (Py_ssize_t m = 0; m < M; m++) {
+        long long kd = KIND[m];
+        if (CNT[m] < 0 || CNT[m] > K || kd < 0 || kd > 2 ||
+            (kd > 0 && (ROW[m] < 0 || ROW[m] >= B[9 + kd].view.len / 8 || cells[kd - 1].K < 1 ||
+                        cells[kd - 1].hint[ROW[m]] >= cells[kd - 1].K))) {
+            PyErr_SetString(PyExc_IndexError, "ci_visit: count, kind, row or hint out of range");
+            goto done;
+        }
+    }
+    int nt = nthreads < 1 ? 1 : (nthreads > MAX_THREADS ? MAX_THREADS : nthreads);
+    while (nt > 1 && M / nt < 32) nt--; /* a thread per 32 nodes at least (creating one costs ~50 us) */
+    CiJob jobs[MAX_THREADS];
+    pthread_t tid[MAX_THREADS];
+    for (int j = 0; j < nt; j++)
+        jobs[j] = (CiJob){B[0].view.buf, B[1].view.buf, B[5].view.buf, B[6].view.buf, B[7].view.buf, NODES, ST, CNT,
+                          ROW, KIND, cells, K, M * j / nt, M * (j + 1) / nt, C, t, T, n_roulette, reduction, delta,
+                          init_width, min_width, tol, bump, seed, 0, 0};
+    int started = 1;
+    Py_BEGIN_ALLOW_THREADS
+    for (int j = 1; j < nt; j++)
+        if (pthread_create(&tid[j], NULL, ci_worker, &jobs[j]) != 0) break; else started++;
+    for (int j = started; j < nt; j++) ci_worker(&jobs[j]); /* threads that could not start: run here */
+    ci_worker(&jobs[0]);
+    for (int j = 1; j < started; j++) pthread_join(tid[j], NULL);
+    Py_END_ALLOW_THREADS
+    long long moved = 0;
+    for (int j = 0; j < nt; j++) {
+        if (jobs[j].failed) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        moved += jobs[j].moved;
+    }
+    ret = PyLong_FromLongLong(moved);
+done:
+    release(B, 18);
     return ret;
 }
 
@@ -844,6 +1125,7 @@ static PyMethodDef methods[] = {
     {"lbfgs_direction", lbfgs_direction, METH_VARARGS, "the L-BFGS two-loop recursion"},
     {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of hexahedra and its gradient"},
     {"local_sums", local_sums, METH_VARARGS, "local objective sums of trial positions of nodes in their stars"},
+    {"ci_visit", ci_visit, METH_VARARGS, "one cohort run of local CI for every node of one colour"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -172,3 +172,20 @@ def local_sums(points: np.ndarray, star: np.ndarray, count: np.ndarray, trials: 
     out = np.empty(trials.shape[:2])
     _c.local_sums(_f8(points), _i8(star), _i8(count), trials, out)
     return out
+
+
+def ci_visit(x: np.ndarray, width: np.ndarray, nodes, star, count, basis, free, plane, row, kind, hints, tables,
+             p, seed: int, tol: float, bump: float) -> int:
+    """One cohort run of local CI for every node of one colour, in C, in place on `x` ``(n, 3)`` and `width`
+    ``(n,)`` (`jaxci.optim.host_local`; the algorithm of `jaxci.optim.ci`'s colour step): the nodes `nodes`
+    ``(M,)`` with their relabelled stars `star` ``(M, K, 8)`` (the first ``count[m]`` real), move bases `basis`
+    ``(M, 3, 3)``, free directions `free` ``(M, 3)`` (1 or 0), planar disks `plane` ``(M, 7)``, boundary kind
+    `kind` ``(M,)`` (0 interior, 1 surface, 2 edge) and row `row` in the surface or edge list; `hints` the
+    remembered cell columns of the surface and edge lists (int64, updated), `tables` their ``(cand, table,
+    spheres)`` (`jaxci.geometry.projection.NearProjector.native_tables`); `p` the `CIParams`; `seed` the random
+    stream's. Returns the number of nodes moved."""
+    (cs, ts, ss), (ce, te, se) = tables
+    return _c.ci_visit(x, width, nodes, star, count, basis, free, plane, row, kind, hints[0], hints[1], cs, ts, ss,
+                       ce, te, se, int(p.cohort), int(p.variations), int(p.attempts),
+                       int(round(p.stage_switch * p.attempts)), float(p.reduction), float(p.delta),
+                       float(p.init_width), float(p.min_width), float(tol), float(bump), int(seed), THREADS)

@@ -343,6 +343,13 @@ class NearProjector:
         """Remember `hint` (from `__call__`) for the next projections."""
         self.hint = hint
 
+    @property
+    def native_tables(self) -> tuple:
+        """Per kind (surface, edge), the ``(candidates, table, spheres)`` arrays of the C search (int64 / float64,
+        contiguous), for a C kernel that projects points itself (`jaxci.native.ci_visit`); None without the C
+        kernels."""
+        return None if self._native is None else tuple(t[1:] for t in self._native)
+
     def project_many(self, points: np.ndarray, keep: np.ndarray | None = None) -> None:
         """Project the boundary nodes of S meshes `points` (float64 ``(S, n, 3)``, in place) as `__call__` does,
         each starting from the remembered cells (not changed): one C search over all of them (the trial meshes of

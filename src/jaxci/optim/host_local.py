@@ -29,7 +29,7 @@ import dataclasses
 import numpy as np
 
 from .. import native
-from ..geometry.projection import Constraints, NearProjector
+from ..geometry.projection import Constraints, NearProjector, inside_tolerance, segment_bump
 from ._local import edge_neighbours
 from ._moves import coloured_stars
 from .ci_params import PATTERN_FACTORS, CIParams
@@ -54,7 +54,8 @@ class _Colour:
     """The movable nodes of one colour (numpy): `nodes` ``(M,)``; `star` ``(M, K, 8)`` their relabelled
     elements, the first ``count[m]`` real; `basis` ``(M, 3, 3)``; `free` ``(M, 3)`` 1 for a free direction;
     `plane` ``(M, 7)`` (`jaxci.optim._moves.planar_rings`); the slots ``[a, b)`` are surface nodes, ``[b, M)``
-    edge nodes (rows `srow`, `erow` of the projector's surface and edge lists)."""
+    edge nodes (rows `srow`, `erow` of the projector's surface and edge lists); `kind` ``(M,)`` 0 / 1 / 2 for an
+    interior / surface / edge slot and `row` its row in its list (-1 interior), for `jaxci.native.ci_visit`."""
 
     nodes: np.ndarray
     star: np.ndarray
@@ -66,6 +67,8 @@ class _Colour:
     b: int
     srow: np.ndarray
     erow: np.ndarray
+    kind: np.ndarray
+    row: np.ndarray
 
 
 def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
@@ -90,7 +93,9 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
             basis=np.asarray(cs.basis[i][keep], np.float64),
             free=(np.arange(3)[None] < np.asarray(cs.dims[i][keep])[:, None]).astype(np.float64),
             plane=np.asarray(cs.plane[i][keep], np.float64), a=int(a), b=int(b),
-            srow=rows[0][nodes[a:b]], erow=rows[1][nodes[b:]]))
+            srow=rows[0][nodes[a:b]], erow=rows[1][nodes[b:]],
+            kind=np.repeat(np.arange(3, dtype=np.int64), [a, b - a, len(nodes) - b]),
+            row=np.concatenate([np.full(a, -1, np.int64), rows[0][nodes[a:b]], rows[1][nodes[b:]]])))
     return out
 
 
@@ -166,49 +171,12 @@ class _Sweeper:
         return out
 
     def visit(self, col: _Colour) -> int:
-        """One cohort run for every node of `col`; returns the number of nodes moved."""
-        p, x = self.p, self.x
-        C, t, T = p.cohort, p.variations, p.attempts
-        M = len(col.nodes)
-        ncorner = np.maximum(4 * col.count, 1).astype(np.float64)
-        x0 = x[col.nodes]
-        w0 = self.width[col.nodes]
-        h = _local_length(x, col)
-        f0 = native.local_sums(x, col.star, col.count, x0[:, None])[:, 0] / ncorner - 1.0
-        cand = np.repeat(x0[:, None], C, axis=1)  # (M, C, 3)
-        fc = np.repeat(f0[:, None], C, axis=1)
-        hints = self._hints(col)
-        ch = np.repeat(hints[:, None], C, axis=1)  # the cell column of each candidate (boundary slots)
-        n_roulette = round(p.stage_switch * T)
-        rows = np.arange(M)[:, None]
-        for k in range(T):
-            follow = follow_candidates(self.rng, fc, p.delta, k < n_roulette)
-            centre = cand[rows, follow]
-            w = w0 * p.reduction ** (k + 1)
-            u = (self.rng.random((M, C, t, 3)) - 0.5) * (w[:, None, None, None] * col.free[:, None, None])
-            a = col.a  # an interior node's basis is the identity
-            u[a:] = np.einsum("mij,mctj->mcti", col.basis[a:], u[a:])
-            trials = (centre[:, :, None] + u).reshape(M, C * t, 3)
-            th = np.repeat(ch[rows, follow], t, axis=1)
-            trials = self._project(col, trials, th)
-            ft = (native.local_sums(x, col.star, col.count, trials) / ncorner[:, None] - 1.0).reshape(M, C, t)
-            j = np.argmin(ft, axis=-1)
-            fb = np.take_along_axis(ft, j[..., None], axis=-1)[..., 0]
-            pick = (np.arange(C)[None] * t + j)
-            yb = trials[rows, pick]
-            better = fb < fc
-            cand = np.where(better[..., None], yb, cand)
-            fc = np.where(better, fb, fc)
-            ch = np.where(better, th[rows, pick], ch)
-        c = np.argmin(fc, axis=1)
-        fbest, ybest = fc[np.arange(M), c], cand[np.arange(M), c]
-        accept = (fbest < f0) & np.isfinite(fbest)
-        new = np.where(accept[:, None], ybest, x0)
-        x[col.nodes] = new
-        move = np.linalg.norm(new - x0, axis=-1)
-        self.width[col.nodes] = np.clip(np.where(accept, 4.0 * move, 0.5 * w0), p.min_width * h, p.init_width * h)
-        self._remember(col, np.where(accept, ch[np.arange(M), c], hints))
-        return int(accept.sum())
+        """One cohort run for every node of `col` (`jaxci.native.ci_visit`); returns the number of nodes moved."""
+        pr = self.projector
+        return native.ci_visit(self.x, self.width, col.nodes, col.star, col.count, col.basis, col.free, col.plane,
+                               col.row, col.kind, pr.hint, pr.native_tables, self.p,
+                               int(self.rng.integers(2**63)), inside_tolerance(np.float64),
+                               segment_bump(np.float64))
 
     def laplace_visit(self, col: _Colour, nbr: np.ndarray, nmask: np.ndarray, h: np.ndarray, smart: bool) -> float:
         """Every node of `col` towards the centroid of its edge neighbours `nbr` ``(M, K)`` (real where `nmask`);
