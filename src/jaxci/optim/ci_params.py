@@ -29,17 +29,21 @@ class CIParams:
     entry point (`jaxci.smooth`, ``jaxci smooth --method ci-global``, YAML configs) goes through it, so a field the
     user does not give takes its method's default.
 
-    The local defaults (C = 4, t = 4, 4 attempts per colour visit) were chosen by measurement on the perturbed
-    729-element cube (scripts/reproduce_paper.py): C = 6, t = 8, 8 attempts needs the same number of sweeps to
-    reach max kappa/3 <= 1.001 and <= 1.0001 at 5-8x the cost; C = 2 or t = 2 need more sweeps.
+    The local defaults (C = 4, t = 4, 10 attempts per colour visit with intervals shrunk by r = 0.7 per attempt)
+    were chosen by measurement (docs/results/README.md, session 8; `jaxci smooth --method ci`): against the
+    earlier 4 attempts at r = 0.8 they reach the ideal grid in fewer sweeps and less time on perturbed boxes
+    (cube729: 28 sweeps, 1.1 s, against 75, 1.4 s; 10^3: 41 against 104) and come within 1% of L-BFGS's F in
+    30 sweeps on pave3 after untangling (0.6% above, was 5.6%) and on tet-to-hex subdivisions (sphere 0.1%,
+    bracket 0.1%); a sweep costs 2.5x as much. (Earlier, on the compiled path: C = 6, t = 8 needed the same
+    number of sweeps as C = t = 4 at 5-8x the cost; C = 2 or t = 2 needed more sweeps.)
 
     Fields (default local / global where they differ):
 
     - `cohort`: C, candidates per cohort (default 4 / 5; 2 to 256).
     - `variations`: t, variations sampled per candidate and attempt (default 4 / 5; 1 to 256; C t <= 4096).
-    - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.8 / 0.998).
+    - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.7 / 0.998).
     - `delta`: > 0, regulariser of the follow probabilities 1/(g + delta) (default 1e-3).
-    - `attempts`: learning attempts per cohort run (local: per colour visit, default 4; global: total, default
+    - `attempts`: learning attempts per cohort run (local: per colour visit, default 10; global: total, default
       1000; at most 10^6, as `max_sweeps` and `patience`).
     - `stage_switch`: fraction in [0, 1] of the attempts that follow by roulette (stage 1); the rest follow the
       best (stage 2). Default 0.5 / 0.2.
@@ -60,9 +64,9 @@ class CIParams:
 
     cohort: int = 4
     variations: int = 4
-    reduction: float = 0.8
+    reduction: float = 0.7
     delta: float = 1e-3
-    attempts: int = 4
+    attempts: int = 10
     stage_switch: float = 0.5
     init_width: float = 0.5
     min_width: float = 1e-6
