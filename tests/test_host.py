@@ -14,7 +14,8 @@ import pytest
 
 from jaxci.errors import ConfigError
 from jaxci.generate import perturb_box
-from jaxci.geometry.projection import NearProjector, project_near_np, project_np
+from jaxci.geometry.near import NearProjector, project_near_np
+from jaxci.geometry.projection import project_np
 from jaxci.mesh import HexMesh
 from jaxci.metrics.hexahedron import objective_terms_and_grad, objective_terms_and_grad_np, transposed
 from jaxci.metrics.report import quality_report

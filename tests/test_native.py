@@ -130,12 +130,13 @@ def test_mixed_kernel_is_the_gradient_of_the_mixed_objective():
 
 
 def test_near_projector_in_c_is_the_numpy_one():
-    """`jaxci.geometry.projection.NearProjector` with the C search against its numpy search on a paved mesh with curved
+    """`jaxci.geometry.near.NearProjector` with the C search against its numpy search on a paved mesh with curved
     walls: the same points bit for bit and the same triangles, with and without hints and kept nodes."""
     from helpers import MESQUITE
 
     from jaxci.geometry.boundary import classify_boundary
-    from jaxci.geometry.projection import NearProjector, build_constraints
+    from jaxci.geometry.near import NearProjector
+    from jaxci.geometry.projection import build_constraints
     from jaxci.io import read_mesh
 
     mesh = read_mesh(str(MESQUITE / "pave3.e.vtk"))

@@ -511,7 +511,7 @@ done:
 }
 
 /* ------------------------------------------------------------------------------------------ projection
- * The numpy path's boundary projection (jaxci.geometry.projection.NearProjector): every active node to the nearest point
+ * The numpy path's boundary projection (jaxci.geometry.near.NearProjector): every active node to the nearest point
  * of its candidate triangles (segments), starting with the one of its hint. Tables as in jaxci.geometry._closest: one
  * row per precomputed quantity, one column per triangle (19 rows) or segment (8 rows). */
 enum { TC = 0, TE1 = 3, TE2 = 6, TN = 9, TG = 12, TOK = 15, TIS = 16, TID = 17, TL2 = 18 };

@@ -134,7 +134,7 @@ def hex_sums(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float, int]:
 
 def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.ndarray, cand: np.ndarray,
                  table: np.ndarray, spheres: np.ndarray, kind: int, tol: float, bump: float) -> None:
-    """`jaxci.geometry.projection.NearProjector`'s search in C, in place: every node ``nodes[i]`` for ``i`` in `active`
+    """`jaxci.geometry.near.NearProjector`'s search in C, in place: every node ``nodes[i]`` for ``i`` in `active`
     to the orthogonal projection onto its hint's cell (``cand[i, hint[i]]``) where that falls inside, else to
     the nearest point of its candidates (``hint[i]`` := the column); a candidate whose bounding sphere (`spheres`
     ``(nt, 4)``: centre, radius) comes nearer than the hint's projection is searched too. `kind` 0: triangles
@@ -182,7 +182,7 @@ def ci_visit(x: np.ndarray, width: np.ndarray, nodes, star, count, basis, free, 
     ``(M, 3, 3)``, free directions `free` ``(M, 3)`` (1 or 0), planar disks `plane` ``(M, 7)``, boundary kind
     `kind` ``(M,)`` (0 interior, 1 surface, 2 edge) and row `row` in the surface or edge list; `hints` the
     remembered cell columns of the surface and edge lists (int64, updated), `tables` their ``(cand, table,
-    spheres)`` (`jaxci.geometry.projection.NearProjector.native_tables`); `p` the `CIParams`; `seed` the random
+    spheres)`` (`jaxci.geometry.near.NearProjector.native_tables`); `p` the `CIParams`; `seed` the random
     stream's. Returns the number of nodes moved."""
     (cs, ts, ss), (ce, te, se) = tables
     return _c.ci_visit(x, width, nodes, star, count, basis, free, plane, row, kind, hints[0], hints[1], cs, ts, ss,

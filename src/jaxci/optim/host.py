@@ -27,7 +27,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .. import native
-from ..geometry.projection import NearProjector, host_constraints
+from ..geometry.near import NearProjector, host_constraints
 from ..metrics.hexahedron import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
@@ -71,7 +71,7 @@ class HostObjective:
     (through the lift's linear map ``B`` and, where a node was projected, the projection onto its triangle's
     plane or its segment's line: the derivative `jax.grad` takes through `jaxci.geometry.projection.project`);
     ``value = inf`` (`grad` None) if a corner is inverted. Node coordinates are ``project(x0 + B (scale v))``
-    with the candidate projection of the compiled path (`jaxci.geometry.projection.NearProjector`), skipped while every
+    with the candidate projection of the compiled path (`jaxci.geometry.near.NearProjector`), skipped while every
     moving boundary node is inside its flat region.
     """
 

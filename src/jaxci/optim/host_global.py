@@ -4,7 +4,7 @@ Each candidate is a whole mesh, a point of the free coordinates (the layout of `
 its behaviour is F. The compiled loop takes 9-10 s to compile per mesh size and attempt budget on a 2-core CPU
 (the main job compiled it five times), and evaluates the C x t trial meshes of an attempt one after the other
 (`jax.lax.map`); here each trial mesh is lifted, projected onto the boundary by the C search of
-`jaxci.geometry.projection.NearProjector` and evaluated by the C kernel of `jaxci.native` (tens of
+`jaxci.geometry.near.NearProjector` and evaluated by the C kernel of `jaxci.native` (tens of
 microseconds on the paper's cubes). The iteration is the compiled one: follow by roulette on 1/(F + delta) for
 the first ``stage_switch`` share of the attempts, then the best; t trials per candidate in its interval
 (``init_width h`` per coordinate, shrunk by ``reduction`` per attempt); greedy replacement; saturation for
@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from .. import native
-from ..geometry.projection import Constraints, NearProjector, host_constraints
+from ..geometry.near import NearProjector, host_constraints
+from ..geometry.projection import Constraints
 from ._moves import planar_rings
 from .ci_params import CIParams
 from .host_local import follow_candidates

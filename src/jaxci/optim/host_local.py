@@ -5,7 +5,7 @@
 The compiled sweep is one XLA program per mesh size class; on a 2-core CPU it takes 10-12 s to compile (a
 command's whole budget on a small mesh, and most of the main job), then about 0.1 s a sweep at 10^3 hexahedra.
 Here the same algorithm runs colour by colour, a colour's visit in C (`jaxci.native.ci_visit`: every node's
-cohort, its trials projected by the C search of `jaxci.geometry.projection.NearProjector`, their local
+cohort, its trials projected by the C search of `jaxci.geometry.near.NearProjector`, their local
 objective from four corners of every element around the node), the sweep's bookkeeping and the pattern move in
 numpy: nothing to compile (cube729: 1000 nodes, about 20 ms a sweep on 2 cores).
 
@@ -31,7 +31,8 @@ import dataclasses
 import numpy as np
 
 from .. import native
-from ..geometry.projection import Constraints, NearProjector, inside_tolerance, segment_bump
+from ..geometry.near import NearProjector
+from ..geometry.projection import Constraints
 from ._local import edge_neighbours
 from ._moves import coloured_stars
 from .ci_params import PATTERN_FACTORS, CIParams
@@ -177,8 +178,7 @@ class _Sweeper:
         pr = self.projector
         return native.ci_visit(self.x, self.width, col.nodes, col.star, col.count, col.basis, col.free, col.plane,
                                col.row, col.kind, pr.hint, pr.native_tables, self.p,
-                               int(self.rng.integers(2**63)), inside_tolerance(np.float64),
-                               segment_bump(np.float64))
+                               int(self.rng.integers(2**63)), *pr.tolerances)
 
     def laplace_visit(self, col: _Colour, nbr: np.ndarray, nmask: np.ndarray, h: np.ndarray, smart: bool) -> float:
         """Every node of `col` towards the centroid of its edge neighbours `nbr` ``(M, K)`` (real where `nmask`);
