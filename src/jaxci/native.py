@@ -132,6 +132,13 @@ def hex_sums(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float, int]:
     return _c.hex_condition(_f8(points), _i8(hexes), 0.0, None, None, None, THREADS)
 
 
+def hex_objective(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float]:
+    """``(F, max kappa/3)`` of the hexahedra `hexes` ``(N, 8)`` at `points` ``(n, 3)`` (`hex_sums`; F is inf if a
+    corner is inverted)."""
+    total, tmax, bad = hex_sums(points, hexes)
+    return (np.inf if bad else total / (8 * len(hexes))), float(np.sqrt(tmax))
+
+
 def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.ndarray, cand: np.ndarray,
                  table: np.ndarray, spheres: np.ndarray, kind: int, tol: float, bump: float) -> None:
     """`jaxci.geometry.near.NearProjector`'s search in C, in place: every node ``nodes[i]`` for ``i`` in `active`

@@ -337,6 +337,16 @@ def colour_slice(cs: ColouredStars, i):
     return jax.tree_util.tree_map(lambda a: a[i], cs)
 
 
+def onto_plane(xp, y, plane):
+    """``(foot, inside)``: the orthogonal projection of points `y` ``(..., 3)`` onto their planes `plane`
+    ``(..., 7)`` (origin, unit normal, radius: `planar_rings`), and whether it falls inside 0.999 of the disk the
+    node's ring of faces covers, where it is the exact nearest point of the patch (no search needed). `xp`:
+    `jax.numpy` or `numpy`."""
+    o, nrm, r = plane[..., :3], plane[..., 3:6], plane[..., 6]
+    foot = y - nrm * xp.sum((y - o) * nrm, axis=-1, keepdims=True)
+    return foot, xp.sum((foot - o) ** 2, axis=-1) < (0.999 * r) ** 2
+
+
 def project_trials(cons: Constraints, cs_i: ColouredStars, trials):
     """Project trial positions of shape ``(M, S, 3)`` of the nodes of one colour onto their constraints.
 
@@ -357,17 +367,11 @@ def project_trials(cons: Constraints, cs_i: ColouredStars, trials):
         return project_nodes(cons, idx, part.reshape(-1, 3)).reshape(M - a, S, 3)
 
     if b - a and b == M:  # only surface slots: the planar shortcut may skip the search
-        pl = cs_i.plane[a:b, None]  # (m, 1, 7)
-        o, nrm, r = pl[..., :3], pl[..., 3:6], pl[..., 6]
-        flat = part - nrm * jnp.sum((part - o) * nrm, axis=-1, keepdims=True)
-        inside = jnp.sum((flat - o) ** 2, axis=-1) < (0.999 * r) ** 2
+        flat, inside = onto_plane(jnp, part, cs_i.plane[a:b, None])
         ok = jnp.all(inside | ~cs_i.mask[a:b, None])
         proj = jax.lax.cond(ok, lambda: flat, full)
     elif b - a:
-        pl = cs_i.plane[a:b, None]
-        o, nrm, r = pl[..., :3], pl[..., 3:6], pl[..., 6]
-        flat = part[: b - a] - nrm * jnp.sum((part[: b - a] - o) * nrm, axis=-1, keepdims=True)
-        inside = jnp.sum((flat - o) ** 2, axis=-1) < (0.999 * r) ** 2
+        flat, inside = onto_plane(jnp, part[: b - a], cs_i.plane[a:b, None])
         ok = jnp.all(inside | ~cs_i.mask[a:b, None])
         edge_idx = jnp.broadcast_to(jnp.minimum(cs_i.nodes[b:], n - 1)[:, None], (M - b, S)).reshape(-1)
 

@@ -18,7 +18,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector, host_constraints
 from ..geometry.projection import Constraints
-from ._moves import planar_rings
+from ._moves import onto_plane, planar_rings
 from .ci_params import CIParams
 from .host_local import follow_candidates
 
@@ -38,13 +38,11 @@ def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int
     scale = np.asarray(scale, np.float64)
     projector = NearProjector(cons)
     projector.commit(projector(x0)[1])  # every boundary node's cell at the start: the searches start there
-    n_corners = 8 * len(hexes)
     rng = np.random.default_rng(seed)
 
     ni, ns = len(hc.interior_nodes), len(hc.surface_nodes)
     plane = planar_rings(x0, np.asarray(faces), hc) if faces is not None else np.zeros((len(x0), 7))
     flat = np.flatnonzero(plane[:, 6] > 0)
-    origin, normal, r2 = plane[flat, :3], plane[flat, 3:6], (0.999 * plane[flat, 6]) ** 2
 
     def meshes(U):  # (S, n_free) -> (S, n, 3): project(x0 + B u) for each row u
         X = np.repeat(x0[None], len(U), axis=0)
@@ -54,17 +52,14 @@ def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int
         X[:, hc.edge_nodes] += U[:, 3 * ni + 2 * ns :, None] * hc.edge_tangent
         keep = np.zeros(X.shape[:2], bool)
         if len(flat):
-            d = X[:, flat] - origin
-            on = d - normal * np.einsum("tsd,sd->ts", d, normal)[..., None]  # onto the plane
-            inside = np.einsum("tsd,tsd->ts", on, on) < r2
-            X[:, flat] = np.where(inside[..., None], origin + on, X[:, flat])
+            foot, inside = onto_plane(np, X[:, flat], plane[flat])
+            X[:, flat] = np.where(inside[..., None], foot, X[:, flat])
             keep[:, flat] = inside
         projector.project_many(X, keep)
         return X
 
     def behaviours(U):  # (S, n_free) -> F (S,), max kappa/3 (S,)
-        out = np.array([native.hex_sums(x, hexes) for x in meshes(U)])
-        return np.where(out[:, 2] > 0, np.inf, out[:, 0] / n_corners), np.sqrt(out[:, 1])
+        return np.array([native.hex_objective(x, hexes) for x in meshes(U)]).T
 
     C, t, T = p.cohort, p.variations, p.attempts
     f0, k0 = (v[0] for v in behaviours(np.zeros((1, len(scale)))))

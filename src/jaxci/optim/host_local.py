@@ -27,6 +27,7 @@ Everything is float64. `laplace_np` sweeps the colours the same way with the Lap
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -34,7 +35,7 @@ from .. import native
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
 from ._local import edge_neighbours
-from ._moves import coloured_stars
+from ._moves import coloured_stars, onto_plane
 from .ci_params import PATTERN_FACTORS, CIParams
 from .laplace import LaplaceParams
 
@@ -70,8 +71,14 @@ class _Colour:
     b: int
     srow: np.ndarray
     erow: np.ndarray
-    kind: np.ndarray
-    row: np.ndarray
+
+    @functools.cached_property
+    def kind(self) -> np.ndarray:
+        return np.repeat(np.arange(3, dtype=np.int64), [self.a, self.b - self.a, len(self.nodes) - self.b])
+
+    @functools.cached_property
+    def row(self) -> np.ndarray:
+        return np.concatenate([np.full(self.a, -1, np.int64), self.srow, self.erow])
 
 
 def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
@@ -96,9 +103,7 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
             basis=np.asarray(cs.basis[i][keep], np.float64),
             free=(np.arange(3)[None] < np.asarray(cs.dims[i][keep])[:, None]).astype(np.float64),
             plane=np.asarray(cs.plane[i][keep], np.float64), a=int(a), b=int(b),
-            srow=rows[0][nodes[a:b]], erow=rows[1][nodes[b:]],
-            kind=np.repeat(np.arange(3, dtype=np.int64), [a, b - a, len(nodes) - b]),
-            row=np.concatenate([np.full(a, -1, np.int64), rows[0][nodes[a:b]], rows[1][nodes[b:]]])))
+            srow=rows[0][nodes[a:b]], erow=rows[1][nodes[b:]]))
     return out
 
 
@@ -142,8 +147,7 @@ class _Sweeper:
 
     def objective(self, x: np.ndarray) -> tuple[float, float]:
         """``(F, max kappa/3)`` at `x` (F infinite if a corner is inverted)."""
-        total, tmax, bad = native.hex_sums(x, self.hexes)
-        return (np.inf if bad else total / (8 * len(self.hexes))), float(np.sqrt(tmax))
+        return native.hex_objective(x, self.hexes)
 
     def _project(self, col: _Colour, trials: np.ndarray, hint: np.ndarray) -> np.ndarray:
         """`trials` ``(M, S, 3)`` projected onto each node's surface or edge (interior slots unchanged; a surface
@@ -155,9 +159,7 @@ class _Sweeper:
         out = trials.copy()
         if b > a:
             t = out[a:b]
-            o, nrm, r = col.plane[a:b, None, :3], col.plane[a:b, None, 3:6], col.plane[a:b, None, 6]
-            flat = t - nrm * np.sum((t - o) * nrm, axis=-1, keepdims=True)
-            inside = np.sum((flat - o) ** 2, axis=-1) < (0.999 * r) ** 2
+            flat, inside = onto_plane(np, t, col.plane[a:b, None])
             t[inside] = flat[inside]
             m, s = np.nonzero(~inside)
             if len(m):
@@ -219,19 +221,20 @@ class _Sweeper:
         self.projector.hint[0][col.srow] = hints[col.a : col.b]
         self.projector.hint[1][col.erow] = hints[col.b :]
 
-    def pattern(self, D: np.ndarray, f: float) -> float:
+    def pattern(self, D: np.ndarray, f: float, kmax: float) -> tuple[float, float]:
         """The pattern move along the sweep's displacement `D` (`jaxci.optim.ci._pattern_move`): the best
-        projected ``x + a D`` if it lowers `f`; returns F."""
-        best = (f, None, None)
+        projected ``x + a D`` if it lowers `f` (F at the current `x`, max kappa/3 `kmax`); returns
+        ``(F, max kappa/3)`` after it."""
+        best = (f, kmax, None, None)
         for a in PATTERN_FACTORS:
             y, hint = self.projector(self.x + a * D)
-            fy = self.objective(y)[0]
+            fy, ky = self.objective(y)
             if fy < best[0]:
-                best = (fy, y, hint)
-        if best[1] is not None:
-            self.x = best[1]
-            self.projector.commit(best[2])
-        return best[0]
+                best = (fy, ky, y, hint)
+        if best[2] is not None:
+            self.x = best[2]
+            self.projector.commit(best[3])
+        return best[0], best[1]
 
 
 def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | None = None, seed: int = 0):
@@ -248,11 +251,11 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
     while not done and len(hist_f) <= p.max_sweeps:
         start = sw.x.copy()
         moved = sum(sw.visit(col) for col in sw.colours)
-        f_new = sw.objective(sw.x)[0]
+        f_new, k_new = sw.objective(sw.x)
         if p.pattern:
-            f_new = sw.pattern(sw.x - start, f_new)
+            f_new, k_new = sw.pattern(sw.x - start, f_new, k_new)
         hist_f.append(f_new)
-        hist_k.append(sw.objective(sw.x)[1])  # one pass more per sweep: 1/60 of a sweep's corner evaluations
+        hist_k.append(k_new)
         hist_m.append(moved)
         done = f_new <= p.ftol or f - f_new <= p.tol * f or moved == 0
         f = f_new
