@@ -131,14 +131,15 @@ def chunked(fn, y, chunk: int):
     return jnp.moveaxis(out, 0, 1).reshape(M, n * chunk)[:, :S]
 
 
-def local_length(E, smask):
-    """Mean length of the edges at slot 0 of the incident elements, shape ``(M,)`` (a local length scale)."""
+def local_length(E, smask, xp=jnp):
+    """Mean length of the edges at slot 0 of the incident elements, shape ``(M,)`` (a local length scale);
+    `xp`: `jax.numpy` (default) or `numpy` (the host sweeps of `jaxci.optim.host_local`)."""
     X, Y, Z = E
     tot = 0.0
     for j in (1, 3, 4):
-        tot = tot + jnp.sqrt((X[..., j] - X[..., 0]) ** 2 + (Y[..., j] - Y[..., 0]) ** 2 + (Z[..., j] - Z[..., 0]) ** 2)
-    cnt = jnp.maximum(jnp.sum(smask, axis=-1), 1)
-    return jnp.sum(jnp.where(smask, tot, 0.0), axis=-1) / (3.0 * cnt)
+        tot = tot + xp.sqrt((X[..., j] - X[..., 0]) ** 2 + (Y[..., j] - Y[..., 0]) ** 2 + (Z[..., j] - Z[..., 0]) ** 2)
+    cnt = xp.maximum(xp.sum(smask, axis=-1), 1)
+    return xp.sum(xp.where(smask, tot, 0.0), axis=-1) / (3.0 * cnt)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -34,7 +34,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
-from ._local import edge_neighbours
+from ._local import edge_neighbours, gather_star, local_length
 from ._moves import coloured_stars, onto_plane
 from .ci_params import PATTERN_FACTORS, CIParams
 from .laplace import LaplaceParams
@@ -108,12 +108,9 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
 
 
 def _local_length(x: np.ndarray, col: _Colour) -> np.ndarray:
-    """Mean length of the edges at each node of `col` over its real star elements, ``(M,)``."""
-    st = col.star
-    d = x[st[:, :, (1, 3, 4)]] - x[st[:, :, :1]]  # (M, K, 3, 3)
-    length = np.sqrt(np.einsum("mkjd,mkjd->mk", d, d))
-    real = np.arange(st.shape[1])[None] < col.count[:, None]
-    return np.where(real, length, 0.0).sum(axis=1) / (3.0 * np.maximum(col.count, 1))
+    """`jaxci.optim._local.local_length` of the nodes of `col` at `x`, ``(M,)``."""
+    real = np.arange(col.star.shape[1])[None] < col.count[:, None]
+    return local_length(gather_star(x, col.star), real, np)
 
 
 def follow_candidates(rng: np.random.Generator, g: np.ndarray, delta: float, roulette: bool) -> np.ndarray:
