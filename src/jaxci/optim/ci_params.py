@@ -31,11 +31,11 @@ class CIParams:
 
     The local defaults (C = 4, t = 4, 10 attempts per colour visit with intervals shrunk by r = 0.7 per attempt)
     were chosen by measurement (docs/results/README.md, session 8; `jaxci smooth --method ci`): against the
-    earlier 4 attempts at r = 0.8 they reach the ideal grid in fewer sweeps and less time on perturbed boxes
-    (cube729: 28 sweeps, 1.1 s, against 75, 1.4 s; 10^3: 41 against 104) and come within 1% of L-BFGS's F in
-    30 sweeps on pave3 after untangling (0.6% above, was 5.6%) and on tet-to-hex subdivisions (sphere 0.1%,
-    bracket 0.1%); a sweep costs 2.5x as much. (Earlier, on the compiled path: C = 6, t = 8 needed the same
-    number of sweeps as C = t = 4 at 5-8x the cost; C = 2 or t = 2 needed more sweeps.)
+    earlier 4 attempts at r = 0.8 they reach the ideal grid in fewer sweeps on perturbed boxes (cube729: 36
+    against 75; 10^3: 50 against 104) and come nearer to L-BFGS's F in 30 sweeps on pave3 after untangling (1.2%
+    above, was 5.6%) and on tet-to-hex subdivisions (sphere 0.10%, bracket 0.05%); a sweep costs 2.5x as much.
+    (Earlier, on the compiled path: C = 6, t = 8 needed the same number of sweeps as C = t = 4 at 5-8x the
+    cost; C = 2 or t = 2 needed more sweeps.)
 
     Fields (default local / global where they differ):
 
