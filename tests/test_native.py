@@ -157,6 +157,77 @@ def test_near_projector_in_c_is_the_numpy_one():
         ref.commit(hr)
 
 
+def _pave3_constraints():
+    from helpers import MESQUITE
+
+    from jaxci.geometry.boundary import classify_boundary
+    from jaxci.geometry.projection import build_constraints
+    from jaxci.io import read_mesh
+
+    mesh = read_mesh(str(MESQUITE / "pave3.e.vtk"))
+    return mesh, build_constraints(mesh, classify_boundary(mesh), dtype=np.float64, device=False)
+
+
+def test_lift_its_transpose_and_the_pullback_in_c_are_numpys():
+    """The steps of `jaxci.optim.host.HostObjective` around the kernel, in C (`native.lift`, `lift_t`,
+    `flat_keep`, `pullback`) against the numpy code they replace, on a paved mesh with curved walls (interior,
+    surface and edge nodes): bit for bit, so that the host L-BFGS takes the same steps as before."""
+    from jaxci.geometry.near import NearProjector
+    from jaxci.optim.parametrisation import lift_points, lift_transpose_np
+
+    mesh, cons = _pave3_constraints()
+    assert len(cons.surface_nodes) and len(cons.edge_nodes) and len(cons.interior_nodes)
+    lay = native.layout(cons)
+    rng = np.random.default_rng(3)
+    m = 3 * len(cons.interior_nodes) + 2 * len(cons.surface_nodes) + len(cons.edge_nodes)
+    x0 = np.asarray(mesh.points, np.float64)
+    scale, v = rng.random(m), rng.normal(size=m) * 0.1
+    x = native.lift(x0, scale, v, lay)
+    np.testing.assert_array_equal(x, lift_points(np, x0, scale, cons, v))
+    g = rng.normal(size=x.shape)
+    np.testing.assert_array_equal(native.lift_t(g, scale, lay), lift_transpose_np(scale, cons, g))
+
+    nodes = np.ascontiguousarray(np.concatenate([cons.surface_nodes, cons.edge_nodes]), np.int64)
+    origin, r2 = x0[nodes], rng.random(len(nodes)) * 0.01
+    keep = np.zeros(len(x), bool)
+    d2 = np.sum((x[nodes] - origin) ** 2, axis=1)
+    assert native.flat_keep(x, nodes, origin, r2, keep) == int(np.sum(d2 >= r2))
+    np.testing.assert_array_equal(keep[nodes], d2 < r2)
+
+    fast, ref = NearProjector(cons), NearProjector(cons)
+    ref._native = None
+    xp, hint = fast(x)
+    for k in (None, keep):
+        np.testing.assert_array_equal(fast.pullback(g, hint, k), ref.pullback(g, hint, k))
+    with pytest.raises(ValueError, match="shapes disagree"):
+        native.lift(x0, scale[:-1], v[:-1], lay)
+    with pytest.raises(IndexError, match="out of range"):
+        native.lift_t(g[:3], scale, lay)
+
+
+def test_face_spheres_change_nothing_in_the_search():
+    """The C search passes over a boundary face whose sphere (holding its four triangles') cannot come nearer:
+    the same points and triangles as the search over every triangle's sphere, for the projection of whole meshes
+    and of trial rows."""
+    from jaxci.geometry.near import NearProjector
+
+    mesh, cons = _pave3_constraints()
+    fast, plain = NearProjector(cons), NearProjector(cons)
+    nodes, cand, table, spheres = plain._native[0]
+    assert len(spheres) == table.shape[1] * 5 // 4
+    plain._native = ((nodes, cand, table, spheres[: table.shape[1]]),) + plain._native[1:]
+    rng = np.random.default_rng(1)
+    h = np.median(np.linalg.norm(mesh.points[mesh.hexes[:, 1]] - mesh.points[mesh.hexes[:, 0]], axis=1))
+    for it in range(6):
+        x = mesh.points + rng.normal(scale=(0.02 if it > 2 else 0.3) * h, size=mesh.points.shape)
+        (xf, hf), (xp, hp) = fast(x), plain(x)
+        np.testing.assert_array_equal(xf, xp)
+        for a, b in zip(hf, hp, strict=True):
+            np.testing.assert_array_equal(a, b)
+        fast.commit(hf)
+        plain.commit(hp)
+
+
 @pytest.mark.parametrize("history", [1, 3, 10])
 def test_lbfgs_direction_in_c_is_the_two_loop_recursion(history, monkeypatch):
     """The L-BFGS memory of `jaxci.optim.host` (ring buffers, oldest slot reused): the C two-loop recursion and

@@ -196,3 +196,41 @@ def ci_visit(x: np.ndarray, width: np.ndarray, nodes, star, count, basis, free, 
                        ce, te, se, int(p.cohort), int(p.variations), int(p.attempts),
                        int(round(p.stage_switch * p.attempts)), float(p.reduction), float(p.delta),
                        float(p.init_width), float(p.min_width), float(tol), float(bump), int(seed), THREADS)
+
+
+def layout(cons) -> tuple:
+    """The free-coordinate layout of constraints `cons` (`jaxci.geometry.projection.Constraints`) as the C
+    functions below take it: ``(interior (ni,), surface (ns,), basis (ns, 2, 3), edge (ne,), tangent (ne, 3))``,
+    int64 / float64, contiguous (build it once per solve)."""
+    return (_i8(cons.interior_nodes), _i8(cons.surface_nodes), _f8(cons.surface_basis), _i8(cons.edge_nodes),
+            _f8(cons.edge_tangent))
+
+
+def lift(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, lay: tuple) -> np.ndarray:
+    """``x0 + B (scale * v)`` (`jaxci.optim.parametrisation.lift_points` with numpy): a new float64 ``(n, 3)``;
+    `lay` from `layout`, `x0` float64 ``(n, 3)``, `scale` and `v` ``(n_free,)``."""
+    x = np.empty_like(x0)
+    _c.lift(x0, scale, _f8(v), *lay, x)
+    return x
+
+
+def lift_t(g: np.ndarray, scale: np.ndarray, lay: tuple) -> np.ndarray:
+    """``scale * B^T g`` (`jaxci.optim.parametrisation.lift_transpose_np`): ``(n_free,)`` float64 from the
+    gradient `g` ``(n, 3)`` with respect to the node coordinates."""
+    out = np.empty_like(scale)
+    _c.lift_t(_f8(g), scale, *lay, out)
+    return out
+
+
+def flat_keep(x: np.ndarray, nodes: np.ndarray, origin: np.ndarray, r2: np.ndarray, keep: np.ndarray) -> int:
+    """``keep[nodes[k]] = |x[nodes[k]] - origin[k]|^2 < r2[k]`` (boolean `keep` ``(n,)``, in place): which
+    boundary nodes lie inside their flat regions; returns how many do not."""
+    return _c.flat_keep(x, nodes, origin, r2, keep)
+
+
+def pullback(g: np.ndarray, nodes: np.ndarray, hint: np.ndarray, keep: np.ndarray | None, cand: np.ndarray,
+             table: np.ndarray, kind: int) -> None:
+    """`jaxci.geometry.near.NearProjector.pullback` for one kind (0 surface nodes and their triangles, 1 edge
+    nodes and their segments), in place on `g` float64 ``(n, 3)``: the arrays of the C search
+    (`NearProjector`'s), `keep` boolean ``(n,)`` or None."""
+    _c.pullback(g, nodes, hint, keep, cand, table, int(kind))

@@ -43,7 +43,7 @@ def segment_bump(dtype) -> float:
 # c its centroid, a and b consecutive corners; the 4 triangles of face f are columns 4 f .. 4 f + 3; a boundary
 # triangle is the face [a, b, c, c], see `triangle_table`).
 # Everything that depends on the original geometry only is precomputed: the kernel has no division or root.
-_TC = 0  # centroid c (x y z)
+TC = 0  # centroid c (x y z)
 _TE1 = 3  # spoke e1 = a - c
 _TE2 = 6  # spoke e2 = b - c
 TN = 9  # unit normal
@@ -79,7 +79,7 @@ def closest_on_triangles(xp, x, t, tol):
     score), the score being the squared distance plus, for spoke and side points, a rounding-level penalty.
     """
     penalty = segment_bump(t[_TL2].dtype) * t[_TL2]
-    c, e1, e2 = (tuple(t[k : k + 3]) for k in (_TC, _TE1, _TE2))
+    c, e1, e2 = (tuple(t[k : k + 3]) for k in (TC, _TE1, _TE2))
     p, h, inside, w, d1 = plane_point(x, t, tol)
     best = (p, xp.where(inside, h * h, xp.inf))
     best = _keep_better(xp, best, _segment_point(x, c, e1, xp.clip(d1 * t[_TIS], 0, 1), penalty))
@@ -91,7 +91,7 @@ def closest_on_triangles(xp, x, t, tol):
 def plane_point(x, t, tol):
     """The orthogonal projection of `x` onto the planes of triangles `t`: ``(point, signed distance h, inside,
     x - c, (x - c) . e1)``; `inside` where it falls inside the triangle (within `tol`)."""
-    c, e1, e2, un = (tuple(t[k : k + 3]) for k in (_TC, _TE1, _TE2, TN))
+    c, e1, e2, un = (tuple(t[k : k + 3]) for k in (TC, _TE1, _TE2, TN))
     g22, g12, g11 = t[_TG], t[_TG + 1], t[_TG + 2]
     w = _sub3(x, c)
     d1, d2 = _dot3(w, e1), _dot3(w, e2)
@@ -141,7 +141,7 @@ def triangle_table(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     inv = np.divide(1.0, nn, out=np.zeros_like(nn), where=ok)
     ll = ((e2 - e1) ** 2).sum(1)
     out = np.zeros((TRI_ROWS, len(c)), dtype=np.float64)
-    out[_TC : _TC + 3], out[_TE1 : _TE1 + 3], out[_TE2 : _TE2 + 3] = c.T, e1.T, e2.T
+    out[TC : TC + 3], out[_TE1 : _TE1 + 3], out[_TE2 : _TE2 + 3] = c.T, e1.T, e2.T
     # n / |n|: exactly +-1 along an axis for an axis-aligned triangle (sqrt(x^2) == |x| in IEEE arithmetic)
     out[TN : TN + 3] = np.divide(n, np.sqrt(nn)[:, None], out=np.zeros_like(n), where=ok[:, None]).T
     out[_TG], out[_TG + 1], out[_TG + 2] = g22 * inv, g12 * inv, g11 * inv
@@ -182,7 +182,7 @@ def candidate_rows(table, cand) -> list:
 
 
 def triangle_centres(t: np.ndarray):
-    c, e1, e2 = t[_TC : _TC + 3].T, t[_TE1 : _TE1 + 3].T, t[_TE2 : _TE2 + 3].T
+    c, e1, e2 = t[TC : TC + 3].T, t[_TE1 : _TE1 + 3].T, t[_TE2 : _TE2 + 3].T
     centre = c + (e1 + e2) / 3.0
     return centre, np.max([np.linalg.norm(v - centre, axis=1) for v in (c, c + e1, c + e2)], axis=0)
 

@@ -13,6 +13,7 @@ import numpy as np
 
 from ._closest import (
     SD,
+    TC,
     TN,
     candidate_rows,
     closest_on_segments,
@@ -67,11 +68,11 @@ class NearProjector:
         self._tiled = {}  # `project_many`'s index arrays per (kind, number of meshes)
         self._native = None if not native.AVAILABLE else tuple(
             (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int64),
-             np.ascontiguousarray(table, np.float64), np.ascontiguousarray(np.column_stack(sphere), np.float64))
+             np.ascontiguousarray(table, np.float64), np.ascontiguousarray(sphere, np.float64))
             for nodes, cand, table, sphere in ((self.c.surface_nodes, self.c.surface_cand, self.c.triangles,
-                                                self.spheres[0]),
+                                                _with_faces(self.c.triangles, self.spheres[0])),
                                                (self.c.edge_nodes, self.c.edge_cand, self.c.segments,
-                                                self.spheres[1])))
+                                                np.column_stack(self.spheres[1]))))
 
     def commit(self, hint) -> None:
         """Remember `hint` (from `__call__`) for the next projections."""
@@ -187,7 +188,14 @@ class NearProjector:
         back through the projection: on a surface node minus its component along its triangle's normal, on an
         edge node its component along its segment (the derivative of the projection onto a plane or a line);
         nodes of `keep` unchanged. A new array."""
-        c, g = self.c, np.array(g)
+        c, g = self.c, np.array(g, dtype=np.float64)
+        if self._native is not None:
+            from .. import native
+
+            for kind, (nodes, cand, table, _) in enumerate(self._native):
+                if len(nodes):
+                    native.pullback(g, nodes, hint[kind], keep, cand, table, kind)
+            return g
         for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, c.surface_cand, TN),
                                                           (c.edge_nodes, c.segments, c.edge_cand, SD))):
             rows = np.flatnonzero(hint[kind] >= 0) if keep is None else np.flatnonzero((hint[kind] >= 0)
@@ -201,6 +209,21 @@ class NearProjector:
             along = np.sum(g[sel] * d, axis=1, keepdims=True) * d
             g[sel] = g[sel] - along if kind == 0 else along
         return g
+
+
+def _with_faces(triangles: np.ndarray, spheres) -> np.ndarray:
+    """The triangles' spheres ``(nt, 4)`` (centre, radius) followed by one per boundary face (its 4 triangles,
+    columns 4 f .. 4 f + 3, share the face's centroid): centred at the centroid, holding the four triangles'
+    spheres, so that the C search passes over a face none of whose triangles can come nearer at once. Only the
+    triangles' where nt is not a multiple of 4."""
+    centre, radius = spheres
+    out = np.column_stack([centre, radius])
+    nt = len(radius)
+    if nt % 4:
+        return out
+    c = np.asarray(triangles[TC : TC + 3, ::4], np.float64).T
+    reach = np.linalg.norm(centre.reshape(-1, 4, 3) - c[:, None], axis=-1) + radius.reshape(-1, 4)
+    return np.concatenate([out, np.column_stack([c, reach.max(axis=1) * (1 + 1e-9)])])
 
 
 def _sphere(table, centre_radius):

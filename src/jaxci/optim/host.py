@@ -92,12 +92,16 @@ class HostObjective:
         if self.kernel is None:
             self.kernel = hex_objective_kernel(self.conn, self.power)
         self._cons, _ = host_constraints(par.cons)
-        self._x0 = np.asarray(par.x0, np.float64)
-        self._scale = np.asarray(par.scale, np.float64)
-        self._flat = np.asarray(par.flat_nodes)
-        self._origin = np.asarray(par.flat_origin, np.float64)
-        self._r2 = (0.999 * np.asarray(par.flat_radius, np.float64)) ** 2
+        self._x0 = np.ascontiguousarray(par.x0, np.float64)
+        self._scale = np.ascontiguousarray(par.scale, np.float64)
+        self._flat = np.ascontiguousarray(par.flat_nodes)
+        self._origin = np.ascontiguousarray(par.flat_origin, np.float64)
+        self._r2 = (0.999 * np.ascontiguousarray(par.flat_radius, np.float64)) ** 2
         self._project = self.projector or NearProjector(par.cons)
+        #: the C form of the lift and its transpose (`jaxci.native.layout`), or None (numpy)
+        self._layout = native.layout(self._cons) if native.AVAILABLE else None
+        if self._layout is not None:
+            self._flat = np.ascontiguousarray(self._flat, np.int64)
         #: ``(v, points, output, hint)`` of the accepted iterate (`accept`): the projector remembers each node's last
         #: triangle, so the same `v` may land a node on a neighbouring triangle after other trials; a restart
         #: from the accepted iterate and the returned points are this evaluation's
@@ -111,13 +115,19 @@ class HostObjective:
         """``(x, (hint, keep))``: the coordinates, the projector's triangles and the nodes it left alone
         (None: nothing projected). A moving boundary node inside its flat region is its own projection: only
         the others are projected (on a bracket with 79% of its boundary nodes on planes, 4/5 of the work)."""
-        x = lift_points(np, self._x0, self._scale, self._cons, v)
-        d = x[self._flat] - self._origin
-        inside = np.sum(d * d, axis=-1) < self._r2
-        if self.par.shortcut and inside.all():
-            return x, None
-        keep = np.zeros(x.shape[0], bool)
-        keep[self._flat[inside]] = True
+        if self._layout is not None:
+            x = native.lift(self._x0, self._scale, v, self._layout)
+            keep = np.zeros(x.shape[0], bool)
+            if native.flat_keep(x, self._flat, self._origin, self._r2, keep) == 0 and self.par.shortcut:
+                return x, None
+        else:
+            x = lift_points(np, self._x0, self._scale, self._cons, v)
+            d = x[self._flat] - self._origin
+            inside = np.sum(d * d, axis=-1) < self._r2
+            if self.par.shortcut and inside.all():
+                return x, None
+            keep = np.zeros(x.shape[0], bool)
+            keep[self._flat[inside]] = True
         x, hint = self._project(x, keep)
         return x, (hint, keep)
 
@@ -140,7 +150,9 @@ class HostObjective:
             return np.inf, None, f, kmax
         if hint is not None:
             gx = self._project.pullback(gx, *hint)
-        out = self.s * f, self.s * lift_transpose_np(self._scale, self._cons, gx), f, kmax
+        gv = (native.lift_t(gx, self._scale, self._layout) if self._layout is not None
+              else lift_transpose_np(self._scale, self._cons, gx))
+        out = self.s * f, self.s * gv, f, kmax
         self._last = (np.array(v), x, out, hint)
         return out
 
