@@ -20,7 +20,6 @@ the edge's moved corner nodes, plus the offset it had from the old midpoint when
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import warnings
 from collections.abc import Mapping, Sequence
@@ -29,6 +28,8 @@ import numpy as np
 
 from .cells import EDGES, corner_determinants
 from .errors import MeshError
+from .frame import from_unit as from_unit
+from .frame import to_unit, unit_frame
 
 #: Permutation that mirrors a hexahedron (swaps the two quadrilateral faces 0123 and 4567). It is its own
 #: inverse; it turns a left-handed element (all eight corner determinants negative) into a right-handed one.
@@ -88,37 +89,6 @@ class CellBlock:
     data: np.ndarray
     ids: np.ndarray | None = None
     midside: np.ndarray | None = None
-
-
-def unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """The frame in which jaxci measures and smooths: ``(centre, scale)`` with ``unit = (points - centre) / scale``.
-
-    `centre` is the bounding-box centre, shape ``(3,)``; `scale` the power of two at or below the box's largest
-    side (1.0 for a single point), so that the unit coordinates lie within [-1, 1] whatever the file's units
-    (a box of side 1e300 or 1e-300 is measured like a unit box; the quality metrics are scale-invariant) and
-    dividing by `scale` is exact.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    if not len(p):
-        return np.zeros(3), 1.0
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    centre = 0.5 * lo + 0.5 * hi  # no overflow near the float64 limit
-    extent = float((0.5 * hi - 0.5 * lo).max()) * 2.0
-    if not (extent > 0 and np.isfinite(extent)):
-        return centre, 1.0
-    return centre, math.ldexp(1.0, math.frexp(extent)[1] - 1)
-
-
-def to_unit(points: np.ndarray, frame: tuple[np.ndarray, float]) -> np.ndarray:
-    """`points` ``(n, 3)`` in the unit frame of `unit_frame` (float64)."""
-    centre, scale = frame
-    return (np.asarray(points, dtype=np.float64) - centre) / scale
-
-
-def from_unit(points: np.ndarray, frame: tuple[np.ndarray, float]) -> np.ndarray:
-    """The inverse of `to_unit`."""
-    centre, scale = frame
-    return np.asarray(points, dtype=np.float64) * scale + centre
 
 
 def coincident_pairs(points: np.ndarray, nodes: np.ndarray | None = None,
