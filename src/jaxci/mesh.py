@@ -26,19 +26,15 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .blocks import MIRROR_HEX as MIRROR_HEX
+from .blocks import MIRROR_HEX_EDGES as MIRROR_HEX_EDGES
+from .blocks import NODES_PER_CELL, CellBlock, block_label, int_array, mirrored_block
 from .cells import EDGES, corner_determinants
 from .coincident import COINCIDENT_TOLERANCE, coincident_pairs
 from .coincident import close_pairs as close_pairs
 from .errors import MeshError
 from .frame import from_unit as from_unit
 from .frame import to_unit, unit_frame
-
-#: Permutation that mirrors a hexahedron (swaps the two quadrilateral faces 0123 and 4567). It is its own
-#: inverse; it turns a left-handed element (all eight corner determinants negative) into a right-handed one.
-MIRROR_HEX = np.array([4, 5, 6, 7, 0, 1, 2, 3], dtype=np.int64)
-
-#: Permutation of the 12 hexahedron edges (`EDGES`) that goes with `MIRROR_HEX`.
-MIRROR_HEX_EDGES = np.array([4, 5, 6, 7, 0, 1, 2, 3, 8, 9, 10, 11], dtype=np.int64)
 
 #: Relative distance from its edge's midpoint (to the edge length) below which a midside node counts as ON the
 #: midpoint (a straight edge; files keep 13-14 digits): `HexMesh.with_points` then puts it exactly there.
@@ -47,56 +43,6 @@ MIDPOINT_TOLERANCE = 1e-9
 #: A node farther than this many median edge lengths from the mesh's median node is refused on construction:
 #: across such a range float64 keeps no digits of an element's shape (a stray node, or mixed units).
 MAX_COORDINATE_RANGE = 1e12
-
-#: Number of nodes of the cell types jaxci knows (meshio names).
-NODES_PER_CELL = {
-    "vertex": 1,
-    "line": 2,
-    "triangle": 3,
-    "quad": 4,
-    "tetra": 4,
-    "pyramid": 5,
-    "wedge": 6,
-    "hexahedron": 8,
-    "line3": 3,
-    "triangle6": 6,
-    "quad8": 8,
-    "quad9": 9,
-    "tetra10": 10,
-    "hexahedron20": 20,
-    "hexahedron27": 27,
-    "wedge15": 15,
-    "pyramid13": 13,
-}
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class CellBlock:
-    """One block of cells of a single type.
-
-    **Arguments:**
-
-    - `type`: the meshio cell type name (``"hexahedron"``, ``"quad"``, ``"wedge"``, ...).
-    - `data`: connectivity, an integer array of shape ``(n_cells, nodes_per_cell)`` of 0-based node indices.
-    - `ids`: optional external element ids (ANSYS, Abaqus), shape ``(n_cells,)``.
-    - `midside`: optional midside nodes of quadratic cells, shape ``(n_cells, n_edges)`` (edges in `EDGES` order;
-      -1 where an edge has none); only for ``hexahedron``, ``wedge``, ``pyramid`` and ``tetra`` blocks.
-    """
-
-    type: str
-    data: np.ndarray
-    ids: np.ndarray | None = None
-    midside: np.ndarray | None = None
-
-
-def _as_int_array(a, name: str) -> np.ndarray:
-    arr = np.asarray(a)
-    if arr.dtype.kind not in "iu":
-        if arr.dtype.kind == "f" and np.all(np.isfinite(arr)) and np.all(arr == np.round(arr)):
-            arr = arr.astype(np.int64)
-        else:
-            raise MeshError(f"{name}: connectivity must be integer node indices, got dtype {arr.dtype}")
-    return arr.astype(np.int64, copy=False)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -159,7 +105,7 @@ class HexMesh:
         n = pts.shape[0]
         blocks = []
         for bi, blk in enumerate(self.cells):
-            data = _as_int_array(blk.data, f"{where}cell block {bi} ({blk.type})")
+            data = int_array(blk.data, f"{where}cell block {bi} ({blk.type})")
             width = NODES_PER_CELL.get(blk.type)
             if data.ndim != 2 or (width is not None and data.shape[1] != width):
                 raise MeshError(
@@ -236,7 +182,7 @@ class HexMesh:
 
     @staticmethod
     def _check_midside(blk: CellBlock, bi: int, data: np.ndarray, ids, n: int, where: str) -> np.ndarray:
-        mid = _as_int_array(blk.midside, f"{where}midside nodes of cell block {bi} ({blk.type})")
+        mid = int_array(blk.midside, f"{where}midside nodes of cell block {bi} ({blk.type})")
         if blk.type not in EDGES:
             raise MeshError(f"{where}cell block {bi} ({blk.type}) has midside nodes; only hexahedron, wedge, "
                             f"pyramid and tetra blocks can (quadratic cells as linear cells plus midside nodes)")
@@ -257,11 +203,7 @@ class HexMesh:
             return f"{int(np.asarray(self.node_ids)[k])} (index {k})"
         return str(k)
 
-    @staticmethod
-    def block_label(blk: CellBlock, row: int) -> str:
-        if blk.ids is not None:
-            return f"{int(np.asarray(blk.ids)[row])} (index {row})"
-        return str(row)
+    block_label = staticmethod(block_label)  # `jaxci.blocks.block_label`
 
     @staticmethod
     def _hex_label(blocks, k: int) -> str:
@@ -365,12 +307,6 @@ class HexMesh:
             )
         return dataclasses.replace(self, points=pts, fix_orientation=False, notes=tuple(out_notes),
                                    check_coincident=False)
-
-
-def mirrored_block(b: CellBlock) -> CellBlock:
-    """A hexahedron block mirrored by `MIRROR_HEX` (its midside nodes by `MIRROR_HEX_EDGES`)."""
-    mid = None if b.midside is None else np.asarray(b.midside)[:, MIRROR_HEX_EDGES]
-    return CellBlock(b.type, np.asarray(b.data)[:, MIRROR_HEX], b.ids, mid)
 
 
 def _midside_table(blocks, corner_used: np.ndarray, where: str, label) -> tuple[np.ndarray, np.ndarray]:
