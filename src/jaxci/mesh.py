@@ -14,7 +14,11 @@ tetrahedra) are held as their linear cell (`CellBlock.data`, the corner nodes: w
 midside order Q R S T U V W X Y Z A B of a brick), -1 where an edge has none (ANSYS allows dropping midside
 nodes). A midside node belongs to one edge: two cells that share it must share that edge, and no cell may use it as
 a corner (checked on construction). `HexMesh.with_points` moves every midside node with its edge: to the midpoint of
-the edge's moved corner nodes, plus the offset it had from the old midpoint when that edge was curved.
+the edge's moved corner nodes, plus the offset it had from the old midpoint when that edge was curved
+(`jaxci.midside`).
+
+The mesh model's parts live in their own modules, re-exported here: `jaxci.blocks` (`CellBlock`), `jaxci.frame`
+(the unit frame), `jaxci.coincident` (coincident nodes), `jaxci.midside` (midside nodes).
 """
 
 from __future__ import annotations
@@ -29,16 +33,14 @@ import numpy as np
 from .blocks import MIRROR_HEX as MIRROR_HEX
 from .blocks import MIRROR_HEX_EDGES as MIRROR_HEX_EDGES
 from .blocks import NODES_PER_CELL, CellBlock, block_label, int_array, mirrored_block
-from .cells import EDGES, corner_determinants
+from .cells import corner_determinants
 from .coincident import COINCIDENT_TOLERANCE, coincident_pairs
 from .coincident import close_pairs as close_pairs
 from .errors import MeshError
 from .frame import from_unit as from_unit
 from .frame import to_unit, unit_frame
-
-#: Relative distance from its edge's midpoint (to the edge length) below which a midside node counts as ON the
-#: midpoint (a straight edge; files keep 13-14 digits): `HexMesh.with_points` then puts it exactly there.
-MIDPOINT_TOLERANCE = 1e-9
+from .midside import MIDPOINT_TOLERANCE as MIDPOINT_TOLERANCE
+from .midside import check_midside, midside_table, place_midside
 
 #: A node farther than this many median edge lengths from the mesh's median node is refused on construction:
 #: across such a range float64 keeps no digits of an element's shape (a stray node, or mixed units).
@@ -123,7 +125,7 @@ class HexMesh:
             ids = None if blk.ids is None else np.asarray(blk.ids)
             if ids is not None and ids.shape != (data.shape[0],):
                 raise MeshError(f"{where}cell block {bi}: {ids.shape[0]} ids for {data.shape[0]} cells")
-            mid = None if blk.midside is None else self._check_midside(blk, bi, data, ids, n, where)
+            mid = None if blk.midside is None else check_midside(blk, bi, data, ids, n, where)
             blocks.append(CellBlock(blk.type, data, ids, mid))
         if not any(b.type == "hexahedron" and len(b.data) for b in blocks):
             found = sorted({b.type for b in blocks if len(b.data)}) or ["no cells"]
@@ -167,7 +169,7 @@ class HexMesh:
         used = np.zeros(n, bool)
         for b in blocks:
             used[b.data.ravel()] = True
-        midside, _ = _midside_table(blocks, used, where, self.node_label)
+        midside, _ = midside_table(blocks, used, where, self.node_label)
         used[midside] = True
         if not used.all():
             notes.append(f"{int((~used).sum())} unreferenced nodes (kept, never moved)")
@@ -179,23 +181,6 @@ class HexMesh:
         object.__setattr__(self, "cells", tuple(blocks))
         object.__setattr__(self, "hex_mirrored", mirrored)
         object.__setattr__(self, "notes", tuple(notes))
-
-    @staticmethod
-    def _check_midside(blk: CellBlock, bi: int, data: np.ndarray, ids, n: int, where: str) -> np.ndarray:
-        mid = int_array(blk.midside, f"{where}midside nodes of cell block {bi} ({blk.type})")
-        if blk.type not in EDGES:
-            raise MeshError(f"{where}cell block {bi} ({blk.type}) has midside nodes; only hexahedron, wedge, "
-                            f"pyramid and tetra blocks can (quadratic cells as linear cells plus midside nodes)")
-        shape = (len(data), len(EDGES[blk.type]))
-        if mid.shape != shape:
-            raise MeshError(f"{where}midside nodes of cell block {bi} ({blk.type}) have shape {mid.shape}, "
-                            f"expected {shape}")
-        bad = (mid < -1) | (mid >= n)
-        if bad.any():
-            row = int(np.flatnonzero(bad.any(axis=1))[0])
-            raise MeshError(f"{where}{blk.type} element {HexMesh.block_label(CellBlock(blk.type, data, ids), row)} "
-                            f"has midside node index {int(mid[row][bad[row]][0])}, out of range [0, {n})")
-        return mid
 
     # ------------------------------------------------------------------ labels for messages
     def node_label(self, k: int) -> str:
@@ -255,7 +240,7 @@ class HexMesh:
         used = np.zeros(self.n_nodes, bool)
         for b in self.cells:
             used[b.data.ravel()] = True
-        return _midside_table(self.cells, used, "", self.node_label)
+        return midside_table(self.cells, used, "", self.node_label)
 
     @property
     def other_cell_types(self) -> list[str]:
@@ -288,68 +273,13 @@ class HexMesh:
         out_notes = list(notes) if notes is not None else []
         nodes, ends = self.midside_edges
         if len(nodes) and midside != "keep":
-            a, b = ends[:, 0], ends[:, 1]
-            centre = 0.5 * (pts[a] + pts[b])
-            curved = 0
-            if midside == "follow":
-                old = self.points
-                offset = old[nodes] - 0.5 * (old[a] + old[b])
-                unit = unit_frame(old)[1]  # lengths compared in the unit frame: no overflow of squares at 1e300
-                length = np.linalg.norm((old[b] - old[a]) / unit, axis=1)
-                straight = np.linalg.norm(offset / unit, axis=1) <= MIDPOINT_TOLERANCE * length
-                offset[straight] = 0.0
-                curved = int((~straight).sum())
-                centre += offset
-            pts[nodes] = centre
+            curved = place_midside(self.points, pts, nodes, ends, midside)
             out_notes.append(
                 f"{len(nodes)} midside nodes of quadratic cells re-placed at the midpoints of their edges' corner "
                 f"nodes" + (f" ({curved} on curved edges keep their offset from the midpoint)" if curved else "")
             )
         return dataclasses.replace(self, points=pts, fix_orientation=False, notes=tuple(out_notes),
                                    check_coincident=False)
-
-
-def _midside_table(blocks, corner_used: np.ndarray, where: str, label) -> tuple[np.ndarray, np.ndarray]:
-    """Midside nodes of all blocks (sorted, unique) and their edges' corner nodes; checks that each node belongs
-    to one edge and is no cell's corner (`MeshError` naming the node and both elements otherwise)."""
-    rows = []  # (midside node, corner a, corner b, block, cell)
-    for bi, b in enumerate(blocks):
-        if b.midside is None or not len(b.data):
-            continue
-        mid = np.asarray(b.midside)
-        ends = np.asarray(b.data)[:, EDGES[b.type]]  # (N, E, 2)
-        cell = np.broadcast_to(np.arange(len(mid))[:, None], mid.shape)
-        has = mid >= 0
-        lo, hi = np.sort(ends, axis=2)[..., 0], np.sort(ends, axis=2)[..., 1]
-        rows.append(np.stack([mid[has], lo[has], hi[has], np.full(int(has.sum()), bi), cell[has]], axis=1))
-    if not rows:
-        return np.zeros(0, np.int64), np.zeros((0, 2), np.int64)
-    t = np.concatenate(rows)
-    t = t[np.lexsort((t[:, 4], t[:, 3], t[:, 0]))]
-
-    def elem(r) -> str:
-        blk = blocks[int(r[3])]
-        return f"{blk.type} element {HexMesh.block_label(blk, int(r[4]))}"
-
-    corner = corner_used[t[:, 0]]
-    if corner.any():
-        r = t[int(np.flatnonzero(corner)[0])]
-        raise MeshError(
-            f"{where}node {label(int(r[0]))} is a midside node of {elem(r)} (edge {label(int(r[1]))}-"
-            f"{label(int(r[2]))}) and a corner node of a cell; a midside node belongs to one edge only"
-        )
-    same = t[1:, 0] == t[:-1, 0]
-    clash = same & ((t[1:, 1] != t[:-1, 1]) | (t[1:, 2] != t[:-1, 2]))
-    if clash.any():
-        k = int(np.flatnonzero(clash)[0])
-        r, s = t[k], t[k + 1]
-        raise MeshError(
-            f"{where}midside node {label(int(r[0]))} is shared inconsistently: it lies on edge "
-            f"{label(int(r[1]))}-{label(int(r[2]))} of {elem(r)} but on edge {label(int(s[1]))}-{label(int(s[2]))} "
-            f"of {elem(s)} ({int(clash.sum())} such nodes); a midside node belongs to one edge only"
-        )
-    first = np.concatenate([[True], ~same])
-    return t[first, 0], t[first][:, 1:3]
 
 
 def hex_mesh(points, hexes, **kwargs) -> HexMesh:
