@@ -25,10 +25,10 @@ sets again. Node ids (`HexMesh.node_ids`) and element ids (`CellBlock.ids`) are 
 APDL formats (`jaxci.io._abaqus`, `jaxci.io._ansys_apdl`), and so is the text of a source deck (``abaqus:deck``,
 ``ansys:deck`` field data). Anything a format drops is reported with a `LossyWriteWarning`, before writing.
 
-Counts are checked against the headers that announce them (`jaxci.io._counts`): a file whose POINTS, CELLS,
-CELL_TYPES, POINT_DATA or CELL_DATA (legacy VTK), NumberOfPoints / NumberOfCells / offsets (VTU), Dimensions (XDMF)
-or $Nodes / $Elements (Gmsh) disagree with what the file holds is a truncated or corrupt file, and so is a Gmsh file
-that defines a node or element tag twice or whose elements list undefined nodes.
+Counts are checked against the headers that announce them (`jaxci.io._counts`, `jaxci.io._gmsh_counts`): a file
+whose POINTS, CELLS, CELL_TYPES, POINT_DATA or CELL_DATA (legacy VTK), NumberOfPoints / NumberOfCells / offsets (VTU),
+Dimensions (XDMF) or $Nodes / $Elements (Gmsh) disagree with what the file holds is a truncated or corrupt file, and
+so is a Gmsh file that defines a node or element tag twice or whose elements list undefined nodes.
 """
 
 from __future__ import annotations
@@ -46,7 +46,8 @@ import numpy as np
 
 from ..errors import JaxciError, MeshReadError, MeshWriteError
 from ..mesh import MIRROR_HEX, CellBlock, HexMesh
-from ._counts import check_gmsh, check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
+from ._counts import check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
+from ._gmsh_counts import check_gmsh
 from ._losses import deck_losses
 
 #: Prefix of the point / cell data that carry a point / cell set in formats without sets.
