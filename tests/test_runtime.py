@@ -56,3 +56,22 @@ def test_the_command_runs_with_the_tunable_where_it_applies():
     off = subprocess.run([sys.executable, "-m", "jaxci", "--version"], capture_output=True, text=True,
                          env={**_child_env(), "JAXCI_HUGEPAGES": "0"})
     assert "huge pages for glibc allocations off" in off.stdout
+
+
+def test_a_small_mesh_is_not_worth_a_second_start(tmp_path):
+    """`jaxci smooth / quality / classify` on a mesh file below `SMALL_INPUT_BYTES` runs in the first process
+    (such meshes are solved on the host: the tunable changes nothing there); a large file, an option before the
+    input, a missing file or another command keep the re-execution."""
+    from jaxci.runtime import SMALL_INPUT_BYTES, small_input
+
+    small, big = tmp_path / "small.vtk", tmp_path / "big.vtk"
+    small.write_text("x")
+    with open(big, "wb") as f:
+        f.truncate(SMALL_INPUT_BYTES + 1)
+    for cmd in ("smooth", "quality", "classify"):
+        assert small_input([cmd, str(small), "out.vtk"])
+        assert not small_input([cmd, str(big), "out.vtk"])
+    assert not small_input(["smooth", "--method", "ci", str(small), "out.vtk"])
+    assert not small_input(["smooth", str(tmp_path / "missing.vtk"), "out.vtk"])
+    assert not small_input(["run", str(small)])
+    assert not small_input([])
