@@ -51,6 +51,9 @@ class CIParams:
     - `min_width`: local CI: smallest interval width, fraction of h (default 1e-6).
     - `max_sweeps`: local CI: maximum colour sweeps (default 200).
     - `tol`: saturation: relative change of F per sweep (local) or spread of behaviours (global) (default 1e-6).
+    - `atol`: local CI: also stop once a sweep lowers F by at most ``tol F + atol`` (F is dimensionless; default
+      1e-7). Without it a perturbed 20^3 box, at max kappa/3 1.00007 after 10 sweeps, swept on to the cap of 120
+      (114 s) as F fell geometrically towards 0 (`tol` alone is relative).
     - `ftol`: stop when F <= ftol (default 1e-10).
     - `patience`: global CI: saturation must hold for this many consecutive attempts (default 20).
     - `pattern`: local CI: after every sweep, a pattern move along the sweep's displacement D (Hooke & Jeeves):
@@ -72,6 +75,7 @@ class CIParams:
     min_width: float = 1e-6
     max_sweeps: int = 200
     tol: float = 1e-6
+    atol: float = 1e-7
     ftol: float = 1e-10
     patience: int = 20
     pattern: bool = True
@@ -91,6 +95,7 @@ class CIParams:
             min_width=_p.real(L, "min_width", self.min_width, 0, MAX_WIDTH, lo_open=True),
             max_sweeps=_p.integer(L, "max_sweeps", self.max_sweeps, 1, MAX_LOOP),
             tol=_p.real(L, "tol", self.tol, 0),
+            atol=_p.real(L, "atol", self.atol, 0),
             ftol=_p.real(L, "ftol", self.ftol, 0),
             patience=_p.integer(L, "patience", self.patience, 1, MAX_LOOP),
             pattern=_p.boolean(L, "pattern", self.pattern),
