@@ -21,7 +21,7 @@ from jaxci.errors import ConfigError
 from jaxci.generate import box, perturb_box
 from jaxci.geometry.boundary import INTERIOR
 from jaxci.geometry.projection import params_to_points
-from jaxci.metrics.hexahedron import objective_t, transposed
+from jaxci.metrics.hexahedron import objective_t, objective_terms_and_grad, transposed
 from jaxci.optim._solve import make_solver as _solver
 from jaxci.optim._solve import solve_loop
 from jaxci.optim.gradient import (
@@ -214,6 +214,29 @@ def test_closed_form_gradient_matches_autodiff_and_finite_differences():
     bad = x.at[13].set(x[13] + 2.0)
     fb, gb = objective_and_grad(bad, conn)
     assert np.isinf(float(fb)) and bool(jnp.all(jnp.isfinite(gb)))
+
+
+@pytest.mark.parametrize("block", [7, 16, 64, 125, 1000])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_blocked_gradient_equals_the_whole_mesh_at_once(block, weighted):
+    """`objective_terms_and_grad` over element blocks (blocks of 7, 16, 64 do not divide the 125 elements; 125
+    and more: the whole mesh at once) gives F, max kappa/3 and the gradient of the unblocked kernel, padding
+    elements (weight 0) and an inverted corner included."""
+    mesh = perturb_box(5, amplitude=0.3, seed=2)
+    x = jnp.asarray(mesh.points, jnp.float64)
+    hexes = np.concatenate([mesh.hexes, np.zeros((3, 8), np.int64)]) if weighted else mesh.hexes
+    conn = transposed(hexes)
+    weight = jnp.asarray(np.r_[np.ones(mesh.n_hexes), np.zeros(3)]) if weighted else None
+    fn = jax.jit(objective_terms_and_grad, static_argnums=(3, 4))
+    f0, k0, g0 = fn(x, conn, weight, None, 0)
+    f1, k1, g1 = fn(x, conn, weight, None, block)
+    assert float(f1) == pytest.approx(float(f0), rel=1e-12) and float(k1) == pytest.approx(float(k0), rel=1e-12)
+    np.testing.assert_allclose(np.asarray(g1), np.asarray(g0), rtol=1e-10, atol=1e-12 * float(jnp.abs(g0).max()))
+    bad = x.at[20].set(x[20] + 2.0)  # inverted corners: F and the max are inf, the gradient leaves them out
+    fb0, kb0, gb0 = fn(bad, conn, weight, None, 0)
+    fb1, kb1, gb1 = fn(bad, conn, weight, None, block)
+    assert np.isinf(float(fb1)) and np.isinf(float(kb1)) and np.isinf(float(fb0))
+    np.testing.assert_allclose(np.asarray(gb1), np.asarray(gb0), rtol=1e-10, atol=1e-12 * float(jnp.abs(gb0).max()))
 
 
 @pytest.mark.slow

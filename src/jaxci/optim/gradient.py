@@ -231,36 +231,37 @@ def _corner_terms(x, conn):
     return squared_condition_from_invariants(*corner_invariants(*corner_columns(*gather_corners(x, conn))))
 
 
-def _objective_closed(points, conn, weight, power=None):
+def _objective_closed(points, conn, weight, power=None, block=None):
     """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent).
     `weight`: None, or ``(N,)`` element weights (0: a padding element, `objective_terms_and_grad`); `power`
     (static): None for F, p for the p-mean (`jaxci.metrics.hexahedron.pmean_objective`). A `jax.custom_jvp` built on
-    first use (importing this module imports no JAX)."""
-    return _objective_closed_jvp()(points, conn, weight, power)
+    first use (importing this module imports no JAX). `block` (static): elements per block
+    (`jaxci.metrics.hexahedron.objective_terms_and_grad`; None: its default; 0: the whole mesh at once)."""
+    return _objective_closed_jvp()(points, conn, weight, power, block)
 
 
 @functools.cache
 def _objective_closed_jvp():
-    @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
-    def objective(points, conn, weight, power=None):
-        return objective_terms_and_grad(points, conn, weight, power)[:2]
+    @functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4))
+    def objective(points, conn, weight, power=None, block=None):
+        return objective_terms_and_grad(points, conn, weight, power, block)[:2]
 
     @objective.defjvp
-    def _jvp(power, primals, tangents):
+    def _jvp(power, block, primals, tangents):
         points, conn, weight = primals
-        f, k, g = objective_terms_and_grad(points, conn, weight, power)
+        f, k, g = objective_terms_and_grad(points, conn, weight, power, block)
         return (f, k), (jnp.sum(g * tangents[0]), jnp.zeros_like(k))
 
     return objective
 
 
-def _objective(x, conn, closed: bool, extra=None, weight=None, power=None):
+def _objective(x, conn, closed: bool, extra=None, weight=None, power=None, block=None):
     """F and max kappa/3 of coordinates `x` (``inf`` for an inverted mesh); over every corner of the hexahedra and
     of `extra` (`jaxci.metrics.objective.ExtraCells`, static types) when it has cells. `weight` (hexahedral meshes
     only): None, or ``(N,)`` element weights, 0 for the padding elements of a size class (`jaxci.optim._buckets`): they
     add nothing and F is the mean over the real corners."""
     if closed:  # one kernel for F, its gradient and the max
-        f, kmax = _objective_closed(x, conn, weight, power)
+        f, kmax = _objective_closed(x, conn, weight, power, block)
     elif weight is None:
         term = jax.lax.optimization_barrier(_corner_terms(x, conn))
         kmax = jnp.sqrt(jnp.max(term))
@@ -282,8 +283,8 @@ def _min_fn(v, args):
 
 
 def _min_fn_closed(v, args):
-    par, conn, s, ftol, extra, weight, *power = args
-    f, kmax = _objective(par.points(v), conn, True, extra, weight, *power)
+    par, conn, s, ftol, extra, weight, power, block = args
+    f, kmax = _objective(par.points(v), conn, True, extra, weight, power, block)
     return s * f, (f, kmax, f <= ftol)
 
 
@@ -340,13 +341,15 @@ BUCKETED = ("bfgs", "lbfgs", "cg")
 
 
 def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None, weight=None,
-                n_hex: int | None = None):
+                n_hex: int | None = None, block: int | None = None):
     """The objective function and its `args` for `solve_loop` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``).
 
     `extra`: the non-hexahedral cells (`jaxci.metrics.objective.ExtraCells`; default none): F is then the mean over
     every corner (`jaxci.metrics.elements.mixed_objective`) and ``s = n_corners / 32``. `weight` ``(N,)`` and `n_hex`:
     the element weights of a padded connectivity (0: padding) and the number of real hexahedra (default: every
-    element of `conn` is real).
+    element of `conn` is real). `block`: the closed-form gradient's elements per block (None: its default,
+    `jaxci.metrics.hexahedron.GRAD_BLOCK`; 0: the whole mesh at once, as on sharded elements: each device holds
+    its own block already).
     """
     extra = no_extra() if extra is None else extra
     n_hex = conn.shape[1] if n_hex is None else n_hex
@@ -357,8 +360,8 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
     else:
         fn = _min_fn_closed if p.gradient == "closed" else _min_fn
     args = (par, conn, s, to_device(np.asarray(p.ftol), dtype), extra, weight)
-    if p.objective == "pmean":  # a static float (filter_jit): one compilation per power
-        args = (*args, float(p.p))
+    if fn is _min_fn_closed:  # static (filter_jit): the p-mean's power (one compilation per power) and the block
+        args = (*args, float(p.p) if p.objective == "pmean" else None, block)
     return fn, args
 
 
@@ -484,7 +487,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = Gradie
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol)
         else:
-            fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex)
+            fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None)
             y = replicate(y, devices) if n_dev else y  # one input sharding for every run: one compilation
             y, k, result, hf, hk = solve_loop(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
