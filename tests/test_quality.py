@@ -189,3 +189,36 @@ def test_float32_path_close_to_float64():
 def test_unknown_metric():
     with pytest.raises(ValueError, match="unknown condition metric"):
         q.corner_condition(unit_cube(), np.arange(8)[None], "spectral")
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 64])
+def test_report_in_blocks_equals_one_block(monkeypatch, chunk):
+    """`quality_report` adds up its figures block by block (`REPORT_CHUNK`; 7 and 64 do not divide 125): the
+    same report as one block, with inverted corners and a mixed mesh (a wedge added) too."""
+    import meshio
+
+    from jaxci.metrics import report as R
+
+    mesh = perturb_box(5, amplitude=0.3, seed=3)
+    bad = mesh.points.copy()
+    bad[mesh.hexes[40, 6]] = bad[mesh.hexes[40, 0]]  # a degenerate node: inverted corners in several hexahedra
+    cells = [meshio.CellBlock("hexahedron", mesh.hexes), meshio.CellBlock("wedge", mesh.hexes[:2, [0, 1, 2, 4, 5, 6]])]
+    mixed = R.as_hex_mesh(meshio.Mesh(mesh.points, cells), "test")
+    for m, pts in ((mesh, None), (mesh, bad), (mixed, None)):
+        monkeypatch.setattr(R, "REPORT_CHUNK", 10**9)
+        whole = quality_report(m, pts).to_dict()
+        monkeypatch.setattr(R, "REPORT_CHUNK", chunk)
+        blocks = quality_report(m, pts).to_dict()
+        assert blocks.keys() == whole.keys()
+        for k, v in whole.items():
+            if isinstance(v, float):
+                assert blocks[k] == pytest.approx(v, rel=1e-12), k
+            elif isinstance(v, dict) and k in ("overall",):
+                for kk, vv in v.items():
+                    assert blocks[k][kk] == pytest.approx(vv, rel=1e-12), (k, kk)
+            elif k == "by_type":
+                for t in v:
+                    for kk, vv in v[t].items():
+                        assert blocks[k][t][kk] == pytest.approx(vv, rel=1e-12), (k, t, kk)
+            else:
+                assert blocks[k] == v, k

@@ -22,7 +22,7 @@ def cell_worst(mesh: HexMesh, points) -> dict[str, np.ndarray]:
     float64 arrays of shape ``(N_type,)``."""
     out = {}
     for t, cells in element_blocks(mesh).items():
-        k = E.corner_condition(points, cells, t).max(axis=1)
+        k = E.max_corner_condition(points, cells, t)
         out[t] = np.where(np.isnan(k), np.inf, k)
     return out
 

@@ -1,8 +1,8 @@
 """The quality report of a mesh (`quality_report`, what ``jaxci quality`` prints): every figure in float64.
 
 The hexahedra's figures (the paper's: kappa/3 per corner, inverted corners and elements, F of Eq. 3.1, the
-scaled Jacobian and Table 1's histogram) come from the hexahedron kernel (`jaxci.metrics.hexahedron`, or for a
-mesh of at most `NUMPY_REPORT_MAX` hexahedra the numpy kernel of `jaxci.metrics.elements`: no compilation); every
+scaled Jacobian and Table 1's histogram) come from the numpy kernel of `jaxci.metrics.elements` (no compilation),
+over blocks of `REPORT_CHUNK` hexahedra whose counts, sums and extremes are added up; every
 cell type's figures (`QualityReport.by_type`, `QualityReport.overall`) from `jaxci.metrics.elements.corner_figures`.
 """
 
@@ -17,14 +17,14 @@ from ..cells import element_blocks
 from ..errors import MeshError
 from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
 from .elements import cell_corner_kernel, corner_figures, summary
-from .hexahedron import as_points, corner_kernel, transposed
 
 #: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
 HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
 
-#: `quality_report` measures meshes of at most this many hexahedra in numpy (no compilation). Measured (2-core
-#: CPU, float64, perturbed boxes; first call / second call): 27,000 hexes 0.04 / 0.04 s in numpy against
-#: 0.84 / 0.07 s in JAX; 216,000: 0.25-0.69 / 0.25 s against 0.92 / 0.24 s.
+#: `jaxci.methods.host_run` runs meshes of at most this many hexahedra entirely on the host. (`quality_report`
+#: measured meshes up to this size in numpy, larger ones in JAX: 27,000 hexes 0.04 / 0.04 s in numpy against
+#: 0.84 / 0.07 s in JAX, first / second call; 216,000: 0.25-0.69 / 0.25 s against 0.92 / 0.24 s; it now measures
+#: every mesh in numpy, block by block: no compilation, and one block's arrays live instead of the mesh's.)
 NUMPY_REPORT_MAX = 250_000
 
 @dataclasses.dataclass(frozen=True)
@@ -86,11 +86,10 @@ def corner_histogram(kappa3: np.ndarray) -> tuple[tuple[float, float, int], ...]
 def quality_report(mesh: HexMesh, points=None) -> QualityReport:
     """The quality report of `mesh` (or of `mesh` with node coordinates `points` of shape ``(n, 3)``).
 
-    Uses float64 when ``jax_enable_x64`` is on (the CLI turns it on), else float32; meshes of at most
-    `NUMPY_REPORT_MAX` hexahedra are measured in numpy float64 (`jaxci.metrics.elements`' kernel: no compilation, which
-    cost 0.4 s of a 729-element cold start). The coordinates are measured in the unit frame of
-    `jaxci.mesh.unit_frame` (the metrics are scale-invariant): a mesh in metres, nanometres or light years gives
-    the same report, without overflow or underflow.
+    Measured in numpy float64 (`jaxci.metrics.elements`' kernel: no compilation, which cost 0.4 s of a
+    729-element cold start), over blocks of `REPORT_CHUNK` hexahedra (`_HexFigures`). The coordinates are
+    measured in the unit frame of `jaxci.mesh.unit_frame` (the metrics are scale-invariant): a mesh in metres,
+    nanometres or light years gives the same report, without overflow or underflow.
 
     **Arguments:** `mesh` a `HexMesh` (a `meshio.Mesh` is converted; anything else raises `UsageError`);
     `points` optional coordinates of shape ``(n_nodes, 3)``, finite (`MeshError` otherwise).
@@ -108,47 +107,119 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
                             f"{pts[k].tolist()}")
     pts = to_unit(pts, unit_frame(pts))
     hexes = mesh.hexes
-    if mesh.n_hexes <= NUMPY_REPORT_MAX:
-        det, _, fro2, adj2, l2 = cell_corner_kernel(np.asarray(pts, dtype=np.float64),
-                                                    np.ascontiguousarray(np.asarray(hexes).T), "hexahedron")
-    else:
-        det, fro2, adj2, l2 = (np.asarray(a) for a in corner_kernel(as_points(pts), transposed(hexes)))
-    valid = det > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        kappa3 = np.where(valid, np.sqrt(fro2 * adj2) / (3.0 * np.where(valid, det, 1.0)), np.inf)
-        sj = np.where(l2 > 0, det / np.sqrt(np.where(l2 > 0, l2, 1.0)), 0.0)
-    inv_el = ~valid.all(axis=1)
-    n_valid = int(valid.sum())
-    elem_max = kappa3.max(axis=1)
-    ok = ~inv_el
-    worst = int(np.argmax(np.where(ok, elem_max, -np.inf))) if ok.any() else None
+    acc = _HexFigures()
+    for lo in range(0, mesh.n_hexes, REPORT_CHUNK):
+        acc.add(pts, hexes[lo:lo + REPORT_CHUNK], lo)
     return QualityReport(
         n_nodes=mesh.n_nodes,
         n_elements=mesh.n_hexes,
-        inverted_corners=int((~valid).sum()),
-        inverted_elements=int(inv_el.sum()),
-        max_condition=float(elem_max[ok].max()) if ok.any() else None,
-        mean_condition=float(kappa3[ok].mean()) if ok.any() else None,
-        objective=float(np.mean(kappa3[valid] ** 2) - 1.0) if n_valid else None,
-        min_scaled_jacobian=float(sj.min()),
-        histogram=corner_histogram(kappa3[valid]),
-        worst_element=worst,
+        inverted_corners=acc.inverted_corners,
+        inverted_elements=acc.inverted,
+        max_condition=acc.max_ok,
+        mean_condition=acc.sum_ok / acc.n_ok if acc.n_ok else None,
+        objective=acc.sq_sum / acc.n_valid - 1.0 if acc.n_valid else None,
+        min_scaled_jacobian=acc.sj_min,
+        histogram=tuple((float(lo), float(hi), int(c)) for lo, hi, c in
+                        zip(HISTOGRAM_EDGES[:-1], HISTOGRAM_EDGES[1:], acc.hist, strict=True)),
+        worst_element=acc.worst,
         other_cells={t: int(sum(len(b.data) for b in mesh.cells if b.type == t)) for t in mesh.other_cell_types}
         or None,
-        **_by_type(mesh, pts, {"kappa3": kappa3, "inverted": inv_el, "scaled_jacobian": sj.min(axis=1),
-                               "verdict_condition": elem_max}),
+        **_by_type(mesh, pts, acc),
     )
 
 
-def _by_type(mesh: HexMesh, points, hex_figures: dict) -> dict:
-    """The `by_type` and `overall` fields of `quality_report`: `hex_figures` (the hexahedra's, computed above, in
-    the layout of `jaxci.metrics.elements.corner_figures`), `jaxci.metrics.elements.corner_figures` for the other
-    types."""
-    figs = {t: hex_figures if t == "hexahedron" else corner_figures(points, cells, t)
-            for t, cells in element_blocks(mesh).items()}
+#: `quality_report` measures the hexahedra in blocks of this many (numpy float64), adding up counts, sums,
+#: extremes and histogram bins: a block's corner arrays (~0.6 kB per hexahedron) are live, not the mesh's.
+#: Measured at 10^6 hexahedra: see docs/sharding.md, "Memory".
+REPORT_CHUNK = 65_536
+
+
+class _HexFigures:
+    """The hexahedra's report figures, accumulated block by block (`add`)."""
+
+    def __init__(self):
+        self.count = self.inverted = self.inverted_corners = self.n_ok = self.n_valid = 0
+        self.sum_ok = self.sq_sum = 0.0
+        self.max_ok = self.sj_min = self.worst = None
+        self.hist = np.zeros(len(HISTOGRAM_EDGES) - 1, np.int64)
+
+    def add(self, pts, hexes, offset: int) -> None:
+        """The figures of hexahedra `hexes` (``(B, 8)``), the first of which is hexahedron `offset`."""
+        det, _, fro2, adj2, l2 = cell_corner_kernel(np.asarray(pts, dtype=np.float64),
+                                                    np.ascontiguousarray(np.asarray(hexes).T), "hexahedron")
+        valid = det > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            kappa3 = np.where(valid, np.sqrt(fro2 * adj2) / (3.0 * np.where(valid, det, 1.0)), np.inf)
+            sj = np.where(l2 > 0, det / np.sqrt(np.where(l2 > 0, l2, 1.0)), 0.0)
+        inv_el = ~valid.all(axis=1)
+        elem_max = kappa3.max(axis=1)
+        ok = ~inv_el
+        self.count += len(hexes)
+        self.inverted += int(inv_el.sum())
+        self.inverted_corners += int((~valid).sum())
+        if ok.any():
+            k = int(np.argmax(np.where(ok, elem_max, -np.inf)))
+            if self.max_ok is None or elem_max[k] > self.max_ok:
+                self.max_ok, self.worst = float(elem_max[k]), offset + k
+            self.sum_ok += float(kappa3[ok].sum())
+            self.n_ok += int(ok.sum()) * 8
+        kv = kappa3[valid]
+        self.sq_sum += float(np.sum(kv * kv))
+        self.n_valid += len(kv)
+        self.hist += np.asarray([c for _, _, c in corner_histogram(kv)], np.int64)
+        m = float(sj.min())
+        self.sj_min = m if self.sj_min is None else min(self.sj_min, m)
+
+    def summary(self) -> dict:
+        """`jaxci.metrics.elements.summary` of the hexahedra, plus ``verdict_condition`` (max element kappa/3)."""
+        return {"count": self.count, "inverted": self.inverted, "max_condition": self.max_ok,
+                "mean_condition": self.sum_ok / self.n_ok if self.n_ok else None, "min_scaled_jacobian": self.sj_min,
+                "objective": self.sq_sum / self.n_valid - 1.0 if self.n_valid else None,
+                "verdict_condition": self.max_ok}
+
+
+def _by_type(mesh: HexMesh, points, hexa: _HexFigures) -> dict:
+    """The `by_type` and `overall` fields of `quality_report`: the hexahedra's from `hexa` (accumulated above),
+    `jaxci.metrics.elements.corner_figures` for the other types."""
     by_type = {}
-    for t, f in figs.items():
+    parts = []
+    for t, cells in element_blocks(mesh).items():
+        if t == "hexahedron":
+            by_type[t] = hexa.summary()
+            parts.append(hexa)
+            continue
+        f = corner_figures(points, cells, t)
         ok = ~f["inverted"]
         by_type[t] = {**summary([f]), "verdict_condition": float(f["verdict_condition"][ok].max()) if ok.any()
                       else None}
-    return {"by_type": by_type, "overall": summary(list(figs.values()))}
+        parts.append(f)
+    return {"by_type": by_type, "overall": _overall(parts)}
+
+
+def _overall(parts: list) -> dict:
+    """`jaxci.metrics.elements.summary` over every cell: the hexahedra's accumulated figures (`_HexFigures`) and
+    the other types' `corner_figures`."""
+    figs = [p for p in parts if isinstance(p, dict)]
+    hexa = [p for p in parts if isinstance(p, _HexFigures)]
+    if not hexa:
+        return summary(figs)
+    h = hexa[0]
+    if not figs:
+        s = h.summary()
+        s.pop("verdict_condition")
+        return s
+    k3_ok = np.concatenate([f["kappa3"][~f["inverted"]].ravel() for f in figs])
+    k3 = np.concatenate([f["kappa3"].ravel() for f in figs])
+    k3 = k3[np.isfinite(k3)]
+    sj = np.concatenate([f["scaled_jacobian"] for f in figs])
+    n_ok, n_fin = h.n_ok + len(k3_ok), h.n_valid + len(k3)
+    maxes = [m for m in (h.max_ok, float(k3_ok.max()) if len(k3_ok) else None) if m is not None]
+    sjs = [m for m in (h.sj_min, float(sj.min()) if len(sj) else None) if m is not None]
+    return {
+        "count": h.count + int(sum(len(f["inverted"]) for f in figs)),
+        "inverted": h.inverted + int(sum(f["inverted"].sum() for f in figs)),
+        "max_condition": max(maxes) if maxes else None,
+        "mean_condition": (h.sum_ok + float(k3_ok.sum())) / n_ok if n_ok else None,
+        "min_scaled_jacobian": min(sjs) if sjs else None,
+        "objective": (h.sq_sum + float(np.sum(k3 * k3))) / n_fin - 1.0 if n_fin else None,
+    }
