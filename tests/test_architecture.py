@@ -15,7 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 STAGES = {
     "jaxci.errors": 0, "jaxci._lazy": 0, "jaxci.runtime": 0, "jaxci.phases": 0, "jaxci.memory": 0,
     "jaxci.cells": 0, "jaxci.native": 0, "jaxci._ckernels": 0,
-    "jaxci.blocks": 1, "jaxci.frame": 1, "jaxci.coincident": 1, "jaxci.midside": 1, "jaxci.mesh": 1,
+    "jaxci.mesh": 1,
     "jaxci.generate": 1, "jaxci.shapes": 1, "jaxci.io": 1,
     "jaxci.geometry": 2,
     "jaxci.metrics": 3,

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..cells import EDGES
+from ..errors import MeshError
 from .blocks import CellBlock, block_label, int_array
-from .cells import EDGES
-from .errors import MeshError
 from .frame import unit_frame
 
 #: Relative distance from its edge's midpoint (to the edge length) below which a midside node counts as ON the

@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-from .errors import MeshError
+from ..errors import MeshError
 
 #: Permutation that mirrors a hexahedron (swaps the two quadrilateral faces 0123 and 4567). It is its own
 #: inverse; it turns a left-handed element (all eight corner determinants negative) into a right-handed one.

@@ -30,13 +30,13 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from ..cells import corner_determinants
+from ..errors import MeshError
 from .blocks import MIRROR_HEX as MIRROR_HEX
 from .blocks import MIRROR_HEX_EDGES as MIRROR_HEX_EDGES
 from .blocks import NODES_PER_CELL, CellBlock, block_label, int_array, mirrored_block
-from .cells import corner_determinants
 from .coincident import COINCIDENT_TOLERANCE, coincident_pairs
 from .coincident import close_pairs as close_pairs
-from .errors import MeshError
 from .frame import from_unit as from_unit
 from .frame import to_unit, unit_frame
 from .midside import MIDPOINT_TOLERANCE as MIDPOINT_TOLERANCE
@@ -378,13 +378,13 @@ def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMes
 def as_hex_mesh(obj, caller: str) -> HexMesh:
     """`obj` as a `HexMesh` for the public function `caller`: a `HexMesh` as is, a `meshio.Mesh` converted (as
     `jaxci.io.read_mesh` converts a file); anything else raises `UsageError` saying how to make one."""
-    from .errors import UsageError
+    from ..errors import UsageError
 
     if isinstance(obj, HexMesh):
         return obj
     cls = type(obj)
     if cls.__name__ == "Mesh" and cls.__module__.split(".")[0] == "meshio":
-        from .io._meshio import from_meshio
+        from ..io._meshio import from_meshio
 
         return from_meshio(obj, "<meshio.Mesh>")
     hint = "read a file with jaxci.read_mesh(path) or build one with jaxci.hex_mesh(points, hexes)"

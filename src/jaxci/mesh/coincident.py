@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import MeshError
+from ..errors import MeshError
 from .frame import to_unit, unit_frame
 
 #: Two distinct nodes closer than this fraction of the bounding-box diagonal are coincident (`coincident_pairs`):
