@@ -15,10 +15,10 @@ midside order Q R S T U V W X Y Z A B of a brick), -1 where an edge has none (AN
 nodes). A midside node belongs to one edge: two cells that share it must share that edge, and no cell may use it as
 a corner (checked on construction). `HexMesh.with_points` moves every midside node with its edge: to the midpoint of
 the edge's moved corner nodes, plus the offset it had from the old midpoint when that edge was curved
-(`jaxci.midside`).
+(`jaxci.mesh.midside`).
 
-The mesh model's parts live in their own modules, re-exported here: `jaxci.blocks` (`CellBlock`), `jaxci.frame`
-(the unit frame), `jaxci.coincident` (coincident nodes), `jaxci.midside` (midside nodes).
+The mesh model's parts live in their own modules, re-exported here: `jaxci.mesh.blocks` (`CellBlock`), `jaxci.mesh.frame`
+(the unit frame), `jaxci.mesh.coincident` (coincident nodes), `jaxci.mesh.midside` (midside nodes).
 """
 
 from __future__ import annotations
