@@ -17,8 +17,9 @@ a corner (checked on construction). `HexMesh.with_points` moves every midside no
 the edge's moved corner nodes, plus the offset it had from the old midpoint when that edge was curved
 (`jaxci.mesh.midside`).
 
-The mesh model's parts live in their own modules, re-exported here: `jaxci.mesh.blocks` (`CellBlock`), `jaxci.mesh.frame`
-(the unit frame), `jaxci.mesh.coincident` (coincident nodes), `jaxci.mesh.midside` (midside nodes).
+The mesh model's parts live in their own modules, re-exported here: `jaxci.mesh.blocks` (`CellBlock`),
+`jaxci.mesh.frame` (the unit frame), `jaxci.mesh.coincident` (coincident nodes), `jaxci.mesh.midside` (midside
+nodes).
 """
 
 from __future__ import annotations
@@ -188,7 +189,7 @@ class HexMesh:
             return f"{int(np.asarray(self.node_ids)[k])} (index {k})"
         return str(k)
 
-    block_label = staticmethod(block_label)  # `jaxci.blocks.block_label`
+    block_label = staticmethod(block_label)  # `jaxci.mesh.blocks.block_label`
 
     @staticmethod
     def _hex_label(blocks, k: int) -> str:
