@@ -8,6 +8,8 @@ of the boundary topology), the metrics (`jaxci.metrics`: corner kernels, objecti
 - Tables: `ELEMENT_TYPES`, `NODES`, `CORNER_NEIGHBOURS` (the hexahedron's corners), `CORNERS` and `TARGETS` (every
   type's corners and ideal corner matrix, formulas in `jaxci.metrics.elements`), `PYRAMID_TETS`, `EDGES`,
   `EXTRA_TYPES`, `QUADRATIC_TYPES`.
+- The table of kernels: `KERNELS`, one `CellKernel` per type (corner rows, W^-1, barrier sub-tetrahedra): what
+  every non-hexahedral function iterates over instead of branching on type names.
 - Corner algebra, for numpy and jax.numpy arrays alike: `corner_invariants` (det A, |A|_F^2, |adj A|_F^2),
   `corner_determinants` (numpy float64, the hexahedra's det A_i alone), `pmean_weights` (the p-mean of corner
   excesses and its weights).
@@ -17,6 +19,7 @@ of the boundary topology), the metrics (`jaxci.metrics`: corner kernels, objecti
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import TYPE_CHECKING
 
@@ -67,6 +70,41 @@ TARGETS = {
 
 #: The four tetrahedra of Verdict's pyramid Jacobian and scaled Jacobian (``make_pyramid_tets``).
 PYRAMID_TETS = np.array([[0, 1, 2, 4], [0, 2, 3, 4], [0, 1, 3, 4], [1, 2, 3, 4]])
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CellKernel:
+    """What the generic corner kernels need of one cell type (`KERNELS`): every function of the non-hexahedral
+    cells (objective, barrier, local rows, C kernel, untangling energy) reads these three fields instead of
+    branching on the type's name.
+
+    - `corners` ``(n_corners, 4)``: the objective corners, rows ``[i, p, q, r]`` (`CORNERS`);
+    - `winv` ``(3, 3)``: W^-1 of the type's ideal corner (`TARGETS`), so that ``T = A W^-1``;
+    - `barrier` ``(n_tets, 4)``: sub-tetrahedra ``[a, b, c, d]`` whose det(b - a, c - a, d - a) must stay > 0
+      (the raw A, W = I) but carry no objective term: a validity barrier (the pyramid's four Verdict
+      tetrahedra, `PYRAMID_TETS`); ``(0, 4)`` for a type without.
+    """
+
+    corners: np.ndarray
+    winv: np.ndarray
+    barrier: np.ndarray
+
+    @property
+    def n_corners(self) -> int:
+        """Objective corners per cell."""
+        return int(self.corners.shape[0])
+
+
+#: Barrier sub-tetrahedra of each type that has some (`CellKernel.barrier`).
+BARRIER_TETS = {"pyramid": PYRAMID_TETS}
+
+#: Every measured type's `CellKernel`, in `ELEMENT_TYPES` order: defined once, here, from `CORNERS`, `TARGETS` and
+#: `BARRIER_TETS`. The hexahedra also have their own fast path (`jaxci.metrics.hexahedron`, `jaxci.native`); the
+#: other types (`EXTRA_TYPES`) run through this table alone.
+KERNELS = {
+    t: CellKernel(CORNERS[t], np.linalg.inv(TARGETS[t]), BARRIER_TETS.get(t, np.zeros((0, 4), np.int64)))
+    for t in ELEMENT_TYPES
+}
 
 
 #: Edges (pairs of local corner nodes) of the linear volume cells, in the order of the midside nodes of VTK's
