@@ -78,17 +78,19 @@ from .._lazy import jax, jit, jnp
 from ..cells import (
     CORNERS,
     ELEMENT_TYPES,
+    KERNELS,
     NODES,
     PYRAMID_TETS,
-    TARGETS,
+    TARGETS,  # noqa: F401  (re-exported: the ideal corners this module's docstring refers to)
     corner_determinants,
     corner_invariants,
     element_blocks,
 )
 from ..mesh import HexMesh
 
-#: The regular tetrahedron's corner matrix: the target of Verdict's aspect Frobenius (``wedge_condition``).
-_REGULAR_TET = TARGETS["tetra"]
+#: The inverse of the regular tetrahedron's corner matrix: the target of Verdict's aspect Frobenius
+#: (``wedge_condition``).
+_REGULAR_TET_INV = KERNELS["tetra"].winv
 #: Verdict's normalisation of ``wedge_max_aspect_frobenius`` (``V_WedgeMetric.cpp``), kept as written there.
 VERDICT_WEDGE_NORMALISER = 1.16477
 #: `mixed_objective` of one set of coordinates is computed in numpy float64 up to this many cells (above: JAX;
@@ -136,11 +138,10 @@ def _columns(X, Y, Z, table):
     return tuple(out)
 
 
-def _times_inverse(cols, w: np.ndarray):
-    """The columns of A W^-1 from those of A (W a constant 3x3 matrix)."""
-    if np.array_equal(w, np.eye(3)):
+def _times_inverse(cols, winv: np.ndarray):
+    """The columns of A W^-1 from those of A (`winv` = W^-1, a constant 3x3 matrix: `jaxci.cells.CellKernel.winv`)."""
+    if np.array_equal(winv, np.eye(3)):
         return cols
-    winv = np.linalg.inv(w)
     a = (cols[0:3], cols[3:6], cols[6:9])
     out = []
     for j in range(3):
@@ -165,9 +166,10 @@ def _lengths2(cols):
 def cell_corner_kernel(points, conn, cell_type: str):
     """det A_i, det T_i, |T|_F^2, |adj T|_F^2 (T = A W^-1) and |a|^2|b|^2|c|^2 per corner, each ``(N, n_corners)``
     (numpy float64; `points` ``(n, 3)`` float64, `conn` the transposed ``(k, N)`` connectivity)."""
-    cols = _columns(*_nodes(np, points, conn), CORNERS[cell_type])
+    k = KERNELS[cell_type]
+    cols = _columns(*_nodes(np, points, conn), k.corners)
     det_a = _invariants(cols)[0]
-    det_t, fro2, adj2 = _invariants(_times_inverse(cols, TARGETS[cell_type]))
+    det_t, fro2, adj2 = _invariants(_times_inverse(cols, k.winv))
     return det_a.T, det_t.T, fro2.T, adj2.T, _lengths2(cols).T
 
 
@@ -240,7 +242,8 @@ def max_corner_condition(points, cells, cell_type: str) -> np.ndarray:
 
 
 def inverted(points, cells, cell_type: str) -> np.ndarray:
-    """Which cells are inverted or degenerate: a corner with det A_i <= 0 (pyramids: or a Verdict sub-tetrahedron).
+    """Which cells are inverted or degenerate: a corner with det A_i <= 0, or a barrier sub-tetrahedron
+    (`jaxci.cells.CellKernel.barrier`: the pyramids' Verdict tetrahedra) with det <= 0.
 
     **Returns:** a boolean array of shape ``(N,)`` (computed block by block, `CELL_CHUNK`).
     """
@@ -251,10 +254,7 @@ def _inverted(points, cells, cell_type: str) -> np.ndarray:
     pts, conn = _np_points(points), _conn(cells, cell_type)
     if cell_type == "hexahedron":  # the determinants alone (2.5x faster than the full kernel at 10^5 cells)
         return (corner_determinants(pts, np.asarray(cells, dtype=np.int64)) <= 0).any(axis=1)
-    bad = (cell_corner_kernel(pts, conn, cell_type)[0] <= 0).any(axis=1)
-    if cell_type == "pyramid":
-        bad |= (_pyramid_tet_dets(pts, conn) <= 0).any(axis=1)
-    return bad
+    return (cell_corner_kernel(pts, conn, cell_type)[0] <= 0).any(axis=1) | _barrier_inverted(pts, conn, cell_type)
 
 
 def _tet_parts(X, Y, Z):
@@ -264,15 +264,47 @@ def _tet_parts(X, Y, Z):
     return det, np.sqrt(_lengths2(cols).max(axis=0))
 
 
-def _pyramid_tet_dets(points, conn) -> np.ndarray:
+def _barrier_inverted(points, conn, cell_type: str) -> np.ndarray:
+    """Which cells have a barrier sub-tetrahedron (`jaxci.cells.CellKernel.barrier`) with det <= 0, ``(N,)``
+    (all False for a type without)."""
+    tets = KERNELS[cell_type].barrier
+    if not len(tets):
+        return np.zeros(conn.shape[1], bool)
     X, Y, Z = _nodes(np, points, conn)
-    return np.stack([_tet_parts(X[t], Y[t], Z[t])[0] for t in PYRAMID_TETS], axis=1)
+    return (np.stack([_tet_parts(X[t], Y[t], Z[t])[0] for t in tets], axis=1) <= 0).any(axis=1)
 
 
 def _tet_scaled_jacobian(X, Y, Z) -> np.ndarray:
     det, lmax = _tet_parts(X, Y, Z)
     lmax = np.maximum(lmax, np.abs(det))
     return np.where(lmax > 0, math.sqrt(2.0) * det / np.where(lmax > 0, lmax, 1.0), 0.0)
+
+
+def _hex_scaled_jacobian(points, conn, X, Y, Z) -> np.ndarray:
+    det, *_, l2 = cell_corner_kernel(points, conn, "hexahedron")
+    corner = _ratio(det, l2).min(axis=1, initial=np.inf)
+    axes = [[(0, 1), (3, 2), (4, 5), (7, 6)], [(0, 3), (1, 2), (4, 7), (5, 6)], [(0, 4), (1, 5), (2, 6), (3, 7)]]
+    cols = tuple(sum(C[j] - C[i] for i, j in pairs) for pairs in axes for C in (X, Y, Z))
+    return np.minimum(corner, _ratio(_invariants(cols)[0], _lengths2(cols)))
+
+
+def _wedge_scaled_jacobian(points, conn, X, Y, Z) -> np.ndarray:
+    cols = _columns(X, Y, Z, CORNERS["wedge"])
+    return (2.0 / math.sqrt(3.0)) * _ratio(_invariants(cols)[0], _lengths2(cols)).min(axis=0)
+
+
+def _pyramid_scaled_jacobian(points, conn, X, Y, Z) -> np.ndarray:
+    s = math.sqrt(2.0) * np.stack([_tet_scaled_jacobian(X[t], Y[t], Z[t]) for t in PYRAMID_TETS]).min(axis=0)
+    return np.where(s <= 0, 0.0, np.where(s <= 1.0, s, 2.0 - s))
+
+
+#: Verdict's element scaled Jacobian of each type, ``f(points, conn, X, Y, Z)`` (`scaled_jacobian`).
+_SCALED_JACOBIAN = {
+    "hexahedron": _hex_scaled_jacobian,
+    "wedge": _wedge_scaled_jacobian,
+    "pyramid": _pyramid_scaled_jacobian,
+    "tetra": lambda points, conn, X, Y, Z: _tet_scaled_jacobian(X, Y, Z),
+}
 
 
 def scaled_jacobian(points, cells, cell_type: str) -> np.ndarray:
@@ -285,27 +317,20 @@ def scaled_jacobian(points, cells, cell_type: str) -> np.ndarray:
     1; the pyramid's is 0 for an inverted pyramid, as in Verdict).
     """
     pts, conn = _np_points(points), _conn(cells, cell_type)
-    X, Y, Z = _nodes(np, pts, conn)
-    if cell_type == "hexahedron":
-        corner = corner_scaled_jacobian(pts, cells, cell_type).min(axis=1, initial=np.inf)
-        axes = [[(0, 1), (3, 2), (4, 5), (7, 6)], [(0, 3), (1, 2), (4, 7), (5, 6)], [(0, 4), (1, 5), (2, 6), (3, 7)]]
-        cols = tuple(sum(C[j] - C[i] for i, j in pairs) for pairs in axes for C in (X, Y, Z))
-        return np.minimum(corner, _ratio(_invariants(cols)[0], _lengths2(cols)))
-    if cell_type == "wedge":
-        cols = _columns(X, Y, Z, CORNERS["wedge"])
-        return (2.0 / math.sqrt(3.0)) * _ratio(_invariants(cols)[0], _lengths2(cols)).min(axis=0)
-    if cell_type == "tetra":
-        return _tet_scaled_jacobian(X, Y, Z)
-    s = math.sqrt(2.0) * np.stack([_tet_scaled_jacobian(X[t], Y[t], Z[t]) for t in PYRAMID_TETS]).min(axis=0)
-    return np.where(s <= 0, 0.0, np.where(s <= 1.0, s, 2.0 - s))
+    return _SCALED_JACOBIAN[cell_type](pts, conn, *_nodes(np, pts, conn))
 
 
 def _wedge_condition(points, conn) -> np.ndarray:
-    cols = _times_inverse(_columns(*_nodes(np, points, conn), CORNERS["wedge"]), _REGULAR_TET)
+    cols = _times_inverse(_columns(*_nodes(np, points, conn), CORNERS["wedge"]), _REGULAR_TET_INV)
     det, fro2, _ = _invariants(cols)
     with np.errstate(divide="ignore"):
         aspect = np.where(det != 0, fro2 / (3.0 * np.cbrt(det * det)), np.inf)
     return aspect.max(axis=0) / VERDICT_WEDGE_NORMALISER
+
+
+#: Verdict's element condition number of the types where it is not the max corner kappa/3, ``f(points, conn)``
+#: (`element_condition`).
+_VERDICT_CONDITION = {"wedge": _wedge_condition}
 
 
 def element_condition(points, cells, cell_type: str) -> np.ndarray:
@@ -318,8 +343,9 @@ def element_condition(points, cells, cell_type: str) -> np.ndarray:
     inverted hexahedron, pyramid or tetrahedron. The wedge's is Verdict's max aspect Frobenius (module docstring),
     finite even for an inverted wedge, as in Verdict: test `inverted` for validity.
     """
-    if cell_type == "wedge":
-        return _wedge_condition(_np_points(points), _conn(cells, cell_type))
+    verdict = _VERDICT_CONDITION.get(cell_type)
+    if verdict is not None:
+        return verdict(_np_points(points), _conn(cells, cell_type))
     return corner_condition(points, cells, cell_type).max(axis=-1)
 
 
@@ -337,21 +363,25 @@ def corner_terms_t(points, conn, cell_type: str):
         from .hexahedron import corner_columns, gather_corners
 
         return _sq_kappa3(jnp, *corner_invariants(*corner_columns(*gather_corners(points, conn))))
-    cols = _times_inverse(_columns(*_nodes(jnp, points, conn), CORNERS[cell_type]), TARGETS[cell_type])
-    return _sq_kappa3(jnp, *_invariants(cols))
+    return _sq_kappa3(jnp, *_invariants(normalised_corner_columns_t(points, conn, cell_type)))
 
 
 def normalised_corner_columns_t(points, conn, cell_type: str):
     """The 9 column entries of ``T_i = A_i W^-1`` per corner (JAX), each of shape ``(n_corners, N)``; `conn` is
     the transposed ``(k, N)`` connectivity. ``det T_i = det A_i / det W``: the same sign as det A_i."""
-    return _times_inverse(_columns(*_nodes(jnp, points, conn), CORNERS[cell_type]), TARGETS[cell_type])
+    k = KERNELS[cell_type]
+    return _times_inverse(_columns(*_nodes(jnp, points, conn), k.corners), k.winv)
 
 
-def pyramid_tet_dets_t(points, conn):
-    """det A_0 of the four tetrahedra of Verdict's pyramid Jacobian (`PYRAMID_TETS`), JAX, shape ``(4, N)``;
-    `conn` the transposed ``(5, N)`` pyramid connectivity."""
+def barrier_dets_t(points, conn, cell_type: str):
+    """det A_0 of the barrier sub-tetrahedra of the cells of one type (`jaxci.cells.CellKernel.barrier`: the
+    pyramids' four Verdict tetrahedra), JAX, shape ``(n_tets, N)``; None for a type without (static). `conn` is
+    the transposed ``(k, N)`` connectivity."""
+    tets = KERNELS[cell_type].barrier
+    if not len(tets):
+        return None
     X, Y, Z = _nodes(jnp, points, conn)
-    return jnp.stack([_invariants(_columns(X[t], Y[t], Z[t], CORNERS["tetra"][:1]))[0][0] for t in PYRAMID_TETS])
+    return jnp.stack([_invariants(_columns(X[t], Y[t], Z[t], CORNERS["tetra"][:1]))[0][0] for t in tets])
 
 
 @jit
@@ -438,14 +468,13 @@ def corner_figures(points, cells, cell_type: str) -> dict[str, np.ndarray]:
     pts, conn = _np_points(points), _conn(cells, cell_type)
     det_a, det, fro2, adj2, l2 = cell_corner_kernel(pts, conn, cell_type)
     k3 = _kappa3(det, fro2, adj2)
-    bad = (det_a <= 0).any(axis=1)
-    if cell_type == "pyramid":
-        bad |= (_pyramid_tet_dets(pts, conn) <= 0).any(axis=1)
-    if cell_type == "hexahedron":
+    bad = (det_a <= 0).any(axis=1) | _barrier_inverted(pts, conn, cell_type)
+    if cell_type == "hexahedron":  # the min corner scaled Jacobian: the hexahedra's report figure
         sj = _ratio(det_a, l2).min(axis=1, initial=np.inf)
     else:
         sj = scaled_jacobian(pts, cells, cell_type)
-    vc = _wedge_condition(pts, conn) if cell_type == "wedge" else k3.max(axis=1, initial=-np.inf)
+    verdict = _VERDICT_CONDITION.get(cell_type)
+    vc = verdict(pts, conn) if verdict is not None else k3.max(axis=1, initial=-np.inf)
     return {"kappa3": k3, "inverted": bad, "scaled_jacobian": sj, "verdict_condition": vc}
 
 

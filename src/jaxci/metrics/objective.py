@@ -5,6 +5,9 @@ hexahedron, 6 per wedge, 4 base corners per pyramid, 4 per tetrahedron) of ``(ka
 relative to its type's ideal cell. A pyramid is also invalid when one of Verdict's four sub-tetrahedra
 (`jaxci.cells.PYRAMID_TETS`) has det <= 0; those determinants carry no objective term, only a barrier.
 
+Every function here reads one table, `jaxci.cells.KERNELS` (per type: corner rows, W^-1, barrier
+sub-tetrahedra), and branches on no type name.
+
 Everything here is built to cost nothing on a pure hexahedral mesh: `ExtraCells` of such a mesh has no types
 (``types == ()``, a static field), and every function branches on that in Python, so the hexahedral code path
 (`jaxci.metrics.hexahedron.objective_t`) runs unchanged and compiles to the same program.
@@ -26,7 +29,7 @@ import dataclasses
 import numpy as np
 
 from .._lazy import jax, jnp, pytree_dataclass
-from ..cells import CORNERS, EDGES, PYRAMID_TETS, TARGETS, corner_invariants, element_blocks, volume_cells
+from ..cells import EDGES, KERNELS, corner_invariants, element_blocks, volume_cells
 from ..geometry.topology import unique_edges
 from ..mesh import HexMesh
 from . import elements as E
@@ -55,7 +58,7 @@ class ExtraCells:
     @property
     def n_corners(self) -> int:
         """Number of objective corners (6, 4, 4 per wedge, pyramid, tetrahedron)."""
-        return int(sum(len(CORNERS[t]) * c.shape[1] for t, c in zip(self.types, self.conns, strict=True)))
+        return int(sum(KERNELS[t].n_corners * c.shape[1] for t, c in zip(self.types, self.conns, strict=True)))
 
 
 def extra_cells(mesh: HexMesh, device: bool = True) -> ExtraCells:
@@ -77,11 +80,13 @@ def extra_terms(x, extra: ExtraCells) -> list:
 
 
 def extra_barrier(x, extra: ExtraCells):
-    """0, or ``inf`` when a pyramid sub-tetrahedron (`jaxci.cells.PYRAMID_TETS`) has det <= 0: a scalar."""
+    """0, or ``inf`` when a barrier sub-tetrahedron (`jaxci.cells.CellKernel.barrier`: the pyramids' Verdict
+    tetrahedra) has det <= 0: a scalar."""
     out = jnp.zeros((), x.dtype)
     for t, c in zip(extra.types, extra.conns, strict=True):
-        if t == "pyramid":
-            out = jnp.where(jnp.all(E.pyramid_tet_dets_t(x, c) > 0), out, jnp.inf)
+        dets = E.barrier_dets_t(x, c, t)
+        if dets is not None:
+            out = jnp.where(jnp.all(dets > 0), out, jnp.inf)
     return out
 
 
@@ -128,7 +133,8 @@ class CornerTable:
 
     - `nodes` ``(R, 4)``: corner node, then the three nodes whose differences with it are the columns of A;
     - `winv` ``(R, 9)``: W^-1 of the cell type, row-major (``T = A W^-1``);
-    - `weight` ``(R,)``: 1 for an objective corner, 0 for a pyramid sub-tetrahedron (its det must stay > 0).
+    - `weight` ``(R,)``: 1 for an objective corner, 0 for a barrier sub-tetrahedron (`jaxci.cells.CellKernel`: the
+      pyramids'; its det must stay > 0).
     """
 
     nodes: np.ndarray
@@ -141,13 +147,14 @@ class CornerTable:
 
 
 def corner_table(mesh: HexMesh) -> CornerTable:
-    """The `CornerTable` of the wedges, pyramids and tetrahedra of `mesh` (0 rows for a hexahedral mesh)."""
+    """The `CornerTable` of the wedges, pyramids and tetrahedra of `mesh` (0 rows for a hexahedral mesh): per type
+    of `jaxci.cells.KERNELS`, its corner rows, then its barrier rows (W = I, weight 0) if it has any."""
     nodes, winv, weight = [np.zeros((0, 4), np.int64)], [np.zeros((0, 9))], [np.zeros(0)]
     for t, cells in extra_blocks(mesh).items():
-        tables = [(CORNERS[t], np.linalg.inv(TARGETS[t]), 1.0)]
-        if t == "pyramid":
-            tables.append((PYRAMID_TETS[:, [0, 1, 2, 3]], np.eye(3), 0.0))
-        for tab, wi, w in tables:
+        k = KERNELS[t]
+        for tab, wi, w in ((k.corners, k.winv, 1.0), (k.barrier, np.eye(3), 0.0)):
+            if not len(tab):
+                continue
             rows = cells[:, tab].reshape(-1, 4)
             nodes.append(rows)
             winv.append(np.broadcast_to(wi.reshape(1, 9), (len(rows), 9)))

@@ -139,8 +139,9 @@ def _hex_energy():
 
 
 def _extra_energy(x, extra, inv_lens, eps, theta):
-    """Energy and min det J of the wedges, pyramids (with their sub-tetrahedra's volume term) and tetrahedra
-    (``J = A W^-1 / L_e``; sub-tetrahedra ``J = A / L_e``), differentiated by JAX."""
+    """Energy and min det J of the wedges, pyramids and tetrahedra (``J = A W^-1 / L_e``) with the volume term of
+    their barrier sub-tetrahedra (``J = A / L_e``; `jaxci.cells.CellKernel.barrier`: the pyramids'),
+    differentiated by JAX."""
     energy, dmin = 0.0, jnp.inf
     for t, conn, il in zip(extra.types, extra.conns, inv_lens, strict=True):
         cols = [col * il for col in E.normalised_corner_columns_t(x, conn, t)]
@@ -150,8 +151,9 @@ def _extra_energy(x, extra, inv_lens, eps, theta):
         f2 = sum(col * col for col in cols)
         energy = energy + jnp.sum((1.0 - theta) * (f2 / 3.0) / ce ** (2.0 / 3.0) + theta * (d * d + 1.0) / ce)
         dmin = jnp.minimum(dmin, jnp.min(d))
-        if t == "pyramid":
-            sub = E.pyramid_tet_dets_t(x, conn) * il**3
+        sub = E.barrier_dets_t(x, conn, t)
+        if sub is not None:
+            sub = sub * il**3
             energy = energy + jnp.sum(theta * (sub * sub + 1.0) / chi(eps, sub))
             dmin = jnp.minimum(dmin, jnp.min(sub))
     return energy / CORNERS_PER_NODE, dmin
