@@ -16,7 +16,7 @@ import os
 
 import numpy as np
 
-from .cells import CORNERS, PYRAMID_TETS, TARGETS, pmean_weights
+from .cells import KERNELS, pmean_weights
 
 try:
     if os.environ.get("JAXCI_NATIVE", "1") == "0":
@@ -95,16 +95,19 @@ class MixedKernel:
     ``(kappa/3)^2 - 1``, each relative to its type's ideal corner; ``inf`` if a corner, or one of the four
     tetrahedra of a pyramid, is inverted), for the numpy path of L-BFGS on mixed meshes.
 
-    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.cells.element_blocks`).
+    **Arguments:** `blocks`: cell type -> ``(N, k)`` cells (`jaxci.cells.element_blocks`). The hexahedra run
+    through their own kernel; every other type through its `jaxci.cells.KERNELS` entry: its corner rows with its
+    W^-1, and its barrier sub-tetrahedra (the pyramids'), whose det must stay > 0 and add no term.
     """
 
     def __init__(self, blocks: dict):
         self.hexes = _i8(blocks.get("hexahedron", np.zeros((0, 8))))
-        self.extra = [(corner_table(c, CORNERS[t]), _f8(np.linalg.inv(TARGETS[t])))
-                      for t, c in blocks.items() if t != "hexahedron" and len(c)]
-        pyr = np.asarray(blocks.get("pyramid", np.zeros((0, 5))), dtype=np.int64)
-        #: the pyramids' four tetrahedra as a corner table of their corner 0 (`PYRAMID_TETS`): a barrier
-        self.pyramid_tets = corner_table(np.concatenate([pyr[:, t] for t in PYRAMID_TETS]), CORNERS["tetra"][:1])
+        extra = {t: np.asarray(c, dtype=np.int64) for t, c in blocks.items() if t != "hexahedron" and len(c)}
+        #: per type, its corners as a flat corner table with its W^-1 (objective terms)
+        self.extra = [(corner_table(c, KERNELS[t].corners), _f8(KERNELS[t].winv)) for t, c in extra.items()]
+        #: the barrier sub-tetrahedra of every type that has some, as one corner table (W = I): validity only
+        self.barrier = np.concatenate([np.zeros((4, 0), np.int64)] + [
+            corner_table(c, KERNELS[t].barrier) for t, c in extra.items() if len(KERNELS[t].barrier)], axis=1)
         self.n_corners = 8 * len(self.hexes) + sum(t.shape[1] for t, _ in self.extra)
 
     def __call__(self, points: np.ndarray) -> tuple[float, float, np.ndarray]:
@@ -116,8 +119,8 @@ class MixedKernel:
         for table, winv in self.extra:
             s, t, b = _c.corner_condition(x, table, winv, weight, grad, None, THREADS)
             total, tmax, bad = total + s, max(tmax, t), bad + b
-        if self.pyramid_tets.shape[1]:
-            bad += _c.corner_condition(x, self.pyramid_tets, _EYE, 0.0, None, None, THREADS)[2]
+        if self.barrier.shape[1]:
+            bad += _c.corner_condition(x, self.barrier, _EYE, 0.0, None, None, THREADS)[2]
         if bad:
             return np.inf, np.inf, grad
         return total / n, float(np.sqrt(tmax)), grad
