@@ -188,8 +188,28 @@ def method_params(method: str, params: dict):
         from .optim.ci_params import ci_params
 
         return ci_params(method, params)
-    if method in ("laplace", "smart-laplace"):
-        from .optim.laplace import LaplaceParams as cls
-    else:
+    cls = method_param_class(method)
+    if cls is None:  # no parameter class of its own: the gradient methods'
         from .optim.gradient import GradientParams as cls
     return make_params(cls, params, method)
+
+
+def method_param_class(method: str):
+    """The parameter dataclass of `method`, whose fields are the method's ``params`` (`method_params` builds
+    it): `jaxci.optim.ci_params.CIParams` for ``"ci"`` and ``"ci-global"``, `jaxci.optim.gradient.GradientParams`
+    for the gradient methods, `jaxci.optim.laplace.LaplaceParams` for the Laplacians; None for ``"auto"`` or an
+    unknown name (its parameters are checked when it runs). The one method -> class table (YAML configs,
+    `jaxci.experiments.config`, read it too); the class is imported on use."""
+    if method in ("ci", "ci-global"):
+        from .optim.ci_params import CIParams
+
+        return CIParams
+    if method in ("bfgs", "lbfgs", "cg", "lm", "gauss-newton"):
+        from .optim.gradient import GradientParams
+
+        return GradientParams
+    if method in ("laplace", "smart-laplace"):
+        from .optim.laplace import LaplaceParams
+
+        return LaplaceParams
+    return None

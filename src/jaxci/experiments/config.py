@@ -273,38 +273,9 @@ def slugify(text: str) -> str:
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "x"
 
 
-#: Fallback for `method_param_class` while `jaxci.smooth` has no ``METHOD_PARAMS`` table: method ->
-#: ``"module:Class"`` under `jaxci`, imported on use; a missing module or class means "not checked up front".
-_PARAM_CLASSES = {
-    "ci": "optim.ci:CIParams",
-    "ci-global": "optim.ci:CIParams",
-    **dict.fromkeys(("bfgs", "lbfgs", "cg", "lm", "gauss-newton"), "optim.gradient:GradientParams"),
-    **dict.fromkeys(("laplace", "smart-laplace"), "optim.laplace:LaplaceParams"),
-}
-
-
-def method_param_class(method: str):
-    """The parameter dataclass of `method` (its fields are the method's ``params``), or None if unknown.
-
-    Looked up at call time in `jaxci.smooth.METHOD_PARAMS` (method -> dataclass) when that table exists, else in
-    `_PARAM_CLASSES`. Parameters of a method with no known class are checked only when it runs.
-    """
-    import importlib
-
-    sm = importlib.import_module("jaxci.smooth")  # the module (``jaxci.smooth`` is the function)
-    table = getattr(sm, "METHOD_PARAMS", None) or {}
-    if method in table:
-        return table[method]
-    if method not in _PARAM_CLASSES:
-        return None
-    module, _, name = _PARAM_CLASSES[method].partition(":")
-    try:
-        return getattr(importlib.import_module(f"jaxci.{module}"), name)
-    except (ImportError, AttributeError):
-        return None
-
-
 def _validate_params(method: str, params: dict, fail: Callable[[tuple, str], ConfigError]) -> None:
+    from ..methods import method_param_class  # the one method -> parameter class table (imported on use)
+
     cls = method_param_class(method)
     if cls is None:
         return
