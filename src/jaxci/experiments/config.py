@@ -48,6 +48,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from ..cells import EXTRA_TYPES
 from ..errors import ConfigError, JaxciError
 from ..generate import MAX_SEED
 from .config_errors import Locator, check_duplicates, pydantic_message
@@ -393,7 +394,7 @@ def load_config(path: str | os.PathLike) -> Experiment:
             if bnd.fixed_sets:
                 raise loc8.error((*blk, "fixed_sets"), f"generated mesh {name!r} has no node sets")
         if mesh is not None:
-            n_hexes = mesh.n_hexes + sum(len(b.data) for b in mesh.cells if b.type in ("wedge", "pyramid", "tetra"))
+            n_hexes = mesh.n_hexes + sum(len(b.data) for b in mesh.cells if b.type in EXTRA_TYPES)
         elif spec.generate.case is not None:
             n_hexes = PAPER_CASES[spec.generate.case].n ** 3
         else:
