@@ -46,12 +46,10 @@ import numpy as np
 
 from ..errors import JaxciError, MeshReadError, MeshWriteError
 from ..mesh import MIRROR_HEX, CellBlock, HexMesh
+from ..mesh.convert import SET_PREFIX, meshio_fields
 from ._counts import check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
 from ._gmsh_counts import check_gmsh
 from ._losses import deck_losses
-
-#: Prefix of the point / cell data that carry a point / cell set in formats without sets.
-SET_PREFIX = "set:"
 
 
 class LossyWriteWarning(UserWarning):
@@ -147,19 +145,6 @@ def _describe(exc: BaseException) -> str:
 _TITLES = {"vtk": "legacy VTK", "vtu": "VTU", "gmsh": "Gmsh", "gmsh22": "Gmsh", "xdmf": "XDMF"}
 
 
-def _native(a) -> np.ndarray:
-    a = np.asarray(a)
-    return a.astype(a.dtype.newbyteorder("="), copy=False) if a.dtype.byteorder not in "=|" else a
-
-
-def _set_mask(a) -> np.ndarray | None:
-    """The boolean mask of a ``set:NAME`` data array, or None if it is not 0/1 integer data."""
-    a = np.asarray(a)
-    if a.ndim != 1 or a.dtype.kind not in "iub" or not np.isin(a, (0, 1)).all():
-        return None
-    return a.astype(bool)
-
-
 # ---------------------------------------------------------------------------------------------------- reading
 def read_meshio(path: Path, fmt: str) -> HexMesh:
     """Read `path` in meshio format `fmt` (a key of `_READERS`) into a `HexMesh` with ``source=str(path)``.
@@ -205,48 +190,8 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
 
 
 def from_meshio(m: meshio.Mesh, path: Path) -> HexMesh:
-    points = np.asarray(m.points)
-    n = len(points)
-    if n == 0:
-        raise MeshReadError(f"{path}: no nodes in the file (empty or truncated)")
-    if not any(len(c.data) for c in m.cells):
-        raise MeshReadError(f"{path}: {n} nodes but no cells (truncated file, or not a volume mesh)")
-    cells = tuple(CellBlock(c.type, np.asarray(c.data)) for c in m.cells)
-
-    point_data, point_sets = {}, {}
-    for name, a in m.point_data.items():
-        mask = _set_mask(a) if name.startswith(SET_PREFIX) and len(a) == n else None
-        if mask is None:
-            point_data[name] = _native(a)
-        else:
-            point_sets[name[len(SET_PREFIX) :]] = np.flatnonzero(mask)
-    for name, idx in m.point_sets.items():
-        point_sets[name] = np.asarray(idx, dtype=np.int64)
-
-    cell_data, cell_sets = {}, {}
-    for name, arrays in m.cell_data.items():
-        masks = [_set_mask(a) for a in arrays] if name.startswith(SET_PREFIX) else [None]
-        if any(mk is None for mk in masks):
-            cell_data[name] = [_native(a) for a in arrays]
-        else:
-            cell_sets[name[len(SET_PREFIX) :]] = [np.flatnonzero(mk) for mk in masks]
-    for name, per_block in m.cell_sets.items():
-        if name == "gmsh:bounding_entities":  # entity tags of the Gmsh geometry, not cell indices
-            continue
-        cell_sets[name] = [
-            np.zeros(0, np.int64) if idx is None else np.asarray(idx, dtype=np.int64) for idx in per_block
-        ]
-
-    return HexMesh(
-        np.asarray(points, dtype=np.float64),
-        cells,
-        point_data=point_data,
-        cell_data=cell_data,
-        point_sets=point_sets,
-        cell_sets=cell_sets,
-        field_data={k: _native(v) if isinstance(v, np.ndarray) else v for k, v in m.field_data.items()},
-        source=str(path),
-    )
+    """A `meshio.Mesh` read from `path` as a `HexMesh` (`jaxci.mesh.convert.meshio_fields`)."""
+    return HexMesh(**meshio_fields(m, path))
 
 
 # ---------------------------------------------------------------------------------------------------- writing

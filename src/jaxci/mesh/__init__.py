@@ -385,9 +385,9 @@ def as_hex_mesh(obj, caller: str) -> HexMesh:
         return obj
     cls = type(obj)
     if cls.__name__ == "Mesh" and cls.__module__.split(".")[0] == "meshio":
-        from ..io._meshio import from_meshio
+        from .convert import meshio_fields
 
-        return from_meshio(obj, "<meshio.Mesh>")
+        return HexMesh(**meshio_fields(obj, "<meshio.Mesh>"))
     hint = "read a file with jaxci.read_mesh(path) or build one with jaxci.hex_mesh(points, hexes)"
     if isinstance(obj, (str, bytes, os.PathLike)):
         raise UsageError(f"{caller} expects a jaxci HexMesh, got the path {os.fsdecode(obj)!r}; read the file with "
