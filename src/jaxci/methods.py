@@ -190,7 +190,7 @@ def method_params(method: str, params: dict):
         return ci_params(method, params)
     cls = method_param_class(method)
     if cls is None:  # no parameter class of its own: the gradient methods'
-        from .optim.gradient import GradientParams as cls
+        from .optim.gradient_params import GradientParams as cls
     return make_params(cls, params, method)
 
 
@@ -205,7 +205,7 @@ def method_param_class(method: str):
 
         return CIParams
     if method in ("bfgs", "lbfgs", "cg", "lm", "gauss-newton"):
-        from .optim.gradient import GradientParams
+        from .optim.gradient_params import GradientParams
 
         return GradientParams
     if method in ("laplace", "smart-laplace"):
