@@ -25,6 +25,7 @@ launch.
 from __future__ import annotations
 
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -76,6 +77,34 @@ HOST_METHODS = ("auto", "lbfgs", "laplace", "smart-laplace")
 #: How to get several devices on one CPU (said when too few exist).
 FORCE_HINT = ("on a CPU, XLA_FLAGS=--xla_force_host_platform_device_count=N set before JAX starts makes N "
               "devices of its cores")
+
+
+#: What Linux calls the threads of XLA:CPU's intra-op pool (``tf_`` + the pool's name ``XLAEigen``).
+XLA_POOL_THREAD = "tf_XLAEigen"
+
+
+def xla_cpu_threads() -> int | None:
+    """The threads of XLA:CPU's intra-op pool in this process (creating JAX's CPU client if need be), counted
+    in ``/proc/self/task``; None where that cannot be read (not Linux).
+
+    XLA sizes this pool to max(``NPROC`` or ``PJRT_NPROC`` if set, else the schedulable cores; the number of
+    CPU devices) and compiles every large fusion into that many parallel parts. So 4 forced CPU devices on a
+    2-core machine make 4 threads on 2 cores for EVERY program of the process, sharded or not: the cause of the
+    2.3x slower 4-device runs in docs/sharding.md (a one-device process with ``NPROC=4`` is as slow). No
+    setting lowers it below the device count (XLA needs one thread per device to run a collective)."""
+    jax.devices("cpu")
+    try:
+        tasks = os.listdir("/proc/self/task")
+    except OSError:
+        return None
+    n = 0
+    for t in tasks:
+        try:
+            with open(f"/proc/self/task/{t}/comm") as f:
+                n += f.read().strip() == XLA_POOL_THREAD
+        except OSError:  # the thread ended meanwhile
+            pass
+    return n if tasks else None
 
 
 def resolve_devices(devices) -> Mesh:
