@@ -15,7 +15,9 @@ where that applies (`jaxci.runtime`; ``--hugepages off`` to compare). Prints a t
 elements split over the devices, `jaxci.optim.sharding`); each child is started with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` so that a CPU has N devices (on a GPU machine the GPUs
 are counted instead). Each row records its ``devices``, the time and the peak resident memory (also per
-hexahedron); without ``--devices`` the runs are as before (one device, no ``devices`` argument).
+hexahedron) and ``xla_cpu_threads`` / ``cpus``: XLA:CPU's intra-op pool has max(cores, N) threads, so N forced
+devices beyond the cores oversubscribe them (docs/sharding.md, issue 17); without ``--devices`` the runs are as
+before (one device, no ``devices`` argument).
 
     python scripts/benchmark.py --sizes 10 20 30 60 100 --methods lbfgs ci smart-laplace
     python scripts/benchmark.py --sizes 30 --methods lbfgs --devices 1 2 4
@@ -118,6 +120,12 @@ def _measure(args, device) -> dict:
             jax.block_until_ready(q.objective_t(pts, conn))
             reps += 1
         out["objective_mcorners_per_s"] = 8 * mesh.n_hexes * reps / (time.perf_counter() - t0) / 1e6
+    # XLA:CPU's intra-op pool: max(cores or NPROC, device count) threads, so forced devices beyond the cores
+    # oversubscribe them (issue 17: the 4-device rows on 2 cores; docs/sharding.md)
+    from jaxci.optim.sharding import xla_cpu_threads
+
+    out["xla_cpu_threads"] = xla_cpu_threads()
+    out["cpus"] = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     out["peak_rss_bytes_per_hex"] = out["peak_rss_mb"] * 2**20 / mesh.n_hexes
     return out
@@ -171,7 +179,8 @@ def main(argv=None):
 
     rows = []
     head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'dev':>4} {'cold s':>8} {'warm s':>8} {'it':>5} "
-            f"{'final k/3':>10} {'t(1.01) s':>10} {'t(1.0001) s':>12} {'peak MB':>8} {'Mcorner/s':>10}")
+            f"{'final k/3':>10} {'t(1.01) s':>10} {'t(1.0001) s':>12} {'peak MB':>8} {'Mcorner/s':>10} "
+            f"{'threads/cpus':>12}")
     print(head)
     for n, method, devices in [(n, m, d) for n in args.sizes for m in args.methods for d in args.devices or [None]]:
         cmd = [sys.executable, __file__, "--child", "--size", str(n), "--method", method, "--amplitude",
@@ -209,7 +218,8 @@ def main(argv=None):
         print(f"{n:>5} {row['hexes']:>8} {method:>14} {devices or '-':>4} {row['cold_s']:>8.2f} {warm:>8} "
               f"{row['iterations']:>5} {row['after_max_condition']:>10.6f} {t('to_1.01'):>10} "
               f"{t('to_1.0001'):>12} {row['peak_rss_mb']:>8.0f} "
-              f"{row['objective_mcorners_per_s']:>10.0f}", flush=True)
+              f"{row['objective_mcorners_per_s']:>10.0f} "
+              f"{str(row.get('xla_cpu_threads')) + '/' + str(row.get('cpus')):>12}", flush=True)
     print(f"wrote {args.out}")
 
 

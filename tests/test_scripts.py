@@ -41,6 +41,8 @@ def test_benchmark_runs_each_device_count_sharded(tmp_path):
     assert data["devices"] == [2] and row["devices"] == 2 and row["params"] == {"devices": 2}
     assert row["after_max_condition"] <= 1.0001 and row["inverted_after"] == 0
     assert row["peak_rss_mb"] > 0 and row["peak_rss_bytes_per_hex"] == pytest.approx(row["peak_rss_mb"] * 2**20 / 27)
+    if sys.platform.startswith("linux"):  # XLA:CPU's pool: at least one thread per device (issue 17)
+        assert row["xla_cpu_threads"] >= 2 and row["cpus"] >= 1
 
 
 def test_benchmark_without_the_device_asked_for_says_so(tmp_path):

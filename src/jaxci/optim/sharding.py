@@ -90,7 +90,7 @@ def xla_cpu_threads() -> int | None:
     XLA sizes this pool to max(``NPROC`` or ``PJRT_NPROC`` if set, else the schedulable cores; the number of
     CPU devices) and compiles every large fusion into that many parallel parts. So 4 forced CPU devices on a
     2-core machine make 4 threads on 2 cores for EVERY program of the process, sharded or not: the cause of the
-    2.3x slower 4-device runs in docs/sharding.md (a one-device process with ``NPROC=4`` is as slow). No
+    2.3-2.6x slower 4-device runs in docs/sharding.md (a one-device process with ``NPROC=4`` is as slow). No
     setting lowers it below the device count (XLA needs one thread per device to run a collective)."""
     jax.devices("cpu")
     try:
