@@ -75,3 +75,64 @@ def test_a_small_mesh_is_not_worth_a_second_start(tmp_path):
     assert not small_input(["smooth", str(tmp_path / "missing.vtk"), "out.vtk"])
     assert not small_input(["run", str(small)])
     assert not small_input([])
+
+
+# ------------------------------------------------------------------ issue 17: more forced CPU devices than cores
+def test_cpu_device_flags_only_where_forced_devices_outnumber_the_cores():
+    from jaxci.runtime import PARTITION_PASS, cpu_device_flags, forced_cpu_devices
+
+    four = {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    assert forced_cpu_devices(four) == 4 and forced_cpu_devices({}) == 0
+    assert forced_cpu_devices({"JAX_NUM_CPU_DEVICES": "3"}) == 3
+    assert cpu_device_flags(four, cpus=2) == four["XLA_FLAGS"] + " --xla_disable_hlo_passes=" + PARTITION_PASS
+    assert cpu_device_flags(four, cpus=4) is None  # no more devices than cores: XLA keeps its intra-op parallelism
+    assert cpu_device_flags({}, cpus=1) is None
+    assert cpu_device_flags({**four, "JAXCI_XLA_PARTITIONS": "1"}, cpus=2) is None  # opt out
+    other = {"XLA_FLAGS": "--xla_disable_hlo_passes=a,b --xla_force_host_platform_device_count=4"}
+    assert cpu_device_flags(other, cpus=2) == ("--xla_disable_hlo_passes=a,b," + PARTITION_PASS
+                                               + " --xla_force_host_platform_device_count=4")
+    done = {"XLA_FLAGS": four["XLA_FLAGS"] + " --xla_disable_hlo_passes=" + PARTITION_PASS}
+    assert cpu_device_flags(done, cpus=2) is None
+
+
+PARTS = """
+import sys
+from jaxci.runtime import apply_cpu_device_flags
+import jax, jax.numpy as jnp
+applied = apply_cpu_device_flags() if sys.argv[1] == "apply" else False
+text = jax.jit(lambda x: jnp.sin(x) * 2 + jnp.cos(x)).lower(jnp.ones(2**20)).compile().as_text()
+print("APPLIED", applied, "PARTS", 'outer_dimension_partitions":["' in text, "DEVICES", jax.device_count())
+"""
+
+
+def test_more_forced_devices_than_cores_compile_without_per_fusion_partitions():
+    """XLA:CPU's pool has one thread per forced device; with more devices than cores every large fusion was split
+    into that many parts that wait on each other (4 devices on 2 cores: 2.4-3x the CPU time, docs/sharding.md).
+    `apply_cpu_device_flags` (run after ``import jax``, before any device exists) turns that split off; without it
+    the same program is split."""
+    from jaxci.runtime import schedulable_cpus
+
+    n = schedulable_cpus() + 1
+    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}", JAX_PLATFORMS="cpu")
+    env.pop("JAXCI_XLA_PARTITIONS", None)
+    got = {}
+    for mode in ("apply", "leave"):
+        r = subprocess.run([sys.executable, "-c", PARTS, mode], env=env, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr[-3000:]
+        got[mode] = r.stdout.split("APPLIED")[-1].split()
+    assert got["apply"] == ["True", "PARTS", "False", "DEVICES", str(n)]
+    assert got["leave"] == ["False", "PARTS", "True", "DEVICES", str(n)]
+
+
+def test_the_jaxci_command_applies_the_cpu_device_flags(tmp_path):
+    from jaxci.runtime import PARTITION_PASS, schedulable_cpus
+
+    n = schedulable_cpus() + 1
+    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}", JAX_PLATFORMS="cpu")
+    env.pop("JAXCI_XLA_PARTITIONS", None)
+    code = ("import os, sys; from jaxci.cli import main; code = main(['quality', sys.argv[1]]); "
+            "print('FLAGS', os.environ['XLA_FLAGS'])")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "missing.vtk")], env=env, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "--xla_disable_hlo_passes=" + PARTITION_PASS in r.stdout.split("FLAGS")[-1]

@@ -120,3 +120,71 @@ def quiet_interrupts_while_starting() -> None:
                 signal.signal(sig, leave)
         except (ValueError, OSError):  # not the main thread, or no such signal here
             pass
+
+
+#: XLA:CPU's pass that splits every large fusion into as many parallel parts as its intra-op pool has threads.
+#: That pool has max(cores or ``NPROC``, CPU devices) threads (`jaxci.optim.sharding.xla_cpu_threads`), so with
+#: more forced CPU devices than cores each fusion's parts wait on threads the cores cannot run. Measured on
+#: this 2-core CPU, 4 forced devices, 30^3 box (issue 17, docs/sharding.md): one F + gradient call 56 ms ->
+#: 16-24 ms (one device: 18-19 ms), 40 sharded L-BFGS steps 5.4 -> 2.1-3.0 s (one device: 1.4-2.0 s).
+PARTITION_PASS = "cpu-parallel-task-assigner"
+_FORCE = "--xla_force_host_platform_device_count="
+_DISABLE = "--xla_disable_hlo_passes="
+
+
+def schedulable_cpus() -> int:
+    """The cores this process may run on (its affinity; else ``os.cpu_count()``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def forced_cpu_devices(env: dict | None = None) -> int:
+    """The CPU device count that `env` (default ``os.environ``) asks JAX for: the last
+    ``--xla_force_host_platform_device_count`` of ``XLA_FLAGS``, or ``JAX_NUM_CPU_DEVICES``; 0 if neither."""
+    env = os.environ if env is None else env
+    n = 0
+    for flag in env.get("XLA_FLAGS", "").split():
+        if flag.startswith(_FORCE):
+            try:
+                n = int(flag[len(_FORCE):])
+            except ValueError:
+                pass
+    try:
+        n = max(n, int(env.get("JAX_NUM_CPU_DEVICES", "0")))
+    except ValueError:
+        pass
+    return n
+
+
+def cpu_device_flags(env: dict | None = None, cpus: int | None = None) -> str | None:
+    """``XLA_FLAGS`` of `env` (default ``os.environ``) with `PARTITION_PASS` disabled, where the forced CPU
+    devices (`forced_cpu_devices`) outnumber `cpus` (default `schedulable_cpus`); None where they do not, where
+    the pass is already disabled, or with ``JAXCI_XLA_PARTITIONS=1``. An ``--xla_disable_hlo_passes`` already
+    there is extended. With no more devices than cores the pass stays: it is XLA:CPU's only intra-op
+    parallelism (one CPU device on 2 cores: 40 L-BFGS steps 1.4-2.0 s with it, 1.7-2.6 s without)."""
+    env = os.environ if env is None else env
+    cpus = schedulable_cpus() if cpus is None else cpus
+    if env.get("JAXCI_XLA_PARTITIONS") == "1" or forced_cpu_devices(env) <= cpus:
+        return None
+    flags = env.get("XLA_FLAGS", "").split()
+    for i, flag in enumerate(flags):
+        if flag.startswith(_DISABLE):
+            passes = [p for p in flag[len(_DISABLE):].split(",") if p]
+            if PARTITION_PASS in passes:
+                return None
+            flags[i] = _DISABLE + ",".join([*passes, PARTITION_PASS])
+            return " ".join(flags)
+    return " ".join([*flags, _DISABLE + PARTITION_PASS])
+
+
+def apply_cpu_device_flags() -> bool:
+    """Put `cpu_device_flags` into ``os.environ`` (True) where it applies. XLA reads ``XLA_FLAGS`` when JAX makes
+    its first backend, so this must run before anything creates a device or compiles (the jaxci command does it
+    first; ``import jax`` alone is early enough); later it changes nothing."""
+    flags = cpu_device_flags()
+    if flags is None:
+        return False
+    os.environ["XLA_FLAGS"] = flags
+    return True

@@ -18,7 +18,7 @@ import os
 import sys
 import warnings
 
-from ..runtime import TUNABLE
+from ..runtime import TUNABLE, apply_cpu_device_flags
 from . import _interrupt
 
 #: subcommand -> (module, one-line help)
@@ -106,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
                 args = parser.parse_args(argv)
             except SystemExit as e:  # argparse: --help (0) or a usage error (2)
                 return int(e.code or 0)
+            apply_cpu_device_flags()  # more forced CPU devices than cores: no per-fusion partitions (issue 17)
             _setup_jax()
             return _dispatch(args)
         except KeyboardInterrupt as e:  # SIGINT or SIGTERM (`_interrupt`); a command may add what it kept
