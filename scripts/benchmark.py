@@ -16,7 +16,8 @@ elements split over the devices, `jaxci.optim.sharding`); each child is started 
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` so that a CPU has N devices (on a GPU machine the GPUs
 are counted instead). Each row records its ``devices``, the time and the peak resident memory (also per
 hexahedron) and ``xla_cpu_threads`` / ``cpus``: XLA:CPU's intra-op pool has max(cores, N) threads, so N forced
-devices beyond the cores oversubscribe them (docs/sharding.md, issue 17); without ``--devices`` the runs are as
+devices beyond the cores oversubscribe them; those children also get `jaxci.runtime.cpu_device_flags`
+(XLA's per-fusion partitioning off; docs/sharding.md, issue 17); without ``--devices`` the runs are as
 before (one device, no ``devices`` argument).
 
     python scripts/benchmark.py --sizes 10 20 30 60 100 --methods lbfgs ci smart-laplace
@@ -70,7 +71,8 @@ def _measure(args, device) -> dict:
         params["devices"] = args.devices
     out = dict(size=n, hexes=mesh.n_hexes, nodes=mesh.n_nodes, method=args.method, dtype=args.dtype,
                devices=args.devices, device=str(device), backend=device.platform, jax=jax.__version__,
-               generate_s=t_gen, params=params, glibc_tunables=os.environ.get("GLIBC_TUNABLES"))
+               generate_s=t_gen, params=params, glibc_tunables=os.environ.get("GLIBC_TUNABLES"),
+               xla_flags=os.environ.get("XLA_FLAGS"))
     t0 = time.perf_counter()
     res = smooth(mesh, args.method, dtype=args.dtype, **params)
     out["cold_s"] = time.perf_counter() - t0
@@ -175,7 +177,7 @@ def main(argv=None):
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
         return
-    from jaxci.runtime import hugepage_environment
+    from jaxci.runtime import cpu_device_flags, hugepage_environment
 
     rows = []
     head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'dev':>4} {'cold s':>8} {'warm s':>8} {'it':>5} "
@@ -195,6 +197,8 @@ def main(argv=None):
             if devices:  # read when JAX starts in the child: a CPU gets this many devices
                 env["XLA_FLAGS"] = " ".join(filter(None, [env.get("XLA_FLAGS"), "--xla_force_host_platform_"
                                                            f"device_count={devices}"]))
+                # more devices than cores: no per-fusion partitions (jaxci.runtime.cpu_device_flags, issue 17)
+                env["XLA_FLAGS"] = cpu_device_flags(env) or env["XLA_FLAGS"]
             p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
             line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
             row = json.loads(line[-1][7:]) if line else dict(size=n, method=method, devices=devices,
