@@ -6,7 +6,8 @@ which. ``--json`` reports the time of each phase (``phases``: ``startup`` (proce
 ``read``, then `jaxci.smooth`'s ``validate``, ``report``, ``untangle``, ``setup``, ``smooth``, ``checks``, and
 ``write``; each with its compilation seconds and count); ``--verbose`` prints one line per phase on stderr as it
 ends (with a spinner while it runs on a terminal). ``--devices`` shards the elements over several devices
-(`jaxci.smooth`'s ``devices``; on a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` makes N).
+(`jaxci.smooth`'s ``devices``; on a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` makes N; with
+more N than cores the command also turns XLA's per-fusion split off: `jaxci.runtime.cpu_device_flags`).
 
 OUT is checked before the smoothing (`_files.check_output`: never the input, an existing file only with
 ``--force``) and written atomically; an interrupt leaves no OUT and no temporary file.
