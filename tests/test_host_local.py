@@ -95,6 +95,16 @@ def test_cli_local_ci_on_a_small_mesh_never_imports_jax(tmp_path):
     assert p.stdout.strip().splitlines()[-1] == "0 []", p.stdout + p.stderr
 
 
+def test_lbfgs_with_presmoothing_runs_on_the_host_without_jax():
+    """L-BFGS after smart-Laplace sweeps (the default pipeline's recipe from 100,001 hexahedra) on a mesh the host
+    takes: sweeps and solver in numpy and C, JAX never imported."""
+    code = ("import sys; from jaxci.generate import perturb_box; from jaxci.smooth import smooth; "
+            "r = smooth(perturb_box(6, amplitude=0.3, seed=1), 'lbfgs', presmooth=2); "
+            "print(r.history['presmooth'], r.after.max_condition < r.before.max_condition, 'jax' in sys.modules)")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert p.stdout.strip().splitlines()[-1] == "2 True False", p.stdout + p.stderr
+
+
 @pytest.mark.parametrize("method", ["laplace", "smart-laplace"])
 def test_host_and_compiled_laplacians_agree(method):
     """The Laplacians on the host take the compiled sweeps' moves (no randomness): the same mesh after the same

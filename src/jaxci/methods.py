@@ -26,11 +26,13 @@ from .optim.host import HOST_MAX, runs_on_host
 #: (`auto_pipeline`).
 METHODS = ("auto", "ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton", "laplace", "smart-laplace")
 
-#: Hexahedra from which the default pipeline runs smart-Laplace sweeps before L-BFGS: where L-BFGS runs compiled
-#: in float32 (above `jaxci.optim.host.HOST_MAX`). Below it L-BFGS runs in numpy float64, which needs no sweeps
-#: (measured on a perturbed 21^3 box with a corner of kappa/3 7.7e5: float32 L-BFGS alone stalled at 5.5e5
-#: after 40 steps, float64 reached 1.0000 in 188 steps; `auto_pipeline`).
-AUTO_PRESMOOTH_FROM = HOST_MAX + 1
+#: Hexahedra from which the default pipeline runs smart-Laplace sweeps before L-BFGS (`auto_pipeline`), and
+#: wherever L-BFGS runs compiled in float32 (above `jaxci.optim.host.HOST_MAX`): float32 L-BFGS alone stalls on
+#: near-flat corners (a perturbed 21^3 box with a corner of kappa/3 7.7e5: 5.5e5 after 40 steps; float64 reached
+#: 1.0000 in 188 steps). On large meshes the sweeps also save most of the steps in float64: cube60_pert after
+#: untangling (216,000 hexes, max kappa/3 25.8) reached max kappa/3 1.0001 in about 100 host L-BFGS steps alone,
+#: in 3 sweeps and about 20 steps after them.
+AUTO_PRESMOOTH_FROM = 100_001
 
 @dataclasses.dataclass(frozen=True)
 class Problem:
@@ -82,8 +84,9 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 
 def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
-    `jaxci.native`): L-BFGS without presmoothing where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed
-    one only on F and with the C kernels), CI (both forms) and the Laplacians where
+    `jaxci.native`): L-BFGS where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed one only on F and with
+    the C kernels; with presmoothing, a hexahedral one with the C kernels, its sweeps then on the host too), CI
+    (both forms) and the Laplacians where
     `jaxci.optim.host_local.host_local_applies`; their reports and checks in numpy. JAX is then never imported
     (0.4-0.5 s of a small mesh's run)."""
     from . import native
@@ -97,8 +100,13 @@ def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
         from .optim.host_local import host_local_applies
 
         return host_local_applies(params.get("backend", "auto"), mesh.n_hexes, bool(extra))
-    if method != "lbfgs" or int(params.get("presmooth", 0)):
+    if method != "lbfgs":
         return False
+    if int(params.get("presmooth", 0)):  # the smart-Laplace sweeps where L-BFGS runs (`laplace_np`, any size)
+        from .optim.host_local import host_local_applies
+
+        if not host_local_applies("numpy", mesh.n_hexes, bool(extra)):
+            return False
     if extra and (not native.AVAILABLE or params.get("objective", "mean") != "mean"):
         return False
     n_cells = mesh.n_hexes + sum(len(c) for c in extra.values())
@@ -109,13 +117,15 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
     """The default pipeline (``method="auto"``): ``(method, params, description)``.
 
     Chosen by measurement on real and generated meshes (docs/results/README.md, sessions 4 and 5): L-BFGS on F
-    after the untangling stage (when the input has inverted elements); where L-BFGS runs compiled (from
-    `AUTO_PRESMOOTH_FROM` hexahedra on, or ``backend="jax"``), 3 smart-Laplace sweeps first (they fix the worst
+    after the untangling stage (when the input has inverted elements); from `AUTO_PRESMOOTH_FROM` hexahedra on
+    and where L-BFGS runs compiled (``backend="jax"``, or above `jaxci.optim.host.HOST_MAX`), 3 smart-Laplace
+    sweeps first (they fix the worst
     corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13 after them). Local CI ran to its
     sweep cap on unstructured meshes. `params` (the user's) win.
     """
     params = dict(params)
-    if "presmooth" not in params and not runs_on_host(params.get("backend", "auto"), n_hexes, AUTO_PRESMOOTH_FROM - 1):
+    if "presmooth" not in params and (n_hexes >= AUTO_PRESMOOTH_FROM
+                                      or not runs_on_host(params.get("backend", "auto"), n_hexes, HOST_MAX)):
         params["presmooth"] = 3
     pre = int(params.get("presmooth", 0))
     desc = "L-BFGS on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")

@@ -175,41 +175,49 @@ def _objective(x, conn, closed: bool, extra=None, weight=None, power=None, block
     return f, kmax
 
 
+def _done(f, kmax, stops):
+    """The solvers' own stop (`solve_loop`'s `stop`): F <= ftol, or every corner within ktol of an ideal one
+    (max kappa/3 <= 1 + ktol: the global minimum of F and of the max). `stops` = ``(ftol, 1 + ktol)`` (traced:
+    one compilation for any tolerances)."""
+    return (f <= stops[0]) | (kmax <= stops[1])
+
+
 def _min_fn(v, args):
-    par, conn, s, ftol, extra, weight = args
+    par, conn, s, stops, extra, weight = args
     f, kmax = _objective(par.points(v), conn, False, extra, weight)
-    return s * f, (f, kmax, f <= ftol)
+    return s * f, (f, kmax, _done(f, kmax, stops))
 
 
 def _min_fn_closed(v, args):
-    par, conn, s, ftol, extra, weight, power, block = args
+    par, conn, s, stops, extra, weight, power, block = args
     f, kmax = _objective(par.points(v), conn, True, extra, weight, power, block)
-    return s * f, (f, kmax, f <= ftol)
+    return s * f, (f, kmax, _done(f, kmax, stops))
 
 
 def _lsq_fn(v, args):
     """Residuals kappa/3 per corner, times sqrt(2 s / n_corners): 0.5 |r|^2 = s (F + 1)."""
-    par, conn, s, ftol, extra, _ = args
+    par, conn, s, stops, extra, _ = args
     x = par.points(v)
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     valid = det > 0
     k3 = jnp.where(valid, jnp.sqrt(fro2 * adj2) / (3.0 * jnp.where(valid, det, 1.0)), jnp.inf)
     if extra is not None and extra.types:
-        return _mixed_residuals(x, k3 * k3, extra, s, ftol, excess=False)
+        return _mixed_residuals(x, k3 * k3, extra, s, stops, excess=False)
     w = jnp.sqrt(2.0 * s / k3.size).astype(k3.dtype)
     k3b = jax.lax.optimization_barrier(k3)
     f = jnp.mean(k3b * k3b) - 1.0
-    return (w * k3).reshape(-1), (f, jnp.max(k3b), f <= ftol)
+    kmax = jnp.max(k3b)
+    return (w * k3).reshape(-1), (f, kmax, _done(f, kmax, stops))
 
 
 def _lsq_fn_excess(v, args):
     """Residuals sqrt((kappa/3)^2 - 1) per corner, times sqrt(2 s / n_corners): 0.5 |r|^2 = s F (zero at the
     optimum)."""
-    par, conn, s, ftol, extra, _ = args
+    par, conn, s, stops, extra, _ = args
     x = par.points(v)
     if extra is not None and extra.types:
         det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
-        return _mixed_residuals(x, squared_condition_from_invariants(det, fro2, adj2), extra, s, ftol, excess=True)
+        return _mixed_residuals(x, squared_condition_from_invariants(det, fro2, adj2), extra, s, stops, excess=True)
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     valid = det > 0
     sdet = jnp.where(valid, det, 1.0)
@@ -220,7 +228,8 @@ def _lsq_fn_excess(v, args):
     w = jnp.sqrt(2.0 * s / ex.size).astype(ex.dtype)
     exb = jax.lax.optimization_barrier(ex)
     f = jnp.mean(exb)
-    return (w * jnp.sqrt(ex)).reshape(-1), (f, jnp.sqrt(1.0 + jnp.max(exb)), f <= ftol)
+    kmax = jnp.sqrt(1.0 + jnp.max(exb))
+    return (w * jnp.sqrt(ex)).reshape(-1), (f, kmax, _done(f, kmax, stops))
 
 
 def _max_rejected(method: str, p: GradientParams) -> int:
@@ -241,7 +250,8 @@ BUCKETED = ("bfgs", "lbfgs", "cg")
 
 def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None, weight=None,
                 n_hex: int | None = None, block: int | None = None):
-    """The objective function and its `args` for `solve_loop` (``fn(v, args) -> (value, (F, max kappa/3, F <= ftol))``).
+    """The objective function and its `args` for `solve_loop` (``fn(v, args) -> (value, (F, max kappa/3, stop))``,
+    stop: `_done`, F <= ``p.ftol`` or max kappa/3 <= 1 + ``p.ktol``).
 
     `extra`: the non-hexahedral cells (`jaxci.metrics.objective.ExtraCells`; default none): F is then the mean over
     every corner (`jaxci.metrics.elements.mixed_objective`) and ``s = n_corners / 32``. `weight` ``(N,)`` and `n_hex`:
@@ -258,7 +268,7 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
         fn = _lsq_fn_excess if p.residual == "excess" else _lsq_fn
     else:
         fn = _min_fn_closed if p.gradient == "closed" else _min_fn
-    args = (par, conn, s, to_device(np.asarray(p.ftol), dtype), extra, weight)
+    args = (par, conn, s, to_device(np.asarray([p.ftol, 1.0 + p.ktol]), dtype), extra, weight)
     if fn is _min_fn_closed:  # static (filter_jit): the p-mean's power (one compilation per power) and the block
         args = (*args, float(p.p) if p.objective == "pmean" else None, block)
     return fn, args
@@ -384,7 +394,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                                                power=p.p if p.objective == "pmean" else None)
             y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
-                                              history=int(p.history_length), cap=p.max_move, ftol=p.ftol)
+                                              history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
+                                              done=lambda f, k: k <= 1.0 + p.ktol)
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None)
             y = replicate(y, devices) if n_dev else y  # one input sharding for every run: one compilation
@@ -404,7 +415,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         runs += 1
         finite = seg_f[np.isfinite(seg_f)]
         gain = float(seg_f[0] - finite.min()) if len(finite) else 0.0
-        if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol:
+        if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol or np.min(seg_k) <= 1.0 + p.ktol:
             break
         if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
             break
@@ -451,10 +462,19 @@ def run_gradient(problem, method: str, params: dict):
     p = _p.make_params(GradientParams, params, method)
     x0, pre = problem.x0, None
     if p.presmooth:
-        from .laplace import run_laplace
+        sweep = {"max_sweeps": int(p.presmooth), "buckets": p.buckets}
+        if isinstance(problem.x0, np.ndarray):  # a host run (`jaxci.methods.host_run`): the sweeps in numpy and C
+            from .host_local import laplace_np
+            from .laplace import LaplaceParams
 
-        xl, sweeps, pre, _ = run_laplace(problem, "smart-laplace", {"max_sweeps": int(p.presmooth),
-                                                                      "buckets": p.buckets})
+            mesh = problem.mesh
+            xl, sweeps, pre, _ = laplace_np(problem.x0, mesh.hexes, problem.cons, problem.colour,
+                                            problem.info.topology.faces,
+                                            _p.make_params(LaplaceParams, sweep, "smart-laplace"), smart=True)
+        else:
+            from .laplace import run_laplace
+
+            xl, sweeps, pre, _ = run_laplace(problem, "smart-laplace", sweep)
         # exactly on the boundary again (float64), so that the flat-region shortcut of the parametrisation holds
         x0 = project_np(problem.cons, np.asarray(xl, dtype=np.float64))
     par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled, dtype=problem.dtype)
@@ -489,11 +509,11 @@ def _mixed_objective(x, n_hex: int, f_hex, k_hex, extra):
     return f, k + barrier
 
 
-def _mixed_residuals(x, hex_terms, extra, s, ftol, *, excess: bool):
+def _mixed_residuals(x, hex_terms, extra, s, stops, *, excess: bool):
     """Least-squares residuals over every corner of a mixed mesh from the hexahedra's (kappa/3)^2 `hex_terms`
     ``(8, N)``: kappa/3 (or ``sqrt((kappa/3)^2 - 1)`` when `excess`) times ``sqrt(2 s / n_corners)``, plus one
     residual 0 (``inf`` when a pyramid sub-tetrahedron is inverted). Returns ``(residuals, (F, max kappa/3,
-    F <= ftol))``."""
+    stop))`` (`_done` with `stops`)."""
     terms = [hex_terms.reshape(-1)] + [t.reshape(-1) for t in extra_terms(x, extra)]
     sq = jnp.concatenate(terms)
     barrier = extra_barrier(x, extra)
@@ -505,4 +525,5 @@ def _mixed_residuals(x, hex_terms, extra, s, ftol, *, excess: bool):
     else:
         r = jnp.sqrt(sq)
     f = jnp.mean(sqb) - 1.0 + barrier
-    return jnp.concatenate([w * r, barrier[None]]), (f, jnp.sqrt(jnp.max(sqb)) + barrier, f <= ftol)
+    kmax = jnp.sqrt(jnp.max(sqb)) + barrier
+    return jnp.concatenate([w * r, barrier[None]]), (f, kmax, _done(f, kmax, stops))

@@ -37,6 +37,11 @@ class GradientParams:
     - `rtol`, `atol`: optimistix's Cauchy termination (change of the scaled unknowns AND of the scaled objective
       between accepted steps), default 1e-6 each (see the module docstring for the evidence).
     - `ftol`: also stop as soon as F <= ftol (default 0: only at a perfect mesh).
+    - `ktol`: also stop as soon as max kappa/3 <= 1 + ktol (default 1e-6): every corner is then within ktol of an
+      ideal one, the global minimum of F and of the max (kappa/3 >= 1), and further steps change no printed
+      figure (0: only at a numerically perfect mesh). On a perturbed 60^3 box after untangling, float32 L-BFGS
+      reached max kappa/3 1.000001 at step 38 and then took 67 more steps down to 1.0000002 (F at its float32
+      floor, 1.4e-8); float64 L-BFGS took 363 steps in all, F down to 2e-12.
     - `history_length`: L-BFGS memory, default 10.
     - `cg_method`: beta formula of nonlinear CG, one of `CG_METHODS` (default ``"polak_ribiere"``).
     - `scaled`: unknowns in units of the local edge length (default True; False: raw coordinate displacements).
@@ -78,6 +83,7 @@ class GradientParams:
     rtol: float = 1e-6
     atol: float = 1e-6
     ftol: float = 0.0
+    ktol: float = 1e-6
     history_length: int = 10
     cg_method: str = "polak_ribiere"
     scaled: bool = True
@@ -102,6 +108,7 @@ class GradientParams:
             rtol=_p.real(L, "rtol", self.rtol, 0),
             atol=_p.real(L, "atol", self.atol, 0),
             ftol=_p.real(L, "ftol", self.ftol, 0),
+            ktol=_p.real(L, "ktol", self.ktol, 0),
             history_length=_p.integer(L, "history_length", self.history_length, 1, MAX_HISTORY),
             cg_method=_p.choice(L, "cg_method", self.cg_method, CG_METHODS),
             scaled=_p.boolean(L, "scaled", self.scaled),

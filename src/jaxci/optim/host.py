@@ -39,8 +39,12 @@ from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 #: stalled at max kappa/3 5.5e5 (float64: 1.0000); 17,576: 3.7 s against 3.4 / 2.2 s; cube30_pert (27,000,
 #: tangled; machine loaded): 5.2 s against 9.2 / 4.0 s. C kernels (session 6, smooth phase): 64,000 hexes
 #: 4.4 s against 9.1 / 4.5 s; 125,000: 9.2 s against 12.0 / 7.9 s; cube60_pert (216,000) 23-31 s against 18 s
-#: cold. Above it the compiled loop (after smart-Laplace sweeps) wins once its compilation is cached.
-HOST_MAX = 100_000 if native.AVAILABLE else 30_000
+#: cold. Session 10, with the smart-Laplace presmoothing on the host too and the stop at max kappa/3 <= 1 + ktol
+#: (`jaxci.optim.gradient_params.GradientParams.ktol`): cube60_pert, whole ``jaxci smooth``, 20.1 s (smooth phase
+#: 6.9 s, peak 735 MB) against 27.8 s cold (smooth 15.1 s, 7.3 s of it compiling; 1.25 GB) and 20.2 s with a warm
+#: compilation cache (smooth 8.2 s). Above it the compiled loop (after smart-Laplace sweeps), whose float32
+#: arrays keep the peak lower at 10^6 elements (`docs/sharding.md`).
+HOST_MAX = 250_000 if native.AVAILABLE else 30_000
 
 #: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``: 250,000 with the C
 #: kernels, 60,000 without. The compiled loop runs in float64 too, so numpy saves its compilation (1-2 s).
