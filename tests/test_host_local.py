@@ -180,9 +180,24 @@ def test_local_ci_stops_once_a_sweep_gains_less_than_atol():
     <= 1.0001, in fewer sweeps than with ``atol=0``, on the host and compiled."""
     mesh = perturb_box(6, amplitude=0.3, seed=4)
     for backend in ("numpy", "jax"):
-        stop = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend)
-        on = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, atol=0.0)
+        stop = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, ktol=0.0)
+        on = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, atol=0.0, ktol=0.0)
         hist = np.asarray(stop.history["objective"])
         assert stop.params["atol"] == 1e-7
         assert stop.after.max_condition <= 1.0001 and stop.iterations < on.iterations, backend
         assert hist[-2] - hist[-1] <= 1e-6 * hist[-2] + 1e-7 and hist[-1] > 1e-10
+
+
+@pytest.mark.parametrize("backend", ["numpy", "jax"])
+def test_local_ci_stops_once_every_corner_is_ideal_within_ktol(backend):
+    """max kappa/3 <= 1 + ktol (the global minimum within ktol) stops local CI after the first sweep that reaches
+    it, on the host and compiled; the same sweeps as a run without it up to there."""
+    mesh = perturb_box(6, amplitude=0.3, seed=4)
+    full = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, ktol=0.0, atol=0.0)
+    k_full = np.asarray(full.history["max_condition"])
+    ktol = 1e-3
+    first = int(np.argmax(k_full <= 1 + ktol))
+    assert 0 < first < full.iterations
+    res = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, ktol=ktol, atol=0.0)
+    assert res.iterations == first and res.after.max_condition <= 1 + ktol
+    np.testing.assert_allclose(np.asarray(res.history["max_condition"]), k_full[: first + 1], rtol=1e-12)

@@ -25,7 +25,7 @@ node keeps an interval width adapted to its last move (a trust region). After ea
 & Jeeves) tries the whole mesh further along the sweep's displacement D, ``x + a D`` for a few factors a, and
 keeps the best if it lowers F: node-by-node moves remove long-wavelength error slowly (pave3 after untangling,
 30 sweeps: F 10% above L-BFGS's without it, 5% with it). Sweeps stop when F changes by less than `tol`
-relative plus `atol`, or F <= `ftol`, or after `max_sweeps`.
+relative plus `atol`, or F <= `ftol`, or max kappa/3 <= 1 + `ktol`, or after `max_sweeps`.
 
 **Global CI** (`global_ci`, faithful to the paper): each candidate is a whole mesh, a point in the space of all
 free coordinates (`jaxci.geometry.projection`'s parametrisation), of shape ``(C, n_free)``; its behaviour is F (Eq.
@@ -78,7 +78,7 @@ def _split(p: CIParams, dtype) -> tuple[_Static, dict]:
     s = _Static(int(p.cohort), int(p.variations), int(p.attempts), int(p.max_sweeps), int(p.patience),
                 bool(p.pattern))
     d = {k: jnp.asarray(getattr(p, k), dtype) for k in
-         ("reduction", "delta", "stage_switch", "init_width", "min_width", "tol", "atol", "ftol")}
+         ("reduction", "delta", "stage_switch", "init_width", "min_width", "tol", "atol", "ftol", "ktol")}
     return s, d
 
 
@@ -178,7 +178,8 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
     width = d["init_width"] * h_all
     f_init = mixed_objective_t(x, conn, extra)
     hist_f = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(f_init)
-    hist_k = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(_max_condition(x, conn, extra))
+    k_init = _max_condition(x, conn, extra)
+    hist_k = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(k_init)
     hist_m = jnp.zeros((s.max_sweeps + 1,), jnp.int32)
 
     def sweep(carry):
@@ -196,15 +197,18 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
         if s.pattern:
             x, f = _pattern_move(x, x - x_start, f, conn, cons, extra)
         it = it + 1
-        hf, hk, hm = hf.at[it].set(f), hk.at[it].set(_max_condition(x, conn, extra)), hm.at[it].set(moved)
-        done = (f <= d["ftol"]) | (f_prev - f <= d["tol"] * f_prev + d["atol"]) | (moved == 0)
+        k = _max_condition(x, conn, extra)
+        hf, hk, hm = hf.at[it].set(f), hk.at[it].set(k), hm.at[it].set(moved)
+        done = ((f <= d["ftol"]) | (f_prev - f <= d["tol"] * f_prev + d["atol"]) | (moved == 0)
+                | (k <= 1.0 + d["ktol"]))
         return key, x, width, it, f, done, hf, hk, hm
 
     def cond(carry):
         it, done = carry[3], carry[5]
         return (it < s.max_sweeps) & ~done
 
-    init = (key, x, width, jnp.int32(0), f_init, f_init <= d["ftol"], hist_f, hist_k, hist_m)
+    init = (key, x, width, jnp.int32(0), f_init, (f_init <= d["ftol"]) | (k_init <= 1.0 + d["ktol"]), hist_f,
+            hist_k, hist_m)
     _, x, _, it, _, _, hf, hk, hm = jax.lax.while_loop(cond, sweep, init)
     return x, it, hf, hk, hm
 

@@ -55,6 +55,9 @@ class CIParams:
       1e-7). Without it a perturbed 20^3 box, at max kappa/3 1.00007 after 10 sweeps, swept on to the cap of 120
       (114 s) as F fell geometrically towards 0 (`tol` alone is relative).
     - `ftol`: stop when F <= ftol (default 1e-10).
+    - `ktol`: local CI: also stop once max kappa/3 <= 1 + ktol (default 1e-6): every corner within ktol of an ideal
+      one, the global minimum (as `jaxci.optim.gradient_params.GradientParams.ktol`; 0: only a numerically
+      perfect mesh).
     - `patience`: global CI: saturation must hold for this many consecutive attempts (default 20).
     - `pattern`: local CI: after every sweep, a pattern move along the sweep's displacement D (Hooke & Jeeves):
       the mesh ``x + a D`` for each factor a of `PATTERN_FACTORS`, projected onto the boundary, is evaluated
@@ -77,6 +80,7 @@ class CIParams:
     tol: float = 1e-6
     atol: float = 1e-7
     ftol: float = 1e-10
+    ktol: float = 1e-6
     patience: int = 20
     pattern: bool = True
     backend: str = "auto"
@@ -97,6 +101,7 @@ class CIParams:
             tol=_p.real(L, "tol", self.tol, 0),
             atol=_p.real(L, "atol", self.atol, 0),
             ftol=_p.real(L, "ftol", self.ftol, 0),
+            ktol=_p.real(L, "ktol", self.ktol, 0),
             patience=_p.integer(L, "patience", self.patience, 1, MAX_LOOP),
             pattern=_p.boolean(L, "pattern", self.pattern),
             backend=_p.choice(L, "backend", self.backend, _p.BACKENDS),

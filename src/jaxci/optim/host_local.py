@@ -16,7 +16,8 @@ interval, shrunk by ``reduction`` per attempt, in the node's free directions; pr
 edge; keeps the best if it is better); the node takes the cohort's best if it lowers its local objective (so F
 never increases: a colour's nodes share no element). Widths adapt per node (4 x the move after an accepted
 move, halved otherwise, within ``[min_width, init_width] h``); after each sweep the pattern move (`PATTERN_FACTORS`)
-and the same stops (``F <= ftol``, a decrease below ``tol F + atol``, no node moved, ``max_sweeps``). Random numbers:
+and the same stops (``F <= ftol``, a decrease below ``tol F + atol``, no node moved, max kappa/3 <= 1 + ktol,
+``max_sweeps``). Random numbers:
 each visit draws a seed from numpy's PCG64 (seeded by the run's seed), each node its own xoshiro256** stream from
 it: same seed, same result on any number of threads, but not the compiled path's stream.
 Everything is float64. `laplace_np` sweeps the colours the same way with the Laplacian's one move per node
@@ -244,7 +245,7 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
     sw = _Sweeper(points, hexes, cons, colour, faces, p, seed)
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax], [0]
-    done = f <= p.ftol
+    done = f <= p.ftol or kmax <= 1.0 + p.ktol
     while not done and len(hist_f) <= p.max_sweeps:
         start = sw.x.copy()
         moved = sum(sw.visit(col) for col in sw.colours)
@@ -254,7 +255,7 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
         hist_f.append(f_new)
         hist_k.append(k_new)
         hist_m.append(moved)
-        done = f_new <= p.ftol or f - f_new <= p.tol * f + p.atol or moved == 0
+        done = f_new <= p.ftol or f - f_new <= p.tol * f + p.atol or moved == 0 or k_new <= 1.0 + p.ktol
         f = f_new
     n = len(hist_f) - 1
     return sw.x, n, {"objective": np.asarray(hist_f), "max_condition": np.asarray(hist_k),
