@@ -259,3 +259,16 @@ def test_cli_quality_per_type(capsys, tmp_path):
             line.split()[0] in ("hexahedron", "wedge", "pyramid", "tetra", "all")}
     assert rows["wedge"][1:3] == ["8", "0"] and rows["all"][1] == "34"
     assert float(rows["tetra"][3]) == pytest.approx(d["by_type"]["tetra"]["max_condition"], rel=1e-5)
+
+
+def test_hexahedron_determinants_take_the_fast_path_with_the_kernels_numbers():
+    """`corner_determinant` of hexahedra is `jaxci.cells.corner_determinants` (the determinants alone): the
+    numbers of the generic kernel's invariants, bit for bit, inverted corners included; the shape is checked."""
+    mesh = perturb_box(6, amplitude=0.3, seed=2)
+    pts = mesh.points + np.random.default_rng(0).uniform(-0.08, 0.08, mesh.points.shape)
+    fast = E.corner_determinant(pts, mesh.hexes, "hexahedron")
+    ref = E.cell_corner_kernel(pts, np.ascontiguousarray(mesh.hexes.T), "hexahedron")[0]
+    assert (ref <= 0).any() and fast.shape == (mesh.n_hexes, 8)
+    np.testing.assert_array_equal(fast, ref)
+    with pytest.raises(ValueError, match="shape"):
+        E.corner_determinant(pts, mesh.hexes[:, :6], "hexahedron")
