@@ -173,8 +173,9 @@ def cell_corner_kernel(points, conn, cell_type: str):
     (numpy float64; `points` ``(n, 3)`` float64, `conn` the transposed ``(k, N)`` connectivity)."""
     k = KERNELS[cell_type]
     cols = _columns(*_nodes(np, points, conn), k.corners)
-    det_a = _invariants(cols)[0]
-    det_t, fro2, adj2 = _invariants(_times_inverse(cols, k.winv))
+    t_cols = _times_inverse(cols, k.winv)
+    det_t, fro2, adj2 = _invariants(t_cols)
+    det_a = det_t if t_cols is cols else _invariants(cols)[0]  # W = I (the hexahedron): T = A, computed once
     return det_a.T, det_t.T, fro2.T, adj2.T, _lengths2(cols).T
 
 
