@@ -177,7 +177,8 @@ def nearest_candidates(xp, x, table, cand, closest, tol):
 
 def candidate_rows(table, cand) -> list:
     """The rows of `table` gathered at the candidates `cand` (m, K): a list of (m, K) arrays (kept between
-    projections by `jaxci.geometry.near.host_constraints`: in numpy the gather was a third of a projection)."""
+    projections by `jaxci.geometry.near.NearProjector` where numpy searches: the gather was a third of a
+    projection)."""
     return [table[j][cand] for j in range(table.shape[0])]  # 1-D gathers, each (m, K)
 
 

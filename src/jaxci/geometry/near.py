@@ -8,6 +8,7 @@ last iterate (`NearProjector`). The numpy solvers (`jaxci.optim.host`, `jaxci.op
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -59,7 +60,7 @@ class NearProjector:
     def __init__(self, constraints: Constraints):
         from .. import native
 
-        self.c, self.rows = host_constraints(constraints)
+        self.c = host_constraints(constraints)
         # candidate column per surface node, per edge node; -1: not known (search all its candidates)
         self.hint = tuple(np.full(int(n.shape[0]), -1, np.int64) for n in (self.c.surface_nodes, self.c.edge_nodes))
         #: per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search
@@ -73,6 +74,13 @@ class NearProjector:
                                                 _with_faces(self.c.triangles, self.spheres[0])),
                                                (self.c.edge_nodes, self.c.edge_cand, self.c.segments,
                                                 np.column_stack(self.spheres[1]))))
+
+    @functools.cached_property
+    def rows(self) -> tuple:
+        """Per kind, the candidate rows the numpy search reads (`candidate_rows`): every float64 row of every
+        candidate of every boundary node, about 10 kB a node (203 MB on cube60_pert, a third of its run's peak),
+        so they are built on first use, never where the C search runs."""
+        return _candidate_table_rows(self.c)
 
     def commit(self, hint) -> None:
         """Remember `hint` (from `__call__`) for the next projections."""
@@ -231,19 +239,27 @@ def _sphere(table, centre_radius):
     return centre, radius * (1 + 1e-12)  # rounding must not prune a cell that holds the nearest point
 
 
-def host_constraints(c: Constraints) -> tuple[Constraints, tuple]:
-    """``(c as numpy with float64 geometry, (triangle rows, segment rows) gathered at the candidates)``, cached
-    on `c` (converted once per solve, not once per objective evaluation)."""
+def host_constraints(c: Constraints) -> Constraints:
+    """`c` as numpy with float64 geometry, cached on `c` (converted once per solve, not once per objective
+    evaluation)."""
     cached = getattr(c, "_host_cache", None)
     if cached is None:
         def conv(a):
             a = np.asarray(a)
             return a.astype(np.float64) if np.issubdtype(a.dtype, np.floating) else a
 
-        h = dataclasses.replace(c, **{f.name: conv(getattr(c, f.name)) for f in dataclasses.fields(c)})
-        ns, ne = h.surface_nodes.shape[0], h.edge_nodes.shape[0]
-        rows = (candidate_rows(h.triangles, h.surface_cand[:ns]) if ns else None,
-                candidate_rows(h.segments, h.edge_cand[:ne]) if ne else None)
-        cached = (h, rows)
+        cached = dataclasses.replace(c, **{f.name: conv(getattr(c, f.name)) for f in dataclasses.fields(c)})
         object.__setattr__(c, "_host_cache", cached)  # a frozen dataclass; a cache is not a field
+    return cached
+
+
+def _candidate_table_rows(h: Constraints) -> tuple:
+    """``(triangle rows, segment rows)`` of the numpy constraints `h` (`host_constraints`) gathered at the
+    candidates (`candidate_rows`), cached on `h` (built once per solve)."""
+    cached = getattr(h, "_rows_cache", None)
+    if cached is None:
+        ns, ne = h.surface_nodes.shape[0], h.edge_nodes.shape[0]
+        cached = (candidate_rows(h.triangles, h.surface_cand[:ns]) if ns else None,
+                  candidate_rows(h.segments, h.edge_cand[:ne]) if ne else None)
+        object.__setattr__(h, "_rows_cache", cached)
     return cached

@@ -95,7 +95,7 @@ class HostObjective:
         par = self.par
         if self.kernel is None:
             self.kernel = hex_objective_kernel(self.conn, self.power)
-        self._cons, _ = host_constraints(par.cons)
+        self._cons = host_constraints(par.cons)
         self._x0 = np.ascontiguousarray(par.x0, np.float64)
         self._scale = np.ascontiguousarray(par.scale, np.float64)
         self._flat = np.ascontiguousarray(par.flat_nodes)

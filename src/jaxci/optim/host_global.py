@@ -32,7 +32,7 @@ def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int
 
     **Returns:** ``(points, attempts, history)`` as `jaxci.optim.ci.global_ci` (float64 points).
     """
-    hc, _ = host_constraints(cons)
+    hc = host_constraints(cons)
     x0 = np.array(points, dtype=np.float64)
     hexes = np.ascontiguousarray(hexes, dtype=np.int64)
     scale = np.asarray(scale, np.float64)
