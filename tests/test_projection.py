@@ -344,3 +344,21 @@ def test_constraints_without_sliding_nodes():
     assert n_free(c1) == 0
     np.testing.assert_array_equal(np.asarray(project_nodes(c1, jnp.arange(8), one.points + 0.1)), one.points)
     np.testing.assert_array_equal(project_np(c1, one.points + 0.1), one.points)
+
+
+def test_planar_rings_in_blocks_are_the_whole_computation(monkeypatch):
+    """`planar_rings` works through the surface nodes in blocks of `RING_CHUNK` (bounded temporaries): the same
+    origins, normals and radii for any block size, on a paved mesh with curved walls and planar parts."""
+    from helpers import MESQUITE
+
+    from jaxci.io import read_mesh
+    from jaxci.optim import _moves
+
+    mesh = read_mesh(str(MESQUITE / "pave3.e.vtk"))
+    info = classify_boundary(mesh)
+    cons = build_constraints(mesh, info, dtype=np.float64, device=False)
+    whole = _moves.planar_rings(np.asarray(mesh.points), info.topology.faces, cons)
+    assert (whole[:, 6] > 0).sum() > 100  # some planar rings, and some not
+    assert ((whole[:, 6] == 0) & np.isin(np.arange(mesh.n_nodes), np.asarray(cons.surface_nodes))).any()
+    monkeypatch.setattr(_moves, "RING_CHUNK", 7)
+    np.testing.assert_array_equal(_moves.planar_rings(np.asarray(mesh.points), info.topology.faces, cons), whole)

@@ -88,26 +88,27 @@ when_imported("jax", lambda: jax.tree_util.register_dataclass(
 ))
 
 
-def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np.ndarray:
-    """Per node, ``(origin (3), normal (3), radius)`` of its planar ring of boundary faces, shape ``(n, 7)``.
+#: Surface nodes per block of `planar_rings` (its per-face temporaries: ~5 kB a node; 300 MB at once on a 60^3
+#: box's 21,000 surface nodes).
+RING_CHUNK = 4096
 
-    The ring is the set of candidate faces the projection searches (the 2-ring of the node on its own patch,
-    `Constraints.surface_cand`); the radius is the distance from the node to the outer boundary of their union
-    (edges used by one face of the ring), so the ring covers that disk. The radius is 0 for nodes that are not
-    SURFACE nodes, or whose ring is not planar to 1e-12 relative.
-    """
-    n = len(points)
-    out = np.zeros((n, 7))
-    surf = np.asarray(cons.surface_nodes)
-    if len(surf) == 0 or len(faces) == 0:
-        return out
-    ring = np.sort(np.asarray(cons.surface_cand)[: len(surf)] // 4, axis=1)  # (ns, K) faces, each 4 times
-    # the normal from the float64 geometry of the node's first ring face (the constraints' bases may be float32:
-    # their rounding alone made every plane that is not axis-aligned fail the 1e-12 planarity test)
-    f0 = points[faces[ring[:, 0]]]  # (ns, 4, 3); a triangle [a, b, c, c] gives (c - a) x (c - b)
+
+def _ring_normal(points: np.ndarray, faces: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """The unit normal of each node's first ring face (`planar_rings`), from the float64 geometry (the
+    constraints' bases may be float32: their rounding alone made every plane that is not axis-aligned fail the
+    1e-12 planarity test); `cand` the nodes' candidate columns ``(m, K)`` (4 per face)."""
+    f0 = points[faces[np.min(cand, axis=1) // 4]]  # (m, 4, 3); a triangle [a, b, c, c] gives (c - a) x (c - b)
     normal = np.cross(f0[:, 2] - f0[:, 0], f0[:, 3] - f0[:, 1])
     length = np.linalg.norm(normal, axis=1, keepdims=True)
-    normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
+    return np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
+
+
+def _ring_radius(points: np.ndarray, faces: np.ndarray, cand: np.ndarray, surf: np.ndarray, n: int):
+    """``(radius, deviation)`` of the planar rings of the surface nodes `surf` ``(m,)`` with candidate columns
+    `cand` ``(m, K)`` (`planar_rings`): the distance to the outer boundary of the ring's faces, and the largest
+    distance of a ring node from the plane of the first face."""
+    ring = np.sort(cand // 4, axis=1)  # (m, K) faces, each 4 times
+    normal = _ring_normal(points, faces, cand)
     first = np.ones(ring.shape, bool)
     first[:, 1:] = ring[:, 1:] != ring[:, :-1]  # unique faces per row
     # compact each row to its unique faces (padded with repeats of the first): 4x less work below
@@ -135,6 +136,29 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
     t = np.clip(np.einsum("skd,skd->sk", rel, d) / np.maximum(np.einsum("skd,skd->sk", d, d), 1e-300), 0, 1)
     dist = np.linalg.norm(rel - t[..., None] * d, axis=-1)
     radius = np.where(single, dist, np.inf).min(axis=1)
+    return radius, dev
+
+
+def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np.ndarray:
+    """Per node, ``(origin (3), normal (3), radius)`` of its planar ring of boundary faces, shape ``(n, 7)``.
+
+    The ring is the set of candidate faces the projection searches (the 2-ring of the node on its own patch,
+    `Constraints.surface_cand`); the radius is the distance from the node to the outer boundary of their union
+    (edges used by one face of the ring), so the ring covers that disk. The radius is 0 for nodes that are not
+    SURFACE nodes, or whose ring is not planar to 1e-12 relative.
+    """
+    n = len(points)
+    out = np.zeros((n, 7))
+    surf = np.asarray(cons.surface_nodes)
+    if len(surf) == 0 or len(faces) == 0:
+        return out
+    cand = np.asarray(cons.surface_cand)[: len(surf)]
+    radius, dev = np.empty(len(surf)), np.empty(len(surf))
+    for lo in range(0, len(surf), RING_CHUNK):  # in blocks: the per-face arrays are ~100 entries a node
+        sl = slice(lo, lo + RING_CHUNK)
+        radius[sl], dev[sl] = _ring_radius(points, faces, cand[sl], surf[sl], n)
+    x0 = points[surf]
+    normal = _ring_normal(points, faces, cand)
     planar = np.isfinite(radius) & (dev <= 1e-12 * np.maximum(radius, 1e-300))
     out[surf[planar], :3] = x0[planar]
     out[surf[planar], 3:6] = normal[planar]
