@@ -86,9 +86,8 @@ def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
     `jaxci.native`): L-BFGS where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed one only on F and with
     the C kernels; with presmoothing, a hexahedral one with the C kernels, its sweeps then on the host too), CI
-    (both forms) and the Laplacians where
-    `jaxci.optim.host_local.host_local_applies`; their reports and checks in numpy. JAX is then never imported
-    (0.4-0.5 s of a small mesh's run)."""
+    (both forms) and the Laplacians where `jaxci.optim.host_local.host_local_applies`; their reports and checks
+    in numpy. JAX is then never imported (0.4-0.5 s of a small mesh's run)."""
     from . import native
     from .metrics.elements import objective_on_host
     from .metrics.report import NUMPY_REPORT_MAX
@@ -119,9 +118,8 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
     Chosen by measurement on real and generated meshes (docs/results/README.md, sessions 4 and 5): L-BFGS on F
     after the untangling stage (when the input has inverted elements); from `AUTO_PRESMOOTH_FROM` hexahedra on
     and where L-BFGS runs compiled (``backend="jax"``, or above `jaxci.optim.host.HOST_MAX`), 3 smart-Laplace
-    sweeps first (they fix the worst
-    corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13 after them). Local CI ran to its
-    sweep cap on unstructured meshes. `params` (the user's) win.
+    sweeps first (they fix the worst corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13
+    after them). Local CI ran to its sweep cap on unstructured meshes. `params` (the user's) win.
     """
     params = dict(params)
     if "presmooth" not in params and (n_hexes >= AUTO_PRESMOOTH_FROM

@@ -103,12 +103,12 @@ def _ring_normal(points: np.ndarray, faces: np.ndarray, cand: np.ndarray) -> np.
     return np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
 
 
-def _ring_radius(points: np.ndarray, faces: np.ndarray, cand: np.ndarray, surf: np.ndarray, n: int):
+def _ring_radius(points: np.ndarray, faces: np.ndarray, cand: np.ndarray, surf: np.ndarray, normal: np.ndarray,
+                 n: int):
     """``(radius, deviation)`` of the planar rings of the surface nodes `surf` ``(m,)`` with candidate columns
-    `cand` ``(m, K)`` (`planar_rings`): the distance to the outer boundary of the ring's faces, and the largest
-    distance of a ring node from the plane of the first face."""
+    `cand` ``(m, K)`` and first-face normals `normal` ``(m, 3)`` (`planar_rings`): the distance to the outer
+    boundary of the ring's faces, and the largest distance of a ring node from the plane of the first face."""
     ring = np.sort(cand // 4, axis=1)  # (m, K) faces, each 4 times
-    normal = _ring_normal(points, faces, cand)
     first = np.ones(ring.shape, bool)
     first[:, 1:] = ring[:, 1:] != ring[:, :-1]  # unique faces per row
     # compact each row to its unique faces (padded with repeats of the first): 4x less work below
@@ -153,12 +153,12 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
     if len(surf) == 0 or len(faces) == 0:
         return out
     cand = np.asarray(cons.surface_cand)[: len(surf)]
+    normal = _ring_normal(points, faces, cand)
     radius, dev = np.empty(len(surf)), np.empty(len(surf))
     for lo in range(0, len(surf), RING_CHUNK):  # in blocks: the per-face arrays are ~100 entries a node
         sl = slice(lo, lo + RING_CHUNK)
-        radius[sl], dev[sl] = _ring_radius(points, faces, cand[sl], surf[sl], n)
+        radius[sl], dev[sl] = _ring_radius(points, faces, cand[sl], surf[sl], normal[sl], n)
     x0 = points[surf]
-    normal = _ring_normal(points, faces, cand)
     planar = np.isfinite(radius) & (dev <= 1e-12 * np.maximum(radius, 1e-300))
     out[surf[planar], :3] = x0[planar]
     out[surf[planar], 3:6] = normal[planar]
