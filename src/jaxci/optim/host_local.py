@@ -270,8 +270,9 @@ def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams
     max kappa/3 are ``inf`` once the plain Laplacian has inverted a corner).
     """
     p = LaplaceParams() if p is None else p
+    # the neighbours first: their sort's temporaries (~380 B a hexahedron) are gone before the stars are built
+    nbr, nmask = edge_neighbours(hexes, len(points))
     sw = _Sweeper(points, hexes, cons, colour, faces, p)
-    nbr, nmask = edge_neighbours(hexes, len(sw.x))
     per_colour = []
     for col in sw.colours:
         h = _local_length(sw.x, col)
