@@ -90,10 +90,9 @@ def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
     in numpy. JAX is then never imported (0.4-0.5 s of a small mesh's run)."""
     from . import native
     from .metrics.elements import objective_on_host
-    from .metrics.report import NUMPY_REPORT_MAX
 
     extra = mixed.extra_blocks(mesh)
-    if mesh.n_hexes > NUMPY_REPORT_MAX or not objective_on_host(mesh):
+    if not objective_on_host(mesh):
         return False
     if method in ("ci", "ci-global", "laplace", "smart-laplace"):
         from .optim.host_local import host_local_applies

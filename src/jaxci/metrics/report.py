@@ -21,11 +21,6 @@ from .elements import cell_corner_kernel, corner_figures, summary
 #: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
 HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
 
-#: `jaxci.methods.host_run` runs meshes of at most this many hexahedra entirely on the host. (`quality_report`
-#: measured meshes up to this size in numpy, larger ones in JAX: 27,000 hexes 0.04 / 0.04 s in numpy against
-#: 0.84 / 0.07 s in JAX, first / second call; 216,000: 0.25-0.69 / 0.25 s against 0.92 / 0.24 s; it now measures
-#: every mesh in numpy, block by block: no compilation, and one block's arrays live instead of the mesh's.)
-NUMPY_REPORT_MAX = 250_000
 
 @dataclasses.dataclass(frozen=True)
 class QualityReport:

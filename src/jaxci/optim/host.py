@@ -42,16 +42,18 @@ from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 #: cold. Session 10, with the smart-Laplace presmoothing on the host too and the stop at max kappa/3 <= 1 + ktol
 #: (`jaxci.optim.gradient_params.GradientParams.ktol`): cube60_pert, whole ``jaxci smooth``, 20.1 s (smooth phase
 #: 6.9 s, peak 735 MB) against 27.8 s cold (smooth 15.1 s, 7.3 s of it compiling; 1.25 GB) and 20.2 s with a warm
-#: compilation cache (smooth 8.2 s). Above it the compiled loop (after smart-Laplace sweeps), whose float32
-#: arrays keep the peak lower at 10^6 elements (`docs/sharding.md`).
-HOST_MAX = 250_000 if native.AVAILABLE else 30_000
+#: compilation cache (smooth 8.2 s). At 10^6 (a 100^3 box, the same pipeline, in process): 41 s, peak 1.6 GB,
+#: no JAX import, against 52 s and 2.74 GB compiled: the host path is faster and leaner at every size measured.
+#: Above it (or with ``backend="jax"``, e.g. to use an accelerator) the compiled loop after smart-Laplace sweeps.
+HOST_MAX = 2_000_000 if native.AVAILABLE else 30_000
 
-#: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``: 250,000 with the C
-#: kernels, 60,000 without. The compiled loop runs in float64 too, so numpy saves its compilation (1-2 s).
+#: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``: `HOST_MAX` with the
+#: C kernels (session 10: the L-BFGS host path's limit), 60,000 without. The compiled loop runs in float64 too,
+#: so numpy saves its compilation (1-2 s).
 #: numpy kernels: cube30_pert (27,000 hexes) 0.7 s against 2.3 s cold, 0.6 s against 0.65 s warm; cube60_pert
 #: (216,000, 50 steps) 16.4 s against 12.4 s cold, 9.9 s warm (numpy ~330 ms a step, XLA ~200-250 ms). C
 #: kernels (session 6, machine loaded): cube60_pert 8.4 s against 12.3 s cold.
-UNTANGLE_HOST_MAX = 250_000 if native.AVAILABLE else 60_000
+UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
