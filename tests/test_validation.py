@@ -185,6 +185,19 @@ def test_smooth_refuses_what_does_not_fit(monkeypatch):
         jaxci.smooth(box(2), "laplace", dtype="float64")
 
 
+def test_the_memory_estimate_of_a_host_run_is_the_host_path_s(monkeypatch):
+    """A run entirely on the host (numpy and C) is estimated with its own measured bytes per hexahedron and
+    fixed part (no JAX runtime, no compilation): with 300 MB free, a small host run goes ahead and the same run
+    compiled is refused."""
+    import jaxci.memory
+
+    assert jaxci.memory.smooth_bytes(10**6, host=True) < 0.6 * jaxci.memory.smooth_bytes(10**6)
+    monkeypatch.setattr(jaxci.memory, "available_bytes", lambda: 300 * 2**20)
+    assert jaxci.smooth(box(2), "laplace", dtype="float64").after.inverted_elements == 0
+    with pytest.raises(MeshError, match=r"smoothing 8 hexahedra in float64 needs about .* GB"):
+        jaxci.smooth(box(2), "laplace", dtype="float64", backend="jax")
+
+
 def test_flat_mesh_refused_at_once():
     m = box(20, 20, 2)
     p = m.points.copy()

@@ -29,6 +29,11 @@ SMOOTH_BYTES_PER_HEX = {"float32": 3_000, "float64": 4_300}
 CI_BYTES_PER_TRIAL = 25
 #: Measured fixed part (JAX's runtime and the compilation of the smoothing loops), bytes.
 SMOOTH_FIXED_BYTES = 400 * 2**20
+#: Measured peak bytes per hexahedron of a run entirely on the host (`jaxci.methods.host_run`: numpy and C, no
+#: JAX, nothing compiled; float64 whatever `dtype` says), and its fixed part: the default pipeline (3 smart-Laplace
+#: sweeps, L-BFGS, reports) on a perturbed 100^3 box peaked at 1.63 GB in all (`docs/results/README.md`, session 10).
+HOST_BYTES_PER_HEX = 1_700
+HOST_FIXED_BYTES = 100 * 2**20
 #: Measured peak bytes per hexahedron of `jaxci.generate.perturb_box` (numpy: grid, connectivity, corner
 #: determinants of the redraw test, mesh validation; measured the same way for n = 20..80: 715 bytes).
 GENERATE_BYTES_PER_HEX = 720
@@ -65,9 +70,12 @@ def available_bytes() -> int | None:
     return avail
 
 
-def smooth_bytes(n_hexes: int, dtype: str = "float32", trials: int = 16) -> int:
+def smooth_bytes(n_hexes: int, dtype: str = "float32", trials: int = 16, host: bool = False) -> int:
     """Estimated peak bytes of smoothing a mesh of `n_hexes` hexahedra (safety factor included); `trials`: CI's
-    cohort x variations (`ci_trials`), 16 (the default) for the other methods."""
+    cohort x variations (`ci_trials`), 16 (the default) for the other methods; `host`: the run is entirely on the
+    host (`HOST_BYTES_PER_HEX`)."""
+    if host:
+        return int(SAFETY * (HOST_BYTES_PER_HEX * n_hexes + HOST_FIXED_BYTES))
     per = SMOOTH_BYTES_PER_HEX.get(dtype, max(SMOOTH_BYTES_PER_HEX.values()))
     per += CI_BYTES_PER_TRIAL * max(int(trials) - 16, 0) * (2 if dtype == "float64" else 1)
     return int(SAFETY * (per * n_hexes + SMOOTH_FIXED_BYTES))
