@@ -37,6 +37,8 @@ THRESHOLDS = (1.01, 1.0001)
 #: The keyword that caps the iterations of each method family (CI: sweeps; Laplace: sweeps; optimistix: steps).
 CAP = {"ci": "max_sweeps", "smart-laplace": "max_sweeps", "laplace": "max_sweeps"}
 CAP_DEFAULT = "max_steps"
+#: The methods whose ``backend="auto"`` runs them on the host's CPU (numpy and C) for meshes up to a size.
+HOST_METHODS = ("lbfgs", "ci", "ci-global", "laplace", "smart-laplace")
 
 
 def child(args) -> dict:
@@ -69,6 +71,10 @@ def _measure(args, device) -> dict:
     params = json.loads(args.params) if args.params else {}
     if args.devices:
         params["devices"] = args.devices
+    if device.platform != "cpu" and args.method in HOST_METHODS:
+        # on an accelerator, the compiled loops on it: with backend "auto" these methods run on the host's CPU up
+        # to `jaxci.optim.host.HOST_MAX` (L-BFGS) / `HOST_LOCAL_MAX` (CI, Laplacians) elements
+        params.setdefault("backend", "jax")
     out = dict(size=n, hexes=mesh.n_hexes, nodes=mesh.n_nodes, method=args.method, dtype=args.dtype,
                devices=args.devices, device=str(device), backend=device.platform, jax=jax.__version__,
                generate_s=t_gen, params=params, glibc_tunables=os.environ.get("GLIBC_TUNABLES"),
