@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import MESQUITE
 
 import jaxci
 from jaxci import native
@@ -30,15 +31,40 @@ def test_local_sums_equal_the_local_terms_of_the_compiled_sweep():
     mesh = perturb_box(5, amplitude=0.3, seed=3)
     x, hexes = np.asarray(mesh.points), np.asarray(mesh.hexes)
     stars = node_stars(hexes, len(x))
+    inc = node_stars(hexes, len(x), incidences=True).star
     trials = x[:, None] + np.random.default_rng(0).normal(size=(len(x), 7, 3)) * 0.06
     with jax.enable_x64(True):
         ref = np.asarray(local_terms(gather_star(jnp.asarray(x), jnp.asarray(stars.star)), jnp.asarray(stars.mask),
                                      jnp.asarray(trials)))
-    got = native.local_sums(x, stars.star, stars.mask.sum(axis=1), trials)
+    got = native.local_sums(x, hexes, inc, stars.mask.sum(axis=1), trials)
     finite = np.isfinite(ref)
     assert 0.2 < finite.mean() < 0.95  # both kinds of trials are there
     assert np.array_equal(np.isfinite(got), finite)
     np.testing.assert_allclose(got[finite], ref[finite], rtol=1e-12)
+
+
+def test_star_incidences_are_the_relabelled_node_lists():
+    """The host sweeps' stars are incidences (8 e + s, 8x less memory): `star_nodes` turns them into exactly the
+    compiled path's relabelled node lists, real slots and mask the same, on a mesh with uneven valences."""
+    from jaxci.optim._local import node_stars, star_nodes
+
+    mesh = jaxci.read_mesh(str(MESQUITE / "pave3.e.vtk"))
+    hexes = np.asarray(mesh.hexes)
+    lists, inc = node_stars(hexes, mesh.n_nodes), node_stars(hexes, mesh.n_nodes, incidences=True)
+    assert inc.star.shape == lists.mask.shape and np.array_equal(inc.mask, lists.mask)
+    real = lists.mask
+    assert np.array_equal(star_nodes(hexes, inc.star)[real], lists.star[real])
+
+
+def test_local_sums_name_a_bad_incidence():
+    """An incidence outside the elements or a count above K is an IndexError naming the kernel and the value,
+    not a read out of bounds."""
+    x, hexes = np.zeros((8, 3)), np.arange(8)[None]
+    trials = np.zeros((1, 1, 3))
+    with pytest.raises(IndexError, match="local_sums: incidence 8 out of range"):
+        native.local_sums(x, hexes, np.array([[8]]), np.array([1]), trials)
+    with pytest.raises(IndexError, match="local_sums: count 2 out of range"):
+        native.local_sums(x, hexes, np.array([[0]]), np.array([2]), trials)
 
 
 def test_host_and_compiled_local_ci_reach_the_same_optimum_in_as_many_sweeps():
@@ -171,7 +197,7 @@ def test_host_local_length_is_the_mean_edge_length_at_the_node():
     mesh = box(4, 4, 4)
     pb = build_problem(mesh, dtype=np.float64, device=False)
     for col in _colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces):
-        np.testing.assert_allclose(_local_length(np.asarray(mesh.points), col), 0.25, rtol=1e-12)
+        np.testing.assert_allclose(_local_length(np.asarray(mesh.points), mesh.hexes, col), 0.25, rtol=1e-12)
 
 
 def test_local_ci_stops_once_a_sweep_gains_less_than_atol():

@@ -774,12 +774,15 @@ done:
 }
 
 /* ------------------------------------------------------------------------------------------ local moves
- * local_sums(points (n,3) f8, star (M,K,8) i8, count (M,) i8, trials (M,S,3) f8, out (M,S) f8) -> None: for
- * node slot m with its first count[m] star elements (relabelled so that the node is local slot 0,
- * jaxci.optim._local.node_stars) and the node at trials[m, s], out[m, s] = the sum of (kappa/3)^2 over the four
- * corners of each element whose matrix holds slot 0 (AFFECTED_CORNERS of jaxci.optim._local), inf if one has
- * det <= 0: jaxci.optim._local.local_terms, one pass. Per element, the two columns its corners 1, 3 and 4 hold
- * fixed are set up once for all trials. */
+ * A node's star is its incidences: inc[m, k] = 8 e + s for the k-th element e around node slot m, the node being
+ * that element's local node s (jaxci.optim._local.node_stars); rot (8,8) is jaxci.cells.ROTATE_TO_SLOT, which
+ * relabels the element so that the node is its local node 0 (8x less memory than the relabelled node lists; the
+ * nodes are read through it as each element is set up).
+ * local_sums(points (n,3) f8, hexes (N,8) i8, rot (8,8) i8, inc (M,K) i8, count (M,) i8, trials (M,S,3) f8,
+ * out (M,S) f8) -> None: for node slot m with its first count[m] star elements and the node at trials[m, s],
+ * out[m, s] = the sum of (kappa/3)^2 over the four corners of each element whose matrix holds slot 0
+ * (AFFECTED_CORNERS of jaxci.optim._local), inf if one has det <= 0: jaxci.optim._local.local_terms, one pass.
+ * Per element, the two columns its corners 1, 3 and 4 hold fixed are set up once for all trials. */
 
 /* What one element of a node's star holds fixed while the node (its local slot 0) moves: the nodes of corner 0's
  * columns, and for corners 1, 3 and 4 their two fixed columns, the cross product F of those (det = the moving
@@ -788,7 +791,41 @@ typedef struct {
     double P1[3], P3[3], P4[3], a1[3], c1[3], F1[3], b3[3], c3[3], F3[3], a4[3], b4[3], F4[3], r1, r3, r4, n1, n3, n4;
 } Elem;
 
-static void elem_setup(const double *X, const long long *e, Elem *E) {
+/* The nodes e[0..7] of incidence `inc` (8 x element + local node), relabelled by `rot` so that the node is 0. */
+static inline void star_nodes(const long long *HEX, const long long *ROT, long long inc, long long *e) {
+    const long long *h = HEX + 8 * (inc / 8), *r = ROT + 8 * (inc % 8);
+    for (int j = 0; j < 8; j++) e[j] = h[r[j]];
+}
+
+/* 0 if rot (8,8) holds local nodes, every count[m] is in [0, K] and every incidence inc[m, k < count[m]] names an
+ * element of hexes (N,8) whose nodes are in [0, n); else -1 with an IndexError naming the function. */
+static int check_stars(const long long *HEX, Py_ssize_t N, Py_ssize_t n, const long long *ROT, const long long *INC,
+                       const long long *CNT, Py_ssize_t M, Py_ssize_t K, const char *fn) {
+    for (int k = 0; k < 64; k++)
+        if (ROT[k] < 0 || ROT[k] > 7) {
+            PyErr_Format(PyExc_IndexError, "%s: rot holds %lld, not a local node 0-7", fn, ROT[k]);
+            return -1;
+        }
+    for (Py_ssize_t m = 0; m < M; m++) {
+        if (CNT[m] < 0 || CNT[m] > K) {
+            PyErr_Format(PyExc_IndexError, "%s: count %lld out of range [0, %zd]", fn, CNT[m], K);
+            return -1;
+        }
+        for (Py_ssize_t k = 0; k < CNT[m]; k++) {
+            long long i = INC[m * K + k];
+            if (i < 0 || i >= 8 * N) {
+                PyErr_Format(PyExc_IndexError, "%s: incidence %lld out of range [0, %zd)", fn, i, 8 * N);
+                return -1;
+            }
+            if (check_indices(HEX + 8 * (i / 8), 8, n, fn) < 0) return -1;
+        }
+    }
+    return 0;
+}
+
+static void elem_setup(const double *X, const long long *HEX, const long long *ROT, long long inc, Elem *E) {
+    long long e[8];
+    star_nodes(HEX, ROT, inc, e);
     const double *P1 = X + 3 * e[1], *P2 = X + 3 * e[2], *P3 = X + 3 * e[3], *P4 = X + 3 * e[4],
                  *P5 = X + 3 * e[5], *P7 = X + 3 * e[7];
     for (int d = 0; d < 3; d++) {
@@ -834,44 +871,40 @@ static inline double elem_sum(const Elem *E, const double *y) {
 }
 
 static PyObject *local_sums(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_star, *o_cnt, *o_tr, *o_out, *ret = NULL;
-    if (!PyArg_ParseTuple(args, "OOOOO", &o_pts, &o_star, &o_cnt, &o_tr, &o_out)) return NULL;
-    Buf B[5] = {{{0}}};
-    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_star, "star", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o_cnt, "count", "qlq", 0, 0) < 0 || acquire(&B[3], o_tr, "trials", "d", 0, 0) < 0 ||
-        acquire(&B[4], o_out, "out", "d", 1, 0) < 0)
+    PyObject *o_pts, *o_hex, *o_rot, *o_inc, *o_cnt, *o_tr, *o_out, *ret = NULL;
+    if (!PyArg_ParseTuple(args, "OOOOOOO", &o_pts, &o_hex, &o_rot, &o_inc, &o_cnt, &o_tr, &o_out)) return NULL;
+    Buf B[7] = {{{0}}};
+    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
+        acquire(&B[2], o_rot, "rot", "qlq", 0, 0) < 0 || acquire(&B[3], o_inc, "inc", "qlq", 0, 0) < 0 ||
+        acquire(&B[4], o_cnt, "count", "qlq", 0, 0) < 0 || acquire(&B[5], o_tr, "trials", "d", 0, 0) < 0 ||
+        acquire(&B[6], o_out, "out", "d", 1, 0) < 0)
         goto done;
-    Py_ssize_t n = B[0].view.len / 24, M = B[2].view.len / 8, S = M ? B[4].view.len / 8 / M : 0;
-    Py_ssize_t K = M ? B[1].view.len / 64 / M : 0;
-    if (B[0].view.len != n * 24 || B[1].view.len != M * K * 64 || B[3].view.len != M * S * 24 ||
-        B[4].view.len != M * S * 8) {
-        PyErr_SetString(PyExc_ValueError, "local_sums: shapes disagree (points (n, 3), star (M, K, 8), count (M,), "
-                                          "trials (M, S, 3), out (M, S))");
+    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64, M = B[4].view.len / 8,
+               S = M ? B[6].view.len / 8 / M : 0, K = M ? B[3].view.len / 8 / M : 0;
+    if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || B[2].view.len != 512 || B[3].view.len != M * K * 8 ||
+        B[5].view.len != M * S * 24 || B[6].view.len != M * S * 8) {
+        PyErr_SetString(PyExc_ValueError, "local_sums: shapes disagree (points (n, 3), hexes (N, 8), rot (8, 8), "
+                                          "inc (M, K), count (M,), trials (M, S, 3), out (M, S))");
         goto done;
     }
-    const long long *ST = B[1].view.buf, *CNT = B[2].view.buf;
-    if (check_indices(ST, M * K * 8, n, "local_sums") < 0) goto done;
-    for (Py_ssize_t m = 0; m < M; m++)
-        if (CNT[m] < 0 || CNT[m] > K) {
-            PyErr_SetString(PyExc_IndexError, "local_sums: count out of range [0, K]");
-            goto done;
-        }
-    const double *X = B[0].view.buf, *TR = B[3].view.buf;
-    double *OUT = B[4].view.buf;
+    const long long *HEX = B[1].view.buf, *ROT = B[2].view.buf, *INC = B[3].view.buf, *CNT = B[4].view.buf;
+    if (check_stars(HEX, N, n, ROT, INC, CNT, M, K, "local_sums") < 0) goto done;
+    const double *X = B[0].view.buf, *TR = B[5].view.buf;
+    double *OUT = B[6].view.buf;
     for (Py_ssize_t m = 0; m < M; m++) {
         double *o = OUT + m * S;
         const double *Y = TR + 3 * m * S;
         for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
         for (Py_ssize_t k = 0; k < CNT[m]; k++) {
             Elem E;
-            elem_setup(X, ST + (m * K + k) * 8, &E);
+            elem_setup(X, HEX, ROT, INC[m * K + k], &E);
             for (Py_ssize_t s = 0; s < S; s++) o[s] += elem_sum(&E, Y + 3 * s) * (1.0 / 9.0);
         }
     }
     Py_INCREF(Py_None);
     ret = Py_None;
 done:
-    release(B, 5);
+    release(B, 7);
     return ret;
 }
 
@@ -911,7 +944,7 @@ typedef struct {
 typedef struct {
     double *X, *WIDTH;
     const double *BASIS, *FREE, *PLANE;
-    const long long *NODES, *ST, *CNT, *ROW, *KIND;
+    const long long *NODES, *HEX, *ROT, *INC, *CNT, *ROW, *KIND;
     Cells *cells;
     Py_ssize_t K, lo, hi;
     int C, t, T, n_roulette;
@@ -925,7 +958,7 @@ static void *ci_worker(void *arg) {
     CiJob *J = arg;
     double *X = J->X, *WIDTH = J->WIDTH;
     const double *BASIS = J->BASIS, *FREE = J->FREE, *PLANE = J->PLANE;
-    const long long *ST = J->ST, *CNT = J->CNT, *ROW = J->ROW, *KIND = J->KIND, *NODES = J->NODES;
+    const long long *HEX = J->HEX, *ROT = J->ROT, *INC = J->INC, *CNT = J->CNT, *ROW = J->ROW, *KIND = J->KIND, *NODES = J->NODES;
     Cells *cells = J->cells;
     Py_ssize_t K = J->K;
     int C = J->C, t = J->t, T = J->T, n_roulette = J->n_roulette;
@@ -952,7 +985,7 @@ static void *ci_worker(void *arg) {
         const long long *crow = cl ? cl->cand + ROW[m] * cl->K : NULL;
         Py_ssize_t cnt = CNT[m];
         for (Py_ssize_t k = 0; k < cnt; k++) {
-            elem_setup(X, ST + (m * K + k) * 8, &E[k]);
+            elem_setup(X, HEX, ROT, INC[m * K + k], &E[k]);
             for (int j = 0; j < 3; j++) {
                 const double *P = j == 0 ? E[k].P1 : (j == 1 ? E[k].P3 : E[k].P4);
                 double d2 = 0.0;
@@ -1051,24 +1084,26 @@ static void *ci_worker(void *arg) {
 }
 
 static PyObject *ci_visit(PyObject *self, PyObject *args) {
-    PyObject *o[18], *ret = NULL;
+    PyObject *o[20], *ret = NULL;
     int C, t, T, n_roulette;
     double reduction, delta, init_width, min_width, tol, bump;
     unsigned long long seed;
     int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOOOiiiiddddddK|i", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
-                          &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16], &o[17], &C,
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOOOOOiiiiddddddK|i", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16], &o[17],
+                          &o[18], &o[19], &C,
                           &t, &T, &n_roulette, &reduction, &delta, &init_width, &min_width, &tol, &bump, &seed, &nthreads))
         return NULL;
-    static const char *names[18] = {"x", "width", "nodes", "star", "count", "basis", "free", "plane", "row", "kind",
+    static const char *names[20] = {"x", "width", "nodes", "inc", "count", "basis", "free", "plane", "row", "kind",
                                     "hint_s", "hint_e", "cand_s", "table_s", "spheres_s", "cand_e", "table_e",
-                                    "spheres_e"};
-    static const int writable[18] = {1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0};
-    static const int integer[18] = {0, 0, 1, 1, 1, 0, 0, 0, 1, 1, 1, 1, 1, 0, 0, 1, 0, 0};
-    Buf B[18] = {{{0}}};
-    for (int i = 0; i < 18; i++)
+                                    "spheres_e", "hexes", "rot"};
+    static const int writable[20] = {1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0};
+    static const int integer[20] = {0, 0, 1, 1, 1, 0, 0, 0, 1, 1, 1, 1, 1, 0, 0, 1, 0, 0, 1, 1};
+    Buf B[20] = {{{0}}};
+    for (int i = 0; i < 20; i++)
         if (acquire(&B[i], o[i], names[i], integer[i] ? "qlq" : "d", writable[i], 0) < 0) goto done;
-    Py_ssize_t n = B[0].view.len / 24, M = B[2].view.len / 8, K = M ? B[3].view.len / 64 / M : 0;
+    Py_ssize_t n = B[0].view.len / 24, M = B[2].view.len / 8, K = M ? B[3].view.len / 8 / M : 0,
+               N = B[18].view.len / 64;
     Cells cells[2];
     for (int k = 0; k < 2; k++) {
         Buf *c = &B[12 + 3 * k];
@@ -1087,21 +1122,22 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
             goto done;
         }
     }
-    if (B[0].view.len != n * 24 || B[1].view.len != n * 8 || B[3].view.len != M * K * 64 || B[4].view.len != M * 8 ||
+    if (B[0].view.len != n * 24 || B[1].view.len != n * 8 || B[3].view.len != M * K * 8 || B[4].view.len != M * 8 ||
         B[5].view.len != M * 72 || B[6].view.len != M * 24 || B[7].view.len != M * 56 || B[8].view.len != M * 8 ||
-        B[9].view.len != M * 8 || C < 1 || t < 1 || T < 0) {
+        B[9].view.len != M * 8 || B[18].view.len != N * 64 || B[19].view.len != 512 || C < 1 || t < 1 || T < 0) {
         PyErr_SetString(PyExc_ValueError, "ci_visit: shapes disagree");
         goto done;
     }
-    const long long *NODES = B[2].view.buf, *ST = B[3].view.buf, *CNT = B[4].view.buf, *ROW = B[8].view.buf,
-                    *KIND = B[9].view.buf;
-    if (check_indices(NODES, M, n, "ci_visit") < 0 || check_indices(ST, M * K * 8, n, "ci_visit") < 0) goto done;
+    const long long *NODES = B[2].view.buf, *INC = B[3].view.buf, *CNT = B[4].view.buf, *ROW = B[8].view.buf,
+                    *KIND = B[9].view.buf, *HEX = B[18].view.buf, *ROT = B[19].view.buf;
+    if (check_indices(NODES, M, n, "ci_visit") < 0 || check_stars(HEX, N, n, ROT, INC, CNT, M, K, "ci_visit") < 0)
+        goto done;
     for (Py_ssize_t m = 0; m < M; m++) {
         long long kd = KIND[m];
-        if (CNT[m] < 0 || CNT[m] > K || kd < 0 || kd > 2 ||
+        if (kd < 0 || kd > 2 ||
             (kd > 0 && (ROW[m] < 0 || ROW[m] >= B[9 + kd].view.len / 8 || cells[kd - 1].K < 1 ||
                         cells[kd - 1].hint[ROW[m]] >= cells[kd - 1].K))) {
-            PyErr_SetString(PyExc_IndexError, "ci_visit: count, kind, row or hint out of range");
+            PyErr_SetString(PyExc_IndexError, "ci_visit: kind, row or hint out of range");
             goto done;
         }
     }
@@ -1110,8 +1146,8 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
     CiJob jobs[MAX_THREADS];
     pthread_t tid[MAX_THREADS];
     for (int j = 0; j < nt; j++)
-        jobs[j] = (CiJob){B[0].view.buf, B[1].view.buf, B[5].view.buf, B[6].view.buf, B[7].view.buf, NODES, ST, CNT,
-                          ROW, KIND, cells, K, M * j / nt, M * (j + 1) / nt, C, t, T, n_roulette, reduction, delta,
+        jobs[j] = (CiJob){B[0].view.buf, B[1].view.buf, B[5].view.buf, B[6].view.buf, B[7].view.buf, NODES, HEX, ROT,
+                          INC, CNT, ROW, KIND, cells, K, M * j / nt, M * (j + 1) / nt, C, t, T, n_roulette, reduction, delta,
                           init_width, min_width, tol, bump, seed, 0, 0};
     int started = 1;
     Py_BEGIN_ALLOW_THREADS
@@ -1131,7 +1167,7 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
     }
     ret = PyLong_FromLongLong(moved);
 done:
-    release(B, 18);
+    release(B, 20);
     return ret;
 }
 

@@ -5,7 +5,8 @@ import upwards for it: the mesh model (`jaxci.mesh`: orientation check, midside 
 of the boundary topology), the metrics (`jaxci.metrics`: corner kernels, objective, report), the C kernels
 (`jaxci.native`) and the optimizers.
 
-- Tables: `ELEMENT_TYPES`, `NODES`, `CORNER_NEIGHBOURS` (the hexahedron's corners), `CORNERS` and `TARGETS` (every
+- Tables: `ELEMENT_TYPES`, `NODES`, `CORNER_NEIGHBOURS` (the hexahedron's corners), `ROTATE_TO_SLOT` (its
+  relabellings that bring a node to local node 0), `CORNERS` and `TARGETS` (every
   type's corners and ideal corner matrix, formulas in `jaxci.metrics.elements`), `PYRAMID_TETS`, `EDGES`,
   `EXTRA_TYPES`, `QUADRATIC_TYPES`.
 - The table of kernels: `KERNELS`, one `CellKernel` per type (corner rows, W^-1, barrier sub-tetrahedra): what
@@ -40,6 +41,22 @@ CORNER_NEIGHBOURS = np.array(
         [4, 6, 1],
         [5, 7, 2],
         [6, 4, 3],
+    ],
+    dtype=np.int64,
+)
+
+#: ROTATE_TO_SLOT[a] relabels a VTK hexahedron (new local i = old local ROTATE_TO_SLOT[a][i]) by a proper
+#: rotation of the reference cube that brings old local node a to slot 0.
+ROTATE_TO_SLOT = np.array(
+    [
+        [0, 1, 2, 3, 4, 5, 6, 7],
+        [1, 0, 4, 5, 2, 3, 7, 6],
+        [2, 3, 0, 1, 6, 7, 4, 5],
+        [3, 2, 6, 7, 0, 1, 5, 4],
+        [4, 5, 1, 0, 7, 6, 2, 3],
+        [5, 4, 7, 6, 1, 0, 3, 2],
+        [6, 7, 3, 2, 5, 4, 0, 1],
+        [7, 6, 5, 4, 3, 2, 1, 0],
     ],
     dtype=np.int64,
 )

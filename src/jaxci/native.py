@@ -16,7 +16,7 @@ import os
 
 import numpy as np
 
-from .cells import KERNELS, pmean_weights
+from .cells import KERNELS, ROTATE_TO_SLOT, pmean_weights
 
 try:
     if os.environ.get("JAXCI_NATIVE", "1") == "0":
@@ -27,6 +27,9 @@ except ImportError:  # pragma: no cover - no compiler at install time
 
 #: Whether the C kernels are there (else the callers run their numpy kernels).
 AVAILABLE = _c is not None
+
+#: `jaxci.cells.ROTATE_TO_SLOT` as the star kernels take it (`local_sums`, `ci_visit`).
+_ROTATE = np.ascontiguousarray(ROTATE_TO_SLOT, np.int64)
 
 
 def _threads() -> int:
@@ -174,29 +177,32 @@ def untangle_energy(points: np.ndarray, hexes: np.ndarray, inv_len: np.ndarray, 
     return e / per_node, dmin, g
 
 
-def local_sums(points: np.ndarray, star: np.ndarray, count: np.ndarray, trials: np.ndarray) -> np.ndarray:
+def local_sums(points: np.ndarray, hexes: np.ndarray, inc: np.ndarray, count: np.ndarray,
+               trials: np.ndarray) -> np.ndarray:
     """`jaxci.optim._local.local_terms` in C: ``(M, S)`` sums of (kappa/3)^2 over the corners each node slot
-    moves, its first ``count[m]`` star elements ``star[m]`` ``(M, K, 8)`` (relabelled, the node in slot 0), with
-    the node at ``trials[m, s]`` ``(M, S, 3)``; inf where a corner has det <= 0."""
+    moves, its first ``count[m]`` star elements, the incidences ``inc[m]`` ``(M, K)`` into `hexes` ``(N, 8)``
+    (``8 e + s``: `jaxci.optim._local.node_stars`), with the node at ``trials[m, s]`` ``(M, S, 3)``; inf where a
+    corner has det <= 0."""
     trials = _f8(trials)
     out = np.empty(trials.shape[:2])
-    _c.local_sums(_f8(points), _i8(star), _i8(count), trials, out)
+    _c.local_sums(_f8(points), _i8(hexes), _ROTATE, _i8(inc), _i8(count), trials, out)
     return out
 
 
-def ci_visit(x: np.ndarray, width: np.ndarray, nodes, star, count, basis, free, plane, row, kind, hints, tables,
-             p, seed: int, tol: float, bump: float) -> int:
+def ci_visit(x: np.ndarray, width: np.ndarray, nodes, hexes, inc, count, basis, free, plane, row, kind, hints,
+             tables, p, seed: int, tol: float, bump: float) -> int:
     """One cohort run of local CI for every node of one colour, in C, in place on `x` ``(n, 3)`` and `width`
     ``(n,)`` (`jaxci.optim.host_local`; the algorithm of `jaxci.optim.ci`'s colour step): the nodes `nodes`
-    ``(M,)`` with their relabelled stars `star` ``(M, K, 8)`` (the first ``count[m]`` real), move bases `basis`
+    ``(M,)`` with their stars as incidences `inc` ``(M, K)`` into `hexes` ``(N, 8)`` (as `local_sums`; the first
+    ``count[m]`` real), move bases `basis`
     ``(M, 3, 3)``, free directions `free` ``(M, 3)`` (1 or 0), planar disks `plane` ``(M, 7)``, boundary kind
     `kind` ``(M,)`` (0 interior, 1 surface, 2 edge) and row `row` in the surface or edge list; `hints` the
     remembered cell columns of the surface and edge lists (int64, updated), `tables` their ``(cand, table,
     spheres)`` (`jaxci.geometry.near.NearProjector.native_tables`); `p` the `CIParams`; `seed` the random
     stream's. Returns the number of nodes moved."""
     (cs, ts, ss), (ce, te, se) = tables
-    return _c.ci_visit(x, width, nodes, star, count, basis, free, plane, row, kind, hints[0], hints[1], cs, ts, ss,
-                       ce, te, se, int(p.cohort), int(p.variations), int(p.attempts),
+    return _c.ci_visit(x, width, nodes, _i8(inc), count, basis, free, plane, row, kind, hints[0], hints[1], cs, ts,
+                       ss, ce, te, se, _i8(hexes), _ROTATE, int(p.cohort), int(p.variations), int(p.attempts),
                        int(round(p.stage_switch * p.attempts)), float(p.reduction), float(p.delta),
                        float(p.init_width), float(p.min_width), float(tol), float(bump), int(seed), THREADS)
 

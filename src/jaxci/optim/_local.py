@@ -18,25 +18,9 @@ import dataclasses
 import numpy as np
 
 from .._lazy import jax, jnp
-from ..cells import corner_invariants
+from ..cells import ROTATE_TO_SLOT, corner_invariants
 from ..geometry.topology import unique_edges
 from ..metrics.hexahedron import squared_condition_from_invariants
-
-#: ROTATE_TO_SLOT[a] relabels a VTK hexahedron (new local i = old local ROTATE_TO_SLOT[a][i]) by a proper
-#: rotation of the reference cube that brings old local node a to slot 0.
-ROTATE_TO_SLOT = np.array(
-    [
-        [0, 1, 2, 3, 4, 5, 6, 7],
-        [1, 0, 4, 5, 2, 3, 7, 6],
-        [2, 3, 0, 1, 6, 7, 4, 5],
-        [3, 2, 6, 7, 0, 1, 5, 4],
-        [4, 5, 1, 0, 7, 6, 2, 3],
-        [5, 4, 7, 6, 1, 0, 3, 2],
-        [6, 7, 3, 2, 5, 4, 0, 1],
-        [7, 6, 5, 4, 3, 2, 1, 0],
-    ],
-    dtype=np.int64,
-)
 
 #: The corners whose matrix involves local node 0, and their (base, column nodes) in VTK convention.
 AFFECTED_CORNERS = ((0, (1, 3, 4)), (1, (2, 0, 5)), (3, (0, 2, 7)), (4, (7, 5, 0)))
@@ -47,7 +31,7 @@ class NodeStars:
     """Elements around each node, relabelled so that the node is local slot 0 (numpy, built once per mesh).
 
     - `star`: shape ``(n_nodes, K, 8)``, node indices of the K incident elements (padded rows repeat the node
-      itself; `mask` marks the real ones).
+      itself; `mask` marks the real ones); or ``(n_nodes, K)`` incidences (``node_stars(..., incidences=True)``).
     - `mask`: shape ``(n_nodes, K)`` bool.
     - `valence`: shape ``(n_nodes,)``, number of incident elements.
     """
@@ -57,9 +41,13 @@ class NodeStars:
     valence: np.ndarray
 
 
-def node_stars(hexes: np.ndarray, n_nodes: int) -> NodeStars:
+def node_stars(hexes: np.ndarray, n_nodes: int, incidences: bool = False) -> NodeStars:
     """Build `NodeStars` for `hexes` of shape ``(N, 8)`` (vectorised; K = the maximum valence; int32 indices while
-    they fit: the star of a 100^3 box holds 64 M of them)."""
+    they fit: the star of a 100^3 box holds 64 M of them).
+
+    `incidences` True: `star` holds the incidences ``(n_nodes, K)``, ``8 e + s`` for the node being local node
+    ``s`` of element ``e`` (padding 0), 8x less memory than the node lists; `star_nodes` gives the node lists.
+    """
     hexes = np.asarray(hexes)
     valence = np.bincount(hexes.ravel(), minlength=n_nodes)
     K = max(int(valence.max(initial=0)), 1)
@@ -70,14 +58,26 @@ def node_stars(hexes: np.ndarray, n_nodes: int) -> NodeStars:
     node = flat[order]
     start = np.concatenate([[0], np.cumsum(valence)[:-1]]).astype(it)
     pos = node * it(K) + (np.arange(len(node), dtype=it) - start[node])  # row of each incidence in (n * K)
+    del node
+    mask = np.zeros(n_nodes * K, bool)
+    mask[pos] = True
+    mask = mask.reshape(n_nodes, K)
+    if incidences:
+        star = np.zeros(n_nodes * K, it)
+        star[pos] = order
+        return NodeStars(star=star.reshape(n_nodes, K), mask=mask, valence=valence)
     star = np.empty((n_nodes * K, 8), it)
     star[:] = np.repeat(np.arange(n_nodes, dtype=it), K)[:, None]  # padding: the node itself
     base = (order - order % it(8))[:, None]  # first incidence of its element
     star[pos] = flat[base + ROTATE_TO_SLOT.astype(it)[order % it(8)]]  # 1-D takes: 2-D fancy indexing is slower
-    mask = np.zeros(n_nodes * K, bool)
-    mask[pos] = True
-    star, mask = star.reshape(n_nodes, K, 8), mask.reshape(n_nodes, K)
-    return NodeStars(star=star, mask=mask, valence=valence)
+    return NodeStars(star=star.reshape(n_nodes, K, 8), mask=mask, valence=valence)
+
+
+def star_nodes(hexes: np.ndarray, inc: np.ndarray) -> np.ndarray:
+    """The relabelled node lists ``inc.shape + (8,)`` of incidences `inc` (``node_stars(..., incidences=True)``):
+    element ``inc // 8`` of `hexes` ``(N, 8)`` with its local node ``inc % 8`` moved to slot 0."""
+    inc = np.asarray(inc)
+    return np.asarray(hexes).ravel()[(inc - inc % 8)[..., None] + ROTATE_TO_SLOT[inc % 8]]
 
 
 def gather_star(points, star):

@@ -172,13 +172,14 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
 
     `faces` are the boundary faces (``BoundaryInfo.topology.faces``), for the planar-ring shortcut; `table` the
     non-hexahedral corners (`jaxci.metrics.objective.corner_table`; default none). The colouring must not give one
-    colour to two nodes of any cell (hexahedron or not). `device` False: numpy arrays (the host sweep of
-    `jaxci.optim.host_local`; indices int64), else device arrays.
+    colour to two nodes of any cell (hexahedron or not). `device` False: numpy arrays for the host sweep of
+    `jaxci.optim.host_local` (indices int64; `star` the incidences ``(n_colours, M, K)`` of
+    `jaxci.optim._local.node_stars`, 8x less than the node lists), else device arrays.
     """
     cls = np.asarray(cons.node_class)
     n = len(cls)
     colour = np.asarray(colour)
-    stars: NodeStars = node_stars(hexes, n)
+    stars: NodeStars = node_stars(hexes, n, incidences=not device)
     colours = np.unique(colour[cls != CORNER]) if (cls != CORNER).any() else np.zeros(1, np.int64)
     parts = []
     for c in (INTERIOR, SURFACE, EDGE):

@@ -35,7 +35,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
-from ._local import edge_neighbours, gather_star, local_length
+from ._local import edge_neighbours, gather_star, local_length, star_nodes
 from ._moves import coloured_stars, onto_plane
 from .ci_params import PATTERN_FACTORS, CIParams
 from .laplace import LaplaceParams
@@ -56,14 +56,15 @@ def host_local_applies(backend: str, n_hex: int, mixed: bool) -> bool:
 
 @dataclasses.dataclass(frozen=True)
 class _Colour:
-    """The movable nodes of one colour (numpy): `nodes` ``(M,)``; `star` ``(M, K, 8)`` their relabelled
-    elements, the first ``count[m]`` real; `basis` ``(M, 3, 3)``; `free` ``(M, 3)`` 1 for a free direction;
+    """The movable nodes of one colour (numpy): `nodes` ``(M,)``; `inc` ``(M, K)`` their stars as incidences
+    (``8 e + s``: `jaxci.optim._local.node_stars`), the first ``count[m]`` real; `basis` ``(M, 3, 3)``; `free`
+    ``(M, 3)`` 1 for a free direction;
     `plane` ``(M, 7)`` (`jaxci.optim._moves.planar_rings`); the slots ``[a, b)`` are surface nodes, ``[b, M)``
     edge nodes (rows `srow`, `erow` of the projector's surface and edge lists); `kind` ``(M,)`` 0 / 1 / 2 for an
     interior / surface / edge slot and `row` its row in its list (-1 interior), for `jaxci.native.ci_visit`."""
 
     nodes: np.ndarray
-    star: np.ndarray
+    inc: np.ndarray
     count: np.ndarray
     basis: np.ndarray
     free: np.ndarray
@@ -99,7 +100,7 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
         nodes = np.asarray(cs.nodes[i][keep], np.int64)
         a, b = np.searchsorted(keep, bounds[1:3])
         out.append(_Colour(
-            nodes=nodes, star=np.ascontiguousarray(cs.star[i][keep], np.int64),
+            nodes=nodes, inc=np.ascontiguousarray(cs.star[i][keep], np.int64),
             count=np.asarray(cs.smask[i][keep].sum(axis=1), np.int64),
             basis=np.asarray(cs.basis[i][keep], np.float64),
             free=(np.arange(3)[None] < np.asarray(cs.dims[i][keep])[:, None]).astype(np.float64),
@@ -108,10 +109,10 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
     return out
 
 
-def _local_length(x: np.ndarray, col: _Colour) -> np.ndarray:
+def _local_length(x: np.ndarray, hexes: np.ndarray, col: _Colour) -> np.ndarray:
     """`jaxci.optim._local.local_length` of the nodes of `col` at `x`, ``(M,)``."""
-    real = np.arange(col.star.shape[1])[None] < col.count[:, None]
-    return local_length(gather_star(x, col.star), real, np)
+    real = np.arange(col.inc.shape[1])[None] < col.count[:, None]
+    return local_length(gather_star(x, star_nodes(hexes, col.inc)), real, np)
 
 
 def follow_candidates(rng: np.random.Generator, g: np.ndarray, delta: float, roulette: bool) -> np.ndarray:
@@ -141,7 +142,7 @@ class _Sweeper:
         self.width = np.zeros(len(self.x))
         if isinstance(p, CIParams):
             for col in self.colours:
-                self.width[col.nodes] = p.init_width * _local_length(self.x, col)
+                self.width[col.nodes] = p.init_width * _local_length(self.x, self.hexes, col)
 
     def objective(self, x: np.ndarray) -> tuple[float, float]:
         """``(F, max kappa/3)`` at `x` (F infinite if a corner is inverted)."""
@@ -176,8 +177,8 @@ class _Sweeper:
     def visit(self, col: _Colour) -> int:
         """One cohort run for every node of `col` (`jaxci.native.ci_visit`); returns the number of nodes moved."""
         pr = self.projector
-        return native.ci_visit(self.x, self.width, col.nodes, col.star, col.count, col.basis, col.free, col.plane,
-                               col.row, col.kind, pr.hint, pr.native_tables, self.p,
+        return native.ci_visit(self.x, self.width, col.nodes, self.hexes, col.inc, col.count, col.basis, col.free,
+                               col.plane, col.row, col.kind, pr.hint, pr.native_tables, self.p,
                                int(self.rng.integers(2**63)), *pr.tolerances)
 
     def laplace_visit(self, col: _Colour, nbr: np.ndarray, nmask: np.ndarray, h: np.ndarray, smart: bool) -> float:
@@ -195,8 +196,8 @@ class _Sweeper:
         trials = self._project(col, x0[:, None] + steps[None, :, None] * d[:, None], th)
         rows = np.arange(len(x0))
         if smart:
-            f0 = native.local_sums(x, col.star, col.count, x0[:, None])[:, 0]
-            ft = native.local_sums(x, col.star, col.count, trials)
+            f0 = native.local_sums(x, self.hexes, col.inc, col.count, x0[:, None])[:, 0]
+            ft = native.local_sums(x, self.hexes, col.inc, col.count, trials)
             ok = (ft < f0[:, None]) & np.isfinite(ft)
             j = np.argmax(ok, axis=1)  # the longest acceptable step
             accept = ok.any(axis=1)
@@ -275,7 +276,7 @@ def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams
     sw = _Sweeper(points, hexes, cons, colour, faces, p)
     per_colour = []
     for col in sw.colours:
-        h = _local_length(sw.x, col)
+        h = _local_length(sw.x, sw.hexes, col)
         per_colour.append((nbr[col.nodes], nmask[col.nodes], np.where(h > 0, h, 1.0)))
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax if np.isfinite(f) else np.inf], [0.0]
