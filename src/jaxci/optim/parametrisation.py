@@ -220,14 +220,16 @@ def node_lengths(hexes: np.ndarray, points: np.ndarray) -> np.ndarray:
     `jaxci.optim._local.local_length` computes it for one node.
     """
     p = np.asarray(points, dtype=np.float64)
-    h = np.asarray(hexes, dtype=np.int64)
-    a, b = h[:, _EDGE_ENDS[0]].T, h[:, _EDGE_ENDS[1]].T  # (12, N): the 12 edges of every element, each once
-    d = p[b] - p[a]
-    length = np.sqrt(np.einsum("...d,...d->...", d, d)).ravel()
+    h = np.asarray(hexes)
     n = len(p)
-    ends = np.concatenate([a.ravel(), b.ravel()])  # each edge counts for both of its nodes
-    total = np.bincount(ends, weights=np.concatenate([length, length]), minlength=n)
-    count = np.bincount(ends, minlength=n)
+    total, count = np.zeros(n), np.zeros(n, np.int64)
+    for i, j in _EDGE_ENDS.T:  # one of the 12 edges of every element at a time: temporaries of N, not 12 x 3N
+        a, b = h[:, i], h[:, j]
+        d = p[b] - p[a]
+        length = np.sqrt(np.einsum("nd,nd->n", d, d))
+        for end in (a, b):  # each edge counts for both of its nodes
+            total += np.bincount(end, weights=length, minlength=n)
+            count += np.bincount(end, minlength=n)
     return np.divide(total, count, out=np.zeros(n), where=count > 0)
 
 
