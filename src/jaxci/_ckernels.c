@@ -720,51 +720,88 @@ done:
     return ret;
 }
 
-/* lbfgs_direction(g (n,) f8, S (m, n) f8, Y (m, n) f8, rho (m,) f8, order (k,) i8, out (n,) f8) -> None: out =
- * -H g by the L-BFGS two-loop recursion over the pairs (S[i], Y[i], rho[i] = 1 / S[i].Y[i]) for i in `order`
- * (oldest first), the initial matrix scaled by s.y / y.y of the newest pair (jaxci.optim.host._direction). */
+/* The two-loop recursion of lbfgs_direction over pairs stored as T (double, or float for a large memory):
+ * q = -H g, the sums in double. */
+#define TWO_LOOP(NAME, T)                                                                                        \
+    static void NAME(const double *G, const T *SS, const T *YY, const double *R, const long long *O,             \
+                     Py_ssize_t k, Py_ssize_t n, double *q) {                                                     \
+        double alpha[64];                                                                                        \
+        for (Py_ssize_t i = 0; i < n; i++) q[i] = G[i];                                                          \
+        for (Py_ssize_t t = k - 1; t >= 0; t--) {                                                                \
+            const T *s = SS + O[t] * n, *y = YY + O[t] * n;                                                      \
+            double dot = 0.0;                                                                                    \
+            for (Py_ssize_t i = 0; i < n; i++) dot += (double)s[i] * q[i];                                       \
+            alpha[t] = R[O[t]] * dot;                                                                            \
+            for (Py_ssize_t i = 0; i < n; i++) q[i] -= alpha[t] * (double)y[i];                                  \
+        }                                                                                                        \
+        if (k) {                                                                                                 \
+            const T *s = SS + O[k - 1] * n, *y = YY + O[k - 1] * n;                                              \
+            double sy = 0.0, yy = 0.0;                                                                           \
+            for (Py_ssize_t i = 0; i < n; i++) {                                                                 \
+                sy += (double)s[i] * (double)y[i];                                                               \
+                yy += (double)y[i] * (double)y[i];                                                               \
+            }                                                                                                    \
+            double gamma = sy / yy;                                                                              \
+            for (Py_ssize_t i = 0; i < n; i++) q[i] *= gamma;                                                    \
+        }                                                                                                        \
+        for (Py_ssize_t t = 0; t < k; t++) {                                                                     \
+            const T *s = SS + O[t] * n, *y = YY + O[t] * n;                                                      \
+            double dot = 0.0;                                                                                    \
+            for (Py_ssize_t i = 0; i < n; i++) dot += (double)y[i] * q[i];                                       \
+            double beta = R[O[t]] * dot;                                                                         \
+            for (Py_ssize_t i = 0; i < n; i++) q[i] += (alpha[t] - beta) * (double)s[i];                         \
+        }                                                                                                        \
+        for (Py_ssize_t i = 0; i < n; i++) q[i] = -q[i];                                                         \
+    }
+TWO_LOOP(two_loop_f8, double)
+TWO_LOOP(two_loop_f4, float)
+#undef TWO_LOOP
+
+/* lbfgs_direction(g (n,) f8, S (m, n) f8 or f4, Y (m, n) as S, rho (m,) f8, order (k,) i8, out (n,) f8) -> None:
+ * out = -H g by the L-BFGS two-loop recursion over the pairs (S[i], Y[i], rho[i] = 1 / S[i].Y[i]) for i in
+ * `order` (oldest first), the initial matrix scaled by s.y / y.y of the newest pair (jaxci.optim.host._direction).
+ * float32 pairs: the memory of a large problem (jaxci.optim.host.HISTORY_F32_FROM), the arithmetic in double. */
 static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
     PyObject *o_g, *o_s, *o_y, *o_rho, *o_order, *o_out, *ret = NULL;
     if (!PyArg_ParseTuple(args, "OOOOOO", &o_g, &o_s, &o_y, &o_rho, &o_order, &o_out)) return NULL;
     Buf B[6] = {{{0}}};
-    if (acquire(&B[0], o_g, "g", "d", 0, 0) < 0 || acquire(&B[1], o_s, "S", "d", 0, 0) < 0 ||
-        acquire(&B[2], o_y, "Y", "d", 0, 0) < 0 || acquire(&B[3], o_rho, "rho", "d", 0, 0) < 0 ||
-        acquire(&B[4], o_order, "order", "qlq", 0, 0) < 0 || acquire(&B[5], o_out, "out", "d", 1, 0) < 0)
+    int f4 = 0;
+    if (PyObject_CheckBuffer(o_s)) { /* float32 pairs? (the format decides which loop runs) */
+        Py_buffer v;
+        if (PyObject_GetBuffer(o_s, &v, PyBUF_FORMAT) == 0) {
+            f4 = v.itemsize == 4 && v.format && v.format[0] == 'f' && v.format[1] == '\0';
+            PyBuffer_Release(&v);
+        } else {
+            PyErr_Clear();
+        }
+    }
+    if (acquire(&B[0], o_g, "g", "d", 0, 0) < 0) goto done;
+    if (f4) {
+        if (get_buffer(o_s, &B[1].view, "S", "f", 4, 0) < 0) goto done;
+        B[1].held = 1;
+        if (get_buffer(o_y, &B[2].view, "Y", "f", 4, 0) < 0) goto done;
+        B[2].held = 1;
+    } else if (acquire(&B[1], o_s, "S", "d", 0, 0) < 0 || acquire(&B[2], o_y, "Y", "d", 0, 0) < 0) {
         goto done;
-    Py_ssize_t n = B[0].view.len / 8, m = B[3].view.len / 8, k = B[4].view.len / 8;
+    }
+    if (acquire(&B[3], o_rho, "rho", "d", 0, 0) < 0 || acquire(&B[4], o_order, "order", "qlq", 0, 0) < 0 ||
+        acquire(&B[5], o_out, "out", "d", 1, 0) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 8, m = B[3].view.len / 8, k = B[4].view.len / 8, w = f4 ? 4 : 8;
     const long long *O = B[4].view.buf;
-    if (B[5].view.len != B[0].view.len || B[1].view.len != m * n * 8 || B[2].view.len != B[1].view.len || k > m ||
+    if (B[5].view.len != B[0].view.len || B[1].view.len != m * n * w || B[2].view.len != B[1].view.len || k > m ||
         k > 64) {
         PyErr_SetString(PyExc_ValueError, "lbfgs_direction: shapes disagree (or more than 64 pairs)");
         goto done;
     }
     if (check_indices(O, k, m, "lbfgs_direction") < 0) goto done;
-    const double *G = B[0].view.buf, *SS = B[1].view.buf, *YY = B[2].view.buf, *R = B[3].view.buf;
-    double *q = B[5].view.buf, alpha[64];
+    const double *G = B[0].view.buf, *R = B[3].view.buf;
+    double *q = B[5].view.buf;
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t i = 0; i < n; i++) q[i] = G[i];
-    for (Py_ssize_t t = k - 1; t >= 0; t--) {
-        const double *s = SS + O[t] * n, *y = YY + O[t] * n;
-        double dot = 0.0;
-        for (Py_ssize_t i = 0; i < n; i++) dot += s[i] * q[i];
-        alpha[t] = R[O[t]] * dot;
-        for (Py_ssize_t i = 0; i < n; i++) q[i] -= alpha[t] * y[i];
-    }
-    if (k) {
-        const double *s = SS + O[k - 1] * n, *y = YY + O[k - 1] * n;
-        double sy = 0.0, yy = 0.0;
-        for (Py_ssize_t i = 0; i < n; i++) { sy += s[i] * y[i]; yy += y[i] * y[i]; }
-        double gamma = sy / yy;
-        for (Py_ssize_t i = 0; i < n; i++) q[i] *= gamma;
-    }
-    for (Py_ssize_t t = 0; t < k; t++) {
-        const double *s = SS + O[t] * n, *y = YY + O[t] * n;
-        double dot = 0.0;
-        for (Py_ssize_t i = 0; i < n; i++) dot += y[i] * q[i];
-        double beta = R[O[t]] * dot;
-        for (Py_ssize_t i = 0; i < n; i++) q[i] += (alpha[t] - beta) * s[i];
-    }
-    for (Py_ssize_t i = 0; i < n; i++) q[i] = -q[i];
+    if (f4)
+        two_loop_f4(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q);
+    else
+        two_loop_f8(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q);
     Py_END_ALLOW_THREADS
     Py_INCREF(Py_None);
     ret = Py_None;

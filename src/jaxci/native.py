@@ -159,7 +159,8 @@ def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.
 def lbfgs_direction(g: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,
                     out: np.ndarray) -> None:
     """``out = -H g``: the L-BFGS two-loop recursion over the pairs ``(S[i], Y[i], rho[i])`` for ``i`` in `order`
-    (oldest first; at most 64), in C (`jaxci.optim.host`'s memory). Float64 arrays, `order` int64."""
+    (oldest first; at most 64), in C (`jaxci.optim.host`'s memory). Float64 arrays (`S` and `Y` float64 or both
+    float32), `order` int64."""
     _c.lbfgs_direction(g, S, Y, rho, order, out)
 
 

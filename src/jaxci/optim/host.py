@@ -56,6 +56,12 @@ HOST_MAX = 20_000_000 if native.AVAILABLE else 30_000
 #: kernels (session 6, machine loaded): cube60_pert 8.4 s against 12.3 s cold.
 UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 
+#: From this many free coordinates (about 330,000 hexahedra) the host L-BFGS memory holds its pairs in float32 (the
+#: C two-loop recursion reads them, the sums in float64; each pair's curvature is that of the rounded pair): 240 MB
+#: instead of 480 MB at 10^6 hexahedra (10 pairs of 3 M unknowns), the largest part of the run's peak. Below it
+#: every result is as before, bit for bit.
+HISTORY_F32_FROM = 1_000_000
+
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
     """Whether a solver with `backend` (``"auto"``, ``"numpy"``, ``"jax"``) runs in numpy: never on a mesh with
@@ -181,19 +187,29 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
 
 
 class _Memory:
-    """The L-BFGS memory: up to `history` pairs ``(s, y, 1 / s.y)`` in ring buffers ``(history, n)``."""
+    """The L-BFGS memory: up to `history` pairs ``(s, y, 1 / s.y)`` in ring buffers ``(history, n)``, float64, or
+    float32 from `HISTORY_F32_FROM` unknowns (with the C kernels)."""
 
     def __init__(self, n: int, history: int):
         self.history = history
+        dtype = np.float32 if n >= HISTORY_F32_FROM and native.AVAILABLE else np.float64
         # all `history` rows at once, never grown: a large np.empty is mapped, not touched, so a row costs memory
         # only once a pair is written to it (growing by concatenation held the old and the new buffers at once:
         # 480 MB more at 10^6 hexahedra, the peak of the run)
-        self.S, self.Y, self.rho = np.empty((history, n)), np.empty((history, n)), np.zeros(history)
+        self.S, self.Y = np.empty((history, n), dtype), np.empty((history, n), dtype)
+        self.rho = np.zeros(history)
         self.order: list[int] = []  # slots, oldest first
 
-    def push(self, s: np.ndarray, y: np.ndarray, rho: float) -> None:
+    def push(self, s: np.ndarray, y: np.ndarray) -> None:
+        """Store the pair ``(s, y)`` if its curvature ``s.y`` (of the pair as stored) is clearly positive, in
+        place of the oldest once full."""
+        if self.S.dtype != np.float64:  # the curvature of the rounded pair: rho then matches what the loop reads
+            s, y = s.astype(self.S.dtype).astype(np.float64), y.astype(self.S.dtype).astype(np.float64)
+        sy = _dot(s, y)
+        if not sy > 1e-12 * np.sqrt(_dot(s, s) * _dot(y, y)):
+            return
         slot = self.order.pop(0) if len(self.order) == self.history else len(self.order)
-        self.S[slot], self.Y[slot], self.rho[slot] = s, y, rho
+        self.S[slot], self.Y[slot], self.rho[slot] = s, y, 1.0 / sy
         self.order.append(slot)
 
     def clear(self) -> None:
@@ -206,18 +222,19 @@ class _Memory:
             out = np.empty_like(g)
             native.lbfgs_direction(g, self.S, self.Y, self.rho, np.asarray(self.order, np.int64), out)
             return out
+        S, Y = self.S.astype(np.float64, copy=False), self.Y.astype(np.float64, copy=False)  # float32 pairs: in float64
         q = g.copy()
         alphas = []
         for k in reversed(self.order):
-            a = self.rho[k] * _dot(self.S[k], q)
+            a = self.rho[k] * _dot(S[k], q)
             alphas.append(a)
-            q -= a * self.Y[k]
+            q -= a * Y[k]
         if self.order:
-            s, y = self.S[self.order[-1]], self.Y[self.order[-1]]
+            s, y = S[self.order[-1]], Y[self.order[-1]]
             q *= _dot(s, y) / _dot(y, y)
         for k, a in zip(self.order, reversed(alphas), strict=True):
-            b = self.rho[k] * _dot(self.Y[k], q)
-            q += (a - b) * self.S[k]
+            b = self.rho[k] * _dot(Y[k], q)
+            q += (a - b) * S[k]
         return -q
 
 
@@ -262,10 +279,8 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
         v_try, g_try, f_try, k_try = fun(y_try)
         steps += 1
         if g_try is not None and v_try <= value + SLOPE * alpha * slope:
-            s, dy = y_try - y, g_try - g
-            sy = _dot(s, dy)
-            if sy > 1e-12 * np.sqrt(_dot(s, s) * _dot(dy, dy)):
-                mem.push(s, dy, 1.0 / sy)
+            s = y_try - y
+            mem.push(s, g_try - g)
             converged = (np.max(np.abs(s), initial=0.0) < atol + rtol * np.max(np.abs(y_try), initial=0.0)
                          and abs(v_try - value) < atol + rtol * abs(v_try))
             y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
