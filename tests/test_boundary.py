@@ -95,6 +95,22 @@ def test_node_adjacency_matches_brute_force():
         assert indices[indptr[i] : indptr[i + 1]].tolist() == sorted(expect[i])
 
 
+def test_node_adjacency_by_the_sparse_product_is_the_sorted_one(monkeypatch):
+    """Large meshes take the adjacency from scipy's ``A A^T`` (diagonal dropped in place, int32 indices): the
+    same neighbours as the sort of the small ones, also with a node no cell uses, and the same colouring."""
+    from jaxci.geometry import topology
+
+    mesh = l_block(3)
+    hexes = np.asarray(mesh.hexes)
+    n = mesh.n_nodes + 1  # one unused node
+    ref = node_adjacency(hexes, n)
+    monkeypatch.setattr(topology, "SORTED_ADJACENCY_MAX", 0)
+    got = node_adjacency(hexes, n)
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(got[1], ref[1])
+    np.testing.assert_array_equal(colour_nodes(hexes, n, got).colour, colour_nodes(hexes, n, ref).colour)
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 9])
 def test_box_colouring_has_8_colours(n):
     mesh = box(n)

@@ -186,18 +186,27 @@ def test_host_local_ci_gives_the_same_mesh_on_any_number_of_threads(monkeypatch)
     assert np.array_equal(runs[0], runs[1])
 
 
-def test_host_local_length_is_the_mean_edge_length_at_the_node():
+def test_host_local_length_is_the_mean_edge_length_at_the_node(monkeypatch):
     """The length scale of the host sweeps (CI's initial widths and width bounds, the Laplacians' stopping
     test) is `jaxci.optim._local.local_length`, the compiled path's: on a unit box of 4^3 cells, the spacing 0.25
-    at every node (it was once sqrt(l1^2 + l2^2 + l3^2) / 3, 0.58 x the spacing)."""
+    at every node (it was once sqrt(l1^2 + l2^2 + l3^2) / 3, 0.58 x the spacing); computed in blocks of nodes
+    (`LENGTH_CHUNK`), the same numbers as at once on a perturbed box."""
     from jaxci.generate import box
     from jaxci.methods import build_problem
+    from jaxci.optim import host_local
     from jaxci.optim.host_local import _colours, _local_length
 
     mesh = box(4, 4, 4)
     pb = build_problem(mesh, dtype=np.float64, device=False)
     for col in _colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces):
         np.testing.assert_allclose(_local_length(np.asarray(mesh.points), mesh.hexes, col), 0.25, rtol=1e-12)
+    mesh = perturb_box(5, amplitude=0.3, seed=1)
+    pb = build_problem(mesh, dtype=np.float64, device=False)
+    cols = _colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces)
+    whole = [_local_length(np.asarray(mesh.points), mesh.hexes, col) for col in cols]
+    monkeypatch.setattr(host_local, "LENGTH_CHUNK", 3)
+    for col, ref in zip(cols, whole, strict=True):
+        np.testing.assert_array_equal(_local_length(np.asarray(mesh.points), mesh.hexes, col), ref)
 
 
 def test_local_ci_stops_once_a_sweep_gains_less_than_atol():

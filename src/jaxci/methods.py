@@ -78,7 +78,9 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
     if mixed.has_extra(mesh):
         extra, table = mixed.extra_cells(mesh, device=device), mixed.corner_table(mesh)
     put = jax.device_put if device else (lambda a: a)
-    conn = transposed(mesh.hexes) if device else np.ascontiguousarray(np.asarray(mesh.hexes).T)
+    # on the host a view: the C kernels read the hexahedra (N, 8) themselves (a copy was 64 MB at 10^6, and the
+    # objective's kernel made another of it)
+    conn = transposed(mesh.hexes) if device else np.asarray(mesh.hexes).T
     return Problem(mesh, info, cons, conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table, devices)
 
 

@@ -246,7 +246,7 @@ def host_constraints(c: Constraints) -> Constraints:
     if cached is None:
         def conv(a):
             a = np.asarray(a)
-            return a.astype(np.float64) if np.issubdtype(a.dtype, np.floating) else a
+            return a.astype(np.float64, copy=False) if np.issubdtype(a.dtype, np.floating) else a
 
         cached = dataclasses.replace(c, **{f.name: conv(getattr(c, f.name)) for f in dataclasses.fields(c)})
         object.__setattr__(c, "_host_cache", cached)  # a frozen dataclass; a cache is not a field

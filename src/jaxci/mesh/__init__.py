@@ -220,8 +220,16 @@ class HexMesh:
     # ------------------------------------------------------------------ derived views
     @property
     def hexes(self) -> np.ndarray:
-        """All hexahedra, VTK node order, shape ``(n_hexes, 8)`` (blocks concatenated in file order)."""
-        return np.concatenate([b.data for b in self.cells if b.type == "hexahedron"])
+        """All hexahedra, VTK node order, shape ``(n_hexes, 8)`` (blocks concatenated in file order), read-only:
+        the one block's own array, or the concatenation made once (a copy per use was 64 MB at 10^6 hexahedra,
+        and a run asks a dozen times)."""
+        cached = self.__dict__.get("_hexes")
+        if cached is None:
+            blocks = [b.data for b in self.cells if b.type == "hexahedron"]
+            cached = np.asarray(blocks[0]).view() if len(blocks) == 1 else np.concatenate(blocks)
+            cached.flags.writeable = False
+            self.__dict__["_hexes"] = cached
+        return cached
 
     @property
     def n_nodes(self) -> int:

@@ -109,10 +109,18 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
     return out
 
 
+#: Nodes per block of `_local_length` (its gathered star coordinates: 200 MB a colour at once at 10^6 hexahedra).
+LENGTH_CHUNK = 16_384
+
+
 def _local_length(x: np.ndarray, hexes: np.ndarray, col: _Colour) -> np.ndarray:
     """`jaxci.optim._local.local_length` of the nodes of `col` at `x`, ``(M,)``."""
     real = np.arange(col.inc.shape[1])[None] < col.count[:, None]
-    return local_length(gather_star(x, star_nodes(hexes, col.inc)), real, np)
+    out = np.empty(len(col.inc))
+    for lo in range(0, len(out), LENGTH_CHUNK):  # in blocks: the gathered stars are ~1.5 kB a node
+        sl = slice(lo, lo + LENGTH_CHUNK)
+        out[sl] = local_length(gather_star(x, star_nodes(hexes, col.inc[sl])), real[sl], np)
+    return out
 
 
 def follow_candidates(rng: np.random.Generator, g: np.ndarray, delta: float, roulette: bool) -> np.ndarray:

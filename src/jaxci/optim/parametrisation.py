@@ -177,7 +177,8 @@ def lift_transpose_np(scale: np.ndarray, c: Constraints, g: np.ndarray) -> np.nd
 
 
 def _flat_surface(points: np.ndarray, info: BoundaryInfo, cons: Constraints) -> np.ndarray:
-    """Per node (origin (3), normal (3), radius) of its planar ring of boundary faces (radius 0: none). Kept on
+    """Per SURFACE node (``cons.surface_nodes`` order, shape ``(ns, 7)``) the origin (3), normal (3) and radius of
+    its planar ring of boundary faces (radius 0: none; `jaxci.optim._moves.planar_rings`). Kept on
     `info` for these `points` (the untangling stage and the smoothing of one run share it: 0.1 s at 27,000
     hexahedra)."""
     from ._moves import planar_rings
@@ -185,7 +186,7 @@ def _flat_surface(points: np.ndarray, info: BoundaryInfo, cons: Constraints) -> 
     cached = getattr(info, "_flat_rings", None)
     if cached is not None and cached[0] is points:
         return cached[1]
-    rings = planar_rings(points, info.topology.faces, cons)
+    rings = planar_rings(points, info.topology.faces, cons)[np.asarray(cons.surface_nodes)]  # (n, 7): 58 MB at 10^6
     object.__setattr__(info, "_flat_rings", (points, rings))  # a frozen dataclass; a cache is not a field
     return rings
 
@@ -279,12 +280,12 @@ def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *
     r_edge = _flat_edge(pts, info, edge)
     nodes = np.concatenate([surf, edge]).astype(np.int64)
     origin = pts[nodes]
-    radius = np.concatenate([rings[surf, 6], r_edge])
+    radius = np.concatenate([rings[:, 6], r_edge])
     # base points must lie on their plane / line for x0 + B u to stay on it, to the precision of the working dtype
     # (a float32 start is off a plane that is not axis-aligned by its rounding, and the tangents may be float32)
     tol = np.maximum(1e-12 * radius, 64 * np.finfo(dtype).eps * np.abs(base[nodes]).max(axis=1, initial=0.0))
     if len(surf):
-        normal = rings[surf, 3:6]
+        normal = rings[:, 3:6]
         off = np.abs(np.einsum("sd,sd->s", base[surf] - pts[surf], normal))
         radius[: len(surf)] = np.where(off <= tol[: len(surf)], radius[: len(surf)], 0.0)
     if len(edge):
