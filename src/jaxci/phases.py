@@ -17,6 +17,8 @@ import threading
 import time
 from collections.abc import Callable
 
+from .memory import release_free_memory
+
 #: jax.monitoring duration events that are compilation (names as in jax._src.dispatch).
 _COMPILE_EVENTS = {
     "/jax/core/compile/jaxpr_trace_duration": "trace",
@@ -109,6 +111,7 @@ class PhaseClock:
         """Time the body as phase `name` (a phase run twice adds up)."""
         if self.on_event is not None:
             self.on_event("start", name, None)
+        release_free_memory()  # the last phase's freed temporaries off the resident set before this one's arrays
         c0, t0 = compile_totals(), time.perf_counter()
         try:
             yield

@@ -28,6 +28,7 @@ import numpy as np
 
 from .. import native
 from ..geometry.near import NearProjector, host_constraints
+from ..memory import release_free_memory
 from ..metrics.hexahedron import objective_terms_and_grad_np
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
@@ -181,9 +182,17 @@ def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callab
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """``a . b`` of two vectors without BLAS: OpenBLAS's multi-threaded ``ddot`` took 8 ms for 80,000 entries
-    on this 2-core machine under load (its threads spin against the other processes) against 0.04 ms here."""
-    return float(np.einsum("i,i->", a, b))
+    """``a . b`` of two vectors without BLAS, summed in float64 (also for float32 vectors): OpenBLAS's
+    multi-threaded ``ddot`` took 8 ms for 80,000 entries on this 2-core machine under load (its threads spin
+    against the other processes) against 0.04 ms here."""
+    if a.dtype == b.dtype == np.float64:
+        return float(np.einsum("i,i->", a, b))
+    return float(np.einsum("i,i->", a, b, dtype=np.float64))
+
+
+def _amax(a: np.ndarray) -> float:
+    """``max |a|`` (0 for an empty `a`) without a temporary array."""
+    return max(float(a.max(initial=0.0)), -float(a.min(initial=0.0)))
 
 
 class _Memory:
@@ -204,7 +213,7 @@ class _Memory:
         """Store the pair ``(s, y)`` if its curvature ``s.y`` (of the pair as stored) is clearly positive, in
         place of the oldest once full."""
         if self.S.dtype != np.float64:  # the curvature of the rounded pair: rho then matches what the loop reads
-            s, y = s.astype(self.S.dtype).astype(np.float64), y.astype(self.S.dtype).astype(np.float64)
+            s, y = s.astype(self.S.dtype), y.astype(self.S.dtype)
         sy = _dot(s, y)
         if not sy > 1e-12 * np.sqrt(_dot(s, s) * _dot(y, y)):
             return
@@ -257,6 +266,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     def finished(f, k):
         return f <= ftol or (done is not None and bool(done(f, k)))
 
+    release_free_memory()  # the set-up's freed temporaries (presmoothing, parametrisation) before the memory fills
     y = np.array(y0, dtype=np.float64)
     value, g, f, k = fun(y)
     accept = getattr(fun, "accept", lambda: None)
@@ -265,31 +275,40 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
         return y, 0, "nonfinite", np.asarray(hf), np.asarray(hk)
     accept()
     mem = _Memory(len(y), history)
-    d = -g
+
+    def capped(d):  # the trial move at step size 1: `d` scaled in place so that no unknown moves more than `cap`
+        big = _amax(d)
+        if cap and big > cap:
+            d *= cap / big
+        return d
+
+    trial = capped(-g)
+    slope = _dot(g, trial)
     alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
     stop = finished(f, k)
     while not stop and steps < limit:
         if deadline is not None and time.perf_counter() > deadline:
             result = "time budget"
             break
-        big = float(np.max(np.abs(d), initial=0.0))
-        trial = d * (min(1.0, cap / big) if cap and big > 0 else 1.0)
-        slope = _dot(g, trial)
-        y_try = y + alpha * trial
+        y_try = trial * alpha
+        y_try += y
         v_try, g_try, f_try, k_try = fun(y_try)
         steps += 1
         if g_try is not None and v_try <= value + SLOPE * alpha * slope:
             s = y_try - y
             mem.push(s, g_try - g)
-            converged = (np.max(np.abs(s), initial=0.0) < atol + rtol * np.max(np.abs(y_try), initial=0.0)
-                         and abs(v_try - value) < atol + rtol * abs(v_try))
+            converged = (_amax(s) < atol + rtol * _amax(y_try) and abs(v_try - value) < atol + rtol * abs(v_try))
+            del s
             y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
             accept()
             alpha, rejected = 1.0, 0
+            trial = None  # the old one's memory first
             d = mem.direction(g)
             if not _dot(g, d) < 0:  # not a descent direction: forget the curvature pairs
                 mem.clear()
                 d = -g
+            trial = capped(d)
+            slope = _dot(g, trial)
             if converged:
                 result, stop = "successful", True
             stop = stop or finished(f, k)
