@@ -34,9 +34,11 @@ CI_BYTES_PER_TRIAL = 25
 SMOOTH_FIXED_BYTES = 400 * 2**20
 #: Measured peak bytes per hexahedron of a run entirely on the host (`jaxci.methods.host_run`: numpy and C, no
 #: JAX, nothing compiled; float64 whatever `dtype` says), and its fixed part: the default pipeline (3 smart-Laplace
-#: sweeps, L-BFGS, reports) on perturbed boxes peaked at 1.63 GB in all at 10^6 (100^3) and 14.4 GB at 9.9 x 10^6
-#: (215^3), mesh included (`docs/results/README.md`, session 10).
-HOST_BYTES_PER_HEX = 1_550
+#: sweeps, L-BFGS, reports) on perturbed boxes peaked at 0.98 GB in all at 10^6 (100^3, `jaxci smooth`) and 8.7 GB
+#: at 9.9 x 10^6 (215^3, in process), mesh included; the tangled cube60_pert (216,000 hexahedra, untangling first)
+#: at 364 MB, 1.22 kB a hexahedron above the fixed part, the largest measured (`docs/results/README.md`, session
+#: 11; session 10: 1.63 GB, 14.4 GB and 1,550 B).
+HOST_BYTES_PER_HEX = 1_250
 HOST_FIXED_BYTES = 100 * 2**20
 #: Measured peak bytes per hexahedron of `jaxci.generate.perturb_box` (numpy: grid, connectivity, corner
 #: determinants of the redraw test, mesh validation; measured the same way for n = 20..80: 715 bytes).

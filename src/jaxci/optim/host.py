@@ -43,8 +43,9 @@ from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 #: cold. Session 10, with the smart-Laplace presmoothing on the host too and the stop at max kappa/3 <= 1 + ktol
 #: (`jaxci.optim.gradient_params.GradientParams.ktol`): cube60_pert, whole ``jaxci smooth``, 20.1 s (smooth phase
 #: 6.9 s, peak 735 MB) against 27.8 s cold (smooth 15.1 s, 7.3 s of it compiling; 1.25 GB) and 20.2 s with a warm
-#: compilation cache (smooth 8.2 s). At 10^6 (a 100^3 box, the same pipeline, in process): 41 s, peak 1.6 GB,
-#: no JAX import, against 52 s and 2.74 GB compiled; at 10^7 (215^3) 794 s, peak 14.4 GB, where the compiled
+#: compilation cache (smooth 8.2 s). At 10^6 (a 100^3 box, the same pipeline, in process): 41 s, peak 1.6 GB
+#: (0.98 GB since session 11), no JAX import, against 52 s and 2.74 GB compiled; at 10^7 (215^3) 794 s, peak
+#: 14.4 GB (session 11: 755 s, 8.7 GB), where the compiled
 #: path ran out of this machine's 24 GB: the host path is faster and leaner at every size measured. Above it
 #: (or with ``backend="jax"``, e.g. to use an accelerator) the compiled loop after smart-Laplace sweeps.
 HOST_MAX = 20_000_000 if native.AVAILABLE else 30_000
