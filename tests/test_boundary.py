@@ -111,6 +111,17 @@ def test_node_adjacency_by_the_sparse_product_is_the_sorted_one(monkeypatch):
     np.testing.assert_array_equal(colour_nodes(hexes, n, got).colour, colour_nodes(hexes, n, ref).colour)
 
 
+def test_the_colouring_of_a_mesh_is_computed_once():
+    """`colour_nodes` keeps its last result for a read-only connectivity (`HexMesh.hexes`, shared by the
+    untangling stage and the shape improvement of one run); a writable array is coloured afresh."""
+    mesh = box(3)
+    first = colour_nodes(mesh.hexes, mesh.n_nodes)
+    assert colour_nodes(mesh.hexes, mesh.n_nodes) is first
+    fresh = colour_nodes(np.array(mesh.hexes), mesh.n_nodes)
+    assert fresh is not first and np.array_equal(fresh.colour, first.colour)
+    assert colour_nodes(mesh.hexes, mesh.n_nodes + 1) is not first
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 9])
 def test_box_colouring_has_8_colours(n):
     mesh = box(n)

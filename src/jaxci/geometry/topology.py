@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import weakref
 
 import numpy as np
 
@@ -366,9 +367,26 @@ def colour_nodes(
     - `n_nodes`: number of nodes.
     - `adjacency`: optional precomputed ``node_adjacency(hexes, n_nodes)``.
 
-    **Returns:** a `Colouring`.
+    **Returns:** a `Colouring`. The last one of a read-only `hexes` array (`HexMesh.hexes`) is kept, so the
+    untangling stage and the shape improvement of one run colour once (0.8 s at 216,000 hexahedra).
     """
     n = int(n_nodes)
+    cached = _LAST_COLOURING.get("key")
+    same = adjacency is None and not getattr(hexes, "flags", np.ones(1).flags).writeable
+    if same and cached is not None and cached[0]() is hexes and cached[1] == n:
+        return _LAST_COLOURING["value"]
+    out = _colour_nodes(hexes, n, adjacency)
+    if same:
+        _LAST_COLOURING.update(key=(weakref.ref(hexes), n), value=out)
+    return out
+
+
+#: `colour_nodes`' last result for a read-only connectivity array (a weak reference to it, and the node count).
+_LAST_COLOURING: dict = {}
+
+
+def _colour_nodes(hexes, n: int, adjacency) -> Colouring:
+    """`colour_nodes` without its cache."""
     indptr, indices = node_adjacency(hexes, n) if adjacency is None else adjacency
     rows = np.repeat(np.arange(n, dtype=indices.dtype), np.diff(indptr))
     pending = np.bincount(rows[indices < rows], minlength=n).astype(np.int64)
