@@ -49,6 +49,43 @@ def test_tangled_meshes_are_untangled_with_the_boundary_kept(name, method, param
         assert again.after.max_condition <= 1 + 1e-6
 
 
+@pytest.mark.parametrize("name,sweeps,laplace", [
+    ("hex_5_tangled.vtk", 1, True),  # one sweep of the plain Laplacian untangles the block
+    ("pave3.e.vtk", 1, False),  # one leaves 57 of 106 inverted: the Winslow rounds from the input
+    ("pave3.e.vtk", 0, False),
+])
+def test_a_laplace_sweep_first_where_it_untangles(name, sweeps, laplace):
+    """`UntangleParams.laplace_sweeps` (default: 1 from `LAPLACE_UNTANGLE_FROM` hexahedra, 0 below): plain
+    Laplace sweeps before the Winslow rounds; their result is the stage's where it leaves every corner above the
+    margin (the note says how it was untangled), else the rounds start from the input as without them (the same
+    result as ``laplace_sweeps=0``); boundary nodes stay on the boundary either way."""
+    mesh = read_mesh(MESQUITE / name)
+    res = smooth(mesh, untangle_laplace_sweeps=sweeps)
+    note = next(n for n in res.notes if n.startswith("untangling:"))
+    assert res.after.inverted_elements == 0
+    assert boundary_error(mesh, res.mesh.points) <= 1e-9
+    assert ("sweep of the plain Laplacian" in note) is laplace
+    if sweeps and not laplace:
+        assert "after 1 Laplace sweeps that did not untangle it" in note
+        plain = smooth(mesh, untangle_laplace_sweeps=0)
+        np.testing.assert_array_equal(res.mesh.points, plain.mesh.points)
+    if laplace:
+        assert res.after.max_condition <= 1 + 1e-5
+
+
+def test_the_default_laplace_sweep_from_a_size_on():
+    """Below `LAPLACE_UNTANGLE_FROM` hexahedra the default untangles with the Winslow rounds alone (their
+    set-up is cheaper than the sweep's); the threshold is where one sweep paid on cube60_pert."""
+    from jaxci.optim import untangle as U
+
+    mesh = read_mesh(MESQUITE / "hex_5_tangled.vtk")
+    assert U.UntangleParams().laplace_sweeps is None and U.LAPLACE_UNTANGLE_FROM > mesh.n_hexes
+    note = next(n for n in smooth(mesh).notes if n.startswith("untangling:"))
+    assert "Winslow" in note and "Laplace" not in note
+    with pytest.raises(ConfigError, match="laplace_sweeps"):
+        UntangleParams(laplace_sweeps=-1)
+
+
 def tangled_cube():
     mesh = perturb_box(2, amplitude=0.0)
     pts = mesh.points.copy()

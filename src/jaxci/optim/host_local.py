@@ -272,8 +272,10 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
 
 
 def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams | None = None, *,
-               smart: bool = False):
-    """The (smart) Laplacian on the host from `points` ``(n, 3)``; arguments as `local_ci_np`.
+               smart: bool = False, until_valid: bool = False):
+    """The (smart) Laplacian on the host from `points` ``(n, 3)``; arguments as `local_ci_np`; `until_valid`:
+    also stop after the first sweep that leaves no inverted corner (F finite: the untangling's first try,
+    `jaxci.optim.untangle`).
 
     **Returns:** ``(points, sweeps, history, params)`` as `jaxci.optim.laplace.laplace` (float64 points; F and
     max kappa/3 are ``inf`` once the plain Laplacian has inverted a corner).
@@ -295,7 +297,7 @@ def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams
         hist_f.append(f)
         hist_k.append(kmax if np.isfinite(f) else np.inf)
         hist_m.append(move)
-        if move <= p.tol:
+        if move <= p.tol or (until_valid and np.isfinite(f)):
             break
     n = len(hist_f) - 1
     hist = {"objective": np.asarray(hist_f), "max_condition": np.asarray(hist_k), "max_move": np.asarray(hist_m)}
