@@ -73,6 +73,24 @@ def test_a_laplace_sweep_first_where_it_untangles(name, sweeps, laplace):
         assert res.after.max_condition <= 1 + 1e-5
 
 
+def test_a_laplace_untangled_mesh_skips_the_default_presmoothing(monkeypatch):
+    """Where the untangling's plain Laplace sweep untangled the mesh it has just smoothed it too: the default
+    pipeline then runs L-BFGS without its smart-Laplace sweeps (and says so); presmoothing the user asked for
+    runs as asked."""
+    import jaxci.methods
+
+    monkeypatch.setattr(jaxci.methods, "AUTO_PRESMOOTH_FROM", 1)  # the default presmoothing on a small mesh
+    mesh = read_mesh(MESQUITE / "hex_5_tangled.vtk")
+    auto = smooth(mesh, untangle_laplace_sweeps=1)
+    assert int(auto.history.get("presmooth", 0)) == 0 and auto.params.get("presmooth", 0) == 0
+    assert any("Laplace sweep stands for the smart-Laplace sweeps" in n for n in auto.notes)
+    assert auto.after.inverted_elements == 0 and auto.after.max_condition <= 1 + 1e-5
+    asked = smooth(mesh, untangle_laplace_sweeps=1, presmooth=2)
+    assert int(asked.history["presmooth"]) == 2
+    winslow = smooth(mesh, untangle_laplace_sweeps=0)
+    assert int(winslow.history["presmooth"]) == 3
+
+
 def test_the_default_laplace_sweep_from_a_size_on():
     """Below `LAPLACE_UNTANGLE_FROM` hexahedra the default untangles with the Winslow rounds alone (their
     set-up is cheaper than the sweep's); the threshold is where one sweep paid on cube60_pert."""

@@ -277,9 +277,10 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
     `partial`: where some elements stay inverted, return the result with fewer of them instead of raising (the
     input if the stage left more); `progress`: optional ``progress(text)`` per round (`untangle`).
 
-    **Returns:** ``(points, notes)``: untangled float64 coordinates ``(n, 3)`` with every boundary node on the
-    original boundary (with `partial`, possibly some elements still inverted: the notes say how many), and
-    sentences for `SmoothResult.notes`.
+    **Returns:** ``(points, notes, swept)``: untangled float64 coordinates ``(n, 3)`` with every boundary node on
+    the original boundary (with `partial`, possibly some elements still inverted: the notes say how many),
+    sentences for `SmoothResult.notes`, and whether plain Laplace sweeps untangled it (`UntangleParams.
+    laplace_sweeps`: they also smoothed it, so the default pipeline's presmoothing is not needed).
     """
     from ..geometry.projection import build_constraints
 
@@ -301,7 +302,7 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
         first = ", ".join(cell_label(mesh, t, int(k)) for t, ks in bad.items() for k in ks[:5])
         return x, [f"partial untangling{budget}: {int(inv0.sum())} inverted elements in the input, {left} left "
                    f"inverted ({first}{', ...' if left > 5 else ''}) after {rep['rounds']} rounds; shape "
-                   f"improvement skipped: the mesh is returned with them"]
+                   f"improvement skipped: the mesh is returned with them"], False
     if not rep["untangled"]:
         blocks = element_blocks(mesh)
         bad = {t: np.flatnonzero(b) for t, b in inverted_cells(mesh, x).items() if b.any()}
@@ -319,7 +320,7 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
         )
     if not inv0.any() and rep["rounds"] == 0:
         return x, [f"untangling: no inverted element and min det / L^3 = {rep['min_det'][0]:.3g} >= margin "
-                   f"{p.margin:g}: nothing to do"]
+                   f"{p.margin:g}: nothing to do"], False
     how = (f"{rep['laplace_sweeps']} sweep{'s' if rep['laplace_sweeps'] != 1 else ''} of the plain Laplacian"
            if rep["laplace_untangled"] else
            f"{rep['rounds']} rounds of L-BFGS on the regularised Winslow energy ({rep['steps']} steps"
@@ -330,7 +331,7 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
         f"{rep['wall_time']:.2f} s; min det / L^3 {rep['min_det'][0]:.3g} -> {rep['min_scaled_det']:.3g}; boundary "
         f"nodes kept on the original boundary"
     )
-    return x, [note]
+    return x, [note], bool(rep["laplace_untangled"])
 
 
 def on_host(mesh: HexMesh, p: UntangleParams) -> bool:
