@@ -120,6 +120,15 @@ def test_the_colouring_of_a_mesh_is_computed_once():
     fresh = colour_nodes(np.array(mesh.hexes), mesh.n_nodes)
     assert fresh is not first and np.array_equal(fresh.colour, first.colour)
     assert colour_nodes(mesh.hexes, mesh.n_nodes + 1) is not first
+    from jaxci.geometry import topology
+
+    colour_nodes(mesh.hexes, mesh.n_nodes)
+    assert topology._LAST_COLOURING
+    del mesh, first
+    import gc
+
+    gc.collect()
+    assert not topology._LAST_COLOURING  # not kept past its mesh
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 9])

@@ -376,9 +376,16 @@ def colour_nodes(
     if same and cached is not None and cached[0]() is hexes and cached[1] == n:
         return _LAST_COLOURING["value"]
     out = _colour_nodes(hexes, n, adjacency)
-    if same:
-        _LAST_COLOURING.update(key=(weakref.ref(hexes), n), value=out)
+    if same:  # dropped with the array (a callback): the cache never keeps a colouring past its mesh
+        _LAST_COLOURING.clear()
+        _LAST_COLOURING.update(key=(weakref.ref(hexes, _forget_colouring), n), value=out)
     return out
+
+
+def _forget_colouring(ref) -> None:
+    """The callback of the cached array's weak reference: forget its colouring (not a newer one's)."""
+    if _LAST_COLOURING.get("key", (None,))[0] is ref:
+        _LAST_COLOURING.clear()
 
 
 #: `colour_nodes`' last result for a read-only connectivity array (a weak reference to it, and the node count).
