@@ -191,7 +191,7 @@ def smooth(
     t0 = time.perf_counter()
     notes: list[str] = []
     if auto:
-        notes.append(f"default method (auto): {auto}; choose another with --method / method=")
+        notes.append(_auto_note(auto))
     if shard is not None:
         notes.append(shard_note)
     if merge_coincident:
@@ -211,7 +211,7 @@ def smooth(
                                check_coincident=False)
     points, res = _smooth_unit(unit, method, seed, dtype, feature_angle, fix_boundary, fixed, fixed_sets,
                                untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary,
-                               shard, auto_presmooth=bool(auto) and not user_presmooth)
+                               shard, auto_note=_auto_note(auto) if auto and not user_presmooth else None)
     moved = (points != unit.points).any(axis=1)
     real = np.array(mesh.points)
     real[moved] = from_unit(points[moved], frame)
@@ -286,13 +286,18 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     return mesh, method, seed, fixed_sets, untangle_params, params, auto
 
 
+def _auto_note(description: str) -> str:
+    """The note that says which pipeline the default method (auto) runs."""
+    return f"default method (auto): {description}; choose another with --method / method="
+
+
 def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
                  untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary=False,
-                 devices=None, auto_presmooth: bool = False) -> tuple[np.ndarray, SmoothResult]:
+                 devices=None, auto_note: str | None = None) -> tuple[np.ndarray, SmoothResult]:
     """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
     and wall time are filled in by `smooth`; `notes` is appended to, `clock` records the phases).
-    `auto_presmooth`: the default pipeline chose the presmoothing (not the user): a Laplace sweep of the
-    untangling stage stands for it."""
+    `auto_note`: the note of the default pipeline where it chose the presmoothing (not the user): a Laplace
+    sweep of the untangling stage then stands for it, and the note says so."""
     host = host_run(mesh, method, params)
     with clock.phase("report"), enable_x64(not host):
         before = quality_report(mesh)
@@ -334,13 +339,12 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
             # InvertedMeshError if it fails (unless partial)
             untangled, untangle_notes, swept = untangle_stage(mesh, info_u, up, partial=partial,
                                                               progress=lambda text: clock.progress("untangle", text))
-            if swept and auto_presmooth and int(params.get("presmooth", 0)):
+            if swept and auto_note is not None and int(params.get("presmooth", 0)):
                 # the untangling's plain Laplace sweep has just smoothed the mesh: cube60_pert's smooth phase
                 # 6.4 -> 3.6 s without the 3 smart-Laplace sweeps, the same result (37 L-BFGS steps against 36)
                 params = {**params, "presmooth": 0}
-                notes[:] = [("default method (auto): L-BFGS on F (the untangling's Laplace sweep stands for the "
-                             "smart-Laplace sweeps); choose another with --method / method=")
-                            if n.startswith("default method (auto):") else n for n in notes]
+                notes[notes.index(auto_note)] = _auto_note(
+                    "L-BFGS on F (the untangling's Laplace sweep stands for the smart-Laplace sweeps)")
             moved = released[(untangled[released] != mesh.points[released]).any(axis=1)]
             if len(moved):
                 untangled = np.array(untangled, dtype=np.float64)

@@ -372,7 +372,7 @@ def colour_nodes(
     """
     n = int(n_nodes)
     cached = _LAST_COLOURING.get("key")
-    same = adjacency is None and not getattr(hexes, "flags", np.ones(1).flags).writeable
+    same = adjacency is None and isinstance(hexes, np.ndarray) and not hexes.flags.writeable
     if same and cached is not None and cached[0]() is hexes and cached[1] == n:
         return _LAST_COLOURING["value"]
     out = _colour_nodes(hexes, n, adjacency)

@@ -177,9 +177,6 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
         sweeps = 1 if len(hexes) >= LAPLACE_UNTANGLE_FROM else 0
     if on_host and sweeps and not blocks:
         x, sweeps = _laplace_untangle(mesh, info, cons, p, lens, sweeps)
-        if x is not None:
-            dmin0 = _scaled_min_det(mesh, np.asarray(mesh.points, f64), lens)
-            runs.append(("laplace", sweeps, 0))
     if x is None:
         if not on_host and not is_jax_array(cons.x_orig):  # numpy constraints (device=False) for the compiled loop
             cons = jax.device_put(cons)
@@ -188,8 +185,9 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
             par = dataclasses.replace(par, shortcut=True)
     nf = 0 if par is None else par.n_free
     v = np.zeros((nf,), f64)
-    if x is not None:
-        pass
+    if x is not None:  # the plain Laplacian untangled it
+        dmin0 = _scaled_min_det(mesh, np.asarray(mesh.points, f64), lens)
+        runs.append(("laplace", sweeps, 0))
     elif on_host:
         def report(r, dmin, eps, e):
             if progress is not None:
