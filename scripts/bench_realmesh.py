@@ -21,6 +21,11 @@ one after the other, each as its own process:
     unit cube); any other mesh has its skin fixed (``-s``);
   - ``free``: no flag (msqshape's own default: does the boundary move?).
 
+Before the runs it writes the bytecode of the jaxci package (``compileall``, `ensure_bytecode`), as installing
+a package does: with ``PYTHONDONTWRITEBYTECODE`` set (as on the machines of docs/results) no ``jaxci`` process
+would ever write it, and every run would compile jaxci's sources anew (about 0.1 s of each start-up here), which
+no installed copy does (``--no-bytecode``: leave it as it is; the JSON's ``settings.bytecode`` says which).
+
 Per run it records the wall time, the child's CPU time (user + system) and peak RSS (``os.wait4``), exit status,
 the end of stderr, and for jaxci what ``--json`` says (iterations, its own wall time, notes, and a ``phases`` or
 ``timings`` dict where the command reports one). Every output is then measured here by the same code
@@ -511,6 +516,15 @@ def entries_for(args) -> list:
     return chosen
 
 
+def ensure_bytecode(package_dir: Path) -> str:
+    """Write the bytecode of every module under `package_dir` where it is missing or stale (``compileall``, which
+    writes it whatever ``PYTHONDONTWRITEBYTECODE`` says; Python then reads it): what the runs' start-up sees."""
+    import compileall
+
+    ok = compileall.compile_dir(str(package_dir), quiet=1, workers=1)
+    return "compiled (compileall)" if ok else "compileall reported errors"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--meshes", nargs="+", help="corpus names, sources, gmsh shapes or mesh files (default: the "
@@ -534,6 +548,9 @@ def main(argv=None) -> int:
     ap.add_argument("--work-dir", help="keep the inputs, outputs and caches here (default: a temporary folder, "
                                        "removed at the end)")
     ap.add_argument("--out", default=str(DEFAULT_OUT), help="JSON path (default %(default)s)")
+    ap.add_argument("--no-bytecode", action="store_true",
+                    help="do not write jaxci's bytecode first (then, with PYTHONDONTWRITEBYTECODE set, every run "
+                         "compiles its sources)")
     args = ap.parse_args(argv)
 
     import jax
@@ -541,6 +558,7 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)  # the yardstick: float64 reports, whatever the size
     import jaxci
 
+    bytecode = "as found" if args.no_bytecode else ensure_bytecode(Path(jaxci.__file__).parent)
     chosen = entries_for(args)
     work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix="jaxci-realmesh-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -552,7 +570,8 @@ def main(argv=None) -> int:
                settings=dict(methods=args.method, jaxci_cmd=args.jaxci_cmd, jaxci_args=args.jaxci_args,
                              timeout_s=args.timeout, msq_modes=[] if args.skip_msq else args.msq_modes,
                              warm_other=not args.no_warm_other, similar=args.similar, sizes=args.sizes,
-                             moved_rel=MOVED_REL),
+                             moved_rel=MOVED_REL, bytecode=bytecode,
+                             pythondontwritebytecode=os.environ.get("PYTHONDONTWRITEBYTECODE")),
                notes=["timings from one run each on this machine; CPU = user + system of the child (os.wait4), "
                       "peak_rss_mb = its ru_maxrss", "quality measured by jaxci.quality_report (float64) on "
                       "every output file, msqshape's included"],

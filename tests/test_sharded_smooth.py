@@ -102,6 +102,64 @@ def test_sharded_smooth_matches_single_device_and_compiles_once(tmp_path):
     assert r.returncode == 0 and "SHARDED-SMOOTH-OK" in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
 
 
+CI_SCRIPT = textwrap.dedent(
+    """
+    import collections
+    from jax import monitoring
+    COUNTS = collections.Counter()
+
+    def on_duration(event, duration, fun_name="?", **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            COUNTS[fun_name] += 1
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    import jax
+    import numpy as np
+    assert len(jax.devices()) == 4, jax.devices()
+    from jaxci.geometry.boundary import INTERIOR
+    from jaxci.generate import perturb_box
+    from jaxci.smooth import smooth
+
+    m = perturb_box(5, 4, 4, amplitude=0.3, seed=3)  # 80 hexes; surface and edge nodes slide
+    runs = {}
+    for dev in (1, 4):
+        COUNTS.clear()
+        r = smooth(m, "ci", devices=dev, dtype="float64", max_sweeps=6, seed=7)
+        runs[dev] = (r, {k: v for k, v in COUNTS.items() if "local_ci_run" in k})
+    (r1, c1), (r4, c4) = runs[1], runs[4]
+    assert c1 == c4 == {"jit(_local_ci_run)": 1}, (c1, c4)
+    assert r4.params["devices"] == 4 and r4.params["backend"] == "jax"
+    assert any("sharded over 4 cpu devices" in n for n in r4.notes), r4.notes
+    # the cohorts of a colour's nodes split over the devices draw the same numbers: the same mesh
+    assert np.allclose(r1.mesh.points, r4.mesh.points, rtol=0, atol=1e-12), np.abs(r1.mesh.points - r4.mesh.points).max()
+    assert r1.iterations == r4.iterations == 6
+    assert np.allclose(r1.history["objective"], r4.history["objective"], rtol=1e-12, atol=0)
+    for r in (r1, r4):
+        assert r.after.inverted_corners == 0 and r.after.objective < 0.5 * r.before.objective
+        moved = np.linalg.norm(r.mesh.points - m.points, axis=1) > 0
+        assert moved[np.asarray(r.node_class) != INTERIOR].any() and moved[np.asarray(r.node_class) == INTERIOR].all()
+    # a second mesh of the same size class, sharded: no new compilation; a third seed, a different result
+    COUNTS.clear()
+    again = smooth(perturb_box(5, 4, 4, amplitude=0.3, seed=4), "ci", devices=4, dtype="float64", max_sweeps=6)
+    assert not {k for k in COUNTS if "local_ci_run" in k}, COUNTS
+    assert again.after.objective < again.before.objective
+    other = smooth(m, "ci", devices=4, dtype="float64", max_sweeps=6, seed=8)
+    assert not np.array_equal(other.mesh.points, r4.mesh.points)
+    print("SHARDED-CI-OK")
+    """
+)
+
+
+def test_sharded_local_ci_matches_single_device_and_compiles_once():
+    """Local CI over 4 forced CPU devices (each colour's node slots split over them): the single-device mesh,
+    one compilation, and none for a second mesh of the size class."""
+    src = os.path.dirname(os.path.dirname(jaxci.__file__))
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
+               PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+    r = subprocess.run([sys.executable, "-c", CI_SCRIPT], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "SHARDED-CI-OK" in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
+
+
 @pytest.mark.parametrize("devices, message", [
     (0, "at least 1"), ("two", "positive integer, 'all'"), (True, "positive integer"), ([], "empty"),
     (10**6, "but only"), ([0, 0], "twice"), ([10**6], "out of range"),
@@ -112,7 +170,8 @@ def test_bad_devices_are_refused_before_any_work(devices, message):
 
 
 @pytest.mark.parametrize("method, params, message", [
-    ("ci", {}, "not 'ci'"), ("lbfgs", {"backend": "numpy"}, "backend='numpy'"),
+    ("ci-global", {}, "not 'ci-global'"), ("lbfgs", {"backend": "numpy"}, "backend='numpy'"),
+    ("ci", {"backend": "numpy"}, "backend='numpy'"),
 ])
 def test_methods_that_cannot_run_sharded_are_refused(method, params, message):
     with pytest.raises(ConfigError, match=message):
@@ -173,7 +232,7 @@ def test_two_processes_on_localhost_give_the_single_device_mesh(tmp_path):
         assert np.allclose(np.load(tmp_path / f"sharded{i}.npy"), single, rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("method", ["auto", "lbfgs", "laplace", "smart-laplace"])
+@pytest.mark.parametrize("method", ["auto", "lbfgs", "laplace", "smart-laplace", "ci"])
 def test_methods_with_a_host_path_run_compiled_when_sharded(method):
     """Without devices these run small meshes on the host (numpy and C); with devices, never (the note says so)."""
     from jaxci.optim.sharding import resolve_devices, sharded_params

@@ -159,7 +159,8 @@ def run_method(problem: Problem, method: str, seed: int, params: dict):
         if method == "ci":
             cs = coloured_stars(problem.mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces,
                                 problem.table)
-            x, it, hist = local_ci(key, problem.x0, problem.conn, cs, problem.cons, p, problem.extra)
+            x, it, hist = local_ci(key, problem.x0, problem.conn, cs, problem.cons, p, problem.extra,
+                                   devices=problem.devices)
         else:
             x, it, hist = global_ci(key, problem.x0, problem.conn, problem.cons, free_scale(problem), p,
                                     problem.extra)

@@ -155,9 +155,9 @@ def smooth(
       what that cost in mean quality). False returns the method's result as it is.
     - `devices`: None (default: one device; small meshes' L-BFGS on the host in numpy), or a device count,
       ``"all"`` or a list of devices (`jaxci.optim.sharding.resolve_devices`): L-BFGS (with its presmoothing),
-      BFGS, CG and the Laplacians of a hexahedral mesh run compiled with the elements sharded over them, node
-      data replicated; same result as on one device to float tolerance (a note says so; the result's
-      ``params["devices"]`` is the count).
+      BFGS, CG, the Laplacians and local CI of a hexahedral mesh run compiled with the elements (and the colour
+      sweeps' node slots) sharded over them, node data replicated; same result as on one device to float
+      tolerance (a note says so; the result's ``params["devices"]`` is the count). Global CI is not sharded.
     - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,

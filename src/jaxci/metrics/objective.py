@@ -126,6 +126,27 @@ def mixed_max_condition(x, conn, extra: ExtraCells):
     return k + extra_barrier(x, extra)
 
 
+def objective_and_max(x, conn, extra: ExtraCells, weight=None):
+    """F and max kappa/3 of `x` ``(n, 3)`` over every corner (`mixed_objective_t`, `mixed_max_condition`); with
+    `weight` ``(N,)``, the element weights of a padded connectivity `conn` ``(8, N)`` (0: a padding element,
+    `jaxci.optim._buckets.padded_connectivity`; hexahedral meshes), over the real hexahedra only."""
+    if weight is None:
+        return mixed_objective_t(x, conn, extra), mixed_max_condition(x, conn, extra)
+    from .hexahedron import (
+        condition_from_invariants,
+        corner_columns,
+        gather_corners,
+        squared_condition_from_invariants,
+    )
+
+    real = weight > 0
+    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
+    term = jax.lax.optimization_barrier(squared_condition_from_invariants(det, fro2, adj2))
+    f = jnp.sum(jnp.where(real, term - 1.0, 0.0)) / (8.0 * jnp.sum(real.astype(term.dtype)))
+    k = jnp.max(jnp.where(real, jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)), 0.0))
+    return f, k
+
+
 # ---------------------------------------------------------------------------------------------- local form
 @dataclasses.dataclass(frozen=True)
 class CornerTable:

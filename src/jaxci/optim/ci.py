@@ -46,9 +46,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..geometry.projection import Constraints, params_to_points
-from ..metrics.objective import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra
+from ..metrics.objective import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra, objective_and_max
+from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
 from ._local import gather_star
-from ._moves import ColouredStars, chunked_local_sum, colour_slice, local_count, local_scale, project_trials
+from ._moves import (
+    ColouredStars,
+    chunked_local_sum,
+    colour_slice,
+    local_count,
+    local_scale,
+    pad_stars,
+    project_trials,
+)
 from .ci_params import (  # noqa: F401  (the parameters, re-exported: jaxci.optim.ci.CIParams is public)
     GLOBAL_DEFAULTS,
     MAX_COHORT,
@@ -145,14 +154,15 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict
     return x, width, jnp.sum(accept, dtype=jnp.int32)
 
 
-def _pattern_move(x, D, f, conn, cons: Constraints, extra: ExtraCells):
+def _pattern_move(x, D, f, conn, cons: Constraints, extra: ExtraCells, weight=None):
     """``(x, f)`` after the pattern move: the best of ``project(x + a D)`` over `PATTERN_FACTORS` where its F is
-    below `f` (an inverted corner makes F infinite: never taken), else `x` and `f` unchanged."""
+    below `f` (an inverted corner makes F infinite: never taken), else `x` and `f` unchanged. `weight`: as in
+    `jaxci.metrics.objective.objective_and_max`."""
     from ..geometry.projection import project
 
     def trial(a):
         y = project(cons, x + a * D)
-        return y, mixed_objective_t(y, conn, extra)
+        return y, objective_and_max(y, conn, extra, weight)[0]
 
     factors = jnp.asarray(PATTERN_FACTORS, x.dtype)
     fy = jax.lax.map(lambda a: trial(a)[1], factors)
@@ -164,8 +174,10 @@ def _pattern_move(x, D, f, conn, cons: Constraints, extra: ExtraCells):
 
 @functools.partial(jax.jit, static_argnames=("s", "chunk"))
 def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static, d: dict, chunk: int,
-                  extra: ExtraCells):
-    n_colours = cs.nodes.shape[0]
+                  extra: ExtraCells, weight=None, n_colours=None):
+    """The sweeps under one jit. `weight` ``(N,)`` and `n_colours` (traced): for a problem padded to its size
+    class, the element weights (0: padding) and the number of real colours (the padded ones are skipped)."""
+    n_colours = cs.nodes.shape[0] if n_colours is None else n_colours
     dtype = x.dtype
     # initial widths: init_width * local edge length of every node
     h_all = jnp.zeros(x.shape[0], dtype)
@@ -176,9 +188,8 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
 
     h_all = jax.lax.fori_loop(0, n_colours, h_colour, h_all)
     width = d["init_width"] * h_all
-    f_init = mixed_objective_t(x, conn, extra)
+    f_init, k_init = objective_and_max(x, conn, extra, weight)
     hist_f = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(f_init)
-    k_init = _max_condition(x, conn, extra)
     hist_k = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(k_init)
     hist_m = jnp.zeros((s.max_sweeps + 1,), jnp.int32)
 
@@ -193,11 +204,11 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
 
         x_start = x
         x, width, moved = jax.lax.fori_loop(0, n_colours, colour, (x, width, jnp.int32(0)))
-        f = mixed_objective_t(x, conn, extra)
+        f = objective_and_max(x, conn, extra, weight)[0]
         if s.pattern:
-            x, f = _pattern_move(x, x - x_start, f, conn, cons, extra)
+            x, f = _pattern_move(x, x - x_start, f, conn, cons, extra, weight)
         it = it + 1
-        k = _max_condition(x, conn, extra)
+        k = objective_and_max(x, conn, extra, weight)[1]
         hf, hk, hm = hf.at[it].set(f), hk.at[it].set(k), hm.at[it].set(moved)
         done = ((f <= d["ftol"]) | (f_prev - f <= d["tol"] * f_prev + d["atol"]) | (moved == 0)
                 | (k <= 1.0 + d["ktol"]))
@@ -220,10 +231,17 @@ def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
 
 
 def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams | None = None,
-             extra: ExtraCells | None = None):
+             extra: ExtraCells | None = None, *, devices=None):
     """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity, `extra`
     the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`; default none), whose corners `cs` must hold too
     (`coloured_stars(..., table)`): F and the local objectives are then over every corner; `p` default `CIParams()`.
+
+    `devices` (keyword only): None (one device), or a `jax.sharding.Mesh` (hexahedral meshes): the problem is
+    padded to its size class (`jaxci.optim._buckets`: nodes, elements with weight 0, colours and node slots), the
+    elements (F, max kappa/3 and the pattern move) and the node slots of every colour (the cohorts: each device
+    runs the cohorts of its share of a colour's nodes) sharded over it, the coordinates, widths and constraints
+    replicated (`jaxci.optim.sharding.place_problem`). The random numbers are drawn for the padded slots, so any
+    device count gives the same mesh (to float rounding), but not the unpadded run's.
 
     **Returns:** ``(points, sweeps, history)``: the smoothed coordinates ``(n, 3)``, the number of sweeps, and a
     dict of numpy arrays of length ``sweeps + 1`` (entry 0 = input): ``objective``, ``max_condition``,
@@ -231,11 +249,28 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
     """
     extra = no_extra() if extra is None else extra
     p = CIParams() if p is None else p
-    x, n, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, *_split(p, points.dtype), _auto_chunk(cs, p),
-                                     extra)
-    n = int(n)
-    return x, n, {"objective": np.asarray(hf[: n + 1]), "max_condition": np.asarray(hk[: n + 1]),
-                  "moved": np.asarray(hm[: n + 1])}
+    static, traced = _split(p, points.dtype)
+    if devices is not None and not extra.types:
+        from .sharding import place_problem
+
+        n = int(points.shape[0])
+        x = np.asarray(points)
+        hexes = np.asarray(conn).T
+        n_pad = bucket(n + 1)
+        c, w = padded_connectivity(hexes, bucket(len(hexes), multiple=int(devices.devices.size)))
+        cs_p = pad_stars(cs, n_pad)
+        run_conn, weight, (xp, cons_p, n_col), cs_p = place_problem(
+            to_device(c, hexes.dtype), to_device(w, x.dtype),
+            (to_device(pad_rows(x, n_pad, 0.0)), pad_constraints(cons, n_pad), to_device(np.int32(cs.nodes.shape[0]))),
+            devices, cs_p)
+        x, it, hf, hk, hm = _local_ci_run(key, xp, run_conn, cs_p, cons_p, static, traced, _auto_chunk(cs_p, p),
+                                          extra, weight, n_col)
+        x = to_device(np.asarray(x)[:n])  # sliced on the host: no compilation
+    else:
+        x, it, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, static, traced, _auto_chunk(cs, p), extra)
+    it = int(it)
+    return x, it, {"objective": np.asarray(hf[: it + 1]), "max_condition": np.asarray(hk[: it + 1]),
+                   "moved": np.asarray(hm[: it + 1])}
 
 
 # ------------------------------------------------------------------------------------------------ global CI

@@ -25,24 +25,16 @@ import dataclasses
 import numpy as np
 
 from .._lazy import jax, jit, jnp
-from ..cells import corner_invariants
 from ..errors import ConfigError
 from ..geometry.projection import Constraints
-from ..metrics.hexahedron import (
-    condition_from_invariants,
-    corner_columns,
-    gather_corners,
-    squared_condition_from_invariants,
-)
 from ..metrics.objective import (
     ExtraCells,
     corner_table,
     edge_pairs,
     extra_cells,
     has_extra,
-    mixed_max_condition,
-    mixed_objective_t,
     no_extra,
+    objective_and_max,
 )
 from . import _params as _p
 from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
@@ -132,19 +124,6 @@ def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n
     return x, jnp.max(jnp.where(mask, move, 0.0), initial=0.0)  # initial: a mesh with no movable node
 
 
-def _history_terms(x, conn, extra: ExtraCells, weight):
-    """F and max kappa/3 of `x` (every corner; with `weight` ``(N,)``, a padded connectivity's element
-    weights, over the real hexahedra only)."""
-    if weight is None:
-        return mixed_objective_t(x, conn, extra), mixed_max_condition(x, conn, extra)
-    real = weight > 0
-    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
-    term = jax.lax.optimization_barrier(squared_condition_from_invariants(det, fro2, adj2))
-    f = jnp.sum(jnp.where(real, term - 1.0, 0.0)) / (8.0 * jnp.sum(real.astype(term.dtype)))
-    k = jnp.max(jnp.where(real, jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)), 0.0))
-    return f, k
-
-
 @jit(static_argnames=("smart", "p"))
 def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smart: bool, p: LaplaceParams,
                  extra: ExtraCells, weight=None, n_colours=None):
@@ -159,7 +138,7 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
         return jnp.where(h > 0, h, 1.0)
 
     h = jax.lax.map(h_colour, jnp.arange(cs.nodes.shape[0]))  # (n_colours, M)
-    f0, k0 = _history_terms(x, conn, extra, weight)
+    f0, k0 = objective_and_max(x, conn, extra, weight)
     hist_f = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(f0)
     hist_k = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(k0)
     hist_m = jnp.full((p.max_sweeps + 1,), jnp.nan, dtype).at[0].set(0.0)
@@ -175,7 +154,7 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
 
         x, mv = jax.lax.fori_loop(0, n_colours, colour, (x, jnp.zeros((), dtype)))
         s = s + 1
-        f, k = _history_terms(x, conn, extra, weight)
+        f, k = objective_and_max(x, conn, extra, weight)
         hf = hf.at[s].set(f)
         hk = hk.at[s].set(k)
         hm = hm.at[s].set(mv)
