@@ -131,7 +131,8 @@ CI_SCRIPT = textwrap.dedent(
     assert r4.params["devices"] == 4 and r4.params["backend"] == "jax"
     assert any("sharded over 4 cpu devices" in n for n in r4.notes), r4.notes
     # the cohorts of a colour's nodes split over the devices draw the same numbers: the same mesh
-    assert np.allclose(r1.mesh.points, r4.mesh.points, rtol=0, atol=1e-12), np.abs(r1.mesh.points - r4.mesh.points).max()
+    gap = np.abs(r1.mesh.points - r4.mesh.points).max()
+    assert gap <= 1e-12, gap
     assert r1.iterations == r4.iterations == 6
     assert np.allclose(r1.history["objective"], r4.history["objective"], rtol=1e-12, atol=0)
     for r in (r1, r4):
@@ -145,14 +146,25 @@ CI_SCRIPT = textwrap.dedent(
     assert again.after.objective < again.before.objective
     other = smooth(m, "ci", devices=4, dtype="float64", max_sweeps=6, seed=8)
     assert not np.array_equal(other.mesh.points, r4.mesh.points)
+    # global CI: the trial meshes of each attempt split over the devices; the unsharded compiled run's mesh
+    small = perturb_box(3, 3, 3, amplitude=0.3, seed=1)
+    glob = {}
+    for dev in (None, 4):
+        COUNTS.clear()
+        glob[dev] = smooth(small, "ci-global", devices=dev, dtype="float64", attempts=40, backend="jax")
+        assert {k: v for k, v in COUNTS.items() if "global_ci_run" in k} == {"jit(_global_ci_run)": 1}, COUNTS
+    assert np.array_equal(glob[None].mesh.points, glob[4].mesh.points)
+    assert glob[4].iterations == 40 and glob[4].after.objective < glob[4].before.objective
+    assert any("trial meshes" in n for n in glob[4].notes), glob[4].notes
     print("SHARDED-CI-OK")
     """
 )
 
 
-def test_sharded_local_ci_matches_single_device_and_compiles_once():
+def test_sharded_ci_matches_single_device_and_compiles_once():
     """Local CI over 4 forced CPU devices (each colour's node slots split over them): the single-device mesh,
-    one compilation, and none for a second mesh of the size class."""
+    one compilation, and none for a second mesh of the size class; global CI (its trial meshes split): the
+    unsharded mesh, bit for bit."""
     src = os.path.dirname(os.path.dirname(jaxci.__file__))
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
                PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
@@ -170,7 +182,7 @@ def test_bad_devices_are_refused_before_any_work(devices, message):
 
 
 @pytest.mark.parametrize("method, params, message", [
-    ("ci-global", {}, "not 'ci-global'"), ("lbfgs", {"backend": "numpy"}, "backend='numpy'"),
+    ("lm", {}, "not 'lm'"), ("lbfgs", {"backend": "numpy"}, "backend='numpy'"),
     ("ci", {"backend": "numpy"}, "backend='numpy'"),
 ])
 def test_methods_that_cannot_run_sharded_are_refused(method, params, message):
@@ -232,7 +244,7 @@ def test_two_processes_on_localhost_give_the_single_device_mesh(tmp_path):
         assert np.allclose(np.load(tmp_path / f"sharded{i}.npy"), single, rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("method", ["auto", "lbfgs", "laplace", "smart-laplace", "ci"])
+@pytest.mark.parametrize("method", ["auto", "lbfgs", "laplace", "smart-laplace", "ci", "ci-global"])
 def test_methods_with_a_host_path_run_compiled_when_sharded(method):
     """Without devices these run small meshes on the host (numpy and C); with devices, never (the note says so)."""
     from jaxci.optim.sharding import resolve_devices, sharded_params

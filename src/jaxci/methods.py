@@ -163,7 +163,7 @@ def run_method(problem: Problem, method: str, seed: int, params: dict):
                                    devices=problem.devices)
         else:
             x, it, hist = global_ci(key, problem.x0, problem.conn, problem.cons, free_scale(problem), p,
-                                    problem.extra)
+                                    problem.extra, devices=problem.devices)
         return x, it, hist, dataclasses.asdict(p)
     if method in ("bfgs", "lbfgs", "cg", "lm", "gauss-newton"):
         from .optim.gradient import run_gradient

@@ -156,8 +156,9 @@ def smooth(
     - `devices`: None (default: one device; small meshes' L-BFGS on the host in numpy), or a device count,
       ``"all"`` or a list of devices (`jaxci.optim.sharding.resolve_devices`): L-BFGS (with its presmoothing),
       BFGS, CG, the Laplacians and local CI of a hexahedral mesh run compiled with the elements (and the colour
-      sweeps' node slots) sharded over them, node data replicated; same result as on one device to float
-      tolerance (a note says so; the result's ``params["devices"]`` is the count). Global CI is not sharded.
+      sweeps' node slots) sharded over them, node data replicated; global CI with the trial meshes of each
+      learning attempt split over them; same result as on one device to float tolerance (a note says so; the
+      result's ``params["devices"]`` is the count).
     - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,

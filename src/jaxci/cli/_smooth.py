@@ -57,7 +57,8 @@ def add_args(p) -> None:
                         "of the corner excesses, --param p=2 by default: pulls the worst element harder)")
     p.add_argument("--devices", default=None, metavar="N|all",
                    help="run on N devices (or all), the elements sharded over them: L-BFGS (and the default "
-                        "pipeline), BFGS, CG, the Laplacians and local CI, compiled; default: one device")
+                        "pipeline), BFGS, CG, the Laplacians and local CI; global CI's trial meshes; compiled; "
+                        "default: one device")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object (with phase timings)")

@@ -274,18 +274,45 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
 
 
 # ------------------------------------------------------------------------------------------------ global CI
-@functools.partial(jax.jit, static_argnames=("s",))
-def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict, extra: ExtraCells):
-    """Faithful global CI over the free coordinates u (shape ``(n_free,)``); `scale` is h per coordinate."""
+def _objective_of(u, x0, conn, cons: Constraints, extra: ExtraCells):
+    """F of the free coordinates `u` ``(n_free,)`` (global CI's behaviour)."""
+    return mixed_objective_t(params_to_points(cons, u, x0), conn, extra)
+
+
+def _objective_many(U, x0, conn, cons: Constraints, extra: ExtraCells, mesh):
+    """F of every row of `U` ``(S, n_free)``, one after the other (`jax.lax.map`); with `mesh` (a
+    `jax.sharding.Mesh`), the rows split over its devices (`jax.shard_map`, padded with copies of row 0 to a
+    multiple of the device count), each device evaluating its rows as one device would: the same numbers."""
+    def many(U, x0, conn, cons, extra):
+        return jax.lax.map(lambda u: _objective_of(u, x0, conn, cons, extra), U)
+
+    if mesh is None:
+        return many(U, x0, conn, cons, extra)
+    from jax.sharding import PartitionSpec as P
+
+    from .sharding import AXIS
+
+    S, n_dev = U.shape[0], mesh.devices.size
+    pad = -S % n_dev
+    U = jnp.concatenate([U, jnp.broadcast_to(U[:1], (pad, U.shape[1]))]) if pad else U
+    f = jax.shard_map(many, mesh=mesh, in_specs=(P(AXIS), P(), P(), P(), P()), out_specs=P(AXIS))(
+        U, x0, conn, cons, extra)
+    return f[:S]
+
+
+@functools.partial(jax.jit, static_argnames=("s", "mesh"))
+def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict, extra: ExtraCells, mesh=None):
+    """Faithful global CI over the free coordinates u (shape ``(n_free,)``); `scale` is h per coordinate;
+    `mesh`: None, or the `jax.sharding.Mesh` the C t trials of an attempt are split over."""
     C, t, T = s.cohort, s.variations, s.attempts
     dtype = x0.dtype
     nf = scale.shape[0]
 
     def F(u):
-        return mixed_objective_t(params_to_points(cons, u, x0), conn, extra)
+        return _objective_of(u, x0, conn, cons, extra)
 
     def F_many(U):  # (S, nf) -> (S,)
-        return jax.lax.map(F, U)
+        return _objective_many(U, x0, conn, cons, extra, mesh)
 
     u0 = jnp.zeros((nf,), dtype)
     f0 = F(u0)
@@ -326,16 +353,21 @@ def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict,
     return x, a, hist
 
 
-def global_ci(key, points, conn, cons: Constraints, scale, p: CIParams, extra: ExtraCells | None = None):
+def global_ci(key, points, conn, cons: Constraints, scale, p: CIParams, extra: ExtraCells | None = None, *,
+              devices=None):
     """Run the paper's global CI; `scale` is the local edge length per free coordinate, shape ``(n_free,)``;
     `extra` the non-hexahedral cells (default none): the behaviour is then F over every corner.
+
+    `devices` (keyword only): None (one device), or a `jax.sharding.Mesh`: the C t trial meshes of every
+    learning attempt are split over its devices (each evaluates whole meshes: the candidates, not the elements,
+    are sharded), everything else replicated; the same numbers as on one device.
 
     **Returns:** ``(points, attempts, history)`` with history arrays ``objective`` and ``best`` (best behaviour
     F of the cohort), ``worst`` (worst behaviour), ``max_condition`` (of the best candidate), per learning
     attempt; entry 0 = input.
     """
     extra = no_extra() if extra is None else extra
-    x, a, hist = _global_ci_run(key, points, conn, cons, scale, *_split(p, points.dtype), extra)
+    x, a, hist = _global_ci_run(key, points, conn, cons, scale, *_split(p, points.dtype), extra, devices)
     a = int(a)
     hist = np.asarray(hist[: a + 1])
     return x, a, {"objective": hist[:, 0], "best": hist[:, 0], "worst": hist[:, 1], "max_condition": hist[:, 2]}

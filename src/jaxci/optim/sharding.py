@@ -69,12 +69,12 @@ def device_mesh(devices=None) -> Mesh:
 
 
 #: The methods that run sharded (`sharded_params`): the compiled optimistix loop, the (smart) Laplacian (also
-#: the presmoothing of the first four) and local CI.
-SHARDED_METHODS = ("auto", "lbfgs", "bfgs", "cg", "laplace", "smart-laplace", "ci")
+#: the presmoothing of the first four), local CI (elements and node slots) and global CI (its trial meshes).
+SHARDED_METHODS = ("auto", "lbfgs", "bfgs", "cg", "laplace", "smart-laplace", "ci", "ci-global")
 
 #: The sharded methods that small meshes run on the host without ``devices`` (``backend="auto"``): with it they
 #: get ``backend="jax"``.
-HOST_METHODS = ("auto", "lbfgs", "laplace", "smart-laplace", "ci")
+HOST_METHODS = ("auto", "lbfgs", "laplace", "smart-laplace", "ci", "ci-global")
 
 #: How to get several devices on one CPU (said when too few exist).
 FORCE_HINT = ("on a CPU, XLA_FLAGS=--xla_force_host_platform_device_count=N set before JAX starts makes N "
@@ -168,8 +168,10 @@ def sharded_params(method: str, params: dict, mesh: Mesh) -> tuple[dict, str]:
         params["backend"] = "jax"
     devs = mesh.devices.ravel()
     host = "; the numpy host path for small meshes is not used" if method in HOST_METHODS else ""
-    where = (f"sharded over {len(devs)} {devs[0].platform} devices: elements (and the node slots of the "
-             f"colour sweeps) split evenly (padded with weight-0 copies), node data replicated" if len(devs) > 1
+    what = ("the trial meshes of every learning attempt split evenly, the mesh replicated" if method == "ci-global"
+            else "elements (and the node slots of the colour sweeps) split evenly (padded with weight-0 copies), "
+                 "node data replicated")
+    where = (f"sharded over {len(devs)} {devs[0].platform} devices: {what}" if len(devs) > 1
              else f"on 1 {devs[0].platform} device")
     note = f"{where}; compiled JAX path{host}"
     return params, note
