@@ -24,7 +24,10 @@ element, the mesh objective F decreases by the sum of the accepted decreases. Co
 node keeps an interval width adapted to its last move (a trust region). After each sweep a pattern move (Hooke
 & Jeeves) tries the whole mesh further along the sweep's displacement D, ``x + a D`` for a few factors a, and
 keeps the best if it lowers F: node-by-node moves remove long-wavelength error slowly (pave3 after untangling,
-30 sweeps: F 10% above L-BFGS's without it, 5% with it). Sweeps stop when F changes by less than `tol`
+30 sweeps: F 10% above L-BFGS's without it, 5% with it). Then Anderson acceleration over the last `anderson`
+sweeps (`jaxci.optim._anderson`: the combination of their starts and displacements that best cancels the
+displacements, projected, taken where it lowers F; with the later parameters, pave3 30 sweeps: 0.4-1.3% above
+L-BFGS's F without it, 0.1-0.4% below with it). Sweeps stop when F changes by less than `tol`
 relative plus `atol`, or F <= `ftol`, or max kappa/3 <= 1 + `ktol`, or after `max_sweeps`.
 
 **Global CI** (`global_ci`, faithful to the paper): each candidate is a whole mesh, a point in the space of all
@@ -47,6 +50,7 @@ import numpy as np
 
 from ..geometry.projection import Constraints, params_to_points
 from ..metrics.objective import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra, objective_and_max
+from ._anderson import anderson_point
 from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
 from ._local import gather_star
 from ._moves import (
@@ -80,12 +84,13 @@ class _Static(typing.NamedTuple):
     max_sweeps: int
     patience: int
     pattern: bool
+    anderson: int
 
 
 def _split(p: CIParams, dtype) -> tuple[_Static, dict]:
     """Static part and traced part of `p`: changing reduction, widths or tolerances does not recompile."""
     s = _Static(int(p.cohort), int(p.variations), int(p.attempts), int(p.max_sweeps), int(p.patience),
-                bool(p.pattern))
+                bool(p.pattern), int(p.anderson))
     d = {k: jnp.asarray(getattr(p, k), dtype) for k in
          ("reduction", "delta", "stage_switch", "init_width", "min_width", "tol", "atol", "ftol", "ktol")}
     return s, d
@@ -167,9 +172,22 @@ def _pattern_move(x, D, f, conn, cons: Constraints, extra: ExtraCells, weight=No
     factors = jnp.asarray(PATTERN_FACTORS, x.dtype)
     fy = jax.lax.map(lambda a: trial(a)[1], factors)
     best = jnp.argmin(jnp.where(jnp.isfinite(fy), fy, jnp.inf))
-    y, fb = trial(factors[best])
-    take = jnp.isfinite(fb) & (fb < f)
-    return jnp.where(take, y, x), jnp.where(take, fb, f)
+    return _take_if_lower(x, f, *trial(factors[best]))
+
+
+def _take_if_lower(x, f, y, fy):
+    """``(y, fy)`` where F `fy` is finite and below `f`, else ``(x, f)``."""
+    take = jnp.isfinite(fy) & (fy < f)
+    return jnp.where(take, y, x), jnp.where(take, fy, f)
+
+
+def _anderson_move(x, f, starts, moves, valid, conn, cons: Constraints, extra: ExtraCells, weight=None):
+    """``(x, f)`` after the Anderson step (`jaxci.optim._anderson.anderson_point` of the last sweeps' `starts`
+    and `moves` ``(m, 3 n)``, `valid` of them real), projected, where it lowers F."""
+    from ..geometry.projection import project
+
+    y = project(cons, anderson_point(starts, moves, valid, jnp).reshape(x.shape))
+    return _take_if_lower(x, f, y, objective_and_max(y, conn, extra, weight)[0])
 
 
 @functools.partial(jax.jit, static_argnames=("s", "chunk"))
@@ -194,7 +212,7 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
     hist_m = jnp.zeros((s.max_sweeps + 1,), jnp.int32)
 
     def sweep(carry):
-        key, x, width, it, f_prev, _, hf, hk, hm = carry
+        key, x, width, it, f_prev, _, hf, hk, hm, starts, moves = carry
         key, ks = jax.random.split(key)
 
         def colour(i, c):
@@ -205,22 +223,28 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static
         x_start = x
         x, width, moved = jax.lax.fori_loop(0, n_colours, colour, (x, width, jnp.int32(0)))
         f = objective_and_max(x, conn, extra, weight)[0]
+        if s.anderson:  # the last sweeps, oldest first (this one last)
+            starts = jnp.concatenate([starts[1:], x_start.reshape(1, -1)])
+            moves = jnp.concatenate([moves[1:], (x - x_start).reshape(1, -1)])
         if s.pattern:
             x, f = _pattern_move(x, x - x_start, f, conn, cons, extra, weight)
         it = it + 1
+        if s.anderson:
+            x, f = _anderson_move(x, f, starts, moves, jnp.minimum(it, s.anderson), conn, cons, extra, weight)
         k = objective_and_max(x, conn, extra, weight)[1]
         hf, hk, hm = hf.at[it].set(f), hk.at[it].set(k), hm.at[it].set(moved)
         done = ((f <= d["ftol"]) | (f_prev - f <= d["tol"] * f_prev + d["atol"]) | (moved == 0)
                 | (k <= 1.0 + d["ktol"]))
-        return key, x, width, it, f, done, hf, hk, hm
+        return key, x, width, it, f, done, hf, hk, hm, starts, moves
 
     def cond(carry):
         it, done = carry[3], carry[5]
         return (it < s.max_sweeps) & ~done
 
+    history = jnp.zeros((s.anderson, x.size), dtype)  # (0, 3 n) without Anderson acceleration
     init = (key, x, width, jnp.int32(0), f_init, (f_init <= d["ftol"]) | (k_init <= 1.0 + d["ktol"]), hist_f,
-            hist_k, hist_m)
-    _, x, _, it, _, _, hf, hk, hm = jax.lax.while_loop(cond, sweep, init)
+            hist_k, hist_m, history, history)
+    _, x, _, it, _, _, hf, hk, hm, _, _ = jax.lax.while_loop(cond, sweep, init)
     return x, it, hf, hk, hm
 
 

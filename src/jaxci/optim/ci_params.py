@@ -16,7 +16,7 @@ from . import _params as _p
 #: Upper bounds of `CIParams` (a typo must not hang a run or exhaust memory): cohort and variations each, their
 #: product (trial positions evaluated at once per node and attempt: batch shapes grow with it), loop bounds
 #: (attempts, sweeps, patience), interval widths (fractions of the local edge length).
-MAX_COHORT, MAX_TRIALS, MAX_LOOP, MAX_WIDTH = 256, 4096, 1_000_000, 1e3
+MAX_COHORT, MAX_TRIALS, MAX_LOOP, MAX_WIDTH, MAX_ANDERSON = 256, 4096, 1_000_000, 1e3, 64
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +62,11 @@ class CIParams:
     - `pattern`: local CI: after every sweep, a pattern move along the sweep's displacement D (Hooke & Jeeves):
       the mesh ``x + a D`` for each factor a of `PATTERN_FACTORS`, projected onto the boundary, is evaluated
       (one cohort along one line) and the best taken where it lowers F (default True).
+    - `anderson`: local CI: Anderson acceleration over the last `anderson` sweeps (0: none; default 8, at most
+      64; `jaxci.optim._anderson`): after the pattern move, the combination of the last sweeps' starts and
+      displacements that best cancels their displacements, projected, is evaluated and taken where it lowers F.
+      Measured on pave3 after untangling (30 sweeps, 8 seeds): F 0.4-1.3% above L-BFGS's final F without it,
+      0.07-0.36% below it with 8; perturbed boxes stop after as many sweeps either way.
     - `backend`: local CI on a hexahedral mesh: ``"auto"`` (default: on the host, numpy and C, nothing to
       compile, up to `jaxci.optim.host_local.HOST_CI_MAX` hexahedra where the C kernels are built; compiled
       otherwise), ``"numpy"`` (always on the host) or ``"jax"`` (always compiled). Same algorithm, different
@@ -83,6 +88,7 @@ class CIParams:
     ktol: float = 1e-6
     patience: int = 20
     pattern: bool = True
+    anderson: int = 8
     backend: str = "auto"
 
     def __post_init__(self):
@@ -104,6 +110,7 @@ class CIParams:
             ktol=_p.real(L, "ktol", self.ktol, 0),
             patience=_p.integer(L, "patience", self.patience, 1, MAX_LOOP),
             pattern=_p.boolean(L, "pattern", self.pattern),
+            anderson=_p.integer(L, "anderson", self.anderson, 0, MAX_ANDERSON),
             backend=_p.choice(L, "backend", self.backend, _p.BACKENDS),
         )
         if self.min_width > self.init_width:

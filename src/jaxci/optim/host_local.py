@@ -16,10 +16,10 @@ interval, shrunk by ``reduction`` per attempt, in the node's free directions; pr
 edge; keeps the best if it is better); the node takes the cohort's best if it lowers its local objective (so F
 never increases: a colour's nodes share no element). Widths adapt per node (4 x the move after an accepted
 move, halved otherwise, within ``[min_width, init_width] h``); after each sweep the pattern move (`PATTERN_FACTORS`)
-and the same stops (``F <= ftol``, a decrease below ``tol F + atol``, no node moved, max kappa/3 <= 1 + ktol,
-``max_sweeps``). Random numbers:
-each visit draws a seed from numpy's PCG64 (seeded by the run's seed), each node its own xoshiro256** stream from
-it: same seed, same result on any number of threads, but not the compiled path's stream.
+and Anderson acceleration over the last ``anderson`` sweeps (`jaxci.optim._anderson`), and the same stops
+(``F <= ftol``, a decrease below ``tol F + atol``, no node moved, max kappa/3 <= 1 + ktol, ``max_sweeps``).
+Random numbers: each visit draws a seed from numpy's PCG64 (seeded by the run's seed), each node its own
+xoshiro256** stream from it: same seed, same result on any number of threads, but not the compiled path's stream.
 Everything is float64. `laplace_np` sweeps the colours the same way with the Laplacian's one move per node
 (the centroid of its edge neighbours, in its free directions, projected; the smart one tries the steps 1, 1/2,
 ... at once and takes the longest that lowers the node's local sum).
@@ -35,6 +35,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
+from ._anderson import anderson_point
 from ._local import edge_neighbours, gather_star, local_length, star_nodes
 from ._moves import coloured_stars, onto_plane
 from .ci_params import PATTERN_FACTORS, CIParams
@@ -232,9 +233,15 @@ class _Sweeper:
         """The pattern move along the sweep's displacement `D` (`jaxci.optim.ci._pattern_move`): the best
         projected ``x + a D`` if it lowers `f` (F at the current `x`, max kappa/3 `kmax`); returns
         ``(F, max kappa/3)`` after it."""
+        return self.best_of((self.x + a * D for a in PATTERN_FACTORS), f, kmax)
+
+    def best_of(self, trials, f: float, kmax: float) -> tuple[float, float]:
+        """The mesh becomes the best of `trials` (an iterable of ``(n, 3)`` points, each projected onto the
+        boundary) where it lowers `f` (F at the current `x`, max kappa/3 `kmax`); returns ``(F, max kappa/3)``
+        after it."""
         best = (f, kmax, None, None)
-        for a in PATTERN_FACTORS:
-            y, hint = self.projector(self.x + a * D)
+        for t in trials:
+            y, hint = self.projector(t)
             fy, ky = self.objective(y)
             if fy < best[0]:
                 best = (fy, ky, y, hint)
@@ -255,12 +262,20 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax], [0]
     done = f <= p.ftol or kmax <= 1.0 + p.ktol
+    m = p.anderson
+    starts, moves, valid = np.zeros((m, sw.x.size)), np.zeros((m, sw.x.size)), 0  # the last m sweeps, oldest first
     while not done and len(hist_f) <= p.max_sweeps:
         start = sw.x.copy()
         moved = sum(sw.visit(col) for col in sw.colours)
         f_new, k_new = sw.objective(sw.x)
+        if m:
+            starts[:-1], moves[:-1] = starts[1:], moves[1:]
+            starts[-1], moves[-1] = start.ravel(), (sw.x - start).ravel()
+            valid = min(valid + 1, m)
         if p.pattern:
             f_new, k_new = sw.pattern(sw.x - start, f_new, k_new)
+        if valid >= 2:
+            f_new, k_new = sw.best_of([anderson_point(starts, moves, valid, np).reshape(-1, 3)], f_new, k_new)
         hist_f.append(f_new)
         hist_k.append(k_new)
         hist_m.append(moved)
