@@ -281,3 +281,19 @@ def test_untangling_without_the_extension_takes_the_same_path(monkeypatch):
     rounds = [next(n for n in r.notes if n.startswith("untangling:")).split(" rounds")[0].split()[-1]
               for r in (with_c, without)]
     assert rounds[0] == rounds[1], rounds
+
+
+def test_corner_determinants_in_c_are_numpys_bit_for_bit(monkeypatch):
+    """`jaxci.cells.corner_determinants` runs in C where built: the numpy loop's numbers exactly (also for int32
+    connectivity and an inverted corner), and a node index out of range is an IndexError, not a crash."""
+    from jaxci import cells
+
+    mesh = perturb_box(7, 5, 6, amplitude=0.9, seed=3, redraw_inverted=False)  # some corners inverted
+    points, hexes = mesh.points, mesh.hexes
+    fast = cells.corner_determinants(points, hexes.astype(np.int32))
+    monkeypatch.setattr(cells, "_c_kernels", lambda: None)
+    slow = cells.corner_determinants(points, hexes)
+    monkeypatch.undo()
+    assert (slow <= 0).any() and np.array_equal(fast, slow)
+    with pytest.raises(IndexError, match="out of range"):
+        cells.corner_determinants(points, np.array([[0, 1, 2, 3, 4, 5, 6, len(points)]]))

@@ -286,6 +286,45 @@ static void *hex_worker(void *arg) {
  * term = |A|^2 |adj A|^2 / (9 det^2) = (kappa/3)^2 per corner (inf where det <= 0, in `terms`). With `grad`, adds
  * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
  * gradient of F (w2 of jaxci.metrics.hexahedron._terms_and_grad), corner_weight the p-mean's (e_i / M_p)^(p - 1). */
+/* hex_determinants(points (n, 3) f8, hexes (N, 8) i8, out (N, 8) f8) -> None: det A_i of every corner of every
+ * hexahedron, with the arithmetic of jaxci.cells.corner_determinants' numpy loop (the same numbers, bit for bit:
+ * the same differences, products and sums in the same order; C99 does not contract them into FMAs). */
+static PyObject *hex_determinants(PyObject *self, PyObject *args) {
+    PyObject *o_pts, *o_hex, *o_out, *ret = NULL;
+    if (!PyArg_ParseTuple(args, "OOO", &o_pts, &o_hex, &o_out)) return NULL;
+    Buf B[3] = {{{0}}};
+    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
+        acquire(&B[2], o_out, "out", "d", 1, 0) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64;
+    if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || B[2].view.len != N * 64) {
+        PyErr_SetString(PyExc_ValueError, "hex_determinants: shapes disagree (points (n, 3), hexes (N, 8), out (N, 8))");
+        goto done;
+    }
+    const long long *H = B[1].view.buf;
+    if (check_indices(H, 8 * N, n, "hex_determinants") < 0) goto done;
+    const double *P = B[0].view.buf;
+    double *D = B[2].view.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t e = 0; e < N; e++) {
+        const long long *h = H + 8 * e;
+        for (int i = 0; i < 8; i++) {
+            const double *o = P + 3 * h[i], *pa = P + 3 * h[NB[i][0]], *pb = P + 3 * h[NB[i][1]],
+                         *pc = P + 3 * h[NB[i][2]];
+            double ax = pa[0] - o[0], ay = pa[1] - o[1], az = pa[2] - o[2];
+            double bx = pb[0] - o[0], by = pb[1] - o[1], bz = pb[2] - o[2];
+            double cx = pc[0] - o[0], cy = pc[1] - o[1], cz = pc[2] - o[2];
+            D[8 * e + i] = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx);
+        }
+    }
+    Py_END_ALLOW_THREADS
+    ret = Py_None;
+    Py_INCREF(ret);
+done:
+    release(B, 3);
+    return ret;
+}
+
 static PyObject *hex_condition(PyObject *self, PyObject *args) {
     PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms, *ret = NULL;
     double weight;
@@ -1413,6 +1452,7 @@ done:
 
 static PyMethodDef methods[] = {
     {"hex_condition", hex_condition, METH_VARARGS, "F terms of hexahedra, their sum, max and gradient"},
+    {"hex_determinants", hex_determinants, METH_VARARGS, "det A_i of every corner of every hexahedron"},
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},
     {"lbfgs_direction", lbfgs_direction, METH_VARARGS, "the L-BFGS two-loop recursion"},

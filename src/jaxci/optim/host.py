@@ -58,11 +58,13 @@ HOST_MAX = 20_000_000 if native.AVAILABLE else 30_000
 #: kernels (session 6, machine loaded): cube60_pert 8.4 s against 12.3 s cold.
 UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 
-#: From this many free coordinates (about 330,000 hexahedra) the host L-BFGS memory holds its pairs in float32 (the
+#: From this many free coordinates (about 80,000 hexahedra) the host L-BFGS memory holds its pairs in float32 (the
 #: C two-loop recursion reads them, the sums in float64; each pair's curvature is that of the rounded pair): 240 MB
-#: instead of 480 MB at 10^6 hexahedra (10 pairs of 3 M unknowns), the largest part of the run's peak. Below it
-#: every result is as before, bit for bit.
-HISTORY_F32_FROM = 1_000_000
+#: instead of 480 MB at 10^6 hexahedra (10 pairs of 3 M unknowns), the largest part of the run's peak; and the
+#: recursion, which streams the pairs from memory twice a step, takes half as long (cube60_pert, 680,000 unknowns:
+#: 30 ms a step in float64; the smooth phase 3.9 -> 3.1-3.5 s, the same 37 iterations, max kappa/3 equal to 1e-12).
+#: Below it every result is as before, bit for bit. (10^6 from session 11, 250,000 from session 12.)
+HISTORY_F32_FROM = 250_000
 
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
