@@ -29,21 +29,23 @@ class CIParams:
     entry point (`jaxci.smooth`, ``jaxci smooth --method ci-global``, YAML configs) goes through it, so a field the
     user does not give takes its method's default.
 
-    The local defaults (C = 4, t = 4, 10 attempts per colour visit with intervals shrunk by r = 0.7 per attempt)
-    were chosen by measurement (docs/results/README.md, session 8; `jaxci smooth --method ci`): against the
-    earlier 4 attempts at r = 0.8 they reach the ideal grid in fewer sweeps on perturbed boxes (cube729: 36
-    against 75; 10^3: 50 against 104) and come nearer to L-BFGS's F in 30 sweeps on pave3 after untangling (1.2%
-    above, was 5.6%) and on tet-to-hex subdivisions (sphere 0.10%, bracket 0.05%); a sweep costs 2.5x as much.
-    (Earlier, on the compiled path: C = 6, t = 8 needed the same number of sweeps as C = t = 4 at 5-8x the
-    cost; C = 2 or t = 2 needed more sweeps.)
+    The local defaults (C = 3, t = 3, 8 attempts per colour visit with intervals shrunk by r = 0.65 per attempt:
+    72 trial positions per node and sweep) were chosen by measurement with Anderson acceleration on
+    (docs/results/README.md, session 12): against session 8's C = t = 4, 10 attempts at r = 0.7 (160 trials) they
+    reach the target (max kappa/3 <= 1.0001 on perturbed boxes, F within 1% of L-BFGS's elsewhere) sooner on every
+    mesh measured (10^3 and 20^3 boxes 6.0x and 9.6x L-BFGS's time -> 3.5x; pave3 3.1x -> 1.9x; tet-to-hex sphere
+    and bracket 1.1-1.4x -> 0.5-0.8x; annulus 3.6x -> 2.4x) with the same final quality, and stay within 1% of
+    L-BFGS's F after 30 sweeps on pave3 for 8 seeds out of 8 (0.0-0.4%; C = t = 3 with 6 attempts: 0.6-1.1%).
+    (Session 8: 10 attempts at r = 0.7 against 4 at r = 0.8 halved the sweeps; on the compiled path C = 6, t = 8
+    needed the same number of sweeps as C = t = 4 at 5-8x the cost.)
 
     Fields (default local / global where they differ):
 
-    - `cohort`: C, candidates per cohort (default 4 / 5; 2 to 256).
-    - `variations`: t, variations sampled per candidate and attempt (default 4 / 5; 1 to 256; C t <= 4096).
-    - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.7 / 0.998).
+    - `cohort`: C, candidates per cohort (default 3 / 5; 2 to 256).
+    - `variations`: t, variations sampled per candidate and attempt (default 3 / 5; 1 to 256; C t <= 4096).
+    - `reduction`: r in (0, 1), interval shrink factor per learning attempt (default 0.65 / 0.998).
     - `delta`: > 0, regulariser of the follow probabilities 1/(g + delta) (default 1e-3).
-    - `attempts`: learning attempts per cohort run (local: per colour visit, default 10; global: total, default
+    - `attempts`: learning attempts per cohort run (local: per colour visit, default 8; global: total, default
       1000; at most 10^6, as `max_sweeps` and `patience`).
     - `stage_switch`: fraction in [0, 1] of the attempts that follow by roulette (stage 1); the rest follow the
       best (stage 2). Default 0.5 / 0.2.
@@ -65,19 +67,19 @@ class CIParams:
     - `anderson`: local CI: Anderson acceleration over the last `anderson` sweeps (0: none; default 8, at most
       64; `jaxci.optim._anderson`): after the pattern move, the combination of the last sweeps' starts and
       displacements that best cancels their displacements, projected, is evaluated and taken where it lowers F.
-      Measured on pave3 after untangling (30 sweeps, 8 seeds): F 0.4-1.3% above L-BFGS's final F without it,
-      0.07-0.36% below it with 8; perturbed boxes stop after as many sweeps either way.
+      Measured on pave3 after untangling (30 sweeps, 8 seeds, session 8's cohorts): F 0.6-1.3% above L-BFGS's
+      final F without it, 0.1-0.4% below it with 8; perturbed boxes stop after as many sweeps either way.
     - `backend`: local CI on a hexahedral mesh: ``"auto"`` (default: on the host, numpy and C, nothing to
       compile, up to `jaxci.optim.host_local.HOST_CI_MAX` hexahedra where the C kernels are built; compiled
       otherwise), ``"numpy"`` (always on the host) or ``"jax"`` (always compiled). Same algorithm, different
       random streams. Global CI always runs compiled.
     """
 
-    cohort: int = 4
-    variations: int = 4
-    reduction: float = 0.7
+    cohort: int = 3
+    variations: int = 3
+    reduction: float = 0.65
     delta: float = 1e-3
-    attempts: int = 10
+    attempts: int = 8
     stage_switch: float = 0.5
     init_width: float = 0.5
     min_width: float = 1e-6
