@@ -317,3 +317,17 @@ def test_cli_smooth_keeps_coincident_nodes(capsys, tmp_path):
     assert any("pairs of coincident nodes" in n for n in json.loads(out)["notes"])
     p = read_mesh(tmp_path / "out.vtk").points
     np.testing.assert_array_equal(p[pairs[:, 0]], p[pairs[:, 1]])
+
+
+def test_the_memory_estimate_counts_each_ci_form_s_own_default_cohort():
+    """`jaxci.memory.ci_trials` (the YAML configs' up-front check) takes each CI form's defaults from the same
+    numbers as `CIParams.for_method`."""
+    from jaxci.memory import CI_DEFAULT_TRIALS, ci_trials
+    from jaxci.optim.ci_params import CIParams
+
+    for method, (cohort, variations) in CI_DEFAULT_TRIALS.items():
+        p = CIParams.for_method(method)
+        assert (p.cohort, p.variations) == (cohort, variations)
+        assert ci_trials(method, {}) == cohort * variations
+    assert ci_trials("ci", {"cohort": 8}) == 8 * CI_DEFAULT_TRIALS["ci"][1]
+    assert ci_trials("lbfgs", {"cohort": 8}) == 16

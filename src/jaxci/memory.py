@@ -87,17 +87,23 @@ def smooth_bytes(n_hexes: int, dtype: str = "float32", trials: int = 16, host: b
     return int(SAFETY * (per * n_hexes + SMOOTH_FIXED_BYTES))
 
 
+#: CI's default cohort and variations per method (`jaxci.optim.ci_params`: local CI 3 x 3, global CI 5 x 5).
+CI_DEFAULT_TRIALS = {"ci": (3, 3), "ci-global": (5, 5)}
+
+
 def ci_trials(method: str, params: dict) -> int:
-    """Trial positions CI holds at once (cohort x variations, defaults 4 x 4) for `method` with `params` (not
-    checked here: a bad value counts as its default); 16 for a method that is not CI."""
-    if method not in ("ci", "ci-global"):
+    """Trial positions CI holds at once (cohort x variations, the method's defaults `CI_DEFAULT_TRIALS` where not
+    given) for `method` with `params` (not checked here: a bad value counts as its default); 16 for a method that
+    is not CI."""
+    if method not in CI_DEFAULT_TRIALS:
         return 16
 
-    def get(key):
-        v = params.get(key, 4)
-        return int(v) if isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 4096 else 4
+    def get(key, default):
+        v = params.get(key, default)
+        return int(v) if isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 4096 else default
 
-    return get("cohort") * get("variations")
+    cohort, variations = CI_DEFAULT_TRIALS[method]
+    return get("cohort", cohort) * get("variations", variations)
 
 
 def generate_bytes(n_hexes: int) -> int:
