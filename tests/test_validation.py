@@ -331,3 +331,17 @@ def test_the_memory_estimate_counts_each_ci_form_s_own_default_cohort():
         assert ci_trials(method, {}) == cohort * variations
     assert ci_trials("ci", {"cohort": 8}) == 8 * CI_DEFAULT_TRIALS["ci"][1]
     assert ci_trials("lbfgs", {"cohort": 8}) == 16
+
+
+def test_the_host_memory_estimate_of_ci_is_ci_s_own():
+    """CI on the host holds more than the default pipeline (Anderson's history, global CI's trial meshes): its
+    estimate is its own, measured one, and grows with global CI's trials."""
+    from jaxci.memory import smooth_bytes
+
+    n = 10**5
+    base = smooth_bytes(n, host=True)
+    local = smooth_bytes(n, trials=9, host=True, method="ci")
+    glob = smooth_bytes(n, trials=25, host=True, method="ci-global")
+    assert base < local < glob
+    assert smooth_bytes(n, trials=100, host=True, method="ci-global") > glob
+    assert smooth_bytes(n, trials=100, host=True, method="lbfgs") == base

@@ -40,6 +40,13 @@ SMOOTH_FIXED_BYTES = 400 * 2**20
 #: 11; session 10: 1.63 GB, 14.4 GB and 1,550 B).
 HOST_BYTES_PER_HEX = 1_250
 HOST_FIXED_BYTES = 100 * 2**20
+#: The same for CI on the host (`jaxci.optim.host_local`, `jaxci.optim.host_global`), measured with `jaxci smooth`
+#: on a 60^3 box (216,000 hexahedra, session 12, the default cohorts): local CI 477 MB (Anderson's history of 8
+#: sweeps included), global CI 870 MB (each attempt's 25 trial meshes, lifted and projected at once); above the
+#: fixed part, 1.8 and 3.7 kB a hexahedron. Global CI's trial meshes grow with the trials (about 24 B a
+#: hexahedron and trial: 3 coordinates of 8 bytes a node).
+HOST_CI_BYTES_PER_HEX = {"ci": 1_800, "ci-global": 3_700}
+HOST_BYTES_PER_TRIAL = 24
 #: Measured peak bytes per hexahedron of `jaxci.generate.perturb_box` (numpy: grid, connectivity, corner
 #: determinants of the redraw test, mesh validation; measured the same way for n = 20..80: 715 bytes).
 GENERATE_BYTES_PER_HEX = 720
@@ -76,12 +83,16 @@ def available_bytes() -> int | None:
     return avail
 
 
-def smooth_bytes(n_hexes: int, dtype: str = "float32", trials: int = 16, host: bool = False) -> int:
+def smooth_bytes(n_hexes: int, dtype: str = "float32", trials: int = 16, host: bool = False,
+                 method: str | None = None) -> int:
     """Estimated peak bytes of smoothing a mesh of `n_hexes` hexahedra (safety factor included); `trials`: CI's
     cohort x variations (`ci_trials`), 16 (the default) for the other methods; `host`: the run is entirely on the
-    host (`HOST_BYTES_PER_HEX`)."""
+    host (`HOST_BYTES_PER_HEX`, or `HOST_CI_BYTES_PER_HEX` for `method` ``"ci"`` and ``"ci-global"``)."""
     if host:
-        return int(SAFETY * (HOST_BYTES_PER_HEX * n_hexes + HOST_FIXED_BYTES))
+        per = HOST_CI_BYTES_PER_HEX.get(method, HOST_BYTES_PER_HEX)
+        if method == "ci-global":
+            per += HOST_BYTES_PER_TRIAL * max(int(trials) - 25, 0)
+        return int(SAFETY * (per * n_hexes + HOST_FIXED_BYTES))
     per = SMOOTH_BYTES_PER_HEX.get(dtype, max(SMOOTH_BYTES_PER_HEX.values()))
     per += CI_BYTES_PER_TRIAL * max(int(trials) - 16, 0) * (2 if dtype == "float64" else 1)
     return int(SAFETY * (per * n_hexes + SMOOTH_FIXED_BYTES))

@@ -281,7 +281,7 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     where = f"{mesh.source}: " if mesh.source else ""
     trials = p.cohort * p.variations if method in ("ci", "ci-global") else 16
     n_cells = mesh.n_hexes + sum(len(c) for c in mixed.extra_blocks(mesh).values())
-    check_fits(smooth_bytes(n_cells, dtype, trials, host=host_run(mesh, method, params)),
+    check_fits(smooth_bytes(n_cells, dtype, trials, host=host_run(mesh, method, params), method=method),
                f"{where}smoothing {mesh.n_hexes} hexahedra in {dtype}")
     check_volume(mesh)
     return mesh, method, seed, fixed_sets, untangle_params, params, auto

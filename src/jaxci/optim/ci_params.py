@@ -70,7 +70,7 @@ class CIParams:
       Measured on pave3 after untangling (30 sweeps, 8 seeds, session 8's cohorts): F 0.6-1.3% above L-BFGS's
       final F without it, 0.1-0.4% below it with 8; perturbed boxes stop after as many sweeps either way.
     - `backend`: local CI on a hexahedral mesh: ``"auto"`` (default: on the host, numpy and C, nothing to
-      compile, up to `jaxci.optim.host_local.HOST_CI_MAX` hexahedra where the C kernels are built; compiled
+      compile, up to `jaxci.optim.host_local.HOST_LOCAL_MAX` hexahedra where the C kernels are built; compiled
       otherwise), ``"numpy"`` (always on the host) or ``"jax"`` (always compiled). Same algorithm, different
       random streams. Global CI always runs compiled.
     """
