@@ -20,9 +20,10 @@ from jaxci.errors import ConfigError
 from jaxci.generate import perturb_box
 from jaxci.smooth import smooth
 
-SCRIPT = textwrap.dedent(
+#: The start of every 4-device script: compilations counted per function (`COUNTS`), then JAX with 4 devices.
+PREAMBLE = textwrap.dedent(
     """
-    import collections, contextlib, io
+    import collections
     from jax import monitoring
     COUNTS = collections.Counter()
 
@@ -34,6 +35,24 @@ SCRIPT = textwrap.dedent(
     import jax
     import numpy as np
     assert len(jax.devices()) == 4, jax.devices()
+    """
+)
+
+
+def _run_on_4_devices(script: str, marker: str, cwd=None) -> None:
+    """Run `PREAMBLE` + `script` in a fresh process with 4 forced CPU devices (the flag is read when JAX starts)
+    and the jaxci under test on its path, whatever the working directory; it must print `marker`."""
+    src = os.path.dirname(os.path.dirname(jaxci.__file__))
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
+               PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+    r = subprocess.run([sys.executable, "-c", PREAMBLE + script], env=env, capture_output=True, text=True,
+                       timeout=300, cwd=cwd)
+    assert r.returncode == 0 and marker in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
+
+
+SCRIPT = textwrap.dedent(
+    """
+    import contextlib, io
     from jaxci.errors import ConfigError
     from jaxci.generate import perturb_box
     from jaxci.geometry.boundary import INTERIOR
@@ -94,28 +113,11 @@ def test_sharded_smooth_matches_single_device_and_compiles_once(tmp_path):
     from jaxci.io import write_mesh
 
     write_mesh(perturb_box(3, 3, 3, amplitude=0.2, seed=0), str(tmp_path / "in.vtu"))
-    src = os.path.dirname(os.path.dirname(jaxci.__file__))  # the jaxci under test, whatever the working directory
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
-    r = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=300,
-                       cwd=tmp_path)
-    assert r.returncode == 0 and "SHARDED-SMOOTH-OK" in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
+    _run_on_4_devices(SCRIPT, "SHARDED-SMOOTH-OK", cwd=tmp_path)
 
 
 CI_SCRIPT = textwrap.dedent(
     """
-    import collections
-    from jax import monitoring
-    COUNTS = collections.Counter()
-
-    def on_duration(event, duration, fun_name="?", **_):
-        if event == "/jax/core/compile/backend_compile_duration":
-            COUNTS[fun_name] += 1
-
-    monitoring.register_event_duration_secs_listener(on_duration)
-    import jax
-    import numpy as np
-    assert len(jax.devices()) == 4, jax.devices()
     from jaxci.geometry.boundary import INTERIOR
     from jaxci.generate import perturb_box
     from jaxci.smooth import smooth
@@ -165,11 +167,7 @@ def test_sharded_ci_matches_single_device_and_compiles_once():
     """Local CI over 4 forced CPU devices (each colour's node slots split over them): the single-device mesh,
     one compilation, and none for a second mesh of the size class; global CI (its trial meshes split): the
     unsharded mesh, bit for bit."""
-    src = os.path.dirname(os.path.dirname(jaxci.__file__))
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
-    r = subprocess.run([sys.executable, "-c", CI_SCRIPT], env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "SHARDED-CI-OK" in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
+    _run_on_4_devices(CI_SCRIPT, "SHARDED-CI-OK")
 
 
 @pytest.mark.parametrize("devices, message", [
