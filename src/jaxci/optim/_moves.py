@@ -21,7 +21,7 @@ from .._lazy import jax, jnp, when_imported
 from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..geometry.projection import Constraints, project_nodes
 from ..metrics.objective import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
-from ._buckets import bucket, to_device
+from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
 from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars
 
 
@@ -316,6 +316,22 @@ def pad_stars(cs: ColouredStars, n_pad: int) -> ColouredStars:
         n_surface=slot_sizes(cs)[1],
         n_edge=slot_sizes(cs)[2],
     )
+
+
+def padded_sweeps(points, conn, cs: ColouredStars, cons: Constraints, multiple: int = 1):
+    """The arguments of a compiled colour-sweep loop (the Laplacians', local CI's) padded to their size class
+    (`jaxci.optim._buckets`): node coordinates (padding nodes at the origin, CORNER nodes of the padded
+    `Constraints`, referenced by no real element), elements (repeats of element 0 with weight 0; a multiple of
+    `multiple`, the device count of a sharded run), colours and slots (`pad_stars`). Hexahedral meshes only.
+
+    **Returns:** ``(x, conn, cs, cons, weight, n_colours)``, device arrays; `n_colours` the real colour count
+    (the loops skip the padded ones)."""
+    x = np.asarray(points)
+    n_pad = bucket(x.shape[0] + 1)
+    hexes = np.asarray(conn).T
+    c, w = padded_connectivity(hexes, bucket(len(hexes), multiple=multiple))
+    return (to_device(pad_rows(x, n_pad, 0.0)), to_device(c, hexes.dtype), pad_stars(cs, n_pad),
+            pad_constraints(cons, n_pad), to_device(w, x.dtype), to_device(np.int32(cs.nodes.shape[0])))
 
 
 def stars_have_extra(cs: ColouredStars) -> bool:

@@ -51,7 +51,7 @@ import numpy as np
 from ..geometry.projection import Constraints, params_to_points
 from ..metrics.objective import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra, objective_and_max
 from ._anderson import anderson_point
-from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
+from ._buckets import to_device
 from ._local import gather_star
 from ._moves import (
     ColouredStars,
@@ -59,7 +59,7 @@ from ._moves import (
     colour_slice,
     local_count,
     local_scale,
-    pad_stars,
+    padded_sweeps,
     project_trials,
 )
 from .ci_params import (  # noqa: F401  (the parameters, re-exported: jaxci.optim.ci.CIParams is public)
@@ -278,15 +278,8 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
         from .sharding import place_problem
 
         n = int(points.shape[0])
-        x = np.asarray(points)
-        hexes = np.asarray(conn).T
-        n_pad = bucket(n + 1)
-        c, w = padded_connectivity(hexes, bucket(len(hexes), multiple=int(devices.devices.size)))
-        cs_p = pad_stars(cs, n_pad)
-        run_conn, weight, (xp, cons_p, n_col), cs_p = place_problem(
-            to_device(c, hexes.dtype), to_device(w, x.dtype),
-            (to_device(pad_rows(x, n_pad, 0.0)), pad_constraints(cons, n_pad), to_device(np.int32(cs.nodes.shape[0]))),
-            devices, cs_p)
+        xp, c, cs_p, cons_p, w, n_col = padded_sweeps(points, conn, cs, cons, int(devices.devices.size))
+        run_conn, weight, (xp, cons_p, n_col), cs_p = place_problem(c, w, (xp, cons_p, n_col), devices, cs_p)
         x, it, hf, hk, hm = _local_ci_run(key, xp, run_conn, cs_p, cons_p, static, traced, _auto_chunk(cs_p, p),
                                           extra, weight, n_col)
         x = to_device(np.asarray(x)[:n])  # sliced on the host: no compilation

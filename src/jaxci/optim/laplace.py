@@ -37,7 +37,7 @@ from ..metrics.objective import (
     objective_and_max,
 )
 from . import _params as _p
-from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
+from ._buckets import bucket, to_device
 from ._local import HEX_EDGES, edge_neighbours, gather_star  # noqa: F401  (re-exported)
 from ._moves import (
     ColouredStars,
@@ -46,8 +46,8 @@ from ._moves import (
     local_scale,
     local_sum,
     pad_slots,
-    pad_stars,
     pad_width,
+    padded_sweeps,
     project_trials,
 )
 
@@ -210,21 +210,14 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
 
 
 def _padded(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, multiple: int = 1):
-    """The arguments of `_laplace_run` padded to their size class (`jaxci.optim._buckets`): nodes (padding nodes
-    at the origin, CORNER nodes of the padded `Constraints`, referenced by no real element), elements (repeats of
-    element 0 with weight 0), colours, slots and star and neighbour widths (`jaxci.optim._moves.pad_stars`).
-    Returns them with the element weights and the real colour count; the elements a multiple of `multiple`."""
-    x = np.asarray(points)
-    n = x.shape[0]
-    n_pad = bucket(n + 1)
-    hexes = np.asarray(conn).T
-    c, w = padded_connectivity(hexes, bucket(len(hexes), multiple=multiple))
+    """The arguments of `_laplace_run` padded to their size class (`jaxci.optim._moves.padded_sweeps`, and the
+    neighbour lists' slots and width: `pad_slots`, `pad_width`). Returns them with the element weights and the
+    real colour count; the elements a multiple of `multiple`."""
+    x, c, cs_p, cons_p, w, n_col = padded_sweeps(points, conn, cs, cons, multiple)
     k_pad = bucket(np.asarray(nmask).shape[2], 4)
     nbr_p = pad_slots(pad_width(np.asarray(nbr), k_pad), cs, 0)
     nmask_p = pad_slots(pad_width(np.asarray(nmask), k_pad, False), cs, False)
-    return (to_device(pad_rows(x, n_pad, 0.0)), to_device(c, hexes.dtype), pad_stars(cs, n_pad),
-            to_device(nbr_p, np.int32), to_device(nmask_p), pad_constraints(cons, n_pad), to_device(w, x.dtype),
-            to_device(np.int32(cs.nodes.shape[0])))
+    return x, c, cs_p, to_device(nbr_p, np.int32), to_device(nmask_p), cons_p, w, n_col
 
 
 def coloured_neighbours(cs: ColouredStars, hexes: np.ndarray, n_nodes: int,
