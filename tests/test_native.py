@@ -291,7 +291,7 @@ def test_corner_determinants_in_c_are_numpys_bit_for_bit(monkeypatch):
     mesh = perturb_box(7, 5, 6, amplitude=0.9, seed=3, redraw_inverted=False)  # some corners inverted
     points, hexes = mesh.points, mesh.hexes
     fast = cells.corner_determinants(points, hexes.astype(np.int32))
-    monkeypatch.setattr(cells, "_c_kernels", lambda: None)
+    monkeypatch.setattr(cells, "load_c_kernels", lambda: None)
     slow = cells.corner_determinants(points, hexes)
     monkeypatch.undo()
     assert (slow <= 0).any() and np.array_equal(fast, slow)

@@ -161,9 +161,9 @@ def corner_invariants(ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 @functools.cache
-def _c_kernels():
-    """The C extension (`jaxci.native`'s, loaded here without `jaxci.native`, which imports this module), or None
-    (not built, or ``JAXCI_NATIVE=0``)."""
+def load_c_kernels():
+    """The C extension `jaxci._ckernels`, or None (not built, or ``JAXCI_NATIVE=0``): loaded here, the lowest
+    stage, for `corner_determinants` and `jaxci.native` alike."""
     if os.environ.get("JAXCI_NATIVE", "1") == "0":
         return None
     try:
@@ -184,7 +184,7 @@ def corner_determinants(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
     """
     p = np.asarray(points, dtype=np.float64)
     h = np.asarray(hexes)
-    c = _c_kernels()
+    c = load_c_kernels()
     if c is not None and h.ndim == 2 and h.shape[1] == 8 and p.ndim == 2 and p.shape[1] == 3:
         out = np.empty((h.shape[0], 8))
         c.hex_determinants(np.ascontiguousarray(p), np.ascontiguousarray(h, dtype=np.int64), out)

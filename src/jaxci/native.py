@@ -16,14 +16,9 @@ import os
 
 import numpy as np
 
-from .cells import KERNELS, ROTATE_TO_SLOT, pmean_weights
+from .cells import KERNELS, ROTATE_TO_SLOT, load_c_kernels, pmean_weights
 
-try:
-    if os.environ.get("JAXCI_NATIVE", "1") == "0":
-        raise ImportError("JAXCI_NATIVE=0")
-    from . import _ckernels as _c
-except ImportError:  # pragma: no cover - no compiler at install time
-    _c = None
+_c = load_c_kernels()
 
 #: Whether the C kernels are there (else the callers run their numpy kernels).
 AVAILABLE = _c is not None

@@ -271,12 +271,13 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
         start = sw.x.copy()
         moved = sum(sw.visit(col) for col in sw.colours)
         f_new, k_new = sw.objective(sw.x)
+        D = sw.x - start  # the sweep's displacement
         if m:
             starts[:-1], moves[:-1] = starts[1:], moves[1:]
-            starts[-1], moves[-1] = start.ravel(), (sw.x - start).ravel()
+            starts[-1], moves[-1] = start.ravel(), D.ravel()
             valid = min(valid + 1, m)
         if p.pattern:
-            f_new, k_new = sw.pattern(sw.x - start, f_new, k_new)
+            f_new, k_new = sw.pattern(D, f_new, k_new)
         if valid >= 2:
             f_new, k_new = sw.best_of([anderson_point(starts, moves, valid, np).reshape(-1, 3)], f_new, k_new)
         hist_f.append(f_new)
