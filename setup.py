@@ -4,5 +4,5 @@ is in pyproject.toml. `optional=True`: without a C compiler the install still su
 from setuptools import Extension, setup
 
 setup(ext_modules=[Extension("jaxci._ckernels", ["src/jaxci/_ckernels.c"], optional=True,
-                             extra_compile_args=["-O3", "-std=c99", "-pthread"],
+                             extra_compile_args=["-O3", "-std=c99", "-fno-trapping-math", "-pthread"],
                              extra_link_args=["-pthread"])])

@@ -918,32 +918,52 @@ static void elem_setup(const double *X, const long long *HEX, const long long *R
 }
 
 /* 9 x the sum of (kappa/3)^2 over the four corners of the element that move with its slot 0 at y (inf if one
- * has det <= 0). */
-static inline double elem_sum(const Elem *E, const double *y) {
-    double a[3], b[3], c[3], u[3], v[3], w[3], total = 0.0, det, fro2, adj2;
+ * has det <= 0). Branch-free (each ratio computed, then inf selected where det <= 0), so that the loops over trials
+ * of trial_objectives vectorise; the same value as computing a ratio only where det > 0. */
+static inline __attribute__((always_inline)) double elem_sum(const Elem *E, const double *y) {
+    double a[3], b[3], c[3], u[3], v[3], w[3], total = 0.0, det, fro2, adj2, q;
     /* corner 0: columns P1 - y, P3 - y, P4 - y */
     for (int d = 0; d < 3; d++) { a[d] = E->P1[d] - y[d]; b[d] = E->P3[d] - y[d]; c[d] = E->P4[d] - y[d]; }
     cross(b, c, u); cross(c, a, v); cross(a, b, w);
     det = dot3(a, u);
     fro2 = dot3(a, a) + dot3(b, b) + dot3(c, c);
     adj2 = dot3(u, u) + dot3(v, v) + dot3(w, w);
-    total += det > 0.0 ? fro2 * adj2 / (det * det) : INFINITY;
+    q = fro2 * adj2 / (det * det);
+    total += det > 0.0 ? q : INFINITY;
     /* corner 1: (P2 - P1, y - P1, P5 - P1) */
     for (int d = 0; d < 3; d++) b[d] = y[d] - E->P1[d];
     cross(b, E->c1, u); cross(E->a1, b, w);
     det = dot3(b, E->F1);
-    total += det > 0.0 ? (E->r1 + dot3(b, b)) * (dot3(u, u) + E->n1 + dot3(w, w)) / (det * det) : INFINITY;
+    q = (E->r1 + dot3(b, b)) * (dot3(u, u) + E->n1 + dot3(w, w)) / (det * det);
+    total += det > 0.0 ? q : INFINITY;
     /* corner 3: (y - P3, P2 - P3, P7 - P3) */
     for (int d = 0; d < 3; d++) a[d] = y[d] - E->P3[d];
     cross(E->c3, a, v); cross(a, E->b3, w);
     det = dot3(a, E->F3);
-    total += det > 0.0 ? (E->r3 + dot3(a, a)) * (E->n3 + dot3(v, v) + dot3(w, w)) / (det * det) : INFINITY;
+    q = (E->r3 + dot3(a, a)) * (E->n3 + dot3(v, v) + dot3(w, w)) / (det * det);
+    total += det > 0.0 ? q : INFINITY;
     /* corner 4: (P7 - P4, P5 - P4, y - P4) */
     for (int d = 0; d < 3; d++) c[d] = y[d] - E->P4[d];
     cross(E->b4, c, u); cross(c, E->a4, v);
     det = dot3(c, E->F4);
-    total += det > 0.0 ? (E->r4 + dot3(c, c)) * (dot3(u, u) + dot3(v, v) + E->n4) / (det * det) : INFINITY;
+    q = (E->r4 + dot3(c, c)) * (dot3(u, u) + dot3(v, v) + E->n4) / (det * det);
+    total += det > 0.0 ? q : INFINITY;
     return total;
+}
+
+/* The local objective of S trial positions of a node (Y: 3 x S, structure of arrays) into f (S,): the mean of
+ * (kappa/3)^2 - 1 over the 4 cnt corners of its star E[0..cnt) that move with it (divided by ncorner), summed over
+ * the elements in order, as elem_sum one trial at a time would; the trials are the vector lanes. */
+VECTOR_CLONES
+static void trial_objectives(const Elem *restrict E, Py_ssize_t cnt, const double *restrict Y, int S, double ncorner,
+                             double *restrict f) {
+    for (int s = 0; s < S; s++) f[s] = 0.0;
+    for (Py_ssize_t k = 0; k < cnt; k++)
+        for (int s = 0; s < S; s++) {
+            const double y[3] = {Y[s], Y[S + s], Y[2 * S + s]};
+            f[s] += elem_sum(E + k, y) * (1.0 / 9.0);
+        }
+    for (int s = 0; s < S; s++) f[s] = f[s] / ncorner - 1.0;
 }
 
 static PyObject *local_sums(PyObject *self, PyObject *args) {
@@ -1041,15 +1061,17 @@ static void *ci_worker(void *arg) {
     double reduction = J->reduction, delta = J->delta, init_width = J->init_width, min_width = J->min_width,
            tol = J->tol, bump = J->bump;
     Elem *E = malloc(sizeof(Elem) * (K ? K : 1));
-    double *work = malloc(sizeof(double) * (size_t)C * 10);
-    long long *iwork = malloc(sizeof(long long) * (size_t)C * 3);
+    int S = C * t; /* the trials of one learning attempt, all candidates' */
+    double *work = malloc(sizeof(double) * ((size_t)C * 10 + (size_t)S * 4));
+    long long *iwork = malloc(sizeof(long long) * ((size_t)C * 3 + (size_t)S));
     if (!E || !work || !iwork) {
         J->failed = 1;
         free(E); free(work); free(iwork);
         return NULL;
     }
     double *cand = work, *centre = work + 3 * C, *fc = work + 6 * C, *cum = work + 7 * C;
-    long long *ch = iwork, *chint = iwork + C, *follow = iwork + 2 * C;
+    double *ys = work + 10 * C, *fs = work + 10 * C + 3 * S; /* trials (3 x S) and their local objectives */
+    long long *ch = iwork, *chint = iwork + C, *follow = iwork + 2 * C, *hs = iwork + 3 * C;
     for (Py_ssize_t m = J->lo; m < J->hi; m++) {
         Rng rng; /* each node its own stream: the same result on any number of threads */
         unsigned long long sm = J->seed ^ (0x9e3779b97f4a7c15ULL * (unsigned long long)(m + 1));
@@ -1100,9 +1122,9 @@ static void *ci_worker(void *arg) {
                 chint[c] = ch[follow[c]];
             }
             double w = w0 * pow(reduction, (double)(a + 1));
-            for (int c = 0; c < C; c++) {
-                double fb = INFINITY, yb[3] = {0.0, 0.0, 0.0};
-                long long hb = chint[c];
+            /* every candidate's t trials first (the random numbers drawn in the order candidate, trial), then
+             * their local objectives at once (trial_objectives, vectorised over the trials) */
+            for (int c = 0; c < C; c++)
                 for (int j = 0; j < t; j++) {
                     double u[3], y[3];
                     long long hy = chint[c];
@@ -1123,13 +1145,20 @@ static void *ci_worker(void *arg) {
                     } else if (kd) {
                         project_one(y, crow, cl->K, &hy, cl->table, cl->nc, cl->spheres, cl->faces, (int)kd - 1, tol, bump);
                     }
-                    double f = 0.0;
-                    for (Py_ssize_t k = 0; k < cnt && f < INFINITY; k++) f += elem_sum(&E[k], y) * (1.0 / 9.0);
-                    f = f / ncorner - 1.0;
-                    if (f < fb) {
-                        fb = f;
-                        hb = hy;
-                        for (int d = 0; d < 3; d++) yb[d] = y[d];
+                    int s = c * t + j;
+                    for (int d = 0; d < 3; d++) ys[d * S + s] = y[d];
+                    hs[s] = hy;
+                }
+            trial_objectives(E, cnt, ys, S, ncorner, fs);
+            for (int c = 0; c < C; c++) {
+                double fb = INFINITY, yb[3] = {0.0, 0.0, 0.0};
+                long long hb = chint[c];
+                for (int j = 0; j < t; j++) {
+                    int s = c * t + j;
+                    if (fs[s] < fb) {
+                        fb = fs[s];
+                        hb = hs[s];
+                        for (int d = 0; d < 3; d++) yb[d] = ys[d * S + s];
                     }
                 }
                 if (fb < fc[c]) {
