@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from helpers import spiked_sweep
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -161,7 +162,7 @@ def test_pattern_move_takes_the_best_factor_along_the_sweep_and_never_a_worse_me
     inverts it) leaves x as it is."""
     import jax.numpy as jnp
 
-    from jaxci.metrics.objective import no_extra
+    from jaxci.metrics.objective import no_extra, objective_and_max
     from jaxci.optim.ci import PATTERN_FACTORS, _pattern_move
 
     assert 8.0 in PATTERN_FACTORS
@@ -170,12 +171,34 @@ def test_pattern_move_takes_the_best_factor_along_the_sweep_and_never_a_worse_me
     pb = build_problem(mesh, dtype=np.float64)
     error = np.asarray(mesh.points) - np.asarray(grid.points)  # interior nodes only: the box's skin is kept
     x = jnp.asarray(mesh.points)
-    f = q.objective(x, mesh.hexes)
-    y, fy = _pattern_move(x, jnp.asarray(-error / 8), f, pb.conn, pb.cons, no_extra())
-    assert float(fy) < 1e-12 < float(f)
+    f, k = objective_and_max(x, pb.conn, no_extra())
+    y, fy, ky = _pattern_move(x, jnp.asarray(-error / 8), f, k, pb.conn, pb.cons, no_extra())
+    assert float(fy) < 1e-12 < float(f) and float(ky) < 1.0 + 1e-12
     np.testing.assert_allclose(np.asarray(y), np.asarray(grid.points), atol=1e-12)
-    y, fy = _pattern_move(x, jnp.asarray(error * 3), f, pb.conn, pb.cons, no_extra())
-    assert float(fy) == float(f) and np.array_equal(np.asarray(y), np.asarray(x))
+    y, fy, ky = _pattern_move(x, jnp.asarray(error * 3), f, k, pb.conn, pb.cons, no_extra())
+    assert float(fy) == float(f) and float(ky) == float(k) and np.array_equal(np.asarray(y), np.asarray(x))
+
+
+def test_pattern_move_never_worsens_the_worst_corner():
+    """The extrapolations of local CI (pattern and Anderson moves) are taken only where they lower F without
+    raising max kappa/3 (`jaxci.optim.ci._better`): compiled, the factor 2, not the lower-F factor 4 whose worst
+    corner is worse (the host's `_Sweeper.pattern`: tests/test_host_local.py)."""
+    import jax.numpy as jnp
+
+    from jaxci.metrics.objective import no_extra, objective_and_max
+    from jaxci.optim.ci import _pattern_move
+
+    mesh, D = spiked_sweep()
+    pb = build_problem(mesh, dtype=np.float64)
+    x = jnp.asarray(mesh.points)
+    f, k = objective_and_max(x, pb.conn, no_extra())
+    f4, k4 = objective_and_max(x + 4 * D, pb.conn, no_extra())
+    f2, k2 = objective_and_max(x + 2 * D, pb.conn, no_extra())
+    assert f4 < f2 < f and k2 < k < k4  # the factor 4 lowers F most but worsens the worst corner
+    y, fy, ky = _pattern_move(x, jnp.asarray(D), f, k, pb.conn, pb.cons, no_extra())
+    assert (float(fy), float(ky)) == (float(f2), float(k2))
+    np.testing.assert_allclose(np.asarray(y), np.asarray(x + 2 * D), atol=1e-15)
+
 
 
 # ------------------------------------------------------------------------- global CI's defaults (issue 15, item 4)

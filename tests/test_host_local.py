@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from helpers import MESQUITE
+from helpers import MESQUITE, spiked_sweep
 
 import jaxci
 from jaxci import native
@@ -252,3 +252,22 @@ def test_local_ci_reaches_lbfgs_on_pave3_in_30_sweeps():
         assert np.all(np.diff(r.history["objective"]) <= 0)  # the accelerated step is taken only where F falls
     plain = smooth(mesh, "ci", seed=0, max_sweeps=30, anderson=0)
     assert plain.after.objective > runs[0].after.objective
+
+
+def test_host_pattern_move_never_worsens_the_worst_corner():
+    """On the host too (`_Sweeper.pattern`, the same condition as the compiled `jaxci.optim.ci._better`): along
+    a sweep displacement whose lowest-F factor (4) worsens the worst corner, the factor 2 is taken, which lowers
+    both F and max kappa/3."""
+    from jaxci.optim.ci_params import CIParams
+    from jaxci.optim.host_local import _Sweeper
+    from jaxci.smooth import build_problem
+
+    mesh, D = spiked_sweep()
+    pb = build_problem(mesh, dtype=np.float64, device=False)
+    sw = _Sweeper(np.asarray(mesh.points), mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces, CIParams())
+    f, k = sw.objective(sw.x)
+    f2, k2 = sw.objective(sw.x + 2 * D)
+    f4, k4 = sw.objective(sw.x + 4 * D)
+    assert f4 < f2 < f and k2 < k < k4
+    np.testing.assert_allclose(sw.pattern(D, f, k), (f2, k2), rtol=1e-12)
+    np.testing.assert_allclose(sw.x, np.asarray(mesh.points) + 2 * D, atol=1e-15)
