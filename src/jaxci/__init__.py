@@ -12,7 +12,6 @@ _runtime.reexec_with_hugepages()  # the jaxci command only: huge pages for XLA's
 _runtime.quiet_interrupts_while_starting()  # the jaxci command only: Ctrl-C while importing exits 130, quietly
 
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
 
 from .errors import (
     ConfigError,
@@ -27,11 +26,6 @@ from .errors import (
 from .generate import PAPER_CASES, box, paper_case, perturb_box
 from .mesh import CellBlock, HexMesh, hex_mesh, merge_coincident
 from .smooth import METHODS, SmoothResult, smooth  # eager: the function must shadow its module's name
-
-try:
-    __version__ = version("jaxci")
-except PackageNotFoundError:  # pragma: no cover
-    __version__ = "0.0.0"
 
 #: name -> module of the lazily loaded public API.
 _LAZY = {
@@ -62,6 +56,16 @@ __all__ = [
 
 
 def __getattr__(name: str):
+    if name == "__version__":  # from the installed metadata on first use: importing importlib.metadata takes
+        # 20 ms, a tenth of the jaxci command's start on this machine, and only --version and reports need it
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            value = version("jaxci")
+        except PackageNotFoundError:  # pragma: no cover
+            value = "0.0.0"
+        globals()[name] = value
+        return value
     if name in _LAZY:
         value = getattr(import_module(f".{_LAZY[name]}", __name__), name)
         globals()[name] = value
