@@ -129,22 +129,19 @@ def mixed_max_condition(x, conn, extra: ExtraCells):
 def objective_and_max(x, conn, extra: ExtraCells, weight=None):
     """F and max kappa/3 of `x` ``(n, 3)`` over every corner (`mixed_objective_t`, `mixed_max_condition`); with
     `weight` ``(N,)``, the element weights of a padded connectivity `conn` ``(8, N)`` (0: a padding element,
-    `jaxci.optim._buckets.padded_connectivity`; hexahedral meshes), over the real hexahedra only."""
-    if weight is None:
+    `jaxci.optim._buckets.padded_connectivity`; hexahedral meshes), over the real hexahedra only. On hexahedra
+    both come from one pass over the corners: max kappa/3 is the square root of the largest term (kappa/3)^2."""
+    if weight is None and extra.types:
         return mixed_objective_t(x, conn, extra), mixed_max_condition(x, conn, extra)
-    from .hexahedron import (
-        condition_from_invariants,
-        corner_columns,
-        gather_corners,
-        squared_condition_from_invariants,
-    )
+    from .hexahedron import corner_columns, gather_corners, squared_condition_from_invariants
 
-    real = weight > 0
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     term = jax.lax.optimization_barrier(squared_condition_from_invariants(det, fro2, adj2))
+    if weight is None:  # as `jaxci.metrics.hexahedron.objective_t`
+        return jnp.mean(term - 1.0), jnp.sqrt(jnp.max(term))
+    real = weight > 0
     f = jnp.sum(jnp.where(real, term - 1.0, 0.0)) / (8.0 * jnp.sum(real.astype(term.dtype)))
-    k = jnp.max(jnp.where(real, jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)), 0.0))
-    return f, k
+    return f, jnp.sqrt(jnp.max(jnp.where(real, term, 0.0)))
 
 
 # ---------------------------------------------------------------------------------------------- local form

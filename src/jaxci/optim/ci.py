@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..geometry.projection import Constraints, params_to_points
-from ..metrics.objective import ExtraCells, mixed_max_condition, mixed_objective_t, no_extra, objective_and_max
+from ..metrics.objective import ExtraCells, no_extra, objective_and_max
 from ._anderson import anderson_point
 from ._buckets import to_device
 from ._local import gather_star
@@ -103,10 +103,6 @@ def _follow(key, g, delta, roulette):
     rou = jax.random.categorical(key, wheel, axis=-1)
     best = jnp.broadcast_to(jnp.argmin(g, axis=-1)[..., None], g.shape)
     return jnp.where(roulette, rou, best)
-
-
-def _max_condition(points, conn, extra: ExtraCells):
-    return mixed_max_condition(points, conn, extra)
 
 
 # ------------------------------------------------------------------------------------------------ local CI
@@ -300,29 +296,42 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
 
 # ------------------------------------------------------------------------------------------------ global CI
 def _objective_of(u, x0, conn, cons: Constraints, extra: ExtraCells):
-    """F of the free coordinates `u` ``(n_free,)`` (global CI's behaviour)."""
-    return mixed_objective_t(params_to_points(cons, u, x0), conn, extra)
+    """``(F, max kappa/3)`` of the free coordinates `u` ``(n_free,)``: global CI's behaviour, and the worst corner
+    of the mesh, from the same corner terms (`jaxci.metrics.objective.objective_and_max`)."""
+    return objective_and_max(params_to_points(cons, u, x0), conn, extra)
 
 
-def _objective_many(U, x0, conn, cons: Constraints, extra: ExtraCells, mesh):
-    """F of every row of `U` ``(S, n_free)``, one after the other (`jax.lax.map`); with `mesh` (a
-    `jax.sharding.Mesh`), the rows split over its devices (`jax.shard_map`, padded with copies of row 0 to a
-    multiple of the device count), each device evaluating its rows as one device would: the same numbers."""
-    def many(U, x0, conn, cons, extra):
+def _trials(key, rows, centre, w, t: int):
+    """The trial meshes ``(R, n_free)`` of a learning attempt at `rows` ``(R,)`` (row ``r = c t + j``: candidate
+    c's j-th variation): its centre ``centre[c]`` plus a uniform draw in ``[-w/2, w/2)`` per free coordinate, from
+    the attempt's `key` folded with `r`. Threefry draws of one row do not depend on the other rows drawn with it
+    (unlike "rbg" ones under `jax.vmap`): a device draws its own rows only, the numbers of one device."""
+    key = jax.random.wrap_key_data(jax.random.key_data(key).ravel()[:2].astype(jnp.uint32), impl="threefry2x32")
+    u = jax.vmap(lambda r: jax.random.uniform(jax.random.fold_in(key, r), centre.shape[1:], centre.dtype, -0.5,
+                                              0.5))(rows)
+    return centre[rows // t] + u * w
+
+
+def _trials_objective(key, centre, w, t: int, x0, conn, cons: Constraints, extra: ExtraCells, mesh):
+    """``(F, max kappa/3)`` of the ``S = C t`` trial meshes of an attempt (`_trials`), two ``(S,)`` arrays, one
+    mesh after the other (`jax.lax.map`); with `mesh` (a `jax.sharding.Mesh`), the rows split over its devices
+    (`jax.shard_map`, padded with copies of row 0 to a multiple of the device count), each device drawing and
+    evaluating its own rows as one device would: the same numbers."""
+    def many(rows, key, centre, w, x0, conn, cons, extra):
+        U = _trials(key, rows, centre, w, t)
         return jax.lax.map(lambda u: _objective_of(u, x0, conn, cons, extra), U)
 
+    S = centre.shape[0] * t
     if mesh is None:
-        return many(U, x0, conn, cons, extra)
+        return many(jnp.arange(S), key, centre, w, x0, conn, cons, extra)
     from jax.sharding import PartitionSpec as P
 
     from .sharding import AXIS
 
-    S, n_dev = U.shape[0], mesh.devices.size
-    pad = -S % n_dev
-    U = jnp.concatenate([U, jnp.broadcast_to(U[:1], (pad, U.shape[1]))]) if pad else U
-    f = jax.shard_map(many, mesh=mesh, in_specs=(P(AXIS), P(), P(), P(), P()), out_specs=P(AXIS))(
-        U, x0, conn, cons, extra)
-    return f[:S]
+    rows = jnp.arange(S + (-S % mesh.devices.size)) % S
+    f, k = jax.shard_map(many, mesh=mesh, in_specs=(P(AXIS),) + (P(),) * 7, out_specs=(P(AXIS), P(AXIS)))(
+        rows, key, centre, w, x0, conn, cons, extra)
+    return f[:S], k[:S]
 
 
 @functools.partial(jax.jit, static_argnames=("s", "mesh"))
@@ -336,43 +345,41 @@ def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict,
     def F(u):
         return _objective_of(u, x0, conn, cons, extra)
 
-    def F_many(U):  # (S, nf) -> (S,)
-        return _objective_many(U, x0, conn, cons, extra, mesh)
-
     u0 = jnp.zeros((nf,), dtype)
-    f0 = F(u0)
+    f0, k0 = F(u0)
     cand = jnp.zeros((C, nf), dtype)
-    fc = jnp.full((C,), f0)
-    hist = jnp.full((T + 1, 3), jnp.nan, dtype).at[0].set(jnp.stack([f0, f0, _max_condition(x0, conn, extra)]))
+    fc, kc = jnp.full((C,), f0), jnp.full((C,), k0)  # each candidate's F and max kappa/3
+    hist = jnp.full((T + 1, 3), jnp.nan, dtype).at[0].set(jnp.stack([f0, f0, k0]))
     n_roulette = jnp.round(d["stage_switch"] * T)
 
     def attempt(carry):
-        key, cand, fc, a, hist, calm, _ = carry
+        key, cand, fc, kc, a, hist, calm, _ = carry
         best_before = jnp.min(fc)
         key, kf, ku = jax.random.split(key, 3)
         follow = _follow(kf, fc, d["delta"], a < n_roulette)  # (C,)
         centre = cand[follow]  # (C, nf)
         w = d["init_width"] * scale * d["reduction"] ** (a + 1).astype(dtype)
-        U = centre[:, None] + jax.random.uniform(ku, (C, t, nf), dtype, -0.5, 0.5) * w
-        ft = F_many(U.reshape(C * t, nf)).reshape(C, t)
+        ft, kt = _trials_objective(ku, centre, w, t, x0, conn, cons, extra, mesh)
+        ft, kt = ft.reshape(C, t), kt.reshape(C, t)
         j = jnp.argmin(ft, axis=-1)
         fb = ft[jnp.arange(C), j]
         better = fb < fc
-        cand = jnp.where(better[:, None], U[jnp.arange(C), j], cand)
+        won = _trials(ku, jnp.arange(C) * t + j, centre, w, t)  # each candidate's best trial, drawn again
+        cand = jnp.where(better[:, None], won, cand)
         fc = jnp.where(better, fb, fc)
+        kc = jnp.where(better, kt[jnp.arange(C), j], kc)
         a = a + 1
-        kbest = _max_condition(params_to_points(cons, cand[jnp.argmin(fc)], x0), conn, extra)
-        hist = hist.at[a].set(jnp.stack([jnp.min(fc), jnp.max(fc), kbest]))
+        hist = hist.at[a].set(jnp.stack([jnp.min(fc), jnp.max(fc), kc[jnp.argmin(fc)]]))
         scale_f = d["tol"] * jnp.maximum(jnp.min(fc), d["ftol"])
         still = (jnp.max(fc) - jnp.min(fc) <= scale_f) & (best_before - jnp.min(fc) <= scale_f)
         calm = jnp.where(still, calm + 1, 0)
-        return key, cand, fc, a, hist, calm, (calm >= s.patience) | (jnp.min(fc) <= d["ftol"])
+        return key, cand, fc, kc, a, hist, calm, (calm >= s.patience) | (jnp.min(fc) <= d["ftol"])
 
     def cond(carry):
-        return (carry[3] < T) & ~carry[6]
+        return (carry[4] < T) & ~carry[7]
 
-    init = (key, cand, fc, jnp.int32(0), hist, jnp.int32(0), f0 <= d["ftol"])
-    _, cand, fc, a, hist, _, _ = jax.lax.while_loop(cond, attempt, init)
+    init = (key, cand, fc, kc, jnp.int32(0), hist, jnp.int32(0), f0 <= d["ftol"])
+    _, cand, fc, _, a, hist, _, _ = jax.lax.while_loop(cond, attempt, init)
     best = jnp.argmin(fc)
     x = params_to_points(cons, cand[best], x0)
     return x, a, hist
