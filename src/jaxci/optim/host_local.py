@@ -38,7 +38,7 @@ from ..geometry.projection import Constraints
 from ._anderson import anderson_point
 from ._local import edge_neighbours, gather_star, local_length, star_nodes
 from ._moves import coloured_stars, onto_plane
-from .ci_params import PATTERN_FACTORS, CIParams
+from .ci_params import EXCESS_GROWTH, PATTERN_FACTORS, CIParams
 from .laplace import LaplaceParams
 
 #: Largest hexahedral mesh on which the local methods run on the host with ``backend="auto"`` (with the C
@@ -234,20 +234,20 @@ class _Sweeper:
 
     def pattern(self, D: np.ndarray, f: float, kmax: float) -> tuple[float, float]:
         """The pattern move along the sweep's displacement `D` (`jaxci.optim.ci._pattern_move`): the best
-        projected ``x + a D`` if it lowers `f` (F at the current `x`) without raising max kappa/3 `kmax`; returns
+        projected ``x + a D`` if it lowers `f` (F at the current `x`) on the condition of `best_of`; returns
         ``(F, max kappa/3)`` after it."""
         return self.best_of((self.x + a * D for a in PATTERN_FACTORS), f, kmax)
 
     def best_of(self, trials, f: float, kmax: float) -> tuple[float, float]:
         """The mesh becomes the best of `trials` (an iterable of ``(n, 3)`` points, each projected onto the
-        boundary) where it lowers `f` (F at the current `x`) and does not raise `kmax` (its max kappa/3: an
-        extrapolation must not worsen the worst corner, `jaxci.optim.ci._take_if_better`); returns
+        boundary) where it lowers `f` (F at the current `x`) and its max kappa/3 - 1 is at most `EXCESS_GROWTH`
+        times ``kmax - 1`` (`kmax` the current max kappa/3; `jaxci.optim.ci._better`); returns
         ``(F, max kappa/3)`` after it."""
         best = (f, kmax, None, None)
         for t in trials:
             y, hint = self.projector(t)
             fy, ky = self.objective(y)
-            if fy < best[0] and ky <= kmax:
+            if fy < best[0] and ky - 1.0 <= EXCESS_GROWTH * (kmax - 1.0):
                 best = (fy, ky, y, hint)
         if best[2] is not None:
             self.x = best[2]
