@@ -85,3 +85,24 @@ def test_compare_methods_corpus_reports_before_and_after_per_method(tmp_path):
     assert ci["method_params"]["max_sweeps"] == 3 and ci["capped"] and ci["iterations"] == 3
     md = out.with_suffix(".md").read_text()
     assert "max k/3 before" in md and "mean k/3 after" in md and "stopped at cap (max_sweeps=3)" in md
+
+
+def test_bench_local_ci_times_ci_to_its_target_against_lbfgs(tmp_path):
+    """``bench_local_ci.py`` on a 4^3 box and Mesquite's 4x2x2 hexes: per mesh L-BFGS's time and result, CI's
+    run, the first sweep at the target (box: max kappa/3 1.0001; mesh: F within 1% of L-BFGS's), CI's time to
+    it and the ratio, in the JSON."""
+    if not (MESQUITE / "hexes_4by2by2.vtk").exists():
+        pytest.skip("the shared Mesquite meshes are not here")
+    out = tmp_path / "ci.json"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_local_ci.py"), "--boxes", "4", "--meshes",
+                        "hexes_4by2by2", "--repeats", "1", "--out", str(out)], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    box, mesh = json.loads(out.read_text())["rows"]
+    assert box["box"] and box["hexes"] == 64 and not mesh["box"]
+    for r in (box, mesh):
+        c = r["ci"]
+        assert r["lbfgs"]["seconds"] > 0 and c["target_sweep"] is not None and c["seconds_to_target"] > 0
+        assert c["ratio"] == pytest.approx(c["seconds_to_target"] / r["lbfgs"]["seconds"])
+    assert box["ci"]["max_at_target"] <= 1.0001 and box["lbfgs"]["seconds_to_target"] > 0
+    assert mesh["ci"]["F_at_target"] <= 1.01 * mesh["lbfgs"]["F"]
