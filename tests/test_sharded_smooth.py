@@ -249,3 +249,33 @@ def test_methods_with_a_host_path_run_compiled_when_sharded(method):
 
     params, note = sharded_params(method, {"max_sweeps": 3} if "laplace" in method else {}, resolve_devices(1))
     assert params["backend"] == "jax" and "host path" in note and "compiled JAX path" in note
+
+
+TERMS_SCRIPT = textwrap.dedent(
+    """
+    import jax.numpy as jnp
+    from jaxci.generate import perturb_box
+    from jaxci.metrics.hexahedron import objective_terms_and_grad
+    from jaxci.optim.sharding import device_mesh, shard_elements, sharded_terms_and_grad
+
+    jax.config.update("jax_enable_x64", True)
+    m = perturb_box(5, 4, 3, amplitude=0.3, seed=2)  # 60 hexes: 4 padding elements on 4 devices
+    mesh = device_mesh()
+    x, conn, weight = shard_elements(jnp.asarray(m.points), np.asarray(m.hexes), mesh)
+    f, k, g = jax.jit(lambda x, c, w: sharded_terms_and_grad(x, c, w, mesh))(x, conn, weight)
+    f1, k1, g1 = objective_terms_and_grad(jnp.asarray(m.points), jnp.asarray(np.asarray(m.hexes).T))
+    assert abs(float(f) - float(f1)) <= 1e-14 * abs(float(f1)) and float(k) == float(k1), (f, f1, k, k1)
+    assert np.allclose(np.asarray(g), np.asarray(g1), rtol=1e-12, atol=1e-15)
+    # one exchange: each device's share summed locally, then a single all-reduce
+    hlo = jax.jit(lambda x, c, w: sharded_terms_and_grad(x, c, w, mesh)).lower(x, conn, weight).compile().as_text()
+    assert hlo.count("all-reduce(") == 1, hlo.count("all-reduce(")
+    print("TERMS-OK")
+    """
+)
+
+
+def test_sharded_objective_and_gradient_are_the_whole_meshs_in_one_exchange():
+    """`jaxci.optim.sharding.sharded_terms_and_grad` (the sharded L-BFGS's objective) on 4 forced devices: F, the
+    max and the gradient of the whole mesh (float64, padding elements included), with ONE all-reduce in the
+    compiled program (XLA's own partitioning of the gradient's 24 scatters made 25)."""
+    _run_on_4_devices(TERMS_SCRIPT, "TERMS-OK")

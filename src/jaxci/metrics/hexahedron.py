@@ -273,7 +273,7 @@ GRAD_BLOCK = 16_384
 GRAD_BLOCK_FROM = 4_000_000
 
 
-def objective_terms_and_grad(points, conn, weight=None, power=None, block: int | None = None):
+def objective_terms_and_grad(points, conn, weight=None, power=None, block: int | None = None, n_corners=None):
     """F (Eq. 3.1), max kappa/3 and the gradient of F with respect to the node coordinates, in closed form.
 
     With columns a, b, c of a corner matrix, u = b x c, v = c x a, w = a x b, det = a . u,
@@ -304,13 +304,17 @@ def objective_terms_and_grad(points, conn, weight=None, power=None, block: int |
     default `GRAD_BLOCK` above `GRAD_BLOCK_FROM` elements, else 0: the whole mesh at once), where the mesh has
     more elements than that and `power` is None (the p-mean needs every corner's excess before any gradient:
     always at once). Same values to rounding.
+
+    `n_corners` (with `weight`, F only, no blocks): the number of real corners F is the mean over, where `conn` is
+    one device's share of a sharded mesh (`jaxci.optim.sharding.sharded_terms_and_grad`): the shares' F and
+    gradients then sum to the whole mesh's (default: the real corners of `conn`).
     """
     if block is None:
         block = GRAD_BLOCK if conn.shape[1] > GRAD_BLOCK_FROM else 0
     block = int(block)
-    if power is None and 0 < block < conn.shape[1]:
+    if power is None and 0 < block < conn.shape[1] and n_corners is None:
         return _terms_and_grad_blocks(points, conn, weight, block)
-    return _terms_and_grad(jnp, points, conn, weight, power)
+    return _terms_and_grad(jnp, points, conn, weight, power, n_corners)
 
 
 def objective_terms_and_grad_np(points: np.ndarray, conn: np.ndarray, power: float | None = None
@@ -382,9 +386,10 @@ def _node_grads(xp, parts, w2):
     return nodes
 
 
-def _terms_and_grad(xp, points, conn, weight, power=None):
+def _terms_and_grad(xp, points, conn, weight, power=None, n_corners=None):
     """The body of `objective_terms_and_grad` with the array module `xp` (`jax.numpy` or `numpy`); `power`
-    (static) p: the p-mean ``M_p`` of the excesses (`pmean_objective`) instead of their mean F."""
+    (static) p: the p-mean ``M_p`` of the excesses (`pmean_objective`) instead of their mean F; `n_corners` as
+    there."""
     parts, term = _corner_parts(xp, points, conn)
     # the mean of term - 1 (small numbers near the optimum), not mean(term) - 1: in float32 over 8 M corners the
     # rounding of a sum of values near 1 swamped the decrease of F that the line search tests
@@ -395,7 +400,8 @@ def _terms_and_grad(xp, points, conn, weight, power=None):
         real = None
     else:
         real = weight > 0  # (N,): padding elements drop out of F, the max and (w2 = 0) the gradient
-        n_corners = 8.0 * xp.sum(real.astype(term.dtype))
+        if n_corners is None:
+            n_corners = 8.0 * xp.sum(real.astype(term.dtype))
         f = xp.sum(xp.where(real, term - 1.0, 0.0)) / n_corners
         kmax = xp.sqrt(xp.max(xp.where(real, term, 0.0)))
         w2 = xp.where(real, 2.0 / (9.0 * n_corners), 0.0)

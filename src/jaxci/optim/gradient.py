@@ -130,37 +130,47 @@ def _corner_terms(x, conn):
     return squared_condition_from_invariants(*corner_invariants(*corner_columns(*gather_corners(x, conn))))
 
 
-def _objective_closed(points, conn, weight, power=None, block=None):
+def _objective_closed(points, conn, weight, power=None, block=None, mesh=None):
     """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent).
     `weight`: None, or ``(N,)`` element weights (0: a padding element, `objective_terms_and_grad`); `power`
     (static): None for F, p for the p-mean (`jaxci.metrics.hexahedron.pmean_objective`). A `jax.custom_jvp` built on
     first use (importing this module imports no JAX). `block` (static): elements per block
-    (`jaxci.metrics.hexahedron.objective_terms_and_grad`; None: its default; 0: the whole mesh at once)."""
-    return _objective_closed_jvp()(points, conn, weight, power, block)
+    (`jaxci.metrics.hexahedron.objective_terms_and_grad`; None: its default; 0: the whole mesh at once). `mesh`
+    (static): None, or the `jax.sharding.Mesh` that `conn` and `weight` are sharded over: F (not the p-mean) then
+    by `jaxci.optim.sharding.sharded_terms_and_grad`."""
+    return _objective_closed_jvp()(points, conn, weight, power, block, mesh)
+
+
+def _terms_and_grad(points, conn, weight, power, block, mesh):
+    if mesh is not None and power is None and weight is not None:
+        from .sharding import sharded_terms_and_grad
+
+        return sharded_terms_and_grad(points, conn, weight, mesh)
+    return objective_terms_and_grad(points, conn, weight, power, block)
 
 
 @functools.cache
 def _objective_closed_jvp():
-    @functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4))
-    def objective(points, conn, weight, power=None, block=None):
-        return objective_terms_and_grad(points, conn, weight, power, block)[:2]
+    @functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5))
+    def objective(points, conn, weight, power=None, block=None, mesh=None):
+        return _terms_and_grad(points, conn, weight, power, block, mesh)[:2]
 
     @objective.defjvp
-    def _jvp(power, block, primals, tangents):
+    def _jvp(power, block, mesh, primals, tangents):
         points, conn, weight = primals
-        f, k, g = objective_terms_and_grad(points, conn, weight, power, block)
+        f, k, g = _terms_and_grad(points, conn, weight, power, block, mesh)
         return (f, k), (jnp.sum(g * tangents[0]), jnp.zeros_like(k))
 
     return objective
 
 
-def _objective(x, conn, closed: bool, extra=None, weight=None, power=None, block=None):
+def _objective(x, conn, closed: bool, extra=None, weight=None, power=None, block=None, mesh=None):
     """F and max kappa/3 of coordinates `x` (``inf`` for an inverted mesh); over every corner of the hexahedra and
     of `extra` (`jaxci.metrics.objective.ExtraCells`, static types) when it has cells. `weight` (hexahedral meshes
     only): None, or ``(N,)`` element weights, 0 for the padding elements of a size class (`jaxci.optim._buckets`): they
     add nothing and F is the mean over the real corners."""
     if closed:  # one kernel for F, its gradient and the max
-        f, kmax = _objective_closed(x, conn, weight, power, block)
+        f, kmax = _objective_closed(x, conn, weight, power, block, mesh)
     elif weight is None:
         term = jax.lax.optimization_barrier(_corner_terms(x, conn))
         kmax = jnp.sqrt(jnp.max(term))
@@ -189,8 +199,8 @@ def _min_fn(v, args):
 
 
 def _min_fn_closed(v, args):
-    par, conn, s, stops, extra, weight, power, block = args
-    f, kmax = _objective(par.points(v), conn, True, extra, weight, power, block)
+    par, conn, s, stops, extra, weight, power, block, mesh = args
+    f, kmax = _objective(par.points(v), conn, True, extra, weight, power, block, mesh)
     return s * f, (f, kmax, _done(f, kmax, stops))
 
 
@@ -249,7 +259,7 @@ BUCKETED = ("bfgs", "lbfgs", "cg")
 
 
 def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None, weight=None,
-                n_hex: int | None = None, block: int | None = None):
+                n_hex: int | None = None, block: int | None = None, mesh=None):
     """The objective function and its `args` for `solve_loop` (``fn(v, args) -> (value, (F, max kappa/3, stop))``,
     stop: `_done`, F <= ``p.ftol`` or max kappa/3 <= 1 + ``p.ktol``).
 
@@ -258,7 +268,8 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
     the element weights of a padded connectivity (0: padding) and the number of real hexahedra (default: every
     element of `conn` is real). `block`: the closed-form gradient's elements per block (None: its default,
     `jaxci.metrics.hexahedron.GRAD_BLOCK`; 0: the whole mesh at once, as on sharded elements: each device holds
-    its own block already).
+    its own block already). `mesh`: None, or the `jax.sharding.Mesh` `conn` and `weight` are sharded over
+    (the closed-form objective then sums each device's share explicitly: `_objective_closed`).
     """
     extra = no_extra() if extra is None else extra
     n_hex = conn.shape[1] if n_hex is None else n_hex
@@ -269,8 +280,8 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
     else:
         fn = _min_fn_closed if p.gradient == "closed" else _min_fn
     args = (par, conn, s, to_device(np.asarray([p.ftol, 1.0 + p.ktol]), dtype), extra, weight)
-    if fn is _min_fn_closed:  # static (filter_jit): the p-mean's power (one compilation per power) and the block
-        args = (*args, float(p.p) if p.objective == "pmean" else None, block)
+    if fn is _min_fn_closed:  # static (filter_jit): the p-mean's power (one compilation per power), the block, the mesh
+        args = (*args, float(p.p) if p.objective == "pmean" else None, block, mesh)
     return fn, args
 
 
@@ -397,7 +408,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
                                               done=lambda f, k: k <= 1.0 + p.ktol)
         else:
-            fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None)
+            fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None,
+                                   devices if n_dev > 1 else None)
             y = replicate(y, devices) if n_dev else y  # one input sharding for every run: one compilation
             y, k, result, hf, hk = solve_loop(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
