@@ -305,9 +305,9 @@ def objective_terms_and_grad(points, conn, weight=None, power=None, block: int |
     more elements than that and `power` is None (the p-mean needs every corner's excess before any gradient:
     always at once). Same values to rounding.
 
-    `n_corners` (with `weight`, F only, no blocks): the number of real corners F is the mean over, where `conn` is
-    one device's share of a sharded mesh (`jaxci.optim.sharding.sharded_terms_and_grad`): the shares' F and
-    gradients then sum to the whole mesh's (default: the real corners of `conn`).
+    `n_corners` (with `weight`, F only, no blocks): what F and its gradient are divided by instead of the real
+    corners of `conn` (the default); 1 gives their sums, as one device's share of a sharded mesh needs
+    (`jaxci.optim.sharding.sharded_terms_and_grad` divides the exchanged sums by the whole mesh's count).
     """
     if block is None:
         block = GRAD_BLOCK if conn.shape[1] > GRAD_BLOCK_FROM else 0

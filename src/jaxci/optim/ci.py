@@ -73,6 +73,7 @@ from .ci_params import (  # noqa: F401  (the parameters, re-exported: jaxci.opti
     PATTERN_FACTORS,
     CIParams,
     ci_params,
+    excess_within_bound,
 )
 
 
@@ -177,7 +178,7 @@ def _better(f, k, fy, ky):
     """Whether a trial of F `fy` and max kappa/3 `ky` improves on `f`, `k`: F finite and lower, and the worst
     corner's excess ``ky - 1`` at most `EXCESS_GROWTH` times ``k - 1`` (the extrapolations, pattern and Anderson
     moves, must not trade the worst element for the mean)."""
-    return jnp.isfinite(fy) & (fy < f) & (ky - 1.0 <= EXCESS_GROWTH * (k - 1.0))
+    return jnp.isfinite(fy) & (fy < f) & excess_within_bound(k, ky)
 
 
 def _take_if_better(x, f, k, y, fy, ky):

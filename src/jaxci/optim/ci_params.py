@@ -181,3 +181,9 @@ PATTERN_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 #: the same steps as without it; 1 (the excess never grows) held annulus back (F within 1% of L-BFGS's after 160
 #: sweeps instead of 62).
 EXCESS_GROWTH = 1.5
+
+
+def excess_within_bound(k, ky):
+    """Whether a trial's max kappa/3 `ky` keeps the worst corner's excess within `EXCESS_GROWTH` times that of the
+    current max `k` (floats or arrays: the host's `_Sweeper.best_of` and the compiled `jaxci.optim.ci._better`)."""
+    return ky - 1.0 <= EXCESS_GROWTH * (k - 1.0)

@@ -88,7 +88,7 @@ from ..metrics.hexahedron import (
     objective_terms_and_grad,
     squared_condition_from_invariants,
 )
-from ..metrics.objective import extra_barrier, extra_cells, extra_terms, has_extra, no_extra
+from ..metrics.objective import extra_barrier, extra_cells, extra_terms, has_extra, no_extra, objective_and_max
 from . import _params as _p
 from ._buckets import bucket, padded_connectivity, to_device
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED
@@ -125,11 +125,6 @@ _CORNERS_PER_NODE = 32.0
 
 
 # ---------------------------------------------------------------------------------------------- objective
-def _corner_terms(x, conn):
-    """(kappa/3)^2 per corner, shape ``(8, N)``; ``inf`` where det <= 0."""
-    return squared_condition_from_invariants(*corner_invariants(*corner_columns(*gather_corners(x, conn))))
-
-
 def _objective_closed(points, conn, weight, power=None, block=None, mesh=None):
     """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent).
     `weight`: None, or ``(N,)`` element weights (0: a padding element, `objective_terms_and_grad`); `power`
@@ -142,6 +137,8 @@ def _objective_closed(points, conn, weight, power=None, block=None, mesh=None):
 
 
 def _terms_and_grad(points, conn, weight, power, block, mesh):
+    """``(F, max kappa/3, dF/dx)`` for `_objective_closed`: each device's share summed and exchanged once where
+    the elements are sharded over `mesh` (F, not the p-mean), else `objective_terms_and_grad`."""
     if mesh is not None and power is None and weight is not None:
         from .sharding import sharded_terms_and_grad
 
@@ -171,15 +168,8 @@ def _objective(x, conn, closed: bool, extra=None, weight=None, power=None, block
     add nothing and F is the mean over the real corners."""
     if closed:  # one kernel for F, its gradient and the max
         f, kmax = _objective_closed(x, conn, weight, power, block, mesh)
-    elif weight is None:
-        term = jax.lax.optimization_barrier(_corner_terms(x, conn))
-        kmax = jnp.sqrt(jnp.max(term))
-        f = jnp.mean(term - 1.0)
-    else:
-        real = weight > 0
-        term = jax.lax.optimization_barrier(_corner_terms(x, conn))
-        kmax = jnp.sqrt(jnp.max(jnp.where(real, term, 0.0)))
-        f = jnp.sum(jnp.where(real, term - 1.0, 0.0)) / (8.0 * jnp.sum(real.astype(term.dtype)))
+    else:  # the hexahedra's F and max from one pass over their corners
+        f, kmax = objective_and_max(x, conn, no_extra(), weight)
     if extra is not None and extra.types:
         f, kmax = _mixed_objective(x, 8 * conn.shape[1], f, kmax, extra)
     return f, kmax

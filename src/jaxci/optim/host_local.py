@@ -38,7 +38,7 @@ from ..geometry.projection import Constraints
 from ._anderson import anderson_point
 from ._local import edge_neighbours, gather_star, local_length, star_nodes
 from ._moves import coloured_stars, onto_plane
-from .ci_params import EXCESS_GROWTH, PATTERN_FACTORS, CIParams
+from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound
 from .laplace import LaplaceParams
 
 #: Largest hexahedral mesh on which the local methods run on the host with ``backend="auto"`` (with the C
@@ -247,7 +247,7 @@ class _Sweeper:
         for t in trials:
             y, hint = self.projector(t)
             fy, ky = self.objective(y)
-            if fy < best[0] and ky - 1.0 <= EXCESS_GROWTH * (kmax - 1.0):
+            if fy < best[0] and excess_within_bound(kmax, ky):
                 best = (fy, ky, y, hint)
         if best[2] is not None:
             self.x = best[2]
