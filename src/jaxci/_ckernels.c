@@ -858,7 +858,8 @@ done:
  * out (M,S) f8) -> None: for node slot m with its first count[m] star elements and the node at trials[m, s],
  * out[m, s] = the sum of (kappa/3)^2 over the four corners of each element whose matrix holds slot 0
  * (AFFECTED_CORNERS of jaxci.optim._local), inf if one has det <= 0: jaxci.optim._local.local_terms, one pass.
- * Per element, the two columns its corners 1, 3 and 4 hold fixed are set up once for all trials. */
+ * Per node, every such corner's term is set up once as a polynomial of the node's displacement (poly_setup), which
+ * each trial then evaluates (poly_sums). */
 
 /* What one element of a node's star holds fixed while the node (its local slot 0) moves: the nodes of corner 0's
  * columns, and for corners 1, 3 and 4 their two fixed columns, the cross product F of those (det = the moving
@@ -917,53 +918,119 @@ static void elem_setup(const double *X, const long long *HEX, const long long *R
     E->n1 = dot3(E->F1, E->F1); E->n3 = dot3(E->F3, E->F3); E->n4 = dot3(E->F4, E->F4);
 }
 
-/* 9 x the sum of (kappa/3)^2 over the four corners of the element that move with its slot 0 at y (inf if one
- * has det <= 0). Branch-free (each ratio computed, then inf selected where det <= 0), so that the loops over trials
- * of trial_objectives vectorise; the same value as computing a ratio only where det > 0. */
-static inline __attribute__((always_inline)) double elem_sum(const Elem *E, const double *y) {
-    double a[3], b[3], c[3], u[3], v[3], w[3], total = 0.0, det, fro2, adj2, q;
-    /* corner 0: columns P1 - y, P3 - y, P4 - y */
-    for (int d = 0; d < 3; d++) { a[d] = E->P1[d] - y[d]; b[d] = E->P3[d] - y[d]; c[d] = E->P4[d] - y[d]; }
-    cross(b, c, u); cross(c, a, v); cross(a, b, w);
-    det = dot3(a, u);
-    fro2 = dot3(a, a) + dot3(b, b) + dot3(c, c);
-    adj2 = dot3(u, u) + dot3(v, v) + dot3(w, w);
-    q = fro2 * adj2 / (det * det);
-    total += det > 0.0 ? q : INFINITY;
-    /* corner 1: (P2 - P1, y - P1, P5 - P1) */
-    for (int d = 0; d < 3; d++) b[d] = y[d] - E->P1[d];
-    cross(b, E->c1, u); cross(E->a1, b, w);
-    det = dot3(b, E->F1);
-    q = (E->r1 + dot3(b, b)) * (dot3(u, u) + E->n1 + dot3(w, w)) / (det * det);
-    total += det > 0.0 ? q : INFINITY;
-    /* corner 3: (y - P3, P2 - P3, P7 - P3) */
-    for (int d = 0; d < 3; d++) a[d] = y[d] - E->P3[d];
-    cross(E->c3, a, v); cross(a, E->b3, w);
-    det = dot3(a, E->F3);
-    q = (E->r3 + dot3(a, a)) * (E->n3 + dot3(v, v) + dot3(w, w)) / (det * det);
-    total += det > 0.0 ? q : INFINITY;
-    /* corner 4: (P7 - P4, P5 - P4, y - P4) */
-    for (int d = 0; d < 3; d++) c[d] = y[d] - E->P4[d];
-    cross(E->b4, c, u); cross(c, E->a4, v);
-    det = dot3(c, E->F4);
-    q = (E->r4 + dot3(c, c)) * (dot3(u, u) + dot3(v, v) + E->n4) / (det * det);
-    total += det > 0.0 ? q : INFINITY;
-    return total;
+/* A node's local objective as polynomials of its displacement d = y - x0 (ci_visit). Every corner that moves with
+ * the node has |A|^2, |adj A|^2 quadratic and det affine in d (a column moves by d, or all three do: det is then
+ * 6 x the volume of the tetrahedron (y, P1, P3, P4), affine too), so each corner's term |A|^2 |adj A|^2 / det^2
+ * comes from POLY_ROWS numbers set up once per visit (poly_setup): row 0 gamma, 1-3 beta, 4 alpha of
+ * |A|^2 = gamma + beta.d + alpha |d|^2; 5 D0, 6-8 g of det = D0 + g.d; 9 c, 10-12 l, 13-18 the quadratic form
+ * (d0^2, d1^2, d2^2, d0 d1, d0 d2, d1 d2) of |adj A|^2. Rows of NP corners (the real ones, then padding with
+ * |A|^2 = 0, det = 1: a term 0). A trial then costs 16 multiply-adds and a division per corner, where the
+ * corner's matrices cost about 60 operations, and the corners are the vector lanes. */
+#define POLY_ROWS 19
+#define POLY_LANES 8
+#define POLY_BLOCK POLY_LANES
+
+/* Corner j of the rows P (NP corners each) from |A|^2 = gamma + beta.d + alpha |d|^2, det = D0 + g.d and
+ * |adj A|^2 = c + 2 m.d + d^T Q d (Q symmetric: q00 q11 q22 q01 q02 q12). */
+static inline void poly_put(double *P, Py_ssize_t NP, Py_ssize_t j, double gamma, const double *beta, double alpha,
+                     double D0, const double *g, double c, const double *m, const double *Q) {
+    double row[POLY_ROWS] = {gamma, beta[0], beta[1], beta[2], alpha, D0, g[0], g[1], g[2], c,
+                             2.0 * m[0], 2.0 * m[1], 2.0 * m[2], Q[0], Q[1], Q[2], 2.0 * Q[3], 2.0 * Q[4], 2.0 * Q[5]};
+    for (int r = 0; r < POLY_ROWS; r++) P[r * NP + j] = row[r];
 }
 
-/* The local objective of S trial positions of a node (Y: 3 x S, structure of arrays) into f (S,): the mean of
- * (kappa/3)^2 - 1 over the 4 cnt corners of its star E[0..cnt) that move with it (divided by ncorner), summed over
- * the elements in order, as elem_sum one trial at a time would; the trials are the vector lanes. */
-VECTOR_CLONES
-static void trial_objectives(const Elem *restrict E, Py_ssize_t cnt, const double *restrict Y, int S, double ncorner,
-                             double *restrict f) {
-    for (int s = 0; s < S; s++) f[s] = 0.0;
-    for (Py_ssize_t k = 0; k < cnt; k++)
-        for (int s = 0; s < S; s++) {
-            const double y[3] = {Y[s], Y[S + s], Y[2 * S + s]};
-            f[s] += elem_sum(E + k, y) * (1.0 / 9.0);
+/* Q += |e|^2 I - e e^T, the quadratic form of |z x e|^2 in z. */
+static inline void add_cross_form(double *Q, const double *e) {
+    double e2 = dot3(e, e);
+    Q[0] += e2 - e[0] * e[0]; Q[1] += e2 - e[1] * e[1]; Q[2] += e2 - e[2] * e[2];
+    Q[3] -= e[0] * e[1]; Q[4] -= e[0] * e[2]; Q[5] -= e[1] * e[2];
+}
+
+/* A corner with one moving column z = z0 + d and fixed columns e1, e2 (r = |e1|^2 + |e2|^2, F their cross product
+ * with det = z.F, n = |F|^2): |A|^2 = r + |z|^2, |adj A|^2 = n + |z x e1|^2 + |z x e2|^2. */
+static inline void poly_one_column(double *P, Py_ssize_t NP, Py_ssize_t j, const double *z0, double r, const double *F,
+                            double n, const double *e1, const double *e2) {
+    double Q[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0}, beta[3], m[3];
+    add_cross_form(Q, e1);
+    add_cross_form(Q, e2);
+    m[0] = Q[0] * z0[0] + Q[3] * z0[1] + Q[4] * z0[2];
+    m[1] = Q[3] * z0[0] + Q[1] * z0[1] + Q[5] * z0[2];
+    m[2] = Q[4] * z0[0] + Q[5] * z0[1] + Q[2] * z0[2];
+    for (int d = 0; d < 3; d++) beta[d] = 2.0 * z0[d];
+    poly_put(P, NP, j, r + dot3(z0, z0), beta, 1.0, dot3(z0, F), F, n + dot3(z0, m), m, Q);
+}
+
+/* The rows P (NP >= 4 cnt corners) of the star E[0..cnt) of a node at x0. */
+static void poly_setup(const Elem *E, Py_ssize_t cnt, const double *x0, double *P, Py_ssize_t NP) {
+    static const double zero[3] = {0.0, 0.0, 0.0};
+    for (Py_ssize_t k = 0; k < cnt; k++) {
+        const Elem *e = E + k;
+        /* corner 0: columns a = P1 - y, b = P3 - y, c = P4 - y, all moving by -d */
+        double a[3], b[3], c[3], u[3], v[3], w[3], e1[3], e2[3], e3[3], t[3], beta[3], g[3], m[3];
+        double Q[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        for (int d = 0; d < 3; d++) { a[d] = e->P1[d] - x0[d]; b[d] = e->P3[d] - x0[d]; c[d] = e->P4[d] - x0[d]; }
+        cross(b, c, u); cross(c, a, v); cross(a, b, w);
+        for (int d = 0; d < 3; d++) {
+            beta[d] = -2.0 * (a[d] + b[d] + c[d]);
+            g[d] = -(u[d] + v[d] + w[d]);
+            e1[d] = c[d] - b[d]; e2[d] = a[d] - c[d]; e3[d] = b[d] - a[d];
+            m[d] = 0.0;
         }
-    for (int s = 0; s < S; s++) f[s] = f[s] / ncorner - 1.0;
+        /* u(d) = u + e1 x d: |u(d)|^2 = |u|^2 + 2 (u x e1).d + |d x e1|^2; likewise v with e2, w with e3 */
+        cross(u, e1, t); for (int d = 0; d < 3; d++) m[d] += t[d];
+        cross(v, e2, t); for (int d = 0; d < 3; d++) m[d] += t[d];
+        cross(w, e3, t); for (int d = 0; d < 3; d++) m[d] += t[d];
+        add_cross_form(Q, e1); add_cross_form(Q, e2); add_cross_form(Q, e3);
+        poly_put(P, NP, 4 * k, dot3(a, a) + dot3(b, b) + dot3(c, c), beta, 3.0, dot3(a, u), g,
+                 dot3(u, u) + dot3(v, v) + dot3(w, w), m, Q);
+        /* corners 1, 3, 4: one column y - P moving by d */
+        double z[3];
+        for (int d = 0; d < 3; d++) z[d] = x0[d] - e->P1[d];
+        poly_one_column(P, NP, 4 * k + 1, z, e->r1, e->F1, e->n1, e->c1, e->a1);
+        for (int d = 0; d < 3; d++) z[d] = x0[d] - e->P3[d];
+        poly_one_column(P, NP, 4 * k + 2, z, e->r3, e->F3, e->n3, e->c3, e->b3);
+        for (int d = 0; d < 3; d++) z[d] = x0[d] - e->P4[d];
+        poly_one_column(P, NP, 4 * k + 3, z, e->r4, e->F4, e->n4, e->b4, e->a4);
+    }
+    for (Py_ssize_t j = 4 * cnt; j < NP; j++) poly_put(P, NP, j, 0.0, zero, 0.0, 1.0, zero, 0.0, zero, zero);
+}
+
+/* The sums of (kappa/3)^2 over a node's corners (the rows P of poly_setup at x0, NP a multiple of POLY_LANES) at S
+ * trial positions (Y: 3 x S, structure of arrays) into f (S,), inf where a corner has det <= 0. Branch-free: each
+ * ratio computed, then inf selected where det <= 0. */
+/* The monomials of a displacement d: d0, d1, d2, |d|^2, d0^2, d1^2, d2^2, d0 d1, d0 d2, d1 d2. */
+static inline void poly_monomials(const double *Y, int S, int s, const double *x0, double *m) {
+    const double d0 = Y[s] - x0[0], d1 = Y[S + s] - x0[1], d2 = Y[2 * S + s] - x0[2];
+    m[0] = d0; m[1] = d1; m[2] = d2; m[3] = d0 * d0 + d1 * d1 + d2 * d2;
+    m[4] = d0 * d0; m[5] = d1 * d1; m[6] = d2 * d2; m[7] = d0 * d1; m[8] = d0 * d2; m[9] = d1 * d2;
+}
+
+/* The term 9 (kappa/3)^2 of the corner at p (a pointer into the rows P, NP apart) for the monomials m; inf if
+ * det <= 0 (selected after the division, so that the loop stays branch-free). */
+static inline __attribute__((always_inline)) double poly_term(const double *p, Py_ssize_t NP, const double *m) {
+    double A = p[0] + p[NP] * m[0] + p[2 * NP] * m[1] + p[3 * NP] * m[2] + p[4 * NP] * m[3];
+    double B = p[9 * NP] + p[10 * NP] * m[0] + p[11 * NP] * m[1] + p[12 * NP] * m[2] + p[13 * NP] * m[4] +
+               p[14 * NP] * m[5] + p[15 * NP] * m[6] + p[16 * NP] * m[7] + p[17 * NP] * m[8] + p[18 * NP] * m[9];
+    double D = p[5 * NP] + p[6 * NP] * m[0] + p[7 * NP] * m[1] + p[8 * NP] * m[2];
+    double q = A * B / (D * D);
+    return D > 0.0 ? q : INFINITY;
+}
+
+/* The sums of (kappa/3)^2 over a node's corners (the rows P of poly_setup at x0, NP a multiple of POLY_LANES) at S
+ * trial positions (Y: 3 x S, structure of arrays) into f (S,), inf where a corner has det <= 0. Each trial's sum in
+ * lanes, the lanes added in order. */
+VECTOR_CLONES
+static void poly_sums(const double *restrict P, Py_ssize_t NP, const double *restrict x0, const double *restrict Y,
+                      int S, double *restrict f) {
+    for (int s = 0; s < S; s++) {
+        double m[10], acc[POLY_LANES] = {0.0};
+        poly_monomials(Y, S, s, x0, m);
+        for (Py_ssize_t j = 0; j < NP; j += POLY_LANES)
+            for (int l = 0; l < POLY_LANES; l++) acc[l] += poly_term(P + j + l, NP, m);
+        double total = 0.0;
+        for (int l = 0; l < POLY_LANES; l++) total += acc[l];
+        f[s] = total * (1.0 / 9.0);
+    }
 }
 
 static PyObject *local_sums(PyObject *self, PyObject *args) {
@@ -987,18 +1054,34 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
     if (check_stars(HEX, N, n, ROT, INC, CNT, M, K, "local_sums") < 0) goto done;
     const double *X = B[0].view.buf, *TR = B[5].view.buf;
     double *OUT = B[6].view.buf;
+    Py_ssize_t NPmax = (4 * K + POLY_BLOCK - 1) / POLY_BLOCK * POLY_BLOCK;
+    Elem *E = malloc(sizeof(Elem) * (K ? K : 1));
+    double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_BLOCK));
+    double *Y = malloc(sizeof(double) * 3 * (size_t)(S ? S : 1));
+    if (!E || !P || !Y) {
+        PyErr_NoMemory();
+        goto done_local;
+    }
     for (Py_ssize_t m = 0; m < M; m++) {
         double *o = OUT + m * S;
-        const double *Y = TR + 3 * m * S;
-        for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
-        for (Py_ssize_t k = 0; k < CNT[m]; k++) {
-            Elem E;
-            elem_setup(X, HEX, ROT, INC[m * K + k], &E);
-            for (Py_ssize_t s = 0; s < S; s++) o[s] += elem_sum(&E, Y + 3 * s) * (1.0 / 9.0);
+        const double *tr = TR + 3 * m * S;
+        Py_ssize_t cnt = CNT[m], NP = (4 * cnt + POLY_BLOCK - 1) / POLY_BLOCK * POLY_BLOCK;
+        if (cnt == 0) {
+            for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
+            continue;
         }
+        long long e[8];
+        star_nodes(HEX, ROT, INC[m * K], e);
+        for (Py_ssize_t k = 0; k < cnt; k++) elem_setup(X, HEX, ROT, INC[m * K + k], &E[k]);
+        poly_setup(E, cnt, X + 3 * e[0], P, NP);
+        for (Py_ssize_t s = 0; s < S; s++)
+            for (int d = 0; d < 3; d++) Y[d * S + s] = tr[3 * s + d];
+        poly_sums(P, NP, X + 3 * e[0], Y, (int)S, o);
     }
     Py_INCREF(Py_None);
     ret = Py_None;
+done_local:
+    free(E); free(P); free(Y);
 done:
     release(B, 7);
     return ret;
@@ -1064,11 +1147,15 @@ static void *ci_worker(void *arg) {
     int S = C * t; /* the trials of one learning attempt, all candidates' */
     double *work = malloc(sizeof(double) * ((size_t)C * 10 + (size_t)S * 4));
     long long *iwork = malloc(sizeof(long long) * ((size_t)C * 3 + (size_t)S));
-    if (!E || !work || !iwork) {
+    Py_ssize_t NPmax = (4 * K + POLY_BLOCK - 1) / POLY_BLOCK * POLY_BLOCK;
+    double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_BLOCK));
+    double *shrink = malloc(sizeof(double) * (size_t)(T ? T : 1)); /* reduction^(a + 1) of attempt a */
+    if (!E || !work || !iwork || !P || !shrink) {
         J->failed = 1;
-        free(E); free(work); free(iwork);
+        free(E); free(work); free(iwork); free(P); free(shrink);
         return NULL;
     }
+    for (int a = 0; a < T; a++) shrink[a] = pow(reduction, (double)(a + 1));
     double *cand = work, *centre = work + 3 * C, *fc = work + 6 * C, *cum = work + 7 * C;
     double *ys = work + 10 * C, *fs = work + 10 * C + 3 * S; /* trials (3 x S) and their local objectives */
     long long *ch = iwork, *chint = iwork + C, *follow = iwork + 2 * C, *hs = iwork + 3 * C;
@@ -1092,8 +1179,10 @@ static void *ci_worker(void *arg) {
             }
         }
         h /= 3.0 * (double)(cnt > 0 ? cnt : 1);
-        double ncorner = (double)(4 * cnt > 0 ? 4 * cnt : 1), f0 = 0.0;
-        for (Py_ssize_t k = 0; k < cnt; k++) f0 += elem_sum(&E[k], x0) * (1.0 / 9.0);
+        double ncorner = (double)(4 * cnt > 0 ? 4 * cnt : 1), f0;
+        Py_ssize_t NP = (4 * cnt + POLY_BLOCK - 1) / POLY_BLOCK * POLY_BLOCK;
+        poly_setup(E, cnt, x0, P, NP);
+        poly_sums(P, NP, x0, x0, 1, &f0);
         f0 = f0 / ncorner - 1.0;
         long long hint0 = cl ? cl->hint[ROW[m]] : -1;
         for (int c = 0; c < C; c++) {
@@ -1121,9 +1210,9 @@ static void *ci_worker(void *arg) {
                 for (int d = 0; d < 3; d++) centre[3 * c + d] = cand[3 * follow[c] + d];
                 chint[c] = ch[follow[c]];
             }
-            double w = w0 * pow(reduction, (double)(a + 1));
+            double w = w0 * shrink[a];
             /* every candidate's t trials first (the random numbers drawn in the order candidate, trial), then
-             * their local objectives at once (trial_objectives, vectorised over the trials) */
+             * their local objectives at once (poly_objectives, the corners vectorised) */
             for (int c = 0; c < C; c++)
                 for (int j = 0; j < t; j++) {
                     double u[3], y[3];
@@ -1149,7 +1238,8 @@ static void *ci_worker(void *arg) {
                     for (int d = 0; d < 3; d++) ys[d * S + s] = y[d];
                     hs[s] = hy;
                 }
-            trial_objectives(E, cnt, ys, S, ncorner, fs);
+            poly_sums(P, NP, x0, ys, S, fs);
+            for (int s = 0; s < S; s++) fs[s] = fs[s] / ncorner - 1.0;
             for (int c = 0; c < C; c++) {
                 double fb = INFINITY, yb[3] = {0.0, 0.0, 0.0};
                 long long hb = chint[c];
@@ -1184,7 +1274,7 @@ static void *ci_worker(void *arg) {
         WIDTH[NODES[m]] = wn < lo ? lo : (wn > hi ? hi : wn);
         J->moved += accept;
     }
-    free(E); free(work); free(iwork);
+    free(E); free(work); free(iwork); free(P); free(shrink);
     return NULL;
 }
 

@@ -413,7 +413,7 @@ def check_volume(mesh: HexMesh) -> None:
     nodes = np.unique(mesh.hexes)
     p = to_unit(mesh.points[nodes], unit_frame(mesh.points[nodes]))
     p = p - p.mean(axis=0)
-    w, v = np.linalg.eigh(p.T @ p)  # ascending
+    w, v = np.linalg.eigh(np.einsum("ij,ik->jk", p, p))  # ascending; einsum: no BLAS threads (jaxci.optim._anderson)
     if w[2] <= 0 or w[0] <= (1e-12) ** 2 * w[2]:
         where = f"{mesh.source}: " if mesh.source else ""
         what = ("all at one point" if w[2] <= 0 else "on one line" if w[1] <= (1e-12) ** 2 * w[2]

@@ -28,8 +28,10 @@ def anderson_point(X, R, valid, xp):
     use = xp.arange(m1) >= m1 - (valid - 1)  # pairs of two real rows
     dR = xp.where(use[:, None], dR, 0.0)
     dG = xp.where(use[:, None], dG, 0.0)
-    A = dR @ dR.T
-    b = dR @ R[-1]
+    # einsum, not `@`: numpy's `@` runs OpenBLAS, whose threads then spin for ~0.1 s after each call, taking a core
+    # from the C sweep's threads (16% of a 30^3 box's CI run on 2 cores); einsum's own loops start no thread
+    A = xp.einsum("ij,kj->ik", dR, dR)
+    b = xp.einsum("ij,j->i", dR, R[-1])
     # columns scaled to unit length (the early sweeps' differences are orders of magnitude longer than the last
     # ones'), then a relative regularisation sqrt(eps): the sweeps are noisy (random trials), the fit is kept
     # from following that noise into long steps
@@ -39,4 +41,4 @@ def anderson_point(X, R, valid, xp):
     reg = xp.sqrt(xp.finfo(R.dtype).eps)
     A = A + xp.diag(xp.where(use, reg, 1.0))
     gamma = scale * xp.linalg.solve(A, scale * b)
-    return G[-1] - gamma @ dG
+    return G[-1] - xp.einsum("i,ij->j", gamma, dG)
