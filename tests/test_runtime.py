@@ -58,6 +58,25 @@ def test_the_command_runs_with_the_tunable_where_it_applies():
     assert "huge pages for glibc allocations off" in off.stdout
 
 
+def test_the_command_loads_openblas_single_threaded_unless_told_otherwise():
+    """`jaxci.runtime.single_threaded_blas`: the jaxci command (here a process whose ``sys.orig_argv`` says so,
+    not re-executed) loads numpy with ``OPENBLAS_NUM_THREADS=1``, so no OpenBLAS thread spins beside the C
+    kernels; a user's setting stays, and a program that imports jaxci is left alone."""
+    code = ("import sys; sys.orig_argv = {argv!r}; import os, jaxci; "
+            "print(os.environ.get('OPENBLAS_NUM_THREADS'), 'numpy' in sys.modules)")
+    env = {**_child_env(), "JAXCI_HUGEPAGES": "0"}
+    env.pop("OPENBLAS_NUM_THREADS", None)
+
+    def run(argv, **extra):
+        out = subprocess.run([sys.executable, "-c", code.format(argv=argv)], capture_output=True, text=True,
+                             env={**env, **extra}, check=True)
+        return out.stdout.split()
+
+    assert run(["python", "-m", "jaxci", "smooth"]) == ["1", "True"]
+    assert run(["python", "-m", "jaxci", "smooth"], OPENBLAS_NUM_THREADS="2") == ["2", "True"]
+    assert run(["python", "-c", "import jaxci"]) == ["None", "True"]
+
+
 def test_a_small_mesh_is_not_worth_a_second_start(tmp_path):
     """`jaxci smooth / quality / classify` on a mesh file below `SMALL_INPUT_BYTES` runs in the first process
     (such meshes are solved on the host: the tunable changes nothing there); a large file, an option before the

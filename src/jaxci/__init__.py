@@ -10,6 +10,7 @@ from . import runtime as _runtime
 
 _runtime.reexec_with_hugepages()  # the jaxci command only: huge pages for XLA's buffers (jaxci.runtime)
 _runtime.quiet_interrupts_while_starting()  # the jaxci command only: Ctrl-C while importing exits 130, quietly
+_runtime.single_threaded_blas()  # the jaxci command only: no OpenBLAS threads spinning beside the C kernels
 
 from importlib import import_module
 

@@ -122,6 +122,18 @@ def quiet_interrupts_while_starting() -> None:
             pass
 
 
+def single_threaded_blas() -> None:
+    """For the jaxci command only, and unless the user set it: ``OPENBLAS_NUM_THREADS=1`` before numpy loads
+    OpenBLAS. jaxci's numpy work never multiplies matrices large enough for BLAS threads to pay (its kernels are
+    its own C loops), but OpenBLAS starts a thread per core when numpy is imported and each spins ~0.1 s of a core
+    after loading and after every call: measured on this 2-core CPU, importing numpy alone cost 0.11 CPU s in that
+    thread, and on `jaxci smooth` of a 2,644-hex mesh the spinning thread took 7% of the samples, on the cores the
+    C kernels' threads run on."""
+    orig = list(getattr(sys, "orig_argv", ()))
+    if is_jaxci_command(orig) and "numpy" not in sys.modules:
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
 #: XLA:CPU's pass that splits every large fusion into as many parallel parts as its intra-op pool has threads.
 #: That pool has max(cores or ``NPROC``, CPU devices) threads (`jaxci.optim.sharding.xla_cpu_threads`), so with
 #: more forced CPU devices than cores each fusion's parts wait on threads the cores cannot run. Measured on
