@@ -181,7 +181,7 @@ typedef struct {
 /* x86-64 with GCC: an AVX2 clone of the loops below beside the baseline one, picked at load time (the eight
  * corners of an element are the vector lanes). */
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
-#define VECTOR_CLONES __attribute__((target_clones("avx2", "default")))
+#define VECTOR_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
 #else
 #define VECTOR_CLONES
 #endif
@@ -1019,7 +1019,9 @@ static inline __attribute__((always_inline)) double poly_term(const double *p, P
 /* The sums of (kappa/3)^2 over a node's corners (the rows P of poly_setup at x0, NP a multiple of POLY_LANES) at S
  * trial positions (Y: 3 x S, structure of arrays) into f (S,), inf where a corner has det <= 0. Each trial's sum in
  * lanes, the lanes added in order. */
-VECTOR_CLONES
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
+__attribute__((target_clones("avx512f", "avx2", "default")))
+#endif
 static void poly_sums(const double *restrict P, Py_ssize_t NP, const double *restrict x0, const double *restrict Y,
                       int S, double *restrict f) {
     for (int s = 0; s < S; s++) {
