@@ -148,6 +148,27 @@ def test_colouring_valid_for_any_numbering(seed, n):
     assert col.n_colours <= 27  # first-fit: at most max degree + 1
 
 
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 4))
+def test_c_colouring_is_the_first_fit_of_the_numpy_rounds(seed, n):
+    """`jaxci.native.greedy_colour` (the one-pass C colouring `colour_nodes` uses) gives exactly the colours of
+    the numpy rounds (Jones-Plassmann, index priority), on renumbered boxes and on pave3's unstructured mesh."""
+    from jaxci import native
+    from jaxci.geometry import topology
+
+    if not native.AVAILABLE:
+        pytest.skip("the C kernels are not built")
+    mesh = renumbered(box(n, n + 1, 2), np.random.default_rng(seed).permutation(box(n, n + 1, 2).n_nodes))
+    pave = read_mesh(MESQUITE / "pave3.e.vtk")
+    for m in (mesh, pave):
+        hexes = np.asarray(m.hexes)
+        ref = topology._first_fit_rounds(hexes, m.n_nodes + 2, None)  # two nodes in no cell: colour 0
+        got = native.greedy_colour(hexes, m.n_nodes + 2)
+        assert got.dtype == np.int32 and np.array_equal(got, ref)
+    with pytest.raises(IndexError, match="greedy_colour"):
+        native.greedy_colour(np.asarray(mesh.hexes), 3)
+
+
 @pytest.mark.parametrize("make", [lambda: l_block(2), lambda: bevelled_box(4), lambda: annulus(12, 2, 2)])
 def test_colouring_valid_on_shapes(make):
     mesh = make()

@@ -239,3 +239,13 @@ def pullback(g: np.ndarray, nodes: np.ndarray, hint: np.ndarray, keep: np.ndarra
     nodes and their segments), in place on `g` float64 ``(n, 3)``: the arrays of the C search
     (`NearProjector`'s), `keep` boolean ``(n,)`` or None."""
     _c.pullback(g, nodes, hint, keep, cand, table, int(kind))
+
+
+def greedy_colour(cells: np.ndarray, n: int) -> np.ndarray:
+    """The first-fit colouring of nodes ``0 .. n-1`` in index order through the cells `cells` ``(N, k)``
+    (`jaxci.geometry.topology.colour_nodes`' colours, in one C pass): int32 ``(n,)``."""
+    cells = _i8(cells)
+    out = np.empty(int(n), np.int64)
+    _c.greedy_colour(cells, int(n), int(cells.shape[1]) if cells.ndim == 2 else 1, out)
+    return out.astype(np.int32)
+

@@ -393,7 +393,17 @@ _LAST_COLOURING: dict = {}
 
 
 def _colour_nodes(hexes, n: int, adjacency) -> Colouring:
-    """`colour_nodes` without its cache."""
+    """`colour_nodes` without its cache: in C (`jaxci.native.greedy_colour`, one pass: 3 ms against 0.18 s at
+    27,000 hexahedra) for one cell array without a given adjacency, else by the numpy rounds; the same colours."""
+    from .. import native
+
+    if adjacency is None and native.AVAILABLE and isinstance(hexes, np.ndarray) and hexes.ndim == 2:
+        return _colouring(native.greedy_colour(hexes, n), n)
+    return _colouring(_first_fit_rounds(hexes, n, adjacency), n)
+
+
+def _first_fit_rounds(hexes, n: int, adjacency) -> np.ndarray:
+    """The first-fit colours ``(n,)`` by `colour_nodes`' parallel rounds (numpy)."""
     indptr, indices = node_adjacency(hexes, n) if adjacency is None else adjacency
     rows = np.repeat(np.arange(n, dtype=indices.dtype), np.diff(indptr))
     pending = np.bincount(rows[indices < rows], minlength=n).astype(np.int64)
@@ -420,7 +430,11 @@ def _colour_nodes(hexes, n: int, adjacency) -> Colouring:
         higher = nb[nb > ready[owner]]
         np.subtract.at(pending, higher, 1)
         ready = np.unique(higher[pending[higher] == 0])
-    colour = np.maximum(colour, 0).astype(np.int32)
+    return np.maximum(colour, 0).astype(np.int32)
+
+
+def _colouring(colour: np.ndarray, n: int) -> Colouring:
+    """The `Colouring` of the node colours `colour` ``(n,)``."""
     n_colours = int(colour.max()) + 1 if n else 0
     order = np.argsort(colour, kind="stable")
     sizes = np.bincount(colour, minlength=n_colours)
