@@ -53,3 +53,21 @@ def test_anderson_point_is_the_same_in_jax():
     starts, moves, _ = _sweeps(6, seed=1)  # float64: tests/conftest.py enables x64
     got = np.asarray(jax.jit(lambda s, m, v: anderson_point(s, m, v, jnp))(starts, moves, 4))
     assert np.allclose(got, anderson_point(starts, moves, 4, np), rtol=1e-10, atol=1e-10)
+
+
+def test_the_host_memory_gives_anderson_point_sweep_by_sweep():
+    """`AndersonMemory` (local CI on the host: ring buffers and a Gram matrix extended by one row a sweep) gives
+    `anderson_point` of the last m sweeps after every sweep, and nothing before the second."""
+    from jaxci.optim._anderson import AndersonMemory
+
+    starts, moves, _ = _sweeps(12, seed=2)
+    for m in (1, 2, 3, 8):
+        memory = AndersonMemory(m, starts.shape[1])
+        for i in range(len(starts)):
+            memory.push(starts[i], moves[i])
+            got, lo = memory.point(), max(0, i + 1 - m)
+            if min(i + 1, m) < 2:
+                assert got is None
+            else:
+                want = anderson_point(starts[lo : i + 1], moves[lo : i + 1], min(i + 1, m), np)
+                np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * np.abs(want).max())

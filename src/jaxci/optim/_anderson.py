@@ -14,6 +14,8 @@ L-BFGS's final F without it, 0.1-0.4% BELOW it with m = 8; docs/results/README.m
 
 from __future__ import annotations
 
+import numpy as np
+
 
 def anderson_point(X, R, valid, xp):
     """The Anderson candidate of the sweeps held in `X` (starts) and `R` (displacements), both ``(m, N)`` with
@@ -32,13 +34,61 @@ def anderson_point(X, R, valid, xp):
     # from the C sweep's threads (16% of a 30^3 box's CI run on 2 cores); einsum's own loops start no thread
     A = xp.einsum("ij,kj->ik", dR, dR)
     b = xp.einsum("ij,j->i", dR, R[-1])
+    gamma = _coefficients(A, b, use, xp.finfo(R.dtype).eps, xp)
+    return G[-1] - xp.einsum("i,ij->j", gamma, dG)
+
+
+def _coefficients(A, b, use, eps, xp):
+    """gamma of the normal equations ``A gamma = b`` (``A`` the Gram matrix of the displacement differences, `b`
+    their products with the last displacement), only the pairs `use`."""
     # columns scaled to unit length (the early sweeps' differences are orders of magnitude longer than the last
     # ones'), then a relative regularisation sqrt(eps): the sweeps are noisy (random trials), the fit is kept
     # from following that noise into long steps
     norm = xp.sqrt(xp.diagonal(A))
     scale = xp.where(use & (norm > 0), 1.0 / xp.where(norm > 0, norm, 1.0), 0.0)
     A = A * scale[:, None] * scale[None, :]
-    reg = xp.sqrt(xp.finfo(R.dtype).eps)
-    A = A + xp.diag(xp.where(use, reg, 1.0))
-    gamma = scale * xp.linalg.solve(A, scale * b)
-    return G[-1] - xp.einsum("i,ij->j", gamma, dG)
+    A = A + xp.diag(xp.where(use, float(eps) ** 0.5, 1.0))
+    return scale * xp.linalg.solve(A, scale * b)
+
+
+class AndersonMemory:
+    """`anderson_point` on the host, kept up to date sweep by sweep (numpy, float64): the last `m` sweeps'
+    displacement differences and result differences in ring buffers ``(m - 1, N)`` and their Gram matrix, which
+    each sweep extends by one row (m - 1 products of length N) instead of recomputing (m - 1)^2, and no
+    ``(m, N)`` temporaries. The same point as `anderson_point` of the same sweeps, up to rounding."""
+
+    def __init__(self, m: int, size: int):
+        self.m = m
+        self.dR, self.dG = np.empty((max(m - 1, 1), size)), np.empty((max(m - 1, 1), size))
+        self.gram = np.zeros((max(m - 1, 1),) * 2)
+        self.count = 0  # differences held (<= m - 1)
+        self.next = 0  # ring slot of the next difference
+        self.last_r = self.last_g = None
+
+    def push(self, start: np.ndarray, move: np.ndarray) -> None:
+        """Add a sweep: its start and displacement, flat ``(N,)``."""
+        g = start + move
+        if self.last_r is not None and self.m > 1:
+            k = self.next
+            np.subtract(move, self.last_r, out=self.dR[k])
+            np.subtract(g, self.last_g, out=self.dG[k])
+            self.count = min(self.count + 1, self.m - 1)
+            self.next = (k + 1) % (self.m - 1)
+            held = self._order()
+            row = np.einsum("ij,j->i", self.dR[held], self.dR[k])
+            self.gram[held, k] = self.gram[k, held] = row
+        self.last_r, self.last_g = move.copy(), g
+
+    def _order(self) -> np.ndarray:
+        """The ring slots held, oldest first."""
+        return np.arange(self.next - self.count, self.next) % (self.m - 1)
+
+    def point(self) -> np.ndarray | None:
+        """The Anderson point ``(N,)`` of the sweeps pushed (at most the last `m`), None before two."""
+        if self.count < 1:
+            return None
+        held = self._order()
+        b = np.einsum("ij,j->i", self.dR[held], self.last_r)
+        gamma = _coefficients(self.gram[np.ix_(held, held)], b, np.ones(len(held), bool), np.finfo(np.float64).eps,
+                              np)
+        return self.last_g - np.einsum("i,ij->j", gamma, self.dG[held])

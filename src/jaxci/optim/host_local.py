@@ -35,7 +35,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
-from ._anderson import anderson_point
+from ._anderson import AndersonMemory
 from ._local import edge_neighbours, gather_star, local_length, star_nodes
 from ._moves import coloured_stars, onto_plane
 from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound
@@ -273,21 +273,19 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax], [0]
     done = f <= p.ftol or kmax <= 1.0 + p.ktol
-    m = p.anderson
-    starts, moves, valid = np.zeros((m, sw.x.size)), np.zeros((m, sw.x.size)), 0  # the last m sweeps, oldest first
+    memory = AndersonMemory(p.anderson, sw.x.size) if p.anderson else None  # the last sweeps
     while not done and len(hist_f) <= p.max_sweeps:
         start = sw.x.copy()
         moved = sum(sw.visit(col) for col in sw.colours)
         f_new, k_new = sw.objective(sw.x)
         D = sw.x - start  # the sweep's displacement
-        if m:
-            starts[:-1], moves[:-1] = starts[1:], moves[1:]
-            starts[-1], moves[-1] = start.ravel(), D.ravel()
-            valid = min(valid + 1, m)
+        if memory is not None:
+            memory.push(start.ravel(), D.ravel())
         if p.pattern:
             f_new, k_new = sw.pattern(D, f_new, k_new)
-        if valid >= 2:
-            f_new, k_new = sw.best_of([anderson_point(starts, moves, valid, np).reshape(-1, 3)], f_new, k_new)
+        point = memory.point() if memory is not None else None
+        if point is not None:
+            f_new, k_new = sw.best_of([point.reshape(-1, 3)], f_new, k_new)
         hist_f.append(f_new)
         hist_k.append(k_new)
         hist_m.append(moved)
