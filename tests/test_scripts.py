@@ -22,10 +22,10 @@ def _bench(tmp_path, *args):
 
 @pytest.mark.slow
 def test_benchmark_measures_and_writes_json(tmp_path):
-    stdout, data = _bench(tmp_path, "--params", '{"presmooth": 1}')
+    stdout, data = _bench(tmp_path, "--params", '{"presmooth": 1}', "--repeats", "2")
     (row,) = data["rows"]
     assert row["hexes"] == 27 and row["backend"] == "cpu" and row["params"] == {"presmooth": 1}
-    assert row["after_max_condition"] <= 1.0001 and row["inverted_after"] == 0
+    assert row["after_max_condition"] <= 1.0001 and row["inverted_after"] == 0 and row["repeats"] == 2
     for key in ("to_1.01", "to_1.0001"):  # iterations from the history, then re-timed with that cap
         assert row[key]["iterations"] >= 1 and row[key]["seconds"] > 0 and row[key]["reached"] <= float(key[3:])
     assert row["cold_s"] > 0 and row["warm_s"] > 0 and row["objective_mcorners_per_s"] > 0
