@@ -178,8 +178,9 @@ typedef struct {
     double weight;
 } HexJob;
 
-/* x86-64 with GCC: an AVX2 clone of the loops below beside the baseline one, picked at load time (the eight
- * corners of an element are the vector lanes). */
+/* x86-64 with GCC: AVX-512 and AVX2 clones of the loops below beside the baseline one, picked at load time (the
+ * eight corners of an element are the vector lanes: one AVX-512 vector). Every clone gives the same numbers bit
+ * for bit: the same IEEE operations in the same order, no FMA contraction (-std=c99 keeps -ffp-contract=off). */
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
 #define VECTOR_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
 #else
@@ -928,7 +929,6 @@ static void elem_setup(const double *X, const long long *HEX, const long long *R
  * corner's matrices cost about 60 operations, and the corners are the vector lanes. */
 #define POLY_ROWS 19
 #define POLY_LANES 8
-#define POLY_BLOCK POLY_LANES
 
 /* Corner j of the rows P (NP corners each) from |A|^2 = gamma + beta.d + alpha |d|^2, det = D0 + g.d and
  * |adj A|^2 = c + 2 m.d + d^T Q d (Q symmetric: q00 q11 q22 q01 q02 q12). */
@@ -995,9 +995,6 @@ static void poly_setup(const Elem *E, Py_ssize_t cnt, const double *x0, double *
     for (Py_ssize_t j = 4 * cnt; j < NP; j++) poly_put(P, NP, j, 0.0, zero, 0.0, 1.0, zero, 0.0, zero, zero);
 }
 
-/* The sums of (kappa/3)^2 over a node's corners (the rows P of poly_setup at x0, NP a multiple of POLY_LANES) at S
- * trial positions (Y: 3 x S, structure of arrays) into f (S,), inf where a corner has det <= 0. Branch-free: each
- * ratio computed, then inf selected where det <= 0. */
 /* The monomials of a displacement d: d0, d1, d2, |d|^2, d0^2, d1^2, d2^2, d0 d1, d0 d2, d1 d2. */
 static inline void poly_monomials(const double *Y, int S, int s, const double *x0, double *m) {
     const double d0 = Y[s] - x0[0], d1 = Y[S + s] - x0[1], d2 = Y[2 * S + s] - x0[2];
@@ -1019,9 +1016,7 @@ static inline __attribute__((always_inline)) double poly_term(const double *p, P
 /* The sums of (kappa/3)^2 over a node's corners (the rows P of poly_setup at x0, NP a multiple of POLY_LANES) at S
  * trial positions (Y: 3 x S, structure of arrays) into f (S,), inf where a corner has det <= 0. Each trial's sum in
  * lanes, the lanes added in order. */
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
-__attribute__((target_clones("avx512f", "avx2", "default")))
-#endif
+VECTOR_CLONES
 static void poly_sums(const double *restrict P, Py_ssize_t NP, const double *restrict x0, const double *restrict Y,
                       int S, double *restrict f) {
     for (int s = 0; s < S; s++) {
@@ -1056,9 +1051,9 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
     if (check_stars(HEX, N, n, ROT, INC, CNT, M, K, "local_sums") < 0) goto done;
     const double *X = B[0].view.buf, *TR = B[5].view.buf;
     double *OUT = B[6].view.buf;
-    Py_ssize_t NPmax = (4 * K + POLY_BLOCK - 1) / POLY_BLOCK * POLY_BLOCK;
+    Py_ssize_t NPmax = (4 * K + POLY_LANES - 1) / POLY_LANES * POLY_LANES;
     Elem *E = malloc(sizeof(Elem) * (K ? K : 1));
-    double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_BLOCK));
+    double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_LANES));
     double *Y = malloc(sizeof(double) * 3 * (size_t)(S ? S : 1));
     if (!E || !P || !Y) {
         PyErr_NoMemory();
@@ -1067,7 +1062,7 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
     for (Py_ssize_t m = 0; m < M; m++) {
         double *o = OUT + m * S;
         const double *tr = TR + 3 * m * S;
-        Py_ssize_t cnt = CNT[m], NP = (4 * cnt + POLY_BLOCK - 1) / POLY_BLOCK * POLY_BLOCK;
+        Py_ssize_t cnt = CNT[m], NP = (4 * cnt + POLY_LANES - 1) / POLY_LANES * POLY_LANES;
         if (cnt == 0) {
             for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
             continue;
@@ -1149,8 +1144,8 @@ static void *ci_worker(void *arg) {
     int S = C * t; /* the trials of one learning attempt, all candidates' */
     double *work = malloc(sizeof(double) * ((size_t)C * 10 + (size_t)S * 4));
     long long *iwork = malloc(sizeof(long long) * ((size_t)C * 3 + (size_t)S));
-    Py_ssize_t NPmax = (4 * K + POLY_BLOCK - 1) / POLY_BLOCK * POLY_BLOCK;
-    double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_BLOCK));
+    Py_ssize_t NPmax = (4 * K + POLY_LANES - 1) / POLY_LANES * POLY_LANES;
+    double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_LANES));
     double *shrink = malloc(sizeof(double) * (size_t)(T ? T : 1)); /* reduction^(a + 1) of attempt a */
     if (!E || !work || !iwork || !P || !shrink) {
         J->failed = 1;
@@ -1182,7 +1177,7 @@ static void *ci_worker(void *arg) {
         }
         h /= 3.0 * (double)(cnt > 0 ? cnt : 1);
         double ncorner = (double)(4 * cnt > 0 ? 4 * cnt : 1), f0;
-        Py_ssize_t NP = (4 * cnt + POLY_BLOCK - 1) / POLY_BLOCK * POLY_BLOCK;
+        Py_ssize_t NP = (4 * cnt + POLY_LANES - 1) / POLY_LANES * POLY_LANES;
         poly_setup(E, cnt, x0, P, NP);
         poly_sums(P, NP, x0, x0, 1, &f0);
         f0 = f0 / ncorner - 1.0;
@@ -1214,7 +1209,7 @@ static void *ci_worker(void *arg) {
             }
             double w = w0 * shrink[a];
             /* every candidate's t trials first (the random numbers drawn in the order candidate, trial), then
-             * their local objectives at once (poly_objectives, the corners vectorised) */
+             * their local objectives at once (poly_sums, the corners vectorised) */
             for (int c = 0; c < C; c++)
                 for (int j = 0; j < t; j++) {
                     double u[3], y[3];

@@ -237,7 +237,7 @@ class _Sweeper:
         projected ``x + a D`` if it lowers `f` (F at the current `x`) on the condition of `best_of`; returns
         ``(F, max kappa/3)`` after it. The factors `PATTERN_FACTORS` are tried in increasing order until F stops
         falling (`best_of` with ``line=True``): along the line F has one minimum (on the boxes and pave3 the best
-        factor came before the first rise every time, 2 to 4 evaluations a sweep instead of 6)."""
+        factor came before the first rise every time: 1 to 4 evaluations a sweep instead of 6)."""
         return self.best_of((self.x + a * D for a in PATTERN_FACTORS), f, kmax, line=True)
 
     def best_of(self, trials, f: float, kmax: float, line: bool = False) -> tuple[float, float]:
