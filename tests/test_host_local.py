@@ -271,3 +271,25 @@ def test_host_pattern_move_never_worsens_the_worst_corner():
     assert f4 < f2 < f and k2 < k and k4 - 1 > EXCESS_GROWTH * (k - 1)
     np.testing.assert_allclose(sw.pattern(D, f, k), (f2, k2), rtol=1e-12)
     np.testing.assert_allclose(sw.x, np.asarray(mesh.points) + 2 * D, atol=1e-15)
+
+
+def test_host_pattern_move_stops_at_the_first_factor_where_f_rises():
+    """`_Sweeper.pattern` tries the factors in order and stops after the first whose F is not below its
+    predecessor's: along the spiked sweep F falls at 1, 2, 4 and rises at 8, so 4 of the 6 factors are evaluated,
+    and the choice is the one of all six (the factor 2, as the test above)."""
+    from jaxci.optim.ci_params import PATTERN_FACTORS, CIParams
+    from jaxci.optim.host_local import _Sweeper
+    from jaxci.smooth import build_problem
+
+    mesh, D = spiked_sweep()
+    pb = build_problem(mesh, dtype=np.float64, device=False)
+    sw = _Sweeper(np.asarray(mesh.points), mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces, CIParams())
+    f, k = sw.objective(sw.x)
+    along = [sw.objective(sw.x + a * D)[0] for a in PATTERN_FACTORS]
+    assert len(PATTERN_FACTORS) == 6 and along[0] > along[1] > along[2] and not along[3] < along[2]
+    calls = []
+    evaluate = sw.objective
+    sw.objective = lambda x: calls.append(1) or evaluate(x)
+    sw.pattern(D, f, k)
+    assert len(calls) == 4
+    np.testing.assert_allclose(sw.x, np.asarray(mesh.points) + 2 * D, atol=1e-15)

@@ -930,6 +930,9 @@ static void elem_setup(const double *X, const long long *HEX, const long long *R
 #define POLY_ROWS 19
 #define POLY_LANES 8
 
+/* The corners of a star of cnt elements, padded to a whole number of vectors: the row length NP of poly_setup. */
+static inline Py_ssize_t poly_width(Py_ssize_t cnt) { return (4 * cnt + POLY_LANES - 1) / POLY_LANES * POLY_LANES; }
+
 /* Corner j of the rows P (NP corners each) from |A|^2 = gamma + beta.d + alpha |d|^2, det = D0 + g.d and
  * |adj A|^2 = c + 2 m.d + d^T Q d (Q symmetric: q00 q11 q22 q01 q02 q12). */
 static inline void poly_put(double *P, Py_ssize_t NP, Py_ssize_t j, double gamma, const double *beta, double alpha,
@@ -1051,7 +1054,7 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
     if (check_stars(HEX, N, n, ROT, INC, CNT, M, K, "local_sums") < 0) goto done;
     const double *X = B[0].view.buf, *TR = B[5].view.buf;
     double *OUT = B[6].view.buf;
-    Py_ssize_t NPmax = (4 * K + POLY_LANES - 1) / POLY_LANES * POLY_LANES;
+    Py_ssize_t NPmax = poly_width(K);
     Elem *E = malloc(sizeof(Elem) * (K ? K : 1));
     double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_LANES));
     double *Y = malloc(sizeof(double) * 3 * (size_t)(S ? S : 1));
@@ -1062,7 +1065,7 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
     for (Py_ssize_t m = 0; m < M; m++) {
         double *o = OUT + m * S;
         const double *tr = TR + 3 * m * S;
-        Py_ssize_t cnt = CNT[m], NP = (4 * cnt + POLY_LANES - 1) / POLY_LANES * POLY_LANES;
+        Py_ssize_t cnt = CNT[m], NP = poly_width(cnt);
         if (cnt == 0) {
             for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
             continue;
@@ -1144,7 +1147,7 @@ static void *ci_worker(void *arg) {
     int S = C * t; /* the trials of one learning attempt, all candidates' */
     double *work = malloc(sizeof(double) * ((size_t)C * 10 + (size_t)S * 4));
     long long *iwork = malloc(sizeof(long long) * ((size_t)C * 3 + (size_t)S));
-    Py_ssize_t NPmax = (4 * K + POLY_LANES - 1) / POLY_LANES * POLY_LANES;
+    Py_ssize_t NPmax = poly_width(K);
     double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_LANES));
     double *shrink = malloc(sizeof(double) * (size_t)(T ? T : 1)); /* reduction^(a + 1) of attempt a */
     if (!E || !work || !iwork || !P || !shrink) {
@@ -1177,7 +1180,7 @@ static void *ci_worker(void *arg) {
         }
         h /= 3.0 * (double)(cnt > 0 ? cnt : 1);
         double ncorner = (double)(4 * cnt > 0 ? 4 * cnt : 1), f0;
-        Py_ssize_t NP = (4 * cnt + POLY_LANES - 1) / POLY_LANES * POLY_LANES;
+        Py_ssize_t NP = poly_width(cnt);
         poly_setup(E, cnt, x0, P, NP);
         poly_sums(P, NP, x0, x0, 1, &f0);
         f0 = f0 / ncorner - 1.0;

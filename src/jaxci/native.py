@@ -246,6 +246,6 @@ def greedy_colour(cells: np.ndarray, n: int) -> np.ndarray:
     (`jaxci.geometry.topology.colour_nodes`' colours, in one C pass): int32 ``(n,)``."""
     cells = _i8(cells)
     out = np.empty(int(n), np.int64)
-    _c.greedy_colour(cells, int(n), int(cells.shape[1]) if cells.ndim == 2 else 1, out)
+    _c.greedy_colour(cells, int(n), int(cells.shape[1]), out)
     return out.astype(np.int32)
 
