@@ -297,3 +297,76 @@ def test_corner_determinants_in_c_are_numpys_bit_for_bit(monkeypatch):
     assert (slow <= 0).any() and np.array_equal(fast, slow)
     with pytest.raises(IndexError, match="out of range"):
         cells.corner_determinants(points, np.array([[0, 1, 2, 3, 4, 5, 6, len(points)]]))
+
+
+# ------------------------------------------------------------ the C kernel inside compiled JAX programs (XLA FFI)
+def _ffi_case(dtype):
+    import jax.numpy as jnp
+
+    m = perturb_box(5, 4, 3, amplitude=0.3, seed=2)
+    x = jnp.asarray(m.points, dtype)
+    conn = jnp.asarray(np.ascontiguousarray(m.hexes.T), jnp.int32)
+    weight = jnp.ones(conn.shape[1], dtype).at[-4:].set(0.0)  # the last four elements: padding
+    return m, x, conn, weight
+
+
+@pytest.mark.parametrize("dtype, rtol", [("float64", 1e-12), ("float32", 2e-5)])
+@pytest.mark.parametrize("n_corners", [None, 1.0])
+def test_ffi_kernel_matches_the_xla_kernel(dtype, rtol, n_corners):
+    """`jaxci.metrics.native_grad.terms_and_grad` (the C kernel as an XLA custom call, under jit) gives the XLA
+    kernel's F, max and gradient: padding elements (weight 0) left out, F and the gradient divided by the real
+    corners or by `n_corners` (one device's sums)."""
+    import jax
+
+    from jaxci.metrics import native_grad
+    from jaxci.metrics.hexahedron import objective_terms_and_grad
+
+    assert native_grad.available("cpu") and not native_grad.available("gpu")
+    _, x, conn, weight = _ffi_case(dtype)
+    f, k, g = jax.jit(lambda x, c, w: native_grad.terms_and_grad(x, c, w, n_corners, threads=2))(x, conn, weight)
+    f1, k1, g1 = objective_terms_and_grad(x, conn, weight, None, 0, n_corners)
+    assert f.dtype == g.dtype == x.dtype and g.shape == x.shape
+    assert float(f) == pytest.approx(float(f1), rel=rtol) and float(k) == pytest.approx(float(k1), rel=rtol)
+    g, g1 = np.asarray(g, np.float64), np.asarray(g1, np.float64)
+    np.testing.assert_allclose(g, g1, rtol=rtol * 10, atol=rtol * np.abs(g1).max())
+    # the padding elements add nothing: the same as the real elements alone
+    f2, _, g2 = native_grad.terms_and_grad(x, conn[:, :-4], None, n_corners)
+    assert float(f2) == pytest.approx(float(f), rel=rtol)
+    np.testing.assert_allclose(np.asarray(g2, np.float64), g, rtol=rtol * 10, atol=rtol * np.abs(g).max())
+
+
+def test_ffi_kernel_inverted_corner_gives_inf_and_the_gradient_of_the_others():
+    from jaxci.metrics import native_grad
+    from jaxci.metrics.hexahedron import objective_terms_and_grad
+
+    m, x, conn, weight = _ffi_case("float64")
+    x = x.at[m.hexes[0, 0]].set(x[m.hexes[0, 6]] + 0.1)  # element 0 inverted
+    f, k, g = native_grad.terms_and_grad(x, conn, weight)
+    _, _, g1 = objective_terms_and_grad(x, conn, weight, None, 0)
+    assert float(f) == float(k) == np.inf
+    np.testing.assert_allclose(np.asarray(g), np.asarray(g1), rtol=1e-10, atol=1e-13 * float(np.abs(g1).max()))
+
+
+def test_compiled_lbfgs_with_the_ffi_kernel_gives_the_xla_kernels_mesh(monkeypatch):
+    """The compiled L-BFGS (``backend="jax"``) on CPU uses the C kernel; with the XLA kernel instead (as on a
+    GPU) it takes the same steps to the same mesh (float64)."""
+    import jax
+
+    from jaxci import smooth
+    from jaxci.metrics import native_grad
+
+    m = perturb_box(4, amplitude=0.3, seed=1)
+    traced, ffi = [], native_grad.terms_and_grad
+    monkeypatch.setattr(native_grad, "terms_and_grad", lambda *a, **k: traced.append(1) or ffi(*a, **k))
+    runs = []
+    for use_c in (True, False):
+        monkeypatch.setattr(native_grad, "available", lambda platform, use_c=use_c: use_c and platform == "cpu")
+        jax.clear_caches()
+        runs.append(smooth(m, "lbfgs", backend="jax", dtype="float64", max_steps=40))
+        assert bool(traced) == use_c  # the C kernel was (only) compiled into the first run
+        traced.clear()
+    jax.clear_caches()
+    (a, b) = runs
+    assert a.iterations == b.iterations
+    np.testing.assert_allclose(a.mesh.points, b.mesh.points, rtol=0, atol=1e-9)
+    assert a.after.max_condition == pytest.approx(b.after.max_condition, rel=1e-9)

@@ -264,7 +264,9 @@ TERMS_SCRIPT = textwrap.dedent(
     x, conn, weight = shard_elements(jnp.asarray(m.points), np.asarray(m.hexes), mesh)
     f, k, g = jax.jit(lambda x, c, w: sharded_terms_and_grad(x, c, w, mesh))(x, conn, weight)
     f1, k1, g1 = objective_terms_and_grad(jnp.asarray(m.points), jnp.asarray(np.asarray(m.hexes).T))
-    assert abs(float(f) - float(f1)) <= 1e-14 * abs(float(f1)) and float(k) == float(k1), (f, f1, k, k1)
+    # (on CPU each device's share comes from the C kernel, jaxci.metrics.native_grad: other roundings)
+    assert abs(float(f) - float(f1)) <= 1e-13 * abs(float(f1)), (f, f1)
+    assert abs(float(k) - float(k1)) <= 1e-13 * abs(float(k1)), (k, k1)
     assert np.allclose(np.asarray(g), np.asarray(g1), rtol=1e-12, atol=1e-15)
     # one exchange: each device's share summed locally, then a single all-reduce
     hlo = jax.jit(lambda x, c, w: sharded_terms_and_grad(x, c, w, mesh)).lower(x, conn, weight).compile().as_text()

@@ -71,8 +71,8 @@ typedef struct {
     long long invalid;
 } Sums;
 
-/* The jobs' Sums (each `size` bytes, its Sums first) added up, as (sum, max, inverted). */
-static PyObject *total_sums(const void *jobs, size_t size, int nt) {
+/* The jobs' Sums (each `size` bytes, its Sums first) added up. */
+static Sums add_sums(const void *jobs, size_t size, int nt) {
     Sums out = {0.0, 0.0, 0};
     for (int t = 0; t < nt; t++) {
         const Sums *s = (const Sums *)((const char *)jobs + t * size);
@@ -80,6 +80,12 @@ static PyObject *total_sums(const void *jobs, size_t size, int nt) {
         if (s->tmax > out.tmax) out.tmax = s->tmax;
         out.invalid += s->invalid;
     }
+    return out;
+}
+
+/* add_sums as the tuple (sum, max, inverted). */
+static PyObject *total_sums(const void *jobs, size_t size, int nt) {
+    Sums out = add_sums(jobs, size, nt);
     return Py_BuildValue("ddL", out.sum, out.tmax, out.invalid);
 }
 
@@ -133,10 +139,11 @@ static int threads_for(Py_ssize_t n_elements, int nthreads) {
 }
 
 /* Run worker(jobs[t]) for t < nt (job t of `size` bytes; its gradient pointer at byte `goff`), the first in
- * this thread, with the GIL released. `G` (length `len`, or NULL): job 0 adds into it directly, the others into
- * zeroed buffers added to it afterwards. -1 with MemoryError if a buffer cannot be had. */
-static int run_jobs(void *jobs, size_t size, int nt, void *(*worker)(void *), double *G, Py_ssize_t len,
-                    size_t goff) {
+ * this thread; no Python call (the XLA FFI handler below runs it on XLA's threads, without the GIL). `G` (length
+ * `len`, or NULL): job 0 adds into it directly, the others into zeroed buffers added to it afterwards. -1 if a
+ * buffer cannot be had (nothing run). */
+static int run_jobs_nogil(void *jobs, size_t size, int nt, void *(*worker)(void *), double *G, Py_ssize_t len,
+                          size_t goff) {
     char *base = jobs;
     double *bufs[MAX_THREADS] = {0};
     if (G) {
@@ -145,13 +152,11 @@ static int run_jobs(void *jobs, size_t size, int nt, void *(*worker)(void *), do
             bufs[t] = calloc((size_t)len, sizeof(double));
             if (!bufs[t]) {
                 for (int k = 1; k < t; k++) free(bufs[k]);
-                PyErr_NoMemory();
                 return -1;
             }
             *(double **)(base + t * size + goff) = bufs[t];
         }
     }
-    Py_BEGIN_ALLOW_THREADS
     pthread_t tid[MAX_THREADS];
     int started[MAX_THREADS] = {0};
     for (int t = 1; t < nt; t++) started[t] = pthread_create(&tid[t], NULL, worker, base + t * size) == 0;
@@ -165,8 +170,18 @@ static int run_jobs(void *jobs, size_t size, int nt, void *(*worker)(void *), do
             for (Py_ssize_t k = 0; k < len; k++) G[k] += bufs[t][k];
             free(bufs[t]);
         }
-    Py_END_ALLOW_THREADS
     return 0;
+}
+
+/* run_jobs_nogil with the GIL released; -1 with MemoryError if a buffer cannot be had. */
+static int run_jobs(void *jobs, size_t size, int nt, void *(*worker)(void *), double *G, Py_ssize_t len,
+                    size_t goff) {
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = run_jobs_nogil(jobs, size, nt, worker, G, len, goff);
+    Py_END_ALLOW_THREADS
+    if (rc < 0) PyErr_NoMemory();
+    return rc;
 }
 
 typedef struct {
@@ -355,6 +370,187 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
 done:
     release(B, 5);
     return ret;
+}
+
+/* ---- hex_condition as an XLA FFI handler (jaxci.metrics.native_grad: the compiled JAX solvers on CPU) ----
+ *
+ * The parts of XLA's FFI C API that the handler uses, laid out as in xla/ffi/api/c_api.h (API 0.x, which XLA
+ * keeps binary compatible; jaxlib's copy of the header is not there when pip builds this extension). */
+#include <stdint.h>
+#define XFFI_API_MAJOR 0
+#define XFFI_API_MINOR 1
+typedef struct XffiExt {
+    size_t struct_size;
+    int type; /* 1: the metadata extension */
+    struct XffiExt *next;
+} XffiExt;
+typedef struct {
+    size_t struct_size;
+    XffiExt *extension_start;
+    int major_version, minor_version;
+} XffiVersion;
+typedef struct {
+    size_t struct_size;
+    XffiVersion api_version;
+    uint32_t traits;
+    int64_t state_type_id;
+} XffiMetadata;
+typedef struct {
+    XffiExt base;
+    XffiMetadata *metadata;
+} XffiMetadataExt;
+typedef struct {
+    size_t struct_size;
+    XffiExt *extension_start;
+    int dtype; /* 4 s32, 5 s64, 11 f32, 12 f64 */
+    void *data;
+    int64_t rank;
+    int64_t *dims;
+} XffiBuffer;
+typedef struct {
+    size_t struct_size;
+    XffiExt *extension_start;
+    int64_t size;
+    int *types;
+    void **items;
+} XffiList;
+typedef struct {
+    size_t struct_size;
+    XffiExt *extension_start;
+    const char *message;
+    int errc; /* 3 invalid argument, 8 resource exhausted */
+} XffiErrorArgs;
+typedef struct {
+    size_t struct_size;
+    XffiExt *extension_start;
+    XffiVersion api_version;
+    const void *internal_api;
+    void *(*error_create)(XffiErrorArgs *);
+} XffiApi;
+typedef struct {
+    size_t struct_size;
+    XffiExt *extension_start;
+    const XffiApi *api;
+    void *ctx;
+    int stage; /* 3: execute */
+    XffiList args, rets;
+} XffiCallFrame;
+
+static void *ffi_error(const XffiCallFrame *cf, int errc, const char *message) {
+    XffiErrorArgs a = {sizeof(XffiErrorArgs), NULL, message, errc};
+    return cf->api->error_create(&a);
+}
+
+static int ffi_float(const XffiBuffer *b) { return b->dtype == 11 || b->dtype == 12; }
+
+static double ffi_get(const XffiBuffer *b, Py_ssize_t k) {
+    return b->dtype == 12 ? ((const double *)b->data)[k] : (double)((const float *)b->data)[k];
+}
+
+static void ffi_set(const XffiBuffer *b, Py_ssize_t k, double v) {
+    if (b->dtype == 12) ((double *)b->data)[k] = v;
+    else ((float *)b->data)[k] = (float)v;
+}
+
+/* Elements per chunk of an FFI job: their element-major node indices are copied to the stack (64 KB), never the
+ * whole connectivity (640 MB at 10^7 hexahedra). */
+#define FFI_CHUNK 1024
+
+typedef struct {
+    Sums s;
+    const XffiBuffer *C, *W;
+    const double *P;
+    double *G;
+    Py_ssize_t lo, hi;
+    double weight;
+} FfiJob;
+
+/* Elements [lo, hi) of the FFI call, chunk by chunk through hex_worker, leaving out those of weight <= 0. */
+static void *ffi_worker(void *arg) {
+    FfiJob *j = arg;
+    const XffiBuffer *C = j->C, *W = j->W;
+    Py_ssize_t N = C->dims[1];
+    long long H[8 * FFI_CHUNK];
+    Sums s = {0.0, 0.0, 0};
+    for (Py_ssize_t e0 = j->lo; e0 < j->hi; e0 += FFI_CHUNK) {
+        Py_ssize_t e1 = e0 + FFI_CHUNK < j->hi ? e0 + FFI_CHUNK : j->hi, real = 0;
+        for (Py_ssize_t e = e0; e < e1; e++) {
+            if (!(ffi_get(W, e) > 0.0)) continue;
+            for (int m = 0; m < 8; m++)
+                H[8 * real + m] = C->dtype == 5 ? ((const int64_t *)C->data)[m * N + e]
+                                                : (long long)((const int32_t *)C->data)[m * N + e];
+            real++;
+        }
+        HexJob h = {{0.0, 0.0, 0}, j->P, NULL, H, NULL, j->G, real, 0, real, j->weight};
+        hex_worker(&h);
+        s.sum += h.s.sum;
+        if (h.s.tmax > s.tmax) s.tmax = h.s.tmax;
+        s.invalid += h.s.invalid;
+    }
+    j->s = s;
+    return NULL;
+}
+
+/* ffi_hex_terms_and_grad(points (n, 3), conn (8, N) s32/s64, weight (N,), params (2,)) -> (F, max kappa/3,
+ * dF/dx (n, 3)), points, weight, params and the results all f32 or all f64: hex_condition in float64 over the
+ * elements of weight > 0 (padding has weight 0), with F and its gradient divided by params[0] (0: the real
+ * corners) and params[1] kernel threads. F and the max are inf if a corner has det <= 0 (the gradient leaves it
+ * out). Node indices are the caller's own (jaxci.optim builds them): not checked here. */
+static void *ffi_hex_terms_and_grad(XffiCallFrame *cf) {
+    if (cf->extension_start && cf->extension_start->type == 1) {  /* XLA asks which API this handler speaks */
+        XffiMetadata *m = ((XffiMetadataExt *)cf->extension_start)->metadata;
+        m->api_version = (XffiVersion){sizeof(XffiVersion), NULL, XFFI_API_MAJOR, XFFI_API_MINOR};
+        m->traits = 0;
+        return NULL;
+    }
+    if (cf->stage != 3) return NULL;
+    if (cf->args.size != 4 || cf->rets.size != 3)
+        return ffi_error(cf, 3, "jaxci_hex_terms_and_grad: expected 4 arguments and 3 results");
+    const XffiBuffer *X = cf->args.items[0], *C = cf->args.items[1], *W = cf->args.items[2],
+                     *Q = cf->args.items[3], *F = cf->rets.items[0], *K = cf->rets.items[1], *G = cf->rets.items[2];
+    if (X->rank != 2 || X->dims[1] != 3 || C->rank != 2 || C->dims[0] != 8 || (C->dtype != 4 && C->dtype != 5) ||
+        W->rank != 1 || W->dims[0] != C->dims[1] || Q->dtype != X->dtype || !ffi_float(X) || W->dtype != X->dtype ||
+        F->dtype != X->dtype || K->dtype != X->dtype || G->dtype != X->dtype)
+        return ffi_error(cf, 3, "jaxci_hex_terms_and_grad: points (n, 3), conn (8, N) int, weight (N,), "
+                                "params (2,); points, weight, params and results of one float type");
+    Py_ssize_t n = X->dims[0], N = C->dims[1], real = 0;
+    int f64 = X->dtype == 12;
+    double count = ffi_get(Q, 0);
+    if (!(count > 0.0)) {
+        for (Py_ssize_t e = 0; e < N; e++) real += ffi_get(W, e) > 0.0;
+        count = 8.0 * (double)real;
+    }
+    /* float64 points and gradient as they are; float32 ones through float64 copies */
+    double *P = f64 ? X->data : malloc((size_t)(3 * n + 1) * sizeof(double));
+    double *grad = f64 ? G->data : malloc((size_t)(3 * n + 1) * sizeof(double));
+    if (!P || !grad) {
+        if (!f64) { free(P); free(grad); }
+        return ffi_error(cf, 8, "jaxci_hex_terms_and_grad: out of memory");
+    }
+    if (!f64)
+        for (Py_ssize_t k = 0; k < 3 * n; k++) P[k] = ffi_get(X, k);
+    memset(grad, 0, (size_t)(3 * n) * sizeof(double));
+    double weight = count > 0.0 ? 2.0 / (9.0 * count) : 0.0;
+    FfiJob jobs[MAX_THREADS];
+    int nt = threads_for(N, (int)ffi_get(Q, 1));
+    for (int t = 0; t < nt; t++)
+        jobs[t] = (FfiJob){{0.0, 0.0, 0}, C, W, P, NULL, N * t / nt, N * (t + 1) / nt, weight};
+    int rc = run_jobs_nogil(jobs, sizeof(FfiJob), nt, ffi_worker, grad, 3 * n, offsetof(FfiJob, G));
+    Sums s = add_sums(jobs, sizeof(FfiJob), nt);
+    if (rc == 0) {
+        int bad = s.invalid > 0;
+        ffi_set(F, 0, bad ? INFINITY : (count > 0.0 ? s.sum / count : 0.0));
+        ffi_set(K, 0, bad ? INFINITY : sqrt(s.tmax));
+        if (!f64)
+            for (Py_ssize_t k = 0; k < 3 * n; k++) ffi_set(G, k, grad[k]);
+    }
+    if (!f64) { free(P); free(grad); }
+    return rc == 0 ? NULL : ffi_error(cf, 8, "jaxci_hex_terms_and_grad: out of memory");
+}
+
+/* ffi_handler() -> a PyCapsule of ffi_hex_terms_and_grad, for jax.ffi.register_ffi_target. */
+static PyObject *ffi_handler(PyObject *self, PyObject *args) {
+    return PyCapsule_New((void *)ffi_hex_terms_and_grad, NULL, NULL);
 }
 
 typedef struct {
@@ -1623,6 +1819,7 @@ done:
 
 static PyMethodDef methods[] = {
     {"hex_condition", hex_condition, METH_VARARGS, "F terms of hexahedra, their sum, max and gradient"},
+    {"ffi_handler", ffi_handler, METH_NOARGS, "the XLA FFI handler of hex_condition, as a PyCapsule"},
     {"hex_determinants", hex_determinants, METH_VARARGS, "det A_i of every corner of every hexahedron"},
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},

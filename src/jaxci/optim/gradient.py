@@ -81,6 +81,7 @@ from .._lazy import jax, jnp
 from ..cells import corner_invariants
 from ..errors import ConfigError
 from ..geometry.projection import project_np
+from ..metrics import native_grad
 from ..metrics.hexahedron import (
     corner_columns,
     gather_corners,
@@ -143,6 +144,8 @@ def _terms_and_grad(points, conn, weight, power, block, mesh):
         from .sharding import sharded_terms_and_grad
 
         return sharded_terms_and_grad(points, conn, weight, mesh)
+    if power is None and native_grad.available(jax.default_backend()):
+        return native_grad.terms_and_grad(points, conn, weight)
     return objective_terms_and_grad(points, conn, weight, power, block)
 
 

@@ -35,8 +35,10 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from .. import native
 from ..cells import corner_invariants
 from ..errors import ConfigError
+from ..metrics import native_grad
 from ..metrics.hexahedron import (
     corner_columns,
     gather_corners,
@@ -265,9 +267,13 @@ def sharded_terms_and_grad(points, conn, weight, mesh: Mesh):
     from ..metrics.hexahedron import objective_terms_and_grad
 
     n_dev = mesh.devices.size
+    c_kernel = native_grad.available(mesh.devices.flat[0].platform)
 
     def local(points, conn, weight):
-        f, k, g = objective_terms_and_grad(points, conn, weight, None, 0, 1.0)  # sums: divided by the count below
+        if c_kernel:  # the C kernel, each device's call with its share of the kernel threads
+            f, k, g = native_grad.terms_and_grad(points, conn, weight, 1.0, max(1, native.THREADS // n_dev))
+        else:  # sums: divided by the count below
+            f, k, g = objective_terms_and_grad(points, conn, weight, None, 0, 1.0)
         count = 8.0 * jnp.sum((weight > 0).astype(points.dtype))
         slots = jnp.zeros(n_dev, points.dtype).at[jax.lax.axis_index(AXIS)].set(k)
         total = jax.lax.psum(jnp.concatenate([g.reshape(-1), jnp.stack([f, count]), slots]), AXIS)
