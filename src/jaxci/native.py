@@ -133,14 +133,10 @@ class MixedKernel:
 _EYE = np.eye(3)
 
 
-def hex_sums(points: np.ndarray, hexes: np.ndarray, weight: float = 0.0, grad: np.ndarray | None = None,
-             threads: int | None = None) -> tuple[float, float, int]:
+def hex_sums(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float, int]:
     """``(sum of (kappa/3)^2 - 1 over the valid corners, max (kappa/3)^2, inverted corners)`` of the hexahedra
-    `hexes` ``(N, 8)`` at `points` ``(n, 3)``, in one pass; with `grad` (float64 C-contiguous ``(n, 3)``) also
-    adds ``weight * (9/2)`` times the gradient of every valid corner's (kappa/3)^2 to it, in place (``weight =
-    2 / (9 * 8N)``: the gradient of F). `threads`: the kernel's threads (default `THREADS`)."""
-    return _c.hex_condition(_f8(points), _i8(hexes), float(weight), grad, None, None,
-                            THREADS if threads is None else int(threads))
+    `hexes` ``(N, 8)`` at `points` ``(n, 3)``: one pass, no gradient."""
+    return _c.hex_condition(_f8(points), _i8(hexes), 0.0, None, None, None, THREADS)
 
 
 def hex_objective(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float]:
