@@ -15,6 +15,7 @@
 #include <math.h>
 #include <pthread.h>
 #include <stddef.h>
+#include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -376,7 +377,6 @@ done:
  *
  * The parts of XLA's FFI C API that the handler uses, laid out as in xla/ffi/api/c_api.h (API 0.x, which XLA
  * keeps binary compatible; jaxlib's copy of the header is not there when pip builds this extension). */
-#include <stdint.h>
 #define XFFI_API_MAJOR 0
 #define XFFI_API_MINOR 1
 typedef struct XffiExt {

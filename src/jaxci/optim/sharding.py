@@ -43,6 +43,7 @@ from ..metrics.hexahedron import (
     corner_columns,
     gather_corners,
     objective_t,
+    objective_terms_and_grad,
     squared_condition_from_invariants,
 )
 
@@ -264,8 +265,6 @@ def sharded_terms_and_grad(points, conn, weight, mesh: Mesh):
     gives every device the whole mesh's F, max and gradient. Left to XLA's partitioner, the gradient's 24 scatters
     into the nodes (a local node and a coordinate each) were each followed by an all-reduce: 25 rendezvous of the
     device threads in a step, which with more devices than cores cost most of a sharded L-BFGS step."""
-    from ..metrics.hexahedron import objective_terms_and_grad
-
     n_dev = mesh.devices.size
     c_kernel = native_grad.available(mesh.devices.flat[0].platform)
 
