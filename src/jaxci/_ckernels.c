@@ -958,6 +958,32 @@ done:
     return ret;
 }
 
+/* The two-level preconditioner of jaxci.optim.coarse: q := M q = inv_diag * q + Z Cinv Z^T q, where free coordinate
+ * i has coefficients z[i, 0..2] on coarse coordinates 3 block[i] + 0..2 (m of them; work: 2 m doubles). */
+typedef struct {
+    Py_ssize_t m;
+    const long long *block;
+    const double *z, *cinv, *idiag;
+    double *work, gamma;
+} Coarse;
+
+static void coarse_apply(const Coarse *P, double *q, Py_ssize_t n) {
+    double *c = P->work, *cc = P->work + P->m;
+    for (Py_ssize_t j = 0; j < P->m; j++) c[j] = 0.0;
+    for (Py_ssize_t i = 0; i < n; i++)
+        for (int d = 0; d < 3; d++) c[3 * P->block[i] + d] += P->z[3 * i + d] * q[i];
+    for (Py_ssize_t j = 0; j < P->m; j++) {
+        const double *row = P->cinv + j * P->m;
+        double acc[4] = {0.0, 0.0, 0.0, 0.0};
+        for (Py_ssize_t l = 0; l < P->m; l++) acc[l & 3] += row[l] * c[l];
+        cc[j] = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double *zi = P->z + 3 * i, *ci = cc + 3 * P->block[i];
+        q[i] = P->idiag[i] * q[i] + (zi[0] * ci[0] + zi[1] * ci[1] + zi[2] * ci[2]);
+    }
+}
+
 /* The two-loop recursion of lbfgs_direction over pairs stored as T (double, or float for a large memory):
  * q = -H g, the sums in double. Each pass over the vectors updates q and takes the next pair's dot product with
  * the updated entries (one pass per pair instead of two), and every dot product is summed in four interleaved
@@ -965,7 +991,7 @@ done:
  * 0.05 ms; the same sums in another order, so the last bits of a direction differ from a single sum's). */
 #define TWO_LOOP(NAME, T)                                                                                        \
     static void NAME(const double *G, const T *SS, const T *YY, const double *R, const long long *O,             \
-                     Py_ssize_t k, Py_ssize_t n, double *q) {                                                     \
+                     Py_ssize_t k, Py_ssize_t n, double *q, const Coarse *PC) {                                   \
         double alpha[64], gamma = 1.0;                                                                           \
         Py_ssize_t n4 = n - n % 4;                                                                               \
         /* dot: v . q of the q already written; AXPY_DOT: q += c x, then dot += v . q (v may be NULL) */         \
@@ -988,7 +1014,16 @@ done:
             v = t ? SS + O[t - 1] * n : NULL;                                                                    \
             AXPY_DOT(T)                                                                                          \
         }                                                                                                        \
-        if (k) {                                                                                                 \
+        if (PC) { /* H0 = gamma M, the two-level preconditioner; then the first forward dot */                   \
+            coarse_apply(PC, q, n);                                                                              \
+            const T *y0 = k ? YY + O[0] * n : NULL;                                                              \
+            d[0] = d[1] = d[2] = d[3] = 0.0;                                                                     \
+            for (Py_ssize_t i = 0; i < n; i++) {                                                                 \
+                q[i] *= PC->gamma;                                                                               \
+                if (y0) d[i & 3] += (double)y0[i] * q[i];                                                        \
+            }                                                                                                    \
+            dot = (d[0] + d[1]) + (d[2] + d[3]);                                                                 \
+        } else if (k) {                                                                                          \
             const T *s = SS + O[k - 1] * n, *y = YY + O[k - 1] * n;                                              \
             double sy[4] = {0.0, 0.0, 0.0, 0.0}, yy[4] = {0.0, 0.0, 0.0, 0.0};                                   \
             for (Py_ssize_t i = 0; i < n4; i += 4)                                                               \
@@ -1044,14 +1079,21 @@ TWO_LOOP(two_loop_f4, float)
 #undef TWO_LOOP
 #undef AXPY_DOT
 
-/* lbfgs_direction(g (n,) f8, S (m, n) f8 or f4, Y (m, n) as S, rho (m,) f8, order (k,) i8, out (n,) f8) -> None:
+/* lbfgs_direction(g (n,) f8, S (m, n) f8 or f4, Y (m, n) as S, rho (m,) f8, order (k,) i8, out (n,) f8
+ *                 [, gamma, block (n,) i8, z (n, 3) f8, coarse_inv (mc, mc) f8, inv_diag (n,) f8]) -> None:
  * out = -H g by the L-BFGS two-loop recursion over the pairs (S[i], Y[i], rho[i] = 1 / S[i].Y[i]) for i in
- * `order` (oldest first), the initial matrix scaled by s.y / y.y of the newest pair (jaxci.optim.host._direction).
+ * `order` (oldest first), the initial matrix scaled by s.y / y.y of the newest pair (jaxci.optim.host._direction),
+ * or, given the preconditioner's arrays, gamma M (jaxci.optim.coarse; gamma from the caller).
  * float32 pairs: the memory of a large problem (jaxci.optim.host.HISTORY_F32_FROM), the arithmetic in double. */
 static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
     PyObject *o_g, *o_s, *o_y, *o_rho, *o_order, *o_out, *ret = NULL;
-    if (!PyArg_ParseTuple(args, "OOOOOO", &o_g, &o_s, &o_y, &o_rho, &o_order, &o_out)) return NULL;
-    Buf B[6] = {{{0}}};
+    PyObject *o_block = Py_None, *o_z = Py_None, *o_cinv = Py_None, *o_idiag = Py_None;
+    double gamma = 1.0;
+    if (!PyArg_ParseTuple(args, "OOOOOO|dOOOO", &o_g, &o_s, &o_y, &o_rho, &o_order, &o_out, &gamma, &o_block, &o_z,
+                          &o_cinv, &o_idiag))
+        return NULL;
+    Buf B[10] = {{{0}}};
+    Coarse pc = {0}, *PC = NULL;
     int f4 = 0;
     if (PyObject_CheckBuffer(o_s)) { /* float32 pairs? (the format decides which loop runs) */
         Py_buffer v;
@@ -1082,17 +1124,82 @@ static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
         goto done;
     }
     if (check_indices(O, k, m, "lbfgs_direction") < 0) goto done;
+    if (o_block != Py_None) { /* the two-level preconditioner (jaxci.optim.coarse.CoarseSpace) */
+        if (acquire(&B[6], o_block, "block", "qlq", 0, 0) < 0 || acquire(&B[7], o_z, "z", "d", 0, 0) < 0 ||
+            acquire(&B[8], o_cinv, "coarse_inv", "d", 0, 0) < 0 || acquire(&B[9], o_idiag, "inv_diag", "d", 0, 0) < 0)
+            goto done;
+        Py_ssize_t mc = (Py_ssize_t)(sqrt((double)(B[8].view.len / 8)) + 0.5);
+        if (B[6].view.len != 8 * n || B[7].view.len != 24 * n || B[9].view.len != 8 * n || mc % 3 ||
+            B[8].view.len != 8 * mc * mc) {
+            PyErr_SetString(PyExc_ValueError, "lbfgs_direction: preconditioner shapes disagree");
+            goto done;
+        }
+        if (check_indices(B[6].view.buf, n, mc / 3, "lbfgs_direction (block)") < 0) goto done;
+        pc.m = mc;
+        pc.block = B[6].view.buf;
+        pc.z = B[7].view.buf;
+        pc.cinv = B[8].view.buf;
+        pc.idiag = B[9].view.buf;
+        pc.gamma = gamma;
+        if (!(pc.work = PyMem_Malloc((size_t)(2 * mc + 1) * sizeof(double)))) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        PC = &pc;
+    }
     const double *G = B[0].view.buf, *R = B[3].view.buf;
     double *q = B[5].view.buf;
     Py_BEGIN_ALLOW_THREADS
     if (f4)
-        two_loop_f4(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q);
+        two_loop_f4(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q, PC);
     else
-        two_loop_f8(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q);
+        two_loop_f8(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q, PC);
     Py_END_ALLOW_THREADS
     Py_INCREF(Py_None);
     ret = Py_None;
 done:
+    PyMem_Free(pc.work);
+    release(B, 10);
+    return ret;
+}
+
+/* coarse_apply(q (n,) f8, out (n,) f8, block (n,) i8, z (n, 3) f8, coarse_inv (mc, mc) f8, inv_diag (n,) f8) -> None:
+ * out = M q, the two-level preconditioner of jaxci.optim.coarse (coarse_apply above). */
+static PyObject *py_coarse_apply(PyObject *self, PyObject *args) {
+    PyObject *o[6], *ret = NULL;
+    if (!PyArg_ParseTuple(args, "OOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5])) return NULL;
+    Buf B[6] = {{{0}}};
+    Coarse pc = {0};
+    if (acquire(&B[0], o[0], "q", "d", 0, 0) < 0 || acquire(&B[1], o[1], "out", "d", 1, 0) < 0 ||
+        acquire(&B[2], o[2], "block", "qlq", 0, 0) < 0 || acquire(&B[3], o[3], "z", "d", 0, 0) < 0 ||
+        acquire(&B[4], o[4], "coarse_inv", "d", 0, 0) < 0 || acquire(&B[5], o[5], "inv_diag", "d", 0, 0) < 0)
+        goto done;
+    Py_ssize_t n = B[0].view.len / 8, mc = (Py_ssize_t)(sqrt((double)(B[4].view.len / 8)) + 0.5);
+    if (B[1].view.len != 8 * n || B[2].view.len != 8 * n || B[3].view.len != 24 * n || B[5].view.len != 8 * n ||
+        mc % 3 || B[4].view.len != 8 * mc * mc) {
+        PyErr_SetString(PyExc_ValueError, "coarse_apply: shapes disagree");
+        goto done;
+    }
+    if (check_indices(B[2].view.buf, n, mc / 3, "coarse_apply (block)") < 0) goto done;
+    pc.m = mc;
+    pc.block = B[2].view.buf;
+    pc.z = B[3].view.buf;
+    pc.cinv = B[4].view.buf;
+    pc.idiag = B[5].view.buf;
+    if (!(pc.work = PyMem_Malloc((size_t)(2 * mc + 1) * sizeof(double)))) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    double *out = B[1].view.buf;
+    const double *q = B[0].view.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < n; i++) out[i] = q[i];
+    coarse_apply(&pc, out, n);
+    Py_END_ALLOW_THREADS
+    Py_INCREF(Py_None);
+    ret = Py_None;
+done:
+    PyMem_Free(pc.work);
     release(B, 6);
     return ret;
 }
@@ -1875,6 +1982,7 @@ static PyMethodDef methods[] = {
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},
     {"lbfgs_direction", lbfgs_direction, METH_VARARGS, "the L-BFGS two-loop recursion"},
+    {"coarse_apply", py_coarse_apply, METH_VARARGS, "the two-level preconditioner of jaxci.optim.coarse"},
     {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of hexahedra and its gradient"},
     {"local_sums", local_sums, METH_VARARGS, "local objective sums of trial positions of nodes in their stars"},
     {"ci_visit", ci_visit, METH_VARARGS, "one cohort run of local CI for every node of one colour"},

@@ -158,11 +158,23 @@ def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.
 
 
 def lbfgs_direction(g: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,
-                    out: np.ndarray) -> None:
+                    out: np.ndarray, gamma: float = 1.0, precond=None) -> None:
     """``out = -H g``: the L-BFGS two-loop recursion over the pairs ``(S[i], Y[i], rho[i])`` for ``i`` in `order`
     (oldest first; at most 64), in C (`jaxci.optim.host`'s memory). Float64 arrays (`S` and `Y` float64 or both
-    float32), `order` int64."""
-    _c.lbfgs_direction(g, S, Y, rho, order, out)
+    float32), `order` int64. The initial inverse Hessian is ``s.y / y.y`` I of the newest pair, or with `precond`
+    (a `jaxci.optim.coarse.CoarseSpace`) ``gamma M``."""
+    if precond is None:
+        _c.lbfgs_direction(g, S, Y, rho, order, out)
+    else:
+        _c.lbfgs_direction(g, S, Y, rho, order, out, float(gamma), precond.block, precond.z, precond.coarse_inv,
+                           precond.inv_diag)
+
+
+def coarse_apply(q: np.ndarray, precond) -> np.ndarray:
+    """``M q`` of a `jaxci.optim.coarse.CoarseSpace` `precond` for `q` ``(n,)`` (a new float64 array)."""
+    out = np.empty(len(q))
+    _c.coarse_apply(_f8(q), out, precond.block, precond.z, precond.coarse_inv, precond.inv_diag)
+    return out
 
 
 def untangle_energy(points: np.ndarray, hexes: np.ndarray, inv_len: np.ndarray, eps: float, theta: float,

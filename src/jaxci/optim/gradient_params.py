@@ -19,6 +19,9 @@ LEAST_SQUARES = ("lm", "gauss-newton")
 OBJECTIVES = ("mean", "pmean")
 MAX_POWER = 64.0
 
+#: Initial inverse Hessians of the host L-BFGS (`GradientParams.precondition`).
+PRECONDITIONERS = ("none", "coarse")
+
 #: Nonlinear CG beta formulas (`optx.NonlinearCG(method=...)`).
 CG_METHODS = ("polak_ribiere", "fletcher_reeves", "hestenes_stiefel", "dai_yuan")
 
@@ -77,6 +80,9 @@ class GradientParams:
       mean kappa/3 1.084 -> 1.102 / 1.140; 49 -> 191 / 2000 steps: p = 4 ran to the step cap); a wavy annulus (curved
       walls) 1.401 -> 1.319 / 1.287 (mean 1.2226 -> 1.2232 / 1.2240). p = 2 takes most of the gain at a fraction of the
       steps and of the cost in mean quality.
+    - `precondition`: L-BFGS on the host (numpy) path only: ``"none"`` (default: initial inverse Hessian
+      ``gamma I``) or ``"coarse"`` (``gamma M``, the two-level Laplacian preconditioner of `jaxci.optim.coarse`:
+      fewer steps where boundary nodes slide on curved walls; see its docstring for the figures).
     """
 
     max_steps: int = 2000
@@ -99,6 +105,7 @@ class GradientParams:
     backend: str = "auto"
     objective: str = "mean"
     p: float = 2.0
+    precondition: str = "none"
 
     def __post_init__(self):
         L = "gradient-method"
@@ -124,6 +131,7 @@ class GradientParams:
             backend=_p.choice(L, "backend", self.backend, _p.BACKENDS),
             objective=_p.choice(L, "objective", self.objective, OBJECTIVES),
             p=_p.real(L, "p", self.p, 1.0, MAX_POWER),
+            precondition=_p.choice(L, "precondition", self.precondition, PRECONDITIONERS),
         )
         if self.objective == "pmean" and self.gradient != "closed":
             raise ConfigError("gradient-method parameter objective='pmean' needs gradient='closed' (the p-mean has "

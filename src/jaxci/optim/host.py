@@ -200,10 +200,14 @@ def _amax(a: np.ndarray) -> float:
 
 class _Memory:
     """The L-BFGS memory: up to `history` pairs ``(s, y, 1 / s.y)`` in ring buffers ``(history, n)``, float64, or
-    float32 from `HISTORY_F32_FROM` unknowns (with the C kernels)."""
+    float32 from `HISTORY_F32_FROM` unknowns (with the C kernels); `precond` (optional): a fixed symmetric positive
+    definite ``M`` (`jaxci.optim.coarse.CoarseSpace`), the initial inverse Hessian ``gamma M`` with
+    ``gamma = s.y / y.M y`` of the newest pair (default ``M = I``)."""
 
-    def __init__(self, n: int, history: int):
+    def __init__(self, n: int, history: int, precond=None):
         self.history = history
+        self.precond = precond
+        self.gamma = 1.0
         dtype = np.float32 if n >= HISTORY_F32_FROM and native.AVAILABLE else np.float64
         # all `history` rows at once, never grown: a large np.empty is mapped, not touched, so a row costs memory
         # only once a pair is written to it (growing by concatenation held the old and the new buffers at once:
@@ -223,6 +227,9 @@ class _Memory:
         slot = self.order.pop(0) if len(self.order) == self.history else len(self.order)
         self.S[slot], self.Y[slot], self.rho[slot] = s, y, 1.0 / sy
         self.order.append(slot)
+        if self.precond is not None:
+            y = self.Y[slot].astype(np.float64)
+            self.gamma = sy / _dot(y, self.precond(y))
 
     def clear(self) -> None:
         self.order.clear()
@@ -230,9 +237,10 @@ class _Memory:
     def direction(self, g: np.ndarray) -> np.ndarray:
         """``-H g`` by the two-loop recursion (initial Hessian scaled by ``s.y / y.y`` of the newest pair): the C
         loop of `jaxci.native` where it is built."""
+        pc = self.precond
         if native.AVAILABLE and len(self.order) <= 64:
             out = np.empty_like(g)
-            native.lbfgs_direction(g, self.S, self.Y, self.rho, np.asarray(self.order, np.int64), out)
+            native.lbfgs_direction(g, self.S, self.Y, self.rho, np.asarray(self.order, np.int64), out, self.gamma, pc)
             return out
         S, Y = self.S.astype(np.float64, copy=False), self.Y.astype(np.float64, copy=False)  # float32 pairs: in float64
         q = g.copy()
@@ -241,7 +249,9 @@ class _Memory:
             a = self.rho[k] * _dot(S[k], q)
             alphas.append(a)
             q -= a * Y[k]
-        if self.order:
+        if pc is not None:
+            q = self.gamma * pc(q)
+        elif self.order:
             s, y = S[self.order[-1]], Y[self.order[-1]]
             q *= _dot(s, y) / _dot(y, y)
         for k, a in zip(self.order, reversed(alphas), strict=True):
@@ -251,7 +261,8 @@ class _Memory:
 
 
 def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
-          history: int, cap: float, ftol: float, done: Callable | None = None, deadline: float | None = None):
+          history: int, cap: float, ftol: float, done: Callable | None = None, deadline: float | None = None,
+          precond: Callable | None = None):
     """Minimise `fun` (a `HostObjective`: ``value, grad, F, max kappa/3 = fun(y)``; its ``accept()``, if any,
     is called once an evaluation becomes the iterate) from `y0` (float64, ``(n_free,)``).
 
@@ -259,7 +270,8 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     that stop the run; `rtol`, `atol` the Cauchy termination; `history` the L-BFGS memory; `cap` the largest
     trial move of one unknown at step size 1 (0: none); `ftol` stop once F <= ftol; `done` (optional): also
     stop once ``done(F, k)`` holds at an accepted iterate (k the second number `fun` reports); `deadline`
-    (optional, `time.perf_counter` seconds): stop after the first step past it (result ``"time budget"``).
+    (optional, `time.perf_counter` seconds): stop after the first step past it (result ``"time budget"``);
+    `precond` (optional): the initial inverse Hessian's ``M`` (`jaxci.optim.coarse.CoarseSpace`; default I).
 
     **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the accepted
     iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
@@ -277,7 +289,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     if g is None:
         return y, 0, "nonfinite", np.asarray(hf), np.asarray(hk)
     accept()
-    mem = _Memory(len(y), history)
+    mem = _Memory(len(y), history, precond)
 
     def capped(d):  # the trial move at step size 1: `d` scaled in place so that no unknown moves more than `cap`
         big = _amax(d)

@@ -1,0 +1,119 @@
+"""The two-level preconditioner of the host L-BFGS (`jaxci.optim.coarse`, ``precondition="coarse"``)."""
+
+import numpy as np
+import pytest
+
+from jaxci import native, smooth
+from jaxci.errors import ConfigError
+from jaxci.generate import perturb_box
+from jaxci.optim import coarse, host
+from jaxci.optim.parametrisation import make_parametrisation
+from jaxci.shapes import annulus
+from jaxci.smooth import build_problem
+
+
+def _wavy(n_theta: int = 32, n_r: int = 4, n_z: int = 4, seed: int = 0):
+    """An annulus whose nodes are moved along its walls (and inside): the boundary stays the two cylinders and
+    the end planes, so its nodes slide on curved walls."""
+    m = annulus(n_theta, n_r, n_z)
+    p = np.array(m.points)
+    rng = np.random.default_rng(seed)
+    r, th, z = np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p[:, 2]
+    r = np.where((r > 0.5 + 1e-9) & (r < 1 - 1e-9), r + rng.uniform(-0.15, 0.15, len(r)) / n_r, r)
+    th = th + rng.uniform(-0.3, 0.3, len(r)) * 2 * np.pi / n_theta
+    z = np.where((z > 1e-9) & (z < 1 - 1e-9), z + rng.uniform(-0.3, 0.3, len(z)) / n_z, z)
+    return m.with_points(np.stack([r * np.cos(th), r * np.sin(th), z], axis=1))
+
+
+def _space(mesh, **kw):
+    problem = build_problem(mesh, dtype=np.float64, device=False)
+    par = make_parametrisation(problem.mesh, problem.info, problem.cons, dtype=np.float64)
+    return par, coarse.build_coarse(par, {"hexahedron": mesh.hexes}, **kw)
+
+
+def _dense(pc: coarse.CoarseSpace) -> np.ndarray:
+    n = len(pc.inv_diag)
+    z = np.zeros((n, pc.n_coarse))
+    z[np.arange(n)[:, None], 3 * pc.block[:, None] + np.arange(3)] = pc.z
+    return z @ pc.coarse_inv @ z.T + np.diag(pc.inv_diag)
+
+
+@pytest.mark.parametrize("mesh", [_wavy(16, 2, 2), perturb_box(4, amplitude=0.2, seed=3)], ids=["annulus", "box"])
+@pytest.mark.parametrize("use_c", [True, False])
+def test_the_preconditioner_is_symmetric_positive_definite(mesh, use_c, monkeypatch):
+    """M = Z P_c^-1 Z^T + D^-1 as applied (C and numpy) is the dense matrix, symmetric, with positive
+    eigenvalues: L-BFGS with the initial inverse Hessian gamma M keeps its descent guarantee."""
+    if use_c and not native.AVAILABLE:
+        pytest.skip("the C kernels are not built")
+    monkeypatch.setattr(native, "AVAILABLE", use_c)
+    par, pc = _space(mesh)
+    m = _dense(pc)
+    rng = np.random.default_rng(0)
+    q = rng.standard_normal(par.n_free)
+    np.testing.assert_allclose(pc(q), m @ q, rtol=1e-12, atol=1e-12 * np.abs(m @ q).max())
+    np.testing.assert_allclose(m, m.T, rtol=0, atol=1e-12 * np.abs(m).max())
+    assert np.linalg.eigvalsh(m).min() > 0
+    assert 0 < pc.n_coarse <= 3 * coarse.MAX_AGGREGATES and pc.n_coarse % 3 == 0
+
+
+def test_aggregates_cover_every_node_within_the_budget():
+    rng = np.random.default_rng(1)
+    for points, most in ((rng.random((5000, 3)), 128), (rng.random((300, 3)) * [1, 1, 0], 16),
+                         (np.zeros((5, 3)), 128)):
+        agg = coarse.aggregates(points, 27, most)
+        assert agg.shape == (len(points),) and agg.min() == 0
+        k = int(agg.max()) + 1
+        assert k <= most and np.array_equal(np.unique(agg), np.arange(k))  # numbered 0..k-1, none empty
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_c_two_loop_recursion_with_the_preconditioner_is_the_numpy_one(dtype, monkeypatch):
+    if not native.AVAILABLE:
+        pytest.skip("the C kernels are not built")
+    par, pc = _space(_wavy(16, 2, 2))
+    n, rng = par.n_free, np.random.default_rng(2)
+    mem = host._Memory(n, 5, pc)
+    mem.S, mem.Y = mem.S.astype(dtype), mem.Y.astype(dtype)
+    for _ in range(7):  # more pairs than the memory holds: the ring buffer wraps
+        s = rng.standard_normal(n)
+        mem.push(s, s + 0.2 * rng.standard_normal(n))
+    assert len(mem.order) == 5 and mem.gamma > 0
+    g = rng.standard_normal(n)
+    d_c = mem.direction(g)
+    monkeypatch.setattr(native, "AVAILABLE", False)
+    d_np = mem.direction(g)
+    np.testing.assert_allclose(d_c, d_np, rtol=1e-10, atol=1e-12 * np.abs(d_np).max())
+    assert g @ d_c < 0
+
+
+def test_preconditioned_lbfgs_on_sliding_curved_walls():
+    """The same optimum as plain L-BFGS (F to 1e-4), every node where it may be: no inverted element, the wall
+    nodes on their cylinders and end planes."""
+    mesh = _wavy()
+    plain = smooth(mesh, "lbfgs")
+    pre = smooth(mesh, "lbfgs", precondition="coarse")
+    assert pre.params["precondition"] == "coarse"
+    assert pre.after.inverted_elements == 0
+    assert pre.history["objective"][-1] <= plain.history["objective"][-1] * (1 + 1e-4)
+    assert pre.history["objective"][-1] < 0.5 * pre.history["objective"][0]
+    p0, p = np.asarray(mesh.points), np.asarray(pre.mesh.points)
+    r0, r = np.hypot(p0[:, 0], p0[:, 1]), np.hypot(p[:, 0], p[:, 1])
+    for wall in (0.5, 1.0):
+        on = np.abs(r0 - wall) < 1e-9
+        # on the wall's facets: between the circle and its chords (the input's wall nodes are at most 1.6 angular
+        # spacings apart, so no chord comes nearer the axis than cos(1.6 pi / 32) of the radius)
+        assert on.any() and np.all(r[on] <= wall + 1e-9) and np.all(r[on] >= wall * np.cos(1.6 * np.pi / 32) - 1e-9)
+    for end in (0.0, 1.0):
+        on = np.abs(p0[:, 2] - end) < 1e-12
+        np.testing.assert_allclose(p[on, 2], end, atol=1e-9)
+
+
+@pytest.mark.parametrize("kw", [dict(method="cg"), dict(method="lbfgs", backend="jax")])
+def test_the_preconditioner_is_refused_off_the_host_lbfgs(kw):
+    with pytest.raises(ConfigError, match="precondition"):
+        smooth(perturb_box(3, amplitude=0.2, seed=1), precondition="coarse", **kw)
+
+
+def test_an_unknown_preconditioner_is_refused():
+    with pytest.raises(ConfigError, match="precondition must be one of"):
+        smooth(perturb_box(3, amplitude=0.2, seed=1), "lbfgs", precondition="multigrid")
