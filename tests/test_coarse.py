@@ -117,3 +117,32 @@ def test_the_preconditioner_is_refused_off_the_host_lbfgs(kw):
 def test_an_unknown_preconditioner_is_refused():
     with pytest.raises(ConfigError, match="precondition must be one of"):
         smooth(perturb_box(3, amplitude=0.2, seed=1), "lbfgs", precondition="multigrid")
+
+
+def test_auto_leaves_a_short_run_alone_and_preconditions_a_long_one(monkeypatch):
+    """``precondition="auto"`` (the default): a run that ends before `AUTO_AFTER` steps is plain L-BFGS to the
+    last bit and never builds M; a longer one builds M once, at that step, and still ends valid and as good."""
+    built = []
+    real = coarse.build_coarse
+
+    def spy(*args, **kw):
+        built.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(coarse, "build_coarse", spy)
+    box = perturb_box(4, amplitude=0.3, seed=2)
+    short = smooth(box, "lbfgs", precondition="none")
+    assert short.iterations < coarse.AUTO_AFTER
+    auto = smooth(box, "lbfgs")
+    assert auto.params["precondition"] == "auto" and not built
+    np.testing.assert_array_equal(auto.mesh.points, short.mesh.points)
+
+    mesh = _wavy()
+    plain = smooth(mesh, "lbfgs", precondition="none")
+    monkeypatch.setattr(coarse, "AUTO_AFTER", 20)
+    late = smooth(mesh, "lbfgs")
+    assert built == [1] and late.iterations > 20
+    assert late.after.inverted_elements == 0
+    assert late.history["objective"][-1] <= plain.history["objective"][-1] * (1 + 1e-4)
+    h = np.asarray(plain.history["objective"])
+    np.testing.assert_array_equal(np.asarray(late.history["objective"])[:21], h[:21])  # plain up to the switch

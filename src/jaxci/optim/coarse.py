@@ -22,8 +22,17 @@ runs): annulus (2070 hexes) 1021 -> 467 steps, 1.69 -> 0.73 s, worst kappa/3 1.2
 version 1227 -> 345 steps, 5.0 -> 1.8 s; F as low or lower on every one. But not everywhere: bracket (2360) 377
 -> 364 steps, 0.42 -> 0.52 s; cylinder O-grid (1610) 258 -> 371 steps, 0.27 -> 0.38 s; pave3 after untangling
 269 -> 224 steps and a lower F, but its worst element 2.800 -> 2.903 (another local minimum). With ``delta =
-1e-3`` a plate ended in a worse minimum (F 0.06476 against 0.06472). So it is opt-in: `GradientParams.precondition`
-``"coarse"``; the default is plain L-BFGS.
+1e-3`` a plate ended in a worse minimum (F 0.06476 against 0.06472).
+
+Hence the default, ``precondition="auto"``: plain L-BFGS for `AUTO_AFTER` steps, M from then on (built then, and
+only then). Runs that end sooner (perturbed boxes, most meshes with flat walls) are unchanged to the last bit; the
+long ones are those creeping along curved walls. Measured against ``"none"`` (steps, in-process seconds; worst
+kappa/3): annulus 1021 -> 539, 1.08 -> 0.68 s, 1.24387 -> 1.24350; plate 759 -> 416, 1.03 -> 0.75 s; sphere 511 ->
+386; pave3 269 -> 239 (worst 2.800 -> 2.807, F 0.3180 -> 0.3154); 8784-hex sphere 1227 -> 303, 5.7 -> 1.6 s;
+8640-9000-hex annulus, plate, bracket, cylinder 327/389/493/326 -> 304/348/399/312; slower: bracket (2360) 377 ->
+404 steps, cylinder O-grid (1610) 258 -> 337 (0.27 -> 0.37 s). The eleven meshes took 15.2 s plain and 10.2 s so;
+F ended lower on nine, 3e-4 higher on the 9000-hex annulus (whose worst element went 1.392 -> 1.401).
+``"coarse"`` uses M from the first step, ``"none"`` never.
 """
 
 from __future__ import annotations
@@ -35,6 +44,9 @@ import numpy as np
 from .. import native
 from ..cells import EDGES
 from .parametrisation import Parametrisation
+
+#: ``precondition="auto"``: plain L-BFGS for this many steps, then with M (see the module docstring).
+AUTO_AFTER = 150
 
 #: Nodes per aggregate aimed at, and the most aggregates (the coarse matrix is ``3 MAX_AGGREGATES`` square).
 NODES_PER_AGGREGATE = 27

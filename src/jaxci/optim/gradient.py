@@ -362,7 +362,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                       "solver_result": "no free coordinates"}, params
     n_hex = int(conn.shape[1])
     on_host = devices is None and use_host(method, p, n_hex, extra)
-    if p.precondition != "none" and not on_host:
+    if p.precondition == "coarse" and not on_host:
         raise ConfigError(f"gradient-method parameter precondition={p.precondition!r} is for L-BFGS on the host "
                           f"(numpy) path, not {method!r} with backend={p.backend!r}"
                           f"{' on several devices' if devices is not None else ''}; use precondition='none'")
@@ -394,22 +394,25 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     strict = par.shortcut and not never_rejects and not on_host and par.reach(np.zeros(nf)) < FLAT_REACH
     runs, max_runs = 0, 1 + int(p.restarts)
     host_fn = precond = None
+    after = 0
     while runs < max_runs:
         cur = dataclasses.replace(run_par, strict=True) if strict else run_par
         if on_host:  # one objective for every run: its projector remembers each node's triangle
             host_fn = host_fn or HostObjective(run_par, np.asarray(conn), _scale(n_hex, extra),
                                                kernel=_host_mixed_kernel(conn, extra),
                                                power=p.p if p.objective == "pmean" else None)
-            if p.precondition == "coarse" and precond is None:
-                from .coarse import build_coarse
+            if p.precondition != "none" and precond is None:
+                from .coarse import AUTO_AFTER, build_coarse
 
-                precond = build_coarse(run_par, {"hexahedron": np.asarray(conn).T,
-                                                 **{t: np.asarray(c).T for t, c in zip(extra.types, extra.conns,
-                                                                                        strict=True)}})
+                after = 0 if p.precondition == "coarse" else AUTO_AFTER
+                precond = functools.cache(lambda: build_coarse(
+                    run_par, {"hexahedron": np.asarray(conn).T,
+                              **{t: np.asarray(c).T for t, c in zip(extra.types, extra.conns, strict=True)}}))
             y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
-                                              done=lambda f, k: k <= 1.0 + p.ktol, precond=precond)
+                                              done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
+                                              precond_after=max(after - steps, 0) if precond else 0)
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None,
                                    devices if n_dev > 1 else None)

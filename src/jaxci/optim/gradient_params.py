@@ -20,7 +20,7 @@ OBJECTIVES = ("mean", "pmean")
 MAX_POWER = 64.0
 
 #: Initial inverse Hessians of the host L-BFGS (`GradientParams.precondition`).
-PRECONDITIONERS = ("none", "coarse")
+PRECONDITIONERS = ("auto", "none", "coarse")
 
 #: Nonlinear CG beta formulas (`optx.NonlinearCG(method=...)`).
 CG_METHODS = ("polak_ribiere", "fletcher_reeves", "hestenes_stiefel", "dai_yuan")
@@ -80,9 +80,11 @@ class GradientParams:
       mean kappa/3 1.084 -> 1.102 / 1.140; 49 -> 191 / 2000 steps: p = 4 ran to the step cap); a wavy annulus (curved
       walls) 1.401 -> 1.319 / 1.287 (mean 1.2226 -> 1.2232 / 1.2240). p = 2 takes most of the gain at a fraction of the
       steps and of the cost in mean quality.
-    - `precondition`: L-BFGS on the host (numpy) path only: ``"none"`` (default: initial inverse Hessian
-      ``gamma I``) or ``"coarse"`` (``gamma M``, the two-level Laplacian preconditioner of `jaxci.optim.coarse`:
-      fewer steps where boundary nodes slide on curved walls; see its docstring for the figures).
+    - `precondition`: the initial inverse Hessian of L-BFGS on the host (numpy) path: ``"auto"`` (default:
+      ``gamma I``, and ``gamma M`` from step `jaxci.optim.coarse.AUTO_AFTER` on, M the two-level Laplacian
+      preconditioner of `jaxci.optim.coarse`: a run that is still going there is one whose boundary nodes creep
+      along curved walls), ``"coarse"`` (``gamma M`` from the start; refused elsewhere than on the host
+      L-BFGS) or ``"none"`` (``gamma I`` throughout). See `jaxci.optim.coarse` for the figures.
     """
 
     max_steps: int = 2000
@@ -105,7 +107,7 @@ class GradientParams:
     backend: str = "auto"
     objective: str = "mean"
     p: float = 2.0
-    precondition: str = "none"
+    precondition: str = "auto"
 
     def __post_init__(self):
         L = "gradient-method"

@@ -228,8 +228,19 @@ class _Memory:
         self.S[slot], self.Y[slot], self.rho[slot] = s, y, 1.0 / sy
         self.order.append(slot)
         if self.precond is not None:
-            y = self.Y[slot].astype(np.float64)
-            self.gamma = sy / _dot(y, self.precond(y))
+            self._scale_newest()
+
+    def use(self, precond) -> None:
+        """From now on the initial inverse Hessian is ``gamma M`` with `precond` ``M`` (the pairs are kept)."""
+        self.precond = precond
+        if self.order:
+            self._scale_newest()
+
+    def _scale_newest(self) -> None:
+        """``gamma = s.y / y.M y`` of the newest pair (as stored)."""
+        k = self.order[-1]
+        y = self.Y[k].astype(np.float64)
+        self.gamma = 1.0 / (self.rho[k] * _dot(y, self.precond(y)))
 
     def clear(self) -> None:
         self.order.clear()
@@ -262,7 +273,7 @@ class _Memory:
 
 def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
           history: int, cap: float, ftol: float, done: Callable | None = None, deadline: float | None = None,
-          precond: Callable | None = None):
+          precond: Callable | None = None, precond_after: int = 0):
     """Minimise `fun` (a `HostObjective`: ``value, grad, F, max kappa/3 = fun(y)``; its ``accept()``, if any,
     is called once an evaluation becomes the iterate) from `y0` (float64, ``(n_free,)``).
 
@@ -271,7 +282,9 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     trial move of one unknown at step size 1 (0: none); `ftol` stop once F <= ftol; `done` (optional): also
     stop once ``done(F, k)`` holds at an accepted iterate (k the second number `fun` reports); `deadline`
     (optional, `time.perf_counter` seconds): stop after the first step past it (result ``"time budget"``);
-    `precond` (optional): the initial inverse Hessian's ``M`` (`jaxci.optim.coarse.CoarseSpace`; default I).
+    `precond` (optional): a function that returns the initial inverse Hessian's ``M``
+    (`jaxci.optim.coarse.CoarseSpace`; default I), called once, at the first accepted iterate after
+    `precond_after` steps: M is used from then on.
 
     **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the accepted
     iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
@@ -289,7 +302,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     if g is None:
         return y, 0, "nonfinite", np.asarray(hf), np.asarray(hk)
     accept()
-    mem = _Memory(len(y), history, precond)
+    mem = _Memory(len(y), history)
 
     def capped(d):  # the trial move at step size 1: `d` scaled in place so that no unknown moves more than `cap`
         big = _amax(d)
@@ -318,6 +331,8 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             accept()
             alpha, rejected = 1.0, 0
             trial = None  # the old one's memory first
+            if precond is not None and mem.precond is None and steps >= precond_after:
+                mem.use(precond())
             d = mem.direction(g)
             if not _dot(g, d) < 0:  # not a descent direction: forget the curvature pairs
                 mem.clear()
