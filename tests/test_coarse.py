@@ -146,3 +146,15 @@ def test_auto_leaves_a_short_run_alone_and_preconditions_a_long_one(monkeypatch)
     assert late.history["objective"][-1] <= plain.history["objective"][-1] * (1 + 1e-4)
     h = np.asarray(plain.history["objective"])
     np.testing.assert_array_equal(np.asarray(late.history["objective"])[:21], h[:21])  # plain up to the switch
+
+
+def test_auto_builds_nothing_on_a_mesh_above_its_size_limit(monkeypatch):
+    built = []
+    monkeypatch.setattr(coarse, "build_coarse", lambda *a, **kw: built.append(1))
+    monkeypatch.setattr(coarse, "AUTO_AFTER", 20)
+    monkeypatch.setattr(coarse, "AUTO_MAX_CELLS", 100)
+    mesh = _wavy()
+    assert mesh.n_hexes > 100
+    run = smooth(mesh, "lbfgs")
+    assert not built and run.iterations > 20
+    np.testing.assert_array_equal(run.mesh.points, smooth(mesh, "lbfgs", precondition="none").mesh.points)

@@ -45,8 +45,12 @@ from .. import native
 from ..cells import EDGES
 from .parametrisation import Parametrisation
 
-#: ``precondition="auto"``: plain L-BFGS for this many steps, then with M (see the module docstring).
+#: ``precondition="auto"``: plain L-BFGS for this many steps, then with M (see the module docstring), on meshes
+#: of at most `AUTO_MAX_CELLS` cells: building M holds about 0.9 kB per hexahedron for a moment (200 MB at
+#: cube60_pert's 216,000, 1.2 s) and keeps about 130 B per node, which the 10^6-hexahedron memory budget
+#: (docs/results, session 11) has no room for; ``"coarse"`` builds it at any size.
 AUTO_AFTER = 150
+AUTO_MAX_CELLS = 250_000
 
 #: Nodes per aggregate aimed at, and the most aggregates (the coarse matrix is ``3 MAX_AGGREGATES`` square).
 NODES_PER_AGGREGATE = 27

@@ -402,12 +402,14 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                                                kernel=_host_mixed_kernel(conn, extra),
                                                power=p.p if p.objective == "pmean" else None)
             if p.precondition != "none" and precond is None:
-                from .coarse import AUTO_AFTER, build_coarse
+                from . import coarse
 
-                after = 0 if p.precondition == "coarse" else AUTO_AFTER
-                precond = functools.cache(lambda: build_coarse(
-                    run_par, {"hexahedron": np.asarray(conn).T,
-                              **{t: np.asarray(c).T for t, c in zip(extra.types, extra.conns, strict=True)}}))
+                n_cells = n_hex + sum(int(c.shape[1]) for c in extra.conns)
+                if p.precondition == "coarse" or n_cells <= coarse.AUTO_MAX_CELLS:
+                    after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
+                    precond = functools.cache(lambda: coarse.build_coarse(
+                        run_par, {"hexahedron": np.asarray(conn).T,
+                                  **{t: np.asarray(c).T for t, c in zip(extra.types, extra.conns, strict=True)}}))
             y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
