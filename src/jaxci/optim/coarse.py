@@ -26,13 +26,13 @@ version 1227 -> 345 steps, 5.0 -> 1.8 s; F as low or lower on every one. But not
 
 Hence the default, ``precondition="auto"``: plain L-BFGS for `AUTO_AFTER` steps, M from then on (built then, and
 only then). Runs that end sooner (perturbed boxes, most meshes with flat walls) are unchanged to the last bit; the
-long ones are those creeping along curved walls. Measured against ``"none"`` (steps, in-process seconds; worst
-kappa/3): annulus 1021 -> 539, 1.08 -> 0.68 s, 1.24387 -> 1.24350; plate 759 -> 416, 1.03 -> 0.75 s; sphere 511 ->
-386; pave3 269 -> 239 (worst 2.800 -> 2.807, F 0.3180 -> 0.3154); 8784-hex sphere 1227 -> 303, 5.7 -> 1.6 s;
-8640-9000-hex annulus, plate, bracket, cylinder 327/389/493/326 -> 304/348/399/312; slower: bracket (2360) 377 ->
-404 steps, cylinder O-grid (1610) 258 -> 337 (0.27 -> 0.37 s). The eleven meshes took 15.2 s plain and 10.2 s so;
-F ended lower on nine, 3e-4 higher on the 9000-hex annulus (whose worst element went 1.392 -> 1.401).
-``"coarse"`` uses M from the first step, ``"none"`` never.
+long ones are those creeping along curved walls. The switch point, measured on eleven curved meshes (the six
+above and 8,300-9,000-hex annulus, plate, bracket, cylinder, sphere; one process, in turn; total seconds, and
+what changed against plain L-BFGS): never 15.0 s; from step 50 10.5 s (pave3's worst element 2.80 -> 2.91,
+the small sphere's 2.987 -> 2.992); 100: 11.8 s; 150: 12.4 s (the 9,000-hex annulus's 1.392 -> 1.401); 200:
+11.5 s, no worst element more than 3e-4 above plain L-BFGS's (pave3's 2.800 -> 2.790, bracket's 2.916 ->
+2.909), F within 1e-6 of it or lower on all; annulus 1021 -> 539 steps, plate 759 -> 372, 8784-hex sphere 1227
+-> 358. So 200. ``"coarse"`` uses M from the first step, ``"none"`` never.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from .parametrisation import Parametrisation
 #: of at most `AUTO_MAX_CELLS` cells: building M holds about 0.9 kB per hexahedron for a moment (200 MB at
 #: cube60_pert's 216,000, 1.2 s) and keeps about 130 B per node, which the 10^6-hexahedron memory budget
 #: (docs/results, session 11) has no room for; ``"coarse"`` builds it at any size.
-AUTO_AFTER = 150
+AUTO_AFTER = 200
 AUTO_MAX_CELLS = 250_000
 
 #: Nodes per aggregate aimed at, and the most aggregates (the coarse matrix is ``3 MAX_AGGREGATES`` square).
