@@ -158,3 +158,16 @@ def test_auto_builds_nothing_on_a_mesh_above_its_size_limit(monkeypatch):
     run = smooth(mesh, "lbfgs")
     assert not built and run.iterations > 20
     np.testing.assert_array_equal(run.mesh.points, smooth(mesh, "lbfgs", precondition="none").mesh.points)
+
+
+def test_coarse_on_a_mixed_mesh():
+    """Wedges, pyramids and tetrahedra take part in the Laplacian: the same optimum, nothing inverted."""
+    from test_mixed_smoothing import all_types_box
+
+    from jaxci.metrics import objective as mixed
+
+    mesh = all_types_box()
+    plain = smooth(mesh, "lbfgs", precondition="none")
+    pre = smooth(mesh, "lbfgs", precondition="coarse")
+    assert not any(v.any() for v in mixed.inverted_cells(mesh, pre.mesh.points).values())
+    assert pre.after.overall["objective"] <= plain.after.overall["objective"] * (1 + 1e-6)
