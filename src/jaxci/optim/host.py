@@ -14,7 +14,9 @@ L-BFGS direction (initial Hessian scaled by ``s.y / y.y``), each trial capped at
 a backtracking Armijo search (halve on rejection, slope 0.1, back to step 1 after an accepted one), optimistix's
 Cauchy termination (change of the unknowns AND of the objective below ``atol + rtol |.|``, max norm) checked at
 accepted iterates, and the same stops (``F <= ftol``, `max_rejected` consecutive rejections, the step limit).
-Every objective evaluation is a step, as there. An inverted corner makes F infinite, so a trial that inverts an
+Every objective evaluation is a step, as there. One difference: from step 200 of a run that has not stopped by then
+the initial inverse Hessian becomes the two-level preconditioner of `jaxci.optim.coarse`
+(``GradientParams.precondition``, default ``"auto"``; ``"none"`` keeps the compiled path's ``gamma I``). An inverted corner makes F infinite, so a trial that inverts an
 element is rejected like any trial that does not decrease F enough: validity is kept by construction.
 """
 
@@ -246,8 +248,8 @@ class _Memory:
         self.order.clear()
 
     def direction(self, g: np.ndarray) -> np.ndarray:
-        """``-H g`` by the two-loop recursion (initial Hessian scaled by ``s.y / y.y`` of the newest pair): the C
-        loop of `jaxci.native` where it is built."""
+        """``-H g`` by the two-loop recursion (initial inverse Hessian ``s.y / y.y`` I of the newest pair, or
+        ``gamma M`` with a preconditioner): the C loop of `jaxci.native` where it is built."""
         pc = self.precond
         if native.AVAILABLE and len(self.order) <= 64:
             out = np.empty_like(g)
