@@ -16,8 +16,9 @@ Cauchy termination (change of the unknowns AND of the objective below ``atol + r
 accepted iterates, and the same stops (``F <= ftol``, `max_rejected` consecutive rejections, the step limit).
 Every objective evaluation is a step, as there. One difference: from step 200 of a run that has not stopped by then
 the initial inverse Hessian becomes the two-level preconditioner of `jaxci.optim.coarse`
-(``GradientParams.precondition``, default ``"auto"``; ``"none"`` keeps the compiled path's ``gamma I``). An inverted corner makes F infinite, so a trial that inverts an
-element is rejected like any trial that does not decrease F enough: validity is kept by construction.
+(``GradientParams.precondition``, default ``"auto"``; ``"none"`` keeps the compiled path's ``gamma I``). An
+inverted corner makes F infinite, so a trial that inverts an element is rejected like any trial that does not
+decrease F enough: validity is kept by construction.
 """
 
 from __future__ import annotations
