@@ -25,14 +25,14 @@ version 1227 -> 345 steps, 5.0 -> 1.8 s; F as low or lower on every one. But not
 1e-3`` a plate ended in a worse minimum (F 0.06476 against 0.06472).
 
 Hence the default, ``precondition="auto"``: plain L-BFGS for `AUTO_AFTER` steps, M from then on (built then, and
-only then). Runs that end sooner (perturbed boxes, most meshes with flat walls) are unchanged to the last bit; the
-long ones are those creeping along curved walls. The switch point, measured on eleven curved meshes (the six
-above and 8,300-9,000-hex annulus, plate, bracket, cylinder, sphere; one process, in turn; total seconds, and
-what changed against plain L-BFGS): never 15.0 s; from step 50 10.5 s (pave3's worst element 2.80 -> 2.91,
-the small sphere's 2.987 -> 2.992); 100: 11.8 s; 150: 12.4 s (the 9,000-hex annulus's 1.392 -> 1.401); 200:
-11.5 s, no worst element more than 3e-4 above plain L-BFGS's (pave3's 2.800 -> 2.790, bracket's 2.916 ->
-2.909), F within 1e-6 of it or lower on all; annulus 1021 -> 539 steps, plate 759 -> 372, 8784-hex sphere 1227
--> 358. So 200. ``"coarse"`` uses M from the first step, ``"none"`` never.
+only then). Runs that end sooner (perturbed boxes, most meshes with flat walls) are those of ``"none"`` to the last
+bit; the long ones are those creeping along curved walls. The switch point, measured on eleven curved meshes (the
+six above and 8,300-9,000-hex annulus, plate, bracket, cylinder, sphere; one process, in turn; total seconds, and
+what changed against plain L-BFGS): never 15.0 s; from step 50 10.5 s (pave3's worst element 2.80 -> 2.91, the small
+sphere's 2.987 -> 2.992); 100: 11.8 s; 150: 12.4 s (the 9,000-hex annulus's 1.392 -> 1.401); 200: 11.5 s, no worst
+element more than 3e-4 above plain L-BFGS's (pave3's 2.800 -> 2.790, bracket's 2.916 -> 2.909), F within 1e-6 of it
+or lower on all; annulus 1021 -> 539 steps, plate 759 -> 372, 8784-hex sphere 1227 -> 358. So 200. ``"coarse"`` uses
+M from the first step, ``"none"`` never.
 """
 
 from __future__ import annotations
@@ -133,7 +133,8 @@ def build_coarse(par: Parametrisation, cells: dict, *, nodes_per_aggregate: int 
                                     for t, c in cells.items() if len(c)]), axis=1)
     key = np.unique(pairs[:, 0] * len(x) + pairs[:, 1])  # each edge once
     a, b = key // len(x), key % len(x)
-    w = 1.0 / np.maximum(np.sum((x[a] - x[b]) ** 2, axis=1), 1e-300)
+    d2 = np.sum((x[a] - x[b]) ** 2, axis=1)
+    w = 1.0 / np.maximum(d2, 1e-12 * max(float(np.median(d2)), 1e-300))  # coincident nodes: a finite weight
     degree = np.bincount(a, w, len(x)) + np.bincount(b, w, len(x))
     degree = np.where(degree > 0, degree, degree.max(initial=1.0))  # a node of no cell: not a free one anyway
     inv_diag = 1.0 / (scale * scale * degree[node])

@@ -9,16 +9,16 @@ solve takes less than the compilation alone. `jaxci.optim.gradient.minimise` use
 hexahedral meshes of at most `HOST_MAX` elements (``GradientParams(backend="auto")``; ``"jax"`` or ``"numpy"``
 force one).
 
-The iteration is that of the compiled path (`jaxci.optim._solve` with optimistix's `optx.LBFGS`): a two-loop
-L-BFGS direction (initial Hessian scaled by ``s.y / y.y``), each trial capped at ``max_move`` in the max norm,
-a backtracking Armijo search (halve on rejection, slope 0.1, back to step 1 after an accepted one), optimistix's
+The iteration is that of the compiled path (`jaxci.optim._solve` with optimistix's `optx.LBFGS`): a two-loop L-BFGS
+direction (initial Hessian scaled by ``s.y / y.y``), each trial capped at ``max_move`` in the max norm, a
+backtracking Armijo search (halve on rejection, slope 0.1, back to step 1 after an accepted one), optimistix's
 Cauchy termination (change of the unknowns AND of the objective below ``atol + rtol |.|``, max norm) checked at
-accepted iterates, and the same stops (``F <= ftol``, `max_rejected` consecutive rejections, the step limit).
-Every objective evaluation is a step, as there. One difference: from step 200 of a run that has not stopped by then
-the initial inverse Hessian becomes the two-level preconditioner of `jaxci.optim.coarse`
-(``GradientParams.precondition``, default ``"auto"``; ``"none"`` keeps the compiled path's ``gamma I``). An
-inverted corner makes F infinite, so a trial that inverts an element is rejected like any trial that does not
-decrease F enough: validity is kept by construction.
+accepted iterates, and the same stops (``F <= ftol``, `max_rejected` consecutive rejections, the step limit). Every
+objective evaluation is a step, as there. One difference: from step 200 (counted over the solver's restarts) of a
+solve that has not stopped by then, the initial inverse Hessian becomes the two-level preconditioner of
+`jaxci.optim.coarse` (``GradientParams.precondition``, default ``"auto"``; ``"none"`` keeps the compiled path's
+``gamma I``). An inverted corner makes F infinite, so a trial that inverts an element is rejected like any trial
+that does not decrease F enough: validity is kept by construction.
 """
 
 from __future__ import annotations
@@ -247,6 +247,7 @@ class _Memory:
 
     def clear(self) -> None:
         self.order.clear()
+        self.gamma = 1.0
 
     def direction(self, g: np.ndarray) -> np.ndarray:
         """``-H g`` by the two-loop recursion (initial inverse Hessian ``s.y / y.y`` I of the newest pair, or
