@@ -365,7 +365,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     if p.precondition == "coarse" and not on_host:
         raise ConfigError(f"gradient-method parameter precondition={p.precondition!r} is for L-BFGS on the host "
                           f"(numpy) path, not {method!r} with backend={p.backend!r}"
-                          f"{' with --devices' if devices is not None else ''}; use precondition='none'")
+                          f"{' sharded over devices' if devices is not None else ''}; use precondition='none'")
     if not on_host:  # optimistix and the compiled loop (imported here: 0.08 s the numpy path does without)
         from ._solve import make_solver, solve_loop
 
