@@ -984,6 +984,33 @@ static void coarse_apply(const Coarse *P, double *q, Py_ssize_t n) {
     }
 }
 
+/* Acquire the preconditioner's arrays (block (n,) i8, z (n, 3) f8, coarse_inv (mc, mc) f8, inv_diag (n,) f8) into
+ * B[0..3], check them against n free coordinates and fill *pc, its work buffer allocated (the caller frees
+ * pc->work and releases B, also on failure); -1 with the Python error set. `fn` names the caller in messages. */
+static int coarse_acquire(Coarse *pc, Buf *B, PyObject *o_block, PyObject *o_z, PyObject *o_cinv, PyObject *o_idiag,
+                          Py_ssize_t n, const char *fn) {
+    if (acquire(&B[0], o_block, "block", "qlq", 0, 0) < 0 || acquire(&B[1], o_z, "z", "d", 0, 0) < 0 ||
+        acquire(&B[2], o_cinv, "coarse_inv", "d", 0, 0) < 0 || acquire(&B[3], o_idiag, "inv_diag", "d", 0, 0) < 0)
+        return -1;
+    Py_ssize_t mc = (Py_ssize_t)(sqrt((double)(B[2].view.len / 8)) + 0.5);
+    if (B[0].view.len != 8 * n || B[1].view.len != 24 * n || B[3].view.len != 8 * n || mc % 3 ||
+        B[2].view.len != 8 * mc * mc) {
+        PyErr_Format(PyExc_ValueError, "%s: preconditioner shapes disagree", fn);
+        return -1;
+    }
+    if (check_indices(B[0].view.buf, n, mc / 3, fn) < 0) return -1;
+    pc->m = mc;
+    pc->block = B[0].view.buf;
+    pc->z = B[1].view.buf;
+    pc->cinv = B[2].view.buf;
+    pc->idiag = B[3].view.buf;
+    if (!(pc->work = PyMem_Malloc((size_t)(2 * mc + 1) * sizeof(double)))) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    return 0;
+}
+
 /* The two-loop recursion of lbfgs_direction over pairs stored as T (double, or float for a large memory):
  * q = -H g, the sums in double. Each pass over the vectors updates q and takes the next pair's dot product with
  * the updated entries (one pass per pair instead of two), and every dot product is summed in four interleaved
@@ -1125,26 +1152,8 @@ static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
     }
     if (check_indices(O, k, m, "lbfgs_direction") < 0) goto done;
     if (o_block != Py_None) { /* the two-level preconditioner (jaxci.optim.coarse.CoarseSpace) */
-        if (acquire(&B[6], o_block, "block", "qlq", 0, 0) < 0 || acquire(&B[7], o_z, "z", "d", 0, 0) < 0 ||
-            acquire(&B[8], o_cinv, "coarse_inv", "d", 0, 0) < 0 || acquire(&B[9], o_idiag, "inv_diag", "d", 0, 0) < 0)
-            goto done;
-        Py_ssize_t mc = (Py_ssize_t)(sqrt((double)(B[8].view.len / 8)) + 0.5);
-        if (B[6].view.len != 8 * n || B[7].view.len != 24 * n || B[9].view.len != 8 * n || mc % 3 ||
-            B[8].view.len != 8 * mc * mc) {
-            PyErr_SetString(PyExc_ValueError, "lbfgs_direction: preconditioner shapes disagree");
-            goto done;
-        }
-        if (check_indices(B[6].view.buf, n, mc / 3, "lbfgs_direction (block)") < 0) goto done;
-        pc.m = mc;
-        pc.block = B[6].view.buf;
-        pc.z = B[7].view.buf;
-        pc.cinv = B[8].view.buf;
-        pc.idiag = B[9].view.buf;
+        if (coarse_acquire(&pc, B + 6, o_block, o_z, o_cinv, o_idiag, n, "lbfgs_direction (block)") < 0) goto done;
         pc.gamma = gamma;
-        if (!(pc.work = PyMem_Malloc((size_t)(2 * mc + 1) * sizeof(double)))) {
-            PyErr_NoMemory();
-            goto done;
-        }
         PC = &pc;
     }
     const double *G = B[0].view.buf, *R = B[3].view.buf;
@@ -1170,26 +1179,13 @@ static PyObject *py_coarse_apply(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5])) return NULL;
     Buf B[6] = {{{0}}};
     Coarse pc = {0};
-    if (acquire(&B[0], o[0], "q", "d", 0, 0) < 0 || acquire(&B[1], o[1], "out", "d", 1, 0) < 0 ||
-        acquire(&B[2], o[2], "block", "qlq", 0, 0) < 0 || acquire(&B[3], o[3], "z", "d", 0, 0) < 0 ||
-        acquire(&B[4], o[4], "coarse_inv", "d", 0, 0) < 0 || acquire(&B[5], o[5], "inv_diag", "d", 0, 0) < 0)
-        goto done;
-    Py_ssize_t n = B[0].view.len / 8, mc = (Py_ssize_t)(sqrt((double)(B[4].view.len / 8)) + 0.5);
-    if (B[1].view.len != 8 * n || B[2].view.len != 8 * n || B[3].view.len != 24 * n || B[5].view.len != 8 * n ||
-        mc % 3 || B[4].view.len != 8 * mc * mc) {
-        PyErr_SetString(PyExc_ValueError, "coarse_apply: shapes disagree");
+    if (acquire(&B[0], o[0], "q", "d", 0, 0) < 0 || acquire(&B[1], o[1], "out", "d", 1, 0) < 0) goto done;
+    Py_ssize_t n = B[0].view.len / 8;
+    if (B[1].view.len != 8 * n) {
+        PyErr_SetString(PyExc_ValueError, "coarse_apply: q and out differ in length");
         goto done;
     }
-    if (check_indices(B[2].view.buf, n, mc / 3, "coarse_apply (block)") < 0) goto done;
-    pc.m = mc;
-    pc.block = B[2].view.buf;
-    pc.z = B[3].view.buf;
-    pc.cinv = B[4].view.buf;
-    pc.idiag = B[5].view.buf;
-    if (!(pc.work = PyMem_Malloc((size_t)(2 * mc + 1) * sizeof(double)))) {
-        PyErr_NoMemory();
-        goto done;
-    }
+    if (coarse_acquire(&pc, B + 2, o[2], o[3], o[4], o[5], n, "coarse_apply (block)") < 0) goto done;
     double *out = B[1].view.buf;
     const double *q = B[0].view.buf;
     Py_BEGIN_ALLOW_THREADS
