@@ -101,7 +101,8 @@ def test_the_c_two_loop_recursion_with_the_preconditioner_is_the_numpy_one(dtype
         pytest.skip("the C kernels are not built")
     par, pc = _space(_wavy(16, 2, 2))
     n, rng = par.n_free, np.random.default_rng(2)
-    mem = host._Memory(n, 5, pc)
+    mem = host._Memory(n, 5)
+    mem.use(pc)
     mem.S, mem.Y = mem.S.astype(dtype), mem.Y.astype(dtype)
     g = rng.standard_normal(n)
     np.testing.assert_allclose(mem.direction(g), -pc(g), rtol=1e-12, atol=1e-12 * np.abs(pc(g)).max())  # no pairs

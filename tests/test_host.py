@@ -111,8 +111,8 @@ def test_float32_lbfgs_memory_of_a_large_problem_reaches_the_same_mesh(monkeypat
     made = []
     orig = host._Memory.__init__
 
-    def spy(self, n, history, precond=None):
-        orig(self, n, history, precond)
+    def spy(self, n, history):
+        orig(self, n, history)
         made.append(self.S.dtype)
 
     monkeypatch.setattr(host._Memory, "__init__", spy)

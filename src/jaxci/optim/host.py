@@ -203,13 +203,12 @@ def _amax(a: np.ndarray) -> float:
 
 class _Memory:
     """The L-BFGS memory: up to `history` pairs ``(s, y, 1 / s.y)`` in ring buffers ``(history, n)``, float64, or
-    float32 from `HISTORY_F32_FROM` unknowns (with the C kernels); `precond` (optional): a fixed symmetric positive
-    definite ``M`` (`jaxci.optim.coarse.CoarseSpace`), the initial inverse Hessian ``gamma M`` with
-    ``gamma = s.y / y.M y`` of the newest pair (default ``M = I``)."""
+    float32 from `HISTORY_F32_FROM` unknowns (with the C kernels). The initial inverse Hessian is ``s.y / y.y`` I
+    of the newest pair, or after `use` ``gamma M`` with ``gamma = s.y / y.M y``."""
 
-    def __init__(self, n: int, history: int, precond=None):
+    def __init__(self, n: int, history: int):
         self.history = history
-        self.precond = precond
+        self.precond = None  # M (`use`): a fixed symmetric positive definite `jaxci.optim.coarse.CoarseSpace`
         self.gamma = 1.0
         dtype = np.float32 if n >= HISTORY_F32_FROM and native.AVAILABLE else np.float64
         # all `history` rows at once, never grown: a large np.empty is mapped, not touched, so a row costs memory
