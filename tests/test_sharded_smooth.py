@@ -59,7 +59,7 @@ SCRIPT = textwrap.dedent(
     from jaxci.smooth import smooth
 
     def loops(counts):
-        return {k: v for k, v in counts.items() if "solve_loop" in k or "laplace_run" in k}
+        return {k: v for k, v in counts.items() if "solve_loop" in k or "lbfgs_loop" in k or "laplace_run" in k}
 
     m = perturb_box(6, 5, 4, amplitude=0.3, seed=1)  # 120 hexes: 128 padded elements, 32 per device
     runs = {}
@@ -71,7 +71,7 @@ SCRIPT = textwrap.dedent(
     (r1, c1, _), (r4, c4, all4) = runs[1], runs[4]
     # the sharded run compiles the sweeps and the solver loop once each, as the single-device run does, and
     # nothing else (its arrays are placed on the devices from the host: no resharding programs)
-    assert c4 == {"jit(_laplace_run)": 1, "jit(solve_loop)": 1} == c1, (c1, c4)
+    assert c4 == {"jit(_laplace_run)": 1, "jit(lbfgs_loop)": 1} == c1, (c1, c4)
     assert all4 == 2, all4
     assert r4.params["devices"] == 4 and r4.params["backend"] == "jax" and r4.history["presmooth"] == 2
     assert any("sharded over 4 cpu devices" in n and "host path" in n for n in r4.notes), r4.notes

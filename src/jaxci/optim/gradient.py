@@ -366,11 +366,13 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         raise ConfigError(f"gradient-method parameter precondition={p.precondition!r} is for L-BFGS on the host "
                           f"(numpy) path, not {method!r} with backend={p.backend!r}"
                           f"{' sharded over devices' if devices is not None else ''}; use precondition='none'")
-    if not on_host:  # optimistix and the compiled loop (imported here: 0.08 s the numpy path does without)
+    n_dev = 0 if devices is None else int(devices.devices.size)
+    # sharded L-BFGS on F over hexahedra: jaxci's own loop, its memory split over the devices
+    own_loop = bool(n_dev) and method == "lbfgs" and p.objective != "pmean" and not extra.types
+    if not on_host and not own_loop:  # optimistix (imported here: 0.08 s the numpy path does without)
         from ._solve import make_solver, solve_loop
 
         solver = make_solver(method, p)
-    n_dev = 0 if devices is None else int(devices.devices.size)
     run_par, run_conn, weight, index = (par, conn, None, None) if on_host else _bucketed(method, par, conn, p, extra,
                                                                                           n_dev)
     if n_dev:
@@ -415,6 +417,17 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
                                               done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
                                               precond_after=max(after - steps, 0) if precond else 0)
+        elif own_loop:
+            from .sharded_lbfgs import lbfgs_loop, result_name
+
+            dtype = par.x0.dtype
+            consts = np.asarray([p.ftol, 1.0 + p.ktol, p.rtol, p.atol, p.max_move or 0.0])
+            y, k, code, hf, hk = lbfgs_loop(
+                cur, replicate(to_device(np.asarray(_scale(n_hex, extra)), dtype), devices), run_conn, weight,
+                replicate(y, devices), replicate(to_device(consts, dtype), devices),
+                replicate(to_device(np.int32(p.max_steps - steps)), devices), mesh=devices,
+                max_steps=int(p.max_steps), history=int(p.history_length), max_rejected=_max_rejected(method, p))
+            result = result_name(code)
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None,
                                    devices if n_dev > 1 else None)

@@ -183,9 +183,11 @@ def sharded_params(method: str, params: dict, mesh: Mesh) -> tuple[dict, str]:
 def put(tree, sharding: NamedSharding):
     """Every array of `tree` (a pytree) placed with `sharding`, through the host unless it is there already: a
     device array resharded on the device compiles a slicing program per shape (measured: 14 ``_multi_slice``
-    compilations in one sharded L-BFGS run with presmoothing), a numpy array is split on the host."""
+    compilations in one sharded L-BFGS run with presmoothing), a numpy array is split on the host. Only an array
+    with exactly this sharding is kept: an equivalent one of another kind (a loop's output on a one-device mesh)
+    is a new input type to `jax.jit`, and compiles the loop again."""
     def one(a):
-        if isinstance(a, jax.Array) and a.sharding.is_equivalent_to(sharding, a.ndim):
+        if isinstance(a, jax.Array) and a.sharding == sharding:
             return a
         return jax.device_put(np.asarray(a), sharding)
 
@@ -257,30 +259,34 @@ def weighted_objective(points, conn, weight):
     return total / (8.0 * jnp.sum(weight)) - 1.0
 
 
+def local_terms_and_grad(points, conn, weight, n_dev: int, platform: str):
+    """Inside `jax.shard_map` over axis `AXIS` of `n_dev` devices of `platform`: F, max kappa/3 and dF/dx of the
+    WHOLE mesh from this device's hexahedra `conn` ``(8, N/D)`` with weights `weight` ``(N/D,)`` (0: padding) at
+    replicated `points` ``(n, 3)``. The device sums its own elements' terms and gradient (the C kernel on CPU,
+    with its share of the kernel threads), then ONE exchange (a `psum` of the gradient, F's sum, the real
+    corners' count and each device's max in its own slot) gives every device the whole mesh's F, max and
+    gradient."""
+    if native_grad.available(platform):
+        f, k, g = native_grad.terms_and_grad(points, conn, weight, 1.0, max(1, native.THREADS // n_dev))
+    else:  # sums: divided by the count below
+        f, k, g = objective_terms_and_grad(points, conn, weight, None, 0, 1.0)
+    count = 8.0 * jnp.sum((weight > 0).astype(points.dtype))
+    slots = jnp.zeros(n_dev, points.dtype).at[jax.lax.axis_index(AXIS)].set(k)
+    total = jax.lax.psum(jnp.concatenate([g.reshape(-1), jnp.stack([f, count]), slots]), AXIS)
+    n = g.size
+    return total[n] / total[n + 1], jnp.max(total[n + 2:]), total[:n].reshape(g.shape) / total[n + 1]
+
+
 def sharded_terms_and_grad(points, conn, weight, mesh: Mesh):
     """F, max kappa/3 and the gradient of F (`jaxci.metrics.hexahedron.objective_terms_and_grad`) of the
     hexahedra `conn` ``(8, N)`` with weights `weight` ``(N,)``, both sharded along N over `mesh`, at replicated
-    `points` ``(n, 3)``: each device sums its own elements' terms and gradient (`jax.shard_map`), then ONE
-    exchange (a `psum` of the gradient, F's sum, the real corners' count and each device's max in its own slot)
-    gives every device the whole mesh's F, max and gradient. Left to XLA's partitioner, the gradient's 24 scatters
-    into the nodes (a local node and a coordinate each) were each followed by an all-reduce: 25 rendezvous of the
-    device threads in a step, which with more devices than cores cost most of a sharded L-BFGS step."""
-    n_dev = mesh.devices.size
-    c_kernel = native_grad.available(mesh.devices.flat[0].platform)
-
-    def local(points, conn, weight):
-        if c_kernel:  # the C kernel, each device's call with its share of the kernel threads
-            f, k, g = native_grad.terms_and_grad(points, conn, weight, 1.0, max(1, native.THREADS // n_dev))
-        else:  # sums: divided by the count below
-            f, k, g = objective_terms_and_grad(points, conn, weight, None, 0, 1.0)
-        count = 8.0 * jnp.sum((weight > 0).astype(points.dtype))
-        slots = jnp.zeros(n_dev, points.dtype).at[jax.lax.axis_index(AXIS)].set(k)
-        total = jax.lax.psum(jnp.concatenate([g.reshape(-1), jnp.stack([f, count]), slots]), AXIS)
-        n = g.size
-        return total[n] / total[n + 1], jnp.max(total[n + 2:]), total[:n].reshape(g.shape) / total[n + 1]
-
-    return jax.shard_map(local, mesh=mesh, in_specs=(P(), P(None, AXIS), P(AXIS)), out_specs=(P(), P(), P()))(
-        points, conn, weight)
+    `points` ``(n, 3)``: `local_terms_and_grad` on every device (`jax.shard_map`), one exchange in all. Left to
+    XLA's partitioner, the gradient's 24 scatters into the nodes (a local node and a coordinate each) were each
+    followed by an all-reduce: 25 rendezvous of the device threads in a step, which with more devices than cores
+    cost most of a sharded L-BFGS step."""
+    local = functools.partial(local_terms_and_grad, n_dev=mesh.devices.size, platform=mesh.devices.flat[0].platform)
+    return jax.shard_map(local, mesh=mesh,
+                         in_specs=(P(), P(None, AXIS), P(AXIS)), out_specs=(P(), P(), P()))(points, conn, weight)
 
 
 def sharded_candidates_objective(candidates, conn, mesh: Mesh | None = None):

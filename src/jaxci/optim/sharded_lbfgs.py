@@ -1,0 +1,222 @@
+"""L-BFGS for runs sharded over devices: the host algorithm in one compiled loop, its memory split by coordinate.
+
+`jaxci.optim.gradient.minimise` runs ``"lbfgs"`` with ``devices`` through `lbfgs_loop`. The iteration is the
+host path's (`jaxci.optim.host.lbfgs`) and so optimistix's: the two-loop L-BFGS direction (initial inverse
+Hessian ``s.y / y.y`` I of the newest pair; a pair of non-positive curvature is not stored; the memory forgotten
+when the direction is not one of descent), each trial capped at ``max_move`` in the max norm, a backtracking
+Armijo search (slope 0.1, halve on rejection, step 1 again after an accepted one), optimistix's Cauchy stop
+(change of the unknowns AND of the objective below ``atol + rtol |.|``, max norm) at accepted iterates, the stop
+at ``F <= ftol`` or max kappa/3 <= 1 + ktol, `max_rejected` consecutive rejections and the step limit. Every
+objective evaluation is a step.
+
+**What is split.** The whole loop runs inside one `jax.shard_map` over the devices of a `jax.sharding.Mesh`:
+
+- the elements (the connectivity and weights, sharded by `jaxci.optim.sharding.place_problem`): each device
+  evaluates F, its max and its gradient over its own elements, and ONE all-reduce per trial gives every device
+  the whole mesh's (`jaxci.optim.sharding.local_terms_and_grad`);
+- the L-BFGS memory, ``m`` pairs ``(s, y)`` stored as one ``(2m, n/D)`` block per device (its share of the free
+  coordinates). The two-loop recursion needs, at each accepted step, the dot products of the new pair and of
+  the gradient with the memory: each device takes them over its share and ONE all-reduce of ``5m + 3`` numbers
+  sums them; the recursion then runs on ``m x m`` Gram matrices kept up to date (``S^T Y``, ``Y^T Y``), the same
+  arithmetic as the two-loop recursion on vectors (each ``s_i . q`` and ``y_i . r`` expanded into those dots),
+  and each device forms its share of the direction, which one all-gather assembles.
+
+The iterate, the gradient and the trial direction (``n`` numbers each) are kept whole on every device (the
+objective needs every node on every device anyway). So an accepted step has three exchanges and a rejected one
+one, and the ``4 m n`` of vector work of a two-loop recursion is divided by the device count, where optimistix's
+L-BFGS (the compiled path without devices) repeats it on every device: docs/sharding.md measured that repeated
+work at 2.3x a single device's on four forced CPU devices.
+
+One device (``devices=1``) runs the same program, its exchanges empty.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from .._lazy import jax, jnp
+from .host import DECREASE, SLOPE
+
+#: Result codes of `lbfgs_loop`, as the host path names them (`jaxci.optim.host.lbfgs`).
+RESULTS = ("successful", "nonlinear_max_steps_reached", "nonfinite")
+
+
+def result_name(code) -> str:
+    """The name of a result code of `lbfgs_loop`."""
+    return RESULTS[int(np.asarray(code))]
+
+
+def _two_loop_coefficients(SY, YY, a, b, age, gamma):
+    """The two-loop recursion on the Gram matrices: coefficients ``(c, e)`` with ``H g = gamma g + S^T c + Y^T e``.
+
+    **Arguments:** `SY` ``(m, m)``: ``s_i . y_j``; `YY` ``(m, m)``: ``y_i . y_j``; `a`, `b` ``(m,)``: ``s_i . g``,
+    ``y_i . g``; `age` ``(m,)`` int32: each slot's push number (-1: empty); `gamma`: the initial inverse Hessian's
+    scale. Slots in any order (chronology from `age`); empty slots get 0.
+
+    The first loop (newest pair first) ``alpha_i = rho_i s_i . q`` with ``q = g - sum_{j newer} alpha_j y_j``,
+    i.e. ``rho_i (a_i - sum_j alpha_j SY_ij)`` over the pairs done so far; then ``r = gamma q`` and the second loop
+    (oldest first) ``beta_i = rho_i y_i . (r + sum_{j older} (alpha_j - beta_j) s_j)``, i.e. ``rho_i (gamma (b_i -
+    (YY alpha)_i) + sum_j c_j SY_ji)`` with ``c_j = alpha_j - beta_j``. Then ``H g = gamma (g - Y^T alpha) + S^T
+    c``.
+    """
+    m = age.shape[0]
+    valid = age >= 0
+    order = jnp.argsort(jnp.where(valid, age, jnp.iinfo(age.dtype).max))  # oldest first, empty slots last
+    count = jnp.sum(valid)
+    diag = jnp.diagonal(SY)
+    rho = jnp.where(valid, 1.0 / jnp.where(valid, diag, 1.0), 0.0)
+
+    def first(t, alpha):
+        pos = m - 1 - t  # newest first
+        i = order[pos]
+        val = rho[i] * (a[i] - jnp.dot(SY[i], alpha))
+        return alpha.at[i].set(jnp.where(pos < count, val, 0.0))
+
+    alpha = jax.lax.fori_loop(0, m, first, jnp.zeros_like(a))
+    yr = gamma * (b - YY @ alpha)  # y_i . r
+
+    def second(pos, c):
+        i = order[pos]
+        beta = rho[i] * (yr[i] + jnp.dot(SY[:, i], c))
+        return c.at[i].set(jnp.where(pos < count, alpha[i] - beta, 0.0))
+
+    c = jax.lax.fori_loop(0, m, second, jnp.zeros_like(a))
+    return c, -gamma * alpha
+
+
+def _amax(a):
+    return jnp.max(jnp.abs(a), initial=0.0)
+
+
+def _value_and_grad(v, par, s, conn, weight, n_dev: int, platform: str):
+    """Inside the loop's `jax.shard_map`: ``(s F, its gradient in v, F, max kappa/3)`` at the free coordinates
+    `v` ``(n,)`` (whole on every device), from this device's elements `conn`, `weight` and one exchange
+    (`jaxci.optim.sharding.local_terms_and_grad`); the chain rule through ``par.points`` (lift and projection)
+    on every device."""
+    from .sharding import local_terms_and_grad
+
+    x, pull = jax.vjp(par.points, v)
+    f, k, gx = local_terms_and_grad(x, conn, weight, n_dev, platform)
+    (gv,) = pull(gx.astype(x.dtype))
+    return s * f, s * gv, f, k
+
+
+@functools.partial(jax.jit, static_argnames=("mesh", "max_steps", "history", "max_rejected"))
+def lbfgs_loop(par, s, conn, weight, y0, consts, limit, *, mesh, max_steps: int, history: int,
+               max_rejected: int):
+    """Minimise ``s F`` over the free coordinates of `par`, sharded over `mesh`, from `y0`.
+
+    **Arguments:**
+
+    - `par`: the `jaxci.optim.parametrisation.Parametrisation` (replicated); `s`: the objective's scale
+      (`jaxci.optim.gradient.solver_args`).
+    - `conn` ``(8, N)``, `weight` ``(N,)``: the hexahedra and their weights (0: padding), sharded along N over
+      `mesh` (`jaxci.optim.sharding.place_problem`).
+    - `y0` ``(n,)``: the start (replicated); n need not be a multiple of the device count.
+    - `consts` ``(5,)``: ``ftol, 1 + ktol, rtol, atol, cap`` (cap 0: trials not capped), traced.
+    - `limit`: the most steps (traced, at most `max_steps`).
+    - `mesh`, `max_steps` (the history's length), `history` (the pairs m), `max_rejected`: static.
+
+    **Returns:** ``(y, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the last accepted
+    iterate (the lowest F: every accepted step lowers it), the steps taken, a code of `RESULTS`, and F and max
+    kappa/3 of the accepted iterate after each step (entry 0: `y0`; NaN after the last step).
+    """
+    from jax.sharding import PartitionSpec as P
+
+    from .sharding import AXIS
+
+    n_dev = int(mesh.devices.size)
+    n = int(y0.shape[0])
+    n_loc = -(-n // n_dev)
+    m = int(history)
+
+    platform = mesh.devices.flat[0].platform
+
+    def fn(v, args, conn, weight):
+        return _value_and_grad(v, *args, conn, weight, n_dev, platform)
+
+    def local(args, conn, weight, y0, consts, limit):
+        ftol, kstop, rtol, atol, cap = (consts[i] for i in range(5))
+        dtype = y0.dtype
+        me = jax.lax.axis_index(AXIS)
+
+        def share(v):  # this device's slice of a whole vector, padded to n_loc * n_dev
+            return jax.lax.dynamic_slice(jnp.pad(v, (0, n_loc * n_dev - n)), (me * n_loc,), (n_loc,))
+
+        def capped(d):
+            big = _amax(d)
+            k = jnp.where((cap > 0) & (big > cap), cap / jnp.where(big > 0, big, 1.0), 1.0)
+            return d * k
+
+        value, g, f, k = fn(y0, args, conn, weight)
+        ok = jnp.isfinite(value)
+        trial = capped(-g)
+        hf = jnp.full((max_steps + 1,), jnp.nan, dtype).at[0].set(f)
+        hk = jnp.full((max_steps + 1,), jnp.nan, dtype).at[0].set(k)
+        mem = dict(W=jnp.zeros((2 * m, n_loc), dtype), SY=jnp.zeros((m, m), dtype), YY=jnp.zeros((m, m), dtype),
+                   age=jnp.full((m,), -1, jnp.int32), count=jnp.int32(0))
+        it = dict(y=y0, g=g, value=value, f=f, k=k, trial=trial, slope=jnp.dot(g, trial), alpha=jnp.ones((), dtype),
+                  rejected=jnp.int32(0), steps=jnp.int32(0), stop=~ok | (f <= ftol) | (k <= kstop),
+                  hf=hf, hk=hk, mem=mem)
+
+        def accepted(it, y_try, v_try, g_try, f_try, k_try):
+            mem = it["mem"]
+            ds, dg = y_try - it["y"], g_try - it["g"]  # the new pair
+            converged = ((_amax(ds) < atol + rtol * _amax(y_try))
+                         & (jnp.abs(v_try - it["value"]) < atol + rtol * jnp.abs(v_try)))
+            s_l, y_l, g_l = share(ds), share(dg), share(g_try)
+            W = mem["W"]
+            # every dot the update and the recursion need, over this device's share, in ONE all-reduce
+            dots = W @ jnp.stack([s_l, y_l, g_l], axis=1)  # (2m, 3): S.s, S.y, S.g over Y.s, Y.y, Y.g
+            pair = jnp.stack([jnp.dot(s_l, y_l), jnp.dot(s_l, s_l), jnp.dot(y_l, y_l), jnp.dot(s_l, g_l),
+                              jnp.dot(y_l, g_l)])
+            tot = jax.lax.psum(jnp.concatenate([dots.reshape(-1), pair]), AXIS)
+            dots, (sy, ss, yy, sg, yg) = tot[:6 * m].reshape(2 * m, 3), (tot[6 * m + i] for i in range(5))
+            push = sy > 1e-12 * jnp.sqrt(ss * yy)
+            j = mem["count"] % m
+            SY = jnp.where(push, mem["SY"].at[j, :].set(dots[m:, 0]).at[:, j].set(dots[:m, 1]).at[j, j].set(sy),
+                           mem["SY"])
+            YY = jnp.where(push, mem["YY"].at[j, :].set(dots[m:, 1]).at[:, j].set(dots[m:, 1]).at[j, j].set(yy),
+                           mem["YY"])
+            age = jnp.where(push, mem["age"].at[j].set(mem["count"]), mem["age"])
+            W = W.at[j].set(jnp.where(push, s_l, W[j])).at[m + j].set(jnp.where(push, y_l, W[m + j]))
+            a = jnp.where(push, dots[:m, 2].at[j].set(sg), dots[:m, 2])
+            b = jnp.where(push, dots[m:, 2].at[j].set(yg), dots[m:, 2])
+            newest = jnp.argmax(age)
+            gamma = jnp.where(age[newest] >= 0, SY[newest, newest] / jnp.where(age[newest] >= 0,
+                                                                                 YY[newest, newest], 1.0), 1.0)
+            c, e = _two_loop_coefficients(SY, YY, a, b, age, gamma)
+            d_l = -(gamma * g_l + jnp.concatenate([c, e]) @ W)
+            d = jax.lax.all_gather(d_l, AXIS, tiled=True)[:n]
+            descent = jnp.dot(g_try, d) < 0  # else: the memory forgotten, the steepest descent
+            d = jnp.where(descent, d, -g_try)
+            age = jnp.where(descent, age, -1)
+            count = jnp.where(descent, mem["count"] + push.astype(jnp.int32), 0)
+            trial = capped(d)
+            done = converged | (f_try <= ftol) | (k_try <= kstop)
+            return dict(it, y=y_try, g=g_try, value=v_try, f=f_try, k=k_try, trial=trial,
+                        slope=jnp.dot(g_try, trial), alpha=jnp.ones((), dtype), rejected=jnp.int32(0),
+                        stop=done,
+                        mem=dict(W=W, SY=SY, YY=YY, age=age, count=count))
+
+        def rejected(it, *_):
+            r = it["rejected"] + 1
+            return dict(it, alpha=it["alpha"] * DECREASE, rejected=r, stop=r >= max_rejected)
+
+        def body(it):
+            y_try = it["y"] + it["alpha"] * it["trial"]
+            v_try, g_try, f_try, k_try = fn(y_try, args, conn, weight)
+            ok = jnp.isfinite(v_try) & (v_try <= it["value"] + SLOPE * it["alpha"] * it["slope"])
+            it = jax.lax.cond(ok, accepted, rejected, it, y_try, v_try, g_try, f_try, k_try)
+            steps = it["steps"] + 1
+            return dict(it, steps=steps, hf=it["hf"].at[steps].set(it["f"]), hk=it["hk"].at[steps].set(it["k"]))
+
+        it = jax.lax.while_loop(lambda it: ~it["stop"] & (it["steps"] < limit), body, it)
+        code = jnp.where(~ok, 2, jnp.where(it["stop"], 0, 1)).astype(jnp.int32)
+        return it["y"], it["steps"], code, it["hf"], it["hk"]
+
+    run = jax.shard_map(local, mesh=mesh, in_specs=(P(), P(None, AXIS), P(AXIS), P(), P(), P()),
+                        out_specs=(P(), P(), P(), P(), P()), check_vma=False)
+    return run((par, s), conn, weight, y0, consts, limit)
