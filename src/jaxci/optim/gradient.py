@@ -327,7 +327,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     - `extra`: the wedges, pyramids and tetrahedra (`jaxci.metrics.objective.ExtraCells`, default none): F over every
       corner.
     - `devices`: None (one device), or a `jax.sharding.Mesh` (`jaxci.optim.sharding.resolve_devices`): the
-      compiled loop with the elements sharded over it (`jaxci.optim.sharding.place_problem`), never the host path.
+      compiled loop with the elements sharded over it (`jaxci.optim.sharding.place_problem`), never the host path;
+      ``"lbfgs"`` on F over hexahedra then runs `jaxci.optim.sharded_lbfgs.lbfgs_loop` (the host path's
+      algorithm, its memory split over the devices), the other methods optimistix's loop.
 
     **Returns:** ``(points, iterations, history, params)``: coordinates ``(n, 3)`` (the best valid iterate), the
     number of solver steps, a dict of numpy arrays of length ``iterations + 1`` (entry 0 = input):
