@@ -25,17 +25,21 @@ def _pairs(rng, k: int, n: int):
     return s, s @ a + 0.01 * rng.normal(size=(k, n))
 
 
-@pytest.mark.parametrize("pushes, m", [(3, 5), (5, 5), (8, 5), (13, 4), (0, 3)])
-def test_the_recursion_on_gram_matrices_is_the_two_loop_recursion(pushes, m):
+@pytest.mark.parametrize("pushes, m, stale", [(3, 5, False), (5, 5, False), (8, 5, False), (13, 4, False),
+                                               (0, 3, False), (2, 5, True), (0, 4, True)])
+def test_the_recursion_on_gram_matrices_is_the_two_loop_recursion(pushes, m, stale):
     """``H g`` from the m x m recursion (slots of a ring buffer, filled in push order and overwritten oldest
-    first; empty slots) equals the host path's two-loop recursion over the same newest m pairs, float64."""
+    first; empty slots) equals the host path's two-loop recursion over the same newest m pairs, float64
+    (conftest.py). `stale`: the memory was cleared before these pushes (a non-descent direction): the empty
+    slots still hold old pairs, and their Gram entries are garbage (inf among them), which must not count."""
     import jax.numpy as jnp
 
     rng = np.random.default_rng(pushes + 10 * m)
     n = 40
     s, y = _pairs(rng, pushes, n)
     g = rng.normal(size=n)
-    slots_s, slots_y = np.zeros((m, n)), np.zeros((m, n))
+    slots_s, slots_y = (rng.normal(size=(m, n)), rng.normal(size=(m, n))) if stale else (np.zeros((m, n)),) * 2
+    slots_s, slots_y = slots_s.copy(), slots_y.copy()
     age = np.full(m, -1, np.int32)
     mem = host._Memory(n, m)
     for p in range(pushes):  # the loop's ring buffer: push p in slot p % m
@@ -43,14 +47,108 @@ def test_the_recursion_on_gram_matrices_is_the_two_loop_recursion(pushes, m):
         mem.push(s[p], y[p])
     newest = int(np.argmax(age))
     gamma = float(slots_s[newest] @ slots_y[newest] / (slots_y[newest] @ slots_y[newest])) if pushes else 1.0
-    c, e = _two_loop_coefficients(*map(jnp.asarray, (slots_s @ slots_y.T, slots_y @ slots_y.T, slots_s @ g,
-                                                      slots_y @ g, age)), gamma)
+    sy, yy, a, b = slots_s @ slots_y.T, slots_y @ slots_y.T, slots_s @ g, slots_y @ g
+    if stale:  # entries of an empty slot as the loop may leave them
+        empty = age < 0
+        sy[empty, :], yy[:, empty], a[empty] = np.inf, -np.inf, np.nan
+    c, e = _two_loop_coefficients(*map(jnp.asarray, (sy, yy, a, b, age)), gamma)
     hg = gamma * g + np.asarray(c) @ slots_s + np.asarray(e) @ slots_y
     want = -mem.direction(g)
     assert np.allclose(hg, want, rtol=1e-11, atol=1e-12), np.abs(hg - want).max()
     if pushes:  # the pairs matter: not the steepest descent
         assert not np.allclose(hg, gamma * g)
     assert np.all(np.asarray(c)[age < 0] == 0) and np.all(np.asarray(e)[age < 0] == 0)
+
+
+def _rosenbrock(v, xp):
+    return xp.sum(100.0 * (v[1:] - v[:-1] ** 2) ** 2 + (1.0 - v[:-1]) ** 2)
+
+
+def _wiggly(v, xp):
+    return xp.sum(xp.cos(3.0 * v) + 0.1 * v ** 2) + xp.sum((v[1:] - v[:-1]) ** 4)
+
+
+def _synthetic(v, args, conn, weight, n_dev, platform):
+    """A non-convex test objective for `lbfgs_loop`: ``(f, grad, f, 1 + f / scale)`` (so that the k stop fires
+    once f <= ktol * scale). `args`: ``(kind, scale)``, kind 0 Rosenbrock, 1 a sum of cosines with quartic
+    couplings."""
+    import jax
+    import jax.numpy as jnp
+
+    kind, scale = args
+    f, g = jax.value_and_grad(lambda u: jnp.where(kind == 0, _rosenbrock(u, jnp), _wiggly(u, jnp)))(v)
+    return f, g, f, 1.0 + f / scale
+
+
+def _compare_with_host(kind, n, seed, history, max_rejected, ktol, steps, n_dev=1):
+    """Run `lbfgs_loop` (on the first `n_dev` devices) and `jaxci.optim.host.lbfgs` on `_synthetic` from the same
+    start; assert the same steps, F at every step, result and iterate. Returns the host's ``(whether each pair
+    was skipped, F at every step, result)``."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxci.optim.sharded_lbfgs import lbfgs_loop
+    from jaxci.optim.sharding import AXIS, device_mesh
+
+    skipped = []
+    push = host._Memory.push
+
+    def counting_push(self, s, y):
+        before = list(self.order)
+        push(self, s, y)
+        skipped.append(before == self.order)
+
+    y0 = np.random.default_rng(seed).normal(size=n) * 1.5
+    fn = _rosenbrock if kind == 0 else _wiggly
+    scale = 1.0
+    grad = jax.jit(jax.grad(lambda u: fn(u, jnp)))
+
+    def fun(v):
+        f = float(fn(v, np))
+        return f, np.asarray(grad(jnp.asarray(v))), f, 1.0 + f / scale
+
+    cap, rtol, atol = 0.5, 1e-10, 1e-12
+    host._Memory.push = counting_push
+    try:
+        yh, kh, rh, hfh, _ = host.lbfgs(fun, y0, limit=steps, max_rejected=max_rejected, rtol=rtol, atol=atol,
+                                        history=history, cap=cap, ftol=-np.inf, done=lambda f, k: k <= 1.0 + ktol)
+    finally:
+        host._Memory.push = push
+    mesh = device_mesh(jax.devices()[:n_dev])
+    conn = jax.device_put(jnp.zeros((8, n_dev), jnp.int32), NamedSharding(mesh, P(None, AXIS)))
+    weight = jax.device_put(jnp.ones(n_dev), NamedSharding(mesh, P(AXIS)))
+    y, k, code, hf, _ = lbfgs_loop(_synthetic, (jnp.int32(kind), jnp.float64(scale)), conn, weight, jnp.asarray(y0),
+                                   jnp.asarray([-np.inf, 1.0 + ktol, rtol, atol, cap]), jnp.int32(steps), mesh=mesh,
+                                   max_steps=steps, history=history, max_rejected=max_rejected)
+    # step for step: roundoff (the recursion on Gram matrices, numpy against XLA) grows along a Rosenbrock
+    # valley to 1e-9 of F in 60 steps; a different step would differ at once by far more
+    assert int(k) == kh and result_name(code) == rh, (int(k), kh, result_name(code), rh)
+    assert np.allclose(np.asarray(hf)[: kh + 1], hfh, rtol=1e-7, atol=1e-12)
+    assert np.allclose(np.asarray(y), yh, rtol=1e-6, atol=1e-9)
+    return skipped, hfh, rh
+
+
+@pytest.mark.parametrize("case", ["skipped pairs", "memory wrapped, step limit", "k stop", "Cauchy stop"])
+def test_the_loop_takes_the_host_paths_steps_on_non_convex_functions(case):
+    """`lbfgs_loop` on one device against `jaxci.optim.host.lbfgs`, float64, from the same start: the same steps,
+    F at every step, result and iterate, in runs that exercise each part of the algorithm (checked here on
+    the host's run: pairs of non-positive curvature skipped; a memory of 5 overwritten 10 times over; the k
+    stop; the Cauchy test)."""
+    if case == "skipped pairs":  # Rosenbrock in 20 unknowns, memory 3, ended by 2 rejected trials in a row
+        skipped, hf, result = _compare_with_host(0, 20, 0, 3, 2, 0.0, 60)
+        assert sum(skipped) >= 1 and result == "successful" and hf[-1] == hf[-2] == hf[-3], (sum(skipped), hf[-3:])
+    elif case == "memory wrapped, step limit":
+        skipped, hf, result = _compare_with_host(0, 37, 0, 5, 30, 0.0, 60)
+        assert len(skipped) - sum(skipped) >= 50 and result == "nonlinear_max_steps_reached"
+    elif case == "k stop":  # k = 1 + F: stops at the first accepted F <= 0.5, long before the Cauchy test
+        skipped, hf, result = _compare_with_host(0, 7, 1, 4, 30, 0.5, 80)
+        _, longer, _ = _compare_with_host(0, 7, 1, 4, 30, 0.0, 80)
+        assert result == "successful" and hf[-1] <= 0.5 < hf[-2] and len(longer) > len(hf) + 10
+    else:  # cosines with quartic couplings: a local minimum in 10 steps
+        skipped, hf, result = _compare_with_host(1, 37, 2, 5, 30, 0.0, 60)
+        assert result == "successful" and len(hf) < 20
 
 
 def test_result_names():
@@ -74,27 +172,35 @@ SCRIPT = textwrap.dedent(
     loop = sharded_lbfgs.lbfgs_loop
 
     def spy(*args, **kw):  # the compiled program of each call, then the call
-        hlo.append(loop.lower(*args, **kw).compile().as_text())
+        hlo.append((kw["mesh"].devices.size, loop.lower(*args, **kw).compile().as_text()))
         return loop(*args, **kw)
 
     sharded_lbfgs.lbfgs_loop = spy
 
-    # a box, sliding boundary on flat walls: the host path's steps exactly, on one device and on four
-    box = perturb_box(6, 5, 4, amplitude=0.3, seed=1)
-    ref = smooth(box, "lbfgs", dtype="float64", presmooth=0, backend="numpy", precondition="none")
-    for dev in (1, 4):
-        r = smooth(box, "lbfgs", dtype="float64", presmooth=0, devices=dev)
-        assert r.iterations == ref.iterations, (dev, r.iterations, ref.iterations)
-        assert r.history["solver_result"] == ref.history["solver_result"] == "successful"
-        assert np.allclose(r.history["objective"], ref.history["objective"], rtol=1e-12, atol=0)
-        assert np.abs(r.mesh.points - ref.mesh.points).max() < 1e-12
-        assert r.after.inverted_corners == 0 and r.after.max_condition < r.before.max_condition
+    # boxes, sliding boundary on flat walls: the host path's steps exactly, on one device and on four (the 8^3
+    # box ends on the k stop, max kappa/3 <= 1 + ktol)
+    for box, stop in ((perturb_box(6, 5, 4, amplitude=0.3, seed=1), "cauchy"),
+                      (perturb_box(8, 8, 8, amplitude=0.3, seed=1), "k")):
+        ref = smooth(box, "lbfgs", dtype="float64", presmooth=0, backend="numpy", precondition="none")
+        assert (ref.after.max_condition <= 1 + 1e-6) == (stop == "k"), ref.after.max_condition
+        for dev in (1, 4):
+            r = smooth(box, "lbfgs", dtype="float64", presmooth=0, devices=dev)
+            assert r.iterations == ref.iterations, (dev, r.iterations, ref.iterations)
+            assert r.history["solver_result"] == ref.history["solver_result"] == "successful"
+            assert np.allclose(r.history["objective"], ref.history["objective"], rtol=1e-9, atol=1e-15)
+            assert np.abs(r.mesh.points - ref.mesh.points).max() < 1e-9
+            assert r.after.inverted_corners == 0 and r.after.max_condition < r.before.max_condition
+    # 37 unknowns on 4 devices: shares of 10, the last padded
+    from test_sharded_lbfgs import _compare_with_host
+    _compare_with_host(0, 37, 0, 5, 30, 0.0, 60, n_dev=4)
+    _compare_with_host(0, 20, 0, 3, 2, 0.0, 60, n_dev=4)
     # four devices: each holds its quarter of the memory (10 pairs of s and y: a (20, n / 4) block), and the
     # program exchanges once per trial and once more per accepted step (plus the start's evaluation), and
     # gathers the direction once
-    prog = hlo[-1]
-    one, four = ({int(k) for k in re.findall(r"f64\\[20,(\\d+)\\]", h) if int(k) > 3} for h in (hlo[0], hlo[-1]))
-    assert len(one) == len(four) == 1 and 4 * four.pop() == one.pop(), (one, four)
+    one, four = ({int(k) for k in re.findall(r"f64\\[20,(\\d+)\\]", h) if int(k) > 3}
+                 for h in (next(h for d, h in hlo if d == 1), next(h for d, h in hlo if d == 4)))
+    assert len(one) == len(four) == 1 and 4 * min(four) == min(one), (one, four)
+    prog = next(h for d, h in hlo if d == 4)
     assert prog.count("all-reduce(") == 3 and prog.count("all-gather(") == 1, (prog.count("all-reduce("),
                                                                                prog.count("all-gather("))
 

@@ -420,12 +420,13 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                                               done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
                                               precond_after=max(after - steps, 0) if precond else 0)
         elif own_loop:
-            from .sharded_lbfgs import lbfgs_loop, result_name
+            from .sharded_lbfgs import lbfgs_loop, result_name, value_and_grad
 
             dtype = par.x0.dtype
             consts = np.asarray([p.ftol, 1.0 + p.ktol, p.rtol, p.atol, p.max_move or 0.0])
             y, k, code, hf, hk = lbfgs_loop(
-                cur, replicate(to_device(np.asarray(_scale(n_hex, extra)), dtype), devices), run_conn, weight,
+                value_and_grad, (cur, replicate(to_device(np.asarray(_scale(n_hex, extra)), dtype), devices)),
+                run_conn, weight,
                 replicate(y, devices), replicate(to_device(consts, dtype), devices),
                 replicate(to_device(np.int32(p.max_steps - steps)), devices), mesh=devices,
                 max_steps=int(p.max_steps), history=int(p.history_length), max_rejected=_max_rejected(method, p))
