@@ -51,7 +51,8 @@ def test_the_recursion_on_gram_matrices_is_the_two_loop_recursion(pushes, m, sta
     if stale:  # entries of an empty slot as the loop may leave them
         empty = age < 0
         sy[empty, :], yy[:, empty], a[empty] = np.inf, -np.inf, np.nan
-    c, e = _two_loop_coefficients(*map(jnp.asarray, (sy, yy, a, b, age)), gamma)
+    c, e, got_gamma = _two_loop_coefficients(*map(jnp.asarray, (sy, yy, a, b, age)))
+    assert abs(float(got_gamma) - gamma) <= 1e-14 * gamma, (float(got_gamma), gamma)  # the newest pair's
     hg = gamma * g + np.asarray(c) @ slots_s + np.asarray(e) @ slots_y
     want = -mem.direction(g)
     assert np.allclose(hg, want, rtol=1e-11, atol=1e-12), np.abs(hg - want).max()

@@ -288,9 +288,14 @@ def _host_mixed_kernel(conn, extra):
     kernel) for a hexahedral mesh."""
     if not extra.types:
         return None
-    blocks = {"hexahedron": np.asarray(conn).T, **{t: np.asarray(c).T for t, c in zip(extra.types, extra.conns,
-                                                                                        strict=True)}}
-    return native.MixedKernel(blocks)
+    return native.MixedKernel(_cells_by_type(conn, extra))
+
+
+def _cells_by_type(conn, extra) -> dict:
+    """Every cell's connectivity ``(N, k)`` (numpy) by type: the hexahedra of `conn` ``(8, N)`` and the cells of
+    `extra`."""
+    return {"hexahedron": np.asarray(conn).T,
+            **{t: np.asarray(c).T for t, c in zip(extra.types, extra.conns, strict=True)}}
 
 
 def use_host(method: str, p: GradientParams, n_hex: int, extra=None) -> bool:
@@ -411,9 +416,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                 n_cells = n_hex + sum(int(c.shape[1]) for c in extra.conns)
                 if p.precondition == "coarse" or n_cells <= coarse.AUTO_MAX_CELLS:
                     after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
-                    precond = functools.cache(lambda: coarse.build_coarse(
-                        run_par, {"hexahedron": np.asarray(conn).T,
-                                  **{t: np.asarray(c).T for t, c in zip(extra.types, extra.conns, strict=True)}}))
+                    precond = functools.cache(lambda: coarse.build_coarse(run_par, _cells_by_type(conn, extra)))
             y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
@@ -424,11 +427,11 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
 
             dtype = par.x0.dtype
             consts = np.asarray([p.ftol, 1.0 + p.ktol, p.rtol, p.atol, p.max_move or 0.0])
+            # (numpy arrays placed straight from the host: `replicate`)
             y, k, code, hf, hk = lbfgs_loop(
-                value_and_grad, (cur, replicate(to_device(np.asarray(_scale(n_hex, extra)), dtype), devices)),
-                run_conn, weight,
-                replicate(y, devices), replicate(to_device(consts, dtype), devices),
-                replicate(to_device(np.int32(p.max_steps - steps)), devices), mesh=devices,
+                value_and_grad, (cur, replicate(np.asarray(_scale(n_hex, extra), dtype), devices)), run_conn, weight,
+                replicate(y, devices), replicate(np.asarray(consts, dtype), devices),
+                replicate(np.int32(p.max_steps - steps), devices), mesh=devices,
                 max_steps=int(p.max_steps), history=int(p.history_length), max_rejected=_max_rejected(method, p))
             result = result_name(code)
         else:

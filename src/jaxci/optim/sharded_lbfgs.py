@@ -48,12 +48,13 @@ def result_name(code) -> str:
     return RESULTS[int(np.asarray(code))]
 
 
-def _two_loop_coefficients(SY, YY, a, b, age, gamma):
-    """The two-loop recursion on the Gram matrices: coefficients ``(c, e)`` with ``H g = gamma g + S^T c + Y^T e``.
+def _two_loop_coefficients(SY, YY, a, b, age):
+    """The two-loop recursion on the Gram matrices: ``(c, e, gamma)`` with ``H g = gamma g + S^T c + Y^T e``.
 
     **Arguments:** `SY` ``(m, m)``: ``s_i . y_j``; `YY` ``(m, m)``: ``y_i . y_j``; `a`, `b` ``(m,)``: ``s_i . g``,
-    ``y_i . g``; `age` ``(m,)`` int32: each slot's push number (-1: empty); `gamma`: the initial inverse Hessian's
-    scale. Slots in any order (chronology from `age`); empty slots get 0.
+    ``y_i . g``; `age` ``(m,)`` int32: each slot's push number (-1: empty). Slots in any order (chronology from
+    `age`); empty slots get 0. `gamma`, the initial inverse Hessian's scale, is ``s.y / y.y`` of the newest pair
+    (1 with no pair), as in `jaxci.optim.host`.
 
     The first loop (newest pair first) ``alpha_i = rho_i s_i . q`` with ``q = g - sum_{j newer} alpha_j y_j``,
     i.e. ``rho_i (a_i - sum_j alpha_j SY_ij)`` over the pairs done so far; then ``r = gamma q`` and the second loop
@@ -70,6 +71,8 @@ def _two_loop_coefficients(SY, YY, a, b, age, gamma):
     count = jnp.sum(valid)
     diag = jnp.diagonal(SY)
     rho = jnp.where(valid, 1.0 / jnp.where(valid, diag, 1.0), 0.0)
+    newest = order[jnp.maximum(count - 1, 0)]
+    gamma = jnp.where(count > 0, diag[newest] / jnp.where(count > 0, YY[newest, newest], 1.0), 1.0)
 
     def first(t, alpha):
         pos = m - 1 - t  # newest first
@@ -86,7 +89,7 @@ def _two_loop_coefficients(SY, YY, a, b, age, gamma):
         return c.at[i].set(jnp.where(pos < count, alpha[i] - beta, 0.0))
 
     c = jax.lax.fori_loop(0, m, second, jnp.zeros_like(a))
-    return c, -gamma * alpha
+    return c, -gamma * alpha, gamma
 
 
 def _amax(a):
@@ -159,6 +162,9 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
             k = jnp.where((cap > 0) & (big > cap), cap / jnp.where(big > 0, big, 1.0), 1.0)
             return d * k
 
+        def finished(f, k):  # the stops at an accepted iterate besides the Cauchy test
+            return (f <= ftol) | (k <= kstop)
+
         value, g, f, k = fn(y0, args, conn, weight)
         ok = jnp.isfinite(value)
         trial = capped(-g)
@@ -167,7 +173,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
         mem = dict(W=jnp.zeros((2 * m, n_loc), dtype), SY=jnp.zeros((m, m), dtype), YY=jnp.zeros((m, m), dtype),
                    age=jnp.full((m,), -1, jnp.int32), count=jnp.int32(0))
         it = dict(y=y0, g=g, value=value, f=f, k=k, trial=trial, slope=jnp.dot(g, trial), alpha=jnp.ones((), dtype),
-                  rejected=jnp.int32(0), steps=jnp.int32(0), stop=~ok | (f <= ftol) | (k <= kstop),
+                  rejected=jnp.int32(0), steps=jnp.int32(0), stop=~ok | finished(f, k),
                   hf=hf, hk=hk, mem=mem)
 
         def accepted(it, y_try, v_try, g_try, f_try, k_try):
@@ -195,10 +201,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
             W = W.at[j].set(jnp.where(push, s_l, W[j])).at[m + j].set(jnp.where(push, y_l, W[m + j]))
             a = jnp.where(push, dots[:m, 2].at[j].set(sg), dots[:m, 2])
             b = jnp.where(push, dots[m:, 2].at[j].set(yg), dots[m:, 2])
-            newest = jnp.argmax(age)
-            gamma = jnp.where(age[newest] >= 0, SY[newest, newest] / jnp.where(age[newest] >= 0,
-                                                                                 YY[newest, newest], 1.0), 1.0)
-            c, e = _two_loop_coefficients(SY, YY, a, b, age, gamma)
+            c, e, gamma = _two_loop_coefficients(SY, YY, a, b, age)
             d_l = -(gamma * g_l + jnp.matmul(jnp.concatenate([c, e]), W, precision=jax.lax.Precision.HIGHEST))
             d = jax.lax.all_gather(d_l, AXIS, tiled=True)[:n]
             descent = jnp.dot(g_try, d) < 0  # else: the memory forgotten, the steepest descent
@@ -206,10 +209,9 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
             age = jnp.where(descent, age, -1)
             count = jnp.where(descent, mem["count"] + push.astype(jnp.int32), 0)
             trial = capped(d)
-            done = converged | (f_try <= ftol) | (k_try <= kstop)
             return dict(it, y=y_try, g=g_try, value=v_try, f=f_try, k=k_try, trial=trial,
                         slope=jnp.dot(g_try, trial), alpha=jnp.ones((), dtype), rejected=jnp.int32(0),
-                        stop=done,
+                        stop=converged | finished(f_try, k_try),
                         mem=dict(W=W, SY=SY, YY=YY, age=age, count=count))
 
         def rejected(it, *_):
