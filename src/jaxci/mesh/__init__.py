@@ -63,6 +63,8 @@ class HexMesh:
     - `field_data`: anything else the file carried (Gmsh physical names).
     - `node_ids`: optional external node ids, shape ``(n_nodes,)`` (ANSYS / Abaqus numbering).
     - `source`: the path it was read from, used in messages.
+    - `input_files`: every other file the reader opened to build it (an Abaqus ``*INCLUDE``, an XDMF file's HDF5
+      data, ...), as given or resolved by the reader; with `source`, the files a write must never replace.
     - `hex_mirrored`: True when the file stored every hexahedron left-handed and they were mirrored on
       construction; `jaxci.io.write_mesh` mirrors them back so the file keeps its convention.
     - `fix_orientation`: mirror left-handed hexahedra when ALL of them are left-handed (default True).
@@ -84,6 +86,7 @@ class HexMesh:
     field_data: Mapping[str, object] = dataclasses.field(default_factory=dict)
     node_ids: np.ndarray | None = None
     source: str | None = None
+    input_files: tuple[str, ...] = ()
     hex_mirrored: bool = False
     fix_orientation: dataclasses.InitVar[bool] = True
     notes: tuple[str, ...] = ()
