@@ -22,6 +22,8 @@ from ._abaqus_write import write_abaqus
 from ._ansys_apdl import read_apdl
 from ._ansys_apdl_write import write_apdl
 from ._ansys_listing import read_ansys_listing as read_ansys_listing
+from ._exodus import read_exodus
+from ._exodus_write import write_exodus
 from ._meshio import LossyWriteWarning as LossyWriteWarning
 from ._meshio import read_meshio, write_meshio
 
@@ -41,6 +43,10 @@ FORMATS: dict[str, str] = {
     ".cdb": "apdl",
     ".lis": "ansys-listing",
     ".txt": "ansys-listing",
+    ".e": "exodus",
+    ".exo": "exodus",
+    ".ex2": "exodus",
+    ".g": "exodus",
 }
 
 _READERS = {
@@ -52,6 +58,7 @@ _READERS = {
     "xdmf": lambda path: read_meshio(path, "xdmf"),
     "apdl": read_apdl,
     "ansys-listing": read_ansys_listing,
+    "exodus": read_exodus,
 }
 
 _WRITERS = {
@@ -62,6 +69,7 @@ _WRITERS = {
     "abaqus": write_abaqus,
     "xdmf": lambda mesh, path: write_meshio(mesh, path, "xdmf"),
     "apdl": write_apdl,
+    "exodus": write_exodus,
 }
 
 
@@ -215,7 +223,7 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     inputs = _inputs(mesh)
     _refuse_input(path, inputs)
     quadratic = sum(len(b.data) for b in mesh.cells if b.midside is not None)
-    if quadratic and fmt not in ("apdl", "abaqus"):
+    if quadratic and fmt not in ("apdl", "abaqus", "exodus"):
         warnings.warn(
             f"{path.name}: {fmt} gets the {quadratic} quadratic cells as linear cells (their corner nodes); their "
             f"midside nodes are written as unreferenced points. Write .inp, .cdb or .mac to keep them",
