@@ -24,6 +24,8 @@ from ._ansys_apdl_write import write_apdl
 from ._ansys_listing import read_ansys_listing as read_ansys_listing
 from ._exodus import read_exodus
 from ._exodus_write import write_exodus
+from ._nastran import read_nastran
+from ._nastran_write import write_nastran
 from ._meshio import LossyWriteWarning as LossyWriteWarning
 from ._meshio import read_meshio, write_meshio
 
@@ -47,6 +49,9 @@ FORMATS: dict[str, str] = {
     ".exo": "exodus",
     ".ex2": "exodus",
     ".g": "exodus",
+    ".bdf": "nastran",
+    ".nas": "nastran",
+    ".dat": "nastran",
 }
 
 _READERS = {
@@ -59,6 +64,7 @@ _READERS = {
     "apdl": read_apdl,
     "ansys-listing": read_ansys_listing,
     "exodus": read_exodus,
+    "nastran": read_nastran,
 }
 
 _WRITERS = {
@@ -70,6 +76,7 @@ _WRITERS = {
     "xdmf": lambda mesh, path: write_meshio(mesh, path, "xdmf"),
     "apdl": write_apdl,
     "exodus": write_exodus,
+    "nastran": write_nastran,
 }
 
 
@@ -223,7 +230,7 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     inputs = _inputs(mesh)
     _refuse_input(path, inputs)
     quadratic = sum(len(b.data) for b in mesh.cells if b.midside is not None)
-    if quadratic and fmt not in ("apdl", "abaqus", "exodus"):
+    if quadratic and fmt not in ("apdl", "abaqus", "exodus", "nastran"):
         warnings.warn(
             f"{path.name}: {fmt} gets the {quadratic} quadratic cells as linear cells (their corner nodes); their "
             f"midside nodes are written as unreferenced points. Write .inp, .cdb or .mac to keep them",

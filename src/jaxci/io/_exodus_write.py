@@ -27,11 +27,11 @@ import warnings
 import numpy as np
 
 from ..errors import JaxciError, MeshWriteError
-from ..mesh import HexMesh, mirrored_block
+from ..mesh import HexMesh
 from ._deck import first_duplicate, model_difference
 from ._exodus import ExodusFile, read_exodus
 from ._meshio import LossyWriteWarning
-from ._patran import join_solid, serendipity_shift
+from ._patran import file_block, join_solid, serendipity_shift
 
 #: (cell type, with midside nodes) -> the Exodus element type written afresh.
 EXODUS_NAMES = {
@@ -42,9 +42,6 @@ EXODUS_NAMES = {
     ("triangle6", False): "TRISHELL6", ("line", False): "BEAM2", ("line3", False): "BEAM3",
     ("vertex", False): "SPHERE",
 }
-#: meshio's quadratic types (VTK node order: corners, then the midside nodes in `jaxci.cells.EDGES` order).
-_MESHIO_QUADRATIC = {"hexahedron20": ("hexahedron", 8), "wedge15": ("wedge", 6), "pyramid13": ("pyramid", 5),
-                     "tetra10": ("tetra", 4)}
 _INT32 = 2**31 - 1
 #: Field data that are a source file's, not the mesh's (never reported as lost field data here).
 _SOURCE_FIELDS = ("exodus:file", "abaqus:deck", "abaqus:element_types", "ansys:deck", "nastran:deck",
@@ -104,25 +101,14 @@ def _blocks(mesh: HexMesh) -> tuple[list, list[str]]:
     what is left out."""
     out, lost = [], []
     for k, blk in enumerate(mesh.cells):
-        b = mirrored_block(blk) if mesh.hex_mirrored and blk.type == "hexahedron" else blk
-        data, mid, cell = np.asarray(b.data, np.int64), b.midside, b.type
-        if cell in _MESHIO_QUADRATIC:
-            cell, corners = _MESHIO_QUADRATIC[cell]
-            data, mid = data[:, :corners], data[:, corners:]
-        elif cell == "hexahedron27":
-            lost.append(f"the face and centre nodes of the {len(data)} hexahedron27 cells of block {k} (written as "
-                        f"HEX20)")
-            cell, data, mid = "hexahedron", data[:, :8], data[:, 8:20]
-        if mid is not None and (np.asarray(mid) < 0).any():
-            lost.append(f"the midside nodes of the {len(data)} {cell} cells of block {k}, which lack midside nodes "
-                        f"on some edges (written as linear cells)")
-            mid = None
+        cell, data, mid, more = file_block(blk, k, mesh.hex_mirrored)
+        lost += more
         name = EXODUS_NAMES.get((cell, mid is not None))
         if name is None:
             lost.append(f"{len(data)} {blk.type} cells (no Exodus element type)")
             continue
-        conn = data if mid is None else join_solid(data, np.asarray(mid, np.int64), cell)
-        out.append((name, conn, None if b.ids is None else np.asarray(b.ids, np.int64), k))
+        conn = data if mid is None else join_solid(data, mid, cell)
+        out.append((name, conn, None if blk.ids is None else np.asarray(blk.ids, np.int64), k))
     return out, lost
 
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import CellBlock, mirrored_block
+
 #: Cell type -> positions, in the file's midside node list, of the midside nodes of `jaxci.cells.EDGES` (edge k
 #: of jaxci's order is the file's midside node ``MIDSIDE_ORDER[type][k]``); also file order from jaxci's.
 MIDSIDE_ORDER = {
@@ -66,3 +68,27 @@ def serendipity_shift(old: np.ndarray, new: np.ndarray, conn27: np.ndarray) -> n
         shifts.append(-0.25 * corner_d[:, list(face)].sum(axis=1) + 0.5 * edge_d[:, edges].sum(axis=1))
     idx = conn27[:, nodes]
     return idx, old[idx] + np.stack(shifts, axis=1)
+
+
+#: meshio's quadratic types (VTK node order: the corners, then the midside nodes in `jaxci.cells.EDGES` order).
+MESHIO_QUADRATIC = {"hexahedron20": ("hexahedron", 8), "wedge15": ("wedge", 6), "pyramid13": ("pyramid", 5),
+                    "tetra10": ("tetra", 4), "hexahedron27": ("hexahedron", 8)}
+
+
+def file_block(blk: CellBlock, k: int, hex_mirrored: bool) -> tuple[str, np.ndarray, np.ndarray | None, list[str]]:
+    """A cell block as a file of these formats holds it: (cell type, corner nodes, midside nodes in `EDGES` order
+    or None, what is left out). Hexahedra are mirrored back when the mesh mirrored them (`HexMesh.hex_mirrored`);
+    meshio's quadratic blocks become their linear type with midside nodes (a hexahedron27's face and centre
+    nodes are left out); midside nodes missing on some edges make the cells linear."""
+    b = mirrored_block(blk) if hex_mirrored and blk.type == "hexahedron" else blk
+    cell, data, mid, lost = b.type, np.asarray(b.data, np.int64), b.midside, []
+    if cell in MESHIO_QUADRATIC:
+        cell, corners = MESHIO_QUADRATIC[cell]
+        if b.type == "hexahedron27":
+            lost.append(f"the face and centre nodes of the {len(data)} hexahedron27 cells of block {k}")
+        data, mid = data[:, :corners], data[:, corners : corners + len(MIDSIDE_ORDER[cell])]
+    if mid is not None and (np.asarray(mid) < 0).any():
+        lost.append(f"the midside nodes of the {len(data)} {cell} cells of block {k}, which lack midside nodes on "
+                    f"some edges (written as linear cells)")
+        mid = None
+    return cell, data, None if mid is None else np.asarray(mid, np.int64), lost

@@ -1,0 +1,178 @@
+"""Write a mesh as a Nastran bulk data deck; `jaxci.io._nastran` reads it back.
+
+**In place.** A mesh read from a Nastran deck carries the deck's text (field data ``nastran:deck``). When the mesh
+still has the deck's GRIDs, element ids, cells and property ids (only the coordinates changed, as after
+smoothing), `write_nastran` writes the deck again with only the coordinate fields of the GRIDs that moved
+rewritten, each in the width and format it came in (8 characters in small field and in free field, 16 in large
+field), as the text that reads back nearest to the new value (`jaxci.io._fields.format_real`; Nastran's short
+exponents, ``1.2345-3``, where they gain a digit). A value its field cannot hold closely enough is refused with a
+`MeshWriteError` naming the GRID (`jaxci.io._fields.REL_TOLERANCE`). Every other card, comment and line of the
+deck, executive and case control included, is kept byte for byte (``INCLUDE`` files inlined).
+
+**Afresh**, for any other mesh::
+
+    $ jaxci mesh: 27 GRIDs, 8 elements
+    GRID*                  1                              0.0             0.0
+    *                    0.0
+    CHEXA          1       1       1       2       5       4      10      11
+    +             14      13
+    ...
+    ENDDATA
+
+GRIDs in large field (16-character coordinates), elements in small field with the mesh's ids (8 digits at
+most), ``CHEXA``/``CPENTA``/``CTETRA``/``CPYRAM`` (with their midside nodes), ``CQUAD4``, ``CTRIA3`` and ``CROD``,
+property ids from the cell data ``nastran:pid`` (else the block number). Sets, other point and cell data, field
+data and the cards of a source deck that could not be written in place are left out with a `LossyWriteWarning`,
+issued before the file is written. A ``.dat`` file that a mesh read from an ANSYS file is written to is written as
+APDL (`jaxci.io._ansys_apdl_write`).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+
+from ..errors import MeshWriteError
+from ..mesh import HexMesh
+from ._ansys_apdl_write import write_apdl
+from ._deck import first_duplicate, model_difference
+from ._fields import REL_TOLERANCE, format_real, node_scale, rewrite_coordinates
+from ._losses import deck_losses
+from ._meshio import LossyWriteWarning
+from ._nastran import parse_deck
+from ._patran import file_block, join_solid
+
+#: (cell type, with midside nodes) -> element card written afresh.
+CARD_NAMES = {("hexahedron", False): "CHEXA", ("hexahedron", True): "CHEXA", ("wedge", False): "CPENTA",
+              ("wedge", True): "CPENTA", ("tetra", False): "CTETRA", ("tetra", True): "CTETRA",
+              ("pyramid", False): "CPYRAM", ("pyramid", True): "CPYRAM", ("quad", False): "CQUAD4",
+              ("triangle", False): "CTRIA3", ("line", False): "CROD"}
+_MAX_ID = 99_999_999  # 8-character integer fields
+_SOURCE_FIELDS = ("nastran:deck", "exodus:file", "abaqus:deck", "abaqus:element_types", "ansys:deck", "lsdyna:deck")
+
+
+def _in_place(mesh: HexMesh, text: str, path: str) -> tuple[str | None, str | None]:
+    """(None, the deck with the mesh's coordinates) when `mesh` is the deck's mesh with moved nodes, else (what
+    differs, None)."""
+    lines = text.splitlines(keepends=True)
+    label = f"the deck of {mesh.source or 'the mesh'}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
+        ref = HexMesh(**parts)
+    reason = model_difference(mesh, ref, cell_data=("nastran:pid",))
+    if reason is not None:
+        return reason, None
+    ids = ref.node_ids
+
+    def name(k: int) -> str:
+        return f"{path}: GRID {int(ids[k])} (line {deck.origin[deck.node_line[k]][1]} of the deck)"
+
+    rewrite_coordinates(lines, ref.points, mesh.points, deck.node_spots, node_scale(mesh.points, mesh.cells), name,
+                        nastran=True)
+    return None, "".join(lines)
+
+
+def _small(name: str, fields: list[str]) -> list[str]:
+    """A small-field card: 8 data fields on the first line, 8 on each continuation line (marked ``+``)."""
+    rows = [fields[i : i + 8] for i in range(0, len(fields), 8)] or [[]]
+    return [f"{name if k == 0 else '+':<8}" + "".join(f"{t:>8}" for t in row) for k, row in enumerate(rows)]
+
+
+def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
+    lost = []
+    node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
+    pid_data = mesh.cell_data.get("nastran:pid")
+    blocks = []  # (card, element ids or None, rows of node indices (-1 blank), pids)
+    for k, blk in enumerate(mesh.cells):
+        cell, data, mid, more = file_block(blk, k, mesh.hex_mirrored)
+        lost += more
+        card = CARD_NAMES.get((cell, mid is not None))
+        if card is None:
+            lost.append(f"{len(data)} {blk.type} cells (no element card)")
+            continue
+        rows = data if mid is None else join_solid(data, mid, cell)
+        pids = np.asarray(pid_data[k], np.int64) if pid_data is not None and len(pid_data) == len(mesh.cells) \
+            and len(pid_data[k]) == len(data) else np.full(len(data), k + 1)
+        blocks.append((card, None if blk.ids is None else np.asarray(blk.ids, np.int64), rows, pids))
+    next_id = int(max((b[1].max() for b in blocks if b[1] is not None and len(b[1])), default=0)) + 1
+    numbered = []
+    for card, ids, rows, pids in blocks:
+        if ids is None:
+            ids = np.arange(next_id, next_id + len(rows))
+            next_id += len(rows)
+        numbered.append((card, ids, rows, pids))
+    all_ids = np.concatenate([b[1] for b in numbered]) if numbered else np.zeros(0, np.int64)
+    for ids, what in ((node_ids, "GRID"), (all_ids, "element")):
+        if (dup := first_duplicate(ids)) is not None:
+            raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; Nastran ids must be unique")
+        if len(ids) and (ids.min() < 1 or ids.max() > _MAX_ID):
+            bad = ids.min() if ids.min() < 1 else ids.max()
+            raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{_MAX_ID} of Nastran's 8-character "
+                                 f"fields")
+    scale = node_scale(mesh.points, mesh.cells)
+    out = [f"$ jaxci mesh: {mesh.n_nodes} GRIDs, {len(all_ids)} elements"]
+    for k, (nid, xyz) in enumerate(zip(node_ids.tolist(), mesh.points.tolist(), strict=True)):
+        texts = []
+        for c, v in enumerate(xyz):
+            text, err = format_real(v, 16, nastran=True)
+            if err > REL_TOLERANCE * scale[k]:
+                raise MeshWriteError(f"{path}: GRID {nid}: its {'xyz'[c]} coordinate {v!r} cannot be written in 16 "
+                                     f"characters closer than {err:.3g}")
+            texts.append(text)
+        out.append(f"GRID*   {nid:>16}{'':>16}{texts[0]:>16}{texts[1]:>16}")
+        out.append(f"*       {texts[2]:>16}")
+    for card, ids, rows, pids in numbered:
+        for eid, row, pid in zip(ids.tolist(), rows.tolist(), pids.tolist(), strict=True):
+            nodes = ["" if n < 0 else str(node_ids[n]) for n in row]
+            while nodes and not nodes[-1]:
+                nodes.pop()
+            out += _small(card, [str(eid), str(pid), *nodes])
+    out.append("ENDDATA")
+    for what, d in (("point sets", mesh.point_sets), ("cell sets", mesh.cell_sets)):
+        if d:
+            lost.append(f"{what} {sorted(d)}")
+    return "\n".join(out) + "\n", lost
+
+
+def _dropped(mesh: HexMesh) -> list[str]:
+    lost = [f"point data {sorted(mesh.point_data)}"] if mesh.point_data else []
+    cell = sorted(k for k in mesh.cell_data if k != "nastran:pid")
+    if cell:
+        lost.append(f"cell data {cell}")
+    field = sorted(k for k in mesh.field_data if k not in _SOURCE_FIELDS)
+    if field:
+        lost.append(f"field data {field}")
+    return lost + [what for _, what in deck_losses(mesh, "nastran")]
+
+
+def write_nastran(mesh: HexMesh, path: str | os.PathLike) -> None:
+    """Write `mesh` as a Nastran bulk data deck: its source deck with new coordinates when it has one, else afresh
+    (module docstring).
+
+    **Arguments:** `mesh` the mesh; `path` the file (`jaxci.io.write_mesh` passes a temporary name).
+
+    **Returns:** nothing. Issues one `LossyWriteWarning` (before writing) listing what the deck leaves out; raises
+    `MeshWriteError` for ids Nastran cannot hold or a coordinate its field cannot hold. `OSError` propagates.
+    """
+    path = os.fspath(path)
+    deck = mesh.field_data.get("nastran:deck")
+    if path.lower().endswith(".dat") and not isinstance(deck, str) and "ansys:deck" in mesh.field_data:
+        write_apdl(mesh, path)  # an ANSYS .dat input file goes back as one
+        return
+    lost, text = [], None
+    if isinstance(deck, str):
+        reason, text = _in_place(mesh, deck, path)
+        if text is None:
+            lost.append(f"the other cards of the source Nastran deck ({reason}, so the deck cannot be rewritten in "
+                        f"place)")
+    if text is None:
+        text, more = _fresh(mesh, path)
+        lost += more
+    lost += _dropped(mesh)
+    if lost:
+        warnings.warn(f"{os.path.basename(path)}: nastran drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
+    with open(path, "w", encoding="utf-8", errors="surrogateescape", newline="") as f:
+        f.write(text)
