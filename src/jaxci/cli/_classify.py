@@ -22,19 +22,18 @@ def run(args) -> int:
     import numpy as np
 
     from ..geometry.boundary import classify_boundary
-    from ..io import read_mesh, write_mesh
+    from ..io import read_mesh
     from ._files import check_output
-    from ._interrupt import removing_temporaries
 
-    check_output(args.output, [args.mesh], force=args.force)
+    out = check_output(args.output, [args.mesh], force=args.force)
     mesh = read_mesh(args.mesh)
+    out.check_inputs(mesh)  # the files read through it too (includes, XDMF data), before any work
     info = classify_boundary(mesh, feature_angle=args.feature_angle)
     pd = dict(mesh.point_data)
     pd["node_class"] = np.asarray(info.node_class, dtype=np.int32)
     pd["patch_id"] = np.asarray(info.patch_id, dtype=np.int32)
     pd["curve_id"] = np.asarray(info.curve_id, dtype=np.int32)
-    with removing_temporaries(args.output):  # source kept: write_mesh refuses the input files too
-        write_mesh(dataclasses.replace(mesh, point_data=pd, fix_orientation=False, notes=()), args.output)
+    out.write(dataclasses.replace(mesh, point_data=pd, fix_orientation=False, notes=()))  # source, input_files kept
     counts = {f"{k}_nodes": v for k, v in info.counts.items()}
     if args.json:
         print(json.dumps({**counts, "patches": info.n_patches, "curves": info.n_curves, "notes": list(info.notes)}))

@@ -1,57 +1,109 @@
-"""Output files of the commands that write one mesh (`smooth`, `classify`, `generate`): checked before any work.
+"""Output files of the commands that write one mesh (`smooth`, `classify`, `generate`): checked before any work,
+and put in place so that nothing that is not ours is replaced, even if it appears while the command works.
 
 `check_output` refuses (a `MeshWriteError`, one line, exit 2, nothing written):
 
-- an output that is one of the command's inputs, even with ``--force`` (`os.path.samefile`, so the same file
-  spelled differently, through a symbolic or hard link, counts), XDMF's ``.h5`` data file included;
-- an existing output without ``--force``, and with ``--force`` anything but a regular file (a folder, a device);
-- an output whose folder does not exist (before a long smoothing, not after).
+- an output, or a file the output's format writes beside it (XDMF's ``.h5``: `jaxci.io.companion_files`), that
+  is one of the command's inputs, even with ``--force`` (`jaxci.io._paths.same_file`: the same file spelled
+  differently, through a symbolic or hard link, counts). The inputs are the files named on the command line and,
+  once the mesh is read, every other file its reader opened (`Output.check_inputs`: ``*INCLUDE`` files, the HDF5
+  files an XDMF file names; `jaxci.io.input_paths`);
+- an existing output or companion without ``--force``, and with ``--force`` anything but a regular file (a
+  folder, a device);
+- an output whose folder does not exist (before a long smoothing, not after), or whose name the file system
+  cannot hold.
 
-The file itself is then written atomically by `jaxci.io.write_mesh` inside `_interrupt.removing_temporaries`.
+`Output.write` then writes the mesh atomically (`jaxci.io.write_mesh` inside `_interrupt.removing_temporaries`)
+with ``overwrite`` set to what was checked: without ``--force`` the final move refuses any file that appeared at
+the output's name meanwhile; with ``--force`` it replaces only the very file (device and inode) that was there
+when it was checked, or nothing.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import stat
 from pathlib import Path
 
-_XDMF = (".xdmf", ".xmf")
 
-
-def _with_data_file(path: Path) -> list[Path]:
-    """`path` and, for XDMF, the ``.h5`` data file written beside it."""
-    return [path, path.with_suffix(".h5")] if path.suffix.lower() in _XDMF else [path]
-
-
-def _same(a: Path, b: Path) -> bool:
-    if os.path.realpath(a) == os.path.realpath(b):
-        return True
-    try:
-        return os.path.samefile(a, b)
-    except OSError:  # one of them does not exist
-        return False
-
-
-def check_output(output: str | os.PathLike, inputs=(), *, force: bool) -> Path:
-    """Check that the command may write `output` (see the module docstring); returns it as a `Path`."""
+def _stat(path: Path, follow: bool = True) -> os.stat_result | None:
+    """`os.stat` (`follow`) or `os.lstat` of `path`, None when nothing is there; a `MeshWriteError` for a name the
+    file system cannot look up (too long, a part not a folder, no permission)."""
     from ..errors import MeshWriteError
+    from ..io._paths import os_reason
+
+    try:
+        return os.stat(path) if follow else os.lstat(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise MeshWriteError(f"{path}: cannot write ({os_reason(exc)}); nothing was written") from None
+    except ValueError:
+        raise MeshWriteError(f"{path}: cannot write (the name holds a NUL character); nothing was written") from None
+
+
+@dataclasses.dataclass
+class Output:
+    """A checked output: its `path`, the files written with it (`targets`: the path and its companions) and, per
+    target (absolute path), the identity of the file ``--force`` may replace there (None: no file may be)."""
+
+    path: Path
+    targets: tuple[Path, ...]
+    allowed: dict[str, tuple[int, int] | None]
+
+    def check_inputs(self, mesh) -> None:
+        """Refuse a target that is one of the files `mesh` was read from (`jaxci.io.input_paths`)."""
+        from ..io import input_paths
+
+        inputs = input_paths(mesh)
+        _refuse_inputs(self.path, self.targets, inputs, mesh.source)
+
+    def write(self, mesh) -> None:
+        """Write `mesh` to `path` (`check_inputs` first), replacing only what was checked."""
+        from ..io import write_mesh
+        from ._interrupt import removing_temporaries
+
+        self.check_inputs(mesh)
+        with removing_temporaries(self.path):
+            write_mesh(mesh, self.path, overwrite=self.allowed)
+
+
+def _refuse_inputs(output: Path, targets, inputs, source=None) -> None:
+    from ..errors import MeshWriteError
+    from ..io._paths import same_file
+
+    for target in targets:
+        for src in inputs:
+            if same_file(target, src):
+                what = "is" if target == output else f"writes {target}, which is"
+                read = "" if source is None or same_file(src, source) else f", read through {source}"
+                raise MeshWriteError(f"{output}: {what} the input {src}{read}; refusing to overwrite the input even "
+                                     f"with --force; choose another output path")
+
+
+def check_output(output: str | os.PathLike, inputs=(), *, force: bool) -> Output:
+    """Check that the command may write `output` (see the module docstring); returns the checked `Output`."""
+    from ..errors import MeshWriteError
+    from ..io import companion_files
+    from ..io._place import identity
 
     output = Path(output)
-    sources = [q for p in inputs for q in _with_data_file(Path(p))]
-    for target in _with_data_file(output):
-        for src in sources:
-            if _same(target, src):
-                what = "is" if target == output else f"writes {target}, which is"
-                raise MeshWriteError(f"{output}: {what} the input {src}; refusing to overwrite the input even "
-                                     f"with --force; choose another output path")
-    for target in _with_data_file(output):
-        if target.exists() or target.is_symlink():
+    targets = (output, *companion_files(output))
+    _refuse_inputs(output, targets, [Path(p) for p in inputs])
+    allowed = {}
+    for target in targets:
+        lst = _stat(target, follow=False)
+        st = _stat(target) if lst is not None else None  # None for a link to nothing
+        if lst is not None:
             if not force:
                 raise MeshWriteError(f"{target}: exists; pass --force to overwrite it (nothing was written)")
-            if not target.is_file():
+            if st is None or not stat.S_ISREG(st.st_mode):
                 raise MeshWriteError(f"{target}: exists and is not a regular file; --force only replaces a file "
                                      f"(nothing was written)")
+        allowed[os.path.abspath(target)] = identity(target) if lst is not None else None
     folder = output.parent
-    if not folder.is_dir():
+    st = _stat(folder)
+    if st is None or not stat.S_ISDIR(st.st_mode):
         raise MeshWriteError(f"{output}: folder {folder} does not exist (nothing was written)")
-    return output
+    return Output(output, targets, allowed)

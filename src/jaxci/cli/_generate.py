@@ -24,18 +24,15 @@ def add_args(p) -> None:
 
 def run(args) -> int:
     from ..generate import paper_case, perturb_box
-    from ..io import write_mesh
     from ._files import check_output
-    from ._interrupt import removing_temporaries
 
-    check_output(args.out, force=args.force)
+    out = check_output(args.out, force=args.force)
     if args.kind == "box":
         nx, ny, nz = (args.n if v is None else v for v in (args.nx, args.ny, args.nz))
         mesh = perturb_box(nx, ny, nz, amplitude=args.amplitude, seed=args.seed,
                            which=args.which, size=tuple(args.size))
     else:
         mesh = paper_case(args.kind, seed=args.seed)
-    with removing_temporaries(args.out):
-        write_mesh(mesh, args.out)
+    out.write(mesh)
     print(f"wrote {args.out}: {mesh.n_nodes} nodes, {mesh.n_hexes} hexahedra")
     return 0

@@ -15,7 +15,7 @@ import tempfile
 import warnings
 from pathlib import Path
 
-from ..errors import MeshReadError, MeshWriteError, UnsupportedFormatError, UsageError
+from ..errors import MeshWriteError, UnsupportedFormatError, UsageError
 from ..mesh import HexMesh
 from ._abaqus import read_abaqus
 from ._abaqus_write import write_abaqus
@@ -24,10 +24,12 @@ from ._ansys_apdl_write import write_apdl
 from ._ansys_listing import read_ansys_listing as read_ansys_listing
 from ._exodus import read_exodus
 from ._exodus_write import write_exodus
-from ._nastran import read_nastran
-from ._nastran_write import write_nastran
 from ._meshio import LossyWriteWarning as LossyWriteWarning
 from ._meshio import read_meshio, write_meshio
+from ._nastran import read_nastran
+from ._nastran_write import write_nastran
+from ._paths import check_regular, same_file
+from ._place import Taken, place_files
 
 #: File extension (lower case) -> format name. ``.msh`` is Gmsh (written as 4.1; ``file_format="gmsh22"``
 #: writes 2.2), ``.inp`` is Abaqus, ``.mac``/``.apdl``/``.ans``/``.cdb`` are ANSYS APDL input files and
@@ -146,31 +148,54 @@ def read_mesh(path: str | os.PathLike | tuple, *, file_format: str | None = None
 
 
 def _check_input(path: Path) -> None:
-    if path.is_dir():
-        raise MeshReadError(f"{path}: is a folder, not a mesh file")
-    if not path.exists():
-        raise MeshReadError(f"{path}: no such file")
+    """A `MeshReadError` unless `path` is an existing regular file (a folder, a FIFO, a device, a name too long
+    for the file system: each said in words, and nothing opened)."""
+    check_regular(path)
 
 
 def _inputs(mesh: HexMesh) -> list[Path]:
-    """The files `mesh` was read from, with an XDMF file's HDF5 data file."""
+    """Every file `mesh` was read from: its `source` and its `HexMesh.input_files` (``*INCLUDE`` files, an XDMF
+    file's HDF5 data, ...), those that exist. A mesh with an XDMF source and no `input_files` (made by hand) also
+    counts the ``.h5`` file of the same name."""
     if not mesh.source:
-        return []
-    paths = [Path(mesh.source)] if Path(mesh.source).exists() else [Path(s) for s in mesh.source.split(" + ")]
-    paths += [p.with_suffix(".h5") for p in paths if p.suffix.lower() in (".xdmf", ".xmf")]
-    return [p for p in paths if p.exists()]
+        return [Path(p) for p in mesh.input_files if os.path.lexists(p)]
+    paths = [Path(mesh.source)] if os.path.lexists(mesh.source) else [Path(s) for s in mesh.source.split(" + ")]
+    paths += [Path(p) for p in mesh.input_files]
+    if not mesh.input_files:
+        paths += [p.with_suffix(".h5") for p in paths if p.suffix.lower() in (".xdmf", ".xmf")]
+    return list(dict.fromkeys(p for p in paths if os.path.lexists(p)))
+
+
+def input_paths(mesh: HexMesh) -> list[Path]:
+    """The files a write must never replace for `mesh`: the file it was read from and every other file its reader
+    opened (`HexMesh.input_files`), those that exist."""
+    return _inputs(mesh)
 
 
 def _refuse_input(target: Path, inputs: list[Path]) -> None:
-    if target.exists() and any(os.path.samefile(target, p) for p in inputs):
-        raise MeshWriteError(
-            f"{target}: refusing to overwrite a file the mesh was read from (inputs are never overwritten); "
-            f"write to a new file"
-        )
+    for p in inputs:
+        if same_file(target, p):
+            through = "" if same_file(p, inputs[0]) else f" (through {inputs[0]})"
+            raise MeshWriteError(
+                f"{target}: refusing to overwrite a file the mesh was read from{through} (inputs are never "
+                f"overwritten); write to a new file"
+            )
 
 
-def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | None = None) -> None:
-    """Write a mesh file, atomically, never over the file the mesh was read from.
+def companion_files(path: str | os.PathLike, *, file_format: str | None = None) -> list[Path]:
+    """The files `write_mesh` writes beside `path` (XDMF: the ``.h5`` data file of the same name), which it
+    checks and places as it does `path`."""
+    path = Path(path)
+    try:
+        fmt = _format_of(path, file_format, _WRITERS)
+    except UnsupportedFormatError:
+        return []
+    return [path.with_suffix(".h5")] if fmt == "xdmf" else []
+
+
+def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | None = None,
+               overwrite: bool | dict = True) -> None:
+    """Write a mesh file, atomically, never over a file the mesh was read from.
 
     What each format keeps (coordinates are float64-exact except APDL; hexahedra keep their node order and
     handedness: mirrored hexahedra, `HexMesh.hex_mirrored`, are mirrored back):
@@ -206,12 +231,19 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     **Arguments:**
 
     - `mesh`: the `HexMesh` to write.
-    - `path`: the file to write. The file is written under a temporary name in a new hidden folder beside it,
-      then moved into place with `os.replace`, so a failed write leaves nothing behind.
+    - `path`: the file to write. The file (and its companions, `companion_files`) is written under a temporary
+      name in a new hidden folder beside it, then moved into place, all files or none, so a failed write leaves
+      nothing behind.
     - `file_format`: keyword only; a format name to use instead of the one the extension says.
+    - `overwrite`: keyword only. True (default): an existing regular file at `path` or a companion's name is
+      replaced. False: none is; the final move itself refuses (``renameat2(RENAME_NOREPLACE)`` or a hard link),
+      so a file that appears while the mesh is written is not replaced either. A dict ``{file: identity}``
+      (`jaxci.io._place.identity`, None for "no file"): each file may replace only the file that was there when
+      its identity was taken (what the ``jaxci`` command does with ``--force``).
 
     **Returns:** nothing. Issues a `LossyWriteWarning` when the format drops part of the mesh; raises
-    `MeshWriteError` naming `path` (never the temporary file) when the target is the mesh's input file, or the
+    `MeshWriteError` naming `path` (never the temporary file) when the target or a companion is one of the mesh's
+    input files (`input_paths`: ``source`` and ``input_files``), is a file `overwrite` does not allow, or the
     write fails (unwritable folder, full disk, a mesh the format cannot hold), `UnsupportedFormatError` for an
     unknown extension, and `UsageError` when `mesh` is not a `HexMesh` or `path` not a path.
     """
@@ -228,7 +260,10 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
         )
     fmt = _format_of(path, file_format, _WRITERS)
     inputs = _inputs(mesh)
-    _refuse_input(path, inputs)
+    for target in (path, *companion_files(path, file_format=file_format)):
+        _refuse_input(target, inputs)
+        if overwrite is False and os.path.lexists(target):
+            raise MeshWriteError(f"{target}: exists; not replaced (overwrite=False), nothing was written")
     quadratic = sum(len(b.data) for b in mesh.cells if b.midside is not None)
     if quadratic and fmt not in ("apdl", "abaqus", "exodus", "nastran"):
         warnings.warn(
@@ -251,8 +286,16 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
         produced = sorted(tmp.iterdir(), key=lambda p: p.name == path.name)  # companions first, the file last
         for p in produced:
             _refuse_input(folder / p.name, inputs)
-        for p in produced:
-            os.replace(p, folder / p.name)
+        if overwrite is True:
+            allowed = None
+        else:  # False: no file may be replaced; a dict: only the one it names for each target (absent: none)
+            given = {} if overwrite is False else {os.path.abspath(k): v for k, v in overwrite.items()}
+            allowed = {folder / p.name: given.get(os.path.abspath(folder / p.name)) for p in produced}
+        place_files([(p, folder / p.name) for p in produced], allowed)
+    except Taken as exc:
+        why = "was replaced by another file" if exc.changed else "appeared"
+        raise MeshWriteError(f"{exc.path}: {why} while the mesh was being written; left as it is (nothing was "
+                             f"written)") from None
     except MeshWriteError as exc:  # name the output, never the hidden temporary file
         raise MeshWriteError(str(exc).replace(str(tmp / path.name), str(path)).replace(str(tmp), str(folder))) \
             from exc

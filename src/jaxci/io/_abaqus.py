@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
 from ._deck import first_duplicate, parse_coordinate, parse_id, read_text
+from ._paths import check_regular, resolve_beside
 
 #: Abaqus shell, membrane, surface, truss and beam elements jaxci keeps as cells (not smoothed), with their cell type.
 SURFACE_TYPES = {
@@ -114,9 +115,10 @@ def flatten(path: str, depth: int = 0, where: str = "") -> tuple[list[str], list
                 raise MeshReadError(f"{at}: *INCLUDE without INPUT=")
             if depth >= _MAX_INCLUDE_DEPTH:
                 raise MeshReadError(f"{at}: *INCLUDE nested more than {_MAX_INCLUDE_DEPTH} deep (a cycle?)")
-            target = Path(name) if Path(name).is_absolute() else Path(path).parent / name
-            if not target.is_file():
+            target = resolve_beside(name, path)
+            if not os.path.lexists(target):
                 raise MeshReadError(f"{at}: *INCLUDE file {name} not found (looked for {target})")
+            check_regular(target, "Abaqus deck", shown=f"{at}: *INCLUDE file {name}")
             sub, sub_origin, sub_inc = flatten(str(target), depth + 1, at)
             if sub and not sub[-1].endswith(("\n", "\r")):
                 sub[-1] += "\n"
@@ -451,7 +453,7 @@ def read_abaqus(path: str | os.PathLike) -> HexMesh:
         notes.append(f"{len(included)} *INCLUDE files read ({', '.join(Path(p).name for p in included[:4])}"
                      f"{', ...' if len(included) > 4 else ''}); a deck jaxci writes holds their lines in place of "
                      f"the *INCLUDE")
-    return HexMesh(source=path, notes=tuple(notes), **parts)
+    return HexMesh(source=path, input_files=tuple(dict.fromkeys(included)), notes=tuple(notes), **parts)
 
 
 def deck_extras(text: str) -> tuple[list[str], list[str]]:

@@ -146,12 +146,13 @@ def _lookup(sorted_ids: np.ndarray, order: np.ndarray, ids: np.ndarray) -> tuple
 
 
 def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = (),
-               extra_field_data: dict | None = None) -> HexMesh:
+               extra_field_data: dict | None = None, input_files: Sequence[str] = ()) -> HexMesh:
     """Build the `HexMesh` of an ANSYS mesh: map node numbers, turn degenerate bricks into cells.
 
     **Arguments:** `b` the parsed rows; `source` the value of `HexMesh.source` (the file or files read);
     `node_list` what the nodes came from, for messages (``"NLIST"``, ``"NBLOCK"``); `notes` the reader's own
-    notes; `extra_field_data` more field data (the APDL reader's ``ansys:deck``, the file's text).
+    notes; `extra_field_data` more field data (the APDL reader's ``ansys:deck``, the file's text); `input_files`
+    the files read (`HexMesh.input_files`: both listings of an NLIST + ELIST pair).
 
     **Returns:** a `HexMesh` with blocks ``hexahedron``, then ``wedge``, ``pyramid``, ``tetra`` when present (with
     their midside nodes), ``ansys:*`` cell data, ``ansys:angles`` point data, ``ansys:et`` / ``ansys:keyopt``
@@ -256,6 +257,7 @@ def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = ()
         field_data=field_data,
         node_ids=b.node_ids,
         source=source,
+        input_files=tuple(input_files),
         notes=tuple(notes),
     )
 

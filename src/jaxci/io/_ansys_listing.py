@@ -187,4 +187,4 @@ def read_ansys_listing(nlist_path: str | os.PathLike, elist_path: str | os.PathL
             f"{files[-1]}: node rows but no ELIST section (column header 'ELEM MAT TYP REL ESY SEC NODES'); "
             f"{hint}"
         )
-    return to_hexmesh(rows.bricks(), " + ".join(files), "NLIST")
+    return to_hexmesh(rows.bricks(), " + ".join(files), "NLIST", input_files=files)

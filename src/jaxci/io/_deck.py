@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import MeshReadError
 from ..mesh import HexMesh
+from ._paths import open_text, os_reason
 
 #: Largest id jaxci holds (numpy int64). Ids are positive: 1 .. MAX_ID.
 MAX_ID = 2**63 - 1
@@ -61,19 +62,16 @@ def read_text(path: str | os.PathLike, what: str, errors: str = "strict") -> str
     """The text of a file with its line endings, or a `MeshReadError` naming the file.
 
     `errors` is the decoding error handler: ``"strict"`` refuses undecodable bytes, ``"surrogateescape"`` keeps any
-    bytes (undecodable ones as surrogates).
+    bytes (undecodable ones as surrogates). Anything but a regular file (a folder, a FIFO, a device) is refused
+    before it is read (`jaxci.io._paths.open_text`).
     """
     try:
-        with open(path, encoding="utf-8", errors=errors, newline="") as f:
+        with open_text(path, what, errors) as f:
             return f.read()
-    except FileNotFoundError:
-        raise MeshReadError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise MeshReadError(f"{path}: is a folder, not an {what}") from None
     except UnicodeDecodeError as exc:
         raise MeshReadError(f"{path}: not a text {what} (undecodable byte at offset {exc.start})") from None
     except OSError as exc:
-        raise MeshReadError(f"{path}: cannot read ({exc.strerror})") from None
+        raise MeshReadError(f"{path}: cannot read ({os_reason(exc)})") from None
 
 
 def is_number(tok: str) -> bool:

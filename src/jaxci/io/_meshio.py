@@ -50,6 +50,7 @@ from ..mesh.convert import SET_PREFIX, meshio_fields
 from ._counts import check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
 from ._gmsh_counts import check_gmsh
 from ._losses import deck_losses
+from ._paths import check_regular
 
 
 class LossyWriteWarning(UserWarning):
@@ -157,6 +158,7 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
     **Returns:** a `HexMesh` carrying the file's point/cell data, point/cell sets and field data.
     """
     _needs_h5py(path, fmt, MeshReadError)
+    data_files = xdmf_data_files(path) if fmt == "xdmf" else []
     try:
         if fmt in ("gmsh", "gmsh22"):
             check_gmsh(path)
@@ -182,16 +184,39 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
     elif fmt == "xdmf":
         check_xdmf(path, m)
     try:
-        return from_meshio(m, path)
+        return from_meshio(m, path, tuple(str(p) for p in data_files))
     except JaxciError:
         raise
     except (ValueError, TypeError, IndexError) as exc:
         raise MeshReadError(f"{path}: inconsistent {_TITLES[fmt]} file ({_describe(exc)})") from exc
 
 
-def from_meshio(m: meshio.Mesh, path: Path) -> HexMesh:
-    """A `meshio.Mesh` read from `path` as a `HexMesh` (`jaxci.mesh.convert.meshio_fields`)."""
-    return HexMesh(**meshio_fields(m, path))
+def from_meshio(m: meshio.Mesh, path: Path, input_files: tuple[str, ...] = ()) -> HexMesh:
+    """A `meshio.Mesh` read from `path` (and `input_files`) as a `HexMesh` (`jaxci.mesh.convert.meshio_fields`)."""
+    return HexMesh(**meshio_fields(m, path), input_files=input_files)
+
+
+def xdmf_data_files(path: Path) -> list[Path]:
+    """The files an XDMF file's data items name (``Format="HDF"``: ``name.h5:/dataset``, relative to the XDMF
+    file's folder; ``Format="Binary"``: a raw file, as meshio opens it), each checked to be a regular file before
+    meshio opens it (a FIFO would hang it). An XML file that does not parse is left to meshio."""
+    from xml.etree import ElementTree as ET
+
+    try:
+        root = ET.parse(str(path)).getroot()
+    except (ET.ParseError, OSError):
+        return []
+    found: dict[Path, str] = {}
+    for item in root.iter("DataItem"):
+        kind, text = item.attrib.get("Format"), (item.text or "").strip()
+        if not text or kind not in ("HDF", "Binary"):
+            continue
+        name = text.split(":")[0] if kind == "HDF" else text
+        found.setdefault(Path(path).resolve().parent / name if kind == "HDF" else Path(name), name)
+    for p, name in found.items():
+        check_regular(p, "HDF5 data file" if p.suffix.lower() in (".h5", ".hdf5", ".hdf") else "data file",
+                      shown=f"{path}: its data file {name}")
+    return list(found)
 
 
 # ---------------------------------------------------------------------------------------------------- writing
