@@ -24,6 +24,8 @@ from ._ansys_apdl_write import write_apdl
 from ._ansys_listing import read_ansys_listing as read_ansys_listing
 from ._exodus import read_exodus
 from ._exodus_write import write_exodus
+from ._lsdyna import read_lsdyna
+from ._lsdyna_write import write_lsdyna
 from ._meshio import LossyWriteWarning as LossyWriteWarning
 from ._meshio import read_meshio, write_meshio
 from ._nastran import read_nastran
@@ -54,6 +56,9 @@ FORMATS: dict[str, str] = {
     ".bdf": "nastran",
     ".nas": "nastran",
     ".dat": "nastran",
+    ".k": "lsdyna",
+    ".key": "lsdyna",
+    ".dyn": "lsdyna",
 }
 
 _READERS = {
@@ -67,6 +72,7 @@ _READERS = {
     "ansys-listing": read_ansys_listing,
     "exodus": read_exodus,
     "nastran": read_nastran,
+    "lsdyna": read_lsdyna,
 }
 
 _WRITERS = {
@@ -79,6 +85,7 @@ _WRITERS = {
     "apdl": write_apdl,
     "exodus": write_exodus,
     "nastran": write_nastran,
+    "lsdyna": write_lsdyna,
 }
 
 

@@ -1,0 +1,169 @@
+"""Write a mesh as an LS-DYNA keyword deck; `jaxci.io._lsdyna` reads it back.
+
+**In place.** A mesh read from a keyword deck carries the deck's text (field data ``lsdyna:deck``, its
+``*INCLUDE`` files inlined). When the mesh still has the deck's nodes, element ids, solids and part ids (only the
+coordinates changed, as after smoothing), `write_lsdyna` writes the deck again with only the coordinate fields of
+the ``*NODE`` lines that moved rewritten, each in its own columns (16 characters, 20 in the long format; free-format
+fields as wide) as the text that reads back nearest to the new value; a value its field cannot hold closely enough
+is refused with a `MeshWriteError` naming the node (`jaxci.io._fields.REL_TOLERANCE`). Every other keyword, line
+and comment is kept byte for byte.
+
+**Afresh**, for any other mesh: ``*KEYWORD``, ``*NODE`` (standard 8/16/16/16 columns), ``*ELEMENT_SOLID`` (one line
+per element: id, part, 8 nodes; wedges, pyramids and tetrahedra in LS-DYNA's degenerate forms), ``*ELEMENT_SHELL``
+for quadrilaterals and triangles, ``*END``, with the mesh's ids (8 digits at most) and the part ids of the cell
+data ``lsdyna:pid`` (else the block number). Midside nodes (`jaxci.io.write_mesh` warns), sets, other data and
+the keywords of a source deck that could not be written in place are left out with a `LossyWriteWarning`, issued
+before the file is written.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+
+from ..errors import MeshWriteError
+from ..mesh import HexMesh
+from ._deck import first_duplicate, model_difference
+from ._fields import REL_TOLERANCE, format_real, node_scale, rewrite_coordinates
+from ._losses import deck_losses
+from ._lsdyna import DEGENERATE, parse_deck
+from ._meshio import LossyWriteWarning
+from ._patran import file_block
+
+_MAX_ID = 99_999_999  # 8-character integer fields
+_SOURCE_FIELDS = ("lsdyna:deck", "nastran:deck", "exodus:file", "abaqus:deck", "abaqus:element_types", "ansys:deck")
+
+
+def _in_place(mesh: HexMesh, text: str, path: str) -> tuple[str | None, str | None]:
+    lines = text.splitlines(keepends=True)
+    label = f"the deck of {mesh.source or 'the mesh'}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
+        ref = HexMesh(**parts)
+    reason = model_difference(mesh, ref, cell_data=("lsdyna:pid",))
+    if reason is not None:
+        return reason, None
+    ids = ref.node_ids
+
+    def name(k: int) -> str:
+        return f"{path}: node {int(ids[k])} (line {deck.origin[deck.node_line[k]][1]} of the deck)"
+
+    rewrite_coordinates(lines, ref.points, mesh.points, deck.node_spots, node_scale(mesh.points, mesh.cells), name,
+                        nastran=False)
+    return None, "".join(lines)
+
+
+def _eight(cell: str, row: list[int]) -> list[int]:
+    """The 8 node fields of a solid: a brick's nodes, or LS-DYNA's degenerate form of another solid."""
+    if cell == "hexahedron":
+        return row
+    out = [0] * 8
+    for k, p in enumerate(DEGENERATE[cell]):
+        out[p] = row[k]
+    if cell == "tetra":
+        out[4:] = [out[3]] * 4
+    elif cell == "pyramid":
+        out[5:] = [out[4]] * 3
+    else:  # wedge: N5 N5 N6 N6
+        out[5], out[7] = out[4], out[6]
+    return out
+
+
+def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
+    lost = []
+    node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
+    pid_data = mesh.cell_data.get("lsdyna:pid")
+    solids, shells = [], []
+    for k, blk in enumerate(mesh.cells):
+        cell, data, _, more = file_block(blk, k, mesh.hex_mirrored)  # midside nodes: write_mesh warns
+        lost += more
+        pids = np.asarray(pid_data[k], np.int64) if pid_data is not None and len(pid_data) == len(mesh.cells) \
+            and len(pid_data[k]) == len(data) else np.full(len(data), k + 1)
+        ids = None if blk.ids is None else np.asarray(blk.ids, np.int64)
+        if cell in ("hexahedron", "wedge", "pyramid", "tetra"):
+            solids.append((cell, ids, data, pids))
+        elif cell in ("quad", "triangle"):
+            shells.append((cell, ids, data, pids))
+        else:
+            lost.append(f"{len(data)} {blk.type} cells (not a solid or shell)")
+    next_id = int(max((b[1].max() for b in solids + shells if b[1] is not None and len(b[1])), default=0)) + 1
+    numbered = []
+    for cell, ids, data, pids in solids + shells:
+        if ids is None:
+            ids = np.arange(next_id, next_id + len(data))
+            next_id += len(data)
+        numbered.append((cell, ids, data, pids))
+    all_ids = np.concatenate([b[1] for b in numbered]) if numbered else np.zeros(0, np.int64)
+    for ids, what in ((node_ids, "node"), (all_ids, "element")):
+        if (dup := first_duplicate(ids)) is not None:
+            raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; LS-DYNA ids must be unique")
+        if len(ids) and (ids.min() < 1 or ids.max() > _MAX_ID):
+            bad = ids.min() if ids.min() < 1 else ids.max()
+            raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{_MAX_ID} of the 8-character fields")
+    scale = node_scale(mesh.points, mesh.cells)
+    out = ["*KEYWORD", f"$ jaxci mesh: {mesh.n_nodes} nodes, {len(all_ids)} elements", "*NODE"]
+    for k, (nid, xyz) in enumerate(zip(node_ids.tolist(), mesh.points.tolist(), strict=True)):
+        texts = []
+        for c, v in enumerate(xyz):
+            text, err = format_real(v, 16)
+            if err > REL_TOLERANCE * scale[k]:
+                raise MeshWriteError(f"{path}: node {nid}: its {'xyz'[c]} coordinate {v!r} cannot be written in 16 "
+                                     f"characters closer than {err:.3g}")
+            texts.append(text)
+        out.append(f"{nid:>8}" + "".join(f"{t:>16}" for t in texts))
+    for keyword, kinds in (("*ELEMENT_SOLID", ("hexahedron", "wedge", "pyramid", "tetra")),
+                           ("*ELEMENT_SHELL", ("quad", "triangle"))):
+        blocks = [b for b in numbered if b[0] in kinds]
+        if not blocks:
+            continue
+        out.append(keyword)
+        for cell, ids, data, pids in blocks:
+            for eid, row, pid in zip(ids.tolist(), node_ids[data].tolist(), pids.tolist(), strict=True):
+                nodes = _eight(cell, row) if keyword == "*ELEMENT_SOLID" else row + row[-1:] * (4 - len(row))
+                out.append(f"{eid:>8}{pid:>8}" + "".join(f"{v:>8}" for v in nodes))
+    out.append("*END")
+    for what, d in (("point sets", mesh.point_sets), ("cell sets", mesh.cell_sets)):
+        if d:
+            lost.append(f"{what} {sorted(d)}")
+    return "\n".join(out) + "\n", lost
+
+
+def _dropped(mesh: HexMesh) -> list[str]:
+    lost = [f"point data {sorted(mesh.point_data)}"] if mesh.point_data else []
+    cell = sorted(k for k in mesh.cell_data if k != "lsdyna:pid")
+    if cell:
+        lost.append(f"cell data {cell}")
+    field = sorted(k for k in mesh.field_data if k not in _SOURCE_FIELDS)
+    if field:
+        lost.append(f"field data {field}")
+    return lost + [what for _, what in deck_losses(mesh, "lsdyna")]
+
+
+def write_lsdyna(mesh: HexMesh, path: str | os.PathLike) -> None:
+    """Write `mesh` as an LS-DYNA keyword deck: its source deck with new coordinates when it has one, else afresh
+    (module docstring).
+
+    **Arguments:** `mesh` the mesh; `path` the file (`jaxci.io.write_mesh` passes a temporary name).
+
+    **Returns:** nothing. Issues one `LossyWriteWarning` (before writing) listing what the deck leaves out; raises
+    `MeshWriteError` for ids the deck cannot hold or a coordinate its field cannot hold. `OSError` propagates.
+    """
+    path = os.fspath(path)
+    deck = mesh.field_data.get("lsdyna:deck")
+    lost, text = [], None
+    if isinstance(deck, str):
+        reason, text = _in_place(mesh, deck, path)
+        if text is None:
+            lost.append(f"the other keywords of the source LS-DYNA deck ({reason}, so the deck cannot be rewritten "
+                        f"in place)")
+    if text is None:
+        text, more = _fresh(mesh, path)
+        lost += more
+    lost += _dropped(mesh)
+    if lost:
+        warnings.warn(f"{os.path.basename(path)}: lsdyna drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
+    with open(path, "w", encoding="utf-8", errors="surrogateescape", newline="") as f:
+        f.write(text)
