@@ -26,6 +26,7 @@ from ._exodus import read_exodus
 from ._exodus_write import write_exodus
 from ._lsdyna import read_lsdyna
 from ._lsdyna_write import write_lsdyna
+from ._medit import read_medit, write_medit
 from ._meshio import LossyWriteWarning as LossyWriteWarning
 from ._meshio import read_meshio, write_meshio
 from ._nastran import read_nastran
@@ -59,6 +60,7 @@ FORMATS: dict[str, str] = {
     ".k": "lsdyna",
     ".key": "lsdyna",
     ".dyn": "lsdyna",
+    ".mesh": "medit",
 }
 
 _READERS = {
@@ -73,6 +75,7 @@ _READERS = {
     "exodus": read_exodus,
     "nastran": read_nastran,
     "lsdyna": read_lsdyna,
+    "medit": read_medit,
 }
 
 _WRITERS = {
@@ -86,6 +89,7 @@ _WRITERS = {
     "exodus": write_exodus,
     "nastran": write_nastran,
     "lsdyna": write_lsdyna,
+    "medit": write_medit,
 }
 
 
