@@ -65,6 +65,7 @@ FORMATS: dict[str, str] = {
 
 _READERS = {
     "vtk": lambda path: read_meshio(path, "vtk"),
+    "vtk51": lambda path: read_meshio(path, "vtk"),
     "vtu": lambda path: read_meshio(path, "vtu"),
     "gmsh": lambda path: read_meshio(path, "gmsh"),
     "gmsh22": lambda path: read_meshio(path, "gmsh22"),
@@ -80,6 +81,7 @@ _READERS = {
 
 _WRITERS = {
     "vtk": lambda mesh, path: write_meshio(mesh, path, "vtk"),
+    "vtk51": lambda mesh, path: write_meshio(mesh, path, "vtk51"),
     "vtu": lambda mesh, path: write_meshio(mesh, path, "vtu"),
     "gmsh": lambda mesh, path: write_meshio(mesh, path, "gmsh"),
     "gmsh22": lambda mesh, path: write_meshio(mesh, path, "gmsh22"),

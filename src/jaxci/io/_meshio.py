@@ -9,8 +9,9 @@ The table of what each format keeps is in the docstring of `jaxci.io.write_mesh`
 
 - Hexahedra keep VTK node order in all of them: meshio reorders no linear cell for these formats (Abaqus C3D8
   and Gmsh's hexahedron number their nodes as VTK does; the round-trip tests check it).
-- Legacy VTK is written as ASCII 4.2, float64 exact; binary legacy VTK files from other tools store big-endian
-  arrays, which are read back in native byte order.
+- Legacy VTK is written as ASCII 4.2 (the version every reader reads; ``file_format="vtk51"`` writes 5.1), float64
+  exact; binary legacy VTK files from other tools store big-endian arrays, which are read back in native byte
+  order.
 - ``file_format="gmsh"`` writes Gmsh 4.1, ``"gmsh22"`` writes 2.2, both binary. Integer point/cell data read
   back as float64. Cell blocks without Gmsh tags get ``gmsh:physical`` 0 and ``gmsh:geometrical`` = block
   number + 1 (and, for 4.1, ``gmsh:dim_tags`` point data), so those appear on reading back. ``gmsh:physical``
@@ -69,7 +70,8 @@ _READERS = {
 
 #: meshio's writer of each format, with jaxci's choices of variant.
 _WRITERS = {
-    "vtk": lambda path, m: meshio.vtk.write(path, m, "4.2", binary=False),
+    "vtk": lambda path, m: meshio.vtk.write(path, m, "4.2", binary=False),  # what every reader reads (Mesquite too)
+    "vtk51": lambda path, m: meshio.vtk.write(path, m, "5.1", binary=False),  # only when asked: file_format="vtk51"
     "vtu": lambda path, m: meshio.vtu.write(path, m, binary=True, compression="zlib"),
     "gmsh": lambda path, m: meshio.gmsh.write(path, m, "4.1", binary=True),
     "gmsh22": lambda path, m: meshio.gmsh.write(path, m, "2.2", binary=True),
@@ -80,6 +82,7 @@ _WRITERS = {
 #: as ``set:NAME`` data, "physical" = cell sets only as Gmsh physical groups, True, False), field data.
 _KEEPS = {
     "vtk": {"data": True, "sets": "data", "field_data": False},
+    "vtk51": {"data": True, "sets": "data", "field_data": False},
     "vtu": {"data": True, "sets": "data", "field_data": False},
     "xdmf": {"data": True, "sets": "data", "field_data": False},
     "gmsh": {"data": "float64", "sets": "physical", "field_data": "physical"},
@@ -143,7 +146,8 @@ def _describe(exc: BaseException) -> str:
 
 
 #: Format names in messages.
-_TITLES = {"vtk": "legacy VTK", "vtu": "VTU", "gmsh": "Gmsh", "gmsh22": "Gmsh", "xdmf": "XDMF"}
+_TITLES = {"vtk": "legacy VTK", "vtk51": "legacy VTK", "vtu": "VTU", "gmsh": "Gmsh", "gmsh22": "Gmsh",
+           "xdmf": "XDMF"}
 
 
 # ---------------------------------------------------------------------------------------------------- reading
