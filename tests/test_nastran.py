@@ -189,3 +189,22 @@ def test_bad_decks_exit_2_with_one_clear_line(tmp_path, capsys, edit, message):
     assert main(["smooth", str(tmp_path / "bad.bdf"), str(tmp_path / "out.bdf")]) == 2
     out, err = capsys.readouterr()
     assert err.count("\n") == 1 and err.startswith("jaxci: error: ") and "bad.bdf" in err
+
+
+def test_include_files_and_kept_shells(tmp_path):
+    text = box_deck(tmp_path).read_text()
+    start, end = text.index("$ nodes"), text.index("CHEXA")
+    (tmp_path / "grids.bdf").write_text(text[start:end])
+    main_text = text[:start] + "INCLUDE 'grids.bdf'\n" + text[end:].replace(
+        "PSOLID", "CQUAD4        99       2       1       2       5       4\nPSOLID")
+    (tmp_path / "main.bdf").write_text(main_text)
+    mesh = read_mesh(tmp_path / "main.bdf")
+    assert mesh.n_nodes == 27 and mesh.input_files == (str(tmp_path / "grids.bdf"),)
+    assert [(b.type, b.ids.tolist()) for b in mesh.cells] == [("hexahedron", list(range(1, 9))), ("quad", [99])]
+    write_mesh(mesh.with_points(mesh.points * 2), tmp_path / "out.bdf")
+    out = (tmp_path / "out.bdf").read_text()
+    assert "INCLUDE" not in out and "CQUAD4        99       2       1       2       5       4\n" in out
+    np.testing.assert_allclose(read_mesh(tmp_path / "out.bdf").points, mesh.points * 2, rtol=0, atol=1e-6)
+    (tmp_path / "broken.bdf").write_text("INCLUDE 'nowhere.bdf'\n")
+    with pytest.raises(MeshReadError, match=r"broken\.bdf, line 1: included file nowhere\.bdf not found"):
+        read_mesh(tmp_path / "broken.bdf")

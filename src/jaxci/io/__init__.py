@@ -221,6 +221,10 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     | Abaqus (`.inp`)              | dropped              | kept                 | dropped       | yes | yes      |
     | XDMF (`.xdmf`, `.xmf`) (2)   | kept, with dtypes    | kept (1)             | dropped       | no  | no       |
     | ANSYS APDL (`.mac`, `.apdl`, `.ans`, `.cdb`) | `ansys:*` only | components (3) | `ansys:*` only | yes | yes |
+    | Exodus II (`.e`, `.exo`, `.ex2`, `.g`) (5) | dropped | node sets; block names | dropped | yes | yes |
+    | Nastran (`.bdf`, `.nas`, `.dat`) | `nastran:pid` only | dropped             | dropped       | yes | yes      |
+    | LS-DYNA (`.k`, `.key`, `.dyn`) | `lsdyna:pid` only  | dropped              | dropped       | yes | yes      |
+    | Medit (`.mesh`)              | `medit:ref` only     | `corners` only       | dropped       | no  | no       |
 
     (1) as 0/1 integer data named ``set:NAME``, turned back into sets on reading. (2) with a ``.h5`` data file
     beside it; needs the h5py package. (3) CMBLOCK node / element components, for set names ANSYS accepts.
@@ -236,8 +240,13 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     degenerate forms, SOLID285/187 tetrahedra), with 14 significant digits per coordinate, and keeps the element
     types (``ET``) and key options of a file it read; ids of any size up to int64 are written in integer fields
     wide enough for them (mapdl-archive, with int32 ids, reads ids up to 2147483647). The midside nodes of quadratic
-    cells (`CellBlock.midside`) are written by APDL and Abaqus only; the other formats write the linear cells with
-    a `LossyWriteWarning` (the midside nodes stay in the file as unreferenced points, at their moved positions).
+    cells (`CellBlock.midside`) are written by APDL, Abaqus, Exodus and Nastran only; the other formats write the
+    linear cells with a `LossyWriteWarning` (the midside nodes stay in the file as unreferenced points, at their
+    moved positions).
+    (5) Exodus in place: the source file copied with only its coordinate variables replaced (results, QA and
+    info records, maps, side sets and attributes kept); `jaxci.io._exodus_write`. Nastran and LS-DYNA decks in
+    place: only the moved nodes' coordinate fields rewritten, each in its own width (`jaxci.io._nastran_write`,
+    `jaxci.io._lsdyna_write`). ``.dat`` holding ANSYS ``NBLOCK`` data is read and written as APDL.
     Every `LossyWriteWarning` is issued before the file is written. Details in the docstrings of
     `jaxci.io._meshio`, `jaxci.io._abaqus_write` and `jaxci.io._ansys_apdl_write`.
 
