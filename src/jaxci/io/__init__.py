@@ -36,7 +36,9 @@ from ._place import Taken, place_files
 
 #: File extension (lower case) -> format name. ``.msh`` is Gmsh (written as 4.1; ``file_format="gmsh22"``
 #: writes 2.2), ``.inp`` is Abaqus, ``.mac``/``.apdl``/``.ans``/``.cdb`` are ANSYS APDL input files and
-#: archives (their NBLOCK/EBLOCK mesh), ``.lis``/``.txt`` are ANSYS NLIST + ELIST listings (read only).
+#: archives (their NBLOCK/EBLOCK mesh), ``.lis``/``.txt`` are ANSYS NLIST + ELIST listings (read only),
+#: ``.e``/``.exo``/``.ex2``/``.g`` Exodus II, ``.bdf``/``.nas``/``.dat`` Nastran bulk data (a ``.dat`` holding
+#: ANSYS NBLOCK data is read as APDL), ``.k``/``.key``/``.dyn`` LS-DYNA keyword decks, ``.mesh`` Medit.
 FORMATS: dict[str, str] = {
     ".vtk": "vtk",
     ".vtu": "vtu",
@@ -44,12 +46,6 @@ FORMATS: dict[str, str] = {
     ".inp": "abaqus",
     ".xdmf": "xdmf",
     ".xmf": "xdmf",
-    ".mac": "apdl",
-    ".apdl": "apdl",
-    ".ans": "apdl",
-    ".cdb": "apdl",
-    ".lis": "ansys-listing",
-    ".txt": "ansys-listing",
     ".e": "exodus",
     ".exo": "exodus",
     ".ex2": "exodus",
@@ -61,6 +57,12 @@ FORMATS: dict[str, str] = {
     ".key": "lsdyna",
     ".dyn": "lsdyna",
     ".mesh": "medit",
+    ".mac": "apdl",
+    ".apdl": "apdl",
+    ".ans": "apdl",
+    ".cdb": "apdl",
+    ".lis": "ansys-listing",
+    ".txt": "ansys-listing",
 }
 
 _READERS = {
