@@ -377,80 +377,28 @@ done:
 
 /* ---- hex_condition as an XLA FFI handler (jaxci.metrics.native_grad: the compiled JAX solvers on CPU) ----
  *
- * The parts of XLA's FFI C API that the handler uses, laid out as in xla/ffi/api/c_api.h (API 0.x, which XLA
- * keeps binary compatible; jaxlib's copy of the header is not there when pip builds this extension). */
-#define XFFI_API_MAJOR 0
-#define XFFI_API_MINOR 1
-typedef struct XffiExt {
-    size_t struct_size;
-    int type; /* 1: the metadata extension */
-    struct XffiExt *next;
-} XffiExt;
-typedef struct {
-    size_t struct_size;
-    XffiExt *extension_start;
-    int major_version, minor_version;
-} XffiVersion;
-typedef struct {
-    size_t struct_size;
-    XffiVersion api_version;
-    uint32_t traits;
-    int64_t state_type_id;
-} XffiMetadata;
-typedef struct {
-    XffiExt base;
-    XffiMetadata *metadata;
-} XffiMetadataExt;
-typedef struct {
-    size_t struct_size;
-    XffiExt *extension_start;
-    int dtype; /* 4 s32, 5 s64, 11 f32, 12 f64 */
-    void *data;
-    int64_t rank;
-    int64_t *dims;
-} XffiBuffer;
-typedef struct {
-    size_t struct_size;
-    XffiExt *extension_start;
-    int64_t size;
-    int *types;
-    void **items;
-} XffiList;
-typedef struct {
-    size_t struct_size;
-    XffiExt *extension_start;
-    const char *message;
-    int errc; /* 3 invalid argument, 8 resource exhausted */
-} XffiErrorArgs;
-typedef struct {
-    size_t struct_size;
-    XffiExt *extension_start;
-    XffiVersion api_version;
-    const void *internal_api;
-    void *(*error_create)(XffiErrorArgs *);
-} XffiApi;
-typedef struct {
-    size_t struct_size;
-    XffiExt *extension_start;
-    const XffiApi *api;
-    void *ctx;
-    int stage; /* 3: execute */
-    XffiList args, rets;
-} XffiCallFrame;
+ * Built against XLA's own FFI C header as the installed jaxlib ships it (setup.py passes jax.ffi.include_dir()
+ * and defines JAXCI_XLA_FFI where jax is importable at build time); without it the extension has no handler
+ * (ffi_handler() returns None) and the compiled solvers keep XLA's kernel. ffi_api_version() is the API version
+ * of the header it was built against, which jaxci.metrics.native_grad checks against the running jaxlib's. */
+#ifdef JAXCI_XLA_FFI
+#include "xla/ffi/api/c_api.h"
 
-static void *ffi_error(const XffiCallFrame *cf, int errc, const char *message) {
-    XffiErrorArgs a = {sizeof(XffiErrorArgs), NULL, message, errc};
-    return cf->api->error_create(&a);
+typedef XLA_FFI_Buffer XffiBuffer;
+
+static XLA_FFI_Error *ffi_error(const XLA_FFI_CallFrame *cf, XLA_FFI_Error_Code errc, const char *message) {
+    XLA_FFI_Error_Create_Args a = {XLA_FFI_Error_Create_Args_STRUCT_SIZE, NULL, message, errc};
+    return cf->api->XLA_FFI_Error_Create(&a);
 }
 
-static int ffi_float(const XffiBuffer *b) { return b->dtype == 11 || b->dtype == 12; }
+static int ffi_float(const XffiBuffer *b) { return b->dtype == XLA_FFI_DataType_F32 || b->dtype == XLA_FFI_DataType_F64; }
 
 static double ffi_get(const XffiBuffer *b, Py_ssize_t k) {
-    return b->dtype == 12 ? ((const double *)b->data)[k] : (double)((const float *)b->data)[k];
+    return b->dtype == XLA_FFI_DataType_F64 ? ((const double *)b->data)[k] : (double)((const float *)b->data)[k];
 }
 
 static void ffi_set(const XffiBuffer *b, Py_ssize_t k, double v) {
-    if (b->dtype == 12) ((double *)b->data)[k] = v;
+    if (b->dtype == XLA_FFI_DataType_F64) ((double *)b->data)[k] = v;
     else ((float *)b->data)[k] = (float)v;
 }
 
@@ -479,7 +427,7 @@ static void *ffi_worker(void *arg) {
         for (Py_ssize_t e = e0; e < e1; e++) {
             if (!(ffi_get(W, e) > 0.0)) continue;
             for (int m = 0; m < 8; m++)
-                H[8 * real + m] = C->dtype == 5 ? ((const int64_t *)C->data)[m * N + e]
+                H[8 * real + m] = C->dtype == XLA_FFI_DataType_S64 ? ((const int64_t *)C->data)[m * N + e]
                                                 : (long long)((const int32_t *)C->data)[m * N + e];
             real++;
         }
@@ -498,25 +446,29 @@ static void *ffi_worker(void *arg) {
  * elements of weight > 0 (padding has weight 0), with F and its gradient divided by params[0] (0: the real
  * corners) and params[1] kernel threads. F and the max are inf if a corner has det <= 0 (the gradient leaves it
  * out). Node indices are the caller's own (jaxci.optim builds them): not checked here. */
-static void *ffi_hex_terms_and_grad(XffiCallFrame *cf) {
-    if (cf->extension_start && cf->extension_start->type == 1) {  /* XLA asks which API this handler speaks */
-        XffiMetadata *m = ((XffiMetadataExt *)cf->extension_start)->metadata;
-        m->api_version = (XffiVersion){sizeof(XffiVersion), NULL, XFFI_API_MAJOR, XFFI_API_MINOR};
+static XLA_FFI_Error *ffi_hex_terms_and_grad(XLA_FFI_CallFrame *cf) {
+    if (cf->extension_start && cf->extension_start->type == XLA_FFI_Extension_Metadata) {  /* which API, traits */
+        XLA_FFI_Metadata *m = ((XLA_FFI_Metadata_Extension *)cf->extension_start)->metadata;
+        m->api_version = (XLA_FFI_Api_Version){XLA_FFI_Api_Version_STRUCT_SIZE, NULL, XLA_FFI_API_MAJOR,
+                                               XLA_FFI_API_MINOR};
         m->traits = 0;
         return NULL;
     }
-    if (cf->stage != 3) return NULL;
+    if (cf->stage != XLA_FFI_ExecutionStage_EXECUTE) return NULL;
     if (cf->args.size != 4 || cf->rets.size != 3)
-        return ffi_error(cf, 3, "jaxci_hex_terms_and_grad: expected 4 arguments and 3 results");
-    const XffiBuffer *X = cf->args.items[0], *C = cf->args.items[1], *W = cf->args.items[2],
-                     *Q = cf->args.items[3], *F = cf->rets.items[0], *K = cf->rets.items[1], *G = cf->rets.items[2];
-    if (X->rank != 2 || X->dims[1] != 3 || C->rank != 2 || C->dims[0] != 8 || (C->dtype != 4 && C->dtype != 5) ||
+        return ffi_error(cf, XLA_FFI_Error_Code_INVALID_ARGUMENT,
+                         "jaxci_hex_terms_and_grad: expected 4 arguments and 3 results");
+    const XffiBuffer *X = cf->args.args[0], *C = cf->args.args[1], *W = cf->args.args[2],
+                     *Q = cf->args.args[3], *F = cf->rets.rets[0], *K = cf->rets.rets[1], *G = cf->rets.rets[2];
+    if (X->rank != 2 || X->dims[1] != 3 || C->rank != 2 || C->dims[0] != 8 ||
+        (C->dtype != XLA_FFI_DataType_S32 && C->dtype != XLA_FFI_DataType_S64) ||
         W->rank != 1 || W->dims[0] != C->dims[1] || Q->dtype != X->dtype || !ffi_float(X) || W->dtype != X->dtype ||
         F->dtype != X->dtype || K->dtype != X->dtype || G->dtype != X->dtype)
-        return ffi_error(cf, 3, "jaxci_hex_terms_and_grad: points (n, 3), conn (8, N) int, weight (N,), "
-                                "params (2,); points, weight, params and results of one float type");
+        return ffi_error(cf, XLA_FFI_Error_Code_INVALID_ARGUMENT,
+                         "jaxci_hex_terms_and_grad: points (n, 3), conn (8, N) int, weight (N,), "
+                         "params (2,); points, weight, params and results of one float type");
     Py_ssize_t n = X->dims[0], N = C->dims[1], real = 0;
-    int f64 = X->dtype == 12;
+    int f64 = X->dtype == XLA_FFI_DataType_F64;
     double count = ffi_get(Q, 0);
     if (!(count > 0.0)) {
         for (Py_ssize_t e = 0; e < N; e++) real += ffi_get(W, e) > 0.0;
@@ -527,7 +479,7 @@ static void *ffi_hex_terms_and_grad(XffiCallFrame *cf) {
     double *grad = f64 ? G->data : malloc((size_t)(3 * n + 1) * sizeof(double));
     if (!P || !grad) {
         if (!f64) { free(P); free(grad); }
-        return ffi_error(cf, 8, "jaxci_hex_terms_and_grad: out of memory");
+        return ffi_error(cf, XLA_FFI_Error_Code_RESOURCE_EXHAUSTED, "jaxci_hex_terms_and_grad: out of memory");
     }
     if (!f64)
         for (Py_ssize_t k = 0; k < 3 * n; k++) P[k] = ffi_get(X, k);
@@ -547,13 +499,23 @@ static void *ffi_hex_terms_and_grad(XffiCallFrame *cf) {
             for (Py_ssize_t k = 0; k < 3 * n; k++) ffi_set(G, k, grad[k]);
     }
     if (!f64) { free(P); free(grad); }
-    return rc == 0 ? NULL : ffi_error(cf, 8, "jaxci_hex_terms_and_grad: out of memory");
+    return rc == 0 ? NULL : ffi_error(cf, XLA_FFI_Error_Code_RESOURCE_EXHAUSTED,
+                                      "jaxci_hex_terms_and_grad: out of memory");
 }
 
 /* ffi_handler() -> a PyCapsule of ffi_hex_terms_and_grad, for jax.ffi.register_ffi_target. */
 static PyObject *ffi_handler(PyObject *self, PyObject *args) {
     return PyCapsule_New((void *)ffi_hex_terms_and_grad, NULL, NULL);
 }
+
+/* ffi_api_version() -> (major, minor) of the XLA FFI header this extension was built against. */
+static PyObject *ffi_api_version(PyObject *self, PyObject *args) {
+    return Py_BuildValue("(ii)", XLA_FFI_API_MAJOR, XLA_FFI_API_MINOR);
+}
+#else
+static PyObject *ffi_handler(PyObject *self, PyObject *args) { Py_RETURN_NONE; }
+static PyObject *ffi_api_version(PyObject *self, PyObject *args) { Py_RETURN_NONE; }
+#endif
 
 typedef struct {
     Sums s;
@@ -1973,7 +1935,10 @@ done:
 
 static PyMethodDef methods[] = {
     {"hex_condition", hex_condition, METH_VARARGS, "F terms of hexahedra, their sum, max and gradient"},
-    {"ffi_handler", ffi_handler, METH_NOARGS, "the XLA FFI handler of hex_condition, as a PyCapsule"},
+    {"ffi_handler", ffi_handler, METH_NOARGS,
+     "the XLA FFI handler of hex_condition, as a PyCapsule (None: built without XLA's FFI header)"},
+    {"ffi_api_version", ffi_api_version, METH_NOARGS,
+     "(major, minor) of the XLA FFI header the handler was built against (None: no handler)"},
     {"hex_determinants", hex_determinants, METH_VARARGS, "det A_i of every corner of every hexahedron"},
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},

@@ -81,8 +81,17 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
 
 def ffi_handler():
     """The C kernel of F and its gradient as an XLA FFI handler (a PyCapsule for `jax.ffi.register_ffi_target`;
-    `jaxci.metrics.native_grad`)."""
+    `jaxci.metrics.native_grad`); None where the extension was built without XLA's FFI header."""
     return _c.ffi_handler()
+
+
+def ffi_api_version() -> tuple[int, int] | None:
+    """``(major, minor)`` of the XLA FFI C API the handler was built against (the installed jaxlib's header at
+    build time), or None (no extension, or no handler in it)."""
+    if _c is None or not hasattr(_c, "ffi_api_version"):
+        return None
+    v = _c.ffi_api_version()
+    return None if v is None else (int(v[0]), int(v[1]))
 
 
 def corner_table(cells: np.ndarray, corners: np.ndarray) -> np.ndarray:
