@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from jaxci import native, smooth
+from jaxci.engine import host_plan
 from jaxci.errors import ConfigError
 from jaxci.generate import perturb_box
 from jaxci.optim import coarse, host
@@ -26,7 +27,7 @@ def _wavy(n_theta: int = 32, n_r: int = 4, n_z: int = 4, seed: int = 0):
 
 
 def _space(mesh, **kw):
-    problem = build_problem(mesh, dtype=np.float64, device=False)
+    problem = build_problem(mesh, dtype=np.float64, plan=host_plan())
     par = make_parametrisation(problem.mesh, problem.info, problem.cons, dtype=np.float64)
     return par, coarse.build_coarse(par, {"hexahedron": mesh.hexes}, **kw)
 

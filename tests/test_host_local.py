@@ -13,6 +13,7 @@ from helpers import MESQUITE, spiked_sweep
 
 import jaxci
 from jaxci import native
+from jaxci.engine import host_plan
 from jaxci.errors import ConfigError
 from jaxci.generate import perturb_box
 from jaxci.smooth import smooth
@@ -197,11 +198,11 @@ def test_host_local_length_is_the_mean_edge_length_at_the_node(monkeypatch):
     from jaxci.optim.host_local import _colours, _local_length
 
     mesh = box(4, 4, 4)
-    pb = build_problem(mesh, dtype=np.float64, device=False)
+    pb = build_problem(mesh, dtype=np.float64, plan=host_plan())
     for col in _colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces):
         np.testing.assert_allclose(_local_length(np.asarray(mesh.points), mesh.hexes, col), 0.25, rtol=1e-12)
     mesh = perturb_box(5, amplitude=0.3, seed=1)
-    pb = build_problem(mesh, dtype=np.float64, device=False)
+    pb = build_problem(mesh, dtype=np.float64, plan=host_plan())
     cols = _colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces)
     whole = [_local_length(np.asarray(mesh.points), mesh.hexes, col) for col in cols]
     monkeypatch.setattr(host_local, "LENGTH_CHUNK", 3)
@@ -263,7 +264,7 @@ def test_host_pattern_move_never_worsens_the_worst_corner():
     from jaxci.smooth import build_problem
 
     mesh, D = spiked_sweep()
-    pb = build_problem(mesh, dtype=np.float64, device=False)
+    pb = build_problem(mesh, dtype=np.float64, plan=host_plan())
     sw = _Sweeper(np.asarray(mesh.points), mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces, CIParams())
     f, k = sw.objective(sw.x)
     f2, k2 = sw.objective(sw.x + 2 * D)
@@ -282,7 +283,7 @@ def test_host_pattern_move_stops_at_the_first_factor_where_f_rises():
     from jaxci.smooth import build_problem
 
     mesh, D = spiked_sweep()
-    pb = build_problem(mesh, dtype=np.float64, device=False)
+    pb = build_problem(mesh, dtype=np.float64, plan=host_plan())
     sw = _Sweeper(np.asarray(mesh.points), mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces, CIParams())
     f, k = sw.objective(sw.x)
     along = [sw.objective(sw.x + a * D)[0] for a in PATTERN_FACTORS]

@@ -43,12 +43,20 @@ def test_default_is_auto_and_reports_phases():
     assert res.summary()["phases"] == res.phases
 
 
-def test_auto_presmooths_large_meshes_only():
-    from jaxci.smooth import AUTO_PRESMOOTH_FROM, auto_pipeline
+def test_auto_presmooths_large_meshes_on_the_host_and_every_mesh_on_jax(monkeypatch):
+    import dataclasses
 
-    assert auto_pipeline(1000, {})[1] == {}
-    assert auto_pipeline(AUTO_PRESMOOTH_FROM, {})[1] == {"presmooth": 3}
-    assert auto_pipeline(AUTO_PRESMOOTH_FROM, {"presmooth": 0})[1] == {"presmooth": 0}  # the user's value wins
+    from jaxci import methods
+    from jaxci.engine import host_plan
+
+    mesh = box(4, 4, 4)  # 64 hexahedra
+    host = host_plan()
+    compiled = dataclasses.replace(host, engine="jax", kernel="XLA")
+    assert methods.auto_pipeline(mesh, {}, host)[1] == {}
+    assert methods.auto_pipeline(mesh, {}, compiled)[1] == {"presmooth": 3}  # float32 L-BFGS alone stalls
+    monkeypatch.setattr(methods, "AUTO_PRESMOOTH_FROM", 64)
+    assert methods.auto_pipeline(mesh, {}, host)[1] == {"presmooth": 3}
+    assert methods.auto_pipeline(mesh, {"presmooth": 0}, host)[1] == {"presmooth": 0}  # the user's value wins
 
 
 def test_optimal_mesh_returns_at_once():

@@ -180,8 +180,8 @@ def test_bad_devices_are_refused_before_any_work(devices, message):
 
 
 @pytest.mark.parametrize("method, params, message", [
-    ("lm", {}, "not 'lm'"), ("lbfgs", {"backend": "numpy"}, "backend='numpy'"),
-    ("ci", {"backend": "numpy"}, "backend='numpy'"),
+    ("lm", {}, "not 'lm'"), ("lbfgs", {"backend": "numpy"}, "engine 'host' runs on one CPU and cannot be sharded"),
+    ("ci", {"backend": "numpy"}, "engine 'host'"), ("ci", {"engine": "host"}, "engine 'host'"),
 ])
 def test_methods_that_cannot_run_sharded_are_refused(method, params, message):
     with pytest.raises(ConfigError, match=message):

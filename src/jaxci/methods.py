@@ -1,5 +1,5 @@
-"""The problem every smoothing method works on (`Problem`, `build_problem`) and the dispatch to a method
-(`run_method`, `method_params`), where it runs (`host_run`: numpy and C, or compiled), and the default pipeline
+"""The problem every smoothing method works on (`Problem`, `build_problem`), the dispatch to a method on the
+engine its plan names (`run_method`, `method_params`; the plan: `jaxci.engine`), and the default pipeline
 (`auto_pipeline`). `jaxci.smooth` is the one interface over them.
 """
 
@@ -20,14 +20,13 @@ from .geometry.topology import colour_nodes, node_adjacency
 from .mesh import HexMesh
 from .metrics import objective as mixed
 from .metrics.hexahedron import transposed
-from .optim.host import HOST_MAX, runs_on_host
 
 #: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
 #: (`auto_pipeline`).
 METHODS = ("auto", "ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton", "laplace", "smart-laplace")
 
-#: Hexahedra from which the default pipeline runs smart-Laplace sweeps before L-BFGS (`auto_pipeline`), and
-#: wherever L-BFGS runs compiled in float32 (above `jaxci.optim.host.HOST_MAX`): float32 L-BFGS alone stalls on
+#: Hexahedra from which the default pipeline runs smart-Laplace sweeps before L-BFGS on the host engine
+#: (`auto_pipeline`; on the JAX engine at any size: float32 L-BFGS alone stalls on
 #: near-flat corners (a perturbed 21^3 box with a corner of kappa/3 7.7e5: 5.5e5 after 40 steps; float64 reached
 #: 1.0000 in 188 steps). On large meshes the sweeps also save most of the steps in float64: cube60_pert after
 #: untangling (216,000 hexes, max kappa/3 25.8) reached max kappa/3 1.0001 in about 100 host L-BFGS steps alone,
@@ -39,7 +38,9 @@ class Problem:
     """Everything a method needs, built once: constraints, transposed connectivity, dtype; for a mixed mesh the
     non-hexahedral cells (`extra`: `jaxci.metrics.objective.ExtraCells`; `table`:
     `jaxci.metrics.objective.CornerTable`), None for a hexahedral one; the colouring (`colour`) on first use;
-    `devices`: None (one device) or the `jax.sharding.Mesh` the compiled methods shard the elements over."""
+    `devices`: None (one device) or the `jax.sharding.Mesh` the compiled methods shard the elements over;
+    `plan`: the `jaxci.engine.Plan` the methods run on (its engine: numpy arrays on the host engine, JAX arrays
+    on the JAX engine)."""
 
     mesh: HexMesh
     info: BoundaryInfo
@@ -50,6 +51,12 @@ class Problem:
     extra: mixed.ExtraCells | None = None
     table: mixed.CornerTable | None = None
     devices: object = None
+    plan: object = None
+
+    @property
+    def host(self) -> bool:
+        """Whether the methods run on the host engine (numpy and C)."""
+        return self.plan is not None and self.plan.engine == "host"
 
     @functools.cached_property
     def colour(self) -> np.ndarray:
@@ -64,12 +71,14 @@ class Problem:
 
 def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.0, fix_boundary: bool = False,
                   fixed_nodes: Sequence[int] | None = None, fixed_sets: Sequence[str] = (),
-                  device: bool = True, info: BoundaryInfo | None = None, devices=None) -> Problem:
+                  info: BoundaryInfo | None = None, devices=None, plan=None) -> Problem:
     """Classify the boundary and build the constraints of `mesh` (call inside the dtype context).
 
-    `device`: the arrays on JAX's default device (default), or in numpy for a method that runs on the host
-    (`host_run`: JAX is not imported). `info`: the `BoundaryInfo` of `mesh` with these arguments if it is at hand
-    (the untangling stage's), else classified. `devices`: `Problem.devices`."""
+    `plan`: the `jaxci.engine.Plan` (`Problem.plan`): on the host engine the arrays stay in numpy (JAX is not
+    imported), else (or without a plan) they go to JAX's default device. `info`: the `BoundaryInfo` of `mesh`
+    with these arguments if it is at hand (the untangling stage's), else classified. `devices`:
+    `Problem.devices`."""
+    device = plan is None or plan.engine != "host"
     if info is None:
         info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                  fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
@@ -81,50 +90,23 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
     # on the host a view: the C kernels read the hexahedra (N, 8) themselves (a copy was 64 MB at 10^6, and the
     # objective's kernel made another of it)
     conn = transposed(mesh.hexes) if device else np.asarray(mesh.hexes).T
-    return Problem(mesh, info, cons, conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table, devices)
+    return Problem(mesh, info, cons, conn, put(np.asarray(mesh.points, dtype)), dtype, extra, table, devices, plan)
 
 
-def host_run(mesh: HexMesh, method: str, params: dict) -> bool:
-    """Whether `smooth` runs `method` with `params` on `mesh` entirely on the host (numpy and the C kernels of
-    `jaxci.native`): L-BFGS where `jaxci.optim.host.runs_on_host` takes the mesh (a mixed one only on F and with
-    the C kernels; with presmoothing, a hexahedral one with the C kernels, its sweeps then on the host too), CI
-    (both forms) and the Laplacians where `jaxci.optim.host_local.host_local_applies`; their reports and checks
-    in numpy. JAX is then never imported (0.4-0.5 s of a small mesh's run)."""
-    from . import native
-    from .metrics.elements import objective_on_host
+def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
+    """The default pipeline (``method="auto"``) on `mesh` where `plan` (a `jaxci.engine.Plan`) runs it:
+    ``(method, params, description)``.
 
-    extra = mixed.extra_blocks(mesh)
-    if not objective_on_host(mesh):
-        return False
-    if method in ("ci", "ci-global", "laplace", "smart-laplace"):
-        from .optim.host_local import host_local_applies
-
-        return host_local_applies(params.get("backend", "auto"), mesh.n_hexes, bool(extra))
-    if method != "lbfgs":
-        return False
-    if int(params.get("presmooth", 0)):  # the smart-Laplace sweeps where L-BFGS runs (`laplace_np`, any size)
-        from .optim.host_local import host_local_applies
-
-        if not host_local_applies("numpy", mesh.n_hexes, bool(extra)):
-            return False
-    if extra and (not native.AVAILABLE or params.get("objective", "mean") != "mean"):
-        return False
-    n_cells = mesh.n_hexes + sum(len(c) for c in extra.values())
-    return runs_on_host(params.get("backend", "auto"), n_cells, HOST_MAX)
-
-
-def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
-    """The default pipeline (``method="auto"``): ``(method, params, description)``.
-
-    Chosen by measurement on real and generated meshes (docs/results/README.md, sessions 4 and 5): L-BFGS on F
-    after the untangling stage (when the input has inverted elements); from `AUTO_PRESMOOTH_FROM` hexahedra on
-    and where L-BFGS runs compiled (``backend="jax"``, or above `jaxci.optim.host.HOST_MAX`), 3 smart-Laplace
-    sweeps first (they fix the worst corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13
-    after them). Local CI ran to its sweep cap on unstructured meshes. `params` (the user's) win.
+    Chosen by measurement on real and generated meshes (docs/results): L-BFGS on F after the untangling stage
+    (when the input has inverted elements); on the JAX engine, and on the host engine from `AUTO_PRESMOOTH_FROM`
+    hexahedra on (hexahedral meshes: the host's sweeps are for hexahedra), 3 smart-Laplace sweeps first (they fix
+    the worst corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13 after them). Local CI ran
+    to its sweep cap on unstructured meshes. `params` (the user's) win.
     """
     params = dict(params)
-    if "presmooth" not in params and (n_hexes >= AUTO_PRESMOOTH_FROM
-                                      or not runs_on_host(params.get("backend", "auto"), n_hexes, HOST_MAX)):
+    host = plan.engine == "host"
+    if "presmooth" not in params and (not host or (mesh.n_hexes >= AUTO_PRESMOOTH_FROM
+                                                   and not mixed.has_extra(mesh))):
         params["presmooth"] = 3
     pre = int(params.get("presmooth", 0))
     desc = "L-BFGS on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")
@@ -134,7 +116,7 @@ def auto_pipeline(n_hexes: int, params: dict) -> tuple[str, dict, str]:
 def run_method(problem: Problem, method: str, seed: int, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
     of the randomised methods (only there: building it compiles a program)."""
-    if isinstance(problem.x0, np.ndarray) and method in ("ci", "ci-global", "laplace", "smart-laplace"):  # host_run
+    if problem.host and method in ("ci", "ci-global", "laplace", "smart-laplace"):
         from .optim.host_global import global_ci_np
         from .optim.host_local import laplace_np, local_ci_np
         from .optim.parametrisation import free_lengths

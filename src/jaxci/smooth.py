@@ -26,6 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ._lazy import enable_x64, jax
+from .engine import Plan
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .geometry.boundary import BoundaryInfo, classify_boundary, fix_nodes
 from .geometry.projection import build_constraints, n_free, project_np
@@ -37,12 +38,11 @@ from .methods import (  # noqa: F401  (Problem, build_problem, method_params ...
     auto_pipeline,
     build_problem,
     free_scale,
-    host_run,
     method_params,
     run_method,
 )
 from .metrics import objective as mixed
-from .metrics.elements import checked_objective
+from .metrics.elements import checked_objective, objective_on_host
 from .metrics.report import QualityReport, quality_report
 
 #: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
@@ -66,6 +66,7 @@ class SmoothResult:
     - `before`, `after`: `QualityReport` of input and output; `boundary`: node counts per class.
     - `node_class`: class of every node (`jaxci.geometry.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
     - `notes`: what a user should know (invariant fallbacks, untangling, an iteration cap that stopped it, ...).
+    - `plan`: where it ran (`jaxci.engine.Plan`: engine, device, dtype, kernel, threads, and why).
     - `phases`: where the time went (`jaxci.phases.PhaseClock.as_dict`: seconds, compile seconds and
       compilations per phase: ``validate``, ``report`` (quality before), ``untangle``, ``setup`` (boundary
       classification, constraints, colouring), ``smooth`` (the method), ``checks`` (float64 invariants and the
@@ -84,11 +85,14 @@ class SmoothResult:
     node_class: np.ndarray | None = None
     notes: tuple[str, ...] = ()
     phases: dict | None = None
+    plan: Plan | None = None
 
     def summary(self) -> dict:
-        """JSON-ready summary: before/after quality keys, iterations, wall time, method and params."""
+        """JSON-ready summary: before/after quality keys, iterations, wall time, method, params and the engine
+        that ran (``engine``: `jaxci.engine.Plan.to_dict`)."""
         return {
             "method": self.method,
+            "engine": None if self.plan is None else self.plan.to_dict(),
             "params": self.params,
             "iterations": self.iterations,
             "wall_time": self.wall_time,
@@ -116,6 +120,8 @@ def smooth(
     keep_worst: bool = True,
     clock=None,
     devices=None,
+    engine: str = "auto",
+    device: str = "auto",
     **params,
 ) -> SmoothResult:
     """Smooth the hexahedra of `mesh` by moving nodes; connectivity never changes.
@@ -131,7 +137,8 @@ def smooth(
     - `seed`: an integer in [0, 2**32 - 1] (`jaxci.generate.check_seed`), the seed of the `jax.random` key
       of stochastic methods (same seed, same result; distinct seeds, distinct keys). The key uses the ``"rbg"``
       generator (XLA's RngBitGenerator): its code compiles in a tenth of the time of threefry's.
-    - `dtype`: ``"float32"`` (default, fast) or ``"float64"``.
+    - `dtype`: ``"float32"`` (default, fast) or ``"float64"``: the JAX engine's arithmetic (the host engine
+      computes in float64 whatever this says; the result's `plan` says which ran).
     - `feature_angle`: degrees; boundary edges sharper than this are feature curves (nodes slide along them).
     - `fix_boundary`: fix every boundary node; `fixed_nodes`: node indices to fix; `fixed_sets`: names of node
       sets of the file to fix.
@@ -159,6 +166,12 @@ def smooth(
       sweeps' node slots) sharded over them, node data replicated; global CI with the trial meshes of each
       learning attempt split over them; same result as on one device to float tolerance (a note says so; the
       result's ``params["devices"]`` is the count).
+    - `engine`: ``"auto"`` (default), ``"host"`` (numpy and the C kernels, float64, on the CPU) or ``"jax"``
+      (the compiled JAX programs); `device`: ``"auto"`` (default: an accelerator where JAX sees one and the
+      mesh is large enough for it to win, `jaxci.engine.ACCELERATOR_FROM`), ``"cpu"`` or ``"gpu"`` (any
+      accelerator JAX sees). One decision (`jaxci.engine.resolve_plan`) made before any work, followed by every
+      stage; a request that cannot be honoured is a `ConfigError`. The parameters ``backend`` and
+      ``untangle_backend`` (``"numpy"``: host, ``"jax"``) are the same request.
     - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,
@@ -181,14 +194,11 @@ def smooth(
     clock = PhaseClock() if clock is None else clock
     user_presmooth = "presmooth" in params
     with clock.phase("validate"):
-        shard, params, shard_note = _sharding(method, devices, params)  # first: L-BFGS's backend picks `auto`
-        mesh, method, seed, fixed_sets, untangle_params, params, auto = _validate(
+        mesh, method, seed, fixed_sets, untangle_params, params, auto, shard, shard_note, plan = _validate(
             mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params,
             {"fix_boundary": fix_boundary, "merge_coincident": merge_coincident, "keep_worst": keep_worst,
-             "untangle_boundary": untangle_boundary})
-        if shard is not None and mixed.has_extra(mesh):
-            raise ConfigError("devices: only hexahedral meshes run sharded (this one has other cell types); leave "
-                              "devices out")
+             "untangle_boundary": untangle_boundary}, engine, device, devices)
+    clock.progress("engine", plan.describe())
     t0 = time.perf_counter()
     notes: list[str] = []
     if auto:
@@ -210,7 +220,8 @@ def smooth(
     frame = unit_frame(mesh.points)
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
                                check_coincident=False)
-    points, res = _smooth_unit(unit, method, seed, dtype, feature_angle, fix_boundary, fixed, fixed_sets,
+    notes.extend(plan.notes)
+    points, res = _smooth_unit(unit, method, seed, plan, feature_angle, fix_boundary, fixed, fixed_sets,
                                untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary,
                                shard, auto_note=_auto_note(auto) if auto and not user_presmooth else None)
     moved = (points != unit.points).any(axis=1)
@@ -219,29 +230,34 @@ def smooth(
     return dataclasses.replace(
         res, mesh=mesh.with_points(real), wall_time=time.perf_counter() - t0,
         method="auto" if auto else method,
-        params={**res.params, "seed": seed, "dtype": dtype, "feature_angle": feature_angle,
+        params={**res.params, "seed": seed, "dtype": plan.dtype, "feature_angle": feature_angle,
                 "fix_boundary": fix_boundary, **({"pipeline": auto} if auto else {}),
                 **({} if shard is None else {"devices": int(shard.devices.size)})},
-        notes=tuple(notes), phases=clock.as_dict(),
+        notes=tuple(notes), phases=clock.as_dict(), plan=plan,
     )
 
 
-def _sharding(method, devices, params: dict):
+def _sharding(method, devices, params: dict, device: str):
     """``(device mesh, params, note)`` of a ``devices=`` request (`jaxci.optim.sharding.sharded_params`);
-    ``(None, params, "")`` without one (JAX is then not imported here) or for an unknown method (`_validate`
-    says so)."""
-    if devices is None or method not in METHODS:
+    ``(None, params, "")`` without one (JAX is then not imported here). `device` ``"cpu"`` takes CPU devices
+    (on a machine with an accelerator), else JAX's default platform's."""
+    if devices is None:
         return None, params, ""
     from .optim.sharding import resolve_devices, sharded_params
 
-    shard = resolve_devices(devices)
+    shard = resolve_devices(devices, platform="cpu" if device == "cpu" else None)
     params, note = sharded_params(method, params, shard)
     return shard, params, note
 
 
-def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params, flags: dict):
-    """`smooth`'s argument checks, before any work: ``(mesh, method, seed, fixed_sets, untangle_params, params,
-    auto)`` with the `auto_pipeline` resolved (`auto`: its description, else "")."""
+def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params, flags: dict, engine, device,
+              devices):
+    """`smooth`'s argument checks and the engine's plan, before any work: ``(mesh, method, seed, fixed_sets,
+    untangle_params, params, auto, shard, shard_note, plan)`` with the `auto_pipeline` resolved (`auto`: its
+    description, else ""), the device mesh of a sharded run (`shard`, None) and its note, and the
+    `jaxci.engine.Plan` every stage follows (their ``backend`` parameters set from it:
+    `jaxci.engine.stage_params`)."""
+    from .engine import engine_request, resolve_plan, stage_params
     from .generate import check_seed
     from .memory import check_fits, smooth_bytes
     from .mesh import as_hex_mesh, check_volume
@@ -250,6 +266,13 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     if not isinstance(method, str) or method not in METHODS:
         raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     _choice("dtype", dtype, tuple(_DTYPES))
+    engine, params = engine_request(engine, params)
+    if not isinstance(device, str) or device not in ("auto", "cpu", "gpu"):
+        raise ConfigError(f"smooth: device must be one of 'auto', 'cpu', 'gpu', got {device!r}")
+    shard, params, shard_note = _sharding(method, devices, params, device)
+    if shard is not None and mixed.has_extra(mesh):
+        raise ConfigError("devices: only hexahedral meshes run sharded (this one has other cell types); leave "
+                          "devices out")
     _choice("untangle", untangle, ("auto", "always", "never", "partial"))
     seed = check_seed(seed)
     if isinstance(feature_angle, bool) or not isinstance(feature_angle, numbers.Real) or \
@@ -263,9 +286,14 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
         if not isinstance(flag, bool):
             raise ConfigError(f"smooth: {name} must be True or False, got {flag!r}")
     untangle_params = {k: params.pop(k) for k in list(params) if isinstance(k, str) and k.startswith("untangle_")}
+    untangling = untangle == "always" or (untangle != "never" and any(
+        b.any() for b in mixed.inverted_cells(mesh, mesh.points).values()))
+    plan = resolve_plan(mesh, "lbfgs" if method == "auto" else method, params, engine=engine, device=device,
+                        dtype=dtype, devices=shard, untangling=untangling)
     auto = ""
     if method == "auto":
-        method, params, auto = auto_pipeline(mesh.n_hexes, params)
+        method, params, auto = auto_pipeline(mesh, params, plan)
+    params, untangle_params = stage_params(plan, params, untangle_params)
     try:
         p = method_params(method, params)  # checked now, not after the untangling
     except ConfigError as e:
@@ -281,10 +309,10 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     where = f"{mesh.source}: " if mesh.source else ""
     trials = p.cohort * p.variations if method in ("ci", "ci-global") else 16
     n_cells = mesh.n_hexes + sum(len(c) for c in mixed.extra_blocks(mesh).values())
-    check_fits(smooth_bytes(n_cells, dtype, trials, host=host_run(mesh, method, params), method=method),
-               f"{where}smoothing {mesh.n_hexes} hexahedra in {dtype}")
+    check_fits(smooth_bytes(n_cells, plan.dtype, trials, host=plan.engine == "host", method=method),
+               f"{where}smoothing {mesh.n_hexes} hexahedra in {plan.dtype}")
     check_volume(mesh)
-    return mesh, method, seed, fixed_sets, untangle_params, params, auto
+    return mesh, method, seed, fixed_sets, untangle_params, params, auto, shard, shard_note, plan
 
 
 def _auto_note(description: str) -> str:
@@ -292,15 +320,16 @@ def _auto_note(description: str) -> str:
     return f"default method (auto): {description}; choose another with --method / method="
 
 
-def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
+def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
                  untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary=False,
                  devices=None, auto_note: str | None = None) -> tuple[np.ndarray, SmoothResult]:
     """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
     and wall time are filled in by `smooth`; `notes` is appended to, `clock` records the phases).
     `auto_note`: the note of the default pipeline where it chose the presmoothing (not the user): a Laplace
     sweep of the untangling stage then stands for it, and the note says so."""
-    host = host_run(mesh, method, params)
-    with clock.phase("report"), enable_x64(not host):
+    host = plan.engine == "host"
+    x64 = not objective_on_host(mesh)  # the reports and checks: float64, in JAX where numpy does not hold them
+    with clock.phase("report"), enable_x64(x64):
         before = quality_report(mesh)
     untangled = None
     smesh = mesh  # the mesh whose boundary the shape improvement keeps (`untangle_boundary` may move it)
@@ -338,8 +367,9 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
             if not partial:
                 _refuse_stuck(mesh, info_u)
             # InvertedMeshError if it fails (unless partial)
-            untangled, untangle_notes, swept = untangle_stage(mesh, info_u, up, partial=partial,
-                                                              progress=lambda text: clock.progress("untangle", text))
+            with plan.context():
+                untangled, untangle_notes, swept = untangle_stage(
+                    mesh, info_u, up, partial=partial, progress=lambda text: clock.progress("untangle", text))
             if swept and auto_note is not None and int(params.get("presmooth", 0)):
                 # the untangling's plain Laplace sweep has just smoothed the mesh: cube60_pert's smooth phase
                 # 6.4 -> 3.6 s without the 3 smart-Laplace sweeps, the same result (37 L-BFGS steps against 36)
@@ -358,18 +388,18 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
                 untangle_notes.append(released_note(mesh, moved, untangled))
         notes.extend(untangle_notes)
         if partial:
-            with clock.phase("checks"), enable_x64(not host):
+            with clock.phase("checks"), enable_x64(x64):
                 left = quality_report(mesh, untangled)
             if left.inverted_elements or left.inverted_corners:  # no shape improvement on a tangled mesh
                 return np.asarray(untangled, dtype=np.float64), SmoothResult(
                     mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]},
                     iterations=0, wall_time=0.0, method=method, params={"untangle": "partial"}, before=before,
                     after=left, boundary=info.counts, node_class=np.asarray(info.node_class))
-    np_dtype = np.float64 if host else _DTYPES[dtype]  # the host solver works in float64: exact start and boundary
-    with (contextlib.nullcontext() if host else jax.enable_x64(dtype == "float64")):
+    np_dtype = _DTYPES[plan.dtype]  # the host engine's is float64: exact start and boundary
+    with (contextlib.nullcontext() if host else jax.enable_x64(plan.dtype == "float64")), plan.context():
         with clock.phase("setup"):
             problem = build_problem(smesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
-                                    fixed_nodes=fixed_nodes, fixed_sets=fixed_sets, device=not host,
+                                    fixed_nodes=fixed_nodes, fixed_sets=fixed_sets, plan=plan,
                                     info=None if untangled is None else info, devices=devices)
             if untangled is not None:
                 start = np.asarray(untangled, np_dtype)
@@ -394,7 +424,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, dtype, feature_angle, fix_boundary
         if run >= int(resolved[cap]):
             notes.append(f"{method} stopped at its cap of {resolved[cap]} iterations ({cap}) before it converged; "
                          f"--param {cap}=N lets it go further")
-    with clock.phase("checks"), enable_x64(not host):
+    with clock.phase("checks"), enable_x64(x64):
         power = float(resolved["p"]) if resolved.get("objective") == "pmean" else None
         if untangled is None:
             points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before, power, projected=host)

@@ -1,5 +1,9 @@
-"""`jaxci smooth IN OUT [--method M] [--seed S] [--devices N|all] [--json] [--verbose] [--force]`: smooth a mesh,
-write it as OUT.
+"""`jaxci smooth IN OUT [--method M] [--engine E] [--device D] [--seed S] [--devices N|all] [--json] [--verbose]
+[--force]`: smooth a mesh, write it as OUT.
+
+``--engine auto|host|jax`` and ``--device auto|cpu|gpu`` are `jaxci.smooth`'s ``engine`` and ``device``: one
+decision (`jaxci.engine.resolve_plan`), printed with the result (``engine:`` line; ``--json``: the ``engine``
+object with its name, device, dtype and kernel; ``--verbose``: as the run starts).
 
 Without ``--method`` the default pipeline runs (``auto``: `jaxci.smooth.auto_pipeline`), and the output says
 which. ``--json`` reports the time of each phase (``phases``: ``startup`` (process start, imports and JAX set-up),
@@ -27,8 +31,15 @@ def add_args(p) -> None:
     p.add_argument("--method", default="auto", choices=METHODS,
                    help="smoothing method (default auto: untangle if needed, then L-BFGS, with smart-Laplace sweeps "
                         "first on large meshes; the output says which)")
+    p.add_argument("--engine", choices=["auto", "host", "jax"], default="auto",
+                   help="auto (default: the JAX engine on an accelerator where JAX sees one and the mesh is large "
+                        "enough, else the host engine where it runs the method, else JAX on the CPU), host (numpy "
+                        "and C kernels, float64, CPU) or jax (compiled JAX programs)")
+    p.add_argument("--device", choices=["auto", "cpu", "gpu"], default="auto",
+                   help="auto (default), cpu, or gpu (any accelerator JAX sees; the JAX engine runs on it)")
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (default 0)")
-    p.add_argument("--dtype", choices=["float32", "float64"], default="float32")
+    p.add_argument("--dtype", choices=["float32", "float64"], default="float32",
+                   help="the JAX engine's arithmetic (default float32; the host engine is float64)")
     p.add_argument("--feature-angle", type=float, default=40.0, help="degrees (default 40)")
     p.add_argument("--fix-boundary", action="store_true", help="fix every boundary node")
     p.add_argument("--fixed-set", action="append", default=[], metavar="NAME",
@@ -134,10 +145,9 @@ def run(args) -> int:
         clock.add("startup", age)
         if clock.on_event is not None:
             clock.on_event("end", "startup", clock.as_dict()["startup"])
-    from ..io import read_mesh, write_mesh
+    from ..io import read_mesh
     from ..smooth import smooth
     from ._files import check_output
-    from ._interrupt import removing_temporaries
     from ._quality import format_table
 
     params = _parse_params(args.param)
@@ -150,16 +160,17 @@ def run(args) -> int:
 
             raise ConfigError(f"--objective {args.objective} and --param objective={params['objective']} disagree")
         params["objective"] = args.objective
-    check_output(args.output, [args.input], force=args.force)
+    out = check_output(args.output, [args.input], force=args.force)
     with clock.phase("read"):
         mesh = read_mesh(args.input)
+    out.check_inputs(mesh)  # the files read through it too (includes, XDMF data), before the smoothing
     res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
                  untangle_boundary=args.untangle_boundary,
                  merge_coincident=args.merge_coincident, keep_worst=not args.allow_worse_worst, clock=clock,
-                 devices=devices, **params)
-    with clock.phase("write"), removing_temporaries(args.output):
-        write_mesh(res.mesh, args.output)
+                 devices=devices, engine=args.engine, device=args.device, **params)
+    with clock.phase("write"):
+        out.write(res.mesh)  # replaces only what check_output saw (nothing, without --force)
     phases = clock.as_dict()
     if args.verbose:
         t = phases["total"]
@@ -174,6 +185,8 @@ def run(args) -> int:
     print(format_table(b, f"before: {args.input}"))
     label = res.params.get("pipeline", res.method) if res.method == "auto" else res.method
     print(format_table(a, f"after ({label}, {res.iterations} iterations, {res.wall_time:.2f} s): {args.output}"))
+    if res.plan is not None:
+        print(f"engine: {res.plan.describe()}")
     return _status(res)
 
 

@@ -114,14 +114,15 @@ def xla_cpu_threads() -> int | None:
     return n if tasks else None
 
 
-def resolve_devices(devices) -> Mesh:
+def resolve_devices(devices, platform: str | None = None) -> Mesh:
     """The 1-D device `Mesh` of a ``devices=`` request (`ConfigError` for a bad one, saying what exists).
 
     **Arguments:** `devices`: a positive int N (the first N of `jax.devices()`), ``"all"`` (every device, of
     every host after `init_distributed`), or a sequence of `jax.Device` objects or of indices into
-    `jax.devices()`.
+    `jax.devices()`; `platform`: ``"cpu"`` (or another JAX platform) to take that platform's devices instead of
+    the default platform's.
     """
-    have = jax.devices()
+    have = jax.devices(platform) if platform else jax.devices()
     what = f"{len(have)} {have[0].platform} device{'s' if len(have) != 1 else ''}"
     exist = f"{what} {'exist' if len(have) != 1 else 'exists'}"
     if isinstance(devices, str):
