@@ -202,7 +202,7 @@ def test_pattern_move_never_worsens_the_worst_corner():
 
 
 
-# ------------------------------------------------------------------------- global CI's defaults (issue 15, item 4)
+# ------------------------------------------------------------------------- global CI's defaults
 def _spy_global_ci(monkeypatch, seen: list, attempts: int = 3) -> None:
     """Record the `CIParams` every global CI run receives, compiled or on the host; run it for `attempts`
     attempts only (quick)."""
@@ -210,9 +210,9 @@ def _spy_global_ci(monkeypatch, seen: list, attempts: int = 3) -> None:
 
     real, real_np = ci.global_ci, host_global.global_ci_np
 
-    def spy(key, points, conn, cons, scale, p, extra=None):
+    def spy(key, par, conn, scale, p, extra=None, **kw):
         seen.append(p)
-        return real(key, points, conn, cons, scale, dataclasses.replace(p, attempts=attempts), extra)
+        return real(key, par, conn, scale, dataclasses.replace(p, attempts=attempts), extra, **kw)
 
     def spy_np(points, hexes, cons, scale, p, *args):
         seen.append(p)
@@ -240,8 +240,9 @@ def test_global_ci_defaults_are_one_source_for_api_cli_and_yaml(tmp_path, monkey
     cfg.write_text("mesh: {generate: {case: cube27}}\nmethods:\n  - {method: ci-global}\n"
                    "figures: false\nwrite_meshes: false\n")
     run_experiment(load_config(cfg), tmp_path / "out")
-    assert seen == [expected] * 3  # API, CLI, YAML
-    fields = dataclasses.asdict(expected)
+    ran = dataclasses.replace(expected, backend="numpy")  # the engine's plan: the host engine on this CPU
+    assert seen == [ran] * 3  # API, CLI, YAML
+    fields = dataclasses.asdict(ran)
     assert {k: api.params[k] for k in fields} == {k: cli["params"][k] for k in fields} == fields
     # a field given takes its value, the others stay at the METHOD's defaults, from every entry point
     seen.clear()
@@ -250,7 +251,7 @@ def test_global_ci_defaults_are_one_source_for_api_cli_and_yaml(tmp_path, monkey
                  "--json", "--force"]) == 0
     cfg.write_text(cfg.read_text().replace("{method: ci-global}", "{method: ci-global, params: {cohort: 3}}"))
     run_experiment(load_config(cfg), tmp_path / "out2")
-    assert seen == [dataclasses.replace(expected, cohort=3)] * 3
+    assert seen == [dataclasses.replace(ran, cohort=3)] * 3
 
 
 def test_yaml_checks_ci_params_against_the_methods_defaults(tmp_path):

@@ -144,7 +144,7 @@ def run_method(problem: Problem, method: str, seed: int, params: dict):
             x, it, hist = local_ci(key, problem.x0, problem.conn, cs, problem.cons, p, problem.extra,
                                    devices=problem.devices)
         else:
-            x, it, hist = global_ci(key, problem.x0, problem.conn, problem.cons, free_scale(problem), p,
+            x, it, hist = global_ci(key, global_parametrisation(problem), problem.conn, free_scale(problem), p,
                                     problem.extra, devices=problem.devices)
         return x, it, hist, dataclasses.asdict(p)
     if method in ("bfgs", "lbfgs", "cg", "lm", "gauss-newton"):
@@ -156,6 +156,15 @@ def run_method(problem: Problem, method: str, seed: int, params: dict):
 
         return run_laplace(problem, method, params)
     raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+
+
+def global_parametrisation(problem: Problem):
+    """The unscaled `jaxci.optim.parametrisation.Parametrisation` of `problem` from its start ``x0``: global CI's
+    unknowns (coordinates along each node's free directions)."""
+    from .optim.parametrisation import make_parametrisation
+
+    return make_parametrisation(problem.mesh, problem.info, problem.cons, np.asarray(problem.x0), scaled=False,
+                                dtype=problem.dtype)
 
 
 def free_scale(problem: Problem) -> jnp.ndarray:

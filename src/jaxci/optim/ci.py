@@ -30,10 +30,11 @@ starts and displacements that best cancels the displacements, projected, taken o
 sweeps, 8 seeds, the default cohorts: F 1.6-2.6% above L-BFGS's without it, 0.0-0.4% with it). Sweeps stop when F
 changes by less than `tol` relative plus `atol`, or F <= `ftol`, or max kappa/3 <= 1 + `ktol`, or after `max_sweeps`.
 
-**Global CI** (`global_ci`, faithful to the paper): each candidate is a whole mesh, a point in the space of all
-free coordinates (`jaxci.geometry.projection`'s parametrisation), of shape ``(C, n_free)``; its behaviour is F (Eq.
-3.1) evaluated for all C x t variations at once. Intervals are per coordinate, of initial width
-``init_width * h`` (h the local edge length).
+**Global CI** (`global_ci`, faithful to the paper; `jaxci.optim.global_ci`): each candidate is a whole mesh, a
+point in the space of all free coordinates (`jaxci.geometry.projection`'s parametrisation), of shape
+``(C, n_free)``; its behaviour is F (Eq. 3.1) evaluated for all C x t variations of an attempt in one batch, and
+for several seeds at once (`jaxci.optim.global_ci.global_ci_batched`). Intervals are per coordinate, of initial
+width ``init_width * h`` (h the local edge length).
 
 Both run under one `jax.jit` with `jax.lax` loops, seeded by an explicit `jax.random` key: same key, same
 result, bit for bit on CPU.
@@ -42,13 +43,12 @@ result, bit for bit on CPU.
 from __future__ import annotations
 
 import functools
-import typing
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry.projection import Constraints, params_to_points
+from ..geometry.projection import Constraints
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
 from ._anderson import anderson_point
 from ._buckets import to_device
@@ -75,40 +75,11 @@ from .ci_params import (  # noqa: F401  (the parameters, re-exported: jaxci.opti
     ci_params,
     excess_within_bound,
 )
-
-
-class _Static(typing.NamedTuple):
-    """The hyperparameters that fix array shapes or loop bounds: static under jit (one compile each)."""
-
-    cohort: int
-    variations: int
-    attempts: int
-    max_sweeps: int
-    patience: int
-    pattern: bool
-    anderson: int
-
-
-def _split(p: CIParams, dtype) -> tuple[_Static, dict]:
-    """Static part and traced part of `p`: changing reduction, widths or tolerances does not recompile."""
-    s = _Static(int(p.cohort), int(p.variations), int(p.attempts), int(p.max_sweeps), int(p.patience),
-                bool(p.pattern), int(p.anderson))
-    d = {k: jnp.asarray(getattr(p, k), dtype) for k in
-         ("reduction", "delta", "stage_switch", "init_width", "min_width", "tol", "atol", "ftol", "ktol")}
-    return s, d
-
-
-def _follow(key, g, delta, roulette):
-    """Index each candidate follows: roulette on 1/(g + delta), or the best. `g` has shape ``(..., C)``, >= 0."""
-    logits = -jnp.log(g + delta)  # g = inf (an inverted candidate) -> probability 0
-    wheel = jnp.broadcast_to(logits[..., None, :], (*g.shape, g.shape[-1]))
-    rou = jax.random.categorical(key, wheel, axis=-1)
-    best = jnp.broadcast_to(jnp.argmin(g, axis=-1)[..., None], g.shape)
-    return jnp.where(roulette, rou, best)
+from .cohort import StaticParams, follow, split_params
 
 
 # ------------------------------------------------------------------------------------------------ local CI
-def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict, chunk: int):
+def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: StaticParams, d: dict, chunk: int):
     """One cohort run for every node of one colour. Returns new points, new widths, number of moved nodes."""
     nodes, mask, star, basis, dims = (cs_i.nodes, cs_i.mask, cs_i.star, cs_i.basis, cs_i.dims)
     M = nodes.shape[0]
@@ -129,8 +100,8 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: _Static, d: dict
     def attempt(a, carry):
         key, cand, fc = carry
         key, kf, ku = jax.random.split(key, 3)
-        follow = _follow(kf, fc, d["delta"], a < n_roulette)  # (M, C)
-        centre = jnp.take_along_axis(cand, follow[..., None], axis=1)  # (M, C, 3)
+        chosen = follow(kf, fc, d["delta"], a < n_roulette)  # (M, C)
+        centre = jnp.take_along_axis(cand, chosen[..., None], axis=1)  # (M, C, 3)
         w = w0 * d["reduction"] ** (a + 1).astype(dtype)  # (M,)
         u = jax.random.uniform(ku, (M, C, t, 3), dtype, -0.5, 0.5) * (w[:, None, None, None] * dim_mask[:, None, None])
         step = jnp.einsum("mij,mctj->mcti", basis, u)
@@ -197,7 +168,7 @@ def _anderson_move(x, f, k, starts, moves, valid, conn, cons: Constraints, extra
 
 
 @functools.partial(jax.jit, static_argnames=("s", "chunk"))
-def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: _Static, d: dict, chunk: int,
+def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: StaticParams, d: dict, chunk: int,
                   extra: ExtraCells, weight=None, n_colours=None):
     """The sweeps under one jit. `weight` ``(N,)`` and `n_colours` (traced): for a problem padded to its size
     class, the element weights (0: padding) and the number of real colours (the padded ones are skipped)."""
@@ -278,7 +249,7 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
     """
     extra = no_extra() if extra is None else extra
     p = CIParams() if p is None else p
-    static, traced = _split(p, points.dtype)
+    static, traced = split_params(p, points.dtype)
     if devices is not None and not extra.types:
         from .sharding import place_problem
 
@@ -296,111 +267,23 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
 
 
 # ------------------------------------------------------------------------------------------------ global CI
-def _objective_of(u, x0, conn, cons: Constraints, extra: ExtraCells):
-    """``(F, max kappa/3)`` of the free coordinates `u` ``(n_free,)``: global CI's behaviour, and the worst corner
-    of the mesh, from the same corner terms (`jaxci.metrics.objective.objective_and_max`)."""
-    return objective_and_max(params_to_points(cons, u, x0), conn, extra)
+def global_ci(key, par, conn, scale, p: CIParams, extra: ExtraCells | None = None, *, devices=None,
+              batch: int | None = None):
+    """Run the paper's global CI from ``par.x0`` (`jaxci.optim.global_ci`: one seed of the batched program).
 
-
-def _trials(key, rows, centre, w, t: int):
-    """The trial meshes ``(R, n_free)`` of a learning attempt at `rows` ``(R,)`` (row ``r = c t + j``: candidate
-    c's j-th variation): its centre ``centre[c]`` plus a uniform draw in ``[-w/2, w/2)`` per free coordinate, from
-    the attempt's `key` folded with `r`. Threefry draws of one row do not depend on the other rows drawn with it
-    (unlike "rbg" ones under `jax.vmap`): a device draws its own rows only, the numbers of one device."""
-    key = jax.random.wrap_key_data(jax.random.key_data(key).ravel()[:2].astype(jnp.uint32), impl="threefry2x32")
-    u = jax.vmap(lambda r: jax.random.uniform(jax.random.fold_in(key, r), centre.shape[1:], centre.dtype, -0.5,
-                                              0.5))(rows)
-    return centre[rows // t] + u * w
-
-
-def _trials_objective(key, centre, w, t: int, x0, conn, cons: Constraints, extra: ExtraCells, mesh):
-    """``(F, max kappa/3)`` of the ``S = C t`` trial meshes of an attempt (`_trials`), two ``(S,)`` arrays, one
-    mesh after the other (`jax.lax.map`); with `mesh` (a `jax.sharding.Mesh`), the rows split over its devices
-    (`jax.shard_map`, padded with copies of row 0 to a multiple of the device count), each device drawing and
-    evaluating its own rows as one device would: the same numbers."""
-    def many(rows, key, centre, w, x0, conn, cons, extra):
-        U = _trials(key, rows, centre, w, t)
-        return jax.lax.map(lambda u: _objective_of(u, x0, conn, cons, extra), U)
-
-    S = centre.shape[0] * t
-    if mesh is None:
-        return many(jnp.arange(S), key, centre, w, x0, conn, cons, extra)
-    from jax.sharding import PartitionSpec as P
-
-    from .sharding import AXIS
-
-    rows = jnp.arange(S + (-S % mesh.devices.size)) % S
-    f, k = jax.shard_map(many, mesh=mesh, in_specs=(P(AXIS),) + (P(),) * 7, out_specs=(P(AXIS), P(AXIS)))(
-        rows, key, centre, w, x0, conn, cons, extra)
-    return f[:S], k[:S]
-
-
-@functools.partial(jax.jit, static_argnames=("s", "mesh"))
-def _global_ci_run(key, x0, conn, cons: Constraints, scale, s: _Static, d: dict, extra: ExtraCells, mesh=None):
-    """Faithful global CI over the free coordinates u (shape ``(n_free,)``); `scale` is h per coordinate;
-    `mesh`: None, or the `jax.sharding.Mesh` the C t trials of an attempt are split over."""
-    C, t, T = s.cohort, s.variations, s.attempts
-    dtype = x0.dtype
-    nf = scale.shape[0]
-
-    def F(u):
-        return _objective_of(u, x0, conn, cons, extra)
-
-    u0 = jnp.zeros((nf,), dtype)
-    f0, k0 = F(u0)
-    cand = jnp.zeros((C, nf), dtype)
-    fc, kc = jnp.full((C,), f0), jnp.full((C,), k0)  # each candidate's F and max kappa/3
-    hist = jnp.full((T + 1, 3), jnp.nan, dtype).at[0].set(jnp.stack([f0, f0, k0]))
-    n_roulette = jnp.round(d["stage_switch"] * T)
-
-    def attempt(carry):
-        key, cand, fc, kc, a, hist, calm, _ = carry
-        best_before = jnp.min(fc)
-        key, kf, ku = jax.random.split(key, 3)
-        follow = _follow(kf, fc, d["delta"], a < n_roulette)  # (C,)
-        centre = cand[follow]  # (C, nf)
-        w = d["init_width"] * scale * d["reduction"] ** (a + 1).astype(dtype)
-        ft, kt = _trials_objective(ku, centre, w, t, x0, conn, cons, extra, mesh)
-        ft, kt = ft.reshape(C, t), kt.reshape(C, t)
-        j = jnp.argmin(ft, axis=-1)
-        fb = ft[jnp.arange(C), j]
-        better = fb < fc
-        won = _trials(ku, jnp.arange(C) * t + j, centre, w, t)  # each candidate's best trial, drawn again
-        cand = jnp.where(better[:, None], won, cand)
-        fc = jnp.where(better, fb, fc)
-        kc = jnp.where(better, kt[jnp.arange(C), j], kc)
-        a = a + 1
-        hist = hist.at[a].set(jnp.stack([jnp.min(fc), jnp.max(fc), kc[jnp.argmin(fc)]]))
-        scale_f = d["tol"] * jnp.maximum(jnp.min(fc), d["ftol"])
-        still = (jnp.max(fc) - jnp.min(fc) <= scale_f) & (best_before - jnp.min(fc) <= scale_f)
-        calm = jnp.where(still, calm + 1, 0)
-        return key, cand, fc, kc, a, hist, calm, (calm >= s.patience) | (jnp.min(fc) <= d["ftol"])
-
-    def cond(carry):
-        return (carry[4] < T) & ~carry[7]
-
-    init = (key, cand, fc, kc, jnp.int32(0), hist, jnp.int32(0), f0 <= d["ftol"])
-    _, cand, fc, _, a, hist, _, _ = jax.lax.while_loop(cond, attempt, init)
-    best = jnp.argmin(fc)
-    x = params_to_points(cons, cand[best], x0)
-    return x, a, hist
-
-
-def global_ci(key, points, conn, cons: Constraints, scale, p: CIParams, extra: ExtraCells | None = None, *,
-              devices=None):
-    """Run the paper's global CI; `scale` is the local edge length per free coordinate, shape ``(n_free,)``;
-    `extra` the non-hexahedral cells (default none): the behaviour is then F over every corner.
-
-    `devices` (keyword only): None (one device), or a `jax.sharding.Mesh`: the C t trial meshes of every
-    learning attempt are split over its devices (each evaluates whole meshes: the candidates, not the elements,
-    are sharded), everything else replicated; the same numbers as on one device.
+    **Arguments:** `key` a `jax.random` key; `par` the unscaled `jaxci.optim.parametrisation.Parametrisation` of
+    the mesh (``scaled=False``: the unknowns are coordinates); `conn` the transposed connectivity ``(8, N)``;
+    `scale` the local edge length per free coordinate, shape ``(n_free,)``; `p` the `CIParams`; `extra` the
+    non-hexahedral cells (default none): the behaviour is then F over every corner. `devices` (keyword only):
+    None (one device), or a `jax.sharding.Mesh`: the C t trial meshes of every learning attempt are split over
+    its devices (each evaluates whole meshes: the candidates, not the elements, are sharded), everything else
+    replicated; the same numbers as on one device. `batch`: trial meshes evaluated at once
+    (`jaxci.optim.global_ci.candidate_batch` by default).
 
     **Returns:** ``(points, attempts, history)`` with history arrays ``objective`` and ``best`` (best behaviour
     F of the cohort), ``worst`` (worst behaviour), ``max_condition`` (of the best candidate), per learning
     attempt; entry 0 = input.
     """
-    extra = no_extra() if extra is None else extra
-    x, a, hist = _global_ci_run(key, points, conn, cons, scale, *_split(p, points.dtype), extra, devices)
-    a = int(a)
-    hist = np.asarray(hist[: a + 1])
-    return x, a, {"objective": hist[:, 0], "best": hist[:, 0], "worst": hist[:, 1], "max_condition": hist[:, 2]}
+    from .global_ci import global_ci_batched
+
+    return global_ci_batched([key], [par], conn, [scale], p, extra, devices=devices, batch=batch)[0]

@@ -130,7 +130,7 @@ def _local_length(x: np.ndarray, hexes: np.ndarray, col: _Colour) -> np.ndarray:
 def follow_candidates(rng: np.random.Generator, g: np.ndarray, delta: float, roulette: bool) -> np.ndarray:
     """The candidate each candidate of a cohort follows, for behaviours `g` ``(..., C)`` (>= 0, inf for an
     inverted candidate): by roulette on 1/(g + delta) (an inverted one has probability 0), or the best; shape
-    ``(..., C)`` (`jaxci.optim.ci`'s ``_follow``)."""
+    ``(..., C)`` (`jaxci.optim.cohort.follow`)."""
     C = g.shape[-1]
     if not roulette:
         return np.broadcast_to(np.argmin(g, axis=-1)[..., None], g.shape)

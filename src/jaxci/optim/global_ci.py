@@ -1,0 +1,222 @@
+"""The paper's global Cohort Intelligence on the JAX engine, batched: every candidate of every seed in one program.
+
+Each candidate is a whole mesh, a point of the free coordinates u (`jaxci.geometry.projection`'s layout,
+``(n_free,)``); its behaviour is F (Eq. 3.1). A learning attempt of a cohort of C candidates draws t trial
+meshes per candidate; all ``C t`` of them are lifted to node coordinates at once (``x0 + B u``,
+`jaxci.optim.parametrisation.Parametrisation.lift`), projected onto the original boundary only where one of them
+has a boundary node outside the flat region around it (one `jax.lax.cond` for the whole batch: on a box, never),
+and evaluated `batch` meshes at a time (`jax.vmap` inside `jax.lax.map`; `candidate_batch` picks it per
+platform, measured: docs/engines.md).
+
+Several seeds (B runs: `global_ci_batched`) are one program too: the candidates, trials, histories and stops
+carry a leading seed axis, so one compilation and one launch run them all, and every seed's run is the one it
+would make alone (same key, same arithmetic; a seed that stopped is frozen while the others go on). Each seed may
+have its own mesh (the paper's cubes are perturbed by the seed) as long as the meshes share connectivity and
+boundary classes (`stackable`).
+
+The iteration (`jaxci.optim.ci`'s module docstring has the algorithm): follow by roulette on
+``1 / (F - 0 + delta)`` for the first ``stage_switch`` share of the attempts, then the best; each candidate's t
+trials are uniform in its interval, ``init_width * h * reduction^(a+1)`` wide per coordinate (h the local edge
+length); greedy replacement; saturation (every behaviour within ``tol`` of the best, and the best not improved by
+more, for `patience` attempts) or ``F <= ftol`` stops a seed, else ``attempts`` do.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry.projection import params_to_points, project
+from ..metrics.objective import ExtraCells, no_extra, objective_and_max
+from .cohort import follow, split_params
+from .parametrisation import Parametrisation
+
+
+def candidate_batch(platform: str, n_trials: int) -> int:
+    """Trial meshes evaluated at once on `platform`: all of an attempt's (`n_trials`) on an accelerator (one
+    `jax.vmap`: the corners of every trial mesh in one kernel); 1 at a time on a CPU, where XLA's vectorised
+    gather over a batch was slower than a loop (measured: docs/engines.md)."""
+    return n_trials if platform != "cpu" else 1
+
+
+def _threefry(key):
+    """`key` (any implementation) as a threefry key made from its first two words: threefry splits and draws
+    are the same for one key alone and for a batch of keys under `jax.vmap` ("rbg" ones are not)."""
+    return jax.random.wrap_key_data(jax.random.key_data(key).ravel()[:2].astype(jnp.uint32), impl="threefry2x32")
+
+
+def _trials(key, rows, centre, w, t: int):
+    """The trial meshes ``(R, n_free)`` of an attempt at `rows` ``(R,)`` (row ``r = c t + j``: candidate c's
+    j-th variation): its centre ``centre[c]`` plus a uniform draw in ``[-w/2, w/2)`` per free coordinate, from
+    the attempt's `key` folded with `r`. Threefry draws of one row do not depend on the other rows drawn with it
+    (unlike "rbg" ones under `jax.vmap`): a device draws its own rows only, and a seed its own, the numbers of
+    one device and of one seed alone."""
+    key = _threefry(key)
+    u = jax.vmap(lambda r: jax.random.uniform(jax.random.fold_in(key, r), centre.shape[1:], centre.dtype, -0.5,
+                                              0.5))(rows)
+    return centre[rows // t] + u * w
+
+
+def _points(par: Parametrisation, U):
+    """Node coordinates ``(B, R, n, 3)`` of the free coordinates `U` ``(B, R, n_free)`` of seeds whose
+    parametrisations `par` are stacked (leading axis B): lifted, and projected onto each seed's original
+    boundary unless every moving boundary node of every mesh lies inside its flat region."""
+    X = jax.vmap(lambda p, Ub: jax.vmap(p.lift)(Ub))(par, U)
+    projected = lambda X: jax.vmap(lambda p, Xb: project(p.cons, Xb))(par, X)  # noqa: E731
+    if not par.shortcut:
+        return projected(X)
+    inside = jnp.all(jax.vmap(lambda p, Xb: jax.vmap(p.inside)(Xb))(par, X))
+    return jax.lax.cond(inside, lambda X: X, projected, X)
+
+
+def _behaviours(par: Parametrisation, U, conn, extra: ExtraCells, batch: int):
+    """F and max kappa/3 ``(B, R)`` of the trial meshes `U` ``(B, R, n_free)``, `batch` meshes at a time."""
+    X = _points(par, U)
+    B, R = X.shape[:2]
+    flat = X.reshape(B * R, *X.shape[2:])
+    size = max(1, min(int(batch), B * R))
+    pad = -(B * R) % size
+    if pad:
+        flat = jnp.concatenate([flat, jnp.broadcast_to(flat[:1], (pad, *flat.shape[1:]))])
+    one = jax.vmap(lambda x: objective_and_max(x, conn, extra))
+    f, k = jax.lax.map(one, flat.reshape(-1, size, *flat.shape[1:]))
+    return f.reshape(-1)[: B * R].reshape(B, R), k.reshape(-1)[: B * R].reshape(B, R)
+
+
+def _attempt_behaviours(keys, centre, w, t: int, par, conn, extra, mesh, batch: int):
+    """``(F, max kappa/3)`` ``(B, C t)`` of the trial meshes of an attempt of every seed (`_trials` with each
+    seed's key); with `mesh` (a `jax.sharding.Mesh`, one seed), the rows split over its devices (`jax.shard_map`,
+    padded with copies of row 0 to a multiple of the device count), each device drawing and evaluating its own
+    rows as one device would: the same numbers."""
+    def rows_of(rows, keys, centre, w, par, conn, extra):
+        U = jax.vmap(lambda k, c, wb: _trials(k, rows, c, wb, t))(keys, centre, w)
+        return _behaviours(par, U, conn, extra, batch)
+
+    S = centre.shape[1] * t
+    if mesh is None:
+        return rows_of(jnp.arange(S), keys, centre, w, par, conn, extra)
+    from jax.sharding import PartitionSpec as P
+
+    from .sharding import AXIS
+
+    rows = jnp.arange(S + (-S % mesh.devices.size)) % S
+    f, k = jax.shard_map(rows_of, mesh=mesh, in_specs=(P(AXIS),) + (P(),) * 6,
+                         out_specs=(P(None, AXIS), P(None, AXIS)))(rows, keys, centre, w, par, conn, extra)
+    return f[:, :S], k[:, :S]
+
+
+@functools.partial(jax.jit, static_argnames=("s", "mesh", "batch"))
+def _global_ci_run(keys, par: Parametrisation, conn, scale, s, d: dict, extra: ExtraCells, mesh=None,
+                   batch: int = 1):
+    """Global CI of B seeds at once: `keys` ``(B,)``, `par` stacked parametrisations (leading axis B, unscaled:
+    ``u`` in coordinates), `scale` ``(B, n_free)`` the local edge length per free coordinate; `s` the static
+    hyperparameters (`jaxci.optim.cohort.StaticParams`), `d` the traced ones. Returns the points ``(B, n, 3)``, the
+    attempts ``(B,)`` and the histories ``(B, attempts + 1, 3)`` (best F, worst F, max kappa/3 of the best;
+    NaN after a seed stopped)."""
+    C, t, T = s.cohort, s.variations, s.attempts
+    B, nf = scale.shape
+    dtype = par.x0.dtype
+    keys = jax.vmap(_threefry)(keys)  # draws that do not depend on the other seeds drawn with them
+    f0, k0 = _behaviours(par, jnp.zeros((B, 1, nf), dtype), conn, extra, 1)
+    f0, k0 = f0[:, 0], k0[:, 0]
+    cand = jnp.zeros((B, C, nf), dtype)
+    fc, kc = jnp.broadcast_to(f0[:, None], (B, C)), jnp.broadcast_to(k0[:, None], (B, C))
+    hist = jnp.full((B, T + 1, 3), jnp.nan, dtype).at[:, 0].set(jnp.stack([f0, f0, k0], axis=-1))
+    n_roulette = jnp.round(d["stage_switch"] * T)
+    seeds = jnp.arange(B)
+
+    def attempt(carry):
+        keys, cand, fc, kc, a, hist, calm, done = carry
+        best_before = jnp.min(fc, axis=-1)
+        split = jax.vmap(lambda k: jax.random.split(k, 3))(keys)
+        keys, kf, ku = split[:, 0], split[:, 1], split[:, 2]
+        chosen = jax.vmap(lambda k, g, r: follow(k, g, d["delta"], r))(kf, fc, a < n_roulette)  # (B, C)
+        centre = jnp.take_along_axis(cand, chosen[..., None], axis=1)  # (B, C, nf)
+        w = d["init_width"] * scale * (d["reduction"] ** (a + 1).astype(dtype))[:, None]  # (B, nf)
+        ft, kt = _attempt_behaviours(ku, centre, w, t, par, conn, extra, mesh, batch)
+        ft, kt = ft.reshape(B, C, t), kt.reshape(B, C, t)
+        j = jnp.argmin(ft, axis=-1)  # (B, C)
+        fb = jnp.take_along_axis(ft, j[..., None], axis=-1)[..., 0]
+        better = fb < fc
+        won = jax.vmap(lambda k, jb, c, wb: _trials(k, jnp.arange(C) * t + jb, c, wb, t))(ku, j, centre, w)
+        new_cand = jnp.where(better[..., None], won, cand)
+        new_fc = jnp.where(better, fb, fc)
+        new_kc = jnp.where(better, jnp.take_along_axis(kt, j[..., None], axis=-1)[..., 0], kc)
+        new_a = a + 1
+        best = jnp.min(new_fc, axis=-1)
+        row = jnp.stack([best, jnp.max(new_fc, axis=-1), jnp.take_along_axis(
+            new_kc, jnp.argmin(new_fc, axis=-1)[:, None], axis=-1)[:, 0]], axis=-1)
+        scale_f = d["tol"] * jnp.maximum(best, d["ftol"])
+        still = (jnp.max(new_fc, axis=-1) - best <= scale_f) & (best_before - best <= scale_f)
+        new_calm = jnp.where(still, calm + 1, 0)
+        stop = (new_calm >= s.patience) | (best <= d["ftol"]) | (new_a >= T)
+        live = ~done  # a seed that stopped keeps its state
+        keep = lambda new, old: jnp.where(live.reshape(-1, *([1] * (new.ndim - 1))), new, old)  # noqa: E731
+        hist = hist.at[seeds, jnp.where(live, new_a, 0)].set(jnp.where(live[:, None], row, hist[seeds, 0]))
+        return (keys, keep(new_cand, cand), keep(new_fc, fc), keep(new_kc, kc), keep(new_a, a), hist,
+                keep(new_calm, calm), done | stop)
+
+    def cond(carry):
+        return ~jnp.all(carry[7])
+
+    init = (keys, cand, fc, kc, jnp.zeros(B, jnp.int32), hist, jnp.zeros(B, jnp.int32), (f0 <= d["ftol"]) | (T <= 0))
+    _, cand, fc, _, a, hist, _, _ = jax.lax.while_loop(cond, attempt, init)
+    best = jnp.take_along_axis(cand, jnp.argmin(fc, axis=-1)[:, None, None], axis=1)[:, 0]  # (B, nf)
+    x = jax.vmap(lambda p, u: params_to_points(p.cons, u, p.x0))(par, best)
+    return x, a, hist
+
+
+def stack(trees):
+    """The pytrees `trees` (one per seed) stacked along a new leading axis (`stackable` must hold)."""
+    return jax.tree.map(lambda *a: jnp.stack([jnp.asarray(v) for v in a]), *trees)
+
+
+def stackable(trees) -> bool:
+    """Whether the pytrees `trees` (per-seed parametrisations, scales) have the same structure, static fields and
+    array shapes and dtypes, so that `stack` can run them as one batch."""
+    first = jax.tree.structure(trees[0])
+    shapes = [tuple((np.shape(v), np.result_type(v)) for v in jax.tree.leaves(t)) for t in trees]
+    return all(jax.tree.structure(t) == first for t in trees) and all(s == shapes[0] for s in shapes)
+
+
+def global_ci_batched(keys, pars, conn, scales, p, extra: ExtraCells | None = None, *, devices=None,
+                      batch: int | None = None):
+    """Run the paper's global CI for B seeds as one program (see the module docstring).
+
+    **Arguments:**
+
+    - `keys`: B `jax.random` keys, one per seed.
+    - `pars`: B unscaled `jaxci.optim.parametrisation.Parametrisation` (``scaled=False``), one per seed's mesh
+      (`stackable`).
+    - `conn`: the transposed connectivity ``(8, N)`` the seeds share; `extra` their non-hexahedral cells.
+    - `scales`: B arrays ``(n_free,)``, the local edge length per free coordinate of each seed's mesh.
+    - `p`: `jaxci.optim.ci_params.CIParams`.
+    - `devices` (keyword only): None, or a `jax.sharding.Mesh` (one seed only): the ``C t`` trial meshes of
+      every attempt split over its devices.
+    - `batch` (keyword only): trial meshes evaluated at once; default `candidate_batch` for the platform.
+
+    **Returns:** a list of B ``(points, attempts, history)`` as `jaxci.optim.ci.global_ci` returns.
+    """
+    extra = no_extra() if extra is None else extra
+    if devices is not None and len(pars) != 1:
+        raise ValueError("global CI sharded over devices runs one seed at a time")
+    if batch is None:
+        platform = next(iter(jnp.asarray(pars[0].x0).devices())).platform
+        batch = candidate_batch(platform, int(p.cohort) * int(p.variations) * len(pars))
+    par = pars[0] if len(pars) == 1 else stack(pars)
+    if len(pars) == 1:
+        par = jax.tree.map(lambda v: jnp.asarray(v)[None], par)
+    static, traced = split_params(p, pars[0].x0.dtype)
+    scale = jnp.stack([jnp.asarray(sc, pars[0].x0.dtype) for sc in scales])
+    x, a, hist = _global_ci_run(jnp.stack(list(keys)), par, conn, scale, static, traced, extra, devices, int(batch))
+    a = np.asarray(a)
+    hist = np.asarray(hist)
+    out = []
+    for b in range(len(pars)):
+        h = hist[b, : int(a[b]) + 1]
+        out.append((x[b], int(a[b]), {"objective": h[:, 0], "best": h[:, 0], "worst": h[:, 1],
+                                      "max_condition": h[:, 2]}))
+    return out
