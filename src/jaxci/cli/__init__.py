@@ -1,10 +1,12 @@
 """The `jaxci` command line: one module per subcommand, each with `add_args(parser)` and `run(args)`.
 
 `main(argv)` returns the exit code: 0 on success, 2 for any error the user can fix (bad file, bad mesh, bad
-config, an output that exists or is an input: one line on stderr, no traceback, nothing written), 1 for a bug
-of ours ("internal error"), 130 on SIGINT (Ctrl-C) and 143 on SIGTERM, acted on within about a second even
-during a long computation (`_interrupt`: finished work kept, temporary files removed, one line on stderr).
-Library code never prints, exits or handles signals; only this does.
+config, an output that exists or is an input: one line on stderr, no traceback, nothing written; also a standard
+output that cannot be written, such as ``> /dev/full``), 1 for a bug of ours ("internal error"), 130 on SIGINT
+(Ctrl-C) and 143 on SIGTERM, acted on within about a second even during a long computation (`_interrupt`:
+finished work kept, temporary files removed, one line on stderr; a signal that comes as the command ends still
+gives its exit code), and 141 (128 + SIGPIPE), without a word, when standard output is a pipe whose reader went
+away (``| head -c 1``: `_streams`). Library code never prints, exits or handles signals; only this does.
 
 Commands that write (``smooth``, ``classify``, ``generate``, ``run``) refuse an existing output unless given
 ``--force`` and never write over one of their inputs (`_files`); every output is written atomically.
@@ -19,7 +21,7 @@ import sys
 import warnings
 
 from ..runtime import TUNABLE, apply_cpu_device_flags
-from . import _interrupt
+from . import _interrupt, _streams
 
 #: subcommand -> (module, one-line help)
 COMMANDS = {
@@ -33,6 +35,8 @@ COMMANDS = {
 
 #: Exit codes of an interrupt: 128 + SIGINT, 128 + SIGTERM.
 INTERRUPTED = (130, 143)
+#: Exit code when standard output is a pipe whose reader went away: 128 + SIGPIPE, as a command killed by it.
+CLOSED_OUTPUT = 141
 
 
 def _setup_jax() -> None:
@@ -99,22 +103,38 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI with `argv` (default ``sys.argv[1:]``) and return the exit code."""
-    with _interrupt.guard() as guard:
+    with _interrupt.guard() as guard, _streams.checked():
         try:
-            parser = build_parser()
-            try:
-                args = parser.parse_args(argv)
-            except SystemExit as e:  # argparse: --help (0) or a usage error (2)
-                return int(e.code or 0)
-            apply_cpu_device_flags()  # more forced CPU devices than cores: no per-fusion partitions (issue 17)
-            _setup_jax()
-            return _dispatch(args)
+            code = _main(argv)
         except KeyboardInterrupt as e:  # SIGINT or SIGTERM (`_interrupt`); a command may add what it kept
             guard.claim_exit()
             detail = e.args[0] if e.args and isinstance(e.args[0], str) else ""
-            print(f"jaxci: interrupted ({_interrupt.signal_name(guard.signum)})" + (f": {detail}" if detail else ""),
-                  file=sys.stderr)
+            _streams.say(f"jaxci: interrupted ({_interrupt.signal_name(guard.signum)})"
+                         + (f": {detail}" if detail else ""))
             return guard.exit_code
+    if guard.signum is not None and code not in INTERRUPTED:  # it came as the command ended: not lost
+        _streams.say(f"jaxci: interrupted ({_interrupt.signal_name(guard.signum)}) as the command ended; its "
+                     f"output was complete" + ("" if code == 0 else f" (exit status {code} without the signal)"))
+        return guard.exit_code
+    return code
+
+
+def _main(argv) -> int:
+    try:
+        parser = build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as e:  # argparse: --help (0) or a usage error (2)
+            sys.stdout.flush()
+            return int(e.code or 0)
+        apply_cpu_device_flags()  # more forced CPU devices than cores: no per-fusion partitions (issue 17)
+        _setup_jax()
+        return _dispatch(args)
+    except _streams.OutputClosed:  # `| head`: the reader has all it wanted
+        return CLOSED_OUTPUT
+    except _streams.OutputFailed as e:
+        _streams.say(f"jaxci: error: cannot write to standard output ({e}); any output file was written whole")
+        return 2
 
 
 def _dispatch(args) -> int:
@@ -126,18 +146,20 @@ def _dispatch(args) -> int:
             code = args._run(args)
         for w in caught:
             if issubclass(w.category, UserWarning):
-                print(f"jaxci: warning: {w.message}", file=sys.stderr)
+                _streams.say(f"jaxci: warning: {w.message}")
+        sys.stdout.flush()  # a closed or full standard output is found here, not at the process's end
         return int(code or 0)
+    except (_streams.OutputClosed, _streams.OutputFailed):
+        raise
     except JaxciError as e:
         if args.debug:
             raise
-        print(f"jaxci: error: {e}", file=sys.stderr)
+        _streams.say(f"jaxci: error: {e}")
         return 2
     except Exception as e:  # a bug of ours: one line, the traceback only with --debug
         if args.debug:
             raise
-        print(f"jaxci: internal error: {type(e).__name__}: {e} (run with --debug for the traceback)",
-              file=sys.stderr)
+        _streams.say(f"jaxci: internal error: {type(e).__name__}: {e} (run with --debug for the traceback)")
         return 1
 
 
@@ -155,6 +177,9 @@ def entry() -> None:  # pragma: no cover - console script
             atexit._run_exitfuncs()  # what sys.exit would run: JAX's and logging's handlers
             logging.shutdown()
     finally:
-        sys.stdout.flush()
-        sys.stderr.flush()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # reported already (`_streams`), or nowhere to report it
+                pass
         os._exit(code)

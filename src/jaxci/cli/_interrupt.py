@@ -46,8 +46,10 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 def _swallowed_in(frame) -> bool:
     """Whether an exception raised in `frame` would be ignored by Python: inside a garbage-collector callback
-    (JAX registers one) or a ``__del__``."""
+    (JAX registers one), a ``__del__`` or the guard's own ``sys.unraisablehook`` (an exception raised there is
+    only printed, "Exception ignored in sys.unraisablehook", and the interrupt would be lost)."""
     codes = {getattr(getattr(cb, "__func__", cb), "__code__", None) for cb in gc.callbacks}
+    codes.add(Guard._unraisable.__code__)
     while frame is not None:
         if frame.f_code in codes or frame.f_code.co_name == "__del__":
             return True

@@ -2,13 +2,16 @@
 (`jaxci.experiments.runner`).
 
 Exit codes: 0 all runs done, 1 some runs failed (listed on stderr, recorded in the summary), 2 a bad config or
-output folder (nothing written), 130 on SIGINT (Ctrl-C) and 143 on SIGTERM: the finished runs are written,
-marked ``"partial": true``, even when the signal comes during a long computation (`_interrupt`).
+output folder (nothing written), or an output folder that appeared or changed while the experiment ran (the
+results are then beside it, ``DIR.new-N``, and the line says so), 130 on SIGINT (Ctrl-C) and 143 on SIGTERM: the
+finished runs are written, marked ``"partial": true``, even when the signal comes during a long computation
+(`_interrupt`).
 
 DIR (`jaxci.experiments.results`): a new folder, or with ``--force`` an empty one or earlier jaxci results (marker file
-``.jaxci-results``) holding nothing else; never the current folder or one holding an input. Earlier results
-are replaced only by a complete run: an interrupted run, or one where every run failed, is written beside them
-to ``DIR.partial-N`` / ``DIR.failed-N`` (first free N) and stderr says so.
+``.jaxci-results``) holding nothing else; never the current folder or one holding an input (the config, its mesh
+files, the files read through them). Earlier results are replaced only by a complete run: an interrupted run, or
+one where every run failed, is written beside them to ``DIR.partial-N`` / ``DIR.failed-N`` (first free N) and
+stderr says so. Checked again when the results are moved in: nothing that appeared at DIR meanwhile is replaced.
 """
 
 from __future__ import annotations
@@ -56,15 +59,23 @@ def _kept_line(res) -> str:
     s = res.summary
     done = f"{s['runs_done']} of {s['runs_planned']} runs" if s else f"{len(res.records)} runs"
     line = f"{done} finished, written to {res.out}" + (" (partial)" if res.partial else "")
-    if res.kept is not None:
+    if res.taken is not None:
+        line += f"; {res.taken}: left as it is"
+    elif res.kept is not None:
         line += f"; earlier results in {res.kept} untouched"
     return line
 
 
 def run(args) -> int:
+    from ..errors import ConfigError, MeshReadError
     from ..experiments.runner import ExperimentResult, load_config, run_experiment
+    from ..io._paths import check_regular
     from ._interrupt import on_interrupt
 
+    try:  # a FIFO or a device would make reading the config wait forever
+        check_regular(args.config, "config file (YAML)")
+    except MeshReadError as e:
+        raise ConfigError(str(e).replace(": no such file", ": no such config file")) from None
     exp = load_config(args.config)
     ctx, update = _progress_bar(not args.quiet and sys.stderr.isatty())
     abort = []  # run_experiment's finish-now function, for the interrupt watchdog
@@ -83,6 +94,9 @@ def run(args) -> int:
         raise
     for r in res.failed:
         print(f"jaxci: run failed: {r.mesh} / {r.label} / seed {r.seed}: {r.error}", file=sys.stderr)
+    if res.taken is not None:
+        raise ConfigError(f"{res.taken}; left as it is: the results ({len(res.records)} runs) are in "
+                          f"{res.out}")
     if res.kept is not None:
         print(f"jaxci: every run failed: written to {res.out}; earlier results in {res.kept} kept", file=sys.stderr)
     if not args.quiet:

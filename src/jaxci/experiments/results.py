@@ -5,14 +5,20 @@ Rules (`stage` checks them before anything runs; a refusal is a `ConfigError` an
 
 - A folder that does not exist is created. An existing folder needs ``force``, and is replaced only if it is a
   jaxci results folder holding nothing jaxci did not write: its marker file `MARKER` (``.jaxci-results``, a
-  small JSON written into every results folder) lists every file and folder of it (a folder written before
-  markers existed is recognised by its file names: ``summary.json``, ``runs.csv``, ``meshes/*.vtu``, ...). An
-  empty folder may be used too. It must not be, or hold, the current folder or an input of the experiment.
+  small JSON written into every results folder) lists every file and folder of it. A folder without the marker
+  is never replaced, whatever its files are called; an empty folder may be used. It must not be, or hold, the
+  current folder or an input of the experiment (its config, its mesh files and every file read through them:
+  `jaxci.io.input_paths`; by path and by device and inode, so a hard link counts).
 - The new results are written into a hidden temporary sibling folder (``.<name>.*.tmp``, every file via a
   temporary file and `os.replace`) and moved into place at the end (`Staged.commit`): earlier results are
   replaced only by a complete run. A partial run (interrupted) or one where every run failed goes into the
   folder itself if it did not exist or was empty, else beside it, into the first free ``<name>.partial-N`` or
   ``<name>.failed-N`` (N = 1, 2, ...): the earlier results stay as they were.
+- The checks hold at the moment of the move, not only at the start: the new folder is renamed without replacing
+  anything (`jaxci.io._place.rename_noreplace`, so not even an empty folder made meanwhile), and a folder that is
+  replaced is first moved aside and checked again (the same folder, by device and inode, still holding only what
+  jaxci wrote and no input) before it is removed. A folder that appeared, or changed, while the experiment ran is
+  left as it is and the results go beside it, ``<name>.new-N`` (`Staged.taken` says why).
 - `uninterrupted` holds off a `KeyboardInterrupt` of the jaxci command's signal handler until the two renames
   that swap a folder are done (the handler asks `defer_interrupt`); this module installs no signal handler.
 
@@ -25,37 +31,40 @@ import contextlib
 import dataclasses
 import json
 import os
-import re
 import shutil
 import tempfile
 from pathlib import Path
 
 from ..errors import ConfigError
+from ..io._paths import os_reason
+from ..io._place import identity, rename_noreplace
 
 #: The marker file of a results folder: JSON ``{"jaxci_results": 1, "jaxci": version, "partial": bool,
 #: "entries": [relative paths, folders ending in "/"]}``.
 MARKER = ".jaxci-results"
 
-#: What a results folder written before `MARKER` existed may hold.
-_LEGACY = re.compile(r"(summary\.json|history\.json|runs\.csv|report\.md|meshes/|figures/|meshes/[^/]+\.vtu"
-                     r"|figures/[^/]+\.png)")
-
-
 @dataclasses.dataclass
 class Staged:
     """An output folder checked by `stage`: `out` as given, the temporary folder `tmp` the results are written
-    into, `earlier` (whether `out` holds earlier results, kept unless the new run is complete) and, once
-    `commit` is done, `committed` (where the results went)."""
+    into, `earlier` (whether `out` holds earlier results, kept unless the new run is complete), `ident` (device
+    and inode of `out` when it was checked; None when it did not exist), `inputs` (the identities of the
+    experiment's input files) and, once `commit` is done, `committed` (where the results went) and `taken` (why
+    they are not in `out` although the run was complete: it appeared or changed meanwhile; else None)."""
 
     out: Path
     tmp: Path
     earlier: bool
+    ident: tuple[int, int] | None = None
+    inputs: frozenset = frozenset()
     committed: Path | None = None
+    taken: str | None = None
 
-    def commit(self, *, complete: bool, partial: bool) -> Path:
+    def commit(self, *, complete: bool, partial: bool, inputs=()) -> Path:
         """Write the marker, then move `tmp` into place: onto `out` when the run is `complete` or `out` held no
-        earlier results, else to the first free sibling ``<out>.partial-N`` (`partial`) or ``<out>.failed-N``.
-        Returns where the results went (also set as `committed`)."""
+        earlier results, else to the first free sibling ``<out>.partial-N`` (`partial`) or ``<out>.failed-N``;
+        to ``<out>.new-N`` when `out` is no longer what `stage` checked (`taken`). `inputs`: more input files
+        known by now (read through the meshes), never removed with `out`. Returns where the results went (also
+        set as `committed`)."""
         for p in list(self.tmp.rglob(".*.tmp")):  # an interrupted atomic write's temporary file or folder
             if p.is_dir():
                 shutil.rmtree(p, ignore_errors=True)
@@ -65,8 +74,12 @@ class Staged:
         os.chmod(self.tmp, 0o777 & ~_umask())
         with uninterrupted():
             if complete or not self.earlier:
-                replace_dir(self.tmp, self.out)
-                self.committed = self.out
+                try:
+                    _put_in_place(self.tmp, self.out, self.ident, self.inputs | _identities(inputs))
+                    self.committed = self.out
+                except _NotOurs as e:
+                    self.taken = str(e)
+                    self.committed = _move_beside(self.tmp, self.out, "new")
             else:
                 self.committed = _move_beside(self.tmp, self.out, "partial" if partial else "failed")
         return self.committed
@@ -83,12 +96,20 @@ def stage(out: str | os.PathLike, key: str, force: bool, inputs=()) -> Staged:
     `ConfigError` (one sentence, "nothing was written") when `out` may not be used."""
     out = Path(out)
     earlier = False
-    if out.exists() or out.is_symlink():
+    ids = _identities(inputs)
+    try:
+        ident = identity(out)
+    except OSError as e:
+        raise ConfigError(f"{key}: cannot write {out} ({os_reason(e)}); nothing was written") from None
+    if ident is not None:
         if not out.is_dir():
             raise ConfigError(f"{key}: {out} exists and is not a folder (nothing was written)")
+        if out.is_symlink():
+            raise ConfigError(f"{key}: {out} is a symbolic link to a folder; --force replaces only a folder itself "
+                              f"(nothing was written); give the folder's own path")
         if not force:
             raise ConfigError(f"{key}: {out} exists; pass --force to replace it (nothing was written)")
-        _check_replaceable(out, key, inputs)
+        _check_replaceable(out, key, inputs, ids)
         try:
             earlier = any(out.iterdir())
         except OSError as e:
@@ -106,7 +127,7 @@ def stage(out: str | os.PathLike, key: str, force: bool, inputs=()) -> Staged:
             with contextlib.suppress(OSError):
                 c.rmdir()
         raise ConfigError(f"{key}: cannot write {out} ({e.strerror or e}); nothing was written") from None
-    return Staged(out, tmp, earlier)
+    return Staged(out, tmp, earlier, ident, ids)
 
 
 def _name(out: Path) -> str:
@@ -117,7 +138,7 @@ def _within(path: Path, folder: Path) -> bool:
     return path == folder or folder in path.parents
 
 
-def _check_replaceable(out: Path, key: str, inputs) -> None:
+def _check_replaceable(out: Path, key: str, inputs, ids: frozenset) -> None:
     real = out.resolve()
     if _within(Path.cwd().resolve(), real):
         raise ConfigError(f"{key}: {out} is or holds the current folder; refusing to replace it even with --force "
@@ -126,37 +147,124 @@ def _check_replaceable(out: Path, key: str, inputs) -> None:
         if _within(Path(p).resolve(), real):
             raise ConfigError(f"{key}: {out} holds {p}, an input of this experiment; refusing to replace it even "
                               f"with --force (nothing was written)")
+    held = _input_inside(out, ids)
+    if held is not None:
+        raise ConfigError(f"{key}: {out} holds {held}, which is an input of this experiment (a link to it); "
+                          f"refusing to replace it even with --force (nothing was written)")
     foreign = foreign_entries(out)
     if foreign:
         shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-        raise ConfigError(f"{key}: {out} is not a jaxci results folder (it holds {shown}, not written by jaxci); "
-                          f"--force only replaces earlier results, so nothing was written; choose a new or empty "
-                          f"folder")
+        raise ConfigError(f"{key}: {out} is not a jaxci results folder (it holds {shown}, not written by jaxci; "
+                          f"no {MARKER} marker lists them); --force only replaces earlier results, so nothing was "
+                          f"written; choose a new or empty folder")
 
 
 def foreign_entries(folder: Path, limit: int = 4) -> list[str]:
     """Up to `limit` entries of `folder` (relative paths, folders ending in ``/``) that jaxci did not write:
-    none for a results folder (`MARKER`), every top-level entry for a folder that is not one."""
+    those its marker (`MARKER`) does not list; every top-level entry of a folder without a readable marker."""
     listed = None
     marker = folder / MARKER
-    if marker.is_file():
+    if marker.is_file() and not marker.is_symlink():
         try:
             data = json.loads(marker.read_text())
             listed = set(data["entries"]) if data.get("jaxci_results") == 1 else None
         except (OSError, ValueError, KeyError, TypeError):
             listed = None
-    elif (folder / "summary.json").is_file():
-        listed = _LEGACY
-    found = []
     if listed is None:
-        return sorted(p.name + "/" * p.is_dir() for p in folder.iterdir())[:limit]
+        return sorted(p.name + "/" * (p.is_dir() and not p.is_symlink()) for p in folder.iterdir())[:limit]
+    found = []
     for entry in _walk(folder):
-        ok = _LEGACY.fullmatch(entry) if listed is _LEGACY else entry in listed
-        if not ok and entry != MARKER:
+        if entry not in listed and entry != MARKER:
             found.append(entry)
             if len(found) >= limit:
                 break
     return found
+
+
+def _identities(paths) -> frozenset:
+    """(device, inode) of each of `paths` that exists (links followed)."""
+    out = set()
+    for p in paths:
+        try:
+            st = os.stat(p)
+        except (OSError, ValueError):
+            continue
+        out.add((st.st_dev, st.st_ino))
+    return frozenset(out)
+
+
+def _input_inside(folder: Path, ids: frozenset) -> str | None:
+    """The first entry under `folder` (relative path; links not followed) that is one of the files `ids`."""
+    if not ids:
+        return None
+    for root, _, files in os.walk(folder):
+        for f in files:
+            p = os.path.join(root, f)
+            with contextlib.suppress(OSError):
+                st = os.lstat(p)
+                if (st.st_dev, st.st_ino) in ids:
+                    return os.path.relpath(p, folder)
+    return None
+
+
+class _NotOurs(Exception):
+    """The output folder is not what `stage` checked any more (the message says what it is now)."""
+
+
+def _put_in_place(tmp: Path, out: Path, ident: tuple[int, int] | None, ids: frozenset) -> None:
+    """Rename `tmp` to `out`. `ident` None: nothing may be at `out`. Else `out` (that folder, checked by `stage`)
+    is moved aside, checked again (the same folder, only what jaxci wrote, no input), and removed once `tmp` is
+    in place; put back if anything fails. `_NotOurs` when `out` is not what was checked."""
+    shown, out = out, out.absolute()
+    if ident is None:
+        try:
+            rename_noreplace(tmp, out)
+        except FileExistsError:
+            raise _NotOurs(f"{shown} appeared while the experiment ran") from None
+        return
+    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+    old = trash / "old"
+    try:
+        os.rename(out, old)
+    except FileNotFoundError:  # removed meanwhile: nothing to replace, and nothing may appear
+        trash.rmdir()
+        return _put_in_place(tmp, shown, None, ids)
+    except OSError:
+        trash.rmdir()
+        raise
+    why = None
+    if identity(old) != ident:
+        why = f"{shown} was replaced by another folder while the experiment ran"
+    elif foreign := foreign_entries(old, limit=1):
+        why = f"{shown} got {foreign[0]}, which jaxci did not write, while the experiment ran"
+    elif (held := _input_inside(old, ids)) is not None:
+        why = f"{shown} holds {held}, an input of this experiment"
+    if why is None:
+        try:
+            rename_noreplace(tmp, out)
+        except FileExistsError:
+            why = f"{shown} appeared while the experiment ran"
+        except BaseException:
+            _put_back(old, out, trash)
+            raise
+        else:
+            shutil.rmtree(trash, ignore_errors=True)
+            return
+    kept = _put_back(old, out, trash)
+    raise _NotOurs(why + ("" if kept == out else f" (the folder that was there is now {kept})"))
+
+
+def _put_back(old: Path, out: Path, trash: Path) -> Path:
+    """Move the folder `old` (moved aside from `out`) back to `out`, or beside it if `out` is taken; returns
+    where it is."""
+    try:
+        rename_noreplace(old, out)
+        where = out
+    except FileExistsError:
+        where = _move_beside(old, out, "earlier")
+    with contextlib.suppress(OSError):
+        trash.rmdir()
+    return where
 
 
 def _walk(folder: Path):
@@ -179,38 +287,19 @@ def write_marker(folder: Path, *, partial: bool) -> None:
                                             "entries": entries}) + "\n")
 
 
-def replace_dir(tmp: Path, out: Path) -> None:
-    """Rename the finished folder `tmp` onto `out`; an existing `out` is moved aside first and removed once the
-    new one is in place (put back if that rename fails). Not interrupted by the jaxci command's handler."""
-    out = out.absolute()
-    with uninterrupted():
-        if not out.exists():
-            os.replace(tmp, out)
-            return
-        trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-        os.replace(out, trash / "old")
-        try:
-            os.replace(tmp, out)
-        except BaseException:
-            os.replace(trash / "old", out)
-            trash.rmdir()
-            raise
-        shutil.rmtree(trash, ignore_errors=True)
-
-
 def _move_beside(tmp: Path, out: Path, tag: str) -> Path:
-    """Rename `tmp` to the first free ``<out>.<tag>-N`` beside `out`; returns it (spelled like `out`)."""
+    """Rename `tmp` to the first free ``<out>.<tag>-N`` beside `out` (never onto anything, not even an empty
+    folder); returns it (spelled like `out`)."""
     base = out if out.name not in ("", ".", "..") else out.absolute()
     n = 1
     while True:
         dest = base.with_name(f"{base.name}.{tag}-{n}")
-        if not (dest.exists() or dest.is_symlink()):
+        if not os.path.lexists(dest):
             try:
-                os.rename(tmp, dest)
+                rename_noreplace(tmp, dest)
                 return dest
-            except OSError:  # taken meanwhile (a non-empty folder): try the next name
-                if not dest.exists():
-                    raise
+            except FileExistsError:  # taken meanwhile: try the next name
+                pass
         n += 1
 
 

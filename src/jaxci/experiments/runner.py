@@ -51,8 +51,12 @@ class ExperimentResult:
     summary: dict
     partial: bool
     #: the earlier results folder left as it was, when this run was partial or every run failed (`out` is then
-    #: a sibling of it, ``<kept>.partial-N`` or ``<kept>.failed-N``); None when `out` is the folder asked for
+    #: a sibling of it, ``<kept>.partial-N`` or ``<kept>.failed-N``), or when the folder asked for appeared or
+    #: changed while the experiment ran (`taken`; `out` is ``<kept>.new-N``); None when `out` is the folder asked for
     kept: Path | None = None
+    #: why the results are not in the folder asked for although they could have replaced it: it appeared, or
+    #: changed, while the experiment ran (`jaxci.experiments.results.Staged.taken`); else None
+    taken: str | None = None
 
     @property
     def failed(self) -> list[RunRecord]:
@@ -128,7 +132,8 @@ def run_experiment(
         exp = dataclasses.replace(exp, seeds=tuple(range(int(seeds))))
     device = select_device(exp.config.device)
     out_path, key = resolve_output(exp, out)
-    files = [exp.path, *(m.path for m in exp.meshes if m.path is not None)]
+    files = [exp.path, *(m.path for m in exp.meshes if m.path is not None),  # with what was read through them
+             *(f for m in exp.meshes if m.mesh is not None for f in m.mesh.input_files)]
     state = _Run(exp, device, stage(out_path, key, force, files))
     if on_start is not None:
         on_start(state.abort)
@@ -236,7 +241,8 @@ class _Run:
 
     def _result(self, dest: Path, partial: bool, summary: dict, records=None) -> ExperimentResult:
         kept = self.staged.out if dest != self.staged.out else None
-        return ExperimentResult(dest, tuple(self.records if records is None else records), summary, partial, kept)
+        return ExperimentResult(dest, tuple(self.records if records is None else records), summary, partial, kept,
+                                self.staged.taken)
 
 
 def _one_run(exp: Experiment, rm: ResolvedMesh, seed: int, meth: ResolvedMethod, inputs: dict, strict: bool):

@@ -145,6 +145,33 @@ class _Block:
     line: list[int] = dataclasses.field(default_factory=list)  # line index of each element
 
 
+@dataclasses.dataclass(frozen=True)
+class _Range:
+    """A ``GENERATE`` line: ids `first`, `first` + `step`, ... up to `last`."""
+
+    first: int
+    last: int
+    step: int
+
+    @property
+    def count(self) -> int:
+        return (self.last - self.first) // self.step + 1
+
+    def resolve(self, sorted_ids: np.ndarray) -> tuple[np.ndarray, int | None]:
+        """The ids of the range that are among `sorted_ids` (sorted, unique), and the first id of the range that
+        is not (None when all are): computed from the ids that exist, so a range of 10^12 ids costs what the
+        mesh costs."""
+        lo = np.searchsorted(sorted_ids, self.first, side="left")
+        hi = np.searchsorted(sorted_ids, self.last, side="right")
+        cand = sorted_ids[lo:hi]
+        hit = cand[(cand - self.first) % self.step == 0]
+        if len(hit) == self.count:
+            return hit, None
+        want = self.first + self.step * np.arange(len(hit), dtype=np.int64)
+        k = int(np.argmax(hit != want)) if len(hit) and (hit != want).any() else len(hit)
+        return hit, self.first + self.step * k
+
+
 @dataclasses.dataclass
 class _Set:
     name: str
@@ -312,7 +339,7 @@ class Deck:
                 step = parse_id(toks[2], where, "step") if len(toks) == 3 else 1
                 if b < a:
                     raise MeshReadError(f"{where}: *{keyword}, GENERATE from {a} to {b}: last is below first")
-                s.entries.append((i, list(range(a, b + 1, step))))
+                s.entries.append((i, _Range(a, b, step)))  # resolved against the ids that exist, never expanded
                 continue
             for t in toks:
                 if t and (t[0].isdigit() or t[0] in "+-"):
@@ -377,6 +404,15 @@ class Deck:
             for i, entry in s.entries:
                 if isinstance(entry, list):
                     ids.append(np.array(entry, dtype=np.int64))
+                    continue
+                if isinstance(entry, _Range):
+                    hit, gap = entry.resolve(sorted_ids if s.kind == "node" else esorted)
+                    if gap is not None and (s.kind == "node" or not other):
+                        word = "*NODE" if s.kind == "node" else "*ELEMENT"
+                        raise MeshReadError(f"{self.where(i)}: {s.kind} set {s.name}, GENERATE from {entry.first} to "
+                                            f"{entry.last} step {entry.step} ({entry.count} ids) lists {s.kind} {gap}, "
+                                            f"which no {word} defines")
+                    ids.append(hit)
                     continue
                 if isinstance(entry, tuple):  # *NSET, ELSET=: the nodes of the elements of a set
                     eids = members.get(("element", entry[1].upper()))

@@ -287,15 +287,53 @@ def _cell_midside(b: Bricks, mask: np.ndarray, mid_conn: np.ndarray, cell_type: 
 
 
 def expand_ranges(items: list[int]) -> np.ndarray:
-    """CMBLOCK items to numbers: a negative item -j after i means i+1..j."""
+    """CMBLOCK items as inclusive number ranges, shape ``(k, 2)``: a negative item -j after i means i..j, any other
+    item i the range i..i. Never expanded (a range of 10^9 numbers costs one row; `resolve_ranges` finds which of
+    its numbers exist)."""
     out, prev = [], None
     for v in items:
         if v < 0 and prev is not None:
-            out.extend(range(prev + 1, -v + 1))
+            out[-1][1] = max(-v, prev)
             prev = None
         else:
-            out.append(v)
+            out.append([v, v])
             prev = v
+    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+
+def resolve_ranges(ranges: np.ndarray, sorted_ids: np.ndarray) -> tuple[np.ndarray, int, int | None]:
+    """The numbers of `ranges` (`expand_ranges`) among `sorted_ids` (sorted, unique): their positions in
+    `sorted_ids` (sorted, unique), how many numbers of the ranges are not among them, and the first such number
+    (None when none is). Costs what the ids cost, whatever the ranges' lengths."""
+    merged = _merge(ranges)  # disjoint: the positions below are unique and at most len(sorted_ids)
+    lo = np.searchsorted(sorted_ids, merged[:, 0], side="left")
+    hi = np.searchsorted(sorted_ids, merged[:, 1], side="right")
+    pos = np.concatenate([np.arange(a, b, dtype=np.int64) for a, b in zip(lo.tolist(), hi.tolist(), strict=True)]
+                         or [np.zeros(0, np.int64)])
+    missing = sum(b - a + 1 for a, b in merged.tolist()) - len(pos)
+    first = None
+    if missing:
+        for a, b in merged.tolist():
+            i, j = np.searchsorted(sorted_ids, [a, b + 1])
+            have = sorted_ids[i:j]
+            gap = np.flatnonzero(have != a + np.arange(len(have)))
+            if len(gap) or len(have) < b - a + 1:
+                first = int(a + (gap[0] if len(gap) else len(have)))
+                break
+    return pos, missing, first
+
+
+def _merge(ranges: np.ndarray) -> np.ndarray:
+    """Overlapping or touching inclusive ranges merged, sorted."""
+    if not len(ranges):
+        return ranges.reshape(0, 2)
+    r = ranges[np.argsort(ranges[:, 0], kind="stable")]
+    out = [list(r[0])]
+    for a, b in r[1:].tolist():
+        if a <= out[-1][1] + 1:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
     return np.asarray(out, dtype=np.int64)
 
 
@@ -309,19 +347,19 @@ def _components(b: Bricks, order, sorted_ids, rows_of: list[np.ndarray], notes: 
     row_in = np.zeros(len(b.elem_ids), np.int64)
     for bi, rows in enumerate(rows_of):
         block_of[rows], row_in[rows] = bi, np.arange(len(rows))
-    for name, kind, ids, _where in b.components:
-        ids = np.unique(ids)
+    esorted = b.elem_ids[eorder]
+    for name, kind, ranges, _where in b.components:
         if kind == "NODE":
-            idx, missing = _lookup(sorted_ids, order, ids)
-            point_sets[name] = np.sort(idx[~missing])
+            pos, missing, first = resolve_ranges(ranges, sorted_ids)
+            point_sets[name] = np.sort(order[pos])
         else:
-            idx, missing = _lookup(b.elem_ids[eorder], eorder, ids)
-            idx = idx[~missing]
+            pos, missing, first = resolve_ranges(ranges, esorted)
+            idx = eorder[pos]
             cell_sets[name] = [np.sort(row_in[idx[block_of[idx] == bi]]) for bi in range(len(rows_of))]
-        if missing.any():
+        if missing:
             notes.append(
-                f"component {name} lists {int(missing.sum())} {'node' if kind == 'NODE' else 'element'} numbers "
-                f"that the file does not define (first {int(ids[missing][0])}); left out"
+                f"component {name} lists {missing} {'node' if kind == 'NODE' else 'element'} numbers "
+                f"that the file does not define (first {first}); left out"
             )
     return point_sets, cell_sets
 

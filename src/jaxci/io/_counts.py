@@ -52,6 +52,8 @@ def check_vtk(path: Path, m: meshio.Mesh) -> None:
                                 f"({count}{'' if extra is None else f' {extra}'})")
     n_cells, size = _cells_held(m)
     n_points = len(m.points)
+    if (problem := _vtk_index_problem(data, n_points, v5)) is not None:
+        raise MeshReadError(f"{path}: corrupt legacy VTK file: {problem}")
     found = {"POINTS": n_points, "CELL_TYPES": n_cells, "POINT_DATA": n_points, "CELL_DATA": n_cells}
     what = {"POINTS": "points", "CELL_TYPES": "cell types", "POINT_DATA": "point data values",
             "CELL_DATA": "cell data values"}
@@ -72,13 +74,56 @@ def check_vtk(path: Path, m: meshio.Mesh) -> None:
                                 f"connectivity entries, the cells read hold {want}")
 
 
+#: A decimal integer of 10 digits or more: possibly beyond the 32-bit integers meshio reads legacy VTK cells as.
+_LONG_INT = re.compile(rb"(?<![\w.+-])[+-]?\d{10,}(?![\w.])")
+
+
+def _vtk_index_problem(data: bytes, n_points: int | None, v5: bool) -> str | None:
+    """ASCII legacy VTK: meshio reads the CELLS section as 32-bit integers, so a larger value reads as -1 or wraps
+    around (4294967297 would read as node 1). The first value of the section beyond int32, with its cell, in words;
+    None when there is none (or the file is binary)."""
+    head = data[:4096].split(b"\n", 3)
+    if len(head) < 3 or head[2].strip().upper() != b"ASCII":
+        return None
+    start = re.search(rb"(?m)^[ \t]*CELLS[ \t]+\S+.*$", data)
+    if start is None:
+        return None
+    end = re.compile(rb"(?m)^[ \t]*[A-Za-z_]").search(data, start.end() + 1)
+    if v5:  # OFFSETS / CONNECTIVITY lines inside the section
+        end = re.compile(rb"(?m)^[ \t]*(CELL_TYPES|POINT_DATA|CELL_DATA|FIELD)\b").search(data, start.end() + 1)
+    body = data[start.end() : end.start() if end else len(data)]
+    big = next((mt for mt in _LONG_INT.finditer(body) if abs(int(mt.group())) > 2**31 - 1), None)
+    if big is None:
+        return None
+    value = int(big.group())
+    has = "" if n_points is None else f" (the file has {n_points} points, indices 0 to {n_points - 1})"
+    what = f"CELLS holds {value}"
+    if not v5:
+        tokens = body[: big.start()].split()
+        k = i = 0
+        while i < len(tokens):
+            try:
+                i += 1 + int(tokens[i])
+            except ValueError:
+                break
+            if i <= len(tokens):
+                k += 1
+        what = f"CELLS lists node index {value} in cell {k}" if i > len(tokens) else \
+            f"CELLS gives cell {k} {value} nodes"
+    return f"{what}, beyond the 32-bit integers of legacy VTK cells and any node index{has}"
+
+
 def diagnose_vtk(path: Path) -> str | None:
     """Which section of an ASCII legacy VTK file holds more or fewer values than its header announces (for a
     file meshio could not read); None when they all agree, or the file is binary or has sections not walked."""
     try:
-        lines = path.read_text(encoding="latin-1").splitlines()
+        data = path.read_bytes()
     except OSError:
         return None
+    v5 = re.match(rb"#\s*vtk DataFile Version\s*([5-9])", data) is not None
+    if (problem := _vtk_index_problem(data, None, v5)) is not None:
+        return problem
+    lines = data.decode("latin-1").splitlines()
     if len(lines) < 4 or lines[2].strip().upper() != "ASCII":
         return None
     v5 = re.match(r"#\s*vtk DataFile Version\s*([5-9])", lines[0]) is not None

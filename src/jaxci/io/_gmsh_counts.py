@@ -5,7 +5,8 @@ runs before meshio on every Gmsh file `jaxci.io._meshio.read_meshio` reads (as `
 formats) and raises a `MeshReadError` naming the file and what is missing or wrong: the $Nodes and $Elements
 sections are walked entity block by entity block; every block must hold the nodes and elements its header
 announces, the totals must match the section headers, the section must end where its $End line is, node and element
-tags must be positive and unique, and every node an element lists must be a node tag.
+tags must be positive and unique, every node an element lists must be a node tag, and the largest node tag must be
+small enough for meshio's lookup table (`TABLE_ENTRIES`).
 """
 
 from __future__ import annotations
@@ -94,6 +95,25 @@ def _check_tags(tags: np.ndarray, where: str, what: str) -> None:
                             f"{int(order[same[0]])} and {what} {k} in file order)")
 
 
+#: Node tags meshio may index with a table of max tag + 1 entries: up to this many, or 16 per node of the file.
+TABLE_ENTRIES = 1 << 24
+
+
+def _check_table(tags: np.ndarray, where: str, itemsize: int) -> None:
+    """meshio looks node tags up in a table as long as the largest tag (int32 entries for 2.2, int64 for 4.1): a
+    sparse tag of 10^9 asks for gigabytes, 2^63 - 1 for more than exists. Refused with what it would cost."""
+    if not len(tags):
+        return
+    top = int(tags.max())
+    if top + 1 <= max(TABLE_ENTRIES, 16 * len(tags)):
+        return
+    size = (top + 1) * itemsize
+    cost = f"{size / 2**30:.3g} GiB" if size < 2**70 else f"about 2^{size.bit_length() - 1} bytes"
+    raise MeshReadError(f"{where}: node tag {top} is far beyond the {len(tags)} nodes of $Nodes: meshio, which reads "
+                        f"Gmsh files for jaxci, looks tags up in a table as long as the largest tag ({cost}); "
+                        f"renumber the nodes with consecutive tags from 1")
+
+
 def check_gmsh(path: Path) -> None:
     """Gmsh 2.2 / 4.1: walk $Nodes and $Elements (module docstring). Files of other versions are left to meshio."""
     data = path.read_bytes()
@@ -117,6 +137,7 @@ def check_gmsh(path: Path) -> None:
         c.end()
         if name == "Nodes":
             _check_tags(tags, where, "node")
+            _check_table(tags, where, 8 if v4 else 4)
             node_tags = np.sort(tags)
         else:
             _check_tags(tags, where, "element")
