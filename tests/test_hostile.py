@@ -26,15 +26,12 @@ the same cases with many more examples and is deselected by default (``addopts``
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
 import os
 import re
 import resource
 import signal
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -43,6 +40,7 @@ import meshio
 import numpy as np
 import pytest
 from helpers import MESQUITE, SHARED
+from hostile_kit import assert_ok, assert_refused, changes, cli_in, inside, run_in, run_in_child, snapshot
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
@@ -63,82 +61,6 @@ _COMMON = dict(
 )
 
 # ----------------------------------------------------------------------------------------------- helpers
-
-
-def snapshot(folder) -> dict:
-    """Every entry under `folder` (hidden ones too): relative path -> bytes, "<dir>" or ("<link>", target)."""
-    out = {}
-    for root, dirs, files in os.walk(folder):
-        for name in dirs + files:
-            p = Path(root) / name
-            rel = p.relative_to(folder).as_posix()
-            if p.is_symlink():
-                out[rel] = ("<link>", os.readlink(p))
-            elif p.is_dir():
-                out[rel] = "<dir>"
-            else:
-                out[rel] = p.read_bytes()
-    return out
-
-
-def changes(before: dict, after: dict) -> list[str]:
-    """What differs between two snapshots, as readable lines."""
-    lines = [f"appeared: {k}" for k in sorted(after.keys() - before.keys())]
-    lines += [f"disappeared: {k}" for k in sorted(before.keys() - after.keys())]
-    lines += [f"changed: {k}" for k in sorted(before.keys() & after.keys()) if before[k] != after[k]]
-    return lines
-
-
-@contextlib.contextmanager
-def inside(folder):
-    old = os.getcwd()
-    os.chdir(folder)
-    try:
-        yield
-    finally:
-        os.chdir(old)
-
-
-def cli(capsys, *argv) -> tuple[int, str, str]:
-    capsys.readouterr()  # drop whatever was printed before (meshio's notes while building fixtures)
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def cli_in(capsys, folder, *argv):
-    with inside(folder):
-        return cli(capsys, *argv)
-
-
-def run_in(capsys, folder, *argv, outputs=()) -> tuple[int, str, str]:
-    """`jaxci *argv` in `folder`; asserts the folder is untouched except `outputs` (names) on exit 0."""
-    before = snapshot(folder)
-    with inside(folder):
-        rc, out, err = cli(capsys, *argv)
-    after = snapshot(folder)
-    allowed = set(outputs) if rc == 0 else set()
-    diff = [c for c in changes(before, after) if c.split(": ", 1)[1] not in allowed]
-    assert not diff, f"jaxci {' '.join(map(str, argv))}: rc {rc}, stderr {err!r}; working folder: {diff}"
-    return rc, out, err
-
-
-def assert_refused(rc, out, err, *mentions, what=""):
-    """Exit 2, exactly one stderr line ``jaxci: error: ...``, no traceback; the line names each of `mentions`."""
-    ctx = f"{what}: rc {rc}, stdout {out[-300:]!r}, stderr {err[-1500:]!r}"
-    assert rc == 2, ctx
-    assert "Traceback" not in err, ctx
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, ctx
-    assert lines[0].startswith("jaxci: error:"), ctx
-    for m in mentions:
-        assert m.lower() in lines[0].lower(), f"{ctx}: the message should name {m!r}"
-
-
-def assert_ok(rc, out, err, what=""):
-    ctx = f"{what}: rc {rc}, stderr {err[-1500:]!r}"
-    assert rc == 0, ctx
-    assert "Traceback" not in err and "internal error" not in err, ctx
 
 
 def assert_ok_or_refused(rc, out, err, what=""):
@@ -1079,22 +1001,6 @@ TOO_LARGE = {  # argv, config text (None: no config)
 }
 
 
-_DRIVER = r"""
-import contextlib, io, json, os, resource, sys, time
-resource.setrlimit(resource.RLIMIT_AS, (8 << 30, 8 << 30))  # before JAX starts its threads
-from jaxci.cli import main
-for case, folder, argv in json.loads(sys.argv[1]):
-    os.chdir(folder)
-    out, err = io.StringIO(), io.StringIO()
-    t0 = time.perf_counter()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            rc = main(argv)
-        except BaseException as e:
-            rc = f"raised {type(e).__name__}: {e}"
-    print(json.dumps({"case": case, "rc": rc, "out": out.getvalue()[-3000:], "err": err.getvalue()[-3000:],
-                      "secs": time.perf_counter() - t0}), flush=True)
-"""
 
 
 @pytest.fixture(scope="module")
@@ -1112,18 +1018,7 @@ def too_large(tmp_path_factory):
         before[case] = snapshot(folder)
         jobs.append((case, str(folder), argv))
 
-    p = subprocess.Popen([sys.executable, "-c", _DRIVER, json.dumps(jobs)], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    try:
-        out, err = p.communicate(timeout=240)
-    except subprocess.TimeoutExpired:
-        p.kill()  # our own child, by its handle
-        out, err = p.communicate()
-    results = {}
-    for line in out.splitlines():
-        with contextlib.suppress(ValueError):
-            r = json.loads(line)
-            results[r["case"]] = r
+    results, err = run_in_child(jobs, timeout=240)
     return {case: (results.get(case), Path(folder), before[case], err[-2000:]) for case, folder, _ in jobs}
 
 
