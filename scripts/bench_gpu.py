@@ -1,0 +1,337 @@
+"""GPU benchmark: the JAX engine on an accelerator beside the host engine on the same machine's CPU, one command.
+
+    python scripts/bench_gpu.py --out bench_gpu.json            # on a GPU machine: at most ~8 minutes
+    python scripts/bench_gpu.py --small --out small.json        # the same sections at small sizes (CPU, tests)
+
+Every figure comes from a fresh process (a child of this script, or the ``jaxci`` command itself), so cold
+times include JAX's start and the compilation, and peak memory is the run's own. Sections, in order (each
+skipped once the time budget ``--budget`` would be overrun; the JSON is rewritten after each):
+
+1. ``environment``: jax and jaxci versions, the devices, CPU count.
+2. ``throughput``: F and its gradient (`jaxci.metrics.hexahedron.objective_terms_and_grad`, the JAX engine's
+   kernel) on perturbed boxes, float32 and float64: corners per second, warm (median of 10 calls).
+3. ``threshold``: ``jaxci smooth`` (the default pipeline) in a fresh process with an empty compilation cache,
+   ``--engine jax`` on the accelerator against ``--engine host``, on boxes of increasing size: the size from
+   which the JAX engine wins is `jaxci.engine.ACCELERATOR_FROM`.
+4. ``lbfgs``: `jaxci.smooth` (default pipeline, stopped at max kappa/3 <= 1.0001) on perturbed boxes of 10^6 and
+   10^7 hexahedra: wall time per phase, iterations, peak device memory (bytes per hexahedron), the host engine
+   beside it at 10^6.
+5. ``cube60_pert``: untangling + smoothing of the tangled 216,000-hex cube (scripts/realmesh_corpus.py) by
+   ``jaxci smooth`` in a fresh process, both engines.
+6. ``global_ci``: 30 seeds of the paper's cube729, global CI with its defaults (1000 attempts), as one batched
+   program against one seed after the other on the accelerator, and the host engine (a few seeds, per seed).
+7. ``largest``: the largest box that the measured bytes per hexahedron say fits on the device, smoothed.
+
+The targets of one H100-class GPU are printed beside the figures (F + gradient >= 20 G corners/s float32;
+10^7 hexahedra smoothed in <= 10 s, file I/O aside; <= 1.5 kB per hexahedron on the device).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TARGETS = {"corners_per_s_float32": 20e9, "smooth_1e7_s": 10.0, "bytes_per_hex": 1500.0}
+FULL = {"throughput": [100, 215], "threshold": [22, 46, 100], "lbfgs": [100, 215], "host_lbfgs": [100],
+        "cube": 60, "gci_seeds": 30, "gci_host_seeds": 4, "gci_attempts": None, "gci_case": "cube729"}
+SMALL = {"throughput": [8, 12], "threshold": [6, 10], "lbfgs": [8], "host_lbfgs": [8], "cube": 9, "gci_seeds": 3,
+         "gci_host_seeds": 2, "gci_attempts": 20, "gci_case": "cube27"}
+
+
+# ------------------------------------------------------------------------------------------------ children
+def _device_peak() -> int | None:
+    import jax
+
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats.get("peak_bytes_in_use")
+
+
+def _rss_peak() -> int:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def child_throughput(n: int, dtype: str) -> dict:
+    import jax
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)
+    from jaxci.generate import perturb_box
+    from jaxci.metrics.hexahedron import objective_terms_and_grad, transposed
+
+    mesh = perturb_box(n, amplitude=0.3, seed=0)
+    x = jax.device_put(np.asarray(mesh.points, dtype))
+    conn = transposed(mesh.hexes)
+    fn = jax.jit(lambda x, c: objective_terms_and_grad(x, c))
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(x, conn))
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(10):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(x, conn))
+        times.append(time.perf_counter() - t0)
+    t = float(np.median(times))
+    corners = 8 * mesh.n_hexes
+    return {"hexes": mesh.n_hexes, "dtype": dtype, "seconds": t, "first_call_s": compile_s,
+            "corners_per_s": corners / t, "device_peak_bytes": _device_peak()}
+
+
+def child_smooth(n: int, engine: str, ktol: float) -> dict:
+    from jaxci.generate import perturb_box
+    from jaxci.smooth import smooth
+
+    t0 = time.perf_counter()
+    mesh = perturb_box(n, amplitude=0.3, seed=0)
+    gen = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = smooth(mesh, engine=engine, ktol=ktol)
+    wall = time.perf_counter() - t0
+    peak = _device_peak() if res.plan.engine == "jax" and res.plan.device != "cpu" else None
+    return {"hexes": mesh.n_hexes, "engine": res.plan.to_dict(), "generate_s": gen, "wall_s": wall,
+            "phases": {k: v["seconds"] for k, v in res.phases.items()}, "iterations": res.iterations,
+            "max_condition": res.after.max_condition, "mean_condition": res.after.mean_condition,
+            "inverted": res.after.inverted_elements, "device_peak_bytes": peak,
+            "device_bytes_per_hex": None if peak is None else peak / mesh.n_hexes, "rss_peak_bytes": _rss_peak()}
+
+
+def child_global_ci(case: str, seeds: int, engine: str, mode: str, attempts: int | None) -> dict:
+    """Global CI on `seeds` seeds of `case`: ``mode`` "batched" (one program, `global_ci_batched`), "serial"
+    (one seed after the other, the same compiled program) on the JAX engine, or the host engine per seed."""
+    import jax
+    import numpy as np
+
+    from jaxci.generate import paper_case
+    from jaxci.smooth import smooth
+
+    params = {} if attempts is None else {"attempts": attempts}
+    meshes = [paper_case(case, seed=s) for s in range(seeds)]
+    if engine == "host":
+        t0 = time.perf_counter()
+        fs = [smooth(m, "ci-global", seed=s, engine="host", **params).after.objective for s, m in enumerate(meshes)]
+        return {"seeds": seeds, "engine": "host", "mode": "serial", "wall_s": time.perf_counter() - t0,
+                "per_seed_s": (time.perf_counter() - t0) / seeds, "objective_mean": float(np.mean(fs))}
+    from jaxci.engine import resolve_plan
+    from jaxci.methods import build_problem, free_scale, global_parametrisation, method_params
+    from jaxci.optim.global_ci import global_ci_batched
+
+    p = method_params("ci-global", params)
+    probs = [build_problem(m, dtype=np.float32, plan=resolve_plan(m, "ci-global", {}, engine="jax"))
+             for m in meshes]
+    pars, scales = [global_parametrisation(pb) for pb in probs], [free_scale(pb) for pb in probs]
+    keys = [jax.random.key(s, impl="rbg") for s in range(seeds)]
+    conn = probs[0].conn
+
+    def run():
+        if mode == "batched":
+            return global_ci_batched(keys, pars, conn, scales, p)
+        return [global_ci_batched([k], [pp], conn, [sc], p)[0] for k, pp, sc in zip(keys, pars, scales, strict=True)]
+
+    t0 = time.perf_counter()
+    out = run()
+    cold = time.perf_counter() - t0
+    warm = None
+    if mode == "batched":  # one by one, every seed after the first ran warm already
+        t0 = time.perf_counter()
+        out = run()
+        warm = time.perf_counter() - t0
+    return {"seeds": seeds, "engine": "jax", "device": jax.default_backend(), "mode": mode, "cold_s": cold,
+            "warm_s": warm, "per_seed_s": (cold if warm is None else warm) / seeds,
+            "objective_mean": float(np.mean([o[2]["objective"][-1] for o in out])), "device_peak_bytes": _device_peak()}
+
+
+CHILDREN = {"throughput": child_throughput, "smooth": child_smooth, "global_ci": child_global_ci,
+            "environment": None}
+
+
+# -------------------------------------------------------------------------------------------------- parent
+class Bench:
+    def __init__(self, args):
+        self.args, self.t0 = args, time.perf_counter()
+        self.data: dict = {"command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]), "targets": TARGETS,
+                           "date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": _commit()}
+
+    def left(self) -> float:
+        return self.args.budget - (time.perf_counter() - self.t0)
+
+    def save(self) -> None:
+        out = Path(self.args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(out.name + ".tmp")
+        tmp.write_text(json.dumps(self.data, indent=1, default=str) + "\n")
+        os.replace(tmp, out)
+
+    def child(self, section: str, name: str, *args, timeout: float = 600) -> dict:
+        """Run child `name` with `args` in a fresh process; its JSON, or ``{"error": ...}``."""
+        timeout = min(timeout, self.left())
+        if timeout < 5:
+            return {"skipped": "time budget"}
+        cmd = [sys.executable, __file__, "--child", name, *map(str, args)]
+        return _run_json(cmd, timeout, self._env())
+
+    def cli(self, args: list[str], timeout: float = 600) -> dict:
+        """``jaxci ARGS --json`` in a fresh process with an empty compilation cache: its JSON and wall time."""
+        timeout = min(timeout, self.left())
+        if timeout < 5:
+            return {"skipped": "time budget"}
+        with tempfile.TemporaryDirectory() as cache:
+            env = {**self._env(), "JAXCI_CACHE_DIR": cache}
+            t0 = time.perf_counter()
+            out = _run_json([sys.executable, "-m", "jaxci", *args, "--json", "--force"], timeout, env)
+            out["process_wall_s"] = time.perf_counter() - t0
+        return {k: out.get(k) for k in ("process_wall_s", "engine", "iterations", "phases", "error", "skipped")
+                } | {"max_condition": (out.get("after") or {}).get("max_condition")}
+
+    def _env(self) -> dict:
+        # each child may take most of the device's memory (one runs at a time; the parent never imports JAX)
+        return {**os.environ, "PYTHONUNBUFFERED": "1", "XLA_PYTHON_CLIENT_MEM_FRACTION": "0.95",
+                "PYTHONPATH": os.pathsep.join(
+            [str(ROOT / "scripts"), str(ROOT / "src"), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+    def section(self, name: str, rows) -> None:
+        self.data[name] = []
+        for row in rows:
+            self.data[name].append(row)
+            self.save()
+            print(f"{name}: {json.dumps(row, default=str)[:400]}", flush=True)
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+def _run_json(cmd, timeout, env) -> dict:
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {timeout:.0f} s"}
+    lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
+    if p.returncode not in (0, 3) or not lines:
+        return {"error": f"exit {p.returncode}: {(p.stderr or p.stdout)[-1500:]}"}
+    return json.loads(lines[-1])
+
+
+def _box(tmp: Path, n: int) -> Path:
+    from jaxci.generate import perturb_box
+    from jaxci.io import write_mesh
+
+    path = tmp / f"box{n}.vtu"
+    if not path.exists():
+        write_mesh(perturb_box(n, amplitude=0.3, seed=0), path)
+    return path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="results/bench_gpu.json")
+    ap.add_argument("--small", action="store_true", help="small sizes (a CPU check of the script)")
+    ap.add_argument("--budget", type=float, default=480.0, help="seconds for all sections (default 480)")
+    ap.add_argument("--sections", nargs="+", default=["throughput", "lbfgs", "threshold", "global_ci",
+                                                       "cube60_pert", "largest"])
+    ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        name, *rest = args.child
+        fn = CHILDREN[name] or child_environment
+        conv = [int(a) if a.lstrip("-").isdigit() else (None if a == "None" else a) for a in rest]
+        if name == "smooth":
+            conv[2] = float(rest[2])
+        print(json.dumps(fn(*conv), default=str))
+        return 0
+    sys.path[:0] = [str(ROOT / "src"), str(ROOT / "scripts")]
+    size = SMALL if args.small else FULL
+    b = Bench(args)
+    ktol = 1e-4
+    b.data["environment"] = b.child("environment", "environment", timeout=120)
+    b.save()
+    print("environment:", json.dumps(b.data["environment"]), flush=True)
+    gpu = b.data["environment"].get("accelerator") is not None
+    with tempfile.TemporaryDirectory() as tmpdir:
+        tmp = Path(tmpdir)
+        if "throughput" in args.sections:
+            b.section("throughput", (b.child("throughput", "throughput", n, dt, timeout=120)
+                                     for n in size["throughput"] for dt in ("float32", "float64")))
+        if "lbfgs" in args.sections:
+            rows = [("jax", n) for n in size["lbfgs"]]
+            rows[1:1] = [("host", n) for n in size["host_lbfgs"]]
+            b.section("lbfgs", (b.child("lbfgs", "smooth", n, e, ktol, timeout=300) for e, n in rows))
+        if "threshold" in args.sections:
+            b.section("threshold", ({"hexes": n ** 3, "engine_asked": e,
+                                     **b.cli(["smooth", str(_box(tmp, n)), str(tmp / f"o{n}{e}.vtu"), "--engine", e],
+                                             timeout=180)}
+                                    for n in size["threshold"] for e in ("jax", "host")))
+        if "global_ci" in args.sections:
+            case, seeds, att = size["gci_case"], size["gci_seeds"], size["gci_attempts"]
+            b.section("global_ci", [
+                b.child("global_ci", "global_ci", case, seeds, "jax", "batched", att, timeout=240),
+                b.child("global_ci", "global_ci", case, seeds, "jax", "serial", att, timeout=240),
+                b.child("global_ci", "global_ci", case, size["gci_host_seeds"], "host", "serial", att, timeout=120),
+            ])
+        if "cube60_pert" in args.sections:
+            from realmesh_corpus import perturbed_cube, write_vtk
+
+            path = tmp / "cube_pert.vtk"
+            write_vtk(path, *perturbed_cube(size["cube"]))
+            b.section("cube60_pert", ({"cube": size["cube"], "engine_asked": e,
+                                       **b.cli(["smooth", str(path), str(tmp / f"c{e}.vtk"), "--engine", e],
+                                               timeout=240)} for e in ("jax", "host")))
+        if "largest" in args.sections and gpu:
+            per_hex = max((r.get("device_bytes_per_hex") or 0 for r in b.data.get("lbfgs", [])), default=0)
+            total = b.data["environment"]["accelerator"].get("bytes_limit") or 0
+            if per_hex and total:
+                n = int((0.85 * total / per_hex) ** (1 / 3))
+                b.section("largest", [b.child("largest", "smooth", n, "jax", ktol, timeout=600)])
+    b.data["elapsed_s"] = time.perf_counter() - b.t0
+    b.save()
+    _summary(b.data)
+    return 0
+
+
+def child_environment() -> dict:
+    import jax
+
+    import jaxci
+
+    dev = jax.devices()[0]
+    acc = None
+    if dev.platform != "cpu":
+        stats = dev.memory_stats() or {}
+        acc = {"platform": dev.platform, "kind": dev.device_kind, "count": len(jax.devices()),
+               "bytes_limit": stats.get("bytes_limit")}
+    from jaxci import native
+    from jaxci.metrics import native_grad
+
+    return {"jax": jax.__version__, "jaxci": jaxci.__version__, "python": sys.version.split()[0],
+            "cpus": os.cpu_count(), "accelerator": acc, "default_backend": jax.default_backend(),
+            "c_kernels": native.AVAILABLE, "ffi_api": native.ffi_api_version(),
+            "ffi_on_cpu": native_grad.available("cpu"), "ffi_refusal": native_grad.refusal()}
+
+
+def _summary(d: dict) -> None:
+    """The figures against the targets, one line each."""
+    best32 = max((r.get("corners_per_s", 0) for r in d.get("throughput", []) if r.get("dtype") == "float32"),
+                 default=0)
+    goal = TARGETS["corners_per_s_float32"] / 1e9
+    print(f"F + gradient, float32: {best32 / 1e9:.2f} G corners/s (target >= {goal:g})")
+    for r in d.get("lbfgs", []):
+        if "wall_s" in r:
+            print(f"smooth {r['hexes']:,} hexes, {r['engine']['name']} on {r['engine']['device']}: {r['wall_s']:.1f} s "
+                  f"(smooth phase {r['phases'].get('smooth', 0):.1f} s), max kappa/3 {r['max_condition']:.6f}, "
+                  f"{(r['device_bytes_per_hex'] or 0):.0f} B/hex on the device")
+    print(f"elapsed {d.get('elapsed_s', 0):.0f} s")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
