@@ -59,7 +59,7 @@ def _rss_peak() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def child_throughput(n: int, dtype: str) -> dict:
+def child_throughput(n: int, dtype: str, block: int | None = None) -> dict:
     import jax
     import numpy as np
 
@@ -70,7 +70,7 @@ def child_throughput(n: int, dtype: str) -> dict:
     mesh = perturb_box(n, amplitude=0.3, seed=0)
     x = jax.device_put(np.asarray(mesh.points, dtype))
     conn = transposed(mesh.hexes)
-    fn = jax.jit(lambda x, c: objective_terms_and_grad(x, c))
+    fn = jax.jit(lambda x, c: objective_terms_and_grad(x, c, block=block))
     t0 = time.perf_counter()
     jax.block_until_ready(fn(x, conn))
     compile_s = time.perf_counter() - t0
@@ -81,7 +81,10 @@ def child_throughput(n: int, dtype: str) -> dict:
         times.append(time.perf_counter() - t0)
     t = float(np.median(times))
     corners = 8 * mesh.n_hexes
-    return {"hexes": mesh.n_hexes, "dtype": dtype, "seconds": t, "first_call_s": compile_s,
+    from jaxci.metrics.hexahedron import grad_block
+
+    return {"hexes": mesh.n_hexes, "dtype": dtype, "block": grad_block(mesh.n_hexes) if block is None else block,
+            "seconds": t, "first_call_s": compile_s,
             "corners_per_s": corners / t, "device_peak_bytes": _device_peak()}
 
 
@@ -239,7 +242,14 @@ def main(argv=None) -> int:
     ap.add_argument("--small", action="store_true", help="small sizes (a CPU check of the script)")
     ap.add_argument("--budget", type=float, default=480.0, help="seconds for all sections (default 480)")
     ap.add_argument("--sections", nargs="+", default=["throughput", "lbfgs", "threshold", "global_ci",
-                                                       "cube60_pert", "largest"])
+                                                       "cube60_pert", "largest"],
+                    choices=["throughput", "lbfgs", "threshold", "global_ci", "cube60_pert", "largest"],
+                    help="the sections to run, in this order")
+    ap.add_argument("--threshold-sizes", type=int, nargs="+", default=None, metavar="N",
+                    help="box edges of the threshold section (default 22 46 100; --small: 6 10)")
+    ap.add_argument("--blocks", type=int, nargs="+", default=None, metavar="B",
+                    help="also time F + gradient on the largest throughput box in float32 in blocks of B elements "
+                         "(0: the whole mesh)")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
@@ -251,7 +261,9 @@ def main(argv=None) -> int:
         print(json.dumps(fn(*conv), default=str))
         return 0
     sys.path[:0] = [str(ROOT / "src"), str(ROOT / "scripts")]
-    size = SMALL if args.small else FULL
+    size = dict(SMALL if args.small else FULL)
+    if args.threshold_sizes:
+        size["threshold"] = args.threshold_sizes
     b = Bench(args)
     ktol = 1e-4
     b.data["environment"] = b.child("environment", "environment", timeout=120)
@@ -259,44 +271,58 @@ def main(argv=None) -> int:
     print("environment:", json.dumps(b.data["environment"]), flush=True)
     gpu = b.data["environment"].get("accelerator") is not None
     with tempfile.TemporaryDirectory() as tmpdir:
-        tmp = Path(tmpdir)
-        if "throughput" in args.sections:
-            b.section("throughput", (b.child("throughput", "throughput", n, dt, timeout=120)
-                                     for n in size["throughput"] for dt in ("float32", "float64")))
-        if "lbfgs" in args.sections:
-            rows = [("jax", n) for n in size["lbfgs"]]
-            rows[1:1] = [("host", n) for n in size["host_lbfgs"]]
-            b.section("lbfgs", (b.child("lbfgs", "smooth", n, e, ktol, timeout=300) for e, n in rows))
-        if "threshold" in args.sections:
-            b.section("threshold", ({"hexes": n ** 3, "engine_asked": e,
-                                     **b.cli(["smooth", str(_box(tmp, n)), str(tmp / f"o{n}{e}.vtu"), "--engine", e],
-                                             timeout=180)}
-                                    for n in size["threshold"] for e in ("jax", "host")))
-        if "global_ci" in args.sections:
-            case, seeds, att = size["gci_case"], size["gci_seeds"], size["gci_attempts"]
-            b.section("global_ci", [
-                b.child("global_ci", "global_ci", case, seeds, "jax", "batched", att, timeout=240),
-                b.child("global_ci", "global_ci", case, seeds, "jax", "serial", att, timeout=240),
-                b.child("global_ci", "global_ci", case, size["gci_host_seeds"], "host", "serial", att, timeout=120),
-            ])
-        if "cube60_pert" in args.sections:
-            from realmesh_corpus import perturbed_cube, write_vtk
-
-            path = tmp / "cube_pert.vtk"
-            write_vtk(path, *perturbed_cube(size["cube"]))
-            b.section("cube60_pert", ({"cube": size["cube"], "engine_asked": e,
-                                       **b.cli(["smooth", str(path), str(tmp / f"c{e}.vtk"), "--engine", e],
-                                               timeout=240)} for e in ("jax", "host")))
-        if "largest" in args.sections and gpu:
-            per_hex = max((r.get("device_bytes_per_hex") or 0 for r in b.data.get("lbfgs", [])), default=0)
-            total = b.data["environment"]["accelerator"].get("bytes_limit") or 0
-            if per_hex and total:
-                n = int((0.85 * total / per_hex) ** (1 / 3))
-                b.section("largest", [b.child("largest", "smooth", n, "jax", ktol, timeout=600)])
+        sections = _sections(b, args, size, Path(tmpdir), ktol, gpu)
+        for name in args.sections:  # in the order given
+            sections[name]()
     b.data["elapsed_s"] = time.perf_counter() - b.t0
     b.save()
     _summary(b.data)
     return 0
+
+
+def _sections(b: Bench, args, size: dict, tmp: Path, ktol: float, gpu: bool) -> dict:
+    """Each section of the benchmark as a function of no arguments (run in the order of ``--sections``)."""
+
+    def throughput():
+        runs = [(n, dt, None) for n in size["throughput"] for dt in ("float32", "float64")]
+        runs += [(size["throughput"][-1], "float32", blk) for blk in args.blocks or ()]
+        b.section("throughput", (b.child("throughput", "throughput", n, dt, blk, timeout=120) for n, dt, blk in runs))
+
+    def lbfgs():
+        rows = [("jax", n) for n in size["lbfgs"]]
+        rows[1:1] = [("host", n) for n in size["host_lbfgs"]]
+        b.section("lbfgs", (b.child("lbfgs", "smooth", n, e, ktol, timeout=300) for e, n in rows))
+
+    def threshold():
+        b.section("threshold", ({"hexes": n ** 3, "engine_asked": e,
+                                 **b.cli(["smooth", str(_box(tmp, n)), str(tmp / f"o{n}{e}.vtu"), "--engine", e],
+                                         timeout=180)}
+                                for n in size["threshold"] for e in ("jax", "host")))
+
+    def global_ci():
+        case, seeds, att = size["gci_case"], size["gci_seeds"], size["gci_attempts"]
+        b.section("global_ci", (b.child("global_ci", "global_ci", case, k, e, mode, att, timeout=240) for k, e, mode in
+                                ((seeds, "jax", "batched"), (seeds, "jax", "serial"),
+                                 (size["gci_host_seeds"], "host", "serial"))))
+
+    def cube():
+        from realmesh_corpus import perturbed_cube, write_vtk
+
+        path = tmp / "cube_pert.vtk"
+        write_vtk(path, *perturbed_cube(size["cube"]))
+        b.section("cube60_pert", ({"cube": size["cube"], "engine_asked": e,
+                                   **b.cli(["smooth", str(path), str(tmp / f"c{e}.vtk"), "--engine", e], timeout=240)}
+                                  for e in ("jax", "host")))
+
+    def largest():
+        per_hex = max((r.get("device_bytes_per_hex") or 0 for r in b.data.get("lbfgs", [])), default=0)
+        total = ((b.data["environment"] or {}).get("accelerator") or {}).get("bytes_limit") or 0
+        if gpu and per_hex and total:
+            n = int((0.85 * total / per_hex) ** (1 / 3))
+            b.section("largest", [b.child("largest", "smooth", n, "jax", ktol, timeout=600)])
+
+    return {"throughput": throughput, "lbfgs": lbfgs, "threshold": threshold, "global_ci": global_ci,
+            "cube60_pert": cube, "largest": largest}
 
 
 def child_environment() -> dict:
