@@ -188,9 +188,9 @@ def test_generate_ranges_resolved_against_the_ids(tmp_path):
     m = read_mesh(_deck(tmp_path, "*NSET, NSET=ODD, GENERATE\n1, 27, 2\n*ELSET, ELSET=E, GENERATE\n2, 8, 3\n"))
     np.testing.assert_array_equal(np.asarray(m.node_ids)[m.point_sets["ODD"]], np.arange(1, 28, 2))
     assert [np.asarray(b.ids)[rows].tolist() for b, rows in zip(m.cells, m.cell_sets["E"], strict=True)] == [[2, 5, 8]]
-    c = read_mesh(_cdb(tmp_path, 3, 10**9))
+    c = read_mesh(_cdb(tmp_path, 3, 1000))  # small here: the huge ranges run in the child process above
     np.testing.assert_array_equal(np.sort(np.asarray(c.node_ids)[c.point_sets["BIG"]]), np.arange(3, 28))
-    assert any("lists 999999973 node numbers that the file does not define (first 28)" in n for n in c.notes)
+    assert any("lists 973 node numbers that the file does not define (first 28)" in n for n in c.notes)
 
 
 # ----------------------------------------------------------------------------------------------- in-process

@@ -157,6 +157,8 @@ def _dispatch(args) -> int:
         _streams.say(f"jaxci: error: {e}")
         return 2
     except Exception as e:  # a bug of ours: one line, the traceback only with --debug
+        if _interrupt.signalled():  # the interrupt, wrapped by a library (an error raised in a JAX callback)
+            raise KeyboardInterrupt from e
         if args.debug:
             raise
         _streams.say(f"jaxci: internal error: {type(e).__name__}: {e} (run with --debug for the traceback)")

@@ -15,8 +15,8 @@ and put in place so that nothing that is not ours is replaced, even if it appear
 
 `Output.write` then writes the mesh atomically (`jaxci.io.write_mesh` inside `_interrupt.removing_temporaries`)
 with ``overwrite`` set to what was checked: without ``--force`` the final move refuses any file that appeared at
-the output's name meanwhile; with ``--force`` it replaces only the very file (device and inode) that was there
-when it was checked, or nothing.
+the output's name meanwhile; with ``--force`` it replaces only the very file (device, inode, change time) that was
+there when it was checked, unchanged, or nothing.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ class Output:
 
     path: Path
     targets: tuple[Path, ...]
-    allowed: dict[str, tuple[int, int] | None]
+    allowed: dict[str, tuple[int, int, int] | None]
 
     def check_inputs(self, mesh) -> None:
         """Refuse a target that is one of the files `mesh` was read from (`jaxci.io.input_paths`)."""

@@ -228,6 +228,12 @@ def guard():
         os.close(w)
 
 
+def signalled() -> bool:
+    """Whether the command's guard has seen SIGINT or SIGTERM (for an error that the interrupt caused inside a
+    library, which wrapped the `KeyboardInterrupt` in its own exception: a JAX callback does)."""
+    return bool(_ACTIVE) and _ACTIVE[-1].signum is not None
+
+
 @contextlib.contextmanager
 def on_interrupt(fn):
     """Within the block, the watchdog calls ``fn()`` (from its own thread, the main thread being stuck) before

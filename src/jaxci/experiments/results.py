@@ -37,7 +37,7 @@ from pathlib import Path
 
 from ..errors import ConfigError
 from ..io._paths import os_reason
-from ..io._place import identity, rename_noreplace
+from ..io._place import identity, rename_noreplace, same_inode
 
 #: The marker file of a results folder: JSON ``{"jaxci_results": 1, "jaxci": version, "partial": bool,
 #: "entries": [relative paths, folders ending in "/"]}``.
@@ -54,7 +54,7 @@ class Staged:
     out: Path
     tmp: Path
     earlier: bool
-    ident: tuple[int, int] | None = None
+    ident: tuple[int, int, int] | None = None
     inputs: frozenset = frozenset()
     committed: Path | None = None
     taken: str | None = None
@@ -211,7 +211,7 @@ class _NotOurs(Exception):
     """The output folder is not what `stage` checked any more (the message says what it is now)."""
 
 
-def _put_in_place(tmp: Path, out: Path, ident: tuple[int, int] | None, ids: frozenset) -> None:
+def _put_in_place(tmp: Path, out: Path, ident: tuple[int, int, int] | None, ids: frozenset) -> None:
     """Rename `tmp` to `out`. `ident` None: nothing may be at `out`. Else `out` (that folder, checked by `stage`)
     is moved aside, checked again (the same folder, only what jaxci wrote, no input), and removed once `tmp` is
     in place; put back if anything fails. `_NotOurs` when `out` is not what was checked."""
@@ -222,6 +222,11 @@ def _put_in_place(tmp: Path, out: Path, ident: tuple[int, int] | None, ids: froz
         except FileExistsError:
             raise _NotOurs(f"{shown} appeared while the experiment ran") from None
         return
+    now = identity(out)
+    if now is None:  # removed meanwhile: nothing to replace, and nothing may appear
+        return _put_in_place(tmp, shown, None, ids)
+    if not same_inode(now, ident):
+        raise _NotOurs(f"{shown} was replaced by another folder while the experiment ran")
     trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
     old = trash / "old"
     try:
@@ -233,7 +238,7 @@ def _put_in_place(tmp: Path, out: Path, ident: tuple[int, int] | None, ids: froz
         trash.rmdir()
         raise
     why = None
-    if identity(old) != ident:
+    if not same_inode(identity(old), ident):
         why = f"{shown} was replaced by another folder while the experiment ran"
     elif foreign := foreign_entries(old, limit=1):
         why = f"{shown} got {foreign[0]}, which jaxci did not write, while the experiment ran"

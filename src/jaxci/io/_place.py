@@ -9,8 +9,8 @@ folder onto an EMPTY folder succeeds on Linux. So the final move checks again, a
   the removal of the temporary name; for a folder, an exclusive ``mkdir`` of the target and a rename onto that
   empty folder of ours. `FileExistsError` when the target is taken.
 - `place_files` moves several files (a mesh and its companion files) as one: each target must be what the
-  caller allows there (`ANY` regular file, nothing, or the very file, by device and inode, that was checked
-  earlier: ``renameat2(RENAME_EXCHANGE)`` swaps it out atomically and swaps back if it is another file). If one
+  caller allows there (`ANY` regular file, nothing, or the very file, by device, inode and change time, that was
+  checked earlier: ``renameat2(RENAME_EXCHANGE)`` swaps it out atomically and swaps back if it is another file). If one
   target is refused or fails, the targets already placed are put back as they were. `Taken` says which.
 """
 
@@ -49,13 +49,20 @@ class Taken(FileExistsError):
         self.path, self.changed = Path(path), changed
 
 
-def identity(path: str | os.PathLike) -> tuple[int, int] | None:
-    """(device, inode) of what `path` names itself (a link is not followed), or None when nothing is there."""
+def identity(path: str | os.PathLike) -> tuple[int, int, int] | None:
+    """(device, inode, change time in ns) of what `path` names itself (a link is not followed), or None when
+    nothing is there. The change time tells a file put in place of another apart even when the system gives it
+    the inode number the other just freed, and a file changed since it was looked at."""
     try:
         st = os.lstat(path)
     except FileNotFoundError:
         return None
-    return st.st_dev, st.st_ino
+    return st.st_dev, st.st_ino, st.st_ctime_ns
+
+
+def same_inode(a: tuple | None, b: tuple | None) -> bool:
+    """Whether two `identity` values are the same file (device and inode; a rename changes the change time)."""
+    return a is not None and b is not None and a[:2] == b[:2]
 
 
 def _libc_renameat2():
@@ -130,8 +137,8 @@ def place_files(moves: Sequence[tuple[Path, Path]], allowed: Mapping[Path, objec
 
     - `moves`: ``(src, dst)`` pairs, in the order to place them (companion files first, the main file last).
     - `allowed`: per target, what may be replaced there: `ANY` (any regular file), None (nothing: the target must
-      not exist) or the ``(device, inode)`` of the file checked earlier (`identity`). A target missing from the
-      mapping, or `allowed` None, is `ANY`.
+      not exist) or the `identity` of the file checked earlier (the same file, unchanged since). A target missing
+      from the mapping, or `allowed` None, is `ANY`.
 
     **Returns:** nothing. Raises `Taken` when a target holds something else (after putting back the targets
     already placed), `OSError` when a rename fails (the same). A replaced file is removed only once every
@@ -172,7 +179,7 @@ def _place_one(src: Path, dst: Path, want) -> Path | None:
         raise IsADirectoryError(errno.EISDIR, "is a folder", os.fspath(dst))
     if _exchange(src, dst):  # the old file is now at src: check it is the one allowed, else swap back
         old = identity(src)
-        if (want is not ANY and old != want) or stat.S_ISDIR(os.lstat(src).st_mode):
+        if (want is not ANY and not same_inode(old, want)) or stat.S_ISDIR(os.lstat(src).st_mode):
             _exchange(src, dst)
             raise Taken(dst, changed=True)
         return src
