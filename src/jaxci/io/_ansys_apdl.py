@@ -137,6 +137,8 @@ class DeckReader:
                 self.keyopt(raw)
             elif name == "CMBLOCK":
                 self.cmblock(raw)
+            elif name.startswith("/INP"):  # the file it names is not read: its mesh is not part of this one
+                self.skipped["/INPUT (not followed)"] = self.skipped.get("/INPUT (not followed)", 0) + 1
             elif name and not name.startswith(("/", "*", "C***")) and "=" not in name and name not in _HARMLESS:
                 self.skipped[name] = self.skipped.get(name, 0) + 1
 
