@@ -3,8 +3,10 @@
 `read_mesh` / `write_mesh` pick the format from the file extension through `FORMATS` (or, in the API, take
 ``file_format=``, one of its values or ``"gmsh22"``). ANSYS NLIST/ELIST listings are read with
 `read_ansys_listing`, or with `read_mesh` given the pair ``(nlist, elist)`` or one ``.lis`` / ``.txt`` file
-holding both listings. `write_mesh` never overwrites the file a mesh was read from, writes atomically, and
-warns (`LossyWriteWarning`) about what a format cannot hold.
+holding both listings. Every reader records the other files it opened (``*INCLUDE`` files, an XDMF file's
+data files) in `HexMesh.input_files`; `write_mesh` never overwrites any file a mesh was read from (`input_paths`),
+writes atomically (with its companion files, `companion_files`), and warns (`LossyWriteWarning`) about what a
+format cannot hold.
 """
 
 from __future__ import annotations
@@ -141,8 +143,8 @@ def read_mesh(path: str | os.PathLike | tuple, *, file_format: str | None = None
     **Returns:** a `HexMesh` with ``source`` set to the file, carrying the file's other cell blocks, data,
     sets and ids (see `write_mesh` for which format holds what).
 
-    Raises `MeshReadError` (missing, unreadable, truncated or corrupt file, a folder, counts that disagree with
-    their headers, duplicate or out-of-range ids), `UnsupportedFormatError` (unknown extension or format name),
+    Raises `MeshReadError` (missing, unreadable, truncated or corrupt file, a folder, a FIFO or device, a name
+    too long for the file system, counts that disagree with their headers, duplicate or out-of-range ids), `UnsupportedFormatError` (unknown extension or format name),
     `MeshError` (no hexahedra, non-finite coordinates, bad node index) or `UsageError` (`path` not a path), each
     with a one-line message naming the file.
     """
