@@ -5,13 +5,17 @@
 listener registered once per process adds those durations up, so each phase also says how much of it was
 compilation and how many functions were compiled or loaded from the persistent compilation cache.
 
-Library code only records; whoever runs the clock (the CLI's ``--verbose``) may pass ``on_event`` to hear of
-each phase as it starts and ends.
+Library code only records; whoever runs the clock (the command line) may pass ``on_event`` to hear of each
+phase as it starts and ends, and of the progress inside it: code deep inside a phase (a solver's loop) reports
+through `progress` (a stage: a restart, a round) and `stepper` (a loop's steps, at most one report per
+`STEP_INTERVAL` seconds), which cost nothing when nobody listens. `listening` gives a listener to the clocks made
+without one (those of each `jaxci.smooth` call of an experiment).
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import threading
 import time
@@ -26,6 +30,15 @@ _COMPILE_EVENTS = {
     "/jax/core/compile/backend_compile_duration": "backend",
 }
 _CACHE_HIT = "/jax/compilation_cache/cache_hits"
+
+#: Seconds between two reports of a loop's steps (`stepper`): a terminal's line redrawn a few times a second.
+STEP_INTERVAL = 0.2
+
+#: ``(on_event, phase name)`` of the phase running in this context (None: nobody listens), for `progress` and
+#: `stepper`.
+_running: contextvars.ContextVar = contextvars.ContextVar("jaxci_running_phase", default=None)
+#: The listener of clocks made without one (`listening`).
+_ambient: contextvars.ContextVar = contextvars.ContextVar("jaxci_phase_listener", default=None)
 
 _lock = threading.Lock()
 _totals = {"trace": 0.0, "lower": 0.0, "backend": 0.0, "compiled": 0, "cache_hits": 0}
@@ -87,12 +100,14 @@ class PhaseClock:
     """Wall time and compilation per named phase, in the order the phases first ran.
 
     - `on_event`: optional ``on_event(kind, name, record)``, kind ``"start"`` (record None), ``"end"``
-      (record: the phase's `as_dict` entry so far) or ``"progress"`` (record ``{"text": ...}``: a line of
-      progress inside a long phase, `progress`).
+      (record: the phase's `as_dict` entry so far), ``"progress"`` (record ``{"text": ...}``: a stage inside a
+      long phase, `PhaseClock.progress` and `progress`) or ``"step"`` (record ``{"stage", "unit", "step", "F",
+      "worst"}``: a loop's latest step, `stepper`; F and worst (max kappa/3) may be None). Default: the
+      listener of `listening`, if any.
     """
 
     def __init__(self, on_event: Callable[[str, str, dict | None], None] | None = None):
-        self.on_event = on_event
+        self.on_event = on_event if on_event is not None else _ambient.get()
         self._phases: dict[str, dict] = {}
         compile_totals()  # register the listener before the first phase compiles anything
 
@@ -113,9 +128,11 @@ class PhaseClock:
             self.on_event("start", name, None)
         release_free_memory()  # the last phase's freed temporaries off the resident set before this one's arrays
         c0, t0 = compile_totals(), time.perf_counter()
+        token = _running.set(None if self.on_event is None else (self.on_event, name))
         try:
             yield
         finally:
+            _running.reset(token)
             c1 = compile_totals()
             self.add(name, time.perf_counter() - t0,
                      sum(c1[k] - c0[k] for k in ("trace", "lower", "backend")),
@@ -136,3 +153,44 @@ class PhaseClock:
                                                                        "cache_hits")}
         out["total"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in tot.items()}
         return out
+
+
+def progress(text: str) -> None:
+    """Report a stage inside the running phase (``"progress"`` event: a solver's restart, a presmoothing) to its
+    clock's listener; nothing when nobody listens."""
+    running = _running.get()
+    if running is not None:
+        running[0]("progress", running[1], {"text": text})
+
+
+def stepper(stage: str, unit: str = "step") -> Callable[..., None] | None:
+    """A reporter of a loop's steps inside the running phase: ``tick(step, F=None, worst=None)`` sends a
+    ``"step"`` event (`stage`, e.g. ``"L-BFGS"``, what a step is called, `unit`, e.g. ``"sweep"``, the step, F and
+    the worst element's kappa/3) at the first call and then at most once every `STEP_INTERVAL` seconds. None
+    when nobody listens, so that a loop pays one test a step: ``if tick is not None: tick(k, f, kmax)``."""
+    running = _running.get()
+    if running is None:
+        return None
+    on_event, name = running
+    due = [0.0]
+
+    def tick(step: int, f: float | None = None, worst: float | None = None) -> None:
+        now = time.monotonic()
+        if now < due[0]:
+            return
+        due[0] = now + STEP_INTERVAL
+        on_event("step", name, {"stage": stage, "unit": unit, "step": int(step), "F": None if f is None else float(f),
+                                "worst": None if worst is None else float(worst)})
+
+    return tick
+
+
+@contextlib.contextmanager
+def listening(on_event: Callable[[str, str, dict | None], None] | None):
+    """Within the body, a `PhaseClock` made without a listener reports to `on_event` (`jaxci run`: the phases
+    and progress of each run's `jaxci.smooth`)."""
+    token = _ambient.set(on_event)
+    try:
+        yield
+    finally:
+        _ambient.reset(token)

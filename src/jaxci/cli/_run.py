@@ -1,5 +1,7 @@
 """`jaxci run CONFIG [--out DIR] [--force] [--seeds N] [--quiet]`: run an experiment config
-(`jaxci.experiments.runner`).
+(`jaxci.experiments.runner`). On a terminal (and without ``--quiet``), stderr shows one line of progress redrawn
+in place: the run (k of n: mesh / method / seed), its phase, stage, step, F, worst element and the elapsed time
+(`_progress`).
 
 Exit codes: 0 all runs done, 1 some runs failed (listed on stderr, recorded in the summary), 2 a bad config or
 output folder (nothing written), or an output folder that appeared or changed while the experiment ran (the
@@ -27,29 +29,38 @@ def add_args(p) -> None:
                    help="replace DIR if it holds earlier jaxci results and nothing else (or is empty); they are "
                    "replaced only once the new run is complete, else it goes to DIR.partial-N / DIR.failed-N")
     p.add_argument("--seeds", type=int, metavar="N", help="run seeds 0..N-1 instead of the config's")
-    p.add_argument("--quiet", action="store_true", help="no progress bar and no summary lines")
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress line on stderr (shown only where stderr is a terminal) and no summary lines")
     p.epilog = ("exit codes: 0 all runs done; 1 some runs failed; 2 bad config or output folder (nothing written); "
                 "130 on SIGINT, 143 on SIGTERM (finished runs written, marked partial, beside earlier results: "
                 "DIR.partial-N)")
 
 
-def _progress_bar(enabled: bool):
-    """A rich progress bar on stderr (a no-op context when disabled) and its `progress(done, total, text)`."""
+def _progress(enabled: bool):
+    """The progress line on stderr (`_progress.Display`; a no-op context when disabled): ``(context, update)``,
+    `update(done, total, text)` for `run_experiment`; inside the context each run's `jaxci.smooth` reports its
+    phases, stages and steps to the line (`jaxci.phases.listening`)."""
     import contextlib
 
     if not enabled:
         return contextlib.nullcontext(), None
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from ..phases import listening
+    from ._progress import Display
 
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                   console=Console(stderr=True), transient=True)
-    task = bar.add_task("runs", total=None)
+    display = Display(live=True)
 
     def update(done: int, total: int, text: str) -> None:
-        bar.update(task, completed=done, total=total, description=text)
+        display.set_context(f"run {min(done + 1, total)}/{total}: {text}" if done < total else text)
 
-    return bar, update
+    @contextlib.contextmanager
+    def shown():
+        try:
+            with listening(display.on_event):
+                yield
+        finally:
+            display.close()
+
+    return shown(), update
 
 
 def _kept_line(res) -> str:
@@ -71,13 +82,14 @@ def run(args) -> int:
     from ..experiments.runner import ExperimentResult, load_config, run_experiment
     from ..io._paths import check_regular
     from ._interrupt import on_interrupt
+    from ._progress import wanted
 
     try:  # a FIFO or a device would make reading the config wait forever
         check_regular(args.config, "config file (YAML)")
     except MeshReadError as e:
         raise ConfigError(str(e).replace(": no such file", ": no such config file")) from None
     exp = load_config(args.config)
-    ctx, update = _progress_bar(not args.quiet and sys.stderr.isatty())
+    ctx, update = _progress(wanted(args.quiet))
     abort = []  # run_experiment's finish-now function, for the interrupt watchdog
 
     def emergency():

@@ -90,6 +90,7 @@ from ..metrics.hexahedron import (
     squared_condition_from_invariants,
 )
 from ..metrics.objective import extra_barrier, extra_cells, extra_terms, has_extra, no_extra, objective_and_max
+from ..phases import progress
 from . import _params as _p
 from ._buckets import bucket, padded_connectivity, to_device
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED
@@ -453,6 +454,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         steps += k
         runs += 1
         finite = seg_f[np.isfinite(seg_f)]
+        progress(f"{method} run {runs}: {steps} steps, F {finite.min(initial=np.inf):.6g}, max kappa/3 "
+                 f"{np.min(seg_k):.6g}")  # to the running phase's listener, if any (`jaxci.phases`)
         gain = float(seg_f[0] - finite.min()) if len(finite) else 0.0
         if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol or np.min(seg_k) <= 1.0 + p.ktol:
             break

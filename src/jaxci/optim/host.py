@@ -33,6 +33,7 @@ from .. import native
 from ..geometry.near import NearProjector, host_constraints
 from ..memory import release_free_memory
 from ..metrics.hexahedron import objective_terms_and_grad_np
+from ..phases import stepper
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
@@ -276,7 +277,7 @@ class _Memory:
 
 def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
           history: int, cap: float, ftol: float, done: Callable | None = None, deadline: float | None = None,
-          precond: Callable | None = None, precond_after: int = 0):
+          precond: Callable | None = None, precond_after: int = 0, stage: str | None = "L-BFGS"):
     """Minimise `fun` (a `HostObjective`: ``value, grad, F, max kappa/3 = fun(y)``; its ``accept()``, if any,
     is called once an evaluation becomes the iterate) from `y0` (float64, ``(n_free,)``).
 
@@ -287,7 +288,8 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     (optional, `time.perf_counter` seconds): stop after the first step past it (result ``"time budget"``);
     `precond` (optional): a function that returns the initial inverse Hessian's ``M``
     (`jaxci.optim.coarse.CoarseSpace`; default I), called once, at the first accepted iterate after
-    `precond_after` steps: M is used from then on.
+    `precond_after` steps: M is used from then on. `stage`: the name its steps are reported under to the
+    running phase's listener (`jaxci.phases.stepper`: step, F, max kappa/3); None reports nothing.
 
     **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the accepted
     iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
@@ -317,6 +319,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     slope = _dot(g, trial)
     alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
     stop = finished(f, k)
+    tick = None if stage is None else stepper(stage)
     while not stop and steps < limit:
         if deadline is not None and time.perf_counter() > deadline:
             result = "time budget"
@@ -351,6 +354,8 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             stop = rejected >= max_rejected
         hf.append(f)
         hk.append(k)
+        if tick is not None:
+            tick(steps, f, k)
     if stop and result == "nonlinear_max_steps_reached":
         result = "successful"
     return y, steps, result, np.asarray(hf, np.float64), np.asarray(hk, np.float64)
@@ -404,7 +409,7 @@ def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndar
         fun = objective(eps)
         v, k, result, hf, hk = lbfgs(fun, v, limit=inner_steps, max_rejected=max_rejected, rtol=rtol, atol=atol,
                                      history=history, cap=0.0, ftol=-np.inf, done=lambda f, d: d >= margin,
-                                     deadline=deadline)
+                                     deadline=deadline, stage=None)
         out_of_time = result == "time budget"
         steps += k + 1  # as the compiled loop counts: the round's first evaluation is a step
         rounds += 1

@@ -18,6 +18,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector, host_constraints
 from ..geometry.projection import Constraints
+from ..phases import stepper
 from ._moves import onto_plane, planar_rings
 from .ci_params import CIParams
 from .host_local import follow_candidates
@@ -68,6 +69,7 @@ def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int
     hist = [(f0, f0, k0)]
     n_roulette = round(p.stage_switch * T)
     calm = 0
+    tick = stepper("global CI", "learning attempt")
     while len(hist) <= T and not fc.min() <= p.ftol:
         a = len(hist) - 1
         best_before = fc.min()
@@ -81,6 +83,8 @@ def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int
         cand[better] = U[better, j[better]]
         fc, kc = np.where(better, fb, fc), np.where(better, kt[np.arange(C), j], kc)
         hist.append((fc.min(), fc.max(), kc[np.argmin(fc)]))
+        if tick is not None:
+            tick(a + 1, fc.min(), kc[np.argmin(fc)])
         tol = p.tol * max(fc.min(), p.ftol)
         calm = calm + 1 if fc.max() - fc.min() <= tol and best_before - fc.min() <= tol else 0
         if calm >= p.patience:

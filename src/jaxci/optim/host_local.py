@@ -35,6 +35,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
+from ..phases import stepper
 from ._anderson import AndersonMemory
 from ._local import edge_neighbours, gather_star, local_length, star_nodes
 from ._moves import coloured_stars, onto_plane
@@ -274,6 +275,7 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
     hist_f, hist_k, hist_m = [f], [kmax], [0]
     done = f <= p.ftol or kmax <= 1.0 + p.ktol
     memory = AndersonMemory(p.anderson, sw.x.size) if p.anderson else None  # the last sweeps
+    tick = stepper("local CI", "sweep")
     while not done and len(hist_f) <= p.max_sweeps:
         start = sw.x.copy()
         moved = sum(sw.visit(col) for col in sw.colours)
@@ -289,6 +291,8 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
         hist_f.append(f_new)
         hist_k.append(k_new)
         hist_m.append(moved)
+        if tick is not None:
+            tick(len(hist_f) - 1, f_new, k_new)
         done = f_new <= p.ftol or f - f_new <= p.tol * f + p.atol or moved == 0 or k_new <= 1.0 + p.ktol
         f = f_new
     n = len(hist_f) - 1
@@ -315,6 +319,7 @@ def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams
         per_colour.append((nbr[col.nodes], nmask[col.nodes], np.where(h > 0, h, 1.0)))
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax if np.isfinite(f) else np.inf], [0.0]
+    tick = stepper("smart Laplace" if smart else "Laplace", "sweep")
     while len(hist_f) <= p.max_sweeps:
         move = max((sw.laplace_visit(col, *extra, smart) for col, extra in zip(sw.colours, per_colour, strict=True)),
                    default=0.0)
@@ -322,6 +327,8 @@ def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams
         hist_f.append(f)
         hist_k.append(kmax if np.isfinite(f) else np.inf)
         hist_m.append(move)
+        if tick is not None:
+            tick(len(hist_f) - 1, f, hist_k[-1])
         if move <= p.tol or (until_valid and np.isfinite(f)):
             break
     n = len(hist_f) - 1

@@ -1,0 +1,150 @@
+"""What a long command shows on stderr while it works: one line, redrawn in place on a terminal, that says the
+phase, the stage inside it, the latest step, F, the worst element (max kappa/3) and the time since the command
+started; and with ``--verbose`` a line per finished phase (its time and compilation) and per stage.
+
+`Display` is a `jaxci.phases.PhaseClock` listener (``on_event``). The live line is drawn only where stderr is a
+terminal (and not with ``--quiet``): piped or redirected, stderr gets nothing but the ``--verbose`` lines. A
+thread redraws the line twice a second so that the elapsed time moves during a long compiled call that reports
+nothing; `close` (always called, also on an error or an interrupt) stops it and erases the line before anything
+else is printed.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+
+#: Seconds between two redraws of the live line by the refresh thread.
+REFRESH = 0.5
+#: Erase the current terminal line (carriage return, then ANSI "erase line").
+_ERASE = "\r\x1b[2K"
+
+
+def _number(x) -> str:
+    return "-" if x is None else f"{x:.6g}"
+
+
+def step_text(rec: dict) -> str:
+    """A ``"step"`` event's record as text: ``L-BFGS step 120: F 0.0123, worst kappa/3 1.234``."""
+    text = f"{rec['stage']} {rec.get('unit', 'step')} {rec['step']}"
+    if rec.get("F") is not None:
+        text += f": F {_number(rec['F'])}"
+        if rec.get("worst") is not None:
+            text += f", worst kappa/3 {_number(rec['worst'])}"
+    return text
+
+
+class Display:
+    """A `PhaseClock` listener writing to `stream` (default stderr).
+
+    - `live`: draw the live line (the caller decides: stderr a terminal and no ``--quiet``; `wanted`).
+    - `verbose`: print a line per finished phase and per stage (``--verbose``), on a terminal or not.
+    - `started`: `time.perf_counter` value the elapsed time counts from (default: now).
+    """
+
+    def __init__(self, *, live: bool, verbose: bool = False, stream=None, started: float | None = None):
+        self.stream = sys.stderr if stream is None else stream
+        self.live, self.verbose = live, verbose
+        self.started = time.perf_counter() if started is None else started
+        self.context = ""  # what the whole command is at (`jaxci run`: the run), before the phase
+        self._phase = ""
+        self._detail = ""
+        self._drawn = False
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread = None
+        if live:
+            self._thread = threading.Thread(target=self._refresh, name="jaxci-progress", daemon=True)
+            self._thread.start()
+
+    # -- events --------------------------------------------------------------------------------------------
+    def on_event(self, kind: str, name: str, rec: dict | None) -> None:
+        with self._lock:
+            if kind == "start":
+                self._phase, self._detail = name, ""
+            elif kind == "end":
+                self._detail = ""
+                if self.verbose and rec is not None:
+                    comp = (f" (compilation {rec['compile_seconds']:.2f} s, {rec['compiled']} compiled)"
+                            if rec["compiled"] else "")
+                    self.print(f"jaxci: {name:<9} {rec['seconds']:8.2f} s{comp}")
+            elif kind == "progress":
+                self._phase, self._detail = name, rec["text"]
+                if self.verbose:
+                    self.print(f"jaxci: {name:<9} ... {rec['text']}")
+            elif kind == "step":
+                self._phase, self._detail = name, step_text(rec)
+            self._draw()
+
+    def set_context(self, text: str) -> None:
+        """What the command as a whole is doing (shown before the phase): `jaxci run`'s current run."""
+        with self._lock:
+            self.context, self._phase, self._detail = text, "", ""
+            self._draw()
+
+    def print(self, line: str) -> None:
+        """Print a permanent line (the live line erased first and drawn again below it)."""
+        with self._lock:
+            self._erase()
+            print(line, file=self.stream, flush=True)
+            self._draw()
+
+    def close(self) -> None:
+        """Stop the refresh thread and erase the live line (idempotent)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2 * REFRESH)
+        with self._lock:
+            self.live = False
+            self._erase()
+
+    # -- the live line -------------------------------------------------------------------------------------
+    def text(self) -> str:
+        """The live line's text."""
+        phase = (f"{self._phase}: {self._detail}" if self._detail else f"{self._phase} ...") if self._phase else ""
+        body = " | ".join(part for part in (self.context, phase) if part)
+        return f"jaxci: [{time.perf_counter() - self.started:6.1f} s] {body}".rstrip()
+
+    def _width(self) -> int:
+        try:
+            return max(20, os.get_terminal_size(self.stream.fileno()).columns - 1)
+        except (OSError, ValueError, AttributeError):
+            return 79
+
+    def _draw(self) -> None:
+        if not self.live:
+            return
+        text = self.text()[: self._width()]
+        try:
+            self.stream.write(_ERASE + text)
+            self.stream.flush()
+            self._drawn = True
+        except (OSError, ValueError):  # stderr gone: nothing to show progress on
+            self.live = False
+
+    def _erase(self) -> None:
+        if self._drawn:
+            try:
+                self.stream.write(_ERASE)
+                self.stream.flush()
+            except (OSError, ValueError):
+                pass
+            self._drawn = False
+
+    def _refresh(self) -> None:
+        while not self._stop.wait(REFRESH):
+            with self._lock:
+                self._draw()
+
+
+def wanted(quiet: bool, stream=None) -> bool:
+    """Whether to draw the live line: not `quiet`, and `stream` (default stderr) is a terminal."""
+    stream = sys.stderr if stream is None else stream
+    if quiet:
+        return False
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):
+        return False
