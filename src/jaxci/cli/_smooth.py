@@ -1,5 +1,5 @@
 """`jaxci smooth IN OUT [--method M] [--engine E] [--device D] [--seed S] [--devices N|all] [--json] [--verbose]
-[--force]`: smooth a mesh, write it as OUT.
+[--quiet] [--report FILE] [--force]`: smooth a mesh, write it as OUT.
 
 ``--engine auto|host|jax`` and ``--device auto|cpu|gpu`` are `jaxci.smooth`'s ``engine`` and ``device``: one
 decision (`jaxci.engine.resolve_plan`), printed with the result (``engine:`` line; ``--json``: the ``engine``
@@ -9,7 +9,11 @@ Without ``--method`` the default pipeline runs (``auto``: `jaxci.smooth.auto_pip
 which. ``--json`` reports the time of each phase (``phases``: ``startup`` (process start, imports and JAX set-up),
 ``read``, then `jaxci.smooth`'s ``validate``, ``report``, ``untangle``, ``setup``, ``smooth``, ``checks``, and
 ``write``; each with its compilation seconds and count); ``--verbose`` prints one line per phase on stderr as it
-ends (with a spinner while it runs on a terminal). ``--devices`` shards the elements over several devices
+ends, and one per stage inside it (an untangling round, a solver's restart). On a terminal, stderr shows one line
+of progress redrawn in place (phase, stage, step, F, the worst element, elapsed time: `_progress`), erased before
+the result is printed; nothing when stderr is not a terminal or with ``--quiet``. ``--report FILE`` (``.html`` or
+``.png``) draws what the smoothing did (`jaxci.experiments.smooth_report`), an output checked and written as OUT is
+(`_report`). ``--devices`` shards the elements over several devices
 (`jaxci.smooth`'s ``devices``; on a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` makes N; with
 more N than cores the command also turns XLA's per-fusion split off: `jaxci.runtime.cpu_device_flags`).
 
@@ -74,6 +78,12 @@ def add_args(p) -> None:
                    help="method hyperparameter, e.g. --param cohort=8 (repeatable)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object (with phase timings)")
     p.add_argument("--verbose", "-v", action="store_true", help="one line per phase on stderr (time, compilation)")
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress line on stderr (shown only where stderr is a terminal)")
+    p.add_argument("--report", metavar="FILE", default=None,
+                   help="also write a report of the smoothing: FILE.html (opens offline: images embedded) or "
+                        "FILE.png; corner kappa/3 histograms before and after, the worst elements (ids, "
+                        "positions), the surface coloured by element condition. Checked like OUTPUT")
     p.add_argument("--force", action="store_true", help="overwrite OUTPUT if it is an existing file (never the "
                    "input)")
 
@@ -108,39 +118,24 @@ def _devices(text: str | None):
     return n
 
 
-def _phase_printer(enabled: bool):
-    """`PhaseClock` ``on_event`` for ``--verbose``: a line per finished phase on stderr, a rich spinner while a
-    phase runs (on a terminal); None when disabled."""
-    if not enabled:
-        return None
-    from rich.console import Console
-
-    console = Console(stderr=True)
-    live = {}
-
-    def on_event(kind: str, name: str, rec: dict | None) -> None:
-        if kind == "progress":
-            print(f"jaxci: {name:<9} ... {rec['text']}", file=sys.stderr, flush=True)
-            return
-        if kind == "start":
-            if console.is_terminal and not live:
-                live[name] = console.status(f"{name} ...")
-                live[name].start()
-            return
-        status = live.pop(name, None)
-        if status is not None:
-            status.stop()
-        comp = f" (compilation {rec['compile_seconds']:.2f} s, {rec['compiled']} compiled)" if rec["compiled"] else ""
-        print(f"jaxci: {name:<9} {rec['seconds']:8.2f} s{comp}", file=sys.stderr, flush=True)
-
-    return on_event
-
-
 def run(args) -> int:
-    from ..phases import PhaseClock, process_age
+    import time
 
-    clock = PhaseClock(_phase_printer(args.verbose))
+    from ..phases import process_age
+    from ._progress import Display, wanted
+
     age = process_age()
+    display = Display(live=wanted(args.quiet), verbose=args.verbose, started=time.perf_counter() - (age or 0.0))
+    try:
+        return _smooth(args, display, age)
+    finally:
+        display.close()
+
+
+def _smooth(args, display, age) -> int:
+    from ..phases import PhaseClock
+
+    clock = PhaseClock(display.on_event if display.live or display.verbose else None)
     if age is not None:
         clock.add("startup", age)
         if clock.on_event is not None:
@@ -161,23 +156,41 @@ def run(args) -> int:
             raise ConfigError(f"--objective {args.objective} and --param objective={params['objective']} disagree")
         params["objective"] = args.objective
     out = check_output(args.output, [args.input], force=args.force)
+    report = None
+    if args.report is not None:
+        from ._report import check_report
+
+        report = check_report(args.report, [args.input], out, force=args.force)
     with clock.phase("read"):
         mesh = read_mesh(args.input)
     out.check_inputs(mesh)  # the files read through it too (includes, XDMF data), before the smoothing
+    if report is not None:
+        report.check_inputs(mesh)
     res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
                  fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
                  untangle_boundary=args.untangle_boundary,
                  merge_coincident=args.merge_coincident, keep_worst=not args.allow_worse_worst, clock=clock,
                  devices=devices, engine=args.engine, device=args.device, **params)
+    picture = None
+    if report is not None:
+        from ..experiments.smooth_report import render
+        from ._report import report_format, write_report
+
+        with clock.phase("draw"):
+            picture = render(mesh, res, report_format(report.path), f"jaxci smooth {args.input} -> {args.output}")
     with clock.phase("write"):
         out.write(res.mesh)  # replaces only what check_output saw (nothing, without --force)
+        if picture is not None:
+            write_report(report, picture, mesh)
+    display.close()  # the progress line erased before the result is printed
     phases = clock.as_dict()
     if args.verbose:
         t = phases["total"]
         print(f"jaxci: total     {t['seconds']:8.2f} s (compilation {t['compile_seconds']:.2f} s, {t['compiled']} "
               f"compiled, {t['cache_hits']} from the compilation cache)", file=sys.stderr)
     if args.json:
-        print(json.dumps({**res.summary(), "phases": phases, "input": args.input, "output": args.output}))
+        print(json.dumps({**res.summary(), "phases": phases, "input": args.input, "output": args.output,
+                          **({"report": args.report} if report is not None else {})}))
         return _status(res)
     for note in (*mesh.notes, *res.notes):
         print(f"note: {note}")

@@ -22,7 +22,8 @@ from ..metrics.report import HISTOGRAM_EDGES
 MAX_SURFACE_FACES = 20000
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg", force=True)
@@ -50,7 +51,7 @@ def convergence_figure(path: Path, title: str, series: list[tuple[str, list[dict
     **Arguments:** `path` of the PNG; `title`; `series`: per method, ``(label, histories)`` with the history
     dicts of its seeds (first seed first), each with ``objective`` and ``max_condition`` lists.
     """
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for j, (label, hists) in enumerate(series):
@@ -82,7 +83,7 @@ def histogram_figure(path: Path, title: str, bars: list[tuple[str, list[int]]], 
     `paper` optional ``[(label, counts)]`` drawn hatched."""
     from .report import bin_labels
 
-    plt = _pyplot()
+    plt = pyplot()
     allbars = [(lab, cnt, False) for lab, cnt in bars] + [(lab, cnt, True) for lab, cnt in (paper or [])]
     nb = len(HISTOGRAM_EDGES) - 1
     width = 0.85 / max(len(allbars), 1)
@@ -109,7 +110,6 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
     """
     import jax
     from matplotlib.colors import LogNorm
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from ..geometry.topology import boundary_topology
     from ..metrics.hexahedron import element_condition
@@ -118,7 +118,7 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
     topo = boundary_topology(hexes, len(points_before))
     if len(topo.faces) > MAX_SURFACE_FACES:
         return False
-    plt = _pyplot()
+    plt = pyplot()
     vals = []
     with jax.enable_x64(True):
         for pts in (points_before, points_after):
@@ -133,22 +133,33 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
     hi = np.maximum(np.max(points_before, axis=0), np.max(points_after, axis=0))
     for i, (pts, v, lab) in enumerate(zip((points_before, points_after), vals, labels, strict=True)):
         ax = fig.add_subplot(1, 2, i + 1, projection="3d")
-        pts = np.asarray(pts, dtype=np.float64)
-        colours = cmap(norm(np.where(np.isfinite(v), v, vmax * 10)))
-        ax.add_collection3d(Poly3DCollection(pts[topo.faces], facecolors=colours, edgecolors="k", linewidths=0.3))
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_zlim(lo[2], hi[2])
-        ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-12)))
         worst = float(np.max(v)) if v.size else math.nan
-        ax.set_title(f"{lab}: max kappa/3 on the surface {worst:.4g}", fontsize=9)
-        ax.view_init(elev=25, azim=-55)
+        draw_surface(ax, pts, topo.faces, v, norm, cmap, (lo, hi), f"{lab}: max kappa/3 on the surface {worst:.4g}")
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
     fig.colorbar(sm, ax=fig.axes, shrink=0.7, label="element condition (max corner kappa/3)")
     fig.suptitle(title)
     _save(fig, path)
     plt.close(fig)
     return True
+
+
+def draw_surface(ax, points, faces, values, norm, cmap, box, title: str) -> None:
+    """Draw boundary `faces` ``(F, 4)`` (a triangle repeats its last node) of `points` on the 3-D axes `ax`,
+    coloured by `values` ``(F,)`` through `norm` and `cmap` (non-finite values: the colour map's "over"), in the
+    bounding box ``box = (lo, hi)`` seen from the same angle as every other surface figure."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    pts = np.asarray(points, dtype=np.float64)
+    lo, hi = box
+    top = norm.vmax * 10 if norm.vmax is not None else 1e300
+    colours = cmap(norm(np.where(np.isfinite(values), values, top)))
+    ax.add_collection3d(Poly3DCollection(pts[faces], facecolors=colours, edgecolors="k", linewidths=0.3))
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-12)))
+    ax.set_title(title, fontsize=9)
+    ax.view_init(elev=25, azim=-55)
 
 
 def write_figures(folder: Path, exp, records, results: dict) -> dict:
