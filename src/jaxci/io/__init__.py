@@ -144,9 +144,9 @@ def read_mesh(path: str | os.PathLike | tuple, *, file_format: str | None = None
     sets and ids (see `write_mesh` for which format holds what).
 
     Raises `MeshReadError` (missing, unreadable, truncated or corrupt file, a folder, a FIFO or device, a name
-    too long for the file system, counts that disagree with their headers, duplicate or out-of-range ids), `UnsupportedFormatError` (unknown extension or format name),
-    `MeshError` (no hexahedra, non-finite coordinates, bad node index) or `UsageError` (`path` not a path), each
-    with a one-line message naming the file.
+    too long for the file system, counts that disagree with their headers, duplicate or out-of-range ids),
+    `UnsupportedFormatError` (unknown extension or format name), `MeshError` (no hexahedra, non-finite
+    coordinates, bad node index) or `UsageError` (`path` not a path), each with a one-line message naming the file.
     """
     if isinstance(path, tuple | list):
         if len(path) != 2 or file_format not in (None, "ansys-listing"):
