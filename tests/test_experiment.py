@@ -101,15 +101,21 @@ def test_run_writes_everything(small_run):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["partial"] is False
     assert len(summary["runs"]) == 2 and all(r["status"] == "ok" for r in summary["runs"])
-    assert summary["versions"]["jax"] and summary["device"]["platform"] == "cpu"
+    assert summary["versions"]["jax"] and summary["device"]["requested"] == "auto"
+    assert summary["device"]["accelerator"] is None and summary["device"]["cpu"]
+    # every run says what ran it: the engine's plan in summary.json, runs.csv and report.md
+    assert all(r["engine"]["name"] in ("host", "jax") and r["engine"]["dtype"] for r in summary["runs"])
     assert summary["config"]["methods"][0]["params"] == {"max_sweeps": 3}
     agg = summary["aggregates"][0]
     kap = [r["after"]["max_condition"] for r in summary["runs"]]
     assert agg["worst_max_condition"] == max(kap) and agg["best_max_condition"] == min(kap)
     rows = (out / "runs.csv").read_text().splitlines()
-    assert len(rows) == 3 and rows[0].startswith("mesh,method,")
+    assert len(rows) == 3 and rows[0].startswith("mesh,method,algorithm,seed,status,engine,device,dtype,kernel,")
+    engine = summary["runs"][0]["engine"]
+    assert rows[1].split(",")[5:9] == [engine["name"], engine["device"], engine["dtype"], engine["kernel"]]
     report = (out / "report.md").read_text()
     assert "Table 1" in report and "Table 2" in report and "Table 3" in report
+    assert f"| CI local | {engine['name']} | {engine['device']} | {engine['dtype']} | {engine['kernel']} | 2 |" in report
     assert "510.1303" in report and "0.001429" in report  # the paper's numbers beside ours
 
 
@@ -286,8 +292,8 @@ def test_output_key_from_config(tmp_path, capsys):
 def test_gpu_absent(tmp_path, capsys):
     import jax
 
-    if any(d.platform == "gpu" for d in jax.devices()):
-        pytest.skip("a GPU is present")
+    if any(d.platform != "cpu" for d in jax.devices()):
+        pytest.skip("an accelerator is present")
     cfg = _write(tmp_path, SMALL + "device: gpu\n")
     code, _, err = _run(["run", str(cfg), "--out", str(tmp_path / "out")], capsys)
     assert code == 2 and "device: gpu" in err and not (tmp_path / "out").exists()

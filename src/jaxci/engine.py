@@ -39,9 +39,20 @@ ENGINES = ("auto", "host", "jax")
 DEVICES = ("auto", "cpu", "gpu")
 
 #: Cells (all types) from which ``engine="auto"`` runs the JAX engine on an accelerator rather than the host
-#: engine on the CPU, where JAX sees one. Measured by ``scripts/bench_gpu.py`` (the command-line tool in a
-#: fresh process, both engines, perturbed boxes; docs/engines.md).
-ACCELERATOR_FROM = 100_000
+#: engine on the CPU, where JAX sees one. Measured by ``scripts/bench_gpu.py`` on an NVIDIA H200 with 16 CPU
+#: cores (2026-11-27; docs/engines.md), the default pipeline in a fresh process with an empty compilation cache,
+#: perturbed boxes: 10,648 hexahedra 13.6 s on the GPU against 1.5 s on the host; 97,336: 14.7 against 4.8 s;
+#: cube60_pert (216,000, tangled) 21.4 against 9.5 s; 10^6: 31.8 against 35.3 s. The GPU's cold run is mostly
+#: compilation (8-9 s), so it wins from about 10^6 cells.
+ACCELERATOR_FROM = 1_000_000
+
+#: Seeds from which ``engine="auto"`` runs global CI on several seeds of one mesh (``jaxci run``,
+#: `jaxci.smooth.smooth_seeds`) on the JAX engine as one batched program (`jaxci.optim.global_ci`), where the
+#: host engine would run one seed after the other. Measured (2-core CPU, cube729, the defaults' 1000 attempts):
+#: the host engine 4.3 s a seed; the batched program compiles in 4-5 s, then 1.5-1.9 s a seed (30 seeds: 50 s
+#: against the host's 130 s); on an H200, 30 seeds in 7.0 s cold against 5.0 s a seed on its CPU
+#: (docs/engines.md, scripts/bench_batched_ci.py).
+BATCH_SEEDS_FROM = 4
 
 #: The methods the host engine runs (hexahedral meshes; L-BFGS on mixed ones with the C kernels).
 HOST_METHODS = ("lbfgs", "ci", "ci-global", "laplace", "smart-laplace")
@@ -230,13 +241,14 @@ def engine_request(engine: str, params: dict) -> tuple[str, dict]:
 
 
 def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", device: str = "auto",
-                 dtype: str = "float32", devices=None, untangling: bool = False) -> Plan:
+                 dtype: str = "float32", devices=None, untangling: bool = False, seeds: int = 1) -> Plan:
     """The one decision of where a run of `method` on `mesh` runs (see the module docstring).
 
     **Arguments:** `mesh` the `HexMesh`; `method` a resolved method name (not ``"auto"``); `params` its
     parameters (without ``backend``: `engine_request`); `engine` one of `ENGINES`; `device` one of `DEVICES`;
     `dtype` the requested dtype of the JAX engine; `devices` None (one device) or the `jax.sharding.Mesh` to
-    shard over; `untangling` whether the untangling stage runs first.
+    shard over; `untangling` whether the untangling stage runs first; `seeds` how many seeds of this mesh run
+    together (global CI from `BATCH_SEEDS_FROM` seeds runs them as one batched program on the JAX engine).
 
     **Returns:** a `Plan`. Raises `ConfigError` for a request that cannot be honoured.
     """
@@ -265,7 +277,7 @@ def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", devic
         return host_plan("engine 'host' asked for")
     accel = accelerator() if device != "cpu" else None
     if device == "gpu" and accel is None:
-        raise ConfigError(_no_gpu_message())
+        raise ConfigError(no_accelerator_message())
     if engine == "jax":
         where = accel[0] if accel else "cpu"
         return _jax_plan(method, params, dtype, where, 1, "engine 'jax' asked for" + (
@@ -276,6 +288,10 @@ def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", devic
                f"an accelerator is visible and the mesh has {n_cells:,} >= {ACCELERATOR_FROM:,} cells "
                f"(jaxci.engine.ACCELERATOR_FROM)")
         return _jax_plan(method, params, dtype, accel[0], 1, why)
+    if method == "ci-global" and seeds >= BATCH_SEEDS_FROM and not untangling:
+        where = accel[0] if accel else "cpu"
+        return _jax_plan(method, params, dtype, where, 1, f"auto: {seeds} seeds of global CI run as one batched "
+                         f"program on the JAX engine (from {BATCH_SEEDS_FROM} seeds: jaxci.engine.BATCH_SEEDS_FROM)")
     limit = host_limit(method, native.AVAILABLE)
     if untangling:
         from .optim.host import UNTANGLE_HOST_MAX
@@ -294,10 +310,11 @@ def _platform_name(platform: str) -> str:
     return {"cuda": "gpu", "rocm": "gpu", "gpu": "gpu", "tpu": "tpu"}.get(platform, "cpu")
 
 
-def _no_gpu_message() -> str:
+def no_accelerator_message(asked: str = "device 'gpu'") -> str:
+    """Why `asked` (a request for an accelerator) cannot be honoured here: one sentence, with what to do."""
     have = "no accelerator plugin of JAX is installed" if not _plugins_installed() else "JAX sees only CPUs"
-    return (f"device 'gpu' asked for, but {have} (a GPU needs JAX's CUDA or ROCm build, e.g. "
-            f"pip install 'jax[cuda12]'); use device 'cpu' or 'auto'")
+    return (f"{asked} asked for, but {have} (a GPU needs JAX's CUDA or ROCm build, e.g. pip install "
+            f"'jax[cuda12]'); use device 'cpu' or 'auto'")
 
 
 def host_plan(reason: str = "engine 'host' asked for") -> Plan:
@@ -318,13 +335,11 @@ def uses_ffi(method: str, params: dict) -> bool:
 
 
 def _jax_plan(method: str, params: dict, dtype: str, device: str, n_devices: int, reason: str) -> Plan:
-    import jax
-
     from . import native
     from .runtime import schedulable_cpus
 
-    dev = jax.local_devices(backend=_jax_platform(device))[0]
-    kind = cpu_model() if device == "cpu" else str(getattr(dev, "device_kind", device))
+    acc = accelerator()
+    kind = cpu_model() if device == "cpu" else (acc[1] if acc else device)
     kernel, notes, threads = "XLA", [], None
     if device == "cpu":
         threads = max(schedulable_cpus(), n_devices)

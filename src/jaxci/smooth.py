@@ -187,6 +187,150 @@ def smooth(
 
     **Returns:** a `SmoothResult`.
     """
+    return _drive(_smooth_steps(mesh, method, seed=seed, dtype=dtype, feature_angle=feature_angle,
+                                fix_boundary=fix_boundary, fixed_nodes=fixed_nodes, fixed_sets=fixed_sets,
+                                untangle=untangle, untangle_boundary=untangle_boundary,
+                                merge_coincident=merge_coincident, keep_worst=keep_worst, clock=clock,
+                                devices=devices, engine=engine, device=device, **params))
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodRun:
+    """What `_smooth_steps` asks its driver to run: `method` with `seed` and `params` on `problem` (a `Problem`,
+    whose `plan` says where), timed in `clock`'s ``smooth`` phase. The driver sends back ``(points, iterations,
+    history, resolved params)`` (`jaxci.methods.run_method`)."""
+
+    problem: Problem
+    method: str
+    seed: int
+    params: dict
+    clock: object
+
+    def context(self):
+        """The contexts the method runs in: the plan's dtype and device on the JAX engine."""
+        plan = self.problem.plan
+        stack = contextlib.ExitStack()
+        if plan.engine != "host":
+            stack.enter_context(jax.enable_x64(plan.dtype == "float64"))
+        stack.enter_context(plan.context())
+        return stack
+
+
+def _drive(steps):
+    """Run the generator `steps` (`_smooth_steps`) to its result, running each `MethodRun` it yields."""
+    try:
+        req = next(steps)
+        while True:
+            with req.context(), req.clock.phase("smooth"):
+                out = run_method(req.problem, req.method, req.seed, req.params)
+            req = steps.send(out)
+    except StopIteration as done:
+        return done.value
+
+
+def smooth_seeds(meshes, method: str, seeds, *, errors: str = "raise", **kwargs) -> list:
+    """`smooth` of ``meshes[i]`` with ``seeds[i]`` for every i, where possible as ONE program: global CI
+    (``"ci-global"``) on the JAX engine runs every seed's cohort in one batched program
+    (`jaxci.optim.global_ci.global_ci_batched`: one compilation, one launch; each seed's mesh is the one it
+    gets alone), from `jaxci.engine.BATCH_SEEDS_FROM` seeds also under ``engine="auto"``. The meshes may differ
+    (the paper's cubes are perturbed by the seed) but must share connectivity and boundary classes to be batched;
+    seeds that cannot join the batch (an inverted input to untangle, nothing to move, another plan) and every
+    other method run one after the other, as `smooth` runs them.
+
+    **Arguments:** `meshes` one `HexMesh` per seed (the same object may repeat); `method`; `seeds` the seeds;
+    `errors`: ``"raise"`` (the first `jaxci.errors.JaxciError` is raised) or ``"return"`` (it takes the place of
+    that seed's result); `**kwargs`: `smooth`'s other arguments (`clock` excepted: each seed has its own).
+
+    **Returns:** one `SmoothResult` per seed, in order; a batched one has a note saying so and the batch's time
+    shared out in its ``smooth`` phase and wall time.
+    """
+    from .errors import JaxciError
+    from .phases import PhaseClock
+
+    if len(meshes) != len(seeds):
+        raise ConfigError(f"smooth_seeds: {len(meshes)} meshes for {len(seeds)} seeds")
+    if errors not in ("raise", "return"):
+        raise ConfigError(f"smooth_seeds: errors must be 'raise' or 'return', got {errors!r}")
+    kwargs.pop("clock", None)
+    results: list = [None] * len(seeds)
+    steps, asked = {}, {}
+
+    def advance(i, sent=None):
+        try:
+            asked[i] = next(steps[i]) if sent is None else steps[i].send(sent)
+        except StopIteration as done:
+            results[i] = done.value
+        except JaxciError as e:
+            if errors == "raise":
+                raise
+            results[i] = e
+
+    for i, (mesh, seed) in enumerate(zip(meshes, seeds, strict=True)):
+        steps[i] = _smooth_steps(mesh, method, seed=seed, clock=PhaseClock(), seeds=len(seeds), **kwargs)
+        advance(i)
+    pending = dict(asked)
+    batch = _batchable(pending)
+    outputs = _run_batch({i: pending[i] for i in batch}) if batch else {}
+    for i, req in pending.items():
+        if i not in outputs:
+            with req.context(), req.clock.phase("smooth"):
+                outputs[i] = run_method(req.problem, req.method, req.seed, req.params)
+        advance(i, outputs[i])
+    for i in batch:  # their wall time: their own phases (a generator's clock on the wall also ran the others')
+        if isinstance(results[i], SmoothResult):
+            phases = results[i].phases
+            own = sum(v["seconds"] for k, v in phases.items() if k not in ("total", "validate"))
+            results[i] = dataclasses.replace(results[i], wall_time=own)
+    return results
+
+
+def _batchable(asked: dict) -> list:
+    """The seeds of `asked` (index -> `MethodRun`) that run as one batched global CI program: global CI on the JAX
+    engine, one device, hexahedral meshes, with equal parameters, plans, connectivity and parametrisation shapes;
+    empty if fewer than two."""
+    from .methods import global_parametrisation
+    from .optim.global_ci import stackable
+
+    runs = {i: r for i, r in asked.items() if r.method == "ci-global" and r.problem.plan.engine == "jax"
+            and r.problem.devices is None and r.problem.extra is None}
+    if len(runs) < 2:
+        return []
+    first = next(iter(runs.values()))
+    same = [i for i, r in runs.items() if r.params == first.params and r.problem.plan == first.problem.plan
+            and np.array_equal(np.asarray(r.problem.conn), np.asarray(first.problem.conn))]
+    if len(same) < 2 or not stackable([global_parametrisation(runs[i].problem) for i in same]):
+        return []
+    return same
+
+
+def _run_batch(runs: dict) -> dict:
+    """Global CI of the `MethodRun` values of `runs` (index -> run) as one batched program; each run's clock gets
+    an equal share of the batch's time in its ``smooth`` phase. Returns index -> `run_method`'s output, its
+    resolved parameters with ``batched_seeds`` (how many ran together)."""
+    from .methods import global_parametrisation
+    from .optim.global_ci import global_ci_batched
+
+    reqs = list(runs.values())
+    first = reqs[0]
+    p = method_params("ci-global", first.params)
+    t0 = time.perf_counter()
+    with first.context():
+        keys = [jax.random.key(r.seed, impl="rbg") for r in reqs]
+        out = global_ci_batched(keys, [global_parametrisation(r.problem) for r in reqs], first.problem.conn,
+                                [free_scale(r.problem) for r in reqs], p)
+        out = [(np.asarray(x), it, hist) for x, it, hist in out]
+    share = (time.perf_counter() - t0) / len(reqs)
+    for r in reqs:
+        r.clock.add("smooth", share)
+    return {i: (x, it, hist, {**dataclasses.asdict(p), "batched_seeds": len(reqs)})
+            for i, (x, it, hist) in zip(runs, out, strict=True)}
+
+
+def _smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=40.0, fix_boundary=False,
+                  fixed_nodes=None, fixed_sets=(), untangle="auto", untangle_boundary=False, merge_coincident=False,
+                  keep_worst=True, clock=None, devices=None, engine="auto", device="auto", seeds=1, **params):
+    """`smooth` as a generator: it yields one `MethodRun` (unless no method needs to run), receives its output
+    and returns the `SmoothResult`; `_drive` runs one, `smooth_seeds` several at once."""
     from .mesh import from_unit, to_unit, unit_frame
     from .mesh import merge_coincident as merge
     from .phases import PhaseClock
@@ -197,7 +341,7 @@ def smooth(
         mesh, method, seed, fixed_sets, untangle_params, params, auto, shard, shard_note, plan = _validate(
             mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params,
             {"fix_boundary": fix_boundary, "merge_coincident": merge_coincident, "keep_worst": keep_worst,
-             "untangle_boundary": untangle_boundary}, engine, device, devices)
+             "untangle_boundary": untangle_boundary}, engine, device, devices, seeds)
     clock.progress("engine", plan.describe())
     t0 = time.perf_counter()
     notes: list[str] = []
@@ -221,9 +365,10 @@ def smooth(
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
                                check_coincident=False)
     notes.extend(plan.notes)
-    points, res = _smooth_unit(unit, method, seed, plan, feature_angle, fix_boundary, fixed, fixed_sets,
-                               untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary,
-                               shard, auto_note=_auto_note(auto) if auto and not user_presmooth else None)
+    points, res = yield from _smooth_unit(
+        unit, method, seed, plan, feature_angle, fix_boundary, fixed, fixed_sets, untangle, untangle_params, params,
+        notes, clock, keep_worst, untangle_boundary, shard,
+        auto_note=_auto_note(auto) if auto and not user_presmooth else None)
     moved = (points != unit.points).any(axis=1)
     real = np.array(mesh.points)
     real[moved] = from_unit(points[moved], frame)
@@ -251,7 +396,7 @@ def _sharding(method, devices, params: dict, device: str):
 
 
 def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params, flags: dict, engine, device,
-              devices):
+              devices, seeds=1):
     """`smooth`'s argument checks and the engine's plan, before any work: ``(mesh, method, seed, fixed_sets,
     untangle_params, params, auto, shard, shard_note, plan)`` with the `auto_pipeline` resolved (`auto`: its
     description, else ""), the device mesh of a sharded run (`shard`, None) and its note, and the
@@ -289,7 +434,7 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     untangling = untangle == "always" or (untangle != "never" and any(
         b.any() for b in mixed.inverted_cells(mesh, mesh.points).values()))
     plan = resolve_plan(mesh, "lbfgs" if method == "auto" else method, params, engine=engine, device=device,
-                        dtype=dtype, devices=shard, untangling=untangling)
+                        dtype=dtype, devices=shard, untangling=untangling, seeds=seeds)
     auto = ""
     if method == "auto":
         method, params, auto = auto_pipeline(mesh, params, plan)
@@ -323,8 +468,9 @@ def _auto_note(description: str) -> str:
 def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
                  untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary=False,
                  devices=None, auto_note: str | None = None) -> tuple[np.ndarray, SmoothResult]:
-    """`smooth` on a mesh in the unit frame, arguments checked: ``(points, result)`` (the result's mesh
-    and wall time are filled in by `smooth`; `notes` is appended to, `clock` records the phases).
+    """`smooth` on a mesh in the unit frame, arguments checked, as a generator (it yields the `MethodRun` of the
+    method, receives its output): returns ``(points, result)`` (the result's mesh and wall time are filled in by
+    `smooth`; `notes` is appended to, `clock` records the phases).
     `auto_note`: the note of the default pipeline where it chose the presmoothing (not the user): a Laplace
     sweep of the untangling stage then stands for it, and the note says so."""
     host = plan.engine == "host"
@@ -414,9 +560,11 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
                 iterations=0, wall_time=0.0, method=method, params={}, before=before,
                 after=before if untangled is None else quality_report(mesh, x), boundary=problem.info.counts,
                 node_class=np.asarray(problem.info.node_class))
-        with clock.phase("smooth"):
-            x, iterations, history, resolved = run_method(problem, method, seed, params)
-            x = np.asarray(x, dtype=np.float64)
+    x, iterations, history, resolved = yield MethodRun(problem, method, seed, params, clock)
+    x = np.asarray(x, dtype=np.float64)
+    if resolved.get("batched_seeds"):
+        notes.append(f"global CI of {resolved['batched_seeds']} seeds ran as one batched program on the JAX engine "
+                     f"(jaxci.smooth.smooth_seeds); this run's smooth phase is its equal share of the batch's time")
     notes.extend(problem.info.notes)
     cap = _CAPS.get(method)
     if cap is not None and cap in resolved:

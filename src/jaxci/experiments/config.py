@@ -15,9 +15,11 @@ boundary: {feature_angle: 40, fix_boundary: false, fixed_sets: [], fixed_nodes: 
 methods:
   - {name: CI local, method: ci, params: {max_sweeps: 50}}
   - {name: CI global, method: ci-global, params: {attempts: 500}, meshes: [cube27]}   # meshes: restrict
+  - {name: L-BFGS (JAX), method: lbfgs, engine: jax}   # engine: auto (default) | host | jax (jaxci.engine)
 seeds: [0, 1, 2]                       # or runs: N (seeds 0..N-1); default [0]
-dtype: float32                         # float32 | float64
-device: cpu                            # cpu | gpu | auto
+dtype: float32                         # float32 | float64: the JAX engine's (the host engine is float64)
+device: auto                           # auto (default: an accelerator where JAX sees one) | cpu | gpu
+batch_seeds: true                      # global CI: the seeds of a mesh as one batched program (jaxci.smooth_seeds)
 output: results/cube27                 # relative to the working directory; default results/<config stem>
 untangle: auto                         # auto | always | never
 write_meshes: true                     # smoothed VTU of the FIRST seed of each (mesh, method) only
@@ -131,11 +133,13 @@ class MeshSpec(_Model):
 
 
 class MethodSpec(_Model):
-    """One method entry: a `name` (label, default the method), a `method` of `jaxci.smooth.METHODS`, `params`."""
+    """One method entry: a `name` (label, default the method), a `method` of `jaxci.smooth.METHODS`, `params`,
+    the `engine` it runs on (`jaxci.engine.ENGINES`), the `meshes` it runs on (default all)."""
 
     name: str | None = None
     method: str
     params: dict[str, Any] = Field(default_factory=dict)
+    engine: Literal["auto", "host", "jax"] = "auto"
     meshes: list[str] | None = None
 
 
@@ -161,7 +165,8 @@ class ExperimentConfig(_Model):
     seeds: list[int] | None = None
     runs: int | None = None
     dtype: Literal["float32", "float64"] = "float32"
-    device: Literal["cpu", "gpu", "auto"] = "cpu"
+    device: Literal["cpu", "gpu", "auto"] = "auto"
+    batch_seeds: bool = True
     output: str | None = None
     untangle: Literal["auto", "always", "never"] = "auto"
     write_meshes: bool = True
@@ -241,13 +246,15 @@ class ResolvedMesh:
 
 @dataclasses.dataclass(frozen=True)
 class ResolvedMethod:
-    """A validated method entry: unique `label` (and `slug`), `method` name, `params`, meshes it runs on."""
+    """A validated method entry: unique `label` (and `slug`), `method` name, `params`, meshes it runs on, and
+    the `engine` asked for (`jaxci.engine.engine_request`: with the ``backend`` parameter folded in)."""
 
     label: str
     slug: str
     method: str
     params: dict
     meshes: tuple[str, ...] | None
+    engine: str = "auto"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -316,6 +323,7 @@ def load_config(path: str | os.PathLike) -> Experiment:
     missing or malformed file, unknown keys, wrong types or values, unknown methods or method parameters,
     missing or unreadable mesh files.
     """
+    from ..engine import engine_request
     from ..generate import PAPER_CASES
     from ..memory import check_fits, ci_trials, smooth_bytes
     from ..smooth import METHODS
@@ -420,6 +428,10 @@ def load_config(path: str | os.PathLike) -> Experiment:
                              f"{i}); give each a distinct 'name'")
         labels[label] = i
         _validate_params(m.method, m.params, lambda k, msg, i=i: loc8.error(("methods", i, "params", *k), msg))
+        try:
+            engine_request(m.engine, m.params)
+        except ConfigError as e:
+            raise loc8.error(("methods", i, "engine"), str(e)) from None
         for j, mn in enumerate(m.meshes or ()):
             if mn not in names:
                 raise loc8.error(("methods", i, "meshes", j), f"no mesh named {mn!r}; meshes: {', '.join(names)}")
@@ -427,7 +439,8 @@ def load_config(path: str | os.PathLike) -> Experiment:
     mslugs = _unique_slugs([lab for lab, _ in methods], lambda j: loc8.error(
         ("methods", j), "method labels must differ in more than punctuation and case (they name files)"))
     resolved_methods = tuple(
-        ResolvedMethod(lab, sl, m.method, dict(m.params), tuple(m.meshes) if m.meshes is not None else None)
+        ResolvedMethod(lab, sl, m.method, dict(m.params), tuple(m.meshes) if m.meshes is not None else None,
+                       m.engine)
         for (lab, m), sl in zip(methods, mslugs, strict=True)
     )
 

@@ -97,11 +97,14 @@ def aggregate(records) -> list[dict]:
     return out
 
 
-def build_summary(exp, records, device, *, partial: bool, total_runs: int, elapsed: float) -> dict:
-    """The ``summary.json`` object: config echo, versions, device, per-run records and aggregates."""
-    import jax
+def build_summary(exp, records, *, partial: bool, total_runs: int, elapsed: float) -> dict:
+    """The ``summary.json`` object: config echo, versions, the machine (``device``: what was asked for, the
+    accelerator JAX sees if any, the CPU), per-run records (each with the engine that ran it: ``engine``, a
+    `jaxci.engine.Plan` dict) and aggregates."""
+    import importlib.metadata
 
     from .. import __version__
+    from ..engine import accelerator, cpu_model
 
     cfg = exp.config
     return {
@@ -115,14 +118,17 @@ def build_summary(exp, records, device, *, partial: bool, total_runs: int, elaps
                    for m in exp.meshes],
         "methods": [{"name": m.label, "method": m.method, "params": m.params} for m in exp.methods],
         "table1": table1_choice(exp),
-        "versions": {"jaxci": __version__, "jax": jax.__version__, "numpy": np.__version__,
+        "versions": {"jaxci": __version__, "jax": importlib.metadata.version("jax"), "numpy": np.__version__,
                      "python": platform.python_version()},
-        "device": {"requested": cfg.device, "platform": device.platform, "kind": getattr(device, "device_kind", ""),
-                   "name": str(device)},
+        "device": {"requested": cfg.device, "accelerator": _accelerator(accelerator()), "cpu": cpu_model()},
         "elapsed": elapsed,
         "runs": [r.to_dict() for r in records],
         "aggregates": aggregate(records),
     }
+
+
+def _accelerator(acc) -> dict | None:
+    return None if acc is None else {"platform": acc[0], "kind": acc[1]}
 
 
 def table1_choice(exp) -> dict:
@@ -135,8 +141,26 @@ def table1_choice(exp) -> dict:
     return {"mesh": mesh, "stage1": t1.stage1, "stage2": t1.stage2}
 
 
+def _engines(summary) -> list[str]:
+    """Which engine, device, dtype and kernel ran each method (one line per distinct combination)."""
+    out = ["## Engines", "", "| method | engine | device | dtype | kernel | runs | why |",
+           "|---|---|---|---|---|---|---|"]
+    for m in summary["methods"]:
+        seen: dict = {}
+        for r in summary["runs"]:
+            e = r.get("engine")
+            if r["label"] == m["name"] and e:
+                key = (e["name"], e["device"] + ("" if e["devices"] == 1 else f" x{e['devices']}"), e["dtype"],
+                       e["kernel"], e["reason"])
+                seen[key] = seen.get(key, 0) + 1
+        for (name, device, dtype, kernel, why), n in seen.items():
+            out.append(f"| {m['name']} | {name} | {device} | {dtype} | {kernel} | {n} | {why} |")
+    return out
+
+
 CSV_COLUMNS = (
-    "mesh", "method", "algorithm", "seed", "status", "n_nodes", "n_elements", "iterations", "wall_time",
+    "mesh", "method", "algorithm", "seed", "status", "engine", "device", "dtype", "kernel", "n_nodes", "n_elements",
+    "iterations", "wall_time",
     "before_max_condition", "after_max_condition", "before_objective", "after_objective",
     "before_min_scaled_jacobian", "after_min_scaled_jacobian", "before_inverted_elements",
     "after_inverted_elements", "mesh_file", "error",
@@ -149,9 +173,10 @@ def runs_csv(records) -> str:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
     for r in records:
-        b, a = r.before or {}, r.after or {}
+        b, a, e = r.before or {}, r.after or {}, r.engine or {}
         w.writerow([
-            r.mesh, r.label, r.method, r.seed, r.status, b.get("n_nodes", ""), b.get("n_elements", ""),
+            r.mesh, r.label, r.method, r.seed, r.status, e.get("name", ""), e.get("device", ""), e.get("dtype", ""),
+            e.get("kernel", ""), b.get("n_nodes", ""), b.get("n_elements", ""),
             _c(r.iterations), _c(r.wall_time), _c(b.get("max_condition")), _c(a.get("max_condition")),
             _c(b.get("objective")), _c(a.get("objective")), _c(b.get("min_scaled_jacobian")),
             _c(a.get("min_scaled_jacobian")), _c(b.get("inverted_elements")), _c(a.get("inverted_elements")),
@@ -197,15 +222,17 @@ def render_report(summary: dict) -> str:
     if summary["partial"]:
         lines += [f"**PARTIAL**: interrupted after {summary['runs_done']} of {summary['runs_planned']} runs.", ""]
     dev = summary["device"]
+    acc = dev.get("accelerator")
     lines += [
         f"Seeds: {len(summary['seeds'])} ({', '.join(map(str, summary['seeds'][:10]))}"
-        f"{', ...' if len(summary['seeds']) > 10 else ''}); dtype {summary['config']['dtype']}; device "
-        f"{dev['platform']} ({dev['kind']}); jaxci {summary['versions']['jaxci']}, jax {summary['versions']['jax']}.",
+        f"{', ...' if len(summary['seeds']) > 10 else ''}); device asked for: {dev['requested']}; machine: "
+        f"{acc['kind'] + ' (' + acc['platform'] + ') and ' if acc else ''}{dev['cpu']}; jaxci "
+        f"{summary['versions']['jaxci']}, jax {summary['versions']['jax']}.",
         "Condition figures are kappa/3 (Frobenius, Verdict convention), F is the paper's Eq. 3.1. Generated meshes are "
         "perturbed by the run seed (each seed smooths a different perturbation of the same case).",
         "",
     ]
-    lines += _table1(summary) + [""] + _table2(summary) + [""] + _table3(summary)
+    lines += _engines(summary) + [""] + _table1(summary) + [""] + _table2(summary) + [""] + _table3(summary)
     failed = [r for r in summary["runs"] if r["status"] != "ok"]
     if failed:
         lines += ["", "## Failed runs", ""]
@@ -324,6 +351,7 @@ class RunRecord:
     error: str | None = None
     mesh_file: str | None = None
     history: dict | None = None
+    engine: dict | None = None
 
     def to_dict(self) -> dict:
         """The JSON record of ``summary.json`` (without the history, which goes to ``history.json``)."""

@@ -63,21 +63,14 @@ class ExperimentResult:
         return [r for r in self.records if r.status != "ok"]
 
 
-def select_device(name: str):
-    """The JAX device for ``cpu`` / ``gpu`` / ``auto``; `ConfigError` if a GPU is asked for and there is none."""
-    import jax
+def check_device(exp: Experiment) -> None:
+    """`ConfigError` naming the config when it asks for ``device: gpu`` and JAX sees no accelerator (before
+    anything runs); ``cpu`` and ``auto`` always hold (`jaxci.engine`)."""
+    from ..engine import accelerator, no_accelerator_message
 
-    if name == "auto":
-        return jax.devices()[0]
-    try:
-        devices = jax.devices(name)
-    except RuntimeError:
-        devices = []
-    if not devices:
-        have = ", ".join(sorted({d.platform for d in jax.devices()}))
-        raise ConfigError(f"device: {name} requested but JAX sees no {name.upper()} (available: {have}); "
-                          f"use device: cpu or auto")
-    return devices[0]
+    if exp.config.device == "gpu" and accelerator() is None:
+        line = Locator(exp.path, yaml.compose(exp.path.read_text(), Loader=yaml.SafeLoader)).line(("device",))
+        raise ConfigError(f"{exp.path}:{line}: {no_accelerator_message('device: gpu')}")
 
 
 def resolve_output(exp: Experiment, out: str | os.PathLike | None) -> tuple[Path, str]:
@@ -124,38 +117,36 @@ def run_experiment(
     failed: the new results then go beside them (``<out>.partial-N`` / ``<out>.failed-N``,
     `ExperimentResult.kept`).
     """
-    import jax
-
     if seeds is not None:
         if isinstance(seeds, bool) or int(seeds) != seeds or not 1 <= seeds <= MAX_RUNS:
             raise ConfigError(f"--seeds must be an integer in [1, {MAX_RUNS}], got {seeds}")
         exp = dataclasses.replace(exp, seeds=tuple(range(int(seeds))))
-    device = select_device(exp.config.device)
+    check_device(exp)
     out_path, key = resolve_output(exp, out)
     files = [exp.path, *(m.path for m in exp.meshes if m.path is not None),  # with what was read through them
              *(f for m in exp.meshes if m.mesh is not None for f in m.mesh.input_files)]
-    state = _Run(exp, device, stage(out_path, key, force, files))
+    state = _Run(exp, stage(out_path, key, force, files))
     if on_start is not None:
         on_start(state.abort)
     partial = False
     try:
         plan = exp.runs()
         state.total = len(plan)
-        first_seed = exp.seeds[0]
         inputs: dict[tuple[str, int], Any] = {}
+        done = 0
         try:
-            with jax.default_device(device):
-                for k, (rm, seed, meth) in enumerate(plan):
-                    if progress is not None:
-                        progress(k, len(plan), f"{rm.name} / {meth.label} / seed {seed}")
-                    rec, res = _one_run(exp, rm, seed, meth, inputs, strict)
-                    if res is not None and seed == first_seed:
-                        state.results[(rm.name, meth.label)] = (inputs[(rm.name, seed)], res)
+            for rm, seeds, meth in _work(exp, plan):
+                if progress is not None:
+                    what = f"seed {seeds[0]}" if len(seeds) == 1 else f"{len(seeds)} seeds together"
+                    progress(done, len(plan), f"{rm.name} / {meth.label} / {what}")
+                for rec, mesh, res in _runs(exp, rm, seeds, meth, inputs, strict):
+                    if res is not None and rec.seed == exp.seeds[0]:
+                        state.results[(rm.name, meth.label)] = (mesh, res)
                         if exp.config.write_meshes:
-                            rec.mesh_file = write_vtus(state.staged.tmp, rm, meth, seed, inputs[(rm.name, seed)],
-                                                       res)
+                            rec.mesh_file = write_vtus(state.staged.tmp, rm, meth, rec.seed, mesh, res)
                     state.records.append(rec)
-                    inputs = {kk: v for kk, v in inputs.items() if kk == (rm.name, seed)}  # one mesh in memory
+                done += len(seeds)
+                inputs = {kk: v for kk, v in inputs.items() if kk == (rm.name, seeds[-1])}  # one mesh in memory
         except KeyboardInterrupt:  # keep the finished runs; written below, marked partial
             partial = True
         if progress is not None:
@@ -170,8 +161,8 @@ class _Run:
     """The state of one `run_experiment` call that its output needs: written by `finish` (this thread) or by
     `abort` (another thread, on an interrupt), whichever comes first, under `lock`."""
 
-    def __init__(self, exp: Experiment, device, staged: Staged):
-        self.exp, self.device, self.staged = exp, device, staged
+    def __init__(self, exp: Experiment, staged: Staged):
+        self.exp, self.staged = exp, staged
         self.records: list[RunRecord] = []
         self.results: dict[tuple[str, str], Any] = {}  # first seed's (input mesh, SmoothResult) per (mesh, label)
         self.total = 0
@@ -220,7 +211,7 @@ class _Run:
 
         exp, records = self.exp, list(self.records)
         tmp = self.staged.tmp
-        summary = report.build_summary(exp, records, self.device, partial=partial, total_runs=self.total,
+        summary = report.build_summary(exp, records, partial=partial, total_runs=self.total,
                                        elapsed=time.perf_counter() - self.t0)
         if figures:
             try:
@@ -245,35 +236,69 @@ class _Run:
                                 self.staged.taken)
 
 
-def _one_run(exp: Experiment, rm: ResolvedMesh, seed: int, meth: ResolvedMethod, inputs: dict, strict: bool):
-    """Smooth one (mesh, seed, method); returns ``(RunRecord, SmoothResult or None)``."""
-    from ..smooth import smooth
+def _work(exp: Experiment, plan):
+    """The runs of `plan` as work items ``(mesh, seeds, method)`` in plan order: global CI with several seeds of
+    one mesh as one item (the first seed's place; `jaxci.smooth.smooth_seeds` batches it), every other run alone."""
+    batched = len(exp.seeds) > 1 and exp.config.batch_seeds
+    seen = set()
+    for rm, seed, meth in plan:
+        if batched and meth.method == "ci-global":
+            if (rm.name, meth.label) not in seen:
+                seen.add((rm.name, meth.label))
+                yield rm, tuple(s for m, s, mm in plan if m is rm and mm is meth), meth
+        else:
+            yield rm, (seed,), meth
 
-    rec = RunRecord(mesh=rm.name, label=meth.label, method=meth.method, seed=seed, status="failed")
+
+def _runs(exp: Experiment, rm: ResolvedMesh, seeds: tuple, meth: ResolvedMethod, inputs: dict, strict: bool):
+    """Smooth `rm` with `meth` for `seeds` (one `smooth`, or `smooth_seeds` for several); yields
+    ``(RunRecord, input mesh, SmoothResult or None)`` per seed, in order."""
+    from ..smooth import smooth, smooth_seeds
+
     b = rm.boundary
+    kwargs = dict(dtype=exp.config.dtype, feature_angle=b.feature_angle, fix_boundary=b.fix_boundary,
+                  fixed_nodes=b.fixed_nodes or None, fixed_sets=b.fixed_sets, untangle=exp.config.untangle,
+                  engine=meth.engine, device=exp.config.device, **meth.params)
+    meshes, outcome = {}, {}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            if (rm.name, seed) not in inputs:
-                inputs[(rm.name, seed)] = rm.build(seed)
-            mesh = inputs[(rm.name, seed)]
-            res = smooth(mesh, meth.method, seed=seed, dtype=exp.config.dtype, feature_angle=b.feature_angle,
-                         fix_boundary=b.fix_boundary, fixed_nodes=b.fixed_nodes or None, fixed_sets=b.fixed_sets,
-                         untangle=exp.config.untangle, **meth.params)
+            for seed in seeds:
+                if (rm.name, seed) not in inputs:
+                    inputs[(rm.name, seed)] = rm.build(seed)
+                meshes[seed] = inputs[(rm.name, seed)]
+            if len(seeds) == 1:
+                outcome[seeds[0]] = smooth(meshes[seeds[0]], meth.method, seed=seeds[0], **kwargs)
+            else:
+                outcome = dict(zip(seeds, smooth_seeds([meshes[s] for s in seeds], meth.method, list(seeds),
+                                                       errors="return", **kwargs), strict=True))
         except JaxciError as e:
-            rec.error = str(e)
-            return rec, None
+            outcome = {s: outcome.get(s, e) for s in seeds}
         except Exception as e:  # a bug in one method must not lose the other runs (strict: raise it)
             if strict:
                 raise
-            rec.error = f"internal error ({type(e).__name__}: {e}); rerun with `jaxci --debug run` for the traceback"
-            return rec, None
-        finally:
-            rec.notes = list(dict.fromkeys(str(w.message) for w in caught))
+            outcome = {s: outcome.get(s, e) for s in seeds}
+    warned = list(dict.fromkeys(str(w.message) for w in caught))
+    for seed in seeds:
+        yield _record(rm, seed, meth, outcome[seed], warned), meshes.get(seed), (
+            None if isinstance(outcome[seed], BaseException) else outcome[seed])
+
+
+def _record(rm: ResolvedMesh, seed: int, meth: ResolvedMethod, res, warned: list) -> RunRecord:
+    """The `RunRecord` of one run: its `SmoothResult`, or the exception that ended it."""
+    rec = RunRecord(mesh=rm.name, label=meth.label, method=meth.method, seed=seed, status="failed", notes=warned)
+    if isinstance(res, JaxciError):
+        rec.error = str(res)
+        return rec
+    if isinstance(res, BaseException):
+        rec.error = (f"internal error ({type(res).__name__}: {res}); rerun with `jaxci --debug run` for the "
+                     f"traceback")
+        return rec
     rec.status = "ok"
     rec.iterations = int(res.iterations)
     rec.wall_time = float(res.wall_time)
     rec.before, rec.after = res.before.to_dict(), res.after.to_dict()
-    rec.notes = list(dict.fromkeys([*rec.notes, *res.notes]))
+    rec.engine = None if res.plan is None else res.plan.to_dict()
+    rec.notes = list(dict.fromkeys([*warned, *res.notes]))
     rec.history = {k: v for k, v in res.history.items() if k in ("objective", "max_condition", "best", "worst")}
-    return rec, res
+    return rec
