@@ -190,8 +190,8 @@ class Bench:
             t0 = time.perf_counter()
             out = _run_json([sys.executable, "-m", "jaxci", *args, "--json", "--force"], timeout, env)
             out["process_wall_s"] = time.perf_counter() - t0
-        return {k: out.get(k) for k in ("process_wall_s", "engine", "iterations", "phases", "error", "skipped")
-                } | {"max_condition": (out.get("after") or {}).get("max_condition")}
+        return {k: out[k] for k in ("process_wall_s", "engine", "iterations", "phases", "error", "skipped")
+                if k in out} | {"max_condition": (out.get("after") or {}).get("max_condition")}
 
     def _env(self) -> dict:
         # each child may take most of the device's memory (one runs at a time; the parent never imports JAX)

@@ -1,4 +1,5 @@
-"""Scaling benchmark: perturbed boxes from 10^3 to 100^3 hexes, time to reach max kappa/3 <= 1.01 and <= 1.0001.
+"""Scaling benchmark: perturbed boxes from 10^3 to 100^3 hexes, time to reach max kappa/3 <= 1.01 and <= 1.0001,
+both engines side by side (``--engines host jax``, the default: `jaxci.engine`).
 
 For every (size, method) a fresh subprocess (so peak memory and 'cold' are clean) generates the box (amplitude
 0.3, sliding boundary, seed 0, inverting draws redrawn), runs `jaxci.smooth` once cold (compilation included)
@@ -9,7 +10,9 @@ Sizes above ``--full-upto`` (default 60) are run once, cold, with the iterations
 re-timed runs (each would take minutes on a 2-core CPU). ``--repeats N`` makes each warm time and each time
 to a threshold the fastest of N runs (default 1, as before). It also
 times the objective kernel alone on the mesh (corner evaluations per second). Device: `--device cpu|gpu|auto`
-(unchanged code on a GPU machine). The children run with transparent huge pages for glibc's large allocations
+(unchanged code on a GPU machine); ``--engines`` the engines to run each (size, method) on (``auto`` lets
+`jaxci.engine.resolve_plan` choose; every row records the plan that ran). The children run with transparent
+huge pages for glibc's large allocations
 where that applies (`jaxci.runtime`; ``--hugepages off`` to compare). Prints a table and writes JSON (`--out`).
 
 ``--devices 1 2 4`` runs every (size, method) once per device count, sharded (`jaxci.smooth`'s ``devices``: the
@@ -18,8 +21,8 @@ elements split over the devices, `jaxci.optim.sharding`); each child is started 
 are counted instead). Each row records its ``devices``, the time and the peak resident memory (also per
 hexahedron) and ``xla_cpu_threads`` / ``cpus``: XLA:CPU's intra-op pool has max(cores, N) threads, so N forced
 devices beyond the cores oversubscribe them; those children also get `jaxci.runtime.cpu_device_flags`
-(XLA's per-fusion partitioning off; docs/sharding.md, issue 17); without ``--devices`` the runs are as
-before (one device, no ``devices`` argument).
+(XLA's per-fusion partitioning off; docs/sharding.md); without ``--devices`` the runs are on one device, with
+no ``devices`` argument (a sharded run is the JAX engine's: host rows are not run with ``--devices``).
 
     python scripts/benchmark.py --sizes 10 20 30 60 100 --methods lbfgs ci smart-laplace
     python scripts/benchmark.py --sizes 30 --methods lbfgs --devices 1 2 4 [--repeats 3]
@@ -38,20 +41,10 @@ THRESHOLDS = (1.01, 1.0001)
 #: The keyword that caps the iterations of each method family (CI: sweeps; Laplace: sweeps; optimistix: steps).
 CAP = {"ci": "max_sweeps", "smart-laplace": "max_sweeps", "laplace": "max_sweeps"}
 CAP_DEFAULT = "max_steps"
-#: The methods whose ``backend="auto"`` runs them on the host's CPU (numpy and C) for meshes up to a size.
-HOST_METHODS = ("lbfgs", "ci", "ci-global", "laplace", "smart-laplace")
-
-
 def child(args) -> dict:
-    """Run one (size, method) in this process on the device of ``--device`` and return its figures
-    (`jaxci.errors.ConfigError` if that device is not there)."""
-    import jax
-
-    from jaxci.experiments.runner import select_device
-
-    device = select_device(args.device)
-    with jax.default_device(device):
-        return _measure(args, device)
+    """Run one (size, method, engine) in this process and return its figures (`jaxci.errors.ConfigError` if the
+    engine or device asked for cannot run it)."""
+    return _measure(args)
 
 
 def _fastest(run, repeats: int):
@@ -65,15 +58,13 @@ def _fastest(run, repeats: int):
     return best
 
 
-def _measure(args, device) -> dict:
+def _measure(args) -> dict:
+    import importlib.metadata
     import resource
 
-    import jax
-    import jax.numpy as jnp
     import numpy as np
 
     from jaxci.generate import perturb_box
-    from jaxci.metrics import hexahedron as q
     from jaxci.smooth import smooth
 
     n = args.size
@@ -83,17 +74,15 @@ def _measure(args, device) -> dict:
     params = json.loads(args.params) if args.params else {}
     if args.devices:
         params["devices"] = args.devices
-    if device.platform != "cpu" and args.method in HOST_METHODS:
-        # on an accelerator, the compiled loops on it: with backend "auto" these methods run on the host's CPU up
-        # to `jaxci.optim.host.HOST_MAX` (L-BFGS) / `HOST_LOCAL_MAX` (CI, Laplacians) elements
-        params.setdefault("backend", "jax")
+    params.update(engine=args.engine, device=args.device)
     out = dict(size=n, hexes=mesh.n_hexes, nodes=mesh.n_nodes, method=args.method, dtype=args.dtype,
-               devices=args.devices, device=str(device), backend=device.platform, jax=jax.__version__,
+               devices=args.devices, engine_asked=args.engine, jax=importlib.metadata.version("jax"),
                generate_s=t_gen, params=params, glibc_tunables=os.environ.get("GLIBC_TUNABLES"),
                xla_flags=os.environ.get("XLA_FLAGS"))
     t0 = time.perf_counter()
     res = smooth(mesh, args.method, dtype=args.dtype, **params)
     out["cold_s"] = time.perf_counter() - t0
+    out["engine"] = res.plan.to_dict()
     single = n > args.full_upto  # one (cold) run only: too slow to repeat
     out["single_run"] = single
     if single:
@@ -126,9 +115,30 @@ def _measure(args, device) -> dict:
         smooth(mesh, args.method, dtype=args.dtype, **capped)  # the cap may be a static argument: compile
         dt, r2 = _fastest(lambda capped=capped: smooth(mesh, args.method, dtype=args.dtype, **capped), args.repeats)
         out[key] = dict(iterations=it, seconds=dt, reached=r2.after.max_condition)
-    # the objective kernel alone, warm
-    dt = jnp.float32 if args.dtype == "float32" else jnp.float64
-    with jax.enable_x64(args.dtype == "float64"):
+    out["objective_mcorners_per_s"] = None
+    if res.plan.engine == "jax":
+        out["objective_mcorners_per_s"] = _kernel_rate(mesh, args.dtype)
+    out["cpus"] = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if res.plan.engine == "jax" and res.plan.device == "cpu":
+        # XLA:CPU's intra-op pool: max(cores or NPROC, device count) threads, so forced devices beyond the cores
+        # oversubscribe them (docs/sharding.md)
+        from jaxci.optim.sharding import xla_cpu_threads
+
+        out["xla_cpu_threads"] = xla_cpu_threads()
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out["peak_rss_bytes_per_hex"] = out["peak_rss_mb"] * 2**20 / mesh.n_hexes
+    return out
+
+
+def _kernel_rate(mesh, dtype: str) -> float:
+    """The objective kernel alone, warm: millions of corners per second."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxci.metrics import hexahedron as q
+
+    dt = jnp.float32 if dtype == "float32" else jnp.float64
+    with jax.enable_x64(dtype == "float64"):
         pts = jnp.asarray(mesh.points, dt)
         conn = q.transposed(mesh.hexes)
         jax.block_until_ready(q.objective_t(pts, conn))
@@ -136,16 +146,7 @@ def _measure(args, device) -> dict:
         while reps < 3 or time.perf_counter() - t0 < 0.5:
             jax.block_until_ready(q.objective_t(pts, conn))
             reps += 1
-        out["objective_mcorners_per_s"] = 8 * mesh.n_hexes * reps / (time.perf_counter() - t0) / 1e6
-    # XLA:CPU's intra-op pool: max(cores or NPROC, device count) threads, so forced devices beyond the cores
-    # oversubscribe them (issue 17: the 4-device rows on 2 cores; docs/sharding.md)
-    from jaxci.optim.sharding import xla_cpu_threads
-
-    out["xla_cpu_threads"] = xla_cpu_threads()
-    out["cpus"] = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    out["peak_rss_bytes_per_hex"] = out["peak_rss_mb"] * 2**20 / mesh.n_hexes
-    return out
+        return 8 * mesh.n_hexes * reps / (time.perf_counter() - t0) / 1e6
 
 
 def _write(args, rows) -> None:
@@ -153,7 +154,8 @@ def _write(args, rows) -> None:
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     tmp = args.out + ".tmp"
     with open(tmp, "w") as f:
-        json.dump(dict(benchmark="scaling", amplitude=args.amplitude, seed=args.seed, dtype=args.dtype,
+        json.dump(dict(benchmark="scaling", command=" ".join(sys.argv), date=time.strftime("%Y-%m-%d"),
+                       amplitude=args.amplitude, seed=args.seed, dtype=args.dtype, engines=args.engines,
                        full_upto=args.full_upto, devices=args.devices, cpu_count=os.cpu_count(), rows=rows), f,
                   indent=1)
     os.replace(tmp, args.out)
@@ -180,6 +182,9 @@ def main(argv=None):
     ap.add_argument("--devices", type=int, nargs="+", default=None, metavar="N",
                     help="device counts to run each (size, method) on, sharded (forced CPU devices on a CPU); "
                          "default: one device, unsharded")
+    ap.add_argument("--engines", nargs="+", choices=["auto", "host", "jax"], default=["host", "jax"],
+                    help="engines to run each (size, method) on, side by side (default: host jax)")
+    ap.add_argument("--engine", default="auto", help=argparse.SUPPRESS)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--method", help=argparse.SUPPRESS)
@@ -197,12 +202,15 @@ def main(argv=None):
     from jaxci.runtime import cpu_device_flags, hugepage_environment
 
     rows = []
-    head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'dev':>4} {'cold s':>8} {'warm s':>8} {'it':>5} "
+    head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'engine':>10} {'dev':>4} {'cold s':>8} {'warm s':>8} {'it':>5} "
             f"{'final k/3':>10} {'t(1.01) s':>10} {'t(1.0001) s':>12} {'peak MB':>8} {'Mcorner/s':>10} "
             f"{'threads/cpus':>12}")
     print(head)
-    for n, method, devices in [(n, m, d) for n in args.sizes for m in args.methods for d in args.devices or [None]]:
-        cmd = [sys.executable, __file__, "--child", "--size", str(n), "--method", method, "--amplitude",
+    combos = [(n, m, e, d) for n in args.sizes for m in args.methods for e in args.engines
+              for d in args.devices or [None] if not (d and e == "host")]
+    for n, method, engine, devices in combos:
+        cmd = [sys.executable, __file__, "--child", "--size", str(n), "--method", method, "--engine", engine,
+               "--amplitude",
                str(args.amplitude), "--seed", str(args.seed), "--dtype", args.dtype, "--device", args.device,
                "--params", args.params, "--full-upto", str(args.full_upto), "--repeats", str(args.repeats)]
         cmd += ["--devices", str(devices)] if devices else []
@@ -218,15 +226,16 @@ def main(argv=None):
                 env["XLA_FLAGS"] = cpu_device_flags(env) or env["XLA_FLAGS"]
             p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
             line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
-            row = json.loads(line[-1][7:]) if line else dict(size=n, method=method, devices=devices,
-                                                             error=p.stderr[-2000:])
+            row = json.loads(line[-1][7:]) if line else dict(size=n, method=method, engine_asked=engine,
+                                                             devices=devices, error=p.stderr[-2000:])
         except subprocess.TimeoutExpired:
-            row = dict(size=n, method=method, devices=devices, error=f"timed out after {args.timeout} s")
+            row = dict(size=n, method=method, engine_asked=engine, devices=devices,
+                       error=f"timed out after {args.timeout} s")
         rows.append(row)
         _write(args, rows)  # after every row: a long run interrupted later keeps what it measured
         if "error" in row:
             last = row["error"].strip().splitlines()[-1][:80]
-            print(f"{n:>5} {'':>8} {method:>14} {devices or '-':>4}  FAILED: {last}", flush=True)
+            print(f"{n:>5} {'':>8} {method:>14} {engine:>10} {devices or '-':>4}  FAILED: {last}", flush=True)
             continue
 
         def t(key, row=row):
@@ -236,10 +245,12 @@ def main(argv=None):
             return f"({v['iterations']} it)" if v["seconds"] is None else f"{v['seconds']:.2f}"
 
         warm = "-" if row["warm_s"] is None else f"{row['warm_s']:.2f}"
-        print(f"{n:>5} {row['hexes']:>8} {method:>14} {devices or '-':>4} {row['cold_s']:>8.2f} {warm:>8} "
+        e = row["engine"]
+        rate = "-" if row["objective_mcorners_per_s"] is None else f"{row['objective_mcorners_per_s']:.0f}"
+        print(f"{n:>5} {row['hexes']:>8} {method:>14} {e['name'] + '/' + e['device']:>10} {devices or '-':>4} "
+              f"{row['cold_s']:>8.2f} {warm:>8} "
               f"{row['iterations']:>5} {row['after_max_condition']:>10.6f} {t('to_1.01'):>10} "
-              f"{t('to_1.0001'):>12} {row['peak_rss_mb']:>8.0f} "
-              f"{row['objective_mcorners_per_s']:>10.0f} "
+              f"{t('to_1.0001'):>12} {row['peak_rss_mb']:>8.0f} {rate:>10} "
               f"{str(row.get('xla_cpu_threads')) + '/' + str(row.get('cpus')):>12}", flush=True)
     print(f"wrote {args.out}")
 

@@ -1,4 +1,4 @@
-"""The benchmark script end to end on a tiny box: it measures, writes its JSON, and fails clearly."""
+"""The benchmark scripts end to end on tiny meshes: they measure, write their JSON, and fail clearly."""
 
 from __future__ import annotations
 
@@ -22,9 +22,10 @@ def _bench(tmp_path, *args):
 
 @pytest.mark.slow
 def test_benchmark_measures_and_writes_json(tmp_path):
-    stdout, data = _bench(tmp_path, "--params", '{"presmooth": 1}', "--repeats", "2")
+    stdout, data = _bench(tmp_path, "--params", '{"presmooth": 1}', "--repeats", "2", "--engines", "jax")
     (row,) = data["rows"]
-    assert row["hexes"] == 27 and row["backend"] == "cpu" and row["params"] == {"presmooth": 1}
+    assert row["hexes"] == 27 and row["engine"]["name"] == "jax" and row["engine"]["device"] == "cpu"
+    assert row["params"] == {"presmooth": 1, "engine": "jax", "device": "auto"}
     assert row["after_max_condition"] <= 1.0001 and row["inverted_after"] == 0 and row["repeats"] == 2
     for key in ("to_1.01", "to_1.0001"):  # iterations from the history, then re-timed with that cap
         assert row[key]["iterations"] >= 1 and row[key]["seconds"] > 0 and row[key]["reached"] <= float(key[3:])
@@ -33,15 +34,27 @@ def test_benchmark_measures_and_writes_json(tmp_path):
     assert "wrote" in stdout
 
 
+def test_benchmark_puts_both_engines_side_by_side(tmp_path):
+    _, data = _bench(tmp_path, "--full-upto", "2")
+    host, jax_row = data["rows"]
+    assert data["engines"] == ["host", "jax"] and data["command"] and data["date"]
+    assert (host["engine"]["name"], jax_row["engine"]["name"]) == ("host", "jax")
+    assert host["engine"]["dtype"] == "float64" and jax_row["engine"]["dtype"] == "float32"
+    assert host["objective_mcorners_per_s"] is None and jax_row["objective_mcorners_per_s"] > 0
+    for r in (host, jax_row):
+        assert r["after_max_condition"] <= 1.0001 and r["cold_s"] > 0
+
+
 @pytest.mark.slow
 def test_benchmark_runs_each_device_count_sharded(tmp_path):
     """``--devices 2``: the child gets 2 forced CPU devices and runs sharded; the row says so, with its peak."""
     _, data = _bench(tmp_path, "--devices", "2", "--full-upto", "2")  # one cold run per row
     (row,) = data["rows"]
-    assert data["devices"] == [2] and row["devices"] == 2 and row["params"] == {"devices": 2}
+    assert data["devices"] == [2] and row["devices"] == 2  # the host engine does not shard: its row is not run
+    assert row["params"] == {"devices": 2, "engine": "jax", "device": "auto"} and row["engine"]["devices"] == 2
     assert row["after_max_condition"] <= 1.0001 and row["inverted_after"] == 0
     assert row["peak_rss_mb"] > 0 and row["peak_rss_bytes_per_hex"] == pytest.approx(row["peak_rss_mb"] * 2**20 / 27)
-    if sys.platform.startswith("linux"):  # XLA:CPU's pool: at least one thread per device (issue 17)
+    if sys.platform.startswith("linux"):  # XLA:CPU's pool: at least one thread per device
         assert row["xla_cpu_threads"] >= 2 and row["cpus"] >= 1
 
 
@@ -50,9 +63,31 @@ def test_benchmark_without_the_device_asked_for_says_so(tmp_path):
 
     if jax.devices()[0].platform != "cpu":
         pytest.skip("a GPU is present")
-    stdout, data = _bench(tmp_path, "--device", "gpu")
-    assert "FAILED: error: device: gpu requested but JAX sees no GPU" in stdout
-    assert "no GPU" in data["rows"][0]["error"]
+    stdout, data = _bench(tmp_path, "--device", "gpu", "--engines", "jax")
+    assert "FAILED: error: device 'gpu' asked for, but" in stdout
+    assert "device 'gpu' asked for" in data["rows"][0]["error"]
+
+
+@pytest.mark.slow
+def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
+    """scripts/bench_gpu.py, ready for a GPU: with --small on this CPU every section runs and writes its JSON
+    (the accelerator's own sections, the largest box, are skipped without one)."""
+    out = tmp_path / "gpu.json"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_gpu.py"), "--small", "--out", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    d = json.loads(out.read_text())
+    assert d["environment"]["default_backend"] in ("cpu", "gpu", "tpu") and d["commit"] is not None
+    for section in ("throughput", "lbfgs", "threshold", "global_ci", "cube60_pert"):
+        rows = d[section]
+        assert rows and not any("error" in r or "skipped" in r for r in rows), (section, rows)
+    assert all(r["corners_per_s"] > 0 for r in d["throughput"])
+    assert {r["engine"]["name"] for r in d["lbfgs"]} == {"host", "jax"}
+    assert {(r["engine"]["name"] if r.get("engine") else None) for r in d["threshold"]} == {"host", "jax"}
+    batched, serial, host = d["global_ci"]
+    assert (batched["mode"], serial["mode"], host["engine"]) == ("batched", "serial", "host")
+    assert batched["objective_mean"] == pytest.approx(serial["objective_mean"], rel=1e-6)  # the same meshes
+    assert "F + gradient" in p.stdout
 
 
 MESQUITE = ROOT.parent / "shared" / "data" / "mesquite"
