@@ -145,14 +145,16 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
 
 def draw_surface(ax, points, faces, values, norm, cmap, box, title: str) -> None:
     """Draw boundary `faces` ``(F, 4)`` (a triangle repeats its last node) of `points` on the 3-D axes `ax`,
-    coloured by `values` ``(F,)`` through `norm` and `cmap` (non-finite values: the colour map's "over"), in the
+    coloured by `values` ``(F,)`` through `norm` and `cmap` (non-finite values, inverted cells: red), in the
     bounding box ``box = (lo, hi)`` seen from the same angle as every other surface figure."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     pts = np.asarray(points, dtype=np.float64)
     lo, hi = box
     top = norm.vmax * 10 if norm.vmax is not None else 1e300
-    colours = cmap(norm(np.where(np.isfinite(values), values, top)))
+    finite = np.isfinite(values)
+    colours = cmap(norm(np.where(finite, values, top)))
+    colours[~finite] = (1.0, 0.0, 0.0, 1.0)  # inverted: red
     ax.add_collection3d(Poly3DCollection(pts[faces], facecolors=colours, edgecolors="k", linewidths=0.3))
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])

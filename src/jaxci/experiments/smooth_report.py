@@ -32,9 +32,11 @@ from .plots import MAX_SURFACE_FACES, draw_surface, pyplot
 
 #: How many of the worst elements are listed (and, the first `MARKED` of them, marked on the surface).
 WORST = 10
-MARKED = 5
+MARKED = 3
 #: Log-spaced bins of the corner histogram.
 BINS = 40
+#: The surface view's colour scale ends here (elements worse than this, but valid: one colour).
+CAP = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,9 +156,10 @@ def surface_figure(mesh, before, after, worst: tuple[list, list], title: str = "
         note = f" (the {MAX_SURFACE_FACES} faces of the worst elements of {len(faces)})"
         faces, vals = faces[keep], [v[keep] for v in vals]
     finite = np.concatenate([v[np.isfinite(v)] for v in vals])
-    vmax = max(float(finite.max()) if finite.size else 2.0, 1.0 + 1e-3)
+    # a scale that shows the result's elements apart: up to the worst finite value, at most `CAP` (beyond: orange)
+    vmax = min(max(float(finite.max()) if finite.size else 2.0, 1.0 + 1e-3), CAP)
     norm = LogNorm(vmin=1.0, vmax=vmax)
-    cmap = plt.get_cmap("viridis").with_extremes(over="red")
+    cmap = plt.get_cmap("viridis").with_extremes(over="orange")
     lo = np.minimum(np.min(before, axis=0), np.min(after, axis=0))
     hi = np.maximum(np.max(before, axis=0), np.max(after, axis=0))
     fig = plt.figure(figsize=(11, 5))
@@ -165,14 +168,15 @@ def surface_figure(mesh, before, after, worst: tuple[list, list], title: str = "
         worst_v = max((r.before if i == 0 else r.after for r in rows), default=math.nan)
         draw_surface(ax, before if i == 0 else after, faces, v, norm, cmap, (lo, hi),
                      f"{lab}: worst element kappa/3 {_num(worst_v)}{note}")
-        marked = rows[:MARKED]
-        if marked:
-            c = np.asarray([r.centroid for r in marked])
-            ax.scatter(c[:, 0], c[:, 1], c[:, 2], color="red", marker="x", s=40, depthshade=False, zorder=10)
-            for r in marked:
-                ax.text(*r.centroid, " " + r.label.split()[0], color="red", fontsize=7, zorder=11)
+        for rank, r in enumerate(rows[:MARKED]):  # the worst elements, by id (labels drawn above the surface)
+            ax.text(*r.centroid, f"#{r.label.split()[0]}", color="black", fontsize=7, ha="center", va="center",
+                    zorder=20 - rank, bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "red", "lw": 0.8})
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
-    fig.colorbar(sm, ax=fig.axes, shrink=0.7, label="element condition (max corner kappa/3; red: inverted)")
+    over = bool(finite.size and finite.max() > vmax)
+    fig.colorbar(sm, ax=fig.axes, shrink=0.7, extend="max" if over else "neither",
+                 label="element condition (max corner kappa/3)")
+    fig.text(0.5, 0.02, f"red: inverted{f'; orange: kappa/3 above {CAP:g}' if over else ''}; labelled: the "
+             f"{MARKED} worst elements by id", ha="center", fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
     return fig
