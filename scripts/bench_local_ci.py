@@ -1,4 +1,4 @@
-"""Benchmark (issue 15, item 3): local CI against L-BFGS, time to the target, on perturbed boxes and real meshes.
+"""Benchmark: local CI against L-BFGS, time to the target, on perturbed boxes and real meshes.
 
 Per mesh, in one process (`jaxci.smooth`, default backend: on the host up to its size limits):
 
@@ -10,9 +10,9 @@ Per mesh, in one process (`jaxci.smooth`, default backend: on the host up to its
   where the mesh is tangled, the float64 checks and reports). The timed calls alternate, `--repeats` rounds of
   them, and each time is its fastest (a shared machine's load then weighs on both alike).
 
-The ratio CI's time to the target / L-BFGS's time is what the issue bounds (at most 3x); the JSON also records
-L-BFGS's own time to the box target (``ktol=1e-4``). Boxes: `jaxci.perturb_box` (amplitude 0.3, sliding boundary,
-seed 0); real meshes: the corpus of `scripts/realmesh_corpus.py` by name.
+The ratio CI's time to the target / L-BFGS's time is the figure of interest (the aim: at most 3x); the JSON also
+records L-BFGS's own time to the box target (``ktol=1e-4``). Boxes: `jaxci.perturb_box` (amplitude 0.3, sliding
+boundary, seed 0); real meshes: the corpus of `scripts/realmesh_corpus.py` by name.
 
     python scripts/bench_local_ci.py [--boxes 10 20 30 60] [--meshes pave3 sphere_tet2hex-small ...]
         [--repeats 2] [--out docs/results/bench_local_ci.json]

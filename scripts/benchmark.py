@@ -222,7 +222,7 @@ def main(argv=None):
             if devices:  # read when JAX starts in the child: a CPU gets this many devices
                 env["XLA_FLAGS"] = " ".join(filter(None, [env.get("XLA_FLAGS"), "--xla_force_host_platform_"
                                                            f"device_count={devices}"]))
-                # more devices than cores: no per-fusion partitions (jaxci.runtime.cpu_device_flags, issue 17)
+                # more devices than cores: no per-fusion partitions (jaxci.runtime.cpu_device_flags; docs/sharding.md)
                 env["XLA_FLAGS"] = cpu_device_flags(env) or env["XLA_FLAGS"]
             p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
             line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]

@@ -1,4 +1,4 @@
-"""Inverted cells that no allowed move can fix are reported at once (`jaxci.optim.feasibility`, issue 15)."""
+"""Inverted cells that no allowed move can fix are reported at once (`jaxci.optim.feasibility`)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The worst-element guard (`jaxci.metrics.guard`, `smooth(keep_worst=True)`, issue 15): the returned mesh's worst cell
+"""The worst-element guard (`jaxci.metrics.guard`, `smooth(keep_worst=True)`): the returned mesh's worst cell
 is no worse than the input's, whatever the method did, and only the nodes near the offending cells are put back."""
 
 from __future__ import annotations

@@ -240,7 +240,7 @@ def test_local_ci_stops_once_every_corner_is_ideal_within_ktol(backend):
 
 
 def test_local_ci_reaches_lbfgs_on_pave3_in_30_sweeps():
-    """Issue 15: on pave3 (paved, unstructured, 106 inverted elements first untangled) 30 sweeps of local CI
+    """On pave3 (paved, unstructured, 106 inverted elements first untangled) 30 sweeps of local CI
     come within 1% of L-BFGS's final F; Anderson acceleration over the sweeps (`CIParams.anderson`) is what takes
     them there (measured over 8 seeds with the default cohorts: 0.0-0.4% above L-BFGS's F with it, 1.6-2.6%
     without)."""

@@ -1,6 +1,6 @@
 """Hostile input: every way a user (or a damaged file) can feed jaxci garbage, held to one contract.
 
-The contract each case asserts (issue 13, item 5):
+The contract each case asserts:
 
 - the exit code is 2 for any bad input a user can fix, 0 only when the input is actually fine, never 1
   ("internal error" is reserved for our own bugs);

@@ -1,5 +1,5 @@
 """Phase timings (`jaxci.phases`), the default pipeline (``method="auto"``), the note when an iteration cap stops
-a method, and the already-optimal shortcut (issue 14)."""
+a method, and the already-optimal shortcut."""
 
 from __future__ import annotations
 

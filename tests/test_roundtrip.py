@@ -1,4 +1,4 @@
-"""Issue 13: never lose or silently change a user's data.
+"""Never lose or silently change a user's data.
 
 Round trips of every format with what `jaxci.io.write_mesh`'s table says it keeps (ids, sets, element types, the
 source deck of Abaqus and ANSYS files); headers that announce more or less than a file holds; duplicate, huge,

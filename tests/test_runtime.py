@@ -96,7 +96,7 @@ def test_a_small_mesh_is_not_worth_a_second_start(tmp_path):
     assert not small_input([])
 
 
-# ------------------------------------------------------------------ issue 17: more forced CPU devices than cores
+# ------------------------------------------------------------------------- more forced CPU devices than cores
 def test_cpu_device_flags_only_where_forced_devices_outnumber_the_cores():
     from jaxci.runtime import PARTITION_PASS, cpu_device_flags, forced_cpu_devices
 

@@ -58,7 +58,7 @@ def _pool_threads(devices: int, nproc: str) -> int:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="counts threads in /proc")
 def test_xla_cpu_pool_has_at_least_one_thread_per_device():
-    """Issue 17: XLA:CPU's intra-op pool is max(NPROC, device count) threads, so forced devices oversubscribe a
+    """XLA:CPU's intra-op pool is max(NPROC, device count) threads, so forced devices oversubscribe a
     small CPU whatever NPROC says (the measured 4-device slowdown; docs/sharding.md)."""
     assert _pool_threads(1, "1") == 1
     assert _pool_threads(1, "3") == 3

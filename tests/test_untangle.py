@@ -172,7 +172,7 @@ def test_flat_regions_first_then_the_projection(hex5):
         assert (corner_determinants(pts, mesh.hexes) > 0).all()
 
 
-# ----------------------------------------------------------------------------- --untangle-boundary (issue 15, item 1)
+# --------------------------------------------------------------------------------------------- --untangle-boundary
 def pit_slab():
     """A 2 x 2 x 1 box whose top centre node is pushed below the bottom face: its four hexahedra are inverted,
     and only boundary nodes touch them (the top centre a corner of the pit it makes, the rest the box's corners

@@ -1,4 +1,4 @@
-"""Every user input is checked where it enters (issue 13, part C): coincident nodes, extreme coordinates, method
+"""Every user input is checked where it enters: coincident nodes, extreme coordinates, method
 parameters, seeds, memory, zero-volume meshes, wrong argument types, exact counts in messages."""
 
 from __future__ import annotations

@@ -129,7 +129,7 @@ static inline int corner_term(const double *a, const double *b, const double *c,
 
 /* Up to MAX_THREADS POSIX threads per call, each over its own range of elements with its own gradient buffer
  * (summed into the caller's at the end: no two threads write one node). A call over fewer than
- * MIN_PER_THREAD elements per thread uses fewer threads (creating a thread costs ~50 us). Session 16 tried 1024:
+ * MIN_PER_THREAD elements per thread uses fewer threads (creating a thread costs ~50 us). 1024 was tried (2026-11-26, e3b18b6):
  * a 2070-hex mesh's gradient alone took 0.35 ms on two threads against 0.45 on one, but its whole L-BFGS run
  * 1.2-1.3 against 0.9-1.1 ms a step (three alternated runs), so 4096 stays. */
 #define MAX_THREADS 16

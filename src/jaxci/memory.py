@@ -36,12 +36,12 @@ SMOOTH_FIXED_BYTES = 400 * 2**20
 #: JAX, nothing compiled; float64 whatever `dtype` says), and its fixed part: the default pipeline (3 smart-Laplace
 #: sweeps, L-BFGS, reports) on perturbed boxes peaked at 0.98 GB in all at 10^6 (100^3, `jaxci smooth`) and 8.7 GB
 #: at 9.9 x 10^6 (215^3, in process), mesh included; the tangled cube60_pert (216,000 hexahedra, untangling first)
-#: at 364 MB, 1.22 kB a hexahedron above the fixed part, the largest measured (`docs/results/README.md`, session
-#: 11; session 10: 1.63 GB, 14.4 GB and 1,550 B).
+#: at 364 MB, 1.22 kB a hexahedron above the fixed part, the largest measured (2026-11-26, 55d02f9; the current
+#: figures: docs/results/boxes.md).
 HOST_BYTES_PER_HEX = 1_250
 HOST_FIXED_BYTES = 100 * 2**20
 #: The same for CI on the host (`jaxci.optim.host_local`, `jaxci.optim.host_global`), measured with `jaxci smooth`
-#: on a 60^3 box (216,000 hexahedra, session 12, the default cohorts): local CI 477 MB (Anderson's history of 8
+#: on a 60^3 box (216,000 hexahedra, the default cohorts; 2026-11-26, dd22c91): local CI 477 MB (Anderson's history of 8
 #: sweeps included), global CI 870 MB (each attempt's 25 trial meshes, lifted and projected at once); above the
 #: fixed part, 1.8 and 3.7 kB a hexahedron. Global CI's trial meshes grow with the trials (about 24 B a
 #: hexahedron and trial: 3 coordinates of 8 bytes a node).

@@ -137,7 +137,7 @@ def single_threaded_blas() -> None:
 #: XLA:CPU's pass that splits every large fusion into as many parallel parts as its intra-op pool has threads.
 #: That pool has max(cores or ``NPROC``, CPU devices) threads (`jaxci.optim.sharding.xla_cpu_threads`), so with
 #: more forced CPU devices than cores each fusion's parts wait on threads the cores cannot run. Measured on
-#: this 2-core CPU, 4 forced devices, 30^3 box (issue 17, docs/sharding.md): one F + gradient call 56 ms ->
+#: this 2-core CPU, 4 forced devices, 30^3 box (2026-11-25, 0c90f3f; docs/sharding.md): one F + gradient call 56 ms ->
 #: 16-24 ms (one device: 18-19 ms), 40 sharded L-BFGS steps 5.4 -> 2.1-3.0 s (one device: 1.4-2.0 s).
 PARTITION_PASS = "cpu-parallel-task-assigner"
 _FORCE = "--xla_force_host_platform_device_count="

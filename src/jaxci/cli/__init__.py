@@ -127,7 +127,7 @@ def _main(argv) -> int:
         except SystemExit as e:  # argparse: --help (0) or a usage error (2)
             sys.stdout.flush()
             return int(e.code or 0)
-        apply_cpu_device_flags()  # more forced CPU devices than cores: no per-fusion partitions (issue 17)
+        apply_cpu_device_flags()  # more forced CPU devices than cores: no per-fusion partitions (docs/sharding.md)
         _setup_jax()
         return _dispatch(args)
     except _streams.OutputClosed:  # `| head`: the reader has all it wanted

@@ -349,7 +349,7 @@ def pmean_objective(points, hexes, power: float) -> float:
     (F of Eq. 3.1 is ``M_1``): numpy float64; ``inf`` if a corner is inverted.
 
     As p grows the worst corners weigh more (``M_p -> max e_i``): minimising it pulls the worst element where
-    the mean lets it be (issue 15: on a hexahedral sphere the mean objective made the worst element worse).
+    the mean lets it be (on a hexahedral sphere the mean objective made the worst element worse).
     """
     pts = np.asarray(points, dtype=np.float64)
     conn = np.ascontiguousarray(np.asarray(hexes).T)

@@ -8,8 +8,8 @@ coefficients gamma minimise ``|D_m - sum_j gamma_j (D_{j+1} - D_j)|`` and the ca
 ``G_m - sum_j gamma_j (G_{j+1} - G_j)``, ``G_i = x_i + D_i``. Local CI evaluates it after the pattern move
 (projected onto the boundary) and takes it only where it lowers F, so F still never increases.
 
-Measured (host path, pave3 after untangling, 30 sweeps, 8 seeds, session 8's cohorts): F 0.6-1.3% above
-L-BFGS's final F without it, 0.1-0.4% BELOW it with m = 8; docs/results/README.md, session 12.
+Measured (host path, pave3 after untangling, 30 sweeps, 8 seeds, cohorts of C = t = 4 and 10 attempts at r = 0.7;
+2026-11-26, 0d041f1): F 0.6-1.3% above L-BFGS's final F without it, 0.1-0.4% BELOW it with m = 8.
 """
 
 from __future__ import annotations

@@ -31,12 +31,12 @@ class CIParams:
 
     The local defaults (C = 3, t = 3, 8 attempts per colour visit with intervals shrunk by r = 0.65 per attempt:
     72 trial positions per node and sweep) were chosen by measurement with Anderson acceleration on
-    (docs/results/README.md, session 12): against session 8's C = t = 4, 10 attempts at r = 0.7 (160 trials) they
+    (2026-11-26, 0d041f1): against the earlier C = t = 4, 10 attempts at r = 0.7 (160 trials) they
     reach the target (max kappa/3 <= 1.0001 on perturbed boxes, F within 1% of L-BFGS's elsewhere) sooner on every
     mesh measured (10^3 and 20^3 boxes 6.0x and 9.6x L-BFGS's time -> 3.5x; pave3 3.1x -> 1.9x; tet-to-hex sphere
     and bracket 1.1-1.4x -> 0.5-0.8x; annulus 3.6x -> 2.4x) with the same final quality, and stay within 1% of
     L-BFGS's F after 30 sweeps on pave3 for 8 seeds out of 8 (0.0-0.4%; C = t = 3 with 6 attempts: 0.6-1.1%).
-    (Session 8: 10 attempts at r = 0.7 against 4 at r = 0.8 halved the sweeps; on the compiled path C = 6, t = 8
+    (Before that, 10 attempts at r = 0.7 against 4 at r = 0.8 halved the sweeps; on the compiled path C = 6, t = 8
     needed the same number of sweeps as C = t = 4 at 5-8x the cost.)
 
     Fields (default local / global where they differ):
@@ -69,7 +69,7 @@ class CIParams:
       64; `jaxci.optim._anderson`): after the pattern move, the combination of the last sweeps' starts and
       displacements that best cancels their displacements, projected, is evaluated and taken where it lowers F
       on the same condition (`EXCESS_GROWTH`).
-      Measured on pave3 after untangling (30 sweeps, 8 seeds, session 8's cohorts): F 0.6-1.3% above L-BFGS's
+      Measured on pave3 after untangling (30 sweeps, 8 seeds, the C = t = 4 cohorts): F 0.6-1.3% above L-BFGS's
       final F without it, 0.1-0.4% below it with 8; perturbed boxes stop after as many sweeps either way.
     - `backend`: local CI on a hexahedral mesh: ``"auto"`` (default: on the host, numpy and C, nothing to
       compile, up to `jaxci.optim.host_local.HOST_LOCAL_MAX` hexahedra where the C kernels are built; compiled
@@ -176,7 +176,7 @@ PATTERN_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 #: How much local CI's extrapolations (the pattern and Anderson moves) may let the worst corner's excess
 #: max kappa/3 - 1 grow: a trial mesh is taken only where it lowers F and its excess is at most this many times the
 #: current one's. Without a bound the worst corner jumped from sweep to sweep while F fell (a 60^3 box passed
-#: 1.00006 and ended at 1.00013); with 1.5 (session 13, perturbed boxes 10^3-60^3) 1.0001 comes after 9-12 sweeps
+#: 1.00006 and ended at 1.00013); with 1.5 (perturbed boxes 10^3-60^3, 411249d) 1.0001 comes after 9-12 sweeps
 #: instead of 9-15 and the runs end at 1.000001-1.000004, where the curved and paved meshes (excess 0.2-2) take
 #: the same steps as without it; 1 (the excess never grows) held annulus back (F within 1% of L-BFGS's after 160
 #: sweeps instead of 62).

@@ -16,7 +16,7 @@ a few hundred in all: inverted densely once). ``M`` is symmetric positive defini
 and a positive semi-definite term), fixed for a run, so L-BFGS keeps its guarantees. Aggregates are the cells of a
 uniform grid over the bounding box holding about `NODES_PER_AGGREGATE` nodes each, at most `MAX_AGGREGATES`.
 
-Measured (session 16, in process, this 2-core CPU; plain L-BFGS -> ``precondition="coarse"``, the fastest of two
+Measured (cb5d522, 2026-11-26; in process, 2-core CPU; plain L-BFGS -> ``precondition="coarse"``, the fastest of two
 runs): annulus (2070 hexes) 1021 -> 467 steps, 1.69 -> 0.73 s, worst kappa/3 1.24387 -> 1.24347; plate with holes
 (2644) 759 -> 234 steps, 1.11 -> 0.50 s; sphere (1944, tet-to-hex) 511 -> 326 steps, 0.70 -> 0.44 s; its 8784-hex
 version 1227 -> 345 steps, 5.0 -> 1.8 s; F as low or lower on every one. But not everywhere: bracket (2360) 377
@@ -48,7 +48,7 @@ from .parametrisation import Parametrisation
 #: ``precondition="auto"``: plain L-BFGS for this many steps, then with M (see the module docstring), on meshes
 #: of at most `AUTO_MAX_CELLS` cells: building M holds about 0.9 kB per hexahedron for a moment (200 MB at
 #: cube60_pert's 216,000, 1.2 s) and keeps about 130 B per node, which the 10^6-hexahedron memory budget
-#: (docs/results, session 11) has no room for; ``"coarse"`` builds it at any size.
+#: (docs/results/boxes.md) has no room for; ``"coarse"`` builds it at any size.
 AUTO_AFTER = 200
 AUTO_MAX_CELLS = 250_000
 

@@ -40,26 +40,26 @@ from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 #: Largest hexahedral mesh `jaxci.optim.gradient.minimise` solves in numpy with ``backend="auto"``: 100,000
 #: with the C kernels of `jaxci.native`, 30,000 without. Measured through ``jaxci smooth`` on perturbed boxes
 #: (amplitude 0.3, this 2-core CPU; numpy, then compiled with an empty / a warm compile cache). numpy kernels
-#: (session 5): 4913 hexes 1.7 s against 3.0 / 1.8 s; 9261: 2.4 s against 3.3 / 1.8 s, where float32 L-BFGS
+#: (2026-11-24, 66d2f51): 4913 hexes 1.7 s against 3.0 / 1.8 s; 9261: 2.4 s against 3.3 / 1.8 s, where float32 L-BFGS
 #: stalled at max kappa/3 5.5e5 (float64: 1.0000); 17,576: 3.7 s against 3.4 / 2.2 s; cube30_pert (27,000,
-#: tangled; machine loaded): 5.2 s against 9.2 / 4.0 s. C kernels (session 6, smooth phase): 64,000 hexes
+#: tangled; machine loaded): 5.2 s against 9.2 / 4.0 s. C kernels (smooth phase): 64,000 hexes
 #: 4.4 s against 9.1 / 4.5 s; 125,000: 9.2 s against 12.0 / 7.9 s; cube60_pert (216,000) 23-31 s against 18 s
-#: cold. Session 10, with the smart-Laplace presmoothing on the host too and the stop at max kappa/3 <= 1 + ktol
+#: cold. With the smart-Laplace presmoothing on the host too and the stop at max kappa/3 <= 1 + ktol (2eac279)
 #: (`jaxci.optim.gradient_params.GradientParams.ktol`): cube60_pert, whole ``jaxci smooth``, 20.1 s (smooth phase
 #: 6.9 s, peak 735 MB) against 27.8 s cold (smooth 15.1 s, 7.3 s of it compiling; 1.25 GB) and 20.2 s with a warm
 #: compilation cache (smooth 8.2 s). At 10^6 (a 100^3 box, the same pipeline, in process): 41 s, peak 1.6 GB
-#: (0.98 GB since session 11), no JAX import, against 52 s and 2.74 GB compiled; at 10^7 (215^3) 794 s, peak
-#: 14.4 GB (session 11: 755 s, 8.7 GB), where the compiled
+#: (0.98 GB from 55d02f9 on), no JAX import, against 52 s and 2.74 GB compiled; at 10^7 (215^3) 794 s, peak
+#: 14.4 GB (from 55d02f9 on: 755 s, 8.7 GB; docs/results/boxes.md), where the compiled
 #: path ran out of this machine's 24 GB: the host path is faster and leaner at every size measured. Above it
 #: (or with ``backend="jax"``, e.g. to use an accelerator) the compiled loop after smart-Laplace sweeps.
 HOST_MAX = 20_000_000 if native.AVAILABLE else 30_000
 
 #: Largest hexahedral mesh the untangling stage untangles in numpy with ``backend="auto"``: `HOST_MAX` with the
-#: C kernels (session 10: the L-BFGS host path's limit), 60,000 without. The compiled loop runs in float64 too,
+#: C kernels (the L-BFGS host path's limit), 60,000 without. The compiled loop runs in float64 too,
 #: so numpy saves its compilation (1-2 s).
 #: numpy kernels: cube30_pert (27,000 hexes) 0.7 s against 2.3 s cold, 0.6 s against 0.65 s warm; cube60_pert
 #: (216,000, 50 steps) 16.4 s against 12.4 s cold, 9.9 s warm (numpy ~330 ms a step, XLA ~200-250 ms). C
-#: kernels (session 6, machine loaded): cube60_pert 8.4 s against 12.3 s cold.
+#: kernels (machine loaded; 2026-11-24, 66d2f51): cube60_pert 8.4 s against 12.3 s cold.
 UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 
 #: From this many free coordinates (about 80,000 hexahedra) the host L-BFGS memory holds its pairs in float32 (the
@@ -67,7 +67,7 @@ UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 #: instead of 480 MB at 10^6 hexahedra (10 pairs of 3 M unknowns), the largest part of the run's peak; and the
 #: recursion, which streams the pairs from memory twice a step, takes half as long (cube60_pert, 680,000 unknowns:
 #: 30 ms a step in float64; the smooth phase 3.9 -> 3.1-3.5 s, the same 37 iterations, max kappa/3 equal to 1e-12).
-#: Below it every result is as before, bit for bit. (10^6 from session 11, 250,000 from session 12.)
+#: Below it every result is as before, bit for bit. (10^6 from 55d02f9 on, 250,000 from c2dff04 on.)
 HISTORY_F32_FROM = 250_000
 
 

@@ -88,8 +88,8 @@ class UntangleParams:
       Laplacian (`jaxci.optim.host_local.laplace_np`, boundary nodes on the boundary), stopping at the first with
       no inverted corner; their result is the stage's if every corner then has ``det A >= margin L_e^3``, else the
       rounds start from the input as without them (0: off). Default None: 1 from `LAPLACE_UNTANGLE_FROM`
-      hexahedra, else 0. Measured (session 11): cube60_pert's 1838 inverted elements in one sweep, the stage 7.9
-      -> about 3 s (50 Winslow L-BFGS steps before), the same final mesh quality (max kappa/3 1.0000007); on
+      hexahedra, else 0. Measured (2026-11-26, e615006): cube60_pert's 1838 inverted elements in one sweep, the
+      stage 7.9 -> about 3 s (50 Winslow L-BFGS steps before), the same final mesh quality (max kappa/3 1.0000007); on
       cube30_pert (27,000) the sweep's set-up (colouring, stars) cost more than the Winslow steps it saves (0.74
       against 0.34 s); pave3 needs 5 sweeps, and its shape improvement then ends at max kappa/3 2.863 against
       2.823 from the Winslow start.
