@@ -151,7 +151,7 @@ def _engines(summary) -> list[str]:
             e = r.get("engine")
             if r["label"] == m["name"] and e:
                 key = (e["name"], e["device"] + ("" if e["devices"] == 1 else f" x{e['devices']}"), e["dtype"],
-                       e["kernel"], e["reason"])
+                       e["kernel"], e["reason"].split("; this mesh has")[0])  # the rule, not each mesh's size
                 seen[key] = seen.get(key, 0) + 1
         for (name, device, dtype, kernel, why), n in seen.items():
             out.append(f"| {m['name']} | {name} | {device} | {dtype} | {kernel} | {n} | {why} |")
