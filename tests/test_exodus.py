@@ -280,3 +280,48 @@ def test_bad_files_exit_2_with_one_clear_line(tmp_path, capsys, case, message):
     out, err = capsys.readouterr()
     assert err.count("\n") == 1 and err.startswith("jaxci: error: ") and "bad.e" in err
     assert not (tmp_path / "out.e").exists()
+
+
+# ---------------------------------------------------------------------------------- side sets, shell blocks
+@needs_data
+def test_nodes_of_shell_blocks_on_the_bricks_are_held():
+    """2block1.g: a 4^3 brick block with two SHELL4 blocks of 16 on two of its faces. The shells' nodes (50, on
+    the bricks' boundary) are held, so smoothing leaves the shells as they are; without the rule those on the
+    faces would slide."""
+    from jaxci.geometry.boundary import CORNER, SURFACE, classify_boundary
+
+    mesh = read_mesh(DATA / "2block1.g")
+    shells = np.unique(np.concatenate([b.data.ravel() for b in mesh.cells if b.type == "quad"]))
+    assert len(shells) == 50 and np.array_equal(mesh.held_nodes, shells)
+    info = classify_boundary(mesh)
+    assert (info.node_class[shells] == CORNER).all()
+    free = classify_boundary(dataclasses.replace(mesh, held_nodes=None))
+    assert (free.node_class[shells] == SURFACE).sum() >= 18  # the shells' inner face nodes would slide
+    pts = np.array(mesh.points)
+    inner = np.flatnonzero(info.node_class == 0)
+    pts[inner] += np.random.default_rng(0).uniform(-0.1, 0.1, (len(inner), 3)) * np.ptp(pts) / 8
+    res = jaxci.smooth(mesh.with_points(pts))
+    assert res.after.max_condition < res.before.max_condition
+    np.testing.assert_array_equal(res.mesh.points[shells], mesh.points[shells])
+
+
+@needs_data
+def test_side_sets_keep_their_extent():
+    """two-block.g: two bricks of 2x2x2 side by side, 12 side sets (each block's six faces). Where two side sets
+    meet on one flat face of the whole, the border is a feature curve: its nodes slide along it (EDGE), not across
+    it (SURFACE), so each side set keeps its extent; the face sets match their boundary faces."""
+    from jaxci.geometry.boundary import CORNER, EDGE, SURFACE, classify_boundary, face_set_signature
+
+    mesh = read_mesh(DATA / "two-block.g")
+    assert len(mesh.face_sets) == 12 and all(f.shape == (4, 4) for f in mesh.face_sets.values())
+    info, plain = classify_boundary(mesh), classify_boundary(dataclasses.replace(mesh, face_sets={}))
+    moved = np.flatnonzero(info.node_class != plain.node_class)
+    across = moved[plain.node_class[moved] == SURFACE]  # inside a flat face: now on the border curve
+    ends = moved[plain.node_class[moved] == EDGE]  # where the border meets the box's edges: now corners
+    assert len(across) and (info.node_class[across] == EDGE).all()
+    assert len(ends) and (info.node_class[ends] == CORNER).all() and len(across) + len(ends) == len(moved)
+    assert any("face sets (side sets) are feature edges" in n for n in info.notes)
+    sig = face_set_signature(info.topology.faces, mesh.face_sets)
+    assert (sig != 0).sum() == 4 * 12 - 8  # every face of a set is a boundary face but the two blocks' shared 8
+    with pytest.raises(jaxci.errors.MeshError, match="face set 'bad' must be"):
+        dataclasses.replace(mesh, face_sets={"bad": np.zeros((2, 3), np.int64)})

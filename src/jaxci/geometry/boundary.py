@@ -3,7 +3,9 @@
 The boundary is the set of faces (quadrilaterals and triangles) used by exactly one volume cell of any type
 (`jaxci.geometry.topology`): a face a hexahedron shares with a wedge, pyramid or tetrahedron is interior. A boundary
 edge is a *feature edge* when the unit normals of its two boundary faces differ by more than the feature angle, or
-when it does not have exactly two boundary faces (a non-manifold or open edge). Then, per node:
+when it does not have exactly two boundary faces (a non-manifold or open edge), or when its two boundary faces lie
+in different face sets of the mesh (`HexMesh.face_sets`, Exodus side sets: the border of the surface a solver's
+load or condition is given on stays where it is). Then, per node:
 
 - CORNER (fixed): 1 or 3+ feature edges meet at it (a curve ends or curves meet), or 2 meet at an angle: the
   direction of the curve turns by more than the feature angle; also a non-manifold boundary vertex (two or more
@@ -15,10 +17,11 @@ when it does not have exactly two boundary faces (a non-manifold or open edge). 
 
 *Patches* are the connected sets of boundary faces that meet across non-feature edges; *curves* are the
 connected chains of feature edges that meet at EDGE nodes (a circle without corners is one closed curve).
-Patches and curves are computed from the geometry only; fixing nodes afterwards does not split them.
+Patches and curves are computed from the geometry and the face sets; fixing nodes afterwards does not split them.
 
 Nodes of hexahedra and of linear wedges, pyramids and tetrahedra are classified alike and move. Nodes used by
-no volume cell are fixed, and so are the nodes of QUADRATIC wedges, pyramids and tetrahedra (midside nodes
+no volume cell are fixed, and so are the mesh's held nodes (`HexMesh.held_nodes`: those of an Exodus shell or
+beam block), and the nodes of QUADRATIC wedges, pyramids and tetrahedra (midside nodes
 given, or meshio's ``wedge15``/``pyramid13``/``tetra10``/``hexahedron20`` blocks;
 `jaxci.cells.fixed_nodes`), with a note. (Quadratic hexahedra are hexahedra with midside nodes: their corner
 nodes move and the midside nodes follow, `jaxci.mesh.HexMesh.with_points`.) A broken boundary (open or non-manifold) is
@@ -193,6 +196,9 @@ def classify_boundary(
     normal = _unit(face_normals(pts, faces))
     cos_e = np.einsum("ij,ij->i", normal[fa], normal[fb])
     feature = ~manifold | (cos_e < cos_t)
+    sets = face_set_signature(faces, mesh.face_sets)
+    border = np.zeros_like(feature) if sets is None else manifold & (sets[fa] != sets[fb]) & ~feature
+    feature |= border
     fedges = edges[feature]
     n_open = int(np.count_nonzero(valence % 2 == 1))
     n_nm_edges = int(np.count_nonzero((valence > 2) & (valence % 2 == 0)))
@@ -266,6 +272,10 @@ def classify_boundary(
     for msg in notes:
         warnings.warn(f"{where}{msg}", stacklevel=2)
 
+    if border.any():
+        notes.append(f"{int(border.sum())} boundary edges on the borders of the mesh's {len(mesh.face_sets)} face "
+                     f"sets (side sets) are feature edges: each set keeps its extent")
+
     # --- nodes that must not move
     used = np.zeros(n, dtype=bool)
     used[hexes.ravel()] = True
@@ -273,6 +283,11 @@ def classify_boundary(
         if t != "hexahedron":
             used[cells.ravel()] = True
     cls[~used] = CORNER
+    if mesh.held_nodes is not None and len(mesh.held_nodes):
+        held = np.asarray(mesh.held_nodes, dtype=np.int64)
+        cls[held] = CORNER
+        notes.append(f"{len(np.unique(held))} nodes of cells that are not smoothed (shell, beam or sphere blocks) "
+                     f"are held where they are")
     quadratic = fixed_cell_nodes(mesh)
     if len(quadratic):
         cls[quadratic] = CORNER
@@ -300,6 +315,24 @@ def classify_boundary(
         feature_angle=float(feature_angle),
         notes=tuple(notes),
     )
+
+
+def face_set_signature(faces: np.ndarray, face_sets) -> np.ndarray | None:
+    """Per boundary face of `faces` ``(n_faces, 4)`` (a triangle repeats its last node), an int64 that differs
+    between faces held by different sets of `face_sets` (name -> ``(k, 4)`` faces, matched by their nodes in any
+    order; 0: in none); None without face sets. Up to 62 sets are bits of it; more are mixed in by fixed random
+    64-bit keys (a collision is vanishingly unlikely)."""
+    if not face_sets or not len(faces):
+        return None
+    keys = np.random.default_rng(0).integers(1, 2**62, size=len(face_sets), dtype=np.int64)
+    order = np.sort(faces, axis=1)
+    index = {tuple(r): i for i, r in enumerate(order.tolist())}
+    sig = np.zeros(len(faces), dtype=np.int64)
+    for k, f in enumerate(face_sets.values()):
+        rows = [index.get(tuple(r)) for r in np.sort(np.asarray(f, dtype=np.int64), axis=1).tolist()]
+        hit = np.unique(np.asarray([r for r in rows if r is not None], dtype=np.int64))
+        sig[hit] ^= np.int64(1 << k) if k < 62 else keys[k]
+    return sig
 
 
 def releasable_feature_nodes(mesh: HexMesh, info: BoundaryInfo, cells_nodes: np.ndarray,

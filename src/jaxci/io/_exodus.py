@@ -17,7 +17,11 @@ An Exodus II file is a netCDF file (classic, 64-bit offset, CDF-5 or netCDF-4), 
   type stay in the file but are not part of the mesh (counted in `HexMesh.notes`);
 - node sets (``node_ns*``) as point sets named by ``ns_names`` (else ``nodeset_ID``), and side sets
   (``elem_ss*``/``side_ss*``) as point sets of the nodes of their sides (name from ``ss_names``, else
-  ``sideset_ID``; `jaxci.smooth`'s ``fixed_sets`` / ``--fixed-set`` can fix them).
+  ``sideset_ID``; `jaxci.smooth`'s ``fixed_sets`` / ``--fixed-set`` can fix them) and as face sets
+  (`HexMesh.face_sets`: the boundary classification keeps the border of each a feature curve, so a surface a
+  load or condition is given on keeps its extent);
+- the nodes of every block that is not a volume block (shells, beams, spheres, unmodelled types) as
+  `HexMesh.held_nodes`: smoothing never moves them.
 
 The time steps of results, QA and info records, attributes, distribution factors, maps and properties are not read;
 they stay in the file, and `jaxci.io._exodus_write.write_exodus` copies the file and replaces only its coordinates.
@@ -134,7 +138,7 @@ class ExodusFile:
         self.node_ids = self._map(ds, "node_num_map", n, "node")
         self._blocks(ds)
         self.elem_ids = self._map(ds, "elem_num_map", self.n_elem, "element")
-        self.point_sets = {}
+        self.point_sets, self.face_sets = {}, {}
         self._node_sets(ds)
         self._side_sets(ds)
         self.time_steps = _dim(ds, "time_step")
@@ -210,31 +214,36 @@ class ExodusFile:
             if bad.any():
                 raise MeshReadError(f"{where} lists element {elems[bad][0]}, but the file has elements "
                                     f"1..{self.n_elem}")
-            nodes = [np.zeros(0, np.int64)]
+            nodes, faces = [np.zeros(0, np.int64)], [np.zeros((0, 4), np.int64)]
             block = np.searchsorted(starts, elems - 1, side="right") - 1
             for b in np.unique(block).tolist():
                 bid, bname, etype, cell, conn, start = self.blocks[b]
                 sel = block == b
-                nodes.append(_side_nodes(conn, cell, elems[sel] - 1 - start, sides[sel], f"{where}, block {bid}"))
+                n_b, f_b = _sides(conn, cell, elems[sel] - 1 - start, sides[sel], f"{where}, block {bid}")
+                nodes.append(n_b)
+                faces.append(f_b)
+            self.face_sets[name] = np.concatenate(faces)
             if name in self.point_sets:
                 name = f"{name} (side set)"
             self.point_sets[name] = np.unique(np.concatenate(nodes))
 
 
-def _side_nodes(conn, cell, rows, sides, where) -> np.ndarray:
-    """Nodes of the given sides (1-based side numbers) of rows of a block: the side's corner nodes and the midside
-    nodes of its edges; every node of an element whose type has no side table."""
+def _sides(conn, cell, rows, sides, where) -> tuple[np.ndarray, np.ndarray]:
+    """The given sides (1-based side numbers) of rows of a block: their nodes (the side's corner nodes and the
+    midside nodes of its edges; every node of an element whose type has no side table), and the faces among
+    them, ``(k, 4)`` corner nodes (a triangle repeats its last node; edges of shells are no faces)."""
+    no_faces = np.zeros((0, 4), np.int64)
     if conn is None:
-        return np.zeros(0, np.int64)
+        return np.zeros(0, np.int64), no_faces
     family = "quad" if cell in ("quad", "quad8", "quad9") else "triangle" if cell in ("triangle", "triangle6") \
         else cell
     table = SIDES.get(family)
     if table is None:
-        return conn[rows].ravel()
+        return conn[rows].ravel(), no_faces
     bad = (sides < 1) | (sides > len(table))
     if bad.any():
         raise MeshReadError(f"{where}: side {sides[bad][0]} of a {cell} element; it has sides 1..{len(table)}")
-    out = []
+    out, faces = [], [no_faces]
     corners = NODE_COUNTS[cell][0] if cell in NODE_COUNTS else {"quad": 4, "triangle": 3}[family]
     data, mid = conn[:, :corners], None
     if cell in NODE_COUNTS and conn.shape[1] > corners:
@@ -245,10 +254,12 @@ def _side_nodes(conn, cell, rows, sides, where) -> np.ndarray:
             continue
         idx = np.array(local) - 1
         out.append(data[sel][:, idx].ravel())
+        if len(idx) >= 3:
+            faces.append(data[sel][:, np.r_[idx, idx[-1]][:4]])
         if mid is not None:
             on = [e for e, (a, b) in enumerate(EDGES[cell].tolist()) if a in idx and b in idx]
             out.append(mid[sel][:, on].ravel())
-    return np.concatenate(out) if out else np.zeros(0, np.int64)
+    return (np.concatenate(out) if out else np.zeros(0, np.int64)), np.concatenate(faces)
 
 
 def _reason(exc: BaseException) -> str:
@@ -277,12 +288,14 @@ def read_exodus(path: str | os.PathLike) -> HexMesh:
     """
     path = os.fspath(path)
     f = ExodusFile(path)
-    cells, cell_sets, notes, other = [], {}, [], {}
+    cells, cell_sets, notes, other, held = [], {}, [], {}, [np.zeros(0, np.int64)]
     for bid, name, etype, cell, conn, start in f.blocks:
         if name in cell_sets:
             name = f"{name} (block {bid})"
         if conn is None:
             continue
+        if cell not in VOLUME_FAMILIES.values():  # shells, beams, spheres, unknown blocks: their nodes stay
+            held.append(conn.ravel())
         if cell is None:
             key = f"{etype or '?'} ({conn.shape[1]} nodes)"
             other[key] = other.get(key, 0) + len(conn)
@@ -311,5 +324,7 @@ def read_exodus(path: str | os.PathLike) -> HexMesh:
         notes.append("coordinates are stored as float32 in the file")
     sets = {name: [np.arange(len(b.data)) if k == i else np.zeros(0, np.int64) for k, b in enumerate(cells)]
             for name, i in cell_sets.items()}
+    held_nodes = np.unique(np.concatenate(held))
     return HexMesh(f.points, tuple(cells), point_sets=f.point_sets, cell_sets=sets, node_ids=f.node_ids,
-                   field_data={"exodus:file": path}, source=path, notes=tuple(notes))
+                   field_data={"exodus:file": path}, face_sets=f.face_sets,
+                   held_nodes=held_nodes if len(held_nodes) else None, source=path, notes=tuple(notes))

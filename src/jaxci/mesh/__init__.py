@@ -63,6 +63,11 @@ class HexMesh:
     - `field_data`: anything else the file carried (Gmsh physical names).
     - `node_ids`: optional external node ids, shape ``(n_nodes,)`` (ANSYS / Abaqus numbering).
     - `source`: the path it was read from, used in messages.
+    - `face_sets`: name -> ``(k, 4)`` node indices of faces (Exodus side sets; a triangle repeats its last node):
+      where they lie on the boundary, `jaxci.geometry.boundary.classify_boundary` keeps the border of each set a
+      feature curve, so that the surfaces a solver's loads and conditions are given on keep their extent.
+    - `held_nodes`: indices of nodes that cells jaxci does not smooth tie to their place (an Exodus shell, beam or
+      sphere block): smoothing never moves them.
     - `input_files`: every other file the reader opened to build it (an Abaqus ``*INCLUDE``, an XDMF file's HDF5
       data, ...), as given or resolved by the reader; with `source`, the files a write must never replace.
     - `hex_mirrored`: True when the file stored every hexahedron left-handed and they were mirrored on
@@ -84,6 +89,8 @@ class HexMesh:
     point_sets: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     cell_sets: Mapping[str, Sequence[np.ndarray]] = dataclasses.field(default_factory=dict)
     field_data: Mapping[str, object] = dataclasses.field(default_factory=dict)
+    face_sets: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    held_nodes: np.ndarray | None = None
     node_ids: np.ndarray | None = None
     source: str | None = None
     input_files: tuple[str, ...] = ()
@@ -146,6 +153,7 @@ class HexMesh:
                 f"({int(rep.sum())} such elements)"
             )
         mirrored = self.hex_mirrored
+        _check_node_lists(self.face_sets, self.held_nodes, n, where)
         _check_range(pts, hexes, where, self.node_label)
         det = corner_determinants(to_unit(pts, unit_frame(pts)), hexes)  # no overflow at 1e300, no underflow
 
@@ -381,10 +389,24 @@ def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMes
         cells=cells,
         point_data={k: np.asarray(v)[keep] for k, v in mesh.point_data.items()},
         point_sets={k: np.unique(remap[np.asarray(v, dtype=np.int64)]) for k, v in mesh.point_sets.items()},
+        face_sets={k: remap[np.asarray(v, dtype=np.int64)] for k, v in mesh.face_sets.items()},
+        held_nodes=None if mesh.held_nodes is None else np.unique(remap[np.asarray(mesh.held_nodes, np.int64)]),
         node_ids=None if mesh.node_ids is None else np.asarray(mesh.node_ids)[keep],
         notes=(*(m for m in mesh.notes if "coincident nodes" not in m), note),
         fix_orientation=False,
     )
+
+
+def _check_node_lists(face_sets, held, n: int, where: str) -> None:
+    """`MeshError` for face sets that are not ``(k, 4)`` node indices in ``[0, n)`` or held nodes out of range."""
+    for name, faces in face_sets.items():
+        f = np.asarray(faces)
+        if f.ndim != 2 or f.shape[1] != 4 or (f.size and (f.dtype.kind not in "iu" or f.min() < 0 or f.max() >= n)):
+            raise MeshError(f"{where}face set {name!r} must be (k, 4) node indices in [0, {n}), got an array of "
+                            f"shape {f.shape}")
+    h = np.asarray([] if held is None else held)
+    if h.size and (h.dtype.kind not in "iu" or h.min() < 0 or h.max() >= n):
+        raise MeshError(f"{where}held nodes must be node indices in [0, {n})")
 
 
 def as_hex_mesh(obj, caller: str) -> HexMesh:
