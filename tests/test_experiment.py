@@ -115,7 +115,8 @@ def test_run_writes_everything(small_run):
     assert rows[1].split(",")[5:9] == [engine["name"], engine["device"], engine["dtype"], engine["kernel"]]
     report = (out / "report.md").read_text()
     assert "Table 1" in report and "Table 2" in report and "Table 3" in report
-    assert f"| CI local | {engine['name']} | {engine['device']} | {engine['dtype']} | {engine['kernel']} | 2 |" in report
+    row = f"| CI local | {engine['name']} | {engine['device']} | {engine['dtype']} | {engine['kernel']} | 2 |"
+    assert row in report
     assert "510.1303" in report and "0.001429" in report  # the paper's numbers beside ours
 
 

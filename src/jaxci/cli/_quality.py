@@ -12,7 +12,7 @@ import math
 
 
 def add_args(p) -> None:
-    p.add_argument("mesh", help="mesh file (.vtk, .vtu, .msh, .inp, .xdmf, ANSYS listing or .mac)")
+    p.add_argument("mesh", help="mesh file (any format jaxci reads: see the README's format table)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.add_argument("--feature-angle", type=float, default=40.0, help="for the node class counts (default 40)")
 

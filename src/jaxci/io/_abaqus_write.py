@@ -44,7 +44,7 @@ from ..errors import MeshWriteError
 from ..mesh import HexMesh, mirrored_block
 from ._abaqus import DEFAULT_NAMES, element_family, parse_deck, split_line
 from ._deck import first_duplicate, model_difference
-from ._losses import deck_losses
+from ._losses import SOURCE_FIELDS, deck_losses
 from ._meshio import LossyWriteWarning
 
 #: Set names written as they are; others are written in double quotes (Abaqus's form for labels with spaces).
@@ -195,7 +195,7 @@ def _fresh(mesh: HexMesh, path: str, id_types: dict[int, str]) -> tuple[str, lis
 
 def _dropped_data(mesh: HexMesh) -> list[str]:
     lost = [f"{what} data {sorted(d)}" for what, d in (("point", mesh.point_data), ("cell", mesh.cell_data)) if d]
-    field = sorted(k for k in mesh.field_data if k not in ("abaqus:deck", "abaqus:element_types", "ansys:deck"))
+    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
     if field:
         lost.append(f"field data {field}")
     return lost

@@ -73,7 +73,7 @@ from ._ansys import (
 )
 from ._ansys_apdl import CMBLOCK_FORMAT, COMPONENT_NAME, EBLOCK_FORMAT, NBLOCK_FORMAT, DeckReader
 from ._deck import model_difference
-from ._losses import deck_losses
+from ._losses import SOURCE_FIELDS, deck_losses
 from ._meshio import LossyWriteWarning
 
 
@@ -183,8 +183,7 @@ def write_apdl(mesh: HexMesh, path: str | os.PathLike) -> None:
     other += sorted(set(mesh.point_data) - {"ansys:angles"})
     if other:
         lost.append(f"point/cell data {other}")
-    field = sorted(set(mesh.field_data) - {"ansys:et", "ansys:keyopt", "ansys:deck", "abaqus:deck",
-                                           "abaqus:element_types"})
+    field = sorted(set(mesh.field_data) - {"ansys:et", "ansys:keyopt", *SOURCE_FIELDS})
     if field:
         lost.append(f"field data {field}")
     if text is None:

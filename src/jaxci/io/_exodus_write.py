@@ -30,6 +30,7 @@ from ..errors import JaxciError, MeshWriteError
 from ..mesh import HexMesh
 from ._deck import first_duplicate, model_difference
 from ._exodus import ExodusFile, read_exodus
+from ._losses import SOURCE_FIELDS, deck_losses
 from ._meshio import LossyWriteWarning
 from ._patran import file_block, join_solid, serendipity_shift
 
@@ -43,9 +44,6 @@ EXODUS_NAMES = {
     ("vertex", False): "SPHERE",
 }
 _INT32 = 2**31 - 1
-#: Field data that are a source file's, not the mesh's (never reported as lost field data here).
-_SOURCE_FIELDS = ("exodus:file", "abaqus:deck", "abaqus:element_types", "ansys:deck", "nastran:deck",
-                  "lsdyna:deck")
 
 
 def _reference(src: str) -> tuple[ExodusFile | None, HexMesh | None, str | None]:
@@ -148,7 +146,7 @@ def _plan(mesh: HexMesh, path: str) -> tuple[dict, list[str]]:
     if others:
         lost.append(f"cell sets {others} (only a set that is exactly one element block is kept, as its name)")
     lost += [f"{what} data {sorted(d)}" for what, d in (("point", mesh.point_data), ("cell", mesh.cell_data)) if d]
-    field = sorted(k for k in mesh.field_data if k not in _SOURCE_FIELDS)
+    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
     if field:
         lost.append(f"field data {field}")
     plan = {"blocks": blocks, "names": names, "node_ids": node_ids,
@@ -226,7 +224,7 @@ def write_exodus(mesh: HexMesh, path: str | os.PathLike) -> None:
         lost.append(f"the results, QA and info records, attributes, maps and side sets of the source Exodus file "
                     f"{os.path.basename(src)} ({reason}, so it cannot be rewritten in place)")
     plan, more = _plan(mesh, path)
-    lost += more
+    lost += more + [what for fmt, what in deck_losses(mesh, "exodus") if fmt != "exodus"]
     if lost:
         warnings.warn(f"{os.path.basename(path)}: exodus drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
     _write_fresh(mesh, plan, path)

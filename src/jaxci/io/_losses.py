@@ -10,10 +10,24 @@ from ..mesh import HexMesh
 from ._abaqus import deck_extras
 from ._ansys_apdl import other_commands
 
+#: Field data that carry a source file (its text, or its path for a format written back from the file itself),
+#: not data of the mesh: never reported as lost field data; `deck_losses` says what each means.
+SOURCE_FIELDS = ("abaqus:deck", "abaqus:element_types", "ansys:deck", "nastran:deck", "lsdyna:deck", "exodus:file")
+
+#: What the source files of the formats without a lister of their own hold beyond the mesh (deck format, phrase).
+_SOURCES = {
+    "nastran:deck": ("nastran", "the other cards of the source Nastran deck (properties, materials, loads, "
+                                "coordinate systems, case control)"),
+    "lsdyna:deck": ("lsdyna", "the other keywords of the source LS-DYNA deck (*PART, *SECTION, *MAT, loads, "
+                              "controls)"),
+    "exodus:file": ("exodus", "the results, side sets, attributes, maps, QA and info records of the source Exodus "
+                              "file"),
+}
 
 def deck_losses(mesh: HexMesh, fmt: str) -> list[tuple[str, str]]:
-    """What the source decks carried by `mesh` (field data ``abaqus:deck``, ``ansys:deck``) hold that a file of
-    format `fmt` written afresh does not: ``(deck format, phrase)`` per deck, for a `LossyWriteWarning`."""
+    """What the source files carried by `mesh` (`SOURCE_FIELDS`) hold that a file of format `fmt` written afresh
+    does not: ``(deck format, phrase)`` per source, for a `LossyWriteWarning` (a writer of the source's own format
+    that writes the file back in place leaves its own out)."""
     out = []
     deck = mesh.field_data.get("abaqus:deck")
     if isinstance(deck, str):
@@ -29,6 +43,7 @@ def deck_losses(mesh: HexMesh, fmt: str) -> list[tuple[str, str]]:
         commands = other_commands(deck)
         if commands:
             out.append(("apdl", f"the other APDL commands of the source file ({_listed(commands)})"))
+    out += [_SOURCES[k] for k in _SOURCES if mesh.field_data.get(k)]
     return out
 
 

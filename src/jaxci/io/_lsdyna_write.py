@@ -27,13 +27,12 @@ from ..errors import MeshWriteError
 from ..mesh import HexMesh
 from ._deck import first_duplicate, model_difference
 from ._fields import REL_TOLERANCE, format_real, node_scale, rewrite_coordinates
-from ._losses import deck_losses
+from ._losses import SOURCE_FIELDS, deck_losses
 from ._lsdyna import DEGENERATE, parse_deck
 from ._meshio import LossyWriteWarning
 from ._patran import file_block
 
 _MAX_ID = 99_999_999  # 8-character integer fields
-_SOURCE_FIELDS = ("lsdyna:deck", "nastran:deck", "exodus:file", "abaqus:deck", "abaqus:element_types", "ansys:deck")
 
 
 def _in_place(mesh: HexMesh, text: str, path: str) -> tuple[str | None, str | None]:
@@ -136,10 +135,10 @@ def _dropped(mesh: HexMesh) -> list[str]:
     cell = sorted(k for k in mesh.cell_data if k != "lsdyna:pid")
     if cell:
         lost.append(f"cell data {cell}")
-    field = sorted(k for k in mesh.field_data if k not in _SOURCE_FIELDS)
+    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
     if field:
         lost.append(f"field data {field}")
-    return lost + [what for _, what in deck_losses(mesh, "lsdyna")]
+    return lost + [what for fmt, what in deck_losses(mesh, "lsdyna") if fmt != "lsdyna"]  # its own: write_lsdyna
 
 
 def write_lsdyna(mesh: HexMesh, path: str | os.PathLike) -> None:

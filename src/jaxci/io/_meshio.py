@@ -50,7 +50,7 @@ from ..mesh import MIRROR_HEX, CellBlock, HexMesh
 from ..mesh.convert import SET_PREFIX, meshio_fields
 from ._counts import check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
 from ._gmsh_counts import check_gmsh
-from ._losses import deck_losses
+from ._losses import SOURCE_FIELDS, deck_losses
 from ._paths import check_regular
 
 
@@ -90,7 +90,6 @@ _KEEPS = {
 }
 
 #: Field data that carry a source deck (its text and element type names), reported by `deck_losses`, not written.
-_DECK_FIELDS = ("abaqus:deck", "abaqus:element_types", "ansys:deck")
 
 #: Messages meshio prints that say nothing to a jaxci user (jaxci chose ASCII legacy VTK on purpose).
 _MESHIO_NOISE = ("VTK ASCII files are only meant for debugging",)
@@ -268,7 +267,7 @@ def _to_meshio(mesh: HexMesh, fmt: str, path: Path) -> tuple[meshio.Mesh, list[s
     cell_data = {k: [np.asarray(a) for a in v] for k, v in mesh.cell_data.items()}
     point_sets = {k: np.asarray(v) for k, v in mesh.point_sets.items()}
     cell_sets = {k: [np.asarray(a) for a in v] for k, v in mesh.cell_sets.items()}
-    field_data = {k: v for k, v in mesh.field_data.items() if k not in _DECK_FIELDS}
+    field_data = {k: v for k, v in mesh.field_data.items() if k not in SOURCE_FIELDS}
     lost = [what for _, what in deck_losses(mesh, fmt)]
 
     if keeps["sets"] == "data":

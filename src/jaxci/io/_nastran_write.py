@@ -39,7 +39,7 @@ from ..mesh import HexMesh
 from ._ansys_apdl_write import write_apdl
 from ._deck import first_duplicate, model_difference
 from ._fields import REL_TOLERANCE, format_real, node_scale, rewrite_coordinates
-from ._losses import deck_losses
+from ._losses import SOURCE_FIELDS, deck_losses
 from ._meshio import LossyWriteWarning
 from ._nastran import parse_deck
 from ._patran import file_block, join_solid
@@ -50,7 +50,6 @@ CARD_NAMES = {("hexahedron", False): "CHEXA", ("hexahedron", True): "CHEXA", ("w
               ("pyramid", False): "CPYRAM", ("pyramid", True): "CPYRAM", ("quad", False): "CQUAD4",
               ("triangle", False): "CTRIA3", ("line", False): "CROD"}
 _MAX_ID = 99_999_999  # 8-character integer fields
-_SOURCE_FIELDS = ("nastran:deck", "exodus:file", "abaqus:deck", "abaqus:element_types", "ansys:deck", "lsdyna:deck")
 
 
 def _in_place(mesh: HexMesh, text: str, path: str) -> tuple[str | None, str | None]:
@@ -142,10 +141,10 @@ def _dropped(mesh: HexMesh) -> list[str]:
     cell = sorted(k for k in mesh.cell_data if k != "nastran:pid")
     if cell:
         lost.append(f"cell data {cell}")
-    field = sorted(k for k in mesh.field_data if k not in _SOURCE_FIELDS)
+    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
     if field:
         lost.append(f"field data {field}")
-    return lost + [what for _, what in deck_losses(mesh, "nastran")]
+    return lost + [what for fmt, what in deck_losses(mesh, "nastran") if fmt != "nastran"]  # its own: write_nastran
 
 
 def write_nastran(mesh: HexMesh, path: str | os.PathLike) -> None:
