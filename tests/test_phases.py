@@ -52,11 +52,15 @@ def test_auto_presmooths_large_meshes_on_the_host_and_every_mesh_on_jax(monkeypa
     mesh = box(4, 4, 4)  # 64 hexahedra
     host = host_plan()
     compiled = dataclasses.replace(host, engine="jax", kernel="XLA")
-    assert methods.auto_pipeline(mesh, {}, host)[1] == {}
-    assert methods.auto_pipeline(mesh, {}, compiled)[1] == {"presmooth": 3}  # float32 L-BFGS alone stalls
+    assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True}
+    # float32 L-BFGS alone stalls
+    assert methods.auto_pipeline(mesh, {}, compiled)[1] == {"presmooth": 3, "polish": True}
     monkeypatch.setattr(methods, "AUTO_PRESMOOTH_FROM", 64)
-    assert methods.auto_pipeline(mesh, {}, host)[1] == {"presmooth": 3}
-    assert methods.auto_pipeline(mesh, {"presmooth": 0}, host)[1] == {"presmooth": 0}  # the user's value wins
+    assert methods.auto_pipeline(mesh, {}, host)[1] == {"presmooth": 3, "polish": True}
+    # the user's values win; the p-mean has no polish
+    assert methods.auto_pipeline(mesh, {"presmooth": 0, "polish": False}, host)[1] == {"presmooth": 0,
+                                                                                      "polish": False}
+    assert "polish" not in methods.auto_pipeline(mesh, {"objective": "pmean"}, host)[1]
 
 
 def test_optimal_mesh_returns_at_once():

@@ -155,6 +155,35 @@ def hex_objective(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float]:
     return (np.inf if bad else total / (8 * len(hexes))), float(np.sqrt(tmax))
 
 
+def hex_corner_terms(points: np.ndarray, hexes: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(terms, inverted)``: (kappa/3)^2 of every corner of `hexes` ``(N, 8)`` as ``(8, N)`` float64 (corner i
+    of hexahedron e at ``[i, e]``; ``inf`` where det <= 0) and the number of such corners."""
+    h = _i8(hexes)
+    terms = np.empty((8, h.shape[0]))
+    bad = _c.hex_condition(_f8(points), h, 0.0, None, None, terms, THREADS)[2]
+    return terms, int(bad)
+
+
+def hex_weighted_grad(points: np.ndarray, hexes: np.ndarray, corner_weight: np.ndarray, scale: float,
+                      grad: np.ndarray) -> None:
+    """``grad += scale * sum_i corner_weight[i] d (kappa_i/3)^2 / dx`` over the valid corners of `hexes`
+    ``(N, 8)``, `corner_weight` ``(8, N)`` (`hex_corner_terms`' layout), in place on `grad` float64 ``(n, 3)``."""
+    _c.hex_condition(_f8(points), _i8(hexes), 2.0 * float(scale) / 9.0, grad, _f8(corner_weight), None, THREADS)
+
+
+def table_corner_terms(points: np.ndarray, table: np.ndarray, winv: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(terms, inverted)`` of the corners of a flat corner table `table` ``(4, C)`` (`corner_table`) with the
+    type's W^-1 `winv`: (kappa/3)^2 of ``A W^-1`` per corner ``(C,)`` (``inf`` where det <= 0) and how many such."""
+    terms = np.empty(table.shape[1])
+    bad = _c.corner_condition(_f8(points), table, _f8(winv), 0.0, None, terms, THREADS)[2]
+    return terms, int(bad)
+
+
+def table_inverted(points: np.ndarray, table: np.ndarray) -> int:
+    """How many of the tetrahedra of the corner table `table` ``(4, C)`` have det <= 0 (W = I: a barrier)."""
+    return int(_c.corner_condition(_f8(points), table, _EYE, 0.0, None, None, THREADS)[2])
+
+
 def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.ndarray, cand: np.ndarray,
                  table: np.ndarray, spheres: np.ndarray, kind: int, tol: float, bump: float) -> None:
     """`jaxci.geometry.near.NearProjector`'s search in C, in place: every node ``nodes[i]`` for ``i`` in `active`

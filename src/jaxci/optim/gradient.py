@@ -527,6 +527,8 @@ def run_gradient(problem, method: str, params: dict):
         if not use_host(method, p, problem.mesh.n_hexes, extra):
             extra = extra_cells(problem.mesh)
     x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra, problem.devices)
+    if p.polish:
+        x, steps, hist = _polish(problem, par, x, steps, hist, p)
     if pre is None:
         return x, steps, hist, resolved
     hist = {**hist, "presmooth": int(sweeps)}
@@ -536,6 +538,36 @@ def run_gradient(problem, method: str, params: dict):
     if "restarts" in hist:
         hist["restarts"] = np.asarray(hist["restarts"]) + int(sweeps)
     return x, int(sweeps) + steps, hist, resolved
+
+
+def _polish(problem, par: Parametrisation, x, steps: int, hist: dict, p: GradientParams):
+    """The worst-element polish (`jaxci.optim.polish`) of the solver's result `x`, on the host whatever the engine
+    (numpy float64 constraints and parametrisation are made where the run's are JAX arrays): ``(x, steps, hist)``
+    with one step and one history entry per polish round, and ``polish`` (the polish's report) in the history.
+    Its work is bounded by the solve's (`steps` times the cells); F stays at or below the method's input's."""
+    from ..cells import element_blocks
+    from ..geometry.projection import build_constraints
+    from .polish import PolishParams, polish
+
+    mesh = problem.mesh
+    x = np.asarray(x, np.float64)
+    if problem.host and np.asarray(par.x0).dtype == np.float64:
+        cons, hpar = problem.cons, par
+    else:
+        cons = build_constraints(mesh, problem.info, dtype=np.float64, device=False)
+        hpar = make_parametrisation(mesh, problem.info, cons, x, scaled=p.scaled, dtype=np.float64)
+    blocks = element_blocks(mesh)
+    n_cells = sum(len(c) for c in blocks.values())
+    f0 = np.asarray(hist["objective"], np.float64)[0]
+    pp = PolishParams(budget=p.polish_budget, work=float(max(steps, 1)) * n_cells,
+                      f_limit=float(f0) if np.isfinite(f0) else float("inf"))
+    y, report = polish(mesh, cons, hpar, x, pp, blocks)
+    rounds = int(report["rounds"])
+    hist = {**hist, "polish": {k: v for k, v in report.items() if k not in ("objective", "max_condition")}}
+    hist["objective"] = np.concatenate([np.asarray(hist["objective"], np.float64), report["objective"]])
+    hist["max_condition"] = np.concatenate([np.asarray(hist["max_condition"], np.float64),
+                                            report["max_condition"]])
+    return np.asarray(y, np.asarray(x).dtype), steps + rounds, hist
 
 
 # ---------------------------------------------------------------------------------------------- mixed meshes

@@ -85,6 +85,12 @@ class GradientParams:
       preconditioner of `jaxci.optim.coarse`: a run that is still going there is one whose boundary nodes creep
       along curved walls), ``"coarse"`` (``gamma M`` from the start; refused elsewhere than on the host
       L-BFGS) or ``"none"`` (``gamma I`` throughout). See `jaxci.optim.coarse` for the figures.
+    - `polish`: with ``objective="mean"``: after the solve, the worst-element polish of
+      `jaxci.optim.polish` (the worst element lowered level by level, moving only the nodes of the elements
+      above the level, F kept as low as the level allows; on the host whatever the engine). Default False:
+      ``method="lbfgs"`` is plain L-BFGS; the default pipeline (``method="auto"``) turns it on.
+    - `polish_budget`: the most the polish may raise the mean element quality (the mean over the cells of each
+      cell's worst corner kappa/3), as a fraction of it (default 0.01; 0 to 1).
     """
 
     max_steps: int = 2000
@@ -108,6 +114,8 @@ class GradientParams:
     objective: str = "mean"
     p: float = 2.0
     precondition: str = "auto"
+    polish: bool = False
+    polish_budget: float = 0.01
 
     def __post_init__(self):
         L = "gradient-method"
@@ -134,7 +142,12 @@ class GradientParams:
             objective=_p.choice(L, "objective", self.objective, OBJECTIVES),
             p=_p.real(L, "p", self.p, 1.0, MAX_POWER),
             precondition=_p.choice(L, "precondition", self.precondition, PRECONDITIONERS),
+            polish=_p.boolean(L, "polish", self.polish),
+            polish_budget=_p.real(L, "polish_budget", self.polish_budget, 0.0, 1.0),
         )
+        if self.polish and self.objective != "mean":
+            raise ConfigError("gradient-method parameter polish=True is for objective='mean' (the p-mean already "
+                              "weighs the worst corners); drop one of them")
         if self.objective == "pmean" and self.gradient != "closed":
             raise ConfigError("gradient-method parameter objective='pmean' needs gradient='closed' (the p-mean has "
                               "only the closed-form gradient)")
