@@ -206,8 +206,6 @@ def host_obstacle(mesh, method: str, params: dict, untangling: bool) -> str | No
     if extra and method == "lbfgs":
         if not native.AVAILABLE:
             return "L-BFGS on a mixed mesh needs the C kernels on the host, and this install has none"
-        if params.get("objective", "mean") != "mean":
-            return "objective 'pmean' on a mixed mesh runs on the JAX engine only"
     if untangling and extra:
         return "the untangling stage of a mixed mesh runs on the JAX engine only"
     return None

@@ -85,6 +85,7 @@ from ..cells import (
     corner_determinants,
     corner_invariants,
     element_blocks,
+    pmean_weights,
 )
 from ..mesh import HexMesh
 
@@ -455,13 +456,24 @@ def mixed_objective(points, mesh: HexMesh):
 
 def checked_objective(mesh: HexMesh, power: float | None = None):
     """The float64 objective `jaxci.smooth`'s final checks compare, as a function of the coordinates ``(n, 3)``
-    -> float: F over every cell (`mixed_objective`), or with `power` the p-mean of the hexahedra
-    (`jaxci.metrics.hexahedron.pmean_objective`: what ``objective="pmean"`` minimises)."""
+    -> float: F over every cell (`mixed_objective`), or with `power` the p-mean over every corner
+    (`jaxci.metrics.hexahedron.pmean_objective` on a hexahedral mesh: what ``objective="pmean"`` minimises)."""
     if power is None:
         return lambda x: float(mixed_objective(x, mesh))
     from .hexahedron import pmean_objective
 
-    return lambda x: pmean_objective(x, mesh.hexes, power)
+    blocks = element_blocks(mesh)
+    if set(blocks) <= {"hexahedron"}:
+        return lambda x: pmean_objective(x, mesh.hexes, power)
+
+    def pmean(x):  # every type's corner terms (numpy float64), one p-mean over all of them
+        pts = _np_points(x)
+        terms = np.concatenate([_sq_kappa3(np, *cell_corner_kernel(pts, _conn(c, t), t)[1:4]).ravel()
+                                for t, c in blocks.items()])
+        with np.errstate(invalid="ignore", over="ignore"):
+            return float(pmean_weights(np, terms - 1.0, None, float(power))[0])
+
+    return pmean
 
 
 def corner_figures(points, cells, cell_type: str) -> dict[str, np.ndarray]:

@@ -78,7 +78,7 @@ import numpy as np
 
 from .. import native
 from .._lazy import jax, jnp
-from ..cells import corner_invariants
+from ..cells import corner_invariants, pmean_weights
 from ..errors import ConfigError
 from ..geometry.projection import project_np
 from ..metrics import native_grad
@@ -169,7 +169,10 @@ def _objective(x, conn, closed: bool, extra=None, weight=None, power=None, block
     """F and max kappa/3 of coordinates `x` (``inf`` for an inverted mesh); over every corner of the hexahedra and
     of `extra` (`jaxci.metrics.objective.ExtraCells`, static types) when it has cells. `weight` (hexahedral meshes
     only): None, or ``(N,)`` element weights, 0 for the padding elements of a size class (`jaxci.optim._buckets`): they
-    add nothing and F is the mean over the real corners."""
+    add nothing and F is the mean over the real corners. With `power` and `extra` cells: the p-mean over every
+    corner (`_mixed_pmean`)."""
+    if power is not None and extra is not None and extra.types:
+        return _mixed_pmean(x, conn, extra, power)
     if closed:  # one kernel for F, its gradient and the max
         f, kmax = _objective_closed(x, conn, weight, power, block, mesh)
     else:  # the hexahedra's F and max from one pass over their corners
@@ -284,11 +287,15 @@ def _scale(n_hex: int, extra) -> float:
     return (8.0 * n_hex + extra.n_corners) / _CORNERS_PER_NODE
 
 
-def _host_mixed_kernel(conn, extra):
-    """The C kernel of F over every cell of a mixed mesh (`jaxci.native.MixedKernel`); None (the hexahedra's
-    kernel) for a hexahedral mesh."""
+def _host_mixed_kernel(conn, extra, power: float | None = None):
+    """The host kernel of F over every cell of a mixed mesh (`jaxci.native.MixedKernel`), or of the p-mean with
+    `power` (`jaxci.optim.weighted.pmean_kernel`); None (the hexahedra's kernel) for a hexahedral mesh."""
     if not extra.types:
         return None
+    if power is not None:
+        from .weighted import pmean_kernel
+
+        return pmean_kernel(_cells_by_type(conn, extra), power)
     return native.MixedKernel(_cells_by_type(conn, extra))
 
 
@@ -359,9 +366,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             f"is only for small meshes: {nf} free coordinates > max_free={p.max_free}; use 'lbfgs' or 'cg', or raise "
             f"max_free"
         )
-    if p.objective == "pmean" and (method not in BUCKETED or extra.types):
-        raise ConfigError(f"objective 'pmean' is for bfgs, lbfgs and cg on hexahedral meshes, not "
-                          f"{'a mesh with ' + ', '.join(extra.types) if extra.types else repr(method)}")
+    if p.objective == "pmean" and method not in BUCKETED:
+        raise ConfigError(f"objective 'pmean' is for bfgs, lbfgs and cg, not {method!r}")
     params = {"method": method, **dataclasses.asdict(p)}
     if nf == 0:
         x = par.points(jnp.zeros((0,), par.x0.dtype))
@@ -408,9 +414,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     while runs < max_runs:
         cur = dataclasses.replace(run_par, strict=True) if strict else run_par
         if on_host:  # one objective for every run: its projector remembers each node's triangle
+            power = p.p if p.objective == "pmean" else None
             host_fn = host_fn or HostObjective(run_par, np.asarray(conn), _scale(n_hex, extra),
-                                               kernel=_host_mixed_kernel(conn, extra),
-                                               power=p.p if p.objective == "pmean" else None)
+                                               kernel=_host_mixed_kernel(conn, extra, power), power=power)
             if p.precondition != "none" and precond is None:
                 from . import coarse
 
@@ -582,6 +588,20 @@ def _mixed_objective(x, n_hex: int, f_hex, k_hex, extra):
     for t in terms:
         k = jnp.maximum(k, jnp.sqrt(jnp.max(jax.lax.optimization_barrier(t))))
     return f, k + barrier
+
+
+def _mixed_pmean(x, conn, extra, power: float):
+    """The p-mean ``M_p`` of the corner excesses over every corner of the hexahedra `conn` and of `extra`
+    (`jaxci.cells.pmean_weights`; differentiated by JAX), and max kappa/3; ``inf`` if a corner or a pyramid
+    sub-tetrahedron is inverted."""
+    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
+    terms = [squared_condition_from_invariants(det, fro2, adj2).reshape(-1)]
+    terms += [t.reshape(-1) for t in extra_terms(x, extra)]
+    t = jnp.concatenate(terms)
+    barrier = extra_barrier(x, extra)
+    f, _ = pmean_weights(jnp, t - 1.0, None, power)
+    kmax = jnp.sqrt(jnp.max(jax.lax.optimization_barrier(t)))
+    return f + barrier, kmax + barrier
 
 
 def _mixed_residuals(x, hex_terms, extra, s, stops, *, excess: bool):

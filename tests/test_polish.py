@@ -1,0 +1,154 @@
+"""The worst-element polish of the default pipeline (jaxci.optim.polish), the per-corner weighted host kernels
+(jaxci.optim.weighted) and the p-mean on meshes with wedges, pyramids and tetrahedra."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxci import native
+from jaxci.cells import element_blocks
+from jaxci.generate import perturb_box
+from jaxci.geometry.boundary import classify_boundary
+from jaxci.geometry.projection import build_constraints
+from jaxci.geometry.topology import HEX_FACES
+from jaxci.mesh import CellBlock, HexMesh
+from jaxci.metrics.elements import checked_objective, mixed_objective
+from jaxci.metrics.guard import cell_worst
+from jaxci.optim import weighted
+from jaxci.optim.parametrisation import make_parametrisation
+from jaxci.optim.polish import PolishParams, polish
+from jaxci.smooth import smooth
+
+
+def all_types_box(seed: int = 1) -> HexMesh:
+    """A perturbed 3^3 box: hexahedron 0 (a box corner) as 6 pyramids around a new centre node, the one on the
+    face x = 0 split into 2 tetrahedra; the column of hexahedra 8, 17, 26 split into 2 wedges each."""
+    m = perturb_box(3, amplitude=0.15, seed=seed)
+    h, pts = m.hexes, m.points
+    c = len(pts)
+    pts = np.vstack([pts, pts[h[0]].mean(axis=0)])
+    pyr = np.array([list(f[::-1]) + [c] for f in h[0][HEX_FACES]])
+    a, b, cc, d, e = pyr[0]
+    tet = np.array([[a, b, cc, e], [a, cc, d, e]])
+    col = [8, 17, 26]
+    w = np.concatenate([h[col][:, [0, 1, 2, 4, 5, 6]], h[col][:, [0, 2, 3, 4, 6, 7]]])
+    return HexMesh(pts, (CellBlock("hexahedron", np.delete(h, [0, *col], axis=0)), CellBlock("wedge", w),
+                         CellBlock("pyramid", pyr[1:]), CellBlock("tetra", tet)))
+
+
+def element_stats(mesh, points) -> tuple[float, float]:
+    """(worst, mean) over every cell of each cell's worst corner kappa/3 (VTK's per-element condition)."""
+    k = np.concatenate(list(cell_worst(mesh, points).values()))
+    return float(k.max()), float(k.mean())
+
+
+@pytest.fixture(params=["C", "numpy"])
+def kernels(request, monkeypatch):
+    if request.param == "C" and not native.AVAILABLE:
+        pytest.skip("the C kernels are not built")
+    if request.param == "numpy":
+        monkeypatch.setattr(native, "AVAILABLE", False)
+    return request.param
+
+
+def test_weighted_kernels_are_F_and_their_gradients_are_exact(kernels):
+    mesh = all_types_box()
+    blocks = element_blocks(mesh)
+    assert set(blocks) == {"hexahedron", "wedge", "pyramid", "tetra"}
+    x = np.array(mesh.points)
+    cells = weighted.CellCorners(blocks)
+    f, _, _ = weighted.penalty_kernel(blocks, cells.n_corners, np.inf, 0.0)(x)  # no penalty: F itself
+    assert f == pytest.approx(float(mixed_objective(x, mesh)), rel=1e-12)
+    d = np.random.default_rng(0).normal(size=x.shape)
+    h = 1e-6
+    for kernel in (weighted.pmean_kernel(blocks, 4.0), weighted.penalty_kernel(blocks, 100, 0.05, 50.0)):
+        v, kmax, g = kernel(x)
+        fd = (kernel(x + h * d)[0] - kernel(x - h * d)[0]) / (2 * h)
+        assert fd == pytest.approx(float(np.sum(g * d)), rel=1e-6)
+        assert kmax == pytest.approx(element_stats(mesh, x)[0], rel=1e-12)
+    assert weighted.pmean_kernel(blocks, 4.0)(x)[0] == pytest.approx(checked_objective(mesh, 4.0)(x), rel=1e-12)
+    worst = cells.cell_worst(x)
+    ref = cell_worst(mesh, x)
+    for t in blocks:
+        np.testing.assert_allclose(worst[t], ref[t], rtol=1e-12)
+    flat = x.copy()  # an inverted tetrahedron: inf, as F
+    flat[blocks["tetra"][0, 3]] = x[blocks["tetra"][0, :3]].mean(axis=0) - 0.05 * (x[blocks["tetra"][0, 3]] -
+                                                                                     x[blocks["tetra"][0, :3]].mean(0))
+    assert weighted.pmean_kernel(blocks, 4.0)(flat)[0] == np.inf and cells.terms(flat) is None
+
+
+def test_mixed_pmean_of_the_jax_engine_matches_the_host_kernel():
+    import jax
+
+    from jaxci.metrics.objective import extra_cells
+    from jaxci.optim.gradient import _mixed_pmean
+
+    m = perturb_box(3, amplitude=0.2, seed=0)  # hexahedra and wedges: a small program to compile
+    h, col = m.hexes, [4, 13, 22]
+    w = np.concatenate([h[col][:, [0, 1, 2, 4, 5, 6]], h[col][:, [0, 2, 3, 4, 6, 7]]])
+    mesh = HexMesh(m.points, (CellBlock("hexahedron", np.delete(h, col, axis=0)), CellBlock("wedge", w)))
+    blocks = element_blocks(mesh)
+    x = np.array(mesh.points)
+    v, _, g = weighted.pmean_kernel(blocks, 3.0)(x)
+    with jax.enable_x64(True):
+        extra = extra_cells(mesh)
+        conn = jax.numpy.asarray(np.ascontiguousarray(mesh.hexes.T))
+        fn = jax.jit(jax.value_and_grad(lambda y: _mixed_pmean(y, conn, extra, 3.0)[0]))
+        vj, gj = fn(jax.numpy.asarray(x))
+    assert float(vj) == pytest.approx(v, rel=1e-10)
+    np.testing.assert_allclose(np.asarray(gj), g, rtol=1e-7, atol=1e-9 * np.abs(g).max())
+
+
+def test_pmean_on_a_mixed_mesh_runs_on_the_host_and_lowers_the_pmean():
+    mesh = all_types_box()
+    mean = smooth(mesh, "lbfgs", keep_worst=False)
+    pm = smooth(mesh, "lbfgs", objective="pmean", p=4, keep_worst=False)
+    assert pm.plan.engine == "host" and pm.params["objective"] == "pmean"
+    pmean = checked_objective(mesh, 4.0)
+    assert pmean(pm.mesh.points) < pmean(mesh.points)
+    assert pmean(pm.mesh.points) < pmean(mean.mesh.points)
+    assert pm.after.overall["inverted"] == 0 and not any("returned" in n for n in pm.notes)
+
+
+def test_default_polishes_the_worst_element_within_its_budget():
+    """A perturbed box with its boundary fixed: F leaves worst kappa/3 2.58; the default's polish takes it below
+    the p-mean's (p = 2: 2.33) while the mean element quality stays within 1% and F below the input's."""
+    mesh = perturb_box(4, amplitude=0.3, seed=1)
+    plain = smooth(mesh, "lbfgs", fix_boundary=True)
+    auto = smooth(mesh, fix_boundary=True)
+    assert "polish" not in plain.history and plain.params["polish"] is False  # --method lbfgs stays plain
+    assert auto.params["polish"] is True and "worst-element polish" in auto.params["pipeline"]
+    w0, m0 = element_stats(mesh, plain.mesh.points)
+    w1, m1 = element_stats(mesh, auto.mesh.points)
+    assert w0 > 2.5 and w1 < 2.3
+    assert m1 <= m0 * 1.01
+    assert auto.after.objective < auto.before.objective
+    rep = auto.history["polish"]
+    assert rep["worst"][1] == pytest.approx(w1, rel=1e-9) and rep["kept"] >= 1
+    assert len(auto.history["objective"]) == auto.iterations + 1
+    # no mean budget: a round that raises the mean element quality is not kept
+    none = smooth(mesh, fix_boundary=True, polish_budget=0.0)
+    assert element_stats(mesh, none.mesh.points)[1] <= m0 * (1 + 1e-12)
+
+
+def polish_setup(mesh, x, fixed=None):
+    info = classify_boundary(mesh, fixed_nodes=fixed)
+    cons = build_constraints(mesh, info, dtype=np.float64, device=False)
+    return cons, make_parametrisation(mesh, info, cons, x)
+
+
+def test_polish_bounds_and_limits():
+    mesh = perturb_box(4, amplitude=0.3, seed=1)
+    x = np.array(smooth(mesh, "lbfgs", fix_boundary=True).mesh.points)
+    cons, par = polish_setup(mesh, x, fixed=np.flatnonzero(np.abs(mesh.points - 0.5).max(axis=1) > 0.49))
+    y, rep = polish(mesh, cons, par, x, PolishParams(work=0.0))  # no work allowed: nothing done
+    assert rep["rounds"] == 0 and "work" in rep["stopped"] and np.array_equal(y, x)
+    f0 = float(mixed_objective(x, mesh))
+    y, rep = polish(mesh, cons, par, x, PolishParams(f_limit=f0))  # F may not rise at all
+    assert rep["rounds"] >= 1 and float(mixed_objective(y, mesh)) <= f0
+    # the worst element's nodes fixed: nothing can move it, and the report says so
+    worst = int(np.argmax(cell_worst(mesh, x)["hexahedron"]))
+    cons, par = polish_setup(mesh, x, fixed=mesh.hexes[worst])
+    y, rep = polish(mesh, cons, par, x)
+    assert rep["limited"] and rep["rounds"] == 0 and np.array_equal(y, x)
