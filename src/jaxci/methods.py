@@ -104,7 +104,7 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
     worst-element polish (`jaxci.optim.polish`; ``polish=False`` leaves it out): F alone leaves a few elements
     bad (the real-mesh corpus: worst kappa/3 2.99 on a tet-to-hex sphere, where the p-mean reaches 2.19), and
     the polish lowers the worst element below the p-mean's at a cost of at most ``polish_budget`` (1%) of the
-    mean element quality (docs/results/bench_realmesh.md). Local CI ran to its sweep cap on unstructured meshes.
+    mean element quality (docs/results/realmesh.md). Local CI ran to its sweep cap on unstructured meshes.
     `params` (the user's) win; with ``objective="pmean"`` there is no polish (the p-mean weighs the worst
     corners itself).
     """
