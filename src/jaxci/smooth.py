@@ -43,7 +43,7 @@ from .methods import (  # noqa: F401  (Problem, build_problem, method_params ...
 )
 from .metrics import objective as mixed
 from .metrics.elements import checked_objective, objective_on_host
-from .metrics.report import QualityReport, quality_report
+from .metrics.report import QualityReport, quality_report, worst_elements
 
 #: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
 OPTIMAL_F = 1e-14
@@ -155,8 +155,9 @@ def smooth(
       them. Those that moved stay where the stage left them during shape improvement (the boundary faces next to
       them follow them; a note says how many and how far). Default False.
     - `merge_coincident`: merge coincident nodes first (`jaxci.mesh.merge_coincident`: the result has fewer
-      nodes). Default False: coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface) are fixed, so
-      they stay exactly coincident, and a note says how many.
+      nodes). Default False: each set of coincident nodes (`HexMesh.coincident_nodes`, an unmerged interface)
+      moves as one node, sliding on the interface it lies on, and is written back unmerged (exactly coincident;
+      `jaxci.geometry.coincident`), and a note says how many; `fixed_nodes` holds them.
     - `keep_worst`: guarantee that the worst cell (max corner kappa/3, float64, every cell type) is no worse than
       the input's (`jaxci.metrics.guard.keep_worst`: the nodes of cells that ended worse are put back, and a note says
       what that cost in mean quality). False returns the method's result as it is.
@@ -356,19 +357,39 @@ def _smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle
         mesh = merged
     fixed = _fixed_nodes(mesh, fixed_nodes)
     pairs = mesh.coincident_nodes()
+    joined = None
     if len(pairs):
-        fixed = np.union1d(fixed, pairs.ravel())
-        notes.append(f"{len(pairs)} pairs of coincident nodes ({len(np.unique(pairs))} nodes, first: "
-                     f"{mesh.node_label(int(pairs[0, 0]))} and {mesh.node_label(int(pairs[0, 1]))}) fixed, so they "
-                     f"stay coincident (--merge-coincident, or merge_coincident=True, merges them)")
+        from .geometry.coincident import join_coincident
+
+        joined = join_coincident(mesh)  # each set one node; None where a cell has two nodes of one set
+        if joined is None:
+            fixed = np.union1d(fixed, pairs.ravel())
+            notes.append(f"{len(pairs)} pairs of coincident nodes ({len(np.unique(pairs))} nodes, first: "
+                         f"{mesh.node_label(int(pairs[0, 0]))} and {mesh.node_label(int(pairs[0, 1]))}) fixed, so "
+                         f"they stay coincident: a cell has two nodes of one set (--merge-coincident, or "
+                         f"merge_coincident=True, merges them)")
+        else:
+            notes.append(joined.note(mesh))
     frame = unit_frame(mesh.points)
     unit = dataclasses.replace(mesh, points=to_unit(mesh.points, frame), fix_orientation=False, notes=(),
                                check_coincident=False)
     notes.extend(plan.notes)
+    solve, base_info = unit, None
+    if joined is not None:
+        from .geometry.coincident import joined_info
+
+        solve = dataclasses.replace(joined.mesh, points=to_unit(joined.mesh.points, frame), fix_orientation=False,
+                                    notes=(), check_coincident=False)
+        base_info = joined_info(joined, classify_boundary(unit, feature_angle=feature_angle, fix_boundary=fix_boundary,
+                                                          fixed_nodes=fixed, fixed_sets=tuple(fixed_sets)),
+                                unit.points)
+        fixed = np.unique(joined.node_of[fixed])
     points, res = yield from _smooth_unit(
-        unit, method, seed, plan, feature_angle, fix_boundary, fixed, fixed_sets, untangle, untangle_params, params,
+        solve, method, seed, plan, feature_angle, fix_boundary, fixed, fixed_sets, untangle, untangle_params, params,
         notes, clock, keep_worst, untangle_boundary, shard,
-        auto_note=_auto_note(auto) if auto and not user_presmooth else None)
+        auto_note=_auto_note(auto) if auto and not user_presmooth else None, base_info=base_info)
+    if joined is not None:
+        points, res = joined.unjoin(unit, solve, points, res)
     moved = (points != unit.points).any(axis=1)
     real = np.array(mesh.points)
     real[moved] = from_unit(points[moved], frame)
@@ -467,12 +488,15 @@ def _auto_note(description: str) -> str:
 
 def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_boundary, fixed_nodes, fixed_sets,
                  untangle, untangle_params, params, notes, clock, keep_worst, untangle_boundary=False,
-                 devices=None, auto_note: str | None = None) -> tuple[np.ndarray, SmoothResult]:
+                 devices=None, auto_note: str | None = None, base_info: BoundaryInfo | None = None
+                 ) -> tuple[np.ndarray, SmoothResult]:
     """`smooth` on a mesh in the unit frame, arguments checked, as a generator (it yields the `MethodRun` of the
     method, receives its output): returns ``(points, result)`` (the result's mesh and wall time are filled in by
     `smooth`; `notes` is appended to, `clock` records the phases).
     `auto_note`: the note of the default pipeline where it chose the presmoothing (not the user): a Laplace
-    sweep of the untangling stage then stands for it, and the note says so."""
+    sweep of the untangling stage then stands for it, and the note says so. `base_info`: the classification of
+    `mesh` where the caller made it (coincident sets: `jaxci.geometry.coincident.joined_info`), else classified
+    here."""
     host = plan.engine == "host"
     x64 = not objective_on_host(mesh)  # the reports and checks: float64, in JAX where numpy does not hold them
     with clock.phase("report"), enable_x64(x64):
@@ -505,8 +529,8 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
                          what="the untangling stage")
         partial = untangle == "partial"
         with clock.phase("untangle"):
-            info = classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
-                                     fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
+            info = base_info or classify_boundary(mesh, feature_angle=feature_angle, fix_boundary=fix_boundary,
+                                                  fixed_nodes=fixed_nodes, fixed_sets=tuple(fixed_sets))
             info_u, released = info, np.zeros(0, np.int64)
             if untangle_boundary and not fix_boundary:
                 info_u, released = release_features(mesh, info, fixed_nodes, fixed_sets)
@@ -546,7 +570,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
         with clock.phase("setup"):
             problem = build_problem(smesh, dtype=np_dtype, feature_angle=feature_angle, fix_boundary=fix_boundary,
                                     fixed_nodes=fixed_nodes, fixed_sets=fixed_sets, plan=plan,
-                                    info=None if untangled is None else info, devices=devices)
+                                    info=base_info if untangled is None else info, devices=devices)
             if untangled is not None:
                 start = np.asarray(untangled, np_dtype)
                 problem = dataclasses.replace(problem, x0=start if host else jax.device_put(start))
@@ -582,6 +606,8 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
             points, check_notes = enforce_after_untangling(smesh, problem.info, untangled, x, power, projected=host)
         notes.extend(check_notes)
         after = quality_report(mesh, points)
+        after = dataclasses.replace(after, worst_elements=worst_elements(
+            mesh, points, problem.info.node_class, problem.info.feature_edges))
     res = SmoothResult(
         mesh=mesh, history=_standard_history(history), iterations=int(iterations), wall_time=0.0, method=method,
         params=resolved, before=before, after=after, boundary=problem.info.counts,

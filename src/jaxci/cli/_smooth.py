@@ -62,8 +62,8 @@ def add_args(p) -> None:
                    help="stop the untangling stage after this many seconds (meshes up to 60,000 hexahedra; "
                         "larger ones are bounded by --param untangle_max_rounds / untangle_inner_steps)")
     p.add_argument("--merge-coincident", action="store_true",
-                   help="merge coincident nodes (an unmerged interface) before smoothing; without it they are "
-                        "kept fixed, so they stay exactly coincident")
+                   help="merge coincident nodes (an unmerged interface) before smoothing; without it each set "
+                        "moves as one node on the interface and is written back unmerged, exactly coincident")
     p.add_argument("--allow-worse-worst", action="store_true",
                    help="return the method's result even if its worst cell is worse than the input's (by default "
                         "the nodes of such cells are put back: jaxci.metrics.guard)")
@@ -198,6 +198,11 @@ def _smooth(args, display, age) -> int:
     print(format_table(b, f"before: {args.input}"))
     label = res.params.get("pipeline", res.method) if res.method == "auto" else res.method
     print(format_table(a, f"after ({label}, {res.iterations} iterations, {res.wall_time:.2f} s): {args.output}"))
+    from ..metrics.report import limited_note
+
+    limited = limited_note(res.after)
+    if limited is not None:
+        print(f"note: {limited}")
     if res.plan is not None:
         print(f"engine: {res.plan.describe()}")
     return _status(res)

@@ -36,7 +36,7 @@ from ..errors import MeshError
 from .blocks import MIRROR_HEX as MIRROR_HEX
 from .blocks import MIRROR_HEX_EDGES as MIRROR_HEX_EDGES
 from .blocks import NODES_PER_CELL, CellBlock, block_label, int_array, mirrored_block
-from .coincident import COINCIDENT_TOLERANCE, coincident_pairs
+from .coincident import COINCIDENT_TOLERANCE, coincident_groups, coincident_pairs
 from .coincident import close_pairs as close_pairs
 from .frame import from_unit as from_unit
 from .frame import to_unit, unit_frame
@@ -333,8 +333,8 @@ def coincident_note(mesh: HexMesh, pairs: np.ndarray) -> str:
     n = len(np.unique(pairs))
     a, b = (mesh.node_label(int(k)) for k in pairs[0])
     return (f"{len(pairs)} pairs of coincident nodes ({n} nodes closer than {COINCIDENT_TOLERANCE:g} x the "
-            f"bounding-box diagonal: an unmerged interface?), first: nodes {a} and {b}; smoothing keeps them fixed "
-            f"(--merge-coincident or jaxci.mesh.merge_coincident merges them)")
+            f"bounding-box diagonal: an unmerged interface?), first: nodes {a} and {b}; smoothing moves each set as "
+            f"one node (--merge-coincident or jaxci.mesh.merge_coincident merges them)")
 
 
 def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMesh:
@@ -351,9 +351,6 @@ def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMes
     how many nodes were merged. `mesh` itself when nothing coincides. Raises `MeshError` if a merge makes a
     hexahedron repeat a node (a collapsed element).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     mesh = as_hex_mesh(mesh, "merge_coincident")
     if tol == COINCIDENT_TOLERANCE:
         pairs = mesh.coincident_nodes()
@@ -365,11 +362,7 @@ def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMes
     if not len(pairs):
         return mesh
     n = mesh.n_nodes
-    g = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, comp = connected_components(g, directed=False)
-    rep = np.full(comp.max() + 1, n, dtype=np.int64)
-    np.minimum.at(rep, comp, np.arange(n))
-    target = rep[comp]  # each node -> its group's lowest node
+    target = coincident_groups(n, pairs)  # each node -> its group's lowest node
     keep = target == np.arange(n)
     new_index = np.cumsum(keep) - 1
     remap = new_index[target]

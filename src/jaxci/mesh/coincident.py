@@ -43,6 +43,20 @@ def coincident_pairs(points: np.ndarray, nodes: np.ndarray | None = None,
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
 
+def coincident_groups(n: int, pairs: np.ndarray) -> np.ndarray:
+    """Each of the `n` nodes' group representative: the lowest-numbered node of its group of coincident nodes
+    (`pairs` ``(k, 2)`` joined transitively), itself for a node in no pair; int64 ``(n,)``."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    g = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, comp = connected_components(g, directed=False)
+    rep = np.full(comp.max() + 1, n, dtype=np.int64)
+    np.minimum.at(rep, comp, np.arange(n))
+    return rep[comp]
+
+
 #: Multipliers that hash a grid cell's three integer coordinates into one uint64 key (large odd constants).
 _HASH = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 1], dtype=np.uint64)
 #: The grid-cell offsets that see every pair of neighbouring cells once: the 13 lexicographically positive ones.

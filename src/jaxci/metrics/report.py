@@ -42,6 +42,8 @@ class QualityReport:
     - `overall`: the same over all cells (no ``verdict_condition``); its ``objective`` is Eq. 3.1 over every
       valid element corner, `jaxci.metrics.elements.mixed_objective` when no corner is inverted (on a hexahedral mesh:
       `objective`).
+    - `worst_elements`: after smoothing (`jaxci.smooth`), the `WORST_LISTED` worst cells and what limits each
+      (`worst_elements`); None elsewhere (and then not in `to_dict`).
     """
 
     n_nodes: int
@@ -57,10 +59,15 @@ class QualityReport:
     other_cells: dict | None = None
     by_type: dict | None = None
     overall: dict | None = None
+    worst_elements: tuple | None = None
 
     def to_dict(self) -> dict:
         """The JSON object of ``jaxci quality --json`` (histogram as a list of {low, high, count})."""
         d = dataclasses.asdict(self)
+        if self.worst_elements is None:
+            d.pop("worst_elements")
+        else:
+            d["worst_elements"] = [dict(w) for w in self.worst_elements]
         d["histogram"] = [
             {"low": lo, "high": (None if math.isinf(hi) else hi), "count": c} for lo, hi, c in self.histogram
         ]
@@ -218,3 +225,81 @@ def _overall(parts: list) -> dict:
         "min_scaled_jacobian": min(sjs) if sjs else None,
         "objective": (h.sq_sum + float(np.sum(k3 * k3))) / n_fin - 1.0 if n_fin else None,
     }
+
+
+# ---------------------------------------------------------------------------------------------- worst elements
+#: How many of the worst cells a smoothing result lists (`worst_elements`).
+WORST_LISTED = 10
+
+#: What can hold an element back, as `worst_elements` names it (``limits``), with the sentence that explains it.
+LIMITS = {
+    "fixed corner": "the four nodes of its worst corner are fixed (boundary corners, fixed sets or --fix-boundary)",
+    "boundary corner": "the four nodes of its worst corner all lie on the boundary (fixed, or sliding on it)",
+    "feature edge": "its worst corner has an edge on a feature curve (--feature-angle decides which edges are)",
+    "coincident nodes": "it has coincident nodes (an unmerged interface), which move together",
+}
+
+
+def worst_elements(mesh: HexMesh, points, node_class=None, feature_edges=None, coincident=None,
+                   n: int = WORST_LISTED) -> tuple[dict, ...]:
+    """The `n` worst cells of every type at `points` (by their worst corner's kappa/3, worst first), each with what
+    limits it.
+
+    **Arguments:** `mesh`; `points` ``(n_nodes, 3)``; `node_class` (optional) every node's class
+    (`jaxci.geometry.boundary`: 3 is fixed, 1-2 on the boundary); `feature_edges` (optional) ``(k, 2)`` node
+    pairs; `coincident` (optional) the nodes in coincident sets.
+
+    **Returns:** dicts ``{"element": label (the file's id), "type", "index" (within its type), "kappa3" (the
+    cell's worst corner kappa/3, inf if inverted), "corner" (that corner's local node), "nodes" (the corner's
+    node and its three edge neighbours, indices), "limits": [names of `LIMITS` that apply]}``.
+    """
+    from ..cells import CORNERS
+    from .elements import corner_condition
+    from .objective import cell_label
+
+    pts = np.asarray(points, np.float64)
+    found = []
+    for t, cells in element_blocks(mesh).items():
+        k = corner_condition(pts, cells, t)
+        k = np.where(np.isnan(k), np.inf, k)
+        worst = k.max(axis=1)
+        top = np.argsort(-worst, kind="stable")[:n]
+        found += [(float(worst[e]), t, int(e), int(np.argmax(k[e])), cells[e]) for e in top]
+    found.sort(key=lambda f: -f[0])
+    cls = None if node_class is None else np.asarray(node_class)
+    edges = set()
+    if feature_edges is not None and len(feature_edges):
+        fe = np.sort(np.asarray(feature_edges, np.int64), axis=1)
+        edges = set(map(tuple, fe.tolist()))
+    shared = np.zeros(len(pts), bool)
+    if coincident is not None:
+        shared[np.asarray(coincident, np.int64)] = True
+    out = []
+    for kappa, t, e, c, cell in found[:n]:
+        row = CORNERS[t][c]
+        nodes = [int(cell[j]) for j in row]
+        limits = []
+        if cls is not None:
+            if (cls[nodes] == 3).all():
+                limits.append("fixed corner")
+            elif (cls[nodes] >= 1).all():
+                limits.append("boundary corner")
+        if any(tuple(sorted((nodes[0], b))) in edges for b in nodes[1:]):
+            limits.append("feature edge")
+        if shared[np.asarray(cell, np.int64)].any():
+            limits.append("coincident nodes")
+        label = f"element {mesh.hex_label(e)}" if t == "hexahedron" else cell_label(mesh, t, e)
+        out.append({"element": label, "type": t, "index": e, "kappa3": kappa, "corner": int(row[0]), "nodes": nodes,
+                    "limits": limits})
+    return tuple(out)
+
+
+def limited_note(report: QualityReport) -> str | None:
+    """One sentence where the worst element of `report` (its `worst_elements`) is held back by what cannot move,
+    else None."""
+    worst = report.worst_elements
+    if not worst or not worst[0]["limits"]:
+        return None
+    w = worst[0]
+    why = "; ".join(LIMITS[k] for k in w["limits"])
+    return f"the worst element, {w['element']} (kappa/3 {w['kappa3']:.4g}), is limited: {why}"

@@ -72,7 +72,7 @@ class GradientParams:
     - `backend`: L-BFGS on a hexahedral mesh: ``"auto"`` (default: numpy in float64, no compilation, up to
       `jaxci.optim.host.HOST_MAX` elements; the compiled loop above), ``"numpy"`` (`jaxci.optim.host`, any size)
       or ``"jax"`` (the compiled loop). Other methods and mixed meshes always run compiled.
-    - `objective`: BFGS, L-BFGS, CG on hexahedral meshes: ``"mean"`` (default: F, Eq. 3.1, the mean of the corner
+    - `objective`: BFGS, L-BFGS, CG: ``"mean"`` (default: F, Eq. 3.1, the mean of the corner
       excesses ``e = (kappa/3)^2 - 1``) or ``"pmean"`` (``M_p = (mean e^p)^(1/p)``,
       `jaxci.metrics.hexahedron.pmean_objective`: the worst corners weigh more, the worst element is pulled harder); `p`
       its power (default 2, 1 to 64; ``p = 1`` is F). The history's ``objective`` is then M_p. Measured (float64 L-BFGS,
