@@ -5,7 +5,8 @@ was measured on, the ANSYS archives of ``mapdl-archive``, curved and unstructure
 one after the other, each as its own process:
 
 - ``jaxci smooth IN OUT --json [--method M]`` (``python -m jaxci``, `--jaxci-cmd` to change), per `--method`
-  (``default``: no ``--method`` flag, jaxci's default):
+  (``default``: no ``--method`` flag, jaxci's default; ``pmean4``: ``--method lbfgs --objective pmean --param
+  p=4``; any other name: ``--method NAME``, e.g. ``lbfgs`` plain L-BFGS, ``ci`` local CI):
 
   - ``cold``: with an EMPTY persistent compile cache (``JAXCI_CACHE_DIR`` a fresh folder): a first use;
   - ``warm``: again with that cache (the same mesh smoothed before);
@@ -19,7 +20,8 @@ one after the other, each as its own process:
   - ``domain``: the skin held as jaxci holds it where msqshape can: a mesh whose skin lies on the faces of its
     bounding box slides on those planes, edges and corners (``-P/-l/-v``, as ``cube_domain_args.txt`` for the
     unit cube); any other mesh has its skin fixed (``-s``);
-  - ``free``: no flag (msqshape's own default: does the boundary move?).
+  - ``free``: no flag (msqshape's own default: does the boundary move?);
+  - ``skin``: ``-s`` on every mesh (the skin fixed).
 
 Before the runs it writes the bytecode of the jaxci package (``compileall``, `ensure_bytecode`), as installing
 a package does: with ``PYTHONDONTWRITEBYTECODE`` set (as on the machines of docs/results) no ``jaxci`` process
@@ -31,10 +33,18 @@ the end of stderr, and for jaxci what ``--json`` says (iterations, its own wall 
 ``timings`` dict where the command reports one). Every output is then measured here by the same code
 (`jaxci.io.read_mesh` + `jaxci.metrics.report.quality_report`, float64), as is the input: inverted elements, max and
 mean kappa/3, F, min scaled Jacobian, and how far the skin nodes moved (``boundary_moved``: more than 1e-9 of the
-bounding-box diagonal). Prints a table and writes JSON (`--out`, rewritten after every mesh).
+bounding-box diagonal), and per element VTK's condition (the worst corner's kappa/3 of each cell: ``worst_element``,
+``element_mean`` over the cells). Prints a table and writes JSON (`--out`, rewritten after every mesh).
+
+``--targets`` runs what the default pipeline is held to (cold runs only: ``default``, ``lbfgs``, ``pmean4``, ``ci``
+and msqshape ``skin``) and prints per mesh, after the table, the default against the p-mean, local CI and msqshape
+-s (worst element, mean element, cold wall) and whether each target holds (`TARGETS`): the default's worst element
+within 2% of the best of p-mean, local CI and msqshape -s; its mean element within 1% of the better of plain
+L-BFGS and msqshape -s; its cold wall at most 2x plain L-BFGS's (1.5x on cube60_pert).
 
     python scripts/bench_realmesh.py [--meshes cube9_pert pave3 sphere_tet2hex ...] [--method default lbfgs]
-        [--sizes small large] [--timeout 900] [--skip-msq] [--msq-modes domain free] [--no-warm-other]
+        [--sizes small large] [--timeout 900] [--skip-msq] [--msq-modes domain free skin] [--no-warm-other]
+        [--cold-only] [--targets]
         [--corpus-dir ~/.cache/jaxci/realmesh] [--out docs/results/bench_realmesh.json]
 
 `--meshes` takes corpus names (``python scripts/realmesh_corpus.py --list``), a source (``mesquite``, ``peers``,
@@ -72,6 +82,17 @@ QUALITY_KEYS = ("inverted_elements", "inverted_corners", "max_condition", "mean_
                 "min_scaled_jacobian")
 #: A skin node that moved more than this fraction of the bounding-box diagonal counts as moved.
 MOVED_REL = 1e-9
+
+#: `--method` names that stand for more than ``--method NAME``: ``default`` (no flag: jaxci's default pipeline)
+#: and ``pmean4`` (L-BFGS on the p-mean, p = 4).
+VARIANTS = {"default": [], "pmean4": ["--method", "lbfgs", "--objective", "pmean", "--param", "p=4"]}
+
+#: What the default pipeline is held to (`--targets`): its worst element within `worst` of the best of the p-mean
+#: (p = 4), local CI and msqshape -s; its mean element within `mean` of the better of plain L-BFGS and msqshape
+#: -s; its cold wall time at most `wall` times plain L-BFGS's (`wall_large` on the meshes of `large`).
+TARGETS = {"worst": 0.02, "mean": 0.01, "wall": 2.0, "wall_large": 1.5, "large": ("cube60_pert",)}
+#: The runs `--targets` makes.
+TARGET_METHODS, TARGET_MSQ = ("default", "lbfgs", "pmean4", "ci"), ("skin",)
 
 
 # ------------------------------------------------------------------------------------------------ children
@@ -173,8 +194,7 @@ def last_json(text: str) -> dict | None:
 def run_jaxci(args, inp: Path, out: Path, method: str, cache: Path) -> dict:
     """One ``jaxci smooth`` run with `cache` as its compile cache; what ``--json`` said folded in."""
     cmd = [*shlex.split(args.jaxci_cmd), "smooth", str(inp), str(out), "--json", "--force"]
-    if method != "default":
-        cmd += ["--method", method]
+    cmd += VARIANTS.get(method, ["--method", method])
     cmd += shlex.split(args.jaxci_args)
     env = dict(os.environ, JAXCI_CACHE_DIR=str(cache))
     r = run_child(cmd, env=env, timeout=args.timeout)
@@ -288,10 +308,18 @@ def write_msq_copy(mesh, path: Path) -> dict:
 
 
 def quality(mesh) -> dict:
+    """The report's `QUALITY_KEYS` and VTK's per-element condition (each cell's worst corner kappa/3, every cell
+    type): ``worst_element`` (the max) and ``element_mean`` (the mean over valid cells)."""
+    from jaxci.metrics.guard import cell_worst
     from jaxci.metrics.report import quality_report
 
     d = quality_report(mesh).to_dict()
-    return {k: d.get(k) for k in QUALITY_KEYS}
+    out = {k: d.get(k) for k in QUALITY_KEYS}
+    k = np.concatenate([v for v in cell_worst(mesh, mesh.points).values()])
+    ok = k[np.isfinite(k)]
+    out["worst_element"] = float(k.max()) if len(k) else None
+    out["element_mean"] = float(ok.mean()) if len(ok) else None
+    return out
 
 
 def measure_output(out: Path, ref_points: np.ndarray, skin_idx: np.ndarray, diag: float, box: dict | None) -> dict:
@@ -363,7 +391,7 @@ def bench_mesh(args, info: dict, ctx: dict, caches: Path) -> None:
             shutil.rmtree(cache)
         cache.mkdir(parents=True)
         runs = {}
-        for run in ("cold", "warm"):
+        for run in ("cold",) if args.cold_only else ("cold", "warm"):
             out = d / f"jaxci_{method}_{run}.vtk"
             r = run_jaxci(args, ctx["path"], out, method, cache)
             if r["ok"]:
@@ -380,7 +408,7 @@ def bench_mesh(args, info: dict, ctx: dict, caches: Path) -> None:
         info["msqshape"] = {"skipped": f"{MSQSHAPE} not found"}
         return
     for mode in args.msq_modes:
-        flags = info["msq_domain_args"] if mode == "domain" else []
+        flags = {"domain": info["msq_domain_args"], "skin": ["-s"]}.get(mode, [])
         out = d / f"msq_{mode}.vtk"
         if out.exists():
             out.unlink()
@@ -483,6 +511,68 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _run(info: dict, method: str) -> dict | None:
+    r = (info.get("jaxci", {}).get(method) or {}).get("cold")
+    return r if r and r.get("ok") else None
+
+
+def _figures(r: dict | None) -> dict | None:
+    """``{worst, mean, wall}`` of a run (worst and mean: VTK's per-element condition), None if it failed."""
+    if r is None or not r.get("after"):
+        return None
+    a = r["after"]
+    return {"worst": a.get("worst_element"), "mean": a.get("element_mean"), "wall": r.get("wall_s")}
+
+
+def targets(info: dict) -> dict:
+    """The default pipeline's `TARGETS` on one mesh of a ``--targets`` run: per run its figures, and per target
+    the bound, the default's value and whether it holds (None where a run it needs failed)."""
+    msq = (info.get("msqshape") or {}).get("skin")
+    runs = {m: _figures(_run(info, m)) for m in ("default", "lbfgs", "pmean4", "ci")}
+    runs["msq -s"] = _figures(msq if msq and msq.get("ok") else None)
+    d = runs["default"]
+    out = {"runs": runs}
+    peers = [runs[k]["worst"] for k in ("pmean4", "ci", "msq -s") if runs[k] and runs[k]["worst"] is not None]
+    means = [runs[k]["mean"] for k in ("lbfgs", "msq -s") if runs[k] and runs[k]["mean"] is not None]
+    wall = TARGETS["wall_large"] if info["name"] in TARGETS["large"] else TARGETS["wall"]
+
+    def check(value, bound):
+        return {"bound": bound, "value": value, "met": None if value is None or bound is None else value <= bound}
+
+    out["worst"] = check(d and d["worst"], min(peers) * (1 + TARGETS["worst"]) if peers else None)
+    out["mean"] = check(d and d["mean"], min(means) * (1 + TARGETS["mean"]) if means else None)
+    out["wall"] = check(d and d["wall"], runs["lbfgs"]["wall"] * wall if runs["lbfgs"] else None)
+    return out
+
+
+def targets_table(rows: list[dict]) -> str:
+    """Per mesh: worst element / mean element / cold wall of the default, the p-mean (p = 4), local CI, msqshape
+    -s and plain L-BFGS, and the three targets (yes / NO / - where a run failed)."""
+    cols = ("default", "pmean4", "ci", "msq -s", "lbfgs")
+    head = f"{'mesh':28s} {'hexes':>7s}  " + "  ".join(f"{c + ' worst/mean/wall':>26s}" for c in cols) + \
+        "  worst  mean  wall"
+    lines = [head, "-" * len(head)]
+
+    def cell(f):
+        if f is None:
+            return f"{'failed':>26s}"
+        return f"{_f(f['worst'], '.4g'):>8s}/{_f(f['mean'], '.5g'):>8s}/{_f(f['wall'], '.2f'):>7s}s"
+
+    def mark(t):
+        return "-" if t["met"] is None else ("yes" if t["met"] else "NO")
+
+    for info in rows:
+        t = info.get("targets") or targets(info)
+        lines.append(f"{info['name'][:28]:28s} {info['hexes']:7d}  " + "  ".join(cell(t["runs"][c]) for c in cols)
+                     + f"  {mark(t['worst']):>5s} {mark(t['mean']):>5s} {mark(t['wall']):>5s}")
+    met = {k: sum(1 for i in rows if (i.get("targets") or targets(i))[k]["met"]) for k in ("worst", "mean", "wall")}
+    lines.append(f"targets met: worst {met['worst']}/{len(rows)}, mean {met['mean']}/{len(rows)}, wall "
+                 f"{met['wall']}/{len(rows)} (worst within {TARGETS['worst']:.0%} of the best of pmean4, ci and msq "
+                 f"-s; mean within {TARGETS['mean']:.0%} of the better of lbfgs and msq -s; cold wall <= "
+                 f"{TARGETS['wall']:g}x lbfgs, {TARGETS['wall_large']:g}x on {', '.join(TARGETS['large'])})")
+    return "\n".join(lines)
+
+
 def write_json(path: Path, doc: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
@@ -536,8 +626,13 @@ def main(argv=None) -> int:
     ap.add_argument("--jaxci-args", default="", help="more flags for every jaxci smooth run, e.g. '--dtype float64'")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per run (default %(default)s)")
     ap.add_argument("--skip-msq", action="store_true", help="do not run msqshape")
-    ap.add_argument("--msq-modes", nargs="+", choices=["domain", "free"], default=["domain", "free"],
-                    help="msqshape runs: domain (-s, or box sliding flags) and/or free (no flag)")
+    ap.add_argument("--msq-modes", nargs="+", choices=["domain", "free", "skin"], default=["domain", "free"],
+                    help="msqshape runs: domain (-s, or box sliding flags), free (no flag), skin (-s everywhere)")
+    ap.add_argument("--cold-only", action="store_true", help="jaxci cold runs only (no warm rerun)")
+    ap.add_argument("--targets", action="store_true",
+                    help="the default pipeline's targets: cold runs of default, lbfgs, pmean4 and ci and msqshape "
+                         "-s, then per mesh the targets and whether each holds (implies --cold-only, "
+                         "--no-warm-other)")
     ap.add_argument("--no-warm-other", action="store_true",
                     help="skip the run warm from another mesh's compile cache")
     ap.add_argument("--similar", type=float, default=3.0,
@@ -552,6 +647,10 @@ def main(argv=None) -> int:
                     help="do not write jaxci's bytecode first (then, with PYTHONDONTWRITEBYTECODE set, every run "
                          "compiles its sources)")
     args = ap.parse_args(argv)
+    if args.targets:
+        args.method = list(dict.fromkeys([*TARGET_METHODS, *(m for m in args.method if m != "default")]))
+        args.msq_modes = list(TARGET_MSQ)
+        args.cold_only = args.no_warm_other = True
 
     import jax
 
@@ -607,6 +706,14 @@ def main(argv=None) -> int:
             shutil.rmtree(work, ignore_errors=True)
     print()
     print(table([m for m in doc["meshes"] if "error" not in m]))
+    if args.targets:
+        rows = [m for m in doc["meshes"] if "error" not in m]
+        for m in rows:
+            m["targets"] = targets(m)
+        doc["targets"] = dict(TARGETS, large=list(TARGETS["large"]))
+        write_json(out, doc)
+        print()
+        print(targets_table(rows))
     for m in doc["meshes"]:
         if "error" in m:
             print(f"{m['name']}: not run: {m['error']}")
