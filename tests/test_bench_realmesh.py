@@ -112,3 +112,29 @@ def test_bench_realmesh_end_to_end(tmp_path):
     else:  # -s: the skin is fixed
         assert not msq["domain"]["boundary"]["moved"]
     assert msq["free"]["flags"] == "none"
+
+
+def test_targets_of_the_default_pipeline():
+    """`targets` compares the default's cold run with the p-mean, local CI, msqshape -s and plain L-BFGS as
+    TARGETS says; a failed run leaves the targets it feeds undecided."""
+
+    def run(worst, mean, wall):
+        return {"ok": True, "wall_s": wall, "after": {"worst_element": worst, "element_mean": mean}}
+
+    info = {"name": "m", "hexes": 10,
+            "jaxci": {"default": {"cold": run(2.00, 1.21, 1.9)}, "lbfgs": {"cold": run(2.8, 1.20, 1.0)},
+                      "pmean4": {"cold": run(1.97, 1.30, 1.2)}, "ci": {"cold": run(2.8, 1.205, 3.0)}},
+            "msqshape": {"skin": run(7.0, 1.30, 0.5)}}
+    t = bench.targets(info)
+    assert t["worst"] == {"bound": pytest.approx(1.97 * 1.02), "value": 2.00, "met": True}
+    assert t["mean"]["bound"] == pytest.approx(1.20 * 1.01) and t["mean"]["met"] is True
+    assert t["wall"]["bound"] == pytest.approx(2.0) and t["wall"]["met"] is True
+    info["name"] = "cube60_pert"  # 1.5x there
+    assert bench.targets(info)["wall"]["met"] is False
+    info["jaxci"]["pmean4"]["cold"]["after"]["worst_element"] = 1.9  # 2.00 > 1.9 * 1.02
+    info["jaxci"]["lbfgs"]["cold"] = {"ok": False}
+    t = bench.targets(info)
+    assert t["worst"]["met"] is False and t["wall"]["met"] is None
+    assert t["mean"]["bound"] == pytest.approx(1.30 * 1.01)  # msqshape's mean is the better one left
+    table = bench.targets_table([info])
+    assert "NO" in table and "failed" in table and "targets met: worst 0/1" in table

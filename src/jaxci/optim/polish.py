@@ -1,30 +1,31 @@
-"""The worst-element polish: after L-BFGS on F, lower the worst element level by level, moving only the nodes
-near the elements above the level, while F stays as low as the level allows.
+"""The worst-element polish: after L-BFGS on F, lower the worst element level by level, moving only the nodes of
+the elements above the level, while F stays as low as the level allows.
 
 A solver's acceptance checks, its time step and its conditioning depend on the WORST element, and F (the mean)
 lets a few elements stay bad: on a tet-to-hex sphere L-BFGS on F leaves max kappa/3 2.99 where the p-mean
 (p = 4) over the whole mesh reaches 2.19, at 1.7% of the mean element quality. The polish asks, level after
 level, for the least F with every element below a level ``tau`` (a lexicographic goal: the worst element first,
 then the mean): each round sets ``tau = 1 + gamma (w - 1)`` below the current worst ``w`` and minimises, with
-the host L-BFGS (`jaxci.optim.host.lbfgs`) over the free nodes of the elements above ``tau`` and one ring of
-nodes around them (`RINGS`; every other node fixed, so only the cells around them change),
+the host L-BFGS (`jaxci.optim.host.lbfgs`, `ROUND_STEPS` steps) over the free nodes of the elements above ``tau``
+(and `RINGS` rings of nodes around them; every other node fixed, so only the cells around them change),
 
     (sum_i e_i + MU sum_i max(0, e_i - e_tau)^2) / n_corners,   e_i = (kappa_i/3)^2 - 1,   e_tau = tau^2 - 1
 
 (`jaxci.optim.weighted.penalty_kernel`: F's share of those corners with a quadratic penalty above the level).
-A round is kept when the worst element went down and the mean element quality (the mean over the cells of each
+A round is kept when the worst element went down, the mean element quality (the mean over the cells of each
 cell's worst corner kappa/3, what VTK's per-element condition averages to) stays within `PolishParams.budget`
-of the start's; where the round did not reach ``tau`` (or cost too much), ``gamma`` moves towards 1 (smaller
-steps); the polish ends when the steps become negligible (``gamma > GAMMA_END``), the worst element is within
-`MIN_EXCESS` of an ideal one, no node near it can move, or its work (sub-problem steps times their cells)
-reaches `PolishParams.work`.
+of the start's and F stays at or below `PolishParams.f_limit` (the run's input's: `jaxci.smooth` returns the
+input where F rose); after a round that is not kept ``gamma`` moves towards 1 (a smaller step). The polish ends
+when the steps become negligible (``gamma > GAMMA_END``), the worst element is within `MIN_EXCESS` of an ideal
+one, no node of it can move, or its work (kernel passes over cells) reaches `PolishParams.work`.
 
-Measured (2026-11-27, in process, the real-mesh corpus of scripts/bench_realmesh.py; worst / mean per element):
-pave3 L-BFGS 2.790 / 1.2159, p-mean p=4 2.026 / 1.3151, the penalty descent to its end 1.786 / 1.2420 (+2.2%),
-within a 1% budget 2.0 / 1.228; sphere_tet2hex-small 2.986 / 1.5662, p=4 2.194 / 1.5922, descent 1.899 /
-1.5972, 1% budget about 1.97. The mean's cost is small for the first levels and grows steeply near the best
-reachable worst element, hence the budget. A p-mean restricted to the same nodes (p = 16) reached a similar worst
-element but cost 3% of the mean, as it pulls every corner of the region towards the max.
+Chosen by measurement (2026-11-27, in process on the real-mesh corpus of scripts/bench_realmesh.py; worst / mean
+element): the descent run to its end reaches pave3 1.786 / 1.2420 from L-BFGS's 2.790 / 1.2159 (p-mean p = 4:
+2.026 / 1.3151): the mean's cost is small for the first levels and steep near the best reachable worst element,
+hence the budget. A p-mean (p = 16) over the same nodes instead of the penalty reached a similar worst element
+at 3% of the mean (it pulls every corner of the region towards the max); the mean restored afterwards by the
+penalty at the p-mean's level cost twice the time. The region without a ring of nodes around it and 50 steps a
+round took a third of the time of one ring and 100 steps, with the same targets met (docs/results/bench_realmesh.md).
 
 Runs on the host (numpy and the C kernels of `jaxci.native`) whatever the run's engine: each round is a small
 sub-problem (the nodes near the worst elements, renumbered into a compact mesh of their cells) of a different
