@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from jaxci import native
 from jaxci.errors import ConfigError
 from jaxci.generate import box, perturb_box
 from jaxci.geometry.boundary import INTERIOR
@@ -186,7 +187,8 @@ def test_strict_run_continues_with_the_projection_near_a_flat_region_edge(monkey
     assert f[1] <= f[0] + 1e-12 and f[1] < 1e-6 * float(objective_t(pr.x0, pr.conn))
 
 
-@pytest.mark.parametrize("backend", ["numpy", "jax"])
+@pytest.mark.parametrize("backend", [pytest.param("numpy", marks=pytest.mark.skipif(
+    not native.AVAILABLE, reason="the host's sweeps are the C kernels")), "jax"])
 def test_presmooth_runs_smart_laplace_sweeps_first(backend):
     """On the host (the sweeps in numpy and C, `laplace_np`) and compiled alike."""
     mesh = perturb_box(4, amplitude=0.3, seed=3, which="sliding")
@@ -286,7 +288,8 @@ def test_no_method_raises_f_or_inverts(seed, amplitude):
     mesh = perturb_box(3, amplitude=amplitude, seed=seed, which="sliding")
     for method in ("bfgs", "cg", "smart-laplace"):
         res = smooth(mesh, method, dtype="float64")
-        assert res.notes == (), (method, res.notes)
+        notes = [n for n in res.notes if "C kernels of jaxci.native are not built" not in n]  # a build without C
+        assert notes == [], (method, res.notes)
         assert res.after.inverted_elements == 0
         assert res.after.objective <= res.before.objective
 

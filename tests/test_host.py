@@ -12,6 +12,7 @@ import jax
 import numpy as np
 import pytest
 
+from jaxci import native
 from jaxci.errors import ConfigError
 from jaxci.generate import perturb_box
 from jaxci.geometry.near import NearProjector, project_near_np
@@ -100,6 +101,7 @@ def test_numpy_lbfgs_reaches_the_compiled_result(shape):
         assert np.all(np.abs(r[on] - wall[on]) <= 1 - np.cos(np.pi / 16) + 1e-9)
 
 
+@pytest.mark.skipif(not native.AVAILABLE, reason="needs the C kernels (jaxci.native)")
 def test_float32_lbfgs_memory_of_a_large_problem_reaches_the_same_mesh(monkeypatch):
     """From `HISTORY_F32_FROM` free coordinates the host L-BFGS keeps its pairs in float32 (half the memory,
     its largest part at 10^6 hexahedra): forced here on a small box, the run reaches the ideal grid as the

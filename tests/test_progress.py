@@ -14,7 +14,7 @@ import sys
 import pytest
 from helpers import CUBE27_EXPERIMENT, MESQUITE
 
-from jaxci import phases
+from jaxci import native, phases
 from jaxci.cli._progress import Display, step_text
 from jaxci.phases import PhaseClock
 
@@ -157,6 +157,7 @@ def test_smooth_shows_progress_on_a_terminal_only(tmp_path):
     assert any(line.startswith("jaxci: untangle ") for line in lines) and lines[-1].startswith("jaxci: total")
 
 
+@pytest.mark.skipif(not native.AVAILABLE, reason="needs the C kernels (jaxci.native)")
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pseudo-terminals as on Linux")
 def test_run_shows_the_run_and_its_steps_on_a_terminal(tmp_path):
     (tmp_path / "exp.yaml").write_text(CUBE27_EXPERIMENT.replace("seeds: [0, 1]", "seeds: [0]\nfigures: false"))

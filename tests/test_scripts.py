@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from jaxci import native
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -78,14 +80,18 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     assert p.returncode == 0, p.stderr[-2000:]
     d = json.loads(out.read_text())
     assert d["environment"]["default_backend"] in ("cpu", "gpu", "tpu") and d["commit"] is not None
+    def failed(r):  # without the C kernels the host engine's global CI is refused, saying so
+        return "skipped" in r or ("error" in r and (native.AVAILABLE or "needs the C kernels" not in r["error"]))
+
     for section in ("throughput", "lbfgs", "threshold", "global_ci", "cube60_pert"):
         rows = d[section]
-        assert rows and not any("error" in r or "skipped" in r for r in rows), (section, rows)
+        assert rows and not any(failed(r) for r in rows), (section, rows)
     assert all(r["corners_per_s"] > 0 for r in d["throughput"])
     assert {r["engine"]["name"] for r in d["lbfgs"]} == {"host", "jax"}
     assert {(r["engine"]["name"] if r.get("engine") else None) for r in d["threshold"]} == {"host", "jax"}
     batched, serial, host = d["global_ci"]
-    assert (batched["mode"], serial["mode"], host["engine"]) == ("batched", "serial", "host")
+    assert (batched["mode"], serial["mode"]) == ("batched", "serial")
+    assert host.get("engine") == "host" or not native.AVAILABLE
     assert batched["objective_mean"] == pytest.approx(serial["objective_mean"], rel=1e-6)  # the same meshes
     assert "F + gradient" in p.stdout
 
@@ -122,6 +128,7 @@ def test_compare_methods_corpus_reports_before_and_after_per_method(tmp_path):
     assert "max k/3 before" in md and "mean k/3 after" in md and "stopped at cap (max_sweeps=3)" in md
 
 
+@pytest.mark.skipif(not native.AVAILABLE, reason="needs the C kernels (jaxci.native)")
 def test_bench_local_ci_times_ci_to_its_target_against_lbfgs(tmp_path):
     """``bench_local_ci.py`` on a 4^3 box and Mesquite's 4x2x2 hexes: per mesh L-BFGS's time and result, CI's
     run, the first sweep at the target (box: max kappa/3 1.0001; mesh: F within 1% of L-BFGS's), CI's time to

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from helpers import MESQUITE
 
+from jaxci import native
 from jaxci.cells import corner_determinants
 from jaxci.errors import ConfigError, InvertedMeshError
 from jaxci.generate import perturb_box
@@ -49,9 +50,12 @@ def test_tangled_meshes_are_untangled_with_the_boundary_kept(name, method, param
         assert again.after.max_condition <= 1 + 1e-6
 
 
+NEEDS_C = pytest.mark.skipif(not native.AVAILABLE, reason="the untangling's Laplace sweeps are the C kernels")
+
+
 @pytest.mark.parametrize("name,sweeps,laplace", [
-    ("hex_5_tangled.vtk", 1, True),  # one sweep of the plain Laplacian untangles the block
-    ("pave3.e.vtk", 1, False),  # one leaves 57 of 106 inverted: the Winslow rounds from the input
+    pytest.param("hex_5_tangled.vtk", 1, True, marks=NEEDS_C),  # one sweep of the plain Laplacian untangles it
+    pytest.param("pave3.e.vtk", 1, False, marks=NEEDS_C),  # one leaves 57 of 106 inverted: the Winslow rounds
     ("pave3.e.vtk", 0, False),
 ])
 def test_a_laplace_sweep_first_where_it_untangles(name, sweeps, laplace):
@@ -73,6 +77,7 @@ def test_a_laplace_sweep_first_where_it_untangles(name, sweeps, laplace):
         assert res.after.max_condition <= 1 + 1e-5
 
 
+@NEEDS_C
 def test_a_laplace_untangled_mesh_skips_the_default_presmoothing(monkeypatch):
     """Where the untangling's plain Laplace sweep untangled the mesh it has just smoothed it too: the default
     pipeline then runs L-BFGS without its smart-Laplace sweeps (and says so); presmoothing the user asked for

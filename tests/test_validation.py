@@ -193,9 +193,9 @@ def test_the_memory_estimate_of_a_host_run_is_the_host_path_s(monkeypatch):
 
     assert jaxci.memory.smooth_bytes(10**6, host=True) < 0.6 * jaxci.memory.smooth_bytes(10**6)
     monkeypatch.setattr(jaxci.memory, "available_bytes", lambda: 300 * 2**20)
-    assert jaxci.smooth(box(2), "laplace", dtype="float64").after.inverted_elements == 0
+    assert jaxci.smooth(box(2), "lbfgs", dtype="float64").after.inverted_elements == 0
     with pytest.raises(MeshError, match=r"smoothing 8 hexahedra in float64 needs about .* GB"):
-        jaxci.smooth(box(2), "laplace", dtype="float64", backend="jax")
+        jaxci.smooth(box(2), "lbfgs", dtype="float64", engine="jax")
 
 
 def test_flat_mesh_refused_at_once():

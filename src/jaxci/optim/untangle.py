@@ -49,6 +49,7 @@ import time
 
 import numpy as np
 
+from .. import native
 from .._lazy import enable_x64, is_jax_array, jax
 from ..cells import EDGES, corner_determinants, element_blocks
 from ..errors import InvertedMeshError
@@ -175,7 +176,7 @@ def untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: UntanglePa
     sweeps = p.laplace_sweeps
     if sweeps is None:
         sweeps = 1 if len(hexes) >= LAPLACE_UNTANGLE_FROM else 0
-    if on_host and sweeps and not blocks:
+    if on_host and sweeps and not blocks and native.AVAILABLE:  # the host's sweeps are the C kernels
         x, sweeps = _laplace_untangle(mesh, info, cons, p, lens, sweeps)
     if x is None:
         if not on_host and not is_jax_array(cons.x_orig):  # numpy constraints (device=False) for the compiled loop
