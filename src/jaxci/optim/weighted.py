@@ -16,9 +16,13 @@ import numpy as np
 
 from .. import native
 from ..cells import CORNERS, KERNELS, pmean_weights
-from ..metrics.hexahedron import _cross
 
 _EYE = np.eye(3)
+
+
+def _cross(a, b) -> np.ndarray:
+    """Column-wise cross products of ``(3, C)`` arrays."""
+    return np.cross(np.asarray(a), np.asarray(b), axis=0)
 
 
 def _corner_table(cells: np.ndarray, corners: np.ndarray) -> np.ndarray:
