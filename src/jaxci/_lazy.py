@@ -48,6 +48,12 @@ def loaded(name: str = "jax") -> bool:
     return name in sys.modules
 
 
+def compute_platform() -> str:
+    """The platform JAX computes on here: that of the default device a `jax.default_device` context sets (a GPU
+    machine asked to run on its CPU), else JAX's default backend's (``"cpu"``, ``"gpu"``, ``"tpu"``)."""
+    return getattr(jax.config.jax_default_device, "platform", None) or jax.default_backend()
+
+
 def is_jax_array(a) -> bool:
     """Whether `a` is a JAX array (False, without importing JAX, while JAX is not imported)."""
     return loaded() and isinstance(a, sys.modules["jax"].Array)

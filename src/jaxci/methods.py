@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from . import native
 from ._lazy import jax, jnp
 from .cells import volume_cells
 from .errors import ConfigError
@@ -100,7 +101,8 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
     Chosen by measurement on real and generated meshes (docs/results): L-BFGS on F after the untangling stage
     (when the input has inverted elements); on the JAX engine, and on the host engine from `AUTO_PRESMOOTH_FROM`
     hexahedra on (hexahedral meshes: the host's sweeps are for hexahedra), 3 smart-Laplace sweeps first (they fix
-    the worst corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13 after them). Then the
+    the worst corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13 after them; the host's
+    sweeps are the C kernels: without them none on the host). Then the
     worst-element polish (`jaxci.optim.polish`; ``polish=False`` leaves it out): F alone leaves a few elements
     bad (the real-mesh corpus: worst kappa/3 2.99 on a tet-to-hex sphere, where the p-mean reaches 2.19), and
     the polish lowers the worst element below the p-mean's at a cost of at most ``polish_budget`` (1%) of the
@@ -110,7 +112,7 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
     """
     params = dict(params)
     host = plan.engine == "host"
-    if "presmooth" not in params and (not host or (mesh.n_hexes >= AUTO_PRESMOOTH_FROM
+    if "presmooth" not in params and (not host or (mesh.n_hexes >= AUTO_PRESMOOTH_FROM and native.AVAILABLE
                                                    and not mixed.has_extra(mesh))):
         params["presmooth"] = 3
     if "polish" not in params and params.get("objective", "mean") == "mean":

@@ -31,7 +31,7 @@ import functools
 
 import numpy as np
 
-from .._lazy import is_jax_array, jax, jit, jnp
+from .._lazy import compute_platform, is_jax_array, jax, jit, jnp
 from ..cells import CORNER_NEIGHBOURS, corner_invariants, pmean_weights
 
 #: Names of the per-corner condition metrics `corner_condition` accepts.
@@ -284,9 +284,7 @@ def grad_block(n_elements: int) -> int:
     and `GRAD_BLOCK_ACCELERATOR` elsewhere."""
     if n_elements <= GRAD_BLOCK_FROM:
         return 0
-    device = jax.config.jax_default_device
-    platform = getattr(device, "platform", None) or jax.default_backend()
-    return GRAD_BLOCK if platform == "cpu" else GRAD_BLOCK_ACCELERATOR
+    return GRAD_BLOCK if compute_platform() == "cpu" else GRAD_BLOCK_ACCELERATOR
 
 
 def objective_terms_and_grad(points, conn, weight=None, power=None, block: int | None = None, n_corners=None):

@@ -77,7 +77,7 @@ import functools
 import numpy as np
 
 from .. import native
-from .._lazy import jax, jnp
+from .._lazy import compute_platform, jax, jnp
 from ..cells import corner_invariants, pmean_weights
 from ..errors import ConfigError
 from ..geometry.projection import project_np
@@ -145,7 +145,7 @@ def _terms_and_grad(points, conn, weight, power, block, mesh):
         from .sharding import sharded_terms_and_grad
 
         return sharded_terms_and_grad(points, conn, weight, mesh)
-    if power is None and native_grad.available(jax.default_backend()):
+    if power is None and native_grad.available(compute_platform()):
         return native_grad.terms_and_grad(points, conn, weight)
     return objective_terms_and_grad(points, conn, weight, power, block)
 
@@ -511,7 +511,7 @@ def run_gradient(problem, method: str, params: dict):
     x0, pre = problem.x0, None
     if p.presmooth:
         sweep = {"max_sweeps": int(p.presmooth), "buckets": p.buckets}
-        if isinstance(problem.x0, np.ndarray):  # a host run (`jaxci.methods.host_run`): the sweeps in numpy and C
+        if problem.host:  # the host engine's sweeps, in numpy and C
             from .host_local import laplace_np
             from .laplace import LaplaceParams
 
