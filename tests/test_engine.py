@@ -22,7 +22,8 @@ from jaxci.cli import main
 from jaxci.errors import ConfigError, MeshError
 from jaxci.generate import paper_case, perturb_box
 from jaxci.io import read_mesh, write_mesh
-from jaxci.smooth import smooth, smooth_seeds
+from jaxci.seeds import smooth_seeds
+from jaxci.smooth import smooth
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 PAVE3 = SHARED / "data" / "mesquite" / "pave3.e.vtk"
@@ -257,9 +258,6 @@ def test_a_jax_plan_on_the_cpu_moves_jax_off_an_accelerator(monkeypatch):
     assert jax.config.jax_default_device is None
 
 
-@pytest.mark.xfail(strict=True, reason="jaxci.optim.gradient._terms_and_grad asks native_grad.available for "
-                   "jax.default_backend(), which jax.default_device does not change: on a GPU machine asked for "
-                   "device 'cpu' the plan says FFI and XLA's kernel runs")
 def test_a_jax_plan_on_the_cpu_of_an_accelerator_machine_runs_the_kernel_it_names(monkeypatch):
     import jax
 
@@ -290,9 +288,6 @@ def test_without_the_c_extension_the_plan_names_what_ran(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="resolve_plan judges method auto as plain L-BFGS; auto_pipeline then adds the "
-                   "smart-Laplace presmoothing on the host from AUTO_PRESMOOTH_FROM hexahedra, which needs the C "
-                   "kernels: engine 'host' without them ends in an AttributeError from jaxci.native")
 def test_without_the_c_extension_the_host_engines_default_pipeline_runs_or_is_refused():
     script = (
         "import jaxci, jaxci.methods\nfrom jaxci.errors import ConfigError\nfrom jaxci.generate import perturb_box\n"
@@ -349,9 +344,6 @@ def test_seeds_of_another_connectivity_do_not_join_the_batch():
 
 
 @pytest.mark.skipif(not native.AVAILABLE, reason="global CI on the host engine needs the C kernels")
-@pytest.mark.xfail(strict=True, reason="jaxci.smooth.smooth_seeds starts every seed's generator before any runs: a "
-                   "seed that runs alone (no batch) is timed from its start to its end, through the other seeds' "
-                   "validation, set-up and runs")
 def test_seeds_that_run_one_after_the_other_each_report_their_own_time():
     seeds = [0, 1, 2]
     meshes = [paper_case("cube27", seed=s) for s in seeds]
@@ -363,26 +355,21 @@ def test_seeds_that_run_one_after_the_other_each_report_their_own_time():
 
 
 @pytest.mark.skipif(not native.AVAILABLE, reason="global CI on the host engine needs the C kernels")
-@pytest.mark.xfail(strict=True, reason="jaxci.smooth.smooth_seeds does not catch what run_method raises for a seed "
-                   "that runs alone: errors='return' is not honoured and the other seeds' results are lost")
 def test_an_error_in_one_seeds_method_is_that_seeds_result(monkeypatch):
-    smooth_module = importlib.import_module("jaxci.smooth")
-    run_method = smooth_module.run_method
+    seeds_module = importlib.import_module("jaxci.seeds")
+    run_method = seeds_module.run_method
 
     def failing(problem, method, seed, params):
         if seed == 1:
             raise MeshError("seed 1 failed in its method")
         return run_method(problem, method, seed, params)
 
-    monkeypatch.setattr(smooth_module, "run_method", failing)
+    monkeypatch.setattr(seeds_module, "run_method", failing)
     res = smooth_seeds([paper_case("cube27", seed=s) for s in range(3)], "ci-global", [0, 1, 2], errors="return",
                        attempts=10, engine="host")
     assert [type(r).__name__ for r in res] == ["SmoothResult", "MeshError", "SmoothResult"]
 
 
-@pytest.mark.xfail(strict=True, reason="jaxci.optim.global_ci._points projects every seed's trial meshes where any "
-                   "seed's leave their flat regions, and the projection of a point inside its flat region is not "
-                   "exactly the point (a face that is not axis-aligned): a seed's F differs batched and alone")
 def test_a_seed_batched_with_one_whose_trials_leave_their_flat_regions_gets_its_own_numbers():
     import jax
     from scipy.spatial.transform import Rotation

@@ -45,6 +45,7 @@ _LAZY = {
     "project_np": "geometry.projection",
     "CIParams": "optim.ci",
     "init_distributed": "optim.sharding",
+    "smooth_seeds": "seeds",
 }
 
 __all__ = [

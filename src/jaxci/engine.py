@@ -12,8 +12,10 @@ jaxci has two engines that minimise the same objective with the same algorithms:
 `resolve_plan` picks the engine, the device, the dtype and the kernel from the mesh, the method and its
 parameters, the user's requests (``engine=``, ``device=``, ``devices=``) and the devices JAX sees, once per run;
 every stage (untangling, presmoothing, the method) then runs on that engine (`stage_params` forces each stage's
-``backend``). A request that cannot be honoured is a `jaxci.errors.ConfigError` naming what stands in the way.
-The plan travels with the result (`jaxci.smooth.SmoothResult.plan`), so every report says what ran.
+``backend``), but for the default pipeline's worst-element polish, which always runs on the host (its small
+sub-problems would each be compiled anew), as the plan's notes then say. A request that cannot be honoured is a
+`jaxci.errors.ConfigError` naming what stands in the way. The plan travels with the result
+(`jaxci.smooth.SmoothResult.plan`), so every report says what ran.
 
 With ``engine="auto"``: where JAX sees an accelerator (a GPU or TPU; ``device="auto"`` or ``"gpu"``) and the
 mesh has at least `ACCELERATOR_FROM` cells, or the user asked for ``device="gpu"``, the JAX engine on the
@@ -47,7 +49,7 @@ DEVICES = ("auto", "cpu", "gpu")
 ACCELERATOR_FROM = 1_000_000
 
 #: Seeds from which ``engine="auto"`` runs global CI on several seeds of one mesh (``jaxci run``,
-#: `jaxci.smooth.smooth_seeds`) on the JAX engine as one batched program (`jaxci.optim.global_ci`), where the
+#: `jaxci.seeds.smooth_seeds`) on the JAX engine as one batched program (`jaxci.optim.global_ci`), where the
 #: host engine would run one seed after the other. Measured (2-core CPU, cube729, the defaults' 1000 attempts):
 #: the host engine 4.3 s a seed; the batched program compiles in 4-5 s, then 1.5-1.9 s a seed (30 seeds: 50 s
 #: against the host's 130 s); on an H200, 30 seeds in 7.0 s cold against 5.0 s a seed on its CPU

@@ -45,6 +45,10 @@ from .metrics import objective as mixed
 from .metrics.elements import checked_objective, objective_on_host
 from .metrics.report import QualityReport, quality_report, worst_elements
 
+#: The plan's note where the worst-element polish (`jaxci.optim.polish`) runs on the host beside the JAX engine.
+POLISH_ON_HOST = ("the worst-element polish runs on the host engine (numpy and C kernels) after the JAX engine's "
+                  "solve: its small sub-problems, one per level, would each be compiled anew")
+
 #: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
 OPTIMAL_F = 1e-14
 
@@ -188,7 +192,7 @@ def smooth(
 
     **Returns:** a `SmoothResult`.
     """
-    return _drive(_smooth_steps(mesh, method, seed=seed, dtype=dtype, feature_angle=feature_angle,
+    return _drive(smooth_steps(mesh, method, seed=seed, dtype=dtype, feature_angle=feature_angle,
                                 fix_boundary=fix_boundary, fixed_nodes=fixed_nodes, fixed_sets=fixed_sets,
                                 untangle=untangle, untangle_boundary=untangle_boundary,
                                 merge_coincident=merge_coincident, keep_worst=keep_worst, clock=clock,
@@ -197,7 +201,7 @@ def smooth(
 
 @dataclasses.dataclass(frozen=True)
 class MethodRun:
-    """What `_smooth_steps` asks its driver to run: `method` with `seed` and `params` on `problem` (a `Problem`,
+    """What `smooth_steps` asks its driver to run: `method` with `seed` and `params` on `problem` (a `Problem`,
     whose `plan` says where), timed in `clock`'s ``smooth`` phase. The driver sends back ``(points, iterations,
     history, resolved params)`` (`jaxci.methods.run_method`)."""
 
@@ -218,7 +222,7 @@ class MethodRun:
 
 
 def _drive(steps):
-    """Run the generator `steps` (`_smooth_steps`) to its result, running each `MethodRun` it yields."""
+    """Run the generator `steps` (`smooth_steps`) to its result, running each `MethodRun` it yields."""
     try:
         req = next(steps)
         while True:
@@ -229,109 +233,12 @@ def _drive(steps):
         return done.value
 
 
-def smooth_seeds(meshes, method: str, seeds, *, errors: str = "raise", **kwargs) -> list:
-    """`smooth` of ``meshes[i]`` with ``seeds[i]`` for every i, where possible as ONE program: global CI
-    (``"ci-global"``) on the JAX engine runs every seed's cohort in one batched program
-    (`jaxci.optim.global_ci.global_ci_batched`: one compilation, one launch; each seed's mesh is the one it
-    gets alone), from `jaxci.engine.BATCH_SEEDS_FROM` seeds also under ``engine="auto"``. The meshes may differ
-    (the paper's cubes are perturbed by the seed) but must share connectivity and boundary classes to be batched;
-    seeds that cannot join the batch (an inverted input to untangle, nothing to move, another plan) and every
-    other method run one after the other, as `smooth` runs them.
-
-    **Arguments:** `meshes` one `HexMesh` per seed (the same object may repeat); `method`; `seeds` the seeds;
-    `errors`: ``"raise"`` (the first `jaxci.errors.JaxciError` is raised) or ``"return"`` (it takes the place of
-    that seed's result); `**kwargs`: `smooth`'s other arguments (`clock` excepted: each seed has its own).
-
-    **Returns:** one `SmoothResult` per seed, in order; a batched one has a note saying so and the batch's time
-    shared out in its ``smooth`` phase and wall time.
-    """
-    from .errors import JaxciError
-    from .phases import PhaseClock
-
-    if len(meshes) != len(seeds):
-        raise ConfigError(f"smooth_seeds: {len(meshes)} meshes for {len(seeds)} seeds")
-    if errors not in ("raise", "return"):
-        raise ConfigError(f"smooth_seeds: errors must be 'raise' or 'return', got {errors!r}")
-    kwargs.pop("clock", None)
-    results: list = [None] * len(seeds)
-    steps, asked = {}, {}
-
-    def advance(i, sent=None):
-        try:
-            asked[i] = next(steps[i]) if sent is None else steps[i].send(sent)
-        except StopIteration as done:
-            results[i] = done.value
-        except JaxciError as e:
-            if errors == "raise":
-                raise
-            results[i] = e
-
-    for i, (mesh, seed) in enumerate(zip(meshes, seeds, strict=True)):
-        steps[i] = _smooth_steps(mesh, method, seed=seed, clock=PhaseClock(), seeds=len(seeds), **kwargs)
-        advance(i)
-    pending = dict(asked)
-    batch = _batchable(pending)
-    outputs = _run_batch({i: pending[i] for i in batch}) if batch else {}
-    for i, req in pending.items():
-        if i not in outputs:
-            with req.context(), req.clock.phase("smooth"):
-                outputs[i] = run_method(req.problem, req.method, req.seed, req.params)
-        advance(i, outputs[i])
-    for i in batch:  # their wall time: their own phases (a generator's clock on the wall also ran the others')
-        if isinstance(results[i], SmoothResult):
-            phases = results[i].phases
-            own = sum(v["seconds"] for k, v in phases.items() if k not in ("total", "validate"))
-            results[i] = dataclasses.replace(results[i], wall_time=own)
-    return results
-
-
-def _batchable(asked: dict) -> list:
-    """The seeds of `asked` (index -> `MethodRun`) that run as one batched global CI program: global CI on the JAX
-    engine, one device, hexahedral meshes, with equal parameters, plans, connectivity and parametrisation shapes;
-    empty if fewer than two."""
-    from .methods import global_parametrisation
-    from .optim.global_ci import stackable
-
-    runs = {i: r for i, r in asked.items() if r.method == "ci-global" and r.problem.plan.engine == "jax"
-            and r.problem.devices is None and r.problem.extra is None}
-    if len(runs) < 2:
-        return []
-    first = next(iter(runs.values()))
-    same = [i for i, r in runs.items() if r.params == first.params and r.problem.plan == first.problem.plan
-            and np.array_equal(np.asarray(r.problem.conn), np.asarray(first.problem.conn))]
-    if len(same) < 2 or not stackable([global_parametrisation(runs[i].problem) for i in same]):
-        return []
-    return same
-
-
-def _run_batch(runs: dict) -> dict:
-    """Global CI of the `MethodRun` values of `runs` (index -> run) as one batched program; each run's clock gets
-    an equal share of the batch's time in its ``smooth`` phase. Returns index -> `run_method`'s output, its
-    resolved parameters with ``batched_seeds`` (how many ran together)."""
-    from .methods import global_parametrisation
-    from .optim.global_ci import global_ci_batched
-
-    reqs = list(runs.values())
-    first = reqs[0]
-    p = method_params("ci-global", first.params)
-    t0 = time.perf_counter()
-    with first.context():
-        keys = [jax.random.key(r.seed, impl="rbg") for r in reqs]
-        out = global_ci_batched(keys, [global_parametrisation(r.problem) for r in reqs], first.problem.conn,
-                                [free_scale(r.problem) for r in reqs], p)
-        out = [(np.asarray(x), it, hist) for x, it, hist in out]
-    share = (time.perf_counter() - t0) / len(reqs)
-    for r in reqs:
-        r.clock.add("smooth", share)
-    return {i: (x, it, hist, {**dataclasses.asdict(p), "batched_seeds": len(reqs)})
-            for i, (x, it, hist) in zip(runs, out, strict=True)}
-
-
-def _smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=40.0, fix_boundary=False,
-                  fixed_nodes=None, fixed_sets=(), untangle="auto", untangle_boundary=False, merge_coincident=False,
-                  keep_worst=True, clock=None, devices=None, engine="auto", device="auto", seeds=1, **params):
+def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=40.0, fix_boundary=False,
+                 fixed_nodes=None, fixed_sets=(), untangle="auto", untangle_boundary=False, merge_coincident=False,
+                 keep_worst=True, clock=None, devices=None, engine="auto", device="auto", seeds=1, **params):
     """`smooth` as a generator: it yields one `MethodRun` (unless no method needs to run), receives its output
-    and returns the `SmoothResult`; `_drive` runs one, `smooth_seeds` several at once."""
+    and returns the `SmoothResult`; `_drive` runs one, `jaxci.seeds.smooth_seeds` several at once. `seeds`: how
+    many seeds of this mesh run together (the plan's batch rule: `jaxci.engine.resolve_plan`)."""
     from .mesh import from_unit, to_unit, unit_frame
     from .mesh import merge_coincident as merge
     from .phases import PhaseClock
@@ -423,7 +330,7 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     description, else ""), the device mesh of a sharded run (`shard`, None) and its note, and the
     `jaxci.engine.Plan` every stage follows (their ``backend`` parameters set from it:
     `jaxci.engine.stage_params`)."""
-    from .engine import engine_request, resolve_plan, stage_params
+    from .engine import DEVICES, engine_request, resolve_plan, stage_params
     from .generate import check_seed
     from .memory import check_fits, smooth_bytes
     from .mesh import as_hex_mesh, check_volume
@@ -433,8 +340,8 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
         raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     _choice("dtype", dtype, tuple(_DTYPES))
     engine, params = engine_request(engine, params)
-    if not isinstance(device, str) or device not in ("auto", "cpu", "gpu"):
-        raise ConfigError(f"smooth: device must be one of 'auto', 'cpu', 'gpu', got {device!r}")
+    if not isinstance(device, str) or device not in DEVICES:
+        raise ConfigError(f"smooth: device must be one of {', '.join(map(repr, DEVICES))}, got {device!r}")
     shard, params, shard_note = _sharding(method, devices, params, device)
     if shard is not None and mixed.has_extra(mesh):
         raise ConfigError("devices: only hexahedral meshes run sharded (this one has other cell types); leave "
@@ -459,6 +366,8 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     auto = ""
     if method == "auto":
         method, params, auto = auto_pipeline(mesh, params, plan)
+    if params.get("polish") and plan.engine != "host":  # the one stage that runs on the host whatever the engine
+        plan = dataclasses.replace(plan, notes=(*plan.notes, POLISH_ON_HOST))
     params, untangle_params = stage_params(plan, params, untangle_params)
     try:
         p = method_params(method, params)  # checked now, not after the untangling
@@ -589,7 +498,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
     x = np.asarray(x, dtype=np.float64)
     if resolved.get("batched_seeds"):
         notes.append(f"global CI of {resolved['batched_seeds']} seeds ran as one batched program on the JAX engine "
-                     f"(jaxci.smooth.smooth_seeds); this run's smooth phase is its equal share of the batch's time")
+                     f"(jaxci.seeds.smooth_seeds); this run's smooth phase is its equal share of the batch's time")
     notes.extend(problem.info.notes)
     cap = _CAPS.get(method)
     if cap is not None and cap in resolved:

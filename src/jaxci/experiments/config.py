@@ -323,7 +323,7 @@ def load_config(path: str | os.PathLike) -> Experiment:
     missing or malformed file, unknown keys, wrong types or values, unknown methods or method parameters,
     missing or unreadable mesh files.
     """
-    from ..engine import engine_request
+    from ..engine import HOST_METHODS, engine_request
     from ..generate import PAPER_CASES
     from ..memory import check_fits, ci_trials, smooth_bytes
     from ..smooth import METHODS
@@ -429,9 +429,15 @@ def load_config(path: str | os.PathLike) -> Experiment:
         labels[label] = i
         _validate_params(m.method, m.params, lambda k, msg, i=i: loc8.error(("methods", i, "params", *k), msg))
         try:
-            engine_request(m.engine, m.params)
+            engine, _ = engine_request(m.engine, m.params)
         except ConfigError as e:
             raise loc8.error(("methods", i, "engine"), str(e)) from None
+        if engine == "host" and m.method not in (*HOST_METHODS, "auto"):
+            raise loc8.error(("methods", i, "engine"), f"engine 'host' cannot run method {m.method!r} (host: "
+                             f"{', '.join(HOST_METHODS)}); use engine 'jax' or 'auto'")
+        if engine == "host" and cfg.device == "gpu":
+            raise loc8.error(("methods", i, "engine"), "engine 'host' runs on the CPU; device: gpu needs engine "
+                             "'jax' or 'auto'")
         for j, mn in enumerate(m.meshes or ()):
             if mn not in names:
                 raise loc8.error(("methods", i, "meshes", j), f"no mesh named {mn!r}; meshes: {', '.join(names)}")

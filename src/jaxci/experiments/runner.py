@@ -238,7 +238,7 @@ class _Run:
 
 def _work(exp: Experiment, plan):
     """The runs of `plan` as work items ``(mesh, seeds, method)`` in plan order: global CI with several seeds of
-    one mesh as one item (the first seed's place; `jaxci.smooth.smooth_seeds` batches it), every other run alone."""
+    one mesh as one item (the first seed's place; `jaxci.seeds.smooth_seeds` batches it), every other run alone."""
     batched = len(exp.seeds) > 1 and exp.config.batch_seeds
     seen = set()
     for rm, seed, meth in plan:
@@ -251,37 +251,63 @@ def _work(exp: Experiment, plan):
 
 
 def _runs(exp: Experiment, rm: ResolvedMesh, seeds: tuple, meth: ResolvedMethod, inputs: dict, strict: bool):
-    """Smooth `rm` with `meth` for `seeds` (one `smooth`, or `smooth_seeds` for several); yields
-    ``(RunRecord, input mesh, SmoothResult or None)`` per seed, in order."""
-    from ..smooth import smooth, smooth_seeds
+    """Smooth `rm` with `meth` for `seeds` (`jaxci.seeds.iter_smooth_seeds`: global CI's seeds as one program
+    where it can); yields ``(RunRecord, input mesh, SmoothResult or None)`` per seed as each ends (an interrupt
+    keeps those that ended). A seed's failure (its mesh, its run) is its own; with `strict` a failure that is not a
+    `JaxciError` (a bug) is raised."""
+    from ..seeds import iter_smooth_seeds
 
     b = rm.boundary
     kwargs = dict(dtype=exp.config.dtype, feature_angle=b.feature_angle, fix_boundary=b.fix_boundary,
                   fixed_nodes=b.fixed_nodes or None, fixed_sets=b.fixed_sets, untangle=exp.config.untangle,
                   engine=meth.engine, device=exp.config.device, **meth.params)
-    meshes, outcome = {}, {}
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            for seed in seeds:
+    meshes = {}
+    for seed in seeds:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
                 if (rm.name, seed) not in inputs:
                     inputs[(rm.name, seed)] = rm.build(seed)
                 meshes[seed] = inputs[(rm.name, seed)]
-            if len(seeds) == 1:
-                outcome[seeds[0]] = smooth(meshes[seeds[0]], meth.method, seed=seeds[0], **kwargs)
-            else:
-                outcome = dict(zip(seeds, smooth_seeds([meshes[s] for s in seeds], meth.method, list(seeds),
-                                                       errors="return", **kwargs), strict=True))
-        except JaxciError as e:
-            outcome = {s: outcome.get(s, e) for s in seeds}
-        except Exception as e:  # a bug in one method must not lose the other runs (strict: raise it)
-            if strict:
-                raise
-            outcome = {s: outcome.get(s, e) for s in seeds}
-    warned = list(dict.fromkeys(str(w.message) for w in caught))
-    for seed in seeds:
-        yield _record(rm, seed, meth, outcome[seed], warned), meshes.get(seed), (
-            None if isinstance(outcome[seed], BaseException) else outcome[seed])
+            except Exception as e:  # this seed's mesh: its failure alone
+                if strict and not isinstance(e, JaxciError):
+                    raise
+                yield _record(rm, seed, meth, e, _messages(caught)), None, None
+    ok = [s for s in seeds if s in meshes]
+    if len(ok) == 1:  # one seed: `jaxci.smooth` itself (run inside the loop's warning capture)
+        runs = (_one(meshes[s], meth.method, s, kwargs) for s in ok)
+    else:
+        runs = iter_smooth_seeds([meshes[s] for s in ok], meth.method, ok, errors="return", **kwargs)
+    while True:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                i, res = next(runs)
+            except StopIteration:
+                return
+            except JaxciError as e:  # the group's arguments (every seed's): each seed's failure
+                for s in ok:
+                    yield _record(rm, s, meth, e, _messages(caught)), meshes[s], None
+                return
+        if strict and isinstance(res, Exception) and not isinstance(res, JaxciError):
+            raise res
+        seed = ok[i]
+        yield _record(rm, seed, meth, res, _messages(caught)), meshes[seed], (
+            None if isinstance(res, BaseException) else res)
+
+
+def _one(mesh, method: str, seed: int, kwargs: dict) -> tuple:
+    """``(0, result)`` of `jaxci.smooth` on one seed: its `SmoothResult`, or the exception that ended it."""
+    from ..smooth import smooth
+
+    try:
+        return 0, smooth(mesh, method, seed=seed, **kwargs)
+    except Exception as e:  # noqa: BLE001 - the run's failure, recorded (strict: raised by the caller)
+        return 0, e
+
+
+def _messages(caught) -> list:
+    return list(dict.fromkeys(str(w.message) for w in caught))
 
 
 def _record(rm: ResolvedMesh, seed: int, meth: ResolvedMethod, res, warned: list) -> RunRecord:

@@ -63,14 +63,20 @@ def _trials(key, rows, centre, w, t: int):
 
 def _points(par: Parametrisation, U):
     """Node coordinates ``(B, R, n, 3)`` of the free coordinates `U` ``(B, R, n_free)`` of seeds whose
-    parametrisations `par` are stacked (leading axis B): lifted, and projected onto each seed's original
-    boundary unless every moving boundary node of every mesh lies inside its flat region."""
+    parametrisations `par` are stacked (leading axis B): lifted, and each mesh with a moving boundary node outside
+    its flat region projected onto its seed's original boundary (the others as lifted: the projection of a point
+    of a flat region is itself only to rounding, so a mesh's numbers must not depend on the meshes evaluated with
+    it). The search runs only where some mesh of the batch needs it (one `jax.lax.cond`)."""
     X = jax.vmap(lambda p, Ub: jax.vmap(p.lift)(Ub))(par, U)
-    projected = lambda X: jax.vmap(lambda p, Xb: project(p.cons, Xb))(par, X)  # noqa: E731
     if not par.shortcut:
-        return projected(X)
-    inside = jnp.all(jax.vmap(lambda p, Xb: jax.vmap(p.inside)(Xb))(par, X))
-    return jax.lax.cond(inside, lambda X: X, projected, X)
+        return jax.vmap(lambda p, Xb: project(p.cons, Xb))(par, X)
+    inside = jax.vmap(lambda p, Xb: jax.vmap(p.inside)(Xb))(par, X)  # (B, R)
+
+    def projected(X):
+        P = jax.vmap(lambda p, Xb: project(p.cons, Xb))(par, X)
+        return jnp.where(inside[:, :, None, None], X, P)
+
+    return jax.lax.cond(jnp.all(inside), lambda X: X, projected, X)
 
 
 def _behaviours(par: Parametrisation, U, conn, extra: ExtraCells, batch: int):
