@@ -32,7 +32,7 @@ SMOOTH_BYTES_PER_HEX = {"float32": 3_000, "float64": 4_300}
 CI_BYTES_PER_TRIAL = 25
 #: Measured fixed part (JAX's runtime and the compilation of the smoothing loops), bytes.
 SMOOTH_FIXED_BYTES = 400 * 2**20
-#: Measured peak bytes per hexahedron of a run entirely on the host (`jaxci.methods.host_run`: numpy and C, no
+#: Measured peak bytes per hexahedron of a run on the host engine (`jaxci.engine`: numpy and C, no
 #: JAX, nothing compiled; float64 whatever `dtype` says), and its fixed part: the default pipeline (3 smart-Laplace
 #: sweeps, L-BFGS, reports) on perturbed boxes peaked at 0.98 GB in all at 10^6 (100^3, `jaxci smooth`) and 8.7 GB
 #: at 9.9 x 10^6 (215^3, in process), mesh included; the tangled cube60_pert (216,000 hexahedra, untangling first)

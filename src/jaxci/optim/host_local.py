@@ -42,21 +42,12 @@ from ._moves import coloured_stars, onto_plane
 from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound
 from .laplace import LaplaceParams
 
-#: Largest hexahedral mesh on which the local methods run on the host with ``backend="auto"`` (with the C
-#: kernels). It was 100,000; a 60^3 box (216,000, amplitude 0.3) measured both ways (2026-11-26, dd22c91): local
-#: CI 79.8 s on the host (float64, ends at max kappa/3 1.00013) against 81.9 s compiled (float32, 9 s of it
-#: compiling, stopped at 1.0003); smart Laplace 162 s (converged in 336 sweeps, 1.00000002) against 151 s (its
-#: 500-sweep cap, 1.0000029).
+#: Largest hexahedral mesh on which ``engine="auto"`` runs the local methods on the host (with the C kernels;
+#: `jaxci.engine.host_limit`). It was 100,000; a 60^3 box (216,000, amplitude 0.3) measured both ways (2026-11-26,
+#: dd22c91): local CI 79.8 s on the host (float64, ends at max kappa/3 1.00013) against 81.9 s compiled (float32, 9
+#: s of it compiling, stopped at 1.0003); smart Laplace 162 s (converged in 336 sweeps, 1.00000002) against 151 s
+#: (its 500-sweep cap, 1.0000029).
 HOST_LOCAL_MAX = 250_000
-
-
-def host_local_applies(backend: str, n_hex: int, mixed: bool) -> bool:
-    """Whether a local method (CI, the Laplacians) with `backend` (``"auto"``, ``"numpy"``, ``"jax"``) runs on
-    the host: hexahedral meshes only, with the C kernels, ``"numpy"`` always, ``"auto"`` up to `HOST_LOCAL_MAX`
-    hexahedra."""
-    if mixed or backend == "jax" or not native.AVAILABLE:
-        return False
-    return backend == "numpy" or n_hex <= HOST_LOCAL_MAX
 
 
 @dataclasses.dataclass(frozen=True)
