@@ -498,3 +498,13 @@ def test_plan_is_a_frozen_record():
     with pytest.raises(dataclasses.FrozenInstanceError):
         plan.engine = "jax"
     assert plan.to_dict()["name"] == "host" and plan.backend == "numpy"
+
+
+def test_the_polish_on_the_host_beside_the_jax_engine_is_in_the_plan():
+    """The default pipeline's worst-element polish always runs on the host: on the JAX engine the plan says so."""
+    from jaxci.smooth import POLISH_ON_HOST
+
+    box = perturb_box(3, 3, 3, amplitude=0.3, seed=2)
+    assert POLISH_ON_HOST in smooth(box, engine="jax").plan.notes
+    assert POLISH_ON_HOST not in smooth(box, "lbfgs", engine="jax").plan.notes  # plain L-BFGS: no polish
+    assert POLISH_ON_HOST not in smooth(box).plan.notes  # the host engine: every stage there

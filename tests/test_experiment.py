@@ -384,3 +384,15 @@ report: {{table1: {{stage1: s1, stage2: s2}}}}
     assert len(h1) == 21 and h1 == h2[:21] and h2[-1] <= h1[-1]
     report = (tmp_path / "out" / "report.md").read_text()
     assert "ours stage 1 (s1)" in report and "paper stage 2" in report
+
+
+@pytest.mark.parametrize("entry, device, message", [
+    ("{method: bfgs, engine: host}", "auto", r"methods\[0\]\.engine: engine 'host' cannot run method 'bfgs'"),
+    ("{method: lbfgs, engine: host}", "gpu", r"methods\[0\]\.engine: engine 'host' runs on the CPU; device: gpu"),
+    ("{method: lbfgs, engine: jax, params: {backend: numpy}}", "auto", r"methods\[0\]\.engine: engine requests "
+                                                                        r"disagree"),
+])
+def test_an_engine_request_that_cannot_be_honoured_is_refused_at_its_line(tmp_path, entry, device, message):
+    cfg = _write(tmp_path, f"mesh: {{generate: {{case: cube27}}}}\nmethods:\n  - {entry}\ndevice: {device}\n")
+    with pytest.raises(ConfigError, match=r"exp\.yaml:3: " + message):
+        load_config(cfg)
