@@ -49,3 +49,35 @@ def deck_losses(mesh: HexMesh, fmt: str) -> list[tuple[str, str]]:
 
 def _listed(names: list[str], most: int = 8) -> str:
     return ", ".join(names[:most]) + (f", ... ({len(names)} in all)" if len(names) > most else "")
+
+
+def dropped_data(mesh: HexMesh, fmt: str, own_cell_data: tuple = ()) -> list[str]:
+    """What a deck of format `fmt` written from `mesh` leaves out of it: point data, cell data but
+    `own_cell_data` (the deck's own, e.g. ``nastran:pid``), field data but the sources', and what other sources'
+    decks hold (`deck_losses`; the deck's own source is the writer's to report)."""
+    lost = [f"point data {sorted(mesh.point_data)}"] if mesh.point_data else []
+    cell = sorted(k for k in mesh.cell_data if k not in own_cell_data)
+    if cell:
+        lost.append(f"cell data {cell}")
+    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
+    if field:
+        lost.append(f"field data {field}")
+    return lost + [what for f, what in deck_losses(mesh, fmt) if f != fmt]
+
+
+def deck_text(mesh: HexMesh, path: str, fmt: str, in_place, fresh, own_cell_data: tuple = ()
+              ) -> tuple[str, list[str]]:
+    """The text of a deck of format `fmt` (``"nastran"``, ``"lsdyna"``) for `mesh`, and what it leaves out: the
+    mesh's source deck (field data ``FMT:deck``) with new coordinates where ``in_place(mesh, deck, path)`` gives
+    it (``(reason, None)`` where it cannot), else ``fresh(mesh, path)`` (``(text, lost)``)."""
+    deck = mesh.field_data.get(f"{fmt}:deck")
+    lost, text = [], None
+    if isinstance(deck, str):
+        reason, text = in_place(mesh, deck, path)
+        if text is None:
+            lost.append(f"{_SOURCES[f'{fmt}:deck'][1]} ({reason}, so the deck cannot be rewritten in place)")
+    if text is None:
+        text, more = fresh(mesh, path)
+        lost += more
+    return text, lost + dropped_data(mesh, fmt, own_cell_data)
+

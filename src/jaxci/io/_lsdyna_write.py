@@ -27,7 +27,7 @@ from ..errors import MeshWriteError
 from ..mesh import HexMesh
 from ._deck import first_duplicate, model_difference
 from ._fields import REL_TOLERANCE, format_real, node_scale, rewrite_coordinates
-from ._losses import SOURCE_FIELDS, deck_losses
+from ._losses import deck_text
 from ._lsdyna import DEGENERATE, parse_deck
 from ._meshio import LossyWriteWarning
 from ._patran import file_block
@@ -130,17 +130,6 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
     return "\n".join(out) + "\n", lost
 
 
-def _dropped(mesh: HexMesh) -> list[str]:
-    lost = [f"point data {sorted(mesh.point_data)}"] if mesh.point_data else []
-    cell = sorted(k for k in mesh.cell_data if k != "lsdyna:pid")
-    if cell:
-        lost.append(f"cell data {cell}")
-    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
-    if field:
-        lost.append(f"field data {field}")
-    return lost + [what for fmt, what in deck_losses(mesh, "lsdyna") if fmt != "lsdyna"]  # its own: write_lsdyna
-
-
 def write_lsdyna(mesh: HexMesh, path: str | os.PathLike) -> None:
     """Write `mesh` as an LS-DYNA keyword deck: its source deck with new coordinates when it has one, else afresh
     (module docstring).
@@ -151,17 +140,7 @@ def write_lsdyna(mesh: HexMesh, path: str | os.PathLike) -> None:
     `MeshWriteError` for ids the deck cannot hold or a coordinate its field cannot hold. `OSError` propagates.
     """
     path = os.fspath(path)
-    deck = mesh.field_data.get("lsdyna:deck")
-    lost, text = [], None
-    if isinstance(deck, str):
-        reason, text = _in_place(mesh, deck, path)
-        if text is None:
-            lost.append(f"the other keywords of the source LS-DYNA deck ({reason}, so the deck cannot be rewritten "
-                        f"in place)")
-    if text is None:
-        text, more = _fresh(mesh, path)
-        lost += more
-    lost += _dropped(mesh)
+    text, lost = deck_text(mesh, path, "lsdyna", _in_place, _fresh, ("lsdyna:pid",))
     if lost:
         warnings.warn(f"{os.path.basename(path)}: lsdyna drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
     with open(path, "w", encoding="utf-8", errors="surrogateescape", newline="") as f:

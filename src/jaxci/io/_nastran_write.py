@@ -39,7 +39,7 @@ from ..mesh import HexMesh
 from ._ansys_apdl_write import write_apdl
 from ._deck import first_duplicate, model_difference
 from ._fields import REL_TOLERANCE, format_real, node_scale, rewrite_coordinates
-from ._losses import SOURCE_FIELDS, deck_losses
+from ._losses import deck_text
 from ._meshio import LossyWriteWarning
 from ._nastran import parse_deck
 from ._patran import file_block, join_solid
@@ -136,17 +136,6 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
     return "\n".join(out) + "\n", lost
 
 
-def _dropped(mesh: HexMesh) -> list[str]:
-    lost = [f"point data {sorted(mesh.point_data)}"] if mesh.point_data else []
-    cell = sorted(k for k in mesh.cell_data if k != "nastran:pid")
-    if cell:
-        lost.append(f"cell data {cell}")
-    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
-    if field:
-        lost.append(f"field data {field}")
-    return lost + [what for fmt, what in deck_losses(mesh, "nastran") if fmt != "nastran"]  # its own: write_nastran
-
-
 def write_nastran(mesh: HexMesh, path: str | os.PathLike) -> None:
     """Write `mesh` as a Nastran bulk data deck: its source deck with new coordinates when it has one, else afresh
     (module docstring).
@@ -161,16 +150,7 @@ def write_nastran(mesh: HexMesh, path: str | os.PathLike) -> None:
     if path.lower().endswith(".dat") and not isinstance(deck, str) and "ansys:deck" in mesh.field_data:
         write_apdl(mesh, path)  # an ANSYS .dat input file goes back as one
         return
-    lost, text = [], None
-    if isinstance(deck, str):
-        reason, text = _in_place(mesh, deck, path)
-        if text is None:
-            lost.append(f"the other cards of the source Nastran deck ({reason}, so the deck cannot be rewritten in "
-                        f"place)")
-    if text is None:
-        text, more = _fresh(mesh, path)
-        lost += more
-    lost += _dropped(mesh)
+    text, lost = deck_text(mesh, path, "nastran", _in_place, _fresh, ("nastran:pid",))
     if lost:
         warnings.warn(f"{os.path.basename(path)}: nastran drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
     with open(path, "w", encoding="utf-8", errors="surrogateescape", newline="") as f:
