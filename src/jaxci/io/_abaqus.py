@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
-from ._deck import first_duplicate, parse_coordinate, parse_id, read_text
+from ._deck import parse_coordinate, parse_id, read_text, refuse_duplicates
 from ._paths import check_regular, resolve_beside
 
 #: Abaqus shell, membrane, surface, truss and beam elements jaxci keeps as cells (not smoothed), with their cell type.
@@ -353,24 +353,20 @@ class Deck:
         if not self.node_ids:
             raise MeshReadError(f"{self.path}: no *NODE data found; not an Abaqus deck (or an empty one)")
         node_ids = np.array(self.node_ids, dtype=np.int64)
-        if (dup := first_duplicate(node_ids)) is not None:
-            i, j = dup
-            parts = ""
-            if self.node_part[i] != self.node_part[j]:
-                parts = (f" (in parts {self.node_part[i]} and {self.node_part[j]}; jaxci needs node ids unique over "
-                         f"the deck: write it without parts)")
-            raise MeshReadError(f"{self.where(self.node_line[j])}: node {node_ids[j]} is defined twice (first at "
-                                f"{self.where(self.node_line[i])}){parts}")
+        def parts(i, j):
+            if self.node_part[i] == self.node_part[j]:
+                return ""
+            return (f" (in parts {self.node_part[i]} and {self.node_part[j]}; jaxci needs node ids unique over the "
+                    f"deck: write it without parts)")
+
+        refuse_duplicates(node_ids, self.node_line, self.where, "node", parts)
         if not self.blocks:
             others = f" (only elements of types jaxci does not read: {', '.join(sorted(self.other_types))})" \
                 if self.other_types else " (truncated deck, or not a volume mesh)"
             raise MeshReadError(f"{self.path}: {len(node_ids)} nodes but no elements{others}")
         elem_ids = np.concatenate([np.array(b.ids, dtype=np.int64) for b in self.blocks])
         elem_line = [i for b in self.blocks for i in b.line]
-        if (dup := first_duplicate(elem_ids)) is not None:
-            i, j = dup
-            raise MeshReadError(f"{self.where(elem_line[j])}: element {elem_ids[j]} is defined twice (first at "
-                                f"{self.where(elem_line[i])})")
+        refuse_duplicates(elem_ids, elem_line, self.where, "element")
         order = np.argsort(node_ids)
         sorted_ids = node_ids[order]
         cells = []

@@ -94,6 +94,17 @@ def first_duplicate(ids: np.ndarray) -> tuple[int, int] | None:
     return tuple(int(p) for p in pairs[np.argmin(pairs[:, 1])])
 
 
+def refuse_duplicates(ids, lines, where, what: str, more=None) -> None:
+    """`MeshReadError` at the second definition of the first id of `ids` (file order) defined twice: ``where(
+    line)`` names a line of `lines` (one per id), `what` the entity (``"node"``, ``"GRID"``, ``"element"``),
+    ``more(i, j)`` may add a sentence about the first and second positions."""
+    if (dup := first_duplicate(ids)) is not None:
+        i, j = dup
+        extra = more(i, j) if more is not None else ""
+        raise MeshReadError(f"{where(lines[j])}: {what} {ids[j]} is defined twice (first at {where(lines[i])})"
+                            f"{extra}")
+
+
 def _same_array(a, b) -> bool:
     if a is None or b is None:
         return a is None and b is None

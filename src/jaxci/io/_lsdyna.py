@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
-from ._deck import first_duplicate, parse_id
+from ._deck import parse_id, refuse_duplicates
 from ._fields import parse_real
 from ._includes import flatten
 
@@ -203,18 +203,12 @@ class Deck:
         if not self.node_ids:
             raise MeshReadError(f"{self.path}: no *NODE data found; not an LS-DYNA keyword deck (or an empty one)")
         ids = np.array(self.node_ids, np.int64)
-        if (dup := first_duplicate(ids)) is not None:
-            i, j = dup
-            raise MeshReadError(f"{self.where(self.node_line[j])}: node {ids[j]} is defined twice (first at "
-                                f"{self.where(self.node_line[i])})")
+        refuse_duplicates(ids, self.node_line, self.where, "node")
         if not self.blocks:
             raise MeshReadError(f"{self.path}: {len(ids)} nodes but no *ELEMENT_SOLID elements")
         eids = np.concatenate([np.array(b["ids"], np.int64) for b in self.blocks.values()])
         elines = [i for b in self.blocks.values() for i in b["lines"]]
-        if (dup := first_duplicate(eids)) is not None:
-            i, j = dup
-            raise MeshReadError(f"{self.where(elines[j])}: element {eids[j]} is defined twice (first at "
-                                f"{self.where(elines[i])})")
+        refuse_duplicates(eids, elines, self.where, "element")
         order = np.argsort(ids)
         srt = ids[order]
         cells, pids = [], []

@@ -35,7 +35,7 @@ import numpy as np
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
 from ._ansys_apdl import read_apdl
-from ._deck import first_duplicate, parse_id
+from ._deck import parse_id, refuse_duplicates
 from ._fields import parse_real
 from ._includes import flatten
 from ._patran import split_solid
@@ -196,18 +196,12 @@ class Deck:
         if not self.node_ids:
             raise MeshReadError(f"{self.path}: no GRID cards found; not a Nastran bulk data deck (or an empty one)")
         ids = np.array(self.node_ids, np.int64)
-        if (dup := first_duplicate(ids)) is not None:
-            i, j = dup
-            raise MeshReadError(f"{self.where(self.node_line[j])}: GRID {ids[j]} is defined twice (first at "
-                                f"{self.where(self.node_line[i])})")
+        refuse_duplicates(ids, self.node_line, self.where, "GRID")
         if not self.blocks:
             raise MeshReadError(f"{self.path}: {len(ids)} GRIDs but no CHEXA, CPENTA, CTETRA or CPYRAM elements")
         eids = np.concatenate([np.array(b["ids"], np.int64) for b in self.blocks.values()])
         elines = [i for b in self.blocks.values() for i in b["lines"]]
-        if (dup := first_duplicate(eids)) is not None:
-            i, j = dup
-            raise MeshReadError(f"{self.where(elines[j])}: element {eids[j]} is defined twice (first at "
-                                f"{self.where(elines[i])})")
+        refuse_duplicates(eids, elines, self.where, "element")
         order = np.argsort(ids)
         srt = ids[order]
         cells, pids = [], []
