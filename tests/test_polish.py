@@ -104,7 +104,8 @@ def test_pmean_on_a_mixed_mesh_runs_on_the_host_and_lowers_the_pmean():
     mesh = all_types_box()
     mean = smooth(mesh, "lbfgs", keep_worst=False)
     pm = smooth(mesh, "lbfgs", objective="pmean", p=4, keep_worst=False)
-    assert pm.plan.engine == "host" and pm.params["objective"] == "pmean"
+    # the host engine (a mixed mesh's L-BFGS there needs the C kernels; without them the JAX engine)
+    assert pm.plan.engine == ("host" if native.AVAILABLE else "jax") and pm.params["objective"] == "pmean"
     pmean = checked_objective(mesh, 4.0)
     assert pmean(pm.mesh.points) < pmean(mesh.points)
     assert pmean(pm.mesh.points) < pmean(mean.mesh.points)
