@@ -12,11 +12,14 @@ the node, never silently rounded.
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 
 from ..cells import EDGES
 from ..errors import MeshReadError, MeshWriteError
+from ..mesh import HexMesh
+from ._deck import first_duplicate, model_difference
 
 #: A rewritten coordinate may differ from the smoothed one by at most this fraction of the shortest edge at its node.
 REL_TOLERANCE = 1e-3
@@ -153,3 +156,52 @@ def rewrite_coordinates(lines: list[str], old: np.ndarray, new: np.ndarray, fiel
                     f"character field closer than {err:.3g} ({text}), more than {REL_TOLERANCE:g} of its shortest "
                     f"edge ({scale[k]:.3g}); write the deck in a wider field format, or write another format")
             lines[i] = replace_field(lines[i], field, text)
+
+
+def rewrite_deck(mesh: HexMesh, text: str, path: str, parse_deck, pid_key: str, what: str, nastran: bool
+                 ) -> tuple[str | None, str | None]:
+    """``(None, the deck text with the mesh's coordinates)`` when `mesh` is the mesh of the deck `text` (read by
+    ``parse_deck``: Nastran's or LS-DYNA's) with moved nodes, else ``(what differs, None)``: the in-place write
+    both deck writers share. `pid_key` the deck's property-id cell data, `what` its node entity (``"GRID"``,
+    ``"node"``) for messages, `nastran` its field rules (`rewrite_coordinates`)."""
+    lines = text.splitlines(keepends=True)
+    label = f"the deck of {mesh.source or 'the mesh'}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
+        ref = HexMesh(**parts)
+    reason = model_difference(mesh, ref, cell_data=(pid_key,))
+    if reason is not None:
+        return reason, None
+    ids = ref.node_ids
+
+    def name(k: int) -> str:
+        return f"{path}: {what} {int(ids[k])} (line {deck.origin[deck.node_line[k]][1]} of the deck)"
+
+    rewrite_coordinates(lines, ref.points, mesh.points, deck.node_spots, node_scale(mesh.points, mesh.cells), name,
+                        nastran=nastran)
+    return None, "".join(lines)
+
+
+def numbered_blocks(blocks: list, node_ids: np.ndarray, path: str, deck: str, node: str, maximum: int,
+                    fields: str) -> tuple[list, np.ndarray]:
+    """A deck's element blocks ``(cell or card, ids or None, rows, property ids)`` with every element numbered
+    (blocks without ids continue from the largest id given) and all element ids; `MeshWriteError` where a node or
+    element id is used twice (`deck` names the format, `node` its nodes) or lies outside ``1..maximum`` (`fields`
+    names the fields that cannot hold it)."""
+    next_id = int(max((b[1].max() for b in blocks if b[1] is not None and len(b[1])), default=0)) + 1
+    numbered = []
+    for cell, ids, rows, pids in blocks:
+        if ids is None:
+            ids = np.arange(next_id, next_id + len(rows))
+            next_id += len(rows)
+        numbered.append((cell, ids, rows, pids))
+    all_ids = np.concatenate([b[1] for b in numbered]) if numbered else np.zeros(0, np.int64)
+    for ids, what in ((node_ids, node), (all_ids, "element")):
+        if (dup := first_duplicate(ids)) is not None:
+            raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; {deck} ids must be unique")
+        if len(ids) and (ids.min() < 1 or ids.max() > maximum):
+            bad = ids.min() if ids.min() < 1 else ids.max()
+            raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{maximum} of {fields}")
+    return numbered, all_ids
+

@@ -25,8 +25,7 @@ import numpy as np
 
 from ..errors import MeshWriteError
 from ..mesh import HexMesh
-from ._deck import first_duplicate, model_difference
-from ._fields import REL_TOLERANCE, format_real, node_scale, rewrite_coordinates
+from ._fields import REL_TOLERANCE, format_real, node_scale, numbered_blocks, rewrite_deck
 from ._losses import deck_text
 from ._lsdyna import DEGENERATE, parse_deck
 from ._meshio import LossyWriteWarning
@@ -36,23 +35,9 @@ _MAX_ID = 99_999_999  # 8-character integer fields
 
 
 def _in_place(mesh: HexMesh, text: str, path: str) -> tuple[str | None, str | None]:
-    lines = text.splitlines(keepends=True)
-    label = f"the deck of {mesh.source or 'the mesh'}"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
-        ref = HexMesh(**parts)
-    reason = model_difference(mesh, ref, cell_data=("lsdyna:pid",))
-    if reason is not None:
-        return reason, None
-    ids = ref.node_ids
-
-    def name(k: int) -> str:
-        return f"{path}: node {int(ids[k])} (line {deck.origin[deck.node_line[k]][1]} of the deck)"
-
-    rewrite_coordinates(lines, ref.points, mesh.points, deck.node_spots, node_scale(mesh.points, mesh.cells), name,
-                        nastran=False)
-    return None, "".join(lines)
+    """(None, the deck with the mesh's coordinates) when `mesh` is the deck's mesh with moved nodes, else (what
+    differs, None): `jaxci.io._fields.rewrite_deck`."""
+    return rewrite_deck(mesh, text, path, parse_deck, "lsdyna:pid", "node", nastran=False)
 
 
 def _eight(cell: str, row: list[int]) -> list[int]:
@@ -88,20 +73,8 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
             shells.append((cell, ids, data, pids))
         else:
             lost.append(f"{len(data)} {blk.type} cells (not a solid or shell)")
-    next_id = int(max((b[1].max() for b in solids + shells if b[1] is not None and len(b[1])), default=0)) + 1
-    numbered = []
-    for cell, ids, data, pids in solids + shells:
-        if ids is None:
-            ids = np.arange(next_id, next_id + len(data))
-            next_id += len(data)
-        numbered.append((cell, ids, data, pids))
-    all_ids = np.concatenate([b[1] for b in numbered]) if numbered else np.zeros(0, np.int64)
-    for ids, what in ((node_ids, "node"), (all_ids, "element")):
-        if (dup := first_duplicate(ids)) is not None:
-            raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; LS-DYNA ids must be unique")
-        if len(ids) and (ids.min() < 1 or ids.max() > _MAX_ID):
-            bad = ids.min() if ids.min() < 1 else ids.max()
-            raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{_MAX_ID} of the 8-character fields")
+    numbered, all_ids = numbered_blocks(solids + shells, node_ids, path, "LS-DYNA", "node", _MAX_ID,
+                                        "the 8-character fields")
     scale = node_scale(mesh.points, mesh.cells)
     out = ["*KEYWORD", f"$ jaxci mesh: {mesh.n_nodes} nodes, {len(all_ids)} elements", "*NODE"]
     for k, (nid, xyz) in enumerate(zip(node_ids.tolist(), mesh.points.tolist(), strict=True)):

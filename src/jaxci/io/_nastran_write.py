@@ -37,8 +37,7 @@ import numpy as np
 from ..errors import MeshWriteError
 from ..mesh import HexMesh
 from ._ansys_apdl_write import write_apdl
-from ._deck import first_duplicate, model_difference
-from ._fields import REL_TOLERANCE, format_real, node_scale, rewrite_coordinates
+from ._fields import REL_TOLERANCE, format_real, node_scale, numbered_blocks, rewrite_deck
 from ._losses import deck_text
 from ._meshio import LossyWriteWarning
 from ._nastran import parse_deck
@@ -54,24 +53,8 @@ _MAX_ID = 99_999_999  # 8-character integer fields
 
 def _in_place(mesh: HexMesh, text: str, path: str) -> tuple[str | None, str | None]:
     """(None, the deck with the mesh's coordinates) when `mesh` is the deck's mesh with moved nodes, else (what
-    differs, None)."""
-    lines = text.splitlines(keepends=True)
-    label = f"the deck of {mesh.source or 'the mesh'}"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
-        ref = HexMesh(**parts)
-    reason = model_difference(mesh, ref, cell_data=("nastran:pid",))
-    if reason is not None:
-        return reason, None
-    ids = ref.node_ids
-
-    def name(k: int) -> str:
-        return f"{path}: GRID {int(ids[k])} (line {deck.origin[deck.node_line[k]][1]} of the deck)"
-
-    rewrite_coordinates(lines, ref.points, mesh.points, deck.node_spots, node_scale(mesh.points, mesh.cells), name,
-                        nastran=True)
-    return None, "".join(lines)
+    differs, None): `jaxci.io._fields.rewrite_deck`."""
+    return rewrite_deck(mesh, text, path, parse_deck, "nastran:pid", "GRID", nastran=True)
 
 
 def _small(name: str, fields: list[str]) -> list[str]:
@@ -96,21 +79,8 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
         pids = np.asarray(pid_data[k], np.int64) if pid_data is not None and len(pid_data) == len(mesh.cells) \
             and len(pid_data[k]) == len(data) else np.full(len(data), k + 1)
         blocks.append((card, None if blk.ids is None else np.asarray(blk.ids, np.int64), rows, pids))
-    next_id = int(max((b[1].max() for b in blocks if b[1] is not None and len(b[1])), default=0)) + 1
-    numbered = []
-    for card, ids, rows, pids in blocks:
-        if ids is None:
-            ids = np.arange(next_id, next_id + len(rows))
-            next_id += len(rows)
-        numbered.append((card, ids, rows, pids))
-    all_ids = np.concatenate([b[1] for b in numbered]) if numbered else np.zeros(0, np.int64)
-    for ids, what in ((node_ids, "GRID"), (all_ids, "element")):
-        if (dup := first_duplicate(ids)) is not None:
-            raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; Nastran ids must be unique")
-        if len(ids) and (ids.min() < 1 or ids.max() > _MAX_ID):
-            bad = ids.min() if ids.min() < 1 else ids.max()
-            raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{_MAX_ID} of Nastran's 8-character "
-                                 f"fields")
+    numbered, all_ids = numbered_blocks(blocks, node_ids, path, "Nastran", "GRID", _MAX_ID,
+                                        "Nastran's 8-character fields")
     scale = node_scale(mesh.points, mesh.cells)
     out = [f"$ jaxci mesh: {mesh.n_nodes} GRIDs, {len(all_ids)} elements"]
     for k, (nid, xyz) in enumerate(zip(node_ids.tolist(), mesh.points.tolist(), strict=True)):
