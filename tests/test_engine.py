@@ -356,15 +356,15 @@ def test_seeds_that_run_one_after_the_other_each_report_their_own_time():
 
 @pytest.mark.skipif(not native.AVAILABLE, reason="global CI on the host engine needs the C kernels")
 def test_an_error_in_one_seeds_method_is_that_seeds_result(monkeypatch):
-    seeds_module = importlib.import_module("jaxci.seeds")
-    run_method = seeds_module.run_method
+    smooth_module = importlib.import_module("jaxci.smooth")
+    run_method = smooth_module.run_method
 
     def failing(problem, method, seed, params):
         if seed == 1:
             raise MeshError("seed 1 failed in its method")
         return run_method(problem, method, seed, params)
 
-    monkeypatch.setattr(seeds_module, "run_method", failing)
+    monkeypatch.setattr(smooth_module, "run_method", failing)
     res = smooth_seeds([paper_case("cube27", seed=s) for s in range(3)], "ci-global", [0, 1, 2], errors="return",
                        attempts=10, engine="host")
     assert [type(r).__name__ for r in res] == ["SmoothResult", "MeshError", "SmoothResult"]

@@ -17,7 +17,7 @@ import numpy as np
 
 from ._lazy import jax
 from .errors import ConfigError
-from .methods import free_scale, global_parametrisation, method_params, run_method
+from .methods import free_scale, global_parametrisation, method_params
 from .smooth import MethodRun, SmoothResult, smooth_steps
 
 
@@ -85,7 +85,7 @@ def _finish(steps, req: MethodRun, out, errors: str):
     output or the batch's exception), else the method run alone now, sent to `steps` for the checks."""
     if out is None:
         try:
-            out = _run(req)
+            out = req.run()
         except Exception as e:  # noqa: BLE001 - the seed's own failure (errors="return")
             if errors == "raise":
                 raise
@@ -109,12 +109,6 @@ def _step(steps, sent, errors: str, finish: bool = False):
         if errors == "raise":
             raise
         return e
-
-
-def _run(req: MethodRun):
-    """The method of `req` alone, in its plan's contexts, timed in its clock: `run_method`'s output."""
-    with req.context(), req.clock.phase("smooth"):
-        return run_method(req.problem, req.method, req.seed, req.params)
 
 
 def _may_batch(req: MethodRun) -> bool:

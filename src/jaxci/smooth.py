@@ -220,15 +220,18 @@ class MethodRun:
         stack.enter_context(plan.context())
         return stack
 
+    def run(self):
+        """The method alone, in its plan's contexts, timed in its clock: `run_method`'s output."""
+        with self.context(), self.clock.phase("smooth"):
+            return run_method(self.problem, self.method, self.seed, self.params)
+
 
 def _drive(steps):
     """Run the generator `steps` (`smooth_steps`) to its result, running each `MethodRun` it yields."""
     try:
         req = next(steps)
         while True:
-            with req.context(), req.clock.phase("smooth"):
-                out = run_method(req.problem, req.method, req.seed, req.params)
-            req = steps.send(out)
+            req = steps.send(req.run())
     except StopIteration as done:
         return done.value
 
