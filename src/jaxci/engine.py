@@ -93,9 +93,7 @@ class Plan:
         """JSON-ready: ``name`` (the engine), ``device``, ``device_kind``, ``devices``, ``dtype``, ``kernel``,
         ``threads``, ``reason``, ``notes``."""
         d = dataclasses.asdict(self)
-        d["name"] = d.pop("engine")
-        d["notes"] = list(self.notes)
-        return {"name": d.pop("name"), **d}
+        return {"name": d.pop("engine"), **d, "notes": list(self.notes)}
 
     def describe(self) -> str:
         """One line: ``"host engine: C kernel (2 threads), float64, cpu (AMD EPYC ...)"``."""
@@ -278,8 +276,8 @@ def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", devic
     accel = accelerator() if device != "cpu" else None
     if device == "gpu" and accel is None:
         raise ConfigError(no_accelerator_message())
+    where = accel[0] if accel else "cpu"  # the JAX engine's platform, whatever leads to it
     if engine == "jax":
-        where = accel[0] if accel else "cpu"
         return _jax_plan(method, params, dtype, where, 1, "engine 'jax' asked for" + (
             f", on the {where} (device {device!r})" if accel else ""))
     # engine auto
@@ -287,9 +285,8 @@ def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", devic
         why = ("device 'gpu' asked for" if device == "gpu" else
                f"an accelerator is visible and the mesh has {n_cells:,} >= {ACCELERATOR_FROM:,} cells "
                f"(jaxci.engine.ACCELERATOR_FROM)")
-        return _jax_plan(method, params, dtype, accel[0], 1, why)
+        return _jax_plan(method, params, dtype, where, 1, why)
     if method == "ci-global" and seeds >= BATCH_SEEDS_FROM and not untangling:
-        where = accel[0] if accel else "cpu"
         return _jax_plan(method, params, dtype, where, 1, f"auto: {seeds} seeds of global CI run as one batched "
                          f"program on the JAX engine (from {BATCH_SEEDS_FROM} seeds: jaxci.engine.BATCH_SEEDS_FROM)")
     limit = host_limit(method, native.AVAILABLE)
@@ -302,7 +299,6 @@ def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", devic
         return host_plan(f"auto: the host engine is the fastest for {method} on a CPU up to {limit:,} cells"
                           f"{small}; this mesh has {n_cells:,}")
     why = obstacle or f"auto: {n_cells:,} cells > the host engine's {limit:,} for {method}"
-    where = accel[0] if accel else "cpu"
     return _jax_plan(method, params, dtype, where, 1, why)
 
 
