@@ -153,3 +153,52 @@ def test_polish_bounds_and_limits():
     cons, par = polish_setup(mesh, x, fixed=mesh.hexes[worst])
     y, rep = polish(mesh, cons, par, x)
     assert rep["limited"] and rep["rounds"] == 0 and np.array_equal(y, x)
+
+
+def test_default_trades_F_for_the_worst_element_at_an_optimum_of_F():
+    """Input already at L-BFGS's optimum of F: the default's polish can lower the worst element only by raising
+    F above the input's, and the worst-first order keeps that (with a note); plain L-BFGS and polish=False
+    never return a higher F; the untangling path follows the same order."""
+    mesh = perturb_box(4, amplitude=0.3, seed=1)
+    opt = mesh.with_points(smooth(mesh, "lbfgs", fix_boundary=True).mesh.points)
+    w0, m0 = element_stats(opt, opt.points)
+    f0 = float(mixed_objective(opt.points, opt))
+    auto = smooth(opt, fix_boundary=True)
+    w1, m1 = element_stats(opt, auto.mesh.points)
+    f1 = float(mixed_objective(auto.mesh.points, opt))
+    assert w1 < w0 * (1 - 1e-3) and f1 > f0 and m1 <= m0 * 1.01
+    note = [n for n in auto.notes if n.startswith("F rose")]
+    assert len(note) == 1 and f"{w1:.6g}" in note[0] and "the worst element first" in note[0]
+    for kw in ({"method": "lbfgs"}, {"polish": False}):
+        res = smooth(opt, fix_boundary=True, **kw)
+        assert float(mixed_objective(res.mesh.points, opt)) <= f0
+        assert not any(n.startswith("F rose") for n in res.notes)
+    # the check after untangling, as if `opt` were the untangled start: the same order
+    from jaxci.optim.untangle import enforce_after_untangling
+
+    info = classify_boundary(opt, fix_boundary=True)
+    y, notes = enforce_after_untangling(opt, info, opt.points, auto.mesh.points, projected=True, worst_first=True)
+    assert np.array_equal(y, auto.mesh.points) and notes[0].startswith("F rose")
+    y, notes = enforce_after_untangling(opt, info, opt.points, auto.mesh.points, projected=True)
+    assert np.array_equal(y, opt.points) and "raised the objective" in notes[0]
+
+
+def test_worst_first_keeps_a_higher_F_only_where_the_worst_element_fell():
+    from jaxci.metrics.guard import worst, worst_first
+    from jaxci.optim.untangle import enforce_after_untangling
+
+    mesh = perturb_box(3, amplitude=0.25, seed=2)
+    better = np.array(smooth(mesh, "lbfgs", fix_boundary=True).mesh.points)
+    start, x = better, np.array(mesh.points)  # x: the worse mesh, as if a method had made it
+    fs, fx = float(mixed_objective(start, mesh)), float(mixed_objective(x, mesh))
+    assert worst(mesh, x) > worst(mesh, start) and fx > fs
+    assert worst_first(mesh, start, x, fs, fx) is None  # F and the worst both rose: refused
+    # the same F rise with the worst element fallen: kept, and the note gives both figures
+    note = worst_first(mesh, x, start, fx, fx * 1.01)
+    assert note is not None and f"{worst(mesh, start):.6g}" in note and f"{worst(mesh, x):.6g}" in note
+    assert worst_first(mesh, x, x, fx, fx * 1.01) is None  # the worst element unchanged: refused
+    # the check after untangling: the worse mesh is refused whatever the order
+    info = classify_boundary(mesh, fix_boundary=True)
+    for order in (False, True):
+        y, notes = enforce_after_untangling(mesh, info, start, x, projected=True, worst_first=order)
+        assert np.array_equal(y, start) and "raised the objective" in notes[0]

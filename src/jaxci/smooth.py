@@ -6,8 +6,10 @@ edge nodes on their feature curve, surface nodes on their surface (`jaxci.geomet
 pyramids and tetrahedra (`jaxci.metrics.elements.mixed_objective`, `jaxci.metrics.objective`), and the nodes of linear
 non-hexahedral cells move too. Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
 
-- no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase (else
-  the input is returned, with a note saying why);
+- no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase, or,
+  where the method weighs the worst element first (the default pipeline's worst-element polish), F rose only
+  while the worst cell fell (`jaxci.metrics.guard.worst_first`); else the input is returned, with a note
+  saying why;
 - every boundary node lies on the ORIGINAL boundary (a final exact float64 projection; on the host path the
   solver's own float64 projection onto the original boundary's triangles and segments).
 
@@ -511,12 +513,15 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
                          f"--param {cap}=N lets it go further")
     with clock.phase("checks"), enable_x64(x64):
         power = float(resolved["p"]) if resolved.get("objective") == "pmean" else None
+        worst_first = bool(resolved.get("polish")) and power is None
         if untangled is None:
-            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before, power, projected=host)
+            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before, power, projected=host,
+                                                      worst_first=worst_first)
         else:
             from .optim.untangle import enforce_after_untangling
 
-            points, check_notes = enforce_after_untangling(smesh, problem.info, untangled, x, power, projected=host)
+            points, check_notes = enforce_after_untangling(smesh, problem.info, untangled, x, power, projected=host,
+                                                           worst_first=worst_first)
         notes.extend(check_notes)
         after = quality_report(mesh, points)
         after = dataclasses.replace(after, worst_elements=worst_elements(
@@ -574,13 +579,15 @@ def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
 
 
 def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_worst: bool = True,
-                        before: QualityReport | None = None, power: float | None = None, projected: bool = False
-                        ) -> tuple[np.ndarray, list[str]]:
+                        before: QualityReport | None = None, power: float | None = None, projected: bool = False,
+                        worst_first: bool = False) -> tuple[np.ndarray, list[str]]:
     """Exact float64 projection onto the original boundary (not with `projected`: `x` comes from the host
     solver, which evaluated it with every boundary node projected onto the original boundary in float64), then
     the no-inversion, worst-cell (`jaxci.metrics.guard.keep_worst`, if asked) and no-increase checks over every
     cell type (`jaxci.metrics.elements.inverted`; of `jaxci.metrics.elements.mixed_objective`, or of the p-mean
-    `jaxci.metrics.hexahedron.pmean_objective` with `power`: the objective the method minimised)."""
+    `jaxci.metrics.hexahedron.pmean_objective` with `power`: the objective the method minimised). With
+    `worst_first` (the method polished the worst element) a higher F is kept where the worst cell fell
+    (`jaxci.metrics.guard.worst_first`)."""
     if not projected:
         x = project_np(build_constraints(mesh, problem.info, dtype=np.float64, device=False), x)
     new = mixed.newly_inverted(mesh, mesh.points, x)
@@ -590,11 +597,11 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_wor
         what = ", ".join(f"{k} {t}" for t, k in new.items()) or "non-finite objective"
         return np.array(mesh.points), [f"the result had newly inverted elements ({what}); the input is returned"]
     notes = []
+    # the input's worst cell from its report (valid input on this path: every corner counted), not recomputed
+    w0 = None if before is None else (before.overall or {}).get("max_condition", before.max_condition)
     if keep_worst:
         from .metrics.guard import keep_worst as guard
 
-        # the input's worst cell from its report (valid input on this path: every corner counted), not recomputed
-        w0 = None if before is None else (before.overall or {}).get("max_condition", before.max_condition)
         y, n_back, w0, w1 = guard(mesh, mesh.points, x, worst_before=w0)
         if n_back:
             f2 = objective(y)
@@ -603,8 +610,15 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_wor
                          f"(keep_worst=False / --allow-worse-worst returns the method's result)")
             x, f1 = y, f2
     if f1 > f0:
-        return np.array(mesh.points), [*notes, f"the objective rose from {f0:.6g} to {f1:.6g}; the input is returned"]
+        from .metrics.guard import worst_first as keep
+
+        kept = keep(mesh, mesh.points, x, f0, f1, worst_start=w0) if worst_first else None
+        if kept is None:
+            return np.array(mesh.points), [*notes, f"the objective rose from {f0:.6g} to {f1:.6g}; the input is "
+                                                   f"returned"]
+        notes.append(kept)
     return x, notes
+
 
 
 def _standard_history(h: dict) -> dict:

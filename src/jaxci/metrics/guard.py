@@ -62,3 +62,23 @@ def keep_worst(mesh: HexMesh, before, after, *, rtol: float = 1e-12,
         back[nodes] = True
         x[nodes] = before[nodes]
     return x, int(back.sum()), w0, w1
+
+
+
+def worst_first(mesh: HexMesh, start, x, f0: float, f1: float, *, worst_start: float | None = None,
+                rtol: float = 1e-9) -> str | None:
+    """The worst-first order's verdict on a result `x` whose F (`f1`) rose above its start's (`f0`, at `start`):
+    a note saying why it is kept where its worst cell fell (max kappa/3 below the start's by more than `rtol`,
+    both in float64 over every cell type), else None (the start is to be returned).
+
+    A run whose objective weighs the worst element first (the default pipeline's worst-element polish,
+    `jaxci.optim.polish`) may trade a little of F for a lower worst element: the mesh a solver needs is judged
+    by its worst element first, then by the mean. `worst_start`: `worst` at `start` where the caller has it.
+    """
+    w0 = worst(mesh, start) if worst_start is None else float(worst_start)
+    w1 = worst(mesh, x)
+    if not (np.isfinite(w0) and np.isfinite(w1) and w1 < w0 * (1.0 - rtol)):
+        return None
+    return (f"F rose from {f0:.6g} to {f1:.6g} (+{100.0 * (f1 - f0) / max(abs(f0), 1e-300):.2g}%) while the worst "
+            f"element fell from {w0:.6g} to {w1:.6g} (max kappa/3): kept, the worst element first (--method lbfgs, "
+            f"or polish=False, minimises F alone and never raises it)")

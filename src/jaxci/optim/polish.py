@@ -14,10 +14,12 @@ the host L-BFGS (`jaxci.optim.host.lbfgs`, `ROUND_STEPS` steps) over the free no
 (`jaxci.optim.weighted.penalty_kernel`: F's share of those corners with a quadratic penalty above the level).
 A round is kept when the worst element went down, the mean element quality (the mean over the cells of each
 cell's worst corner kappa/3, what VTK's per-element condition averages to) stays within `PolishParams.budget`
-of the start's and F stays at or below `PolishParams.f_limit` (the run's input's: `jaxci.smooth` returns the
-input where F rose); after a round that is not kept ``gamma`` moves towards 1 (a smaller step). The polish ends
-when the steps become negligible (``gamma > GAMMA_END``), the worst element is within `MIN_EXCESS` of an ideal
-one, no node of it can move, or its work (kernel passes over cells) reaches `PolishParams.work`.
+of the start's (and F at or below `PolishParams.f_limit` where one is given: `jaxci.smooth` gives none, its
+final check keeps a result whose F rose above the input's only where the worst element fell,
+`jaxci.metrics.guard.worst_first`); after a round that is not kept ``gamma`` moves towards 1 (a smaller
+step). The polish ends when the steps become negligible (``gamma > GAMMA_END``), the worst element is within
+`MIN_EXCESS` of an ideal one, no node of it can move, or its work (kernel passes over cells) reaches
+`PolishParams.work`.
 
 Chosen by measurement (2026-11-27, in process on the real-mesh corpus of scripts/bench_realmesh.py; worst / mean
 element): the descent run to its end reaches pave3 1.786 / 1.2420 from L-BFGS's 2.790 / 1.2159 (p-mean p = 4:
@@ -68,8 +70,7 @@ class PolishParams:
     may rise above the start's, as a fraction (default 0.01); `work`: the most kernel passes over cells, two per
     sub-problem step (None: no bound; `jaxci.optim.gradient.run_gradient` passes the L-BFGS solve's steps times
     the mesh's cells, one pass a step: the polish costs about as much as the solve did at most); `f_limit`: F
-    (over every corner) must stay at or below this (the method's input's F: the run's final check returns the
-    input where F rose)."""
+    (over every corner) must stay at or below this (default: no limit)."""
 
     budget: float = 0.01
     work: float | None = None

@@ -343,8 +343,9 @@ def _elements(k: int) -> str:
 
 
 def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.ndarray, x: np.ndarray,
-                             power: float | None = None, projected: bool = False):
-    """`jaxci.smooth`'s final check when the start was untangled: no inverted corner, F not above the start's.
+                             power: float | None = None, projected: bool = False, worst_first: bool = False):
+    """`jaxci.smooth`'s final check when the start was untangled: no inverted corner, F not above the start's
+    (with `worst_first`: unless the worst cell fell, `jaxci.metrics.guard.worst_first`).
 
     **Arguments:** `mesh` the (tangled) input; `info` its `BoundaryInfo`; `untangled` the untangled start
     ``(n, 3)``; `x` the shape-improved coordinates ``(n, 3)``.
@@ -365,6 +366,11 @@ def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.nd
         return np.array(untangled), [f"shape improvement left {inv} inverted elements; the untangled mesh is "
                                      f"returned"]
     if f1 > f0:
-        return np.array(untangled), [f"shape improvement raised the objective from {f0:.6g} to {f1:.6g}; the "
-                                     f"untangled mesh is returned"]
+        from ..metrics.guard import worst_first as keep
+
+        kept = keep(mesh, untangled, x, f0, f1) if worst_first else None
+        if kept is None:
+            return np.array(untangled), [f"shape improvement raised the objective from {f0:.6g} to {f1:.6g}; the "
+                                         f"untangled mesh is returned"]
+        return x, [kept]
     return x, []
