@@ -79,6 +79,29 @@ def test_bad_arrays_are_refused_not_read_out_of_bounds():
         c.hex_condition(x, h, 1.0, np.zeros((len(x) - 1, 3)), None, None)
     with pytest.raises(ValueError, match="not C-contiguous|contiguous"):
         c.hex_condition(np.asfortranarray(x), h, 1.0, None, None, None)
+    with pytest.raises(ValueError, match="shapes disagree"):
+        c.hex_condition(x, h, 0.0, None, None, None, 1, np.zeros((8, len(h) - 1)))
+
+
+def test_corner_measures_in_c_are_numpys(monkeypatch):
+    """kappa/3 and the scaled Jacobian of every corner (the quality report's and the worst elements'), with an
+    inverted corner (kappa/3 inf, scaled Jacobian negative) and a zero-length edge (scaled Jacobian 0)."""
+    from jaxci.metrics.elements import hex_corner_measures
+
+    m = _mesh(0.3, seed=3)
+    x = np.array(m.points, np.float64)
+    h = m.hexes
+    x[h[5, 0]] = x[h[5, 6]] + 0.01 * (x[h[5, 6]] - x[h[5, 0]])  # node 0 of hexahedron 5 through its far corner
+    x[h[9, 1]] = x[h[9, 0]]  # an edge of length 0
+    k_c, sj_c = hex_corner_measures(x, h)
+    monkeypatch.setattr(native, "AVAILABLE", False)
+    k_np, sj_np = hex_corner_measures(x, h)
+    assert k_c.shape == k_np.shape == (len(h), 8) and np.isinf(k_np[5]).any() and (sj_np[5] < 0).any()
+    assert (sj_np[9] == 0).any()
+    np.testing.assert_array_equal(np.isinf(k_c), np.isinf(k_np))
+    fin = np.isfinite(k_np)
+    np.testing.assert_allclose(k_c[fin], k_np[fin], rtol=1e-14)
+    np.testing.assert_allclose(sj_c, sj_np, rtol=1e-14, atol=1e-15)
 
 
 @pytest.mark.parametrize("threads", [2, 3])

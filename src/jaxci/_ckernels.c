@@ -194,6 +194,7 @@ typedef struct {
     double *T, *G;
     Py_ssize_t N, lo, hi;
     double weight;
+    double *S; /* the corners' scaled Jacobians det / (|a| |b| |c|) (8, N), or NULL */
 } HexJob;
 
 /* x86-64 with GCC: AVX-512 and AVX2 clones of the loops below beside the baseline one, picked at load time (the
@@ -213,7 +214,7 @@ static void *hex_worker(void *arg) {
     HexJob *j = arg;
     const double *P = j->P, *CW = j->CW;
     const long long *H = j->H;
-    double *T = j->T, *G = j->G, weight = j->weight, sum = 0.0, tmax = 0.0;
+    double *T = j->T, *G = j->G, *S = j->S, weight = j->weight, sum = 0.0, tmax = 0.0;
     Py_ssize_t N = j->N;
     long long invalid = 0;
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
@@ -253,6 +254,15 @@ static void *hex_worker(void *arg) {
             q[i] = w2[i] * fro2[i] * idet2;
             r[i] = p[i] * fro2[i] * idet;
         }
+        if (S)
+            for (int i = 0; i < 8; i++) {
+                /* jaxci.metrics.elements._ratio: det / sqrt(|a|^2 |b|^2 |c|^2), 0 for a zero-length edge */
+                double la = a[0][i] * a[0][i] + a[1][i] * a[1][i] + a[2][i] * a[2][i];
+                double lb = b[0][i] * b[0][i] + b[1][i] * b[1][i] + b[2][i] * b[2][i];
+                double lc = c[0][i] * c[0][i] + c[1][i] * c[1][i] + c[2][i] * c[2][i];
+                double l2 = la * lb * lc;
+                S[i * N + e] = l2 > 0.0 ? det[i] / sqrt(l2) : 0.0;
+            }
         for (int i = 0; i < 8; i++) {
             if (T) T[i * N + e] = term[i];
             if (!(det[i] > 0.0)) {
@@ -300,7 +310,8 @@ static void *hex_worker(void *arg) {
 }
 
 /* hex_condition(points (n, 3) f8, hexes (N, 8) i8, weight, grad (n, 3) f8 or None, corner_weight (8, N) f8 or
- * None, terms (8, N) f8 or None) -> (sum of (term - 1), max term, inverted corners).
+ * None, terms (8, N) f8 or None[, nthreads[, sj (8, N) f8 or None]]) -> (sum of (term - 1), max term, inverted
+ * corners). With `sj`, each corner's scaled Jacobian det / (|a| |b| |c|) (0 where an edge has length 0).
  *
  * term = |A|^2 |adj A|^2 / (9 det^2) = (kappa/3)^2 per corner (inf where det <= 0, in `terms`). With `grad`, adds
  * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
@@ -345,21 +356,22 @@ done:
 }
 
 static PyObject *hex_condition(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms, *ret = NULL;
+    PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms, *o_sj = Py_None, *ret = NULL;
     double weight;
     int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOdOOO|i", &o_pts, &o_hex, &weight, &o_grad, &o_cw, &o_terms, &nthreads))
+    if (!PyArg_ParseTuple(args, "OOdOOO|iO", &o_pts, &o_hex, &weight, &o_grad, &o_cw, &o_terms, &nthreads, &o_sj))
         return NULL;
-    Buf B[5] = {{{0}}};
+    Buf B[6] = {{{0}}};
     if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
         acquire(&B[2], o_grad, "grad", "d", 1, 1) < 0 || acquire(&B[3], o_cw, "corner_weight", "d", 0, 1) < 0 ||
-        acquire(&B[4], o_terms, "terms", "d", 1, 1) < 0)
+        acquire(&B[4], o_terms, "terms", "d", 1, 1) < 0 || acquire(&B[5], o_sj, "sj", "d", 1, 1) < 0)
         goto done;
     Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64;
     if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || (B[2].held && B[2].view.len != B[0].view.len) ||
-        (B[3].held && B[3].view.len != N * 64) || (B[4].held && B[4].view.len != N * 64)) {
+        (B[3].held && B[3].view.len != N * 64) || (B[4].held && B[4].view.len != N * 64) ||
+        (B[5].held && B[5].view.len != N * 64)) {
         PyErr_SetString(PyExc_ValueError, "hex_condition: shapes disagree (points (n, 3), hexes (N, 8), grad (n, 3), "
-                                          "corner_weight and terms (8, N))");
+                                          "corner_weight, terms and sj (8, N))");
         goto done;
     }
     if (check_indices(B[1].view.buf, 8 * N, n, "hex_condition") < 0) goto done;
@@ -367,11 +379,11 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
     int nt = threads_for(N, nthreads);
     for (int t = 0; t < nt; t++)
         jobs[t] = (HexJob){{0.0, 0.0, 0}, B[0].view.buf, B[3].view.buf, B[1].view.buf, B[4].view.buf, NULL, N,
-                           N * t / nt, N * (t + 1) / nt, weight};
+                           N * t / nt, N * (t + 1) / nt, weight, B[5].view.buf};
     if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[2].view.buf, 3 * n, offsetof(HexJob, G)) < 0) goto done;
     ret = total_sums(jobs, sizeof(HexJob), nt);
 done:
-    release(B, 5);
+    release(B, 6);
     return ret;
 }
 
@@ -431,7 +443,7 @@ static void *ffi_worker(void *arg) {
                                                 : (long long)((const int32_t *)C->data)[m * N + e];
             real++;
         }
-        HexJob h = {{0.0, 0.0, 0}, j->P, NULL, H, NULL, j->G, real, 0, real, j->weight};
+        HexJob h = {{0.0, 0.0, 0}, j->P, NULL, H, NULL, j->G, real, 0, real, j->weight, NULL};
         hex_worker(&h);
         s.sum += h.s.sum;
         if (h.s.tmax > s.tmax) s.tmax = h.s.tmax;

@@ -1,0 +1,108 @@
+"""The host-side work of one smoothing run, phase by phase and function by function.
+
+On an accelerator the solver's steps are cheap and what the host does around them (numpy on one core: checking
+the input, the quality reports, classifying the boundary, building the constraints and the parametrisation,
+colouring and padding the presmoothing's stars, projecting the result exactly, the final checks) decides the
+wall time of a large mesh. This benchmark runs `jaxci.smooth` on a perturbed box under cProfile, with the
+solver's steps capped (``--max-steps``) so that the host's work is what is measured, and prints and writes (JSON)
+the seconds of each phase (`jaxci.phases`) and the cumulative seconds of the host functions that matter
+(`FUNCTIONS`; a function absent from the profile is reported as 0).
+
+    python scripts/bench_host_prep.py --hexes 1000000 --engine jax --out host_prep.json
+
+The figures include cProfile's overhead (small: these functions are whole-array numpy and C calls).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import pstats
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+#: (module path suffix, function name) of the host functions reported.
+FUNCTIONS = (
+    ("jaxci/mesh/__init__.py", "check_volume"),
+    ("jaxci/mesh/__init__.py", "__post_init__"),
+    ("jaxci/metrics/report.py", "quality_report"),
+    ("jaxci/metrics/report.py", "worst_elements"),
+    ("jaxci/metrics/guard.py", "keep_worst"),
+    ("jaxci/geometry/boundary.py", "classify_boundary"),
+    ("jaxci/geometry/topology.py", "boundary_topology"),
+    ("jaxci/geometry/projection.py", "build_constraints"),
+    ("jaxci/geometry/projection.py", "project_np"),
+    ("jaxci/optim/parametrisation.py", "make_parametrisation"),
+    ("jaxci/optim/parametrisation.py", "node_lengths"),
+    ("jaxci/optim/_moves.py", "coloured_stars"),
+    ("jaxci/optim/_moves.py", "planar_rings"),
+    ("jaxci/optim/_moves.py", "pad_stars"),
+    ("jaxci/optim/_moves.py", "pad_slots"),
+    ("jaxci/optim/_local.py", "node_stars"),
+    ("jaxci/optim/_local.py", "edge_neighbours"),
+    ("jaxci/optim/polish.py", "polish"),
+)
+
+
+def _cumulative(stats: pstats.Stats) -> dict[str, float]:
+    out = {_key(name): 0.0 for _, name in FUNCTIONS}
+    for (file, _, func), (_, _, _, cum, _) in stats.stats.items():
+        for path, name in FUNCTIONS:
+            if func == name and file.replace("\\", "/").endswith(path):
+                out[_key(name)] = max(out[_key(name)], cum)  # recursive entries: the outermost
+    return {k: round(v, 3) for k, v in out.items()}
+
+
+def _key(name: str) -> str:
+    return "HexMesh.__post_init__" if name == "__post_init__" else name
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--hexes", type=int, default=1_000_000, help="box size (rounded to a cube; default 10^6)")
+    ap.add_argument("--engine", default="jax", choices=("jax", "host"), help="the engine (default jax)")
+    ap.add_argument("--max-steps", type=int, default=5, help="the solver's step cap (default 5)")
+    ap.add_argument("--out", type=Path, help="JSON path")
+    args = ap.parse_args(argv)
+
+    from jaxci.generate import perturb_box
+    from jaxci.smooth import smooth
+
+    n = max(2, round(args.hexes ** (1 / 3)))
+    t0 = time.perf_counter()
+    mesh = perturb_box(n, amplitude=0.3, seed=0)
+    generate = time.perf_counter() - t0
+    prof = cProfile.Profile()
+    t0 = time.perf_counter()
+    prof.enable()
+    res = smooth(mesh, engine=args.engine, max_steps=args.max_steps)
+    prof.disable()
+    wall = time.perf_counter() - t0
+    phases = {k: round(v["seconds"], 3) for k, v in res.phases.items()}
+    funcs = _cumulative(pstats.Stats(prof))
+    out = {"hexes": mesh.n_hexes, "engine": res.plan.to_dict(), "max_steps": args.max_steps,
+           "generate_s": round(generate, 3), "wall_s": round(wall, 3), "phases": phases, "functions": funcs,
+           "commit": _commit(), "date": time.strftime("%Y-%m-%d"), "command": " ".join([Path(sys.argv[0]).name,
+                                                                                        *sys.argv[1:]])}
+    print(f"{mesh.n_hexes:,} hexahedra, {res.plan.describe()}: {wall:.2f} s")
+    print("phases:", ", ".join(f"{k} {v:.2f}" for k, v in phases.items()))
+    for k, v in sorted(funcs.items(), key=lambda kv: -kv[1]):
+        print(f"  {k:24s} {v:8.3f} s")
+    if args.out:
+        args.out.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
