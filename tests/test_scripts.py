@@ -96,6 +96,20 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     assert "F + gradient" in p.stdout
 
 
+def test_bench_host_prep_times_the_phases_and_the_host_functions(tmp_path):
+    out = tmp_path / "prep.json"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_host_prep.py"), "--hexes", "1000", "--engine",
+                        "host", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    d = json.loads(out.read_text())
+    assert d["hexes"] == 1000 and d["engine"]["name"] == "host" and d["wall_s"] > 0
+    assert {"validate", "report", "setup", "smooth", "checks"} <= set(d["phases"])
+    # the functions every run calls were found in the profile (a renamed one would read 0)
+    for name in ("quality_report", "classify_boundary", "build_constraints", "check_volume", "worst_elements"):
+        assert d["functions"][name] > 0, name
+    assert "classify_boundary" in p.stdout
+
+
 MESQUITE = ROOT.parent / "shared" / "data" / "mesquite"
 
 
