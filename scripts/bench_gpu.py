@@ -22,6 +22,9 @@ skipped once the time budget ``--budget`` would be overrun; the JSON is rewritte
    program against one seed after the other on the accelerator, and the host engine (a few seeds, per seed).
 7. ``largest``: the largest box that the measured bytes per hexahedron say fits on the device, smoothed.
 
+``host_prep`` (run after ``lbfgs``) is `scripts/bench_host_prep.py` at 10^6 hexahedra on the JAX engine: the
+host's work around the solver (numpy and C on the CPU) by phase and by function, under cProfile.
+
 The targets of one H100-class GPU are printed beside the figures (F + gradient >= 20 G corners/s float32;
 10^7 hexahedra smoothed in <= 10 s, file I/O aside; <= 1.5 kB per hexahedron on the device).
 """
@@ -40,9 +43,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 TARGETS = {"corners_per_s_float32": 20e9, "smooth_1e7_s": 10.0, "bytes_per_hex": 1500.0}
 FULL = {"throughput": [100, 215], "threshold": [22, 46, 100], "lbfgs": [100, 215], "host_lbfgs": [100],
-        "cube": 60, "gci_seeds": 30, "gci_host_seeds": 4, "gci_attempts": None, "gci_case": "cube729"}
-SMALL = {"throughput": [8, 12], "threshold": [6, 10], "lbfgs": [8], "host_lbfgs": [8], "cube": 9, "gci_seeds": 3,
-         "gci_host_seeds": 2, "gci_attempts": 20, "gci_case": "cube27"}
+        "host_prep": [100], "cube": 60, "gci_seeds": 30, "gci_host_seeds": 4, "gci_attempts": None,
+        "gci_case": "cube729"}
+SMALL = {"throughput": [8, 12], "threshold": [6, 10], "lbfgs": [8], "host_lbfgs": [8], "host_prep": [8], "cube": 9,
+         "gci_seeds": 3, "gci_host_seeds": 2, "gci_attempts": 20, "gci_case": "cube27"}
 
 
 # ------------------------------------------------------------------------------------------------ children
@@ -151,8 +155,16 @@ def child_global_ci(case: str, seeds: int, engine: str, mode: str, attempts: int
             "objective_mean": float(np.mean([o[2]["objective"][-1] for o in out])), "device_peak_bytes": _device_peak()}
 
 
+def child_host_prep(n: int, engine: str) -> dict:
+    """`bench_host_prep.run` (the host's work of a run by phase and function, the solver capped at 5 steps) on a
+    box of n^3 hexahedra."""
+    from bench_host_prep import run
+
+    return run(n ** 3, engine)
+
+
 CHILDREN = {"throughput": child_throughput, "smooth": child_smooth, "global_ci": child_global_ci,
-            "environment": None}
+            "host_prep": child_host_prep, "environment": None}
 
 
 # -------------------------------------------------------------------------------------------------- parent
@@ -241,9 +253,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/bench_gpu.json")
     ap.add_argument("--small", action="store_true", help="small sizes (a CPU check of the script)")
     ap.add_argument("--budget", type=float, default=480.0, help="seconds for all sections (default 480)")
-    ap.add_argument("--sections", nargs="+", default=["throughput", "lbfgs", "threshold", "global_ci",
+    ap.add_argument("--sections", nargs="+", default=["throughput", "lbfgs", "host_prep", "threshold", "global_ci",
                                                        "cube60_pert", "largest"],
-                    choices=["throughput", "lbfgs", "threshold", "global_ci", "cube60_pert", "largest"],
+                    choices=["throughput", "lbfgs", "host_prep", "threshold", "global_ci", "cube60_pert", "largest"],
                     help="the sections to run, in this order")
     ap.add_argument("--threshold-sizes", type=int, nargs="+", default=None, metavar="N",
                     help="box edges of the threshold section (default 22 46 100; --small: 6 10)")
@@ -321,8 +333,11 @@ def _sections(b: Bench, args, size: dict, tmp: Path, ktol: float, gpu: bool) -> 
             n = int((0.85 * total / per_hex) ** (1 / 3))
             b.section("largest", [b.child("largest", "smooth", n, "jax", ktol, timeout=600)])
 
+    def host_prep():
+        b.section("host_prep", (b.child("host_prep", "host_prep", n, "jax", timeout=300) for n in size["host_prep"]))
+
     return {"throughput": throughput, "lbfgs": lbfgs, "threshold": threshold, "global_ci": global_ci,
-            "cube60_pert": cube, "largest": largest}
+            "cube60_pert": cube, "largest": largest, "host_prep": host_prep}
 
 
 def child_environment() -> dict:

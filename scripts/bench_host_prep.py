@@ -53,7 +53,7 @@ def _cumulative(stats: pstats.Stats) -> dict[str, float]:
         for path, name in FUNCTIONS:
             if func == name and file.replace("\\", "/").endswith(path):
                 out[_key(name)] = max(out[_key(name)], cum)  # recursive entries: the outermost
-    return {k: round(v, 3) for k, v in out.items()}
+    return {k: round(v, 6) for k, v in out.items()}
 
 
 def _key(name: str) -> str:
@@ -68,6 +68,30 @@ def _commit() -> str:
         return "unknown"
 
 
+def run(hexes: int, engine: str = "jax", max_steps: int = 5) -> dict:
+    """`jaxci.smooth` on a perturbed box of about `hexes` hexahedra under cProfile: the JSON row (phases, host
+    functions, the plan)."""
+    from jaxci.generate import perturb_box
+    from jaxci.smooth import smooth
+
+    n = max(2, round(hexes ** (1 / 3)))
+    t0 = time.perf_counter()
+    mesh = perturb_box(n, amplitude=0.3, seed=0)
+    generate = time.perf_counter() - t0
+    prof = cProfile.Profile()
+    t0 = time.perf_counter()
+    prof.enable()
+    try:
+        res = smooth(mesh, engine=engine, max_steps=max_steps)
+    finally:
+        prof.disable()
+    wall = time.perf_counter() - t0
+    return {"hexes": mesh.n_hexes, "engine": res.plan.to_dict(), "describe": res.plan.describe(),
+            "max_steps": max_steps, "generate_s": round(generate, 3), "wall_s": round(wall, 3),
+            "phases": {k: round(v["seconds"], 3) for k, v in res.phases.items()},
+            "functions": _cumulative(pstats.Stats(prof))}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--hexes", type=int, default=1_000_000, help="box size (rounded to a cube; default 10^6)")
@@ -75,29 +99,12 @@ def main(argv=None) -> int:
     ap.add_argument("--max-steps", type=int, default=5, help="the solver's step cap (default 5)")
     ap.add_argument("--out", type=Path, help="JSON path")
     args = ap.parse_args(argv)
-
-    from jaxci.generate import perturb_box
-    from jaxci.smooth import smooth
-
-    n = max(2, round(args.hexes ** (1 / 3)))
-    t0 = time.perf_counter()
-    mesh = perturb_box(n, amplitude=0.3, seed=0)
-    generate = time.perf_counter() - t0
-    prof = cProfile.Profile()
-    t0 = time.perf_counter()
-    prof.enable()
-    res = smooth(mesh, engine=args.engine, max_steps=args.max_steps)
-    prof.disable()
-    wall = time.perf_counter() - t0
-    phases = {k: round(v["seconds"], 3) for k, v in res.phases.items()}
-    funcs = _cumulative(pstats.Stats(prof))
-    out = {"hexes": mesh.n_hexes, "engine": res.plan.to_dict(), "max_steps": args.max_steps,
-           "generate_s": round(generate, 3), "wall_s": round(wall, 3), "phases": phases, "functions": funcs,
-           "commit": _commit(), "date": time.strftime("%Y-%m-%d"), "command": " ".join([Path(sys.argv[0]).name,
-                                                                                        *sys.argv[1:]])}
-    print(f"{mesh.n_hexes:,} hexahedra, {res.plan.describe()}: {wall:.2f} s")
-    print("phases:", ", ".join(f"{k} {v:.2f}" for k, v in phases.items()))
-    for k, v in sorted(funcs.items(), key=lambda kv: -kv[1]):
+    out = run(args.hexes, args.engine, args.max_steps)
+    out |= {"commit": _commit(), "date": time.strftime("%Y-%m-%d"),
+            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
+    print(f"{out['hexes']:,} hexahedra, {out['describe']}: {out['wall_s']:.2f} s")
+    print("phases:", ", ".join(f"{k} {v:.2f}" for k, v in out["phases"].items()))
+    for k, v in sorted(out["functions"].items(), key=lambda kv: -kv[1]):
         print(f"  {k:24s} {v:8.3f} s")
     if args.out:
         args.out.write_text(json.dumps(out, indent=1))

@@ -83,10 +83,11 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     def failed(r):  # without the C kernels the host engine's global CI is refused, saying so
         return "skipped" in r or ("error" in r and (native.AVAILABLE or "needs the C kernels" not in r["error"]))
 
-    for section in ("throughput", "lbfgs", "threshold", "global_ci", "cube60_pert"):
+    for section in ("throughput", "lbfgs", "host_prep", "threshold", "global_ci", "cube60_pert"):
         rows = d[section]
         assert rows and not any(failed(r) for r in rows), (section, rows)
     assert all(r["corners_per_s"] > 0 for r in d["throughput"])
+    assert d["host_prep"][0]["functions"]["classify_boundary"] > 0 and d["host_prep"][0]["phases"]["setup"] > 0
     assert {r["engine"]["name"] for r in d["lbfgs"]} == {"host", "jax"}
     assert {(r["engine"]["name"] if r.get("engine") else None) for r in d["threshold"]} == {"host", "jax"}
     batched, serial, host = d["global_ci"]
