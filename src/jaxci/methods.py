@@ -60,6 +60,15 @@ class Problem:
         return self.plan is not None and self.plan.engine == "host"
 
     @functools.cached_property
+    def host_cons(self) -> Constraints:
+        """The constraints as numpy float64 arrays on the host (`cons` itself on the host engine in float64), for
+        the host-side stages of any engine (the worst-element polish, the final exact projection). Built on first
+        use, once per run."""
+        if self.host and np.asarray(self.x0).dtype == np.float64:
+            return self.cons
+        return build_constraints(self.mesh, self.info, dtype=np.float64, device=False)
+
+    @functools.cached_property
     def colour(self) -> np.ndarray:
         """The colour of every node, int32 ``(n_nodes,)``: no two nodes of one colour share a cell of any type
         (`jaxci.geometry.topology.colour_nodes`; the methods that move nodes colour by colour, CI and the Laplacians).

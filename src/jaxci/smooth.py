@@ -31,7 +31,7 @@ from ._lazy import enable_x64, jax
 from .engine import Plan
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .geometry.boundary import BoundaryInfo, classify_boundary, fix_nodes
-from .geometry.projection import build_constraints, n_free, project_np
+from .geometry.projection import n_free, project_np
 from .mesh import HexMesh
 from .methods import (  # noqa: F401  (Problem, build_problem, method_params ... are also reached as jaxci.smooth.X)
     AUTO_PRESMOOTH_FROM,
@@ -589,7 +589,7 @@ def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_wor
     `worst_first` (the method polished the worst element) a higher F is kept where the worst cell fell
     (`jaxci.metrics.guard.worst_first`)."""
     if not projected:
-        x = project_np(build_constraints(mesh, problem.info, dtype=np.float64, device=False), x)
+        x = project_np(problem.host_cons, x)  # `problem` is of `mesh` on this path (nothing untangled)
     new = mixed.newly_inverted(mesh, mesh.points, x)
     objective = checked_objective(mesh, power)
     f0, f1 = objective(mesh.points), objective(x)

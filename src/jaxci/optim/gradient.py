@@ -553,15 +553,14 @@ def _polish(problem, par: Parametrisation, x, steps: int, hist: dict, p: Gradien
     Its work is bounded by the solve's (`steps` times the cells); F may end above the method's input's
     where the worst element fell (`jaxci.metrics.guard.worst_first`: the run's final check)."""
     from ..cells import element_blocks
-    from ..geometry.projection import build_constraints
     from .polish import PolishParams, polish
 
     mesh = problem.mesh
     x = np.asarray(x, np.float64)
+    cons = problem.host_cons  # shared with the run's final check
     if problem.host and np.asarray(par.x0).dtype == np.float64:
-        cons, hpar = problem.cons, par
+        hpar = par
     else:
-        cons = build_constraints(mesh, problem.info, dtype=np.float64, device=False)
         hpar = make_parametrisation(mesh, problem.info, cons, x, scaled=p.scaled, dtype=np.float64)
     blocks = element_blocks(mesh)
     n_cells = sum(len(c) for c in blocks.values())
