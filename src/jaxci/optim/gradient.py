@@ -523,8 +523,9 @@ def run_gradient(problem, method: str, params: dict):
             from .laplace import run_laplace
 
             xl, sweeps, pre, _ = run_laplace(problem, "smart-laplace", sweep)
-        # exactly on the boundary again (float64), so that the flat-region shortcut of the parametrisation holds
-        x0 = project_np(problem.cons, np.asarray(xl, dtype=np.float64))
+        # exactly on the boundary again (float64, the host's float64 constraints: the original boundary, not its
+        # float32 rounding), so that the flat-region shortcut of the parametrisation holds
+        x0 = project_np(problem.host_cons, np.asarray(xl, dtype=np.float64))
         del xl
     par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled, dtype=problem.dtype)
     extra = None
