@@ -174,18 +174,21 @@ def test_default_trades_F_for_the_worst_element_at_an_optimum_of_F():
         assert float(mixed_objective(res.mesh.points, opt)) <= f0
         assert not any(n.startswith("F rose") for n in res.notes)
     # the check after untangling, as if `opt` were the untangled start: the same order
-    from jaxci.optim.untangle import enforce_after_untangling
+    from jaxci.invariants import enforce
 
-    info = classify_boundary(opt, fix_boundary=True)
-    y, notes = enforce_after_untangling(opt, info, opt.points, auto.mesh.points, projected=True, worst_first=True)
-    assert np.array_equal(y, auto.mesh.points) and notes[0].startswith("F rose")
-    y, notes = enforce_after_untangling(opt, info, opt.points, auto.mesh.points, projected=True)
-    assert np.array_equal(y, opt.points) and "raised the objective" in notes[0]
+    cons = build_constraints(opt, classify_boundary(opt, fix_boundary=True), dtype=np.float64, device=False)
+    for worst_first in (True, False):
+        y, notes = enforce(opt, cons, opt.points, auto.mesh.points, untangled=True, projected=True,
+                           worst_first=worst_first)
+        if worst_first:
+            assert np.array_equal(y, auto.mesh.points) and notes[0].startswith("F rose")
+        else:
+            assert np.array_equal(y, opt.points) and "the untangled mesh is returned" in notes[0]
 
 
 def test_worst_first_keeps_a_higher_F_only_where_the_worst_element_fell():
+    from jaxci.invariants import enforce
     from jaxci.metrics.guard import worst, worst_first
-    from jaxci.optim.untangle import enforce_after_untangling
 
     mesh = perturb_box(3, amplitude=0.25, seed=2)
     better = np.array(smooth(mesh, "lbfgs", fix_boundary=True).mesh.points)
@@ -197,8 +200,10 @@ def test_worst_first_keeps_a_higher_F_only_where_the_worst_element_fell():
     note = worst_first(mesh, x, start, fx, fx * 1.01)
     assert note is not None and f"{worst(mesh, start):.6g}" in note and f"{worst(mesh, x):.6g}" in note
     assert worst_first(mesh, x, x, fx, fx * 1.01) is None  # the worst element unchanged: refused
-    # the check after untangling: the worse mesh is refused whatever the order
-    info = classify_boundary(mesh, fix_boundary=True)
+    # the final check: the worse mesh is refused whatever the order, after untangling or not
+    cons = build_constraints(mesh, classify_boundary(mesh, fix_boundary=True), dtype=np.float64, device=False)
     for order in (False, True):
-        y, notes = enforce_after_untangling(mesh, info, start, x, projected=True, worst_first=order)
-        assert np.array_equal(y, start) and "raised the objective" in notes[0]
+        for untangled, what in ((True, "the untangled mesh"), (False, "the input")):
+            y, notes = enforce(mesh, cons, start, x, untangled=untangled, projected=True, worst_first=order)
+            assert np.array_equal(y, start) and notes == [f"the objective rose from {fs:.6g} to {fx:.6g}; {what} is "
+                                                          f"returned"]

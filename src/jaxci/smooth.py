@@ -4,7 +4,8 @@ Every method works on the same problem: minimise the paper's F (Eq. 3.1) by movi
 edge nodes on their feature curve, surface nodes on their surface (`jaxci.geometry.boundary`,
 `jaxci.geometry.projection`). On a hex-dominant mesh F is the mean over the corners of EVERY cell, hexahedra, wedges,
 pyramids and tetrahedra (`jaxci.metrics.elements.mixed_objective`, `jaxci.metrics.objective`), and the nodes of linear
-non-hexahedral cells move too. Whatever the method, `smooth` guarantees on return (checked in float64, not assumed):
+non-hexahedral cells move too. Whatever the method, `smooth` guarantees on return (checked in float64, not assumed,
+by `jaxci.invariants.enforce`):
 
 - no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase, or,
   where the method weighs the worst element first (the default pipeline's worst-element polish), F rose only
@@ -31,7 +32,8 @@ from ._lazy import enable_x64, jax
 from .engine import Plan
 from .errors import ConfigError, InvertedMeshError, MeshError
 from .geometry.boundary import BoundaryInfo, classify_boundary, fix_nodes
-from .geometry.projection import n_free, project_np
+from .geometry.projection import n_free
+from .invariants import enforce
 from .mesh import HexMesh
 from .methods import (  # noqa: F401  (Problem, build_problem, method_params ... are also reached as jaxci.smooth.X)
     AUTO_PRESMOOTH_FROM,
@@ -44,7 +46,7 @@ from .methods import (  # noqa: F401  (Problem, build_problem, method_params ...
     run_method,
 )
 from .metrics import objective as mixed
-from .metrics.elements import checked_objective, objective_on_host
+from .metrics.elements import objective_on_host
 from .metrics.report import QualityReport, quality_report, worst_elements
 
 #: The plan's note where the worst-element polish (`jaxci.optim.polish`) runs on the host beside the JAX engine.
@@ -513,15 +515,13 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
                          f"--param {cap}=N lets it go further")
     with clock.phase("checks"), enable_x64(x64):
         power = float(resolved["p"]) if resolved.get("objective") == "pmean" else None
-        worst_first = bool(resolved.get("polish")) and power is None
-        if untangled is None:
-            points, check_notes = _enforce_invariants(mesh, problem, x, keep_worst, before, power, projected=host,
-                                                      worst_first=worst_first)
-        else:
-            from .optim.untangle import enforce_after_untangling
-
-            points, check_notes = enforce_after_untangling(smesh, problem.info, untangled, x, power, projected=host,
-                                                           worst_first=worst_first)
+        # the input's worst cell from its report (valid input: every corner counted), not recomputed
+        w0 = (before.overall or {}).get("max_condition", before.max_condition)
+        points, check_notes = enforce(  # `problem` is of `smesh`: `mesh`, or its boundary where untangling moved it
+            smesh, problem.host_cons, mesh.points if untangled is None else np.asarray(untangled, np.float64), x,
+            untangled=untangled is not None, keep_worst=keep_worst and untangled is None,
+            worst_start=w0 if untangled is None else None,
+            power=power, projected=host, worst_first=bool(resolved.get("polish")) and power is None)
         notes.extend(check_notes)
         after = quality_report(mesh, points)
         after = dataclasses.replace(after, worst_elements=worst_elements(
@@ -576,49 +576,6 @@ def _fixed_nodes(mesh: HexMesh, fixed_nodes) -> np.ndarray:
 
 def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
     return f"element {mesh.hex_label(k)}" if cell_type == "hexahedron" else mixed.cell_label(mesh, cell_type, k)
-
-
-def _enforce_invariants(mesh: HexMesh, problem: Problem, x: np.ndarray, keep_worst: bool = True,
-                        before: QualityReport | None = None, power: float | None = None, projected: bool = False,
-                        worst_first: bool = False) -> tuple[np.ndarray, list[str]]:
-    """Exact float64 projection onto the original boundary (not with `projected`: `x` comes from the host
-    solver, which evaluated it with every boundary node projected onto the original boundary in float64), then
-    the no-inversion, worst-cell (`jaxci.metrics.guard.keep_worst`, if asked) and no-increase checks over every
-    cell type (`jaxci.metrics.elements.inverted`; of `jaxci.metrics.elements.mixed_objective`, or of the p-mean
-    `jaxci.metrics.hexahedron.pmean_objective` with `power`: the objective the method minimised). With
-    `worst_first` (the method polished the worst element) a higher F is kept where the worst cell fell
-    (`jaxci.metrics.guard.worst_first`)."""
-    if not projected:
-        x = project_np(problem.host_cons, x)  # `problem` is of `mesh` on this path (nothing untangled)
-    new = mixed.newly_inverted(mesh, mesh.points, x)
-    objective = checked_objective(mesh, power)
-    f0, f1 = objective(mesh.points), objective(x)
-    if new or not np.isfinite(f1):
-        what = ", ".join(f"{k} {t}" for t, k in new.items()) or "non-finite objective"
-        return np.array(mesh.points), [f"the result had newly inverted elements ({what}); the input is returned"]
-    notes = []
-    # the input's worst cell from its report (valid input on this path: every corner counted), not recomputed
-    w0 = None if before is None else (before.overall or {}).get("max_condition", before.max_condition)
-    if keep_worst:
-        from .metrics.guard import keep_worst as guard
-
-        y, n_back, w0, w1 = guard(mesh, mesh.points, x, worst_before=w0)
-        if n_back:
-            f2 = objective(y)
-            notes.append(f"worst cell kept no worse than the input's (max kappa/3 {w0:.6g}; the method's result had "
-                         f"{w1:.6g}): {n_back} nodes put back where they were, F {f1:.6g} -> {f2:.6g} "
-                         f"(keep_worst=False / --allow-worse-worst returns the method's result)")
-            x, f1 = y, f2
-    if f1 > f0:
-        from .metrics.guard import worst_first as keep
-
-        kept = keep(mesh, mesh.points, x, f0, f1, worst_start=w0) if worst_first else None
-        if kept is None:
-            return np.array(mesh.points), [*notes, f"the objective rose from {f0:.6g} to {f1:.6g}; the input is "
-                                                   f"returned"]
-        notes.append(kept)
-    return x, notes
-
 
 
 def _standard_history(h: dict) -> dict:

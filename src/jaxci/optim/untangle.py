@@ -54,7 +54,7 @@ from .._lazy import enable_x64, is_jax_array, jax
 from ..cells import EDGES, corner_determinants, element_blocks
 from ..errors import InvertedMeshError
 from ..geometry.boundary import CORNER, BoundaryInfo
-from ..geometry.projection import Constraints, n_free, project_np
+from ..geometry.projection import Constraints, n_free
 from ..mesh import HexMesh
 from ..metrics import elements as E
 from ..metrics.objective import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
@@ -340,37 +340,3 @@ def on_host(mesh: HexMesh, p: UntangleParams) -> bool:
 
 def _elements(k: int) -> str:
     return f"{k} element is" if k == 1 else f"{k} elements are"
-
-
-def enforce_after_untangling(mesh: HexMesh, info: BoundaryInfo, untangled: np.ndarray, x: np.ndarray,
-                             power: float | None = None, projected: bool = False, worst_first: bool = False):
-    """`jaxci.smooth`'s final check when the start was untangled: no inverted corner, F not above the start's
-    (with `worst_first`: unless the worst cell fell, `jaxci.metrics.guard.worst_first`).
-
-    **Arguments:** `mesh` the (tangled) input; `info` its `BoundaryInfo`; `untangled` the untangled start
-    ``(n, 3)``; `x` the shape-improved coordinates ``(n, 3)``.
-
-    **Returns:** ``(points, notes)``: `x` projected onto the original boundary in float64 (as it is with
-    `projected`: the host solver's points, on the boundary already), or `untangled` if that has an inverted
-    corner or a higher F than `untangled` (with a note saying so).
-    """
-    from ..geometry.projection import build_constraints
-
-    with enable_x64(not E.objective_on_host(mesh)):
-        if not projected:
-            x = project_np(build_constraints(mesh, info, dtype=np.float64, device=False), x)
-        inv = int(sum(b.sum() for b in inverted_cells(mesh, x).values()))
-        objective = E.checked_objective(mesh, power)  # F, or the p-mean the method minimised (`power`)
-        f0, f1 = objective(untangled), objective(x)
-    if inv or not np.isfinite(f1):
-        return np.array(untangled), [f"shape improvement left {inv} inverted elements; the untangled mesh is "
-                                     f"returned"]
-    if f1 > f0:
-        from ..metrics.guard import worst_first as keep
-
-        kept = keep(mesh, untangled, x, f0, f1) if worst_first else None
-        if kept is None:
-            return np.array(untangled), [f"shape improvement raised the objective from {f0:.6g} to {f1:.6g}; the "
-                                         f"untangled mesh is returned"]
-        return x, [kept]
-    return x, []
