@@ -1,0 +1,61 @@
+"""`SmoothResult`: what `jaxci.smooth` returns, the smoothed mesh with its history, quality before and after,
+notes, phases and the plan that ran it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .engine import Plan
+from .mesh import HexMesh
+from .metrics.report import QualityReport
+
+
+@dataclasses.dataclass(frozen=True)
+class SmoothResult:
+    """What `smooth` returns.
+
+    - `mesh`: the smoothed `HexMesh` (same connectivity, data and ids; new coordinates).
+    - `history`: per iteration (sweep, learning attempt or solver step; entry 0 = input) ``objective`` and
+      ``max_condition`` lists, plus method-specific series (CI: ``best``, ``worst`` behaviour; ``moved``).
+    - `iterations`, `wall_time` (seconds, including compilation), `method`, `params` (all hyperparameters).
+    - `before`, `after`: `QualityReport` of input and output; `boundary`: node counts per class.
+    - `node_class`: class of every node (`jaxci.geometry.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
+    - `notes`: what a user should know (invariant fallbacks, untangling, an iteration cap that stopped it, ...).
+    - `plan`: where it ran (`jaxci.engine.Plan`: engine, device, dtype, kernel, threads, and why).
+    - `phases`: where the time went (`jaxci.phases.PhaseClock.as_dict`: seconds, compile seconds and
+      compilations per phase: ``validate``, ``report`` (quality before), ``untangle``, ``setup`` (boundary
+      classification, constraints, colouring), ``smooth`` (the method), ``checks`` (float64 invariants and the
+      quality after)).
+    """
+
+    mesh: HexMesh
+    history: dict
+    iterations: int
+    wall_time: float
+    method: str
+    params: dict
+    before: QualityReport
+    after: QualityReport
+    boundary: dict
+    node_class: np.ndarray | None = None
+    notes: tuple[str, ...] = ()
+    phases: dict | None = None
+    plan: Plan | None = None
+
+    def summary(self) -> dict:
+        """JSON-ready summary: before/after quality keys, iterations, wall time, method, params and the engine
+        that ran (``engine``: `jaxci.engine.Plan.to_dict`)."""
+        return {
+            "method": self.method,
+            "engine": None if self.plan is None else self.plan.to_dict(),
+            "params": self.params,
+            "iterations": self.iterations,
+            "wall_time": self.wall_time,
+            "before": self.before.to_dict(),
+            "after": self.after.to_dict(),
+            "boundary": self.boundary,
+            "notes": list(self.notes),
+            "phases": self.phases,
+        }
