@@ -323,22 +323,52 @@ def project_nodes(
 def _search(table, cells, x, closest, centre_radius):
     """Exact nearest points of `x` (m, 3) on the cells `table[:, cells]`, via a k-d tree of cell centres.
 
-    The nearest cell centre at distance d0 bounds the distance to the nearest point; a cell whose centre is
-    farther than d0 + (largest cell radius) cannot hold a nearer point.
+    The nearest cell centre, at distance d0, and the point `closest` finds on its cell, at distance d1, bound the
+    distance to the nearest point by ``b = min(d0, d1)``; a cell j whose centre is farther than ``b + r_j`` (its
+    radius, plus a margin for rounding) cannot hold a nearer point. Each point's candidates are the cells within
+    that bound (found with k nearest-neighbour queries, k doubled for the points whose k-th neighbour is still
+    within it; no Python lists); the winner is the lowest score, a tie going to the lowest cell.
     """
     from scipy.spatial import cKDTree  # here, not at the top: its import is 0.3-0.5 s of a command's start
 
     centre, radius = centre_radius(table[:, cells])
-    tree = cKDTree(centre)
-    d0, _ = tree.query(x)
-    lists = tree.query_ball_point(x, d0 + radius.max() * (1 + 1e-9) + 1e-300)
-    lens = np.fromiter((len(v) for v in lists), dtype=np.int64, count=len(lists))
-    flat = np.fromiter((i for v in lists for i in v), dtype=np.int64, count=int(lens.sum()))
-    owner = np.repeat(np.arange(len(x)), lens)
-    p, score = closest(np, tuple(x[owner].T), table[:, cells[flat]], inside_tolerance(np.float64))
-    order = np.lexsort((score, owner))
-    first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
-    return np.stack(p, axis=1)[first]
+    tree = cKDTree(centre, balanced_tree=False)  # built 2-3 times faster, same distances (a tie in d0 may pick
+    # another cell, whose point gives another valid bound)
+    d0, i0 = tree.query(x)
+    tol = inside_tolerance(np.float64)
+    _, s1 = closest(np, tuple(x.T), table[:, cells[i0]], tol)
+    r_max = float(radius.max())
+    # rounding: relative to the cells' size and to the coordinates' magnitude (the distances of far-off meshes)
+    margin = 1e-9 * r_max + 1e-12 * max(float(np.abs(centre).max()), float(np.abs(x).max())) + 1e-300
+    bound = np.fmin(np.sqrt(s1), d0) + margin  # d0 where that point's score is NaN
+    reach = np.minimum(bound + r_max, d0 + r_max * (1 + 1e-9) + 1e-300)  # nor beyond d0 + the largest radius
+    radius = np.append(radius, 0.0)  # the radius of a missing neighbour (index len(cells), at infinity)
+    owner, cand = [], []
+    rows, k = np.arange(len(x)), min(16, len(cells))
+    while len(rows):
+        d, i = (a.reshape(len(rows), k) for a in tree.query(x[rows], k=k, distance_upper_bound=reach[rows].max()))
+        keep = (d <= bound[rows, None] + radius[i]) & (d <= reach[rows, None])
+        done = (d[:, -1] > reach[rows]) | (k == len(cells))  # the k-th neighbour beyond reach: all were found
+        r, c = np.nonzero(keep[done])
+        owner.append(rows[done][r])
+        cand.append(i[done][r, c])
+        rows, k = rows[~done], min(2 * k, len(cells))
+    owner, cand = np.concatenate(owner), np.concatenate(cand)
+    p, score = closest(np, tuple(x[owner].T), table[:, cells[cand]], tol)
+    # each point's lowest score, then its lowest cell among those (ufunc.at: no sort)
+    best = np.full(len(x), np.inf)
+    with np.errstate(invalid="ignore"):  # a NaN score: see below
+        np.minimum.at(best, owner, score)
+    tie = score == best[owner]
+    low = np.full(len(x), len(cells))
+    np.minimum.at(low, owner[tie], cand[tie])
+    win = np.flatnonzero(tie & (cand == low[owner]))
+    if len(win) != len(x):  # a NaN score (np.lexsort sorts it after every number) or a point without candidates
+        order = np.lexsort((cand, score, owner))
+        return np.stack([pj[order[np.r_[True, owner[order][1:] != owner[order][:-1]]]] for pj in p], axis=1)
+    out = np.empty((len(x), 3))
+    out[owner[win]] = np.stack([pj[win] for pj in p], axis=1)
+    return out
 
 
 def project_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
