@@ -111,36 +111,23 @@ def child_smooth(n: int, engine: str, ktol: float) -> dict:
 
 
 def child_global_ci(case: str, seeds: int, engine: str, mode: str, attempts: int | None) -> dict:
-    """Global CI on `seeds` seeds of `case`: ``mode`` "batched" (one program, `global_ci_batched`), "serial"
-    (one seed after the other, the same compiled program) on the JAX engine, or the host engine per seed."""
+    """Global CI on `seeds` seeds of `case`, as `jaxci run` smooths them: ``mode`` "batched" (one program for
+    every seed, `jaxci.seeds.smooth_seeds`) or "serial" (`jaxci.smooth` one seed after the other, the same
+    compiled program) on the JAX engine, or the host engine per seed. Whole runs: reports and checks included."""
     import jax
     import numpy as np
 
     from jaxci.generate import paper_case
+    from jaxci.seeds import smooth_seeds
     from jaxci.smooth import smooth
 
     params = {} if attempts is None else {"attempts": attempts}
     meshes = [paper_case(case, seed=s) for s in range(seeds)]
-    if engine == "host":
-        t0 = time.perf_counter()
-        fs = [smooth(m, "ci-global", seed=s, engine="host", **params).after.objective for s, m in enumerate(meshes)]
-        return {"seeds": seeds, "engine": "host", "mode": "serial", "wall_s": time.perf_counter() - t0,
-                "per_seed_s": (time.perf_counter() - t0) / seeds, "objective_mean": float(np.mean(fs))}
-    from jaxci.engine import resolve_plan
-    from jaxci.methods import build_problem, free_scale, global_parametrisation, method_params
-    from jaxci.optim.global_ci import global_ci_batched
-
-    p = method_params("ci-global", params)
-    probs = [build_problem(m, dtype=np.float32, plan=resolve_plan(m, "ci-global", {}, engine="jax"))
-             for m in meshes]
-    pars, scales = [global_parametrisation(pb) for pb in probs], [free_scale(pb) for pb in probs]
-    keys = [jax.random.key(s, impl="rbg") for s in range(seeds)]
-    conn = probs[0].conn
 
     def run():
         if mode == "batched":
-            return global_ci_batched(keys, pars, conn, scales, p)
-        return [global_ci_batched([k], [pp], conn, [sc], p)[0] for k, pp, sc in zip(keys, pars, scales, strict=True)]
+            return smooth_seeds(meshes, "ci-global", list(range(seeds)), engine=engine, **params)
+        return [smooth(m, "ci-global", seed=s, engine=engine, **params) for s, m in enumerate(meshes)]
 
     t0 = time.perf_counter()
     out = run()
@@ -150,9 +137,13 @@ def child_global_ci(case: str, seeds: int, engine: str, mode: str, attempts: int
         t0 = time.perf_counter()
         out = run()
         warm = time.perf_counter() - t0
-    return {"seeds": seeds, "engine": "jax", "device": jax.default_backend(), "mode": mode, "cold_s": cold,
-            "warm_s": warm, "per_seed_s": (cold if warm is None else warm) / seeds,
-            "objective_mean": float(np.mean([o[2]["objective"][-1] for o in out])), "device_peak_bytes": _device_peak()}
+    plan = out[0].plan
+    batched = sum(any("one batched program" in n for n in r.notes) for r in out)
+    return {"seeds": seeds, "engine": plan.engine, "device": plan.device if plan.engine == "host" else
+            jax.default_backend(), "mode": mode, "batched_seeds": batched, "cold_s": cold, "warm_s": warm,
+            "per_seed_s": (cold if warm is None else warm) / seeds,
+            "objective_mean": float(np.mean([r.after.objective for r in out])),
+            "device_peak_bytes": _device_peak() if plan.engine == "jax" else None}
 
 
 def child_host_prep(n: int, engine: str) -> dict:

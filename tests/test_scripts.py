@@ -92,6 +92,7 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     assert {(r["engine"]["name"] if r.get("engine") else None) for r in d["threshold"]} == {"host", "jax"}
     batched, serial, host = d["global_ci"]
     assert (batched["mode"], serial["mode"]) == ("batched", "serial")
+    assert batched["batched_seeds"] == batched["seeds"] and serial["batched_seeds"] == 0
     assert host.get("engine") == "host" or not native.AVAILABLE
     assert batched["objective_mean"] == pytest.approx(serial["objective_mean"], rel=1e-6)  # the same meshes
     assert "F + gradient" in p.stdout
