@@ -19,7 +19,6 @@ import numpy as np
 
 from .._lazy import jax, jnp
 from ..cells import ROTATE_TO_SLOT, corner_invariants
-from ..geometry.topology import unique_edges
 from ..metrics.hexahedron import squared_condition_from_invariants
 
 #: The corners whose matrix involves local node 0, and their (base, column nodes) in VTK convention.
@@ -53,31 +52,31 @@ def node_stars(hexes: np.ndarray, n_nodes: int, incidences: bool = False) -> Nod
     K = max(int(valence.max(initial=0)), 1)
     it = np.int32 if max(n_nodes * K, 8 * len(hexes)) < 2**31 else np.int64  # every index below fits
     hexes = hexes.astype(it, copy=False)
-    flat = hexes.ravel()  # (8N,) node of incidence i (element i // 8, slot i % 8)
-    order = np.argsort(flat, kind="stable").astype(it)  # incidences grouped by node, elements in order
-    node = flat[order]
-    start = np.concatenate([[0], np.cumsum(valence)[:-1]]).astype(it)
-    pos = node * it(K) + (np.arange(len(node), dtype=it) - start[node])  # row of each incidence in (n * K)
-    del node
-    mask = np.zeros(n_nodes * K, bool)
-    mask[pos] = True
-    mask = mask.reshape(n_nodes, K)
+    # the incidences grouped by node, elements in order, fill the first `valence` entries of each node's row
+    mask = np.arange(K) < valence[:, None]
+    inc = np.zeros((n_nodes, K), it)
+    inc[mask] = np.argsort(hexes.ravel(), kind="stable")
     if incidences:
-        star = np.zeros(n_nodes * K, it)
-        star[pos] = order
-        return NodeStars(star=star.reshape(n_nodes, K), mask=mask, valence=valence)
-    star = np.empty((n_nodes * K, 8), it)
-    star[:] = np.repeat(np.arange(n_nodes, dtype=it), K)[:, None]  # padding: the node itself
-    base = (order - order % it(8))[:, None]  # first incidence of its element
-    star[pos] = flat[base + ROTATE_TO_SLOT.astype(it)[order % it(8)]]  # 1-D takes: 2-D fancy indexing is slower
-    return NodeStars(star=star.reshape(n_nodes, K, 8), mask=mask, valence=valence)
+        return NodeStars(star=inc, mask=mask, valence=valence)
+    return NodeStars(star=star_nodes(hexes, inc, mask, np.arange(n_nodes, dtype=it)), mask=mask, valence=valence)
 
 
-def star_nodes(hexes: np.ndarray, inc: np.ndarray) -> np.ndarray:
+def star_nodes(hexes: np.ndarray, inc: np.ndarray, mask: np.ndarray | None = None,
+               node: np.ndarray | None = None) -> np.ndarray:
     """The relabelled node lists ``inc.shape + (8,)`` of incidences `inc` (``node_stars(..., incidences=True)``):
-    element ``inc // 8`` of `hexes` ``(N, 8)`` with its local node ``inc % 8`` moved to slot 0."""
+    element ``inc // 8`` of `hexes` ``(N, 8)`` with its local node ``inc % 8`` moved to slot 0, in the dtype of
+    `hexes`. With `mask` (bool, ``inc.shape``) and `node` (``inc.shape[:-1]``), the lists where `mask` is False
+    (padding) repeat `node` of their row instead (`node_stars`' padding)."""
+    flat = np.asarray(hexes).ravel()
+    if not flat.size:  # no elements: every entry is padding (element 0 of a stand-in)
+        flat = np.zeros(8, flat.dtype)
     inc = np.asarray(inc)
-    return np.asarray(hexes).ravel()[(inc - inc % 8)[..., None] + ROTATE_TO_SLOT[inc % 8]]
+    slot = inc % 8
+    out = flat[(inc - slot)[..., None] + ROTATE_TO_SLOT.astype(inc.dtype)[slot]]  # indices in the dtype of `inc`
+    if mask is not None:
+        pad = ~np.asarray(mask)
+        out[pad] = np.broadcast_to(np.asarray(node)[..., None], pad.shape)[pad][:, None]
+    return out
 
 
 def gather_star(points, star):
@@ -190,18 +189,26 @@ def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = 
     repeats the node itself and is False in `mask`).
     """
     hexes = np.asarray(hexes, dtype=np.int64)
-    e = hexes[:, HEX_EDGES].reshape(-1, 2)
+    a, b = (np.take(hexes, HEX_EDGES[:, i], axis=1).ravel() for i in (0, 1))  # the 12 edges' ends, (12 N,)
     if edges is not None:
-        e = np.concatenate([e, np.asarray(edges, np.int64).reshape(-1, 2)])
-    e = unique_edges(e)
-    key = np.sort(np.concatenate([e[:, 0] * n_nodes + e[:, 1], e[:, 1] * n_nodes + e[:, 0]]))  # by (node, neighbour)
-    src, dst = key // n_nodes, key % n_nodes
+        e = np.asarray(edges, np.int64).reshape(-1, 2)
+        a, b = np.concatenate([a, e[:, 0]]), np.concatenate([b, e[:, 1]])
+    n = np.int64(n_nodes)
+    und = np.minimum(a, b)  # each edge once: low * n + high (in place: fewer fresh 100 MB temporaries)
+    np.maximum(a, b, out=b)
+    und *= n
+    und += b
+    del a, b
+    und.sort()
+    und = und[np.concatenate([[True], und[1:] != und[:-1]])] if len(und) else und
+    lo, hi = np.divmod(und, n)
+    key = np.concatenate([und, hi * n + lo])  # both directions, by (node, neighbour)
+    del und, lo, hi
+    key.sort()
+    src, dst = np.divmod(key, n)
     deg = np.bincount(src, minlength=n_nodes)
     K = max(int(deg.max(initial=0)), 1)
-    start = np.concatenate([[0], np.cumsum(deg)[:-1]])
-    k = np.arange(len(key)) - start[src]
+    mask = np.arange(K) < deg[:, None]  # a node's neighbours, in order, fill the first `deg` entries of its row
     nbr = np.repeat(np.arange(n_nodes)[:, None], K, axis=1)
-    nbr[src, k] = dst
-    mask = np.zeros((n_nodes, K), bool)
-    mask[src, k] = True
+    nbr[mask] = dst
     return nbr, mask

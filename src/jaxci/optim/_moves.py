@@ -22,7 +22,7 @@ from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..geometry.projection import Constraints, project_nodes
 from ..metrics.objective import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
 from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
-from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars
+from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars, star_nodes
 
 
 def node_bases(cons: Constraints) -> np.ndarray:
@@ -118,7 +118,10 @@ def _ring_radius(points: np.ndarray, faces: np.ndarray, cand: np.ndarray, surf: 
     ring = np.where(first, ring, ring[:, :1])
     quad = faces[ring]  # (ns, Kf, 4)
     x0 = points[surf]
-    dev = np.abs(np.einsum("skcd,sd->skc", points[quad] - x0[:, None, None], normal)).max(axis=(1, 2))
+    rel = points[quad]  # (ns, Kf, 4, 3); in place below: fewer temporaries
+    rel -= x0[:, None, None]
+    dev = np.abs(np.einsum("skcd,sd->skc", rel, normal)).max(axis=(1, 2))
+    del rel
     a = quad
     b = np.roll(quad, -1, axis=2)
     lo, hi = np.minimum(a, b), np.maximum(a, b)
@@ -130,12 +133,21 @@ def _ring_radius(points: np.ndarray, faces: np.ndarray, cand: np.ndarray, surf: 
     single[:, 1:] &= ks[:, 1:] != ks[:, :-1]
     single[:, :-1] &= ks[:, :-1] != ks[:, 1:]
     single &= ks >= 0
-    pa, pb = points[ks // n], points[ks % n]
-    d = pb - pa
-    rel = x0[:, None] - pa
-    t = np.clip(np.einsum("skd,skd->sk", rel, d) / np.maximum(np.einsum("skd,skd->sk", d, d), 1e-300), 0, 1)
-    dist = np.linalg.norm(rel - t[..., None] * d, axis=-1)
-    radius = np.where(single, dist, np.inf).min(axis=1)
+    row, col = np.nonzero(single)  # the outer sides alone (about a quarter of them), row by row
+    ks = ks[row, col]
+    ia, ib = np.divmod(ks, n)
+    pa, d = points[ia], points[ib]
+    d -= pa  # the side's vector
+    rel = x0[row]
+    rel -= pa
+    t = np.clip(np.einsum("kd,kd->k", rel, d) / np.maximum(np.einsum("kd,kd->k", d, d), 1e-300), 0, 1)
+    d *= t[:, None]
+    rel -= d
+    dist = np.linalg.norm(rel, axis=-1)
+    radius = np.full(len(surf), np.inf)
+    if len(row):
+        start = np.flatnonzero(np.concatenate([[True], row[1:] != row[:-1]]))
+        radius[row[start]] = np.minimum.reduceat(dist, start)
     return radius, dev
 
 
@@ -179,7 +191,7 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     cls = np.asarray(cons.node_class)
     n = len(cls)
     colour = np.asarray(colour)
-    stars: NodeStars = node_stars(hexes, n, incidences=not device)
+    stars: NodeStars = node_stars(hexes, n, incidences=True)
     colours = np.unique(colour[cls != CORNER]) if (cls != CORNER).any() else np.zeros(1, np.int64)
     parts = []
     for c in (INTERIOR, SURFACE, EDGE):
@@ -188,6 +200,9 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     nodes = np.concatenate([p.nodes for p in parts], axis=1)
     mask = np.concatenate([p.mask for p in parts], axis=1)
     safe = np.minimum(nodes, n - 1)
+    star, nmask = stars.star[safe], stars.mask[safe]
+    if device:  # the node lists of the slots' stars alone (padding: the node itself), int32 as they go
+        star = star_nodes(np.asarray(hexes).astype(np.int32, copy=False), star, nmask, safe)
     B = np.asarray(node_bases(cons))
     dims = free_dims(cons)
     dtype = cons.x_orig.dtype
@@ -203,8 +218,8 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     return ColouredStars(
         nodes=put(nodes, np.int32),
         mask=put(mask),
-        star=put(stars.star[safe], np.int32),
-        smask=put(stars.mask[safe] & mask[..., None]),
+        star=put(star, np.int32),
+        smask=put(nmask & mask[..., None]),
         basis=put(B[safe], dtype),
         dims=put(np.where(mask, dims[safe], 0), np.int32),
         plane=put(planar_rings(np.asarray(cons.x_orig, np.float64), faces, cons)[safe] * mask[..., None], dtype),
@@ -251,35 +266,42 @@ def slot_sizes(cs: ColouredStars) -> tuple[int, int, int]:
 _SLOT_SLACK = (2, 2, 4)
 
 
-def pad_slots(v: np.ndarray, cs: ColouredStars, fill) -> np.ndarray:
+def pad_slots(v: np.ndarray, cs: ColouredStars, fill, width: int | None = None, width_fill=None) -> np.ndarray:
     """An array laid out like `cs.nodes` ``(n_colours, M, ...)`` padded to the size class of `cs`: the
     interior, surface and edge slot blocks of every colour (`slot_sizes`) and the colours rounded up to the
-    ladder (`jaxci.optim._buckets.bucket`), new entries `fill`."""
+    ladder (`jaxci.optim._buckets.bucket`), new entries `fill`. `width`: the third axis of the real slots is
+    also padded to `width`, as `pad_width` pads it with `width_fill` (in the same single copy)."""
     v = np.asarray(v)
-    sizes = (cs.n_interior, cs.n_surface, cs.n_edge)
-    bounds = np.cumsum((0,) + sizes)
+    sizes, padded = (cs.n_interior, cs.n_surface, cs.n_edge), slot_sizes(cs)
     C = v.shape[0]
-    parts = []
-    for j, (m, mp) in enumerate(zip(sizes, slot_sizes(cs), strict=True)):
-        pad = np.empty((C, mp - m) + v.shape[2:], v.dtype)
-        pad[...] = fill
-        parts.append(v[:, bounds[j] : bounds[j + 1]])
-        parts.append(pad)
-    v = np.concatenate(parts, axis=1)
-    pad = np.empty((bucket(C) - C,) + v.shape[1:], v.dtype)
-    pad[...] = fill
-    return np.concatenate([v, pad], axis=0)
+    tail = v.shape[2:] if width is None else (width,) + v.shape[3:]
+    out = np.empty((bucket(C), sum(padded)) + tail, v.dtype)  # one copy: no concatenations
+    src = dst = 0
+    for m, mp in zip(sizes, padded, strict=True):
+        _copy_width(out[:C, dst : dst + m], v[:, src : src + m], width_fill)
+        out[:C, dst + m : dst + mp] = fill
+        src, dst = src + m, dst + mp
+    out[C:] = fill
+    return out
 
 
 def pad_width(v: np.ndarray, width: int, fill=None) -> np.ndarray:
     """`v` ``(C, M, K, ...)`` with its third axis padded to `width`: copies of entry 0 (`fill` None) or `fill`."""
     v = np.asarray(v)
-    extra = width - v.shape[2]
-    if fill is None:
-        pad = np.repeat(v[:, :, :1], extra, axis=2)
-    else:
-        pad = np.full(v.shape[:2] + (extra,) + v.shape[3:], fill, v.dtype)
-    return np.concatenate([v, pad], axis=2)
+    out = np.empty(v.shape[:2] + (width,) + v.shape[3:], v.dtype)
+    _copy_width(out, v, fill)
+    return out
+
+
+def _copy_width(out: np.ndarray, v: np.ndarray, fill) -> None:
+    """Copy `v` ``(C, M, K, ...)`` into `out` ``(C, M, width, ...)``, the entries past K copies of entry 0 of
+    the third axis (`fill` None) or `fill` (`pad_width`); `out` of `v`'s shape: a plain copy."""
+    if out.ndim < 3 or out.shape[2] == v.shape[2]:
+        out[...] = v
+        return
+    k = v.shape[2]
+    out[:, :, :k] = v
+    out[:, :, k:] = v[:, :, :1] if fill is None else fill
 
 
 def pad_stars(cs: ColouredStars, n_pad: int) -> ColouredStars:
@@ -295,16 +317,15 @@ def pad_stars(cs: ColouredStars, n_pad: int) -> ColouredStars:
         raise ValueError("pad_stars: the stars of a mixed mesh are not padded")
     k_pad = bucket(cs.smask.shape[2], 4)
     mask = np.asarray(cs.mask)
-    star = pad_width(np.asarray(cs.star), k_pad)
-    smask = pad_width(np.asarray(cs.smask), k_pad, False)
     fdt = np.asarray(cs.basis).dtype
     nodes = pad_slots(np.where(mask, np.asarray(cs.nodes), n_pad), cs, n_pad)
     C, M = nodes.shape
+    sizes = slot_sizes(cs)
     return ColouredStars(
         nodes=to_device(nodes, np.int32),
         mask=to_device(pad_slots(mask, cs, False)),
-        star=to_device(pad_slots(star, cs, 0), np.int32),
-        smask=to_device(pad_slots(smask, cs, False)),
+        star=to_device(pad_slots(cs.star, cs, 0, k_pad), np.int32),
+        smask=to_device(pad_slots(cs.smask, cs, False, k_pad, False)),
         basis=to_device(pad_slots(cs.basis, cs, 0.0), fdt),
         dims=to_device(pad_slots(cs.dims, cs, 0), np.int32),
         plane=to_device(pad_slots(cs.plane, cs, 0.0), fdt),
@@ -312,9 +333,9 @@ def pad_stars(cs: ColouredStars, n_pad: int) -> ColouredStars:
         xwinv=to_device(np.zeros((C, M, 0, 9)), fdt),
         xweight=to_device(np.zeros((C, M, 0)), fdt),
         xmask=to_device(np.zeros((C, M, 0), bool)),
-        n_interior=slot_sizes(cs)[0],
-        n_surface=slot_sizes(cs)[1],
-        n_edge=slot_sizes(cs)[2],
+        n_interior=sizes[0],
+        n_surface=sizes[1],
+        n_edge=sizes[2],
     )
 
 
