@@ -32,13 +32,14 @@ corners.
 from __future__ import annotations
 
 import dataclasses
+import types
 import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
+from ..cells import QUADRATIC_TYPES, volume_cells
 from ..cells import fixed_nodes as fixed_cell_nodes
-from ..cells import volume_cells
 from ..errors import MeshError
 from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
 from .topology import BoundaryTopology, boundary_topology, components
@@ -104,14 +105,20 @@ class BoundaryInfo:
 def mesh_topology(mesh: HexMesh) -> BoundaryTopology:
     """`jaxci.geometry.topology.boundary_topology` of every volume cell of `mesh` (hexahedra, wedges, pyramids,
     tetrahedra; quadratic cells by their corner nodes)."""
-    cells = volume_cells(mesh)
-    cells.pop("hexahedron", None)
+    cells = _non_hex_cells(mesh)
     hexes = mesh.hexes
     quad = [np.asarray(b.data)[:, :8] for b in mesh.cells if b.type in ("hexahedron20", "hexahedron27")
             and len(b.data)]
     if quad:  # meshio's quadratic hexahedra bound the volume too (after the hexahedra: face_hex stays valid)
         hexes = np.concatenate([hexes, *quad])
     return boundary_topology(hexes, mesh.n_nodes, cells or None)
+
+
+def _non_hex_cells(mesh: HexMesh) -> dict[str, np.ndarray]:
+    """`jaxci.cells.volume_cells` of `mesh` but the hexahedra (linear and quadratic), without the copy of the
+    hexahedra it would make (64 MB at 10^6 hexahedra)."""
+    blocks = tuple(b for b in mesh.cells if QUADRATIC_TYPES.get(b.type, b.type) != "hexahedron")
+    return volume_cells(types.SimpleNamespace(cells=blocks))  # it reads only the blocks
 
 
 def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -279,9 +286,8 @@ def classify_boundary(
     # --- nodes that must not move
     used = np.zeros(n, dtype=bool)
     used[hexes.ravel()] = True
-    for t, cells in volume_cells(mesh).items():
-        if t != "hexahedron":
-            used[cells.ravel()] = True
+    for cells in _non_hex_cells(mesh).values():
+        used[cells.ravel()] = True
     cls[~used] = CORNER
     if mesh.held_nodes is not None and len(mesh.held_nodes):
         held = np.asarray(mesh.held_nodes, dtype=np.int64)
