@@ -61,6 +61,11 @@ def node_stars(hexes: np.ndarray, n_nodes: int, incidences: bool = False) -> Nod
     return NodeStars(star=star_nodes(hexes, inc, mask, np.arange(n_nodes, dtype=it)), mask=mask, valence=valence)
 
 
+#: Incidences `star_nodes` relabels at a time: its index temporaries stay at a few MB and are reused, where
+#: whole-array ones (1.5 GB at 10^6 elements) cost more in fresh pages than the gather itself.
+STAR_CHUNK = 1 << 17
+
+
 def star_nodes(hexes: np.ndarray, inc: np.ndarray, mask: np.ndarray | None = None,
                node: np.ndarray | None = None) -> np.ndarray:
     """The relabelled node lists ``inc.shape + (8,)`` of incidences `inc` (``node_stars(..., incidences=True)``):
@@ -71,8 +76,16 @@ def star_nodes(hexes: np.ndarray, inc: np.ndarray, mask: np.ndarray | None = Non
     if not flat.size:  # no elements: every entry is padding (element 0 of a stand-in)
         flat = np.zeros(8, flat.dtype)
     inc = np.asarray(inc)
-    slot = inc % 8
-    out = flat[(inc - slot)[..., None] + ROTATE_TO_SLOT.astype(inc.dtype)[slot]]  # indices in the dtype of `inc`
+    out = np.empty(inc.shape + (8,), flat.dtype)
+    src, dst = inc.reshape(-1), out.reshape(-1, 8)
+    rot = ROTATE_TO_SLOT.astype(np.intp)
+    for lo in range(0, len(src), STAR_CHUNK):
+        i = src[lo : lo + STAR_CHUNK].astype(np.intp)
+        slot = i & 7  # i % 8 (incidences are non-negative)
+        idx = rot.take(slot, axis=0)  # (m, 8)
+        slot ^= i  # i - i % 8: the element's first incidence
+        idx += slot[:, None]
+        np.take(flat, idx, mode="clip", out=dst[lo : lo + STAR_CHUNK])  # valid by construction: no bounds check
     if mask is not None:
         pad = ~np.asarray(mask)
         out[pad] = np.broadcast_to(np.asarray(node)[..., None], pad.shape)[pad][:, None]
