@@ -160,3 +160,34 @@ def test_cli_second_mesh_of_a_size_class_loads_the_solver_from_the_cache(tmp_pat
     second = _cli_smooth(tmp_path / "b.vtk", tmp_path / "b_out.vtk", cache)
     assert first["compiled"] > first["cache_hits"]
     assert second["compiled"] == second["cache_hits"], second
+
+
+def test_padded_sweeps_keep_their_unpadded_stars_on_the_host(monkeypatch):
+    """The padded Laplace run builds its stars and neighbours in the device's layout and dtypes but on the host
+    (the device never holds both the unpadded and the padded forms), the same arrays as placed ones, and the
+    sweeps give the same mesh as without padding."""
+    from jaxci.optim import laplace as L
+    from jaxci.optim._moves import coloured_stars
+
+    mesh = perturb_box(5, amplitude=0.3, seed=4)
+    problem = build_problem(mesh)
+    faces = problem.info.topology.faces
+    placed = coloured_stars(mesh.hexes, problem.cons, problem.colour, faces)
+    kept = coloured_stars(mesh.hexes, problem.cons, problem.colour, faces, place=False)
+    for name in ("nodes", "mask", "star", "smask", "basis", "dims", "plane"):
+        a, b = getattr(placed, name), getattr(kept, name)
+        assert isinstance(a, jax.Array) and isinstance(b, np.ndarray), name
+        assert a.dtype == b.dtype and np.array_equal(np.asarray(a), b), name
+    seen = []
+    real = L.laplace
+
+    def spy(points, conn, cs, nbr, nmask, *a, **k):
+        seen.append(type(cs.star))
+        seen.append(type(nbr))
+        return real(points, conn, cs, nbr, nmask, *a, **k)
+
+    monkeypatch.setattr(L, "laplace", spy)
+    padded = L.run_laplace(problem, "smart-laplace", {"max_sweeps": 2})
+    plain = L.run_laplace(problem, "smart-laplace", {"max_sweeps": 2, "buckets": False})
+    assert seen[:2] == [np.ndarray, np.ndarray] and all(issubclass(t, jax.Array) for t in seen[2:])
+    np.testing.assert_allclose(np.asarray(padded[0]), np.asarray(plain[0]), rtol=0, atol=1e-6)

@@ -44,10 +44,16 @@ def bucket(n: int, minimum: int = MIN_BUCKET, multiple: int = 1) -> int:
 def to_device(a, dtype=None) -> jax.Array:
     """`a` as a device array of `dtype` (default: its own, canonicalised as JAX would: int32 / float32 unless
     ``jax_enable_x64``), converted on the host: no compilation."""
+    return jax.device_put(device_dtype(a, dtype))
+
+
+def device_dtype(a, dtype=None) -> np.ndarray:
+    """`a` as the numpy array `to_device` would put on the device (kept on the host: for an array that is padded
+    before it goes there, so that the device never holds both forms)."""
     a = np.asarray(a)
     if dtype is None:
         dtype = jax.dtypes.canonicalize_dtype(a.dtype)
-    return jax.device_put(np.asarray(a, dtype=np.dtype(dtype)))
+    return np.asarray(a, dtype=np.dtype(dtype))
 
 
 def pad_rows(a: np.ndarray, n: int, fill) -> np.ndarray:

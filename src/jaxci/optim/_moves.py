@@ -21,7 +21,7 @@ from .._lazy import jax, jnp, when_imported
 from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..geometry.projection import Constraints, project_nodes
 from ..metrics.objective import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
-from ._buckets import bucket, pad_constraints, pad_rows, padded_connectivity, to_device
+from ._buckets import bucket, device_dtype, pad_constraints, pad_rows, padded_connectivity, to_device
 from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars, star_nodes
 
 
@@ -179,14 +179,16 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
 
 
 def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, faces: np.ndarray,
-                   table: CornerTable | None = None, device: bool = True) -> ColouredStars:
+                   table: CornerTable | None = None, device: bool = True, place: bool = True) -> ColouredStars:
     """Group the movable nodes (class != CORNER) by `colour`, by class within a colour, with stars and bases.
 
     `faces` are the boundary faces (``BoundaryInfo.topology.faces``), for the planar-ring shortcut; `table` the
     non-hexahedral corners (`jaxci.metrics.objective.corner_table`; default none). The colouring must not give one
     colour to two nodes of any cell (hexahedron or not). `device` False: numpy arrays for the host sweep of
     `jaxci.optim.host_local` (indices int64; `star` the incidences ``(n_colours, M, K)`` of
-    `jaxci.optim._local.node_stars`, 8x less than the node lists), else device arrays.
+    `jaxci.optim._local.node_stars`, 8x less than the node lists), else device arrays; with `place` False the
+    device's layout and dtypes in numpy (`jaxci.optim._buckets.device_dtype`), for stars padded (`pad_stars`)
+    before they go to the device.
     """
     cls = np.asarray(cons.node_class)
     n = len(cls)
@@ -214,7 +216,7 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
         rows, rmask = rows[safe], rmask[safe] & mask[..., None]
         xnodes, xwinv, xweight, xmask = table.nodes[rows], table.winv[rows], table.weight[rows], rmask
     # to_device: no compilation per shape (jnp.asarray of a numpy array compiles a small program for each)
-    put = to_device if device else _host_array
+    put = (to_device if place else device_dtype) if device else _host_array
     return ColouredStars(
         nodes=put(nodes, np.int32),
         mask=put(mask),

@@ -37,7 +37,7 @@ from ..metrics.objective import (
     objective_and_max,
 )
 from . import _params as _p
-from ._buckets import bucket, to_device
+from ._buckets import bucket, device_dtype, to_device
 from ._local import HEX_EDGES, edge_neighbours, gather_star  # noqa: F401  (re-exported)
 from ._moves import (
     ColouredStars,
@@ -46,7 +46,6 @@ from ._moves import (
     local_scale,
     local_sum,
     pad_slots,
-    pad_width,
     padded_sweeps,
     project_trials,
 )
@@ -215,20 +214,21 @@ def _padded(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, mult
     real colour count; the elements a multiple of `multiple`."""
     x, c, cs_p, cons_p, w, n_col = padded_sweeps(points, conn, cs, cons, multiple)
     k_pad = bucket(np.asarray(nmask).shape[2], 4)
-    nbr_p = pad_slots(pad_width(np.asarray(nbr), k_pad), cs, 0)
-    nmask_p = pad_slots(pad_width(np.asarray(nmask), k_pad, False), cs, False)
+    nbr_p = pad_slots(nbr, cs, 0, k_pad)  # the width padded with copies of entry 0 (`pad_width`), in one copy
+    nmask_p = pad_slots(nmask, cs, False, k_pad, False)
     return x, c, cs_p, to_device(nbr_p, np.int32), to_device(nmask_p), cons_p, w, n_col
 
 
 def coloured_neighbours(cs: ColouredStars, hexes: np.ndarray, n_nodes: int,
-                        edges: np.ndarray | None = None) -> tuple[jax.Array, jax.Array]:
+                        edges: np.ndarray | None = None, place: bool = True) -> tuple[jax.Array, jax.Array]:
     """Edge neighbours laid out like `cs.nodes`: ``(n_colours, M, K)`` indices and mask (`edges`: further cell
-    edges, as in `edge_neighbours`)."""
+    edges, as in `edge_neighbours`); device arrays, or with `place` False their numpy form (to be padded first)."""
     nbr, mask = edge_neighbours(hexes, n_nodes, edges)
     nodes = np.asarray(cs.nodes)
     real = np.asarray(cs.mask)
     safe = np.minimum(nodes, n_nodes - 1)
-    return to_device(nbr[safe], np.int32), to_device(mask[safe] & real[..., None])
+    put = to_device if place else device_dtype
+    return put(nbr[safe], np.int32), put(mask[safe] & real[..., None])
 
 
 def run_laplace(problem, method: str, params: dict):
@@ -245,9 +245,10 @@ def run_laplace(problem, method: str, params: dict):
                             corner_table(mesh))
         nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes, edge_pairs(mesh))
         extra = extra_cells(mesh)
-    else:
-        cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces)
-        nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes)
+    else:  # padded (`laplace`): kept on the host until padded, so that the device never holds both forms
+        place = not (p.buckets or problem.devices is not None)
+        cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, place=place)
+        nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes, place=place)
         extra = None
     return laplace(problem.x0, problem.conn, cs, nbr, nmask, problem.cons, p, smart=method == "smart-laplace",
                    extra=extra, devices=problem.devices)
