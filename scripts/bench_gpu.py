@@ -22,8 +22,10 @@ skipped once the time budget ``--budget`` would be overrun; the JSON is rewritte
    program against one seed after the other on the accelerator, and the host engine (a few seeds, per seed).
 7. ``largest``: the largest box that the measured bytes per hexahedron say fits on the device, smoothed.
 
-``host_prep`` (run after ``lbfgs``) is `scripts/bench_host_prep.py` at 10^6 hexahedra on the JAX engine: the
-host's work around the solver (numpy and C on the CPU) by phase and by function, under cProfile.
+``host_prep`` and ``device_memory`` (run after ``lbfgs``) are `scripts/bench_host_prep.py` and
+`scripts/bench_device_memory.py` at 10^6 hexahedra on the JAX engine: the host's work around the solver (numpy
+and C on the CPU) by phase and by function, under cProfile, and the device bytes per hexahedron of the
+presmoothing and L-BFGS programs (live arrays and XLA's memory analysis).
 
 The targets of one H100-class GPU are printed beside the figures (F + gradient >= 20 G corners/s float32;
 10^7 hexahedra smoothed in <= 10 s, file I/O aside; <= 1.5 kB per hexahedron on the device).
@@ -154,8 +156,16 @@ def child_host_prep(n: int, engine: str) -> dict:
     return run(n ** 3, engine)
 
 
+def child_device_memory(n: int) -> dict:
+    """`bench_device_memory.run`: the presmoothing's and L-BFGS's device bytes per hexahedron (live arrays and
+    XLA's memory analysis of each program) on a box of n^3 hexahedra."""
+    from bench_device_memory import run
+
+    return run(n ** 3)
+
+
 CHILDREN = {"throughput": child_throughput, "smooth": child_smooth, "global_ci": child_global_ci,
-            "host_prep": child_host_prep, "environment": None}
+            "host_prep": child_host_prep, "device_memory": child_device_memory, "environment": None}
 
 
 # -------------------------------------------------------------------------------------------------- parent
@@ -244,9 +254,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/bench_gpu.json")
     ap.add_argument("--small", action="store_true", help="small sizes (a CPU check of the script)")
     ap.add_argument("--budget", type=float, default=480.0, help="seconds for all sections (default 480)")
-    ap.add_argument("--sections", nargs="+", default=["throughput", "lbfgs", "host_prep", "threshold", "global_ci",
-                                                       "cube60_pert", "largest"],
-                    choices=["throughput", "lbfgs", "host_prep", "threshold", "global_ci", "cube60_pert", "largest"],
+    ap.add_argument("--sections", nargs="+", default=["throughput", "lbfgs", "host_prep", "device_memory",
+                                                       "threshold", "global_ci", "cube60_pert", "largest"],
+                    choices=["throughput", "lbfgs", "host_prep", "device_memory", "threshold", "global_ci",
+                             "cube60_pert", "largest"],
                     help="the sections to run, in this order")
     ap.add_argument("--threshold-sizes", type=int, nargs="+", default=None, metavar="N",
                     help="box edges of the threshold section (default 22 46 100; --small: 6 10)")
@@ -327,8 +338,12 @@ def _sections(b: Bench, args, size: dict, tmp: Path, ktol: float, gpu: bool) -> 
     def host_prep():
         b.section("host_prep", (b.child("host_prep", "host_prep", n, "jax", timeout=300) for n in size["host_prep"]))
 
+    def device_memory():
+        b.section("device_memory", (b.child("device_memory", "device_memory", n, timeout=300)
+                                    for n in size["host_prep"]))
+
     return {"throughput": throughput, "lbfgs": lbfgs, "threshold": threshold, "global_ci": global_ci,
-            "cube60_pert": cube, "largest": largest, "host_prep": host_prep}
+            "cube60_pert": cube, "largest": largest, "host_prep": host_prep, "device_memory": device_memory}
 
 
 def child_environment() -> dict:

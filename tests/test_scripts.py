@@ -83,11 +83,12 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     def failed(r):  # without the C kernels the host engine's global CI is refused, saying so
         return "skipped" in r or ("error" in r and (native.AVAILABLE or "needs the C kernels" not in r["error"]))
 
-    for section in ("throughput", "lbfgs", "host_prep", "threshold", "global_ci", "cube60_pert"):
+    for section in ("throughput", "lbfgs", "host_prep", "device_memory", "threshold", "global_ci", "cube60_pert"):
         rows = d[section]
         assert rows and not any(failed(r) for r in rows), (section, rows)
     assert all(r["corners_per_s"] > 0 for r in d["throughput"])
     assert d["host_prep"][0]["functions"]["classify_boundary"] > 0 and d["host_prep"][0]["phases"]["setup"] > 0
+    assert set(d["device_memory"][0]["bytes_per_hex"]) == {"presmoothing", "lbfgs"}
     assert {r["engine"]["name"] for r in d["lbfgs"]} == {"host", "jax"}
     assert {(r["engine"]["name"] if r.get("engine") else None) for r in d["threshold"]} == {"host", "jax"}
     batched, serial, host = d["global_ci"]
@@ -110,6 +111,19 @@ def test_bench_host_prep_times_the_phases_and_the_host_functions(tmp_path):
     for name in ("quality_report", "classify_boundary", "build_constraints", "check_volume", "worst_elements"):
         assert d["functions"][name] > 0, name
     assert "classify_boundary" in p.stdout
+
+
+def test_bench_device_memory_measures_both_programs(tmp_path):
+    out = tmp_path / "mem.json"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_device_memory.py"), "--hexes", "1000", "--out",
+                        str(out)], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    d = json.loads(out.read_text())
+    assert d["hexes"] == 1000 and d["engine"]["name"] == "jax"
+    rows = d["bytes_per_hex"]
+    assert set(rows) == {"presmoothing", "lbfgs"}
+    for row in rows.values():  # the coordinates and connectivity at least (float32 points, int32 hexahedra)
+        assert row["live"] > 32 and row["arguments"] > 0 and row["peak_estimate"] >= row["live"]
 
 
 MESQUITE = ROOT.parent / "shared" / "data" / "mesquite"
