@@ -191,3 +191,25 @@ def test_padded_sweeps_keep_their_unpadded_stars_on_the_host(monkeypatch):
     plain = L.run_laplace(problem, "smart-laplace", {"max_sweeps": 2, "buckets": False})
     assert seen[:2] == [np.ndarray, np.ndarray] and all(issubclass(t, jax.Array) for t in seen[2:])
     np.testing.assert_allclose(np.asarray(padded[0]), np.asarray(plain[0]), rtol=0, atol=1e-6)
+
+
+def test_large_classes_have_no_slot_slack_and_the_same_sweeps(monkeypatch):
+    """From `_SLACK_UNTIL` nodes of a class on, the slots of a colour are the most nodes of one colour rounded up to
+    the ladder (no slack): fewer padded slots, the same mesh from the sweeps."""
+    from jaxci.optim import _moves as M
+    from jaxci.optim import laplace as L
+
+    mesh = perturb_box(6, amplitude=0.3, seed=2)
+    problem = build_problem(mesh)
+    cs = M.coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, place=False)
+    slack = M.slot_sizes(cs)
+    x_slack = np.asarray(L.run_laplace(problem, "smart-laplace", {"max_sweeps": 2})[0])
+    monkeypatch.setattr(M, "_SLACK_UNTIL", 1)
+    tight = M.slot_sizes(cs)
+    sizes = (cs.n_interior, cs.n_surface, cs.n_edge)
+    assert all(m <= t <= s for m, t, s in zip(sizes, tight, slack, strict=True)) and sum(tight) < sum(slack)
+    assert tight == tuple(B.bucket(max(m, -(-B.bucket(int(np.asarray(cs.mask)[:, lo:lo + m].sum()))
+                                            // B.bucket(np.asarray(cs.mask).shape[0])))) if m else 0
+                          for m, lo in zip(sizes, np.cumsum((0,) + sizes[:-1]), strict=True))
+    x_tight = np.asarray(L.run_laplace(problem, "smart-laplace", {"max_sweeps": 2})[0])
+    np.testing.assert_allclose(x_tight, x_slack, rtol=0, atol=1e-6)

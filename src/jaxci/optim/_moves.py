@@ -250,7 +250,8 @@ def slot_sizes(cs: ColouredStars) -> tuple[int, int, int]:
     compiled the sweep twice. So a block is `_SLOT_SLACK` (2 or 4) times the mean per colour of the size class
     of the class's node count (``2 bucket(total) / bucket(n_colours)``), rounded up to the ladder, or the most
     nodes in one colour if that is more (then rounded up to the ladder alone). Padded slots cost sweep time
-    (up to about twice that of the interior slots), not results.
+    (up to about twice that of the interior slots) and device memory, not results: a class of `_SLACK_UNTIL`
+    nodes or more (the meshes an accelerator takes) has no slack (1), its padded stars half the size.
     """
     sizes = (cs.n_interior, cs.n_surface, cs.n_edge)
     mask = np.asarray(cs.mask)
@@ -259,13 +260,19 @@ def slot_sizes(cs: ColouredStars) -> tuple[int, int, int]:
     out = []
     for j, m in enumerate(sizes):
         total = int(mask[:, bounds[j] : bounds[j + 1]].sum())
-        out.append(bucket(max(m, -(-_SLOT_SLACK[j] * bucket(total) // c_pad))) if m else 0)
+        slack = _SLOT_SLACK[j] if total < _SLACK_UNTIL else 1
+        out.append(bucket(max(m, -(-slack * bucket(total) // c_pad))) if m else 0)
     return tuple(out)
 
 
 #: `slot_sizes`: interior, surface, edge blocks hold this many times the mean per colour of their size class
 #: (edge nodes colour least evenly: 48 of the 108 edge nodes of a 10^3 box in one of its 8 colours).
 _SLOT_SLACK = (2, 2, 4)
+
+#: `slot_sizes`: from this many nodes of a class on, no slack. At 10^6 hexahedra the slack doubled the padded
+#: stars, the largest arrays of the presmoothing's device memory (`scripts/bench_device_memory.py`), and the
+#: sweep's work on padded slots; a compiled sweep shared with a mesh of another colouring saves less than that.
+_SLACK_UNTIL = 1 << 19
 
 
 def pad_slots(v: np.ndarray, cs: ColouredStars, fill, width: int | None = None, width_fill=None) -> np.ndarray:
