@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -128,3 +129,29 @@ def test_node_lengths_by_definition_and_block_size(monkeypatch):
     monkeypatch.setattr(parametrisation, "_LENGTH_BLOCK", 7)
     np.testing.assert_array_equal(node_lengths(hexes, points), whole)
     np.testing.assert_array_equal(node_lengths(hexes.astype(np.int32), points), whole)
+
+
+def test_far_off_points_and_float32_constraints_still_take_the_nearest_cell():
+    """Points ~1e16-1e18 unit lengths off their patch (d0 + the largest radius rounds to d0: the k-d tree's bound
+    must keep the nearest centre, and every point must get its own row), and constraints held in float32 (their
+    tables consistent to float32 rounding only): the exhaustive search's points."""
+    m = perturb_box(5, amplitude=0.3, seed=1)
+    info = classify_boundary(m)
+    c = build_constraints(m, info, dtype=np.float64, device=False)
+    surf, grp = np.asarray(c.surface_nodes), np.asarray(c.group)
+    sel = surf[grp[surf] == grp[surf[0]]]
+    for off in (1e16, 1e18):
+        x = np.asarray(m.points, np.float64).copy()
+        x[sel[1:], 0] += off  # every node of one patch but the first far off (a row each), then all of them
+        y = project_np(c, x)
+        assert np.array_equal(y, exhaustive(c, x)) and np.array_equal(y[sel[0]], x[sel[0]])
+        x[sel[0], 0] += off
+        np.testing.assert_array_equal(project_np(c, x), exhaustive(c, x))
+    c32 = build_constraints(m, info, dtype=np.float32, device=False)
+    # project_np computes in float64 from the float32 tables: the exhaustive search from the same float64 values
+    c64 = dataclasses.replace(c32, triangles=np.asarray(c32.triangles, np.float64),
+                              segments=np.asarray(c32.segments, np.float64))
+    rng = np.random.default_rng(3)
+    for move in (0.0, 1e-3, 0.05):
+        x = m.points + move * rng.standard_normal(m.points.shape)
+        np.testing.assert_array_equal(project_np(c32, x), exhaustive(c64, x))

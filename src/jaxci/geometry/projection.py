@@ -320,14 +320,16 @@ def project_nodes(
 # ---------------------------------------------------------------------------------------------------- numpy
 
 
-def _search(table, cells, x, closest, centre_radius):
+def _search(table, cells, x, closest, centre_radius, eps: float = float(np.finfo(np.float64).eps)):
     """Exact nearest points of `x` (m, 3) on the cells `table[:, cells]`, via a k-d tree of cell centres.
 
     The nearest cell centre, at distance d0, and the point `closest` finds on its cell, at distance d1, bound the
     distance to the nearest point by ``b = min(d0, d1)``; a cell j whose centre is farther than ``b + r_j`` (its
     radius, plus a margin for rounding) cannot hold a nearer point. Each point's candidates are the cells within
     that bound (found with k nearest-neighbour queries, k doubled for the points whose k-th neighbour is still
-    within it; no Python lists); the winner is the lowest score, a tie going to the lowest cell.
+    within it; no Python lists), and always the cell of the nearest centre; the winner is the lowest score, a tie
+    going to the lowest cell. `eps`: the machine epsilon of the table as the constraints hold it (float32 tables
+    are consistent to their own rounding only: a wider margin).
     """
     from scipy.spatial import cKDTree  # here, not at the top: its import is 0.3-0.5 s of a command's start
 
@@ -339,15 +341,18 @@ def _search(table, cells, x, closest, centre_radius):
     _, s1 = closest(np, tuple(x.T), table[:, cells[i0]], tol)
     r_max = float(radius.max())
     # rounding: relative to the cells' size and to the coordinates' magnitude (the distances of far-off meshes)
-    margin = 1e-9 * r_max + 1e-12 * max(float(np.abs(centre).max()), float(np.abs(x).max())) + 1e-300
-    bound = np.fmin(np.sqrt(s1), d0) + margin  # d0 where that point's score is NaN
+    margin = max(1e-9, 100.0 * eps) * r_max + 1e-12 * max(float(np.abs(centre).max()), float(np.abs(x).max()))
+    bound = np.fmin(np.sqrt(s1), d0) + (margin + 1e-300)  # d0 where that point's score is NaN
     reach = np.minimum(bound + r_max, d0 + r_max * (1 + 1e-9) + 1e-300)  # nor beyond d0 + the largest radius
     radius = np.append(radius, 0.0)  # the radius of a missing neighbour (index len(cells), at infinity)
-    owner, cand = [], []
+    # the nearest centre's cell first, for every point (far off, d0 + r_max rounds to d0: it may be the only one)
+    owner, cand = [np.arange(len(x))], [i0]
     rows, k = np.arange(len(x)), min(16, len(cells))
     while len(rows):
-        d, i = (a.reshape(len(rows), k) for a in tree.query(x[rows], k=k, distance_upper_bound=reach[rows].max()))
-        keep = (d <= bound[rows, None] + radius[i]) & (d <= reach[rows, None])
+        # the query keeps distances strictly below its bound: one ulp above the reach keeps those at it
+        upper = float(np.nextafter(reach[rows].max(), np.inf))
+        d, i = (a.reshape(len(rows), k) for a in tree.query(x[rows], k=k, distance_upper_bound=upper))
+        keep = (d <= bound[rows, None] + radius[i]) & (d <= reach[rows, None]) & (i != i0[rows, None])
         done = (d[:, -1] > reach[rows]) | (k == len(cells))  # the k-th neighbour beyond reach: all were found
         r, c = np.nonzero(keep[done])
         owner.append(rows[done][r])
@@ -392,11 +397,13 @@ def project_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
         (c.edge_nodes, c.segments, c.segment_curve, closest_on_segments, segment_centres),
     ):
         nodes = np.asarray(nodes)
-        table = np.asarray(table, dtype=np.float64)
+        table = np.asarray(table)
+        eps = float(np.finfo(table.dtype).eps) if table.dtype.kind == "f" else float(np.finfo(np.float64).eps)
+        table = table.astype(np.float64, copy=False)
         cell_group = np.asarray(cell_group)
         for g in np.unique(group[nodes]):
             sel = nodes[group[nodes] == g]
-            x[sel] = _search(table, np.flatnonzero(cell_group == g), x[sel], closest, centres)
+            x[sel] = _search(table, np.flatnonzero(cell_group == g), x[sel], closest, centres, eps)
     corners = np.asarray(c.corner_nodes)
     x[corners] = np.asarray(c.x_orig, dtype=np.float64)[corners]
     return x
