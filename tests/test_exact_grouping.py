@@ -112,3 +112,20 @@ def test_a_mesh_from_checked_blocks_checks_only_its_points(monkeypatch):
         dataclasses.replace(m, points=m.points[:-1])
     assert calls == [m.n_nodes, m.n_nodes - 1]
     assert mesh_module._checked_unused(fresh, m.n_nodes) is None  # the checked blocks are new CellBlocks
+
+
+def test_checked_blocks_cannot_change_under_the_mesh():
+    """The caller's writeable connectivity stays theirs (the mesh keeps a read-only copy): changing it afterwards
+    changes neither the mesh nor a mesh derived from it without a re-check; the mesh's own arrays refuse writes."""
+    from jaxci.mesh import hex_mesh
+
+    box = perturb_box(3, amplitude=0.1, seed=0)
+    pts, hexes = np.asarray(box.points), np.asarray(box.hexes).astype(np.int64).copy()
+    m = hex_mesh(pts, hexes)
+    hexes[0, 1] = hexes[0, 0]  # a repeated node, had the mesh shared this array
+    derived = dataclasses.replace(m, points=pts)
+    assert len(set(derived.hexes[0].tolist())) == 8 and np.array_equal(derived.hexes, box.hexes)
+    with pytest.raises(ValueError, match="read-only"):
+        m.hexes[0, 1] = m.hexes[0, 0]
+    with pytest.raises(MeshError, match="repeats a node"):  # a fresh array is checked again
+        HexMesh(pts, (CellBlock("hexahedron", hexes),))

@@ -83,7 +83,7 @@ class HexMesh:
     `unit_frame`), inverted elements and coincident nodes (`coincident_nodes`: an unmerged interface). A mesh made
     of the very `CellBlock` objects of a mesh already made with as many nodes (`with_points`, ``dataclasses.replace``
     of the points) checks only its points: the connectivity checks and the count of unreferenced nodes are not
-    repeated (the blocks' arrays are not to be changed in place).
+    repeated (the blocks' arrays are read-only: the mesh keeps its own copy of a caller's writeable array).
     """
 
     points: np.ndarray
@@ -142,7 +142,7 @@ class HexMesh:
         det = corner_determinants(to_unit(pts, unit_frame(pts)), hexes)  # no overflow at 1e300, no underflow
 
         if fix_orientation and (det < 0).all():  # every hexahedron left-handed
-            blocks = [mirrored_block(b) if b.type == "hexahedron" else b for b in blocks]
+            blocks = [_frozen_block(mirrored_block(b)) if b.type == "hexahedron" else b for b in blocks]
             mirrored = not mirrored
             msg = "every hexahedron was left-handed (all corner determinants < 0): node order mirrored to VTK's"
             notes.append(msg)
@@ -193,7 +193,9 @@ class HexMesh:
         (`check_midside`) and at least one hexahedron; `MeshError` naming the block and element otherwise."""
         blocks = []
         for bi, blk in enumerate(self.cells):
-            data = int_array(blk.data, f"{where}cell block {bi} ({blk.type})")
+            raw = np.asarray(blk.data)
+            data = int_array(raw, f"{where}cell block {bi} ({blk.type})")
+            data = _frozen(data, ours=data is not raw and data.base is None)
             width = NODES_PER_CELL.get(blk.type)
             if data.ndim != 2 or (width is not None and data.shape[1] != width):
                 raise MeshError(
@@ -211,7 +213,7 @@ class HexMesh:
             ids = None if blk.ids is None else np.asarray(blk.ids)
             if ids is not None and ids.shape != (data.shape[0],):
                 raise MeshError(f"{where}cell block {bi}: {ids.shape[0]} ids for {data.shape[0]} cells")
-            mid = None if blk.midside is None else check_midside(blk, bi, data, ids, n, where)
+            mid = None if blk.midside is None else _frozen(check_midside(blk, bi, data, ids, n, where))
             blocks.append(CellBlock(blk.type, data, ids, mid))
         if not any(b.type == "hexahedron" and len(b.data) for b in blocks):
             found = sorted({b.type for b in blocks if len(b.data)}) or ["no cells"]
@@ -329,6 +331,29 @@ class HexMesh:
 #: The cell blocks of every `HexMesh` made, by its first block (a weak key: an entry goes with its block): the node
 #: count they were checked against, weak references to all of them, and the number of nodes none of them uses.
 _CHECKED_CELLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _frozen(a: np.ndarray, ours: bool = False) -> np.ndarray:
+    """`a` made read-only for a mesh to keep: in place where the mesh made it (`ours`), as it is where nothing
+    writeable shares its memory, else a read-only copy (the caller's array stays theirs and writeable). A checked
+    block can then not change under the mesh (`_checked_unused` trusts the blocks it checked)."""
+    if ours:
+        a.flags.writeable = False
+        return a
+    b = a
+    while b is not None:
+        if not isinstance(b, np.ndarray) or b.flags.writeable:
+            a = a.copy()
+            a.flags.writeable = False
+            return a
+        b = b.base
+    return a
+
+
+def _frozen_block(b: CellBlock) -> CellBlock:
+    """A block the mesh made (`mirrored_block`), its arrays read-only."""
+    return CellBlock(b.type, _frozen(b.data, ours=b.data.base is None), b.ids,
+                     None if b.midside is None else _frozen(b.midside))
 
 
 def _checked_unused(cells, n: int) -> int | None:

@@ -47,6 +47,7 @@ def group_pairs(k1: np.ndarray, k2: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     but for the position; the keys are then compared exactly, and the few runs of equal words that hold different
     pairs (a collision of the truncated hash) are ordered by ``np.lexsort`` of their keys. Groups come in no
     particular order."""
+    k1, k2 = (np.ascontiguousarray(k, dtype=np.int64) for k in (k1, k2))  # viewed as uint64 words below
     m = len(k1)
     if m == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
