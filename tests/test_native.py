@@ -102,6 +102,16 @@ def test_corner_measures_in_c_are_numpys(monkeypatch):
     fin = np.isfinite(k_np)
     np.testing.assert_allclose(k_c[fin], k_np[fin], rtol=1e-14)
     np.testing.assert_allclose(sj_c, sj_np, rtol=1e-14, atol=1e-15)
+    # a hexahedron 1e-160 thick: valid, kappa/3 ~5e159 (its square overflows in the C pass: measured by numpy)
+    z = np.array([0.0, 1e-160, 1.0])
+    pts = np.array([[x, y, zz] for zz in z for y in (0.0, 1.0) for x in (0.0, 1.0)])[[0, 1, 3, 2, 4, 5, 7, 6,
+                                                                                        8, 9, 11, 10]]
+    thin = np.array([[0, 1, 2, 3, 4, 5, 6, 7], [4, 5, 6, 7, 8, 9, 10, 11]])
+    k_np, _ = hex_corner_measures(pts, thin)
+    monkeypatch.setattr(native, "AVAILABLE", True)
+    k_c, _ = hex_corner_measures(pts, thin)
+    assert np.isfinite(k_np).all() and k_np[0].min() > 1e159
+    np.testing.assert_allclose(k_c, k_np, rtol=1e-14)
 
 
 @pytest.mark.parametrize("threads", [2, 3])

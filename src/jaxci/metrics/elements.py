@@ -229,14 +229,20 @@ def corner_condition(points, cells, cell_type: str) -> np.ndarray:
 def hex_corner_measures(points, hexes) -> tuple[np.ndarray, np.ndarray]:
     """``(kappa3, sj)`` of every corner of the hexahedra `hexes` ``(N, 8)``: kappa/3 (``inf`` where det <= 0) and
     the scaled Jacobian det / (|a| |b| |c|) (0 for a zero-length edge), each float64 ``(N, 8)``. One threaded C
-    pass where `jaxci.native` is built (`jaxci.native.hex_corner_measures`; kappa/3 to 1 ulp of numpy's), else
-    the numpy kernel."""
+    pass where `jaxci.native` is built (`jaxci.native.hex_corner_measures`; kappa/3 to a few ulp of numpy's;
+    the cells of a corner whose squared kappa/3 overflows there, det below ~1e-154 of its edges' scale, are
+    measured again by numpy), else the numpy kernel."""
     from .. import native
 
     pts, hexes = _np_points(points), _cells(hexes, "hexahedron")
     if native.AVAILABLE:
-        kappa3, sj = native.hex_corner_measures(pts, hexes)
-        return kappa3.T, sj.T
+        kappa3, sj = (a.T for a in native.hex_corner_measures(pts, hexes))
+        redo = np.flatnonzero((np.isinf(kappa3) & (sj > 0)).any(axis=1))  # valid, but (kappa/3)^2 overflowed
+        if len(redo):
+            det, _, fro2, adj2, _ = cell_corner_kernel(pts, np.ascontiguousarray(hexes[redo].T), "hexahedron")
+            kappa3 = kappa3.copy()
+            kappa3[redo] = _kappa3(det, fro2, adj2)
+        return kappa3, sj
     det, _, fro2, adj2, l2 = cell_corner_kernel(pts, np.ascontiguousarray(hexes.T), "hexahedron")
     return _kappa3(det, fro2, adj2), _ratio(det, l2)
 
