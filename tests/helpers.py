@@ -76,6 +76,22 @@ def interrupted_on_call(real, n: int = 2):
     return wrapped
 
 
+def fail_seed_method(monkeypatch, seed: int, error: Exception) -> None:
+    """Make the method run of seed `seed` raise `error` (`jaxci.smooth.run_method`, where `MethodRun.run` looks
+    it up); every other seed runs as it would."""
+    import importlib
+
+    smooth_module = importlib.import_module("jaxci.smooth")
+    run_method = smooth_module.run_method
+
+    def failing(problem, method, s, params):
+        if s == seed:
+            raise error
+        return run_method(problem, method, s, params)
+
+    monkeypatch.setattr(smooth_module, "run_method", failing)
+
+
 def spiked_sweep():
     """A 4^3 box perturbed by 0.1 h and a sweep displacement D along which F falls fastest at the factor 4, where
     one node moved too far makes the worst corner worse (max kappa/3 1.196 against 1.084); at the factor 2 both F and

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import fail_seed_method
 
 from jaxci import engine, native
 from jaxci.cli import main
@@ -356,15 +357,7 @@ def test_seeds_that_run_one_after_the_other_each_report_their_own_time():
 
 @pytest.mark.skipif(not native.AVAILABLE, reason="global CI on the host engine needs the C kernels")
 def test_an_error_in_one_seeds_method_is_that_seeds_result(monkeypatch):
-    smooth_module = importlib.import_module("jaxci.smooth")
-    run_method = smooth_module.run_method
-
-    def failing(problem, method, seed, params):
-        if seed == 1:
-            raise MeshError("seed 1 failed in its method")
-        return run_method(problem, method, seed, params)
-
-    monkeypatch.setattr(smooth_module, "run_method", failing)
+    fail_seed_method(monkeypatch, 1, MeshError("seed 1 failed in its method"))
     res = smooth_seeds([paper_case("cube27", seed=s) for s in range(3)], "ci-global", [0, 1, 2], errors="return",
                        attempts=10, engine="host")
     assert [type(r).__name__ for r in res] == ["SmoothResult", "MeshError", "SmoothResult"]

@@ -14,7 +14,7 @@ import meshio
 import numpy as np
 import pytest
 import yaml
-from helpers import CUBE27_EXPERIMENT, interrupted_on_call
+from helpers import CUBE27_EXPERIMENT, fail_seed_method, interrupted_on_call
 
 from jaxci.cli import main
 from jaxci.errors import ConfigError
@@ -330,15 +330,7 @@ def test_summary_and_report_name_the_accelerator_jax_sees(tmp_path, monkeypatch)
 def test_an_internal_error_in_one_seed_fails_that_seed_only(tmp_path, monkeypatch):
     from jaxci.experiments.runner import run_experiment
 
-    smooth_module = importlib.import_module("jaxci.smooth")
-    run_method = smooth_module.run_method
-
-    def failing(problem, method, seed, params):
-        if seed == 1:
-            raise RuntimeError("a bug in seed 1's run")
-        return run_method(problem, method, seed, params)
-
-    monkeypatch.setattr(smooth_module, "run_method", failing)
+    fail_seed_method(monkeypatch, 1, RuntimeError("a bug in seed 1's run"))
     text = ("mesh: {generate: {case: cube27}}\nmethods:\n  - {name: G, method: ci-global, engine: host, params: "
             "{attempts: 10}}\nruns: 3\nfigures: false\nwrite_meshes: false\n")
     res = run_experiment(load_config(_write(tmp_path, text)), tmp_path / "out")
