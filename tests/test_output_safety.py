@@ -530,25 +530,30 @@ def _check_partial(tmp_path: Path, prev: Path, old: dict, err: str, signame: str
     assert not [p for p in (tmp_path / "prev.partial-1").rglob(".*") if p.name != MARKER]
 
 
-#: `jaxci run` whose second smoothing never ends by itself (it waits in Python, signals not blocked): the flag
-#: says it has begun, so the first run is finished and written into the temporary folder.
-SECOND_WAITS = """\
-import importlib, sys, time
+#: `jaxci run` as a child script (argv: a flag file, then jaxci's arguments) whose second smoothing is held by the
+#: code put at HOLD (which writes the flag once the hold begins: the first run is finished and written into the
+#: temporary folder by then).
+SECOND_HELD = """\
+import ctypes, importlib, signal, sys, time
 from pathlib import Path
 FLAG = Path(sys.argv[1])
 sm = importlib.import_module("jaxci.smooth")
 real, calls = sm.smooth, []
-def waits(*args, **kwargs):
+def held(*args, **kwargs):
     calls.append(1)
     if len(calls) == 2:
-        FLAG.write_text("second run")
-        time.sleep(600)
+HOLD
     return real(*args, **kwargs)
-sm.smooth = waits
+sm.smooth = held
 from jaxci.cli import entry
 sys.argv = ["jaxci", *sys.argv[2:]]
 entry()
 """
+
+#: The second smoothing never ends by itself: it waits in Python, signals not blocked.
+SECOND_WAITS = SECOND_HELD.replace("HOLD", """\
+        FLAG.write_text("second run")
+        time.sleep(600)""")
 
 
 @pytestmark_signals
@@ -611,26 +616,12 @@ def test_sigterm_while_results_are_put_in_place(tmp_path, earlier):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.yaml", "prev"]
 
 
-#: `jaxci run` whose second smoothing is stuck in a native call that does not look at signals (signals blocked
-#: in the main thread): only the watchdog can act on SIGTERM.
-STUCK = """\
-import ctypes, importlib, signal, sys
-from pathlib import Path
-FLAG = Path(sys.argv[1])
-sm = importlib.import_module("jaxci.smooth")
-real, calls = sm.smooth, []
-def stuck(*args, **kwargs):
-    calls.append(1)
-    if len(calls) == 2:
+#: The second smoothing is stuck in a native call that does not look at signals (signals blocked in the main
+#: thread): only the watchdog can act on SIGTERM.
+STUCK = SECOND_HELD.replace("HOLD", """\
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
         FLAG.write_text("stuck")
-        ctypes.CDLL(None).sleep(60)
-    return real(*args, **kwargs)
-sm.smooth = stuck
-from jaxci.cli import entry
-sys.argv = ["jaxci", *sys.argv[2:]]
-entry()
-"""
+        ctypes.CDLL(None).sleep(60)""")
 
 
 @pytestmark_signals
