@@ -43,7 +43,7 @@ import numpy as np
 from ..errors import MeshWriteError
 from ..mesh import HexMesh, mirrored_block
 from ._abaqus import DEFAULT_NAMES, element_family, parse_deck, split_line
-from ._deck import first_duplicate, model_difference
+from ._deck import first_duplicate, model_difference, reread_deck
 from ._losses import SOURCE_FIELDS, deck_losses
 from ._meshio import LossyWriteWarning
 
@@ -84,12 +84,7 @@ def _coordinate_line(line: str, xyz) -> str:
 def _in_place(mesh: HexMesh, text: str) -> tuple[str | None, str | None, dict[int, str]]:
     """(None, the deck with the mesh's coordinates, ...) when `mesh` is the deck's mesh with moved nodes, else
     (what differs, None, ...); last the Abaqus element type of every element id of the deck."""
-    lines = text.splitlines(keepends=True)
-    label = f"the deck of {mesh.source or 'the mesh'}"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
-        ref = HexMesh(**parts)
+    lines, deck, ref = reread_deck(mesh, text, parse_deck)
     id_types = {i: b.name for b in deck.blocks for i in b.ids}
     reason = model_difference(mesh, ref, field_data=("abaqus:element_types",))
     if reason is not None:

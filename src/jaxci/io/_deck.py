@@ -11,6 +11,7 @@ the deck is lost.
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 
@@ -125,6 +126,18 @@ def _same_sets(a: dict, b: dict, per_block: bool) -> bool:
             if not np.array_equal(u, v):
                 return False
     return True
+
+
+def reread_deck(mesh: HexMesh, text: str, parse_deck):
+    """The source deck `text` of `mesh` read again by its format's ``parse_deck`` (warnings silenced: they were
+    given when it was first read), for an in-place write: ``(lines, deck, reference HexMesh)``."""
+    lines = text.splitlines(keepends=True)
+    label = f"the deck of {mesh.source or 'the mesh'}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
+        ref = HexMesh(**parts)
+    return lines, deck, ref
 
 
 def model_difference(mesh: HexMesh, deck: HexMesh, cell_data=(), point_data=(), field_data=()) -> str | None:

@@ -12,14 +12,13 @@ the node, never silently rounded.
 from __future__ import annotations
 
 import re
-import warnings
 
 import numpy as np
 
 from ..cells import EDGES
 from ..errors import MeshReadError, MeshWriteError
 from ..mesh import HexMesh
-from ._deck import first_duplicate, model_difference
+from ._deck import first_duplicate, model_difference, reread_deck
 
 #: A rewritten coordinate may differ from the smoothed one by at most this fraction of the shortest edge at its node.
 REL_TOLERANCE = 1e-3
@@ -164,12 +163,7 @@ def rewrite_deck(mesh: HexMesh, text: str, path: str, parse_deck, pid_key: str, 
     ``parse_deck``: Nastran's or LS-DYNA's) with moved nodes, else ``(what differs, None)``: the in-place write
     both deck writers share. `pid_key` the deck's property-id cell data, `what` its node entity (``"GRID"``,
     ``"node"``) for messages, `nastran` its field rules (`rewrite_coordinates`)."""
-    lines = text.splitlines(keepends=True)
-    label = f"the deck of {mesh.source or 'the mesh'}"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        deck, parts = parse_deck(lines, [(label, k + 1) for k in range(len(lines))], label)
-        ref = HexMesh(**parts)
+    lines, deck, ref = reread_deck(mesh, text, parse_deck)
     reason = model_difference(mesh, ref, cell_data=(pid_key,))
     if reason is not None:
         return reason, None
