@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 
@@ -71,13 +69,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, help="JSON path")
     args = ap.parse_args(argv)
     out = run(args.hexes)
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    out |= {"commit": commit, "date": time.strftime("%Y-%m-%d"),
-            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
+    from bench_host_prep import stamp
+
+    out |= stamp()
     print(f"{out['hexes']:,} hexahedra, {out['engine']['device_kind']} ({out['engine']['dtype']}), bytes per "
           f"hexahedron:")
     for name, row in out["bytes_per_hex"].items():

@@ -173,7 +173,7 @@ class Bench:
     def __init__(self, args):
         self.args, self.t0 = args, time.perf_counter()
         self.data: dict = {"command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]), "targets": TARGETS,
-                           "date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": _commit()}
+                           "date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": commit()}
 
     def left(self) -> float:
         return self.args.budget - (time.perf_counter() - self.t0)
@@ -220,7 +220,8 @@ class Bench:
             print(f"{name}: {json.dumps(row, default=str)[:400]}", flush=True)
 
 
-def _commit() -> str:
+def commit() -> str:
+    """The checkout's commit (``git describe --always --dirty``), or "" without git."""
     try:
         return subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
                               text=True, timeout=10).stdout.strip()

@@ -19,7 +19,6 @@ import argparse
 import cProfile
 import json
 import pstats
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -60,12 +59,12 @@ def _key(name: str) -> str:
     return "HexMesh.__post_init__" if name == "__post_init__" else name
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+def stamp() -> dict:
+    """What a benchmark's JSON says of its own run: the commit (`bench_gpu.commit`), the date and the command."""
+    from bench_gpu import commit
+
+    return {"commit": commit(), "date": time.strftime("%Y-%m-%d"),
+            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
 
 
 def run(hexes: int, engine: str = "jax", max_steps: int = 5) -> dict:
@@ -100,8 +99,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, help="JSON path")
     args = ap.parse_args(argv)
     out = run(args.hexes, args.engine, args.max_steps)
-    out |= {"commit": _commit(), "date": time.strftime("%Y-%m-%d"),
-            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
+    out |= stamp()
     print(f"{out['hexes']:,} hexahedra, {out['describe']}: {out['wall_s']:.2f} s")
     print("phases:", ", ".join(f"{k} {v:.2f}" for k, v in out["phases"].items()))
     for k, v in sorted(out["functions"].items(), key=lambda kv: -kv[1]):
