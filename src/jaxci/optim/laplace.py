@@ -190,7 +190,7 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     """
     extra = no_extra() if extra is None else extra
     n = int(points.shape[0])
-    if (p.buckets or devices is not None) and not extra.types:  # padded to the size class: one compiled loop
+    if padded(p, devices, extra):  # padded to the size class: one compiled loop
         n_dev = 1 if devices is None else int(devices.devices.size)
         points, conn, cs, nbr, nmask, cons, weight, n_col = _padded(points, conn, cs, nbr, nmask, cons, n_dev)
         if devices is not None:
@@ -206,6 +206,12 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     hist = {"objective": np.asarray(hf)[: s + 1], "max_condition": np.asarray(hk)[: s + 1],
             "max_move": np.asarray(hm)[: s + 1]}
     return x, s, hist, {"method": "smart-laplace" if smart else "laplace", **dataclasses.asdict(p)}
+
+
+def padded(p: LaplaceParams, devices=None, extra: ExtraCells | None = None) -> bool:
+    """Whether `laplace` runs the sweeps padded to their size class: ``p.buckets`` or several devices, on a
+    hexahedral mesh (`extra` without types)."""
+    return bool(p.buckets or devices is not None) and not (extra is not None and extra.types)
 
 
 def _padded(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, multiple: int = 1):
@@ -246,7 +252,7 @@ def run_laplace(problem, method: str, params: dict):
         nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes, edge_pairs(mesh))
         extra = extra_cells(mesh)
     else:  # padded (`laplace`): kept on the host until padded, so that the device never holds both forms
-        place = not (p.buckets or problem.devices is not None)
+        place = not padded(p, problem.devices)
         cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, place=place)
         nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes, place=place)
         extra = None
