@@ -353,7 +353,7 @@ def _frozen(a: np.ndarray, ours: bool = False) -> np.ndarray:
 def _frozen_block(b: CellBlock) -> CellBlock:
     """A block the mesh made (`mirrored_block`), its arrays read-only."""
     return CellBlock(b.type, _frozen(b.data, ours=b.data.base is None), b.ids,
-                     None if b.midside is None else _frozen(b.midside))
+                     None if b.midside is None else _frozen(b.midside, ours=b.midside.base is None))
 
 
 def _checked_unused(cells, n: int) -> int | None:
