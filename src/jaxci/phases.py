@@ -21,7 +21,11 @@ import threading
 import time
 from collections.abc import Callable
 
+from . import transfer
 from .memory import release_free_memory
+
+#: What `PhaseClock` records of each phase (and ``host_s``, derived: `PhaseClock.add`).
+_FIELDS = ("seconds", "compile_seconds", "compiled", "cache_hits", "h2d_bytes", "d2h_bytes", "device_s")
 
 #: jax.monitoring duration events that are compilation (names as in jax._src.dispatch).
 _COMPILE_EVENTS = {
@@ -112,14 +116,14 @@ class PhaseClock:
         compile_totals()  # register the listener before the first phase compiles anything
 
     def add(self, name: str, seconds: float, compile_seconds: float = 0.0, compiled: int = 0,
-            cache_hits: int = 0) -> None:
-        """Add a phase measured elsewhere (e.g. the process start-up)."""
-        rec = self._phases.setdefault(name, {"seconds": 0.0, "compile_seconds": 0.0, "compiled": 0,
-                                             "cache_hits": 0})
-        rec["seconds"] += seconds
-        rec["compile_seconds"] += compile_seconds
-        rec["compiled"] += compiled
-        rec["cache_hits"] += cache_hits
+            cache_hits: int = 0, h2d_bytes: int = 0, d2h_bytes: int = 0, device_s: float = 0.0) -> None:
+        """Add a phase measured elsewhere (e.g. the process start-up). Its ``host_s`` is what is left of
+        `seconds` outside compiled programs (`device_s`) and compilation."""
+        rec = self._phases.setdefault(name, dict.fromkeys(_FIELDS, 0))
+        for key, value in zip(_FIELDS, (seconds, compile_seconds, compiled, cache_hits, h2d_bytes, d2h_bytes,
+                                        device_s), strict=False):
+            rec[key] += value
+        rec["host_s"] = max(0.0, rec["seconds"] - rec["device_s"] - rec["compile_seconds"])
 
     @contextlib.contextmanager
     def phase(self, name: str):
@@ -127,16 +131,17 @@ class PhaseClock:
         if self.on_event is not None:
             self.on_event("start", name, None)
         release_free_memory()  # the last phase's freed temporaries off the resident set before this one's arrays
-        c0, t0 = compile_totals(), time.perf_counter()
+        c0, m0, t0 = compile_totals(), transfer.totals(), time.perf_counter()
         token = _running.set(None if self.on_event is None else (self.on_event, name))
         try:
             yield
         finally:
             _running.reset(token)
-            c1 = compile_totals()
+            c1, m1 = compile_totals(), transfer.totals()
             self.add(name, time.perf_counter() - t0,
                      sum(c1[k] - c0[k] for k in ("trace", "lower", "backend")),
-                     c1["compiled"] - c0["compiled"], c1["cache_hits"] - c0["cache_hits"])
+                     c1["compiled"] - c0["compiled"], c1["cache_hits"] - c0["cache_hits"],
+                     *(m1[k] - m0[k] for k in ("h2d_bytes", "d2h_bytes", "device_s")))
             if self.on_event is not None:
                 self.on_event("end", name, dict(self._phases[name]))
 
@@ -146,11 +151,12 @@ class PhaseClock:
             self.on_event("progress", name, {"text": text})
 
     def as_dict(self) -> dict:
-        """``{phase: {seconds, compile_seconds, compiled, cache_hits}}`` plus ``"total"`` (sums)."""
+        """``{phase: {seconds, compile_seconds, compiled, cache_hits, h2d_bytes, d2h_bytes, device_s, host_s}}``
+        plus ``"total"`` (sums): `jaxci.transfer`'s bytes moved each way between host and device, seconds inside
+        compiled programs, and seconds outside them and compilation."""
         out = {k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in v.items()}
                for k, v in self._phases.items()}
-        tot = {k: sum(v[k] for v in self._phases.values()) for k in ("seconds", "compile_seconds", "compiled",
-                                                                       "cache_hits")}
+        tot = {k: sum(v[k] for v in self._phases.values()) for k in (*_FIELDS, "host_s")}
         out["total"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in tot.items()}
         return out
 

@@ -153,7 +153,7 @@ def _run_batch(runs: dict, pars: list) -> dict:
         out = [(np.asarray(x), it, hist) for x, it, hist in out]
     rec, n = clock.as_dict()["batch"], len(reqs)
     for r in reqs:
-        r.clock.add("smooth", rec["seconds"] / n, rec["compile_seconds"] / n)
+        r.clock.add("smooth", rec["seconds"] / n, rec["compile_seconds"] / n, device_s=rec["device_s"] / n)
     return {i: (x, it, hist, {**dataclasses.asdict(p), "batched_seeds": n})
             for i, (x, it, hist) in zip(runs, out, strict=True)}
 

@@ -21,7 +21,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._lazy import jax
+# `to_device`: a numpy array as a device array of a dtype, converted on the host (no compilation), its bytes
+# counted; `device_dtype`: that array kept on the host (padded before it goes there, so that the device never
+# holds both forms)
+from ..transfer import host_dtype as device_dtype  # noqa: F401
+from ..transfer import to_device  # noqa: F401
 
 #: The smallest size of the ladder.
 MIN_BUCKET = 8
@@ -41,19 +45,6 @@ def bucket(n: int, minimum: int = MIN_BUCKET, multiple: int = 1) -> int:
     return -(-b // int(multiple)) * int(multiple)
 
 
-def to_device(a, dtype=None) -> jax.Array:
-    """`a` as a device array of `dtype` (default: its own, canonicalised as JAX would: int32 / float32 unless
-    ``jax_enable_x64``), converted on the host: no compilation."""
-    return jax.device_put(device_dtype(a, dtype))
-
-
-def device_dtype(a, dtype=None) -> np.ndarray:
-    """`a` as the numpy array `to_device` would put on the device (kept on the host: for an array that is padded
-    before it goes there, so that the device never holds both forms)."""
-    a = np.asarray(a)
-    if dtype is None:
-        dtype = jax.dtypes.canonicalize_dtype(a.dtype)
-    return np.asarray(a, dtype=np.dtype(dtype))
 
 
 def pad_rows(a: np.ndarray, n: int, fill) -> np.ndarray:

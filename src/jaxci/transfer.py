@@ -1,0 +1,110 @@
+"""The JAX engine's traffic between the host and the device, and its time inside compiled programs, counted.
+
+A run on the JAX engine keeps its arrays on the device from the mesh's upload to the result's download; what
+crosses between them does so through the two functions of this module, never implicitly (``np.asarray`` of a
+device array, a numpy array passed to a jitted function: under ``jax.transfer_guard("disallow")`` both raise):
+
+- `to_device` puts a numpy array (or a pytree of them) on the device, converted to its dtype on the host (no
+  compilation: ``jnp.asarray`` of a numpy array compiles a small program per shape in jax 0.10);
+- `to_host` brings device arrays back as numpy arrays.
+
+Both add the bytes they move to process-wide totals (`totals`: ``h2d_bytes``, ``d2h_bytes``). `program` wraps a
+compiled entry point (a jitted function called from Python): each call waits for its outputs and adds the
+seconds it took, less any compilation it triggered (`jaxci.phases.compile_totals`), to ``device_s``, the time
+inside compiled programs. `jaxci.phases.PhaseClock` records the three per phase, and each phase's ``host_s``:
+its seconds outside compiled programs and compilation. A compiled call that is not wrapped counts as host time,
+so ``host_s`` is an upper bound.
+
+The numpy path (the host engine) moves nothing and never imports JAX for this module.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+import time
+
+import numpy as np
+
+from ._lazy import jax, loaded
+
+_lock = threading.Lock()
+_totals = {"h2d_bytes": 0, "d2h_bytes": 0, "device_s": 0.0}
+#: Nesting depth of `program` calls in this thread: only the outermost one is timed.
+_depth = threading.local()
+
+
+def totals() -> dict:
+    """The process's totals so far: ``h2d_bytes``, ``d2h_bytes`` (bytes moved through `to_device` and
+    `to_host`) and ``device_s`` (seconds inside `program` calls, compilation excluded)."""
+    with _lock:
+        return dict(_totals)
+
+
+def _add(key: str, value) -> None:
+    with _lock:
+        _totals[key] += value
+
+
+def _nbytes(tree) -> int:
+    if not loaded():
+        return 0
+    return int(sum(getattr(a, "nbytes", 0) for a in jax.tree_util.tree_leaves(tree)))
+
+
+def host_dtype(a, dtype=None) -> np.ndarray:
+    """`a` as the numpy array `to_device` puts on the device: `dtype`, or its own canonicalised as JAX would
+    (int32 / float32 unless ``jax_enable_x64``). Kept on the host: for an array padded before it goes there."""
+    a = np.asarray(a)
+    if dtype is None:
+        dtype = jax.dtypes.canonicalize_dtype(a.dtype)
+    return np.asarray(a, dtype=np.dtype(dtype))
+
+
+def to_device(a, dtype=None, device=None):
+    """`a` (a numpy array, a scalar, or a pytree of them) as device arrays of `dtype` (default: each its own,
+    canonicalised), on `device` (default: JAX's default device); the bytes are counted (``h2d_bytes``)."""
+    if isinstance(a, (np.ndarray, np.generic, int, float, bool)) or dtype is not None:
+        out = jax.device_put(host_dtype(a, dtype), device)
+    else:
+        out = jax.device_put(jax.tree_util.tree_map(lambda v: host_dtype(v), a), device)
+    _add("h2d_bytes", _nbytes(out))
+    return out
+
+
+def to_host(a):
+    """Device arrays `a` (an array or a pytree) as numpy arrays (numpy leaves pass through); the bytes of the
+    device arrays are counted (``d2h_bytes``)."""
+    out = jax.device_get(a)
+    _add("d2h_bytes", _nbytes([v for v in jax.tree_util.tree_leaves(a) if isinstance(v, jax.Array)]))
+    return out
+
+
+def scalar(a) -> float:
+    """A device scalar as a Python float (its bytes counted)."""
+    return float(to_host(a))
+
+
+def program(fn):
+    """`fn` (a compiled entry point) timed: each outermost call waits for its outputs (`jax.block_until_ready`)
+    and adds its seconds, less the compilation it triggered, to ``device_s``. Nested calls (a program calling
+    another from Python) are timed once, by the outermost."""
+    from .phases import compile_totals
+
+    @functools.wraps(fn)
+    def timed(*args, **kwargs):
+        depth = getattr(_depth, "n", 0)
+        if depth:
+            return fn(*args, **kwargs)
+        _depth.n = 1
+        try:
+            c0, t0 = compile_totals(), time.perf_counter()
+            out = jax.block_until_ready(fn(*args, **kwargs))
+            c1 = compile_totals()
+            compiling = sum(c1[k] - c0[k] for k in ("trace", "lower", "backend"))
+            _add("device_s", max(0.0, time.perf_counter() - t0 - compiling))
+            return out
+        finally:
+            _depth.n = 0
+
+    return timed
