@@ -17,23 +17,15 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import os
-import threading
 import time
 from collections.abc import Callable
 
 from . import transfer
 from .memory import release_free_memory
+from .transfer import compile_totals  # noqa: F401  (also reached as jaxci.phases.compile_totals)
 
 #: What `PhaseClock` records of each phase (and ``host_s``, derived: `PhaseClock.add`).
 _FIELDS = ("seconds", "compile_seconds", "compiled", "cache_hits", "h2d_bytes", "d2h_bytes", "device_s")
-
-#: jax.monitoring duration events that are compilation (names as in jax._src.dispatch).
-_COMPILE_EVENTS = {
-    "/jax/core/compile/jaxpr_trace_duration": "trace",
-    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
-    "/jax/core/compile/backend_compile_duration": "backend",
-}
-_CACHE_HIT = "/jax/compilation_cache/cache_hits"
 
 #: Seconds between two reports of a loop's steps (`stepper`): a terminal's line redrawn a few times a second.
 STEP_INTERVAL = 0.2
@@ -43,49 +35,6 @@ STEP_INTERVAL = 0.2
 _running: contextvars.ContextVar = contextvars.ContextVar("jaxci_running_phase", default=None)
 #: The listener of clocks made without one (`listening`).
 _ambient: contextvars.ContextVar = contextvars.ContextVar("jaxci_phase_listener", default=None)
-
-_lock = threading.Lock()
-_totals = {"trace": 0.0, "lower": 0.0, "backend": 0.0, "compiled": 0, "cache_hits": 0}
-_registered = False
-
-
-def _on_duration(event: str, duration: float, **_) -> None:
-    kind = _COMPILE_EVENTS.get(event)
-    if kind is not None:
-        with _lock:
-            _totals[kind] += float(duration)
-            if kind == "backend":
-                _totals["compiled"] += 1
-
-
-def _on_event(event: str, **_) -> None:
-    if event == _CACHE_HIT:
-        with _lock:
-            _totals["cache_hits"] += 1
-
-
-def compile_totals() -> dict:
-    """Compilation so far in this process: seconds of ``trace``, ``lower``, ``backend`` (XLA compile or
-    persistent-cache load), ``compiled`` (backend compilations, cache loads included) and ``cache_hits``.
-
-    The listener is registered when JAX is imported (`jaxci._lazy.when_imported`), not by this call: a run that
-    never imports JAX compiled nothing and does not import it to say so."""
-    global _registered
-    if not _registered:
-        from ._lazy import when_imported
-
-        _registered = True
-        when_imported("jax", _register)
-    with _lock:
-        return dict(_totals)
-
-
-def _register() -> None:
-    from jax import monitoring
-
-    monitoring.register_event_duration_secs_listener(_on_duration)
-    monitoring.register_event_listener(_on_event)
-
 
 def process_age() -> float | None:
     """Seconds since this process started (Linux ``/proc``; None elsewhere): the start-up and import time of a

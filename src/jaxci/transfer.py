@@ -10,8 +10,10 @@ device array, a numpy array passed to a jitted function: under ``jax.transfer_gu
 
 Both add the bytes they move to process-wide totals (`totals`: ``h2d_bytes``, ``d2h_bytes``). `program` wraps a
 compiled entry point (a jitted function called from Python): each call waits for its outputs and adds the
-seconds it took, less any compilation it triggered (`jaxci.phases.compile_totals`), to ``device_s``, the time
-inside compiled programs. `jaxci.phases.PhaseClock` records the three per phase, and each phase's ``host_s``:
+seconds it took, less any compilation it triggered (`compile_totals`: JAX reports every compilation through
+`jax.monitoring`, tracing, lowering to MLIR and the XLA backend compile or its persistent-cache load, and a
+listener registered once per process adds those durations up), to ``device_s``, the time inside compiled
+programs. `jaxci.phases.PhaseClock` records the three per phase, and each phase's ``host_s``:
 its seconds outside compiled programs and compilation. A compiled call that is not wrapped counts as host time,
 so ``host_s`` is an upper bound.
 
@@ -27,6 +29,57 @@ import time
 import numpy as np
 
 from ._lazy import jax, loaded
+
+#: jax.monitoring duration events that are compilation (names as in jax._src.dispatch).
+_COMPILE_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "backend",
+}
+_CACHE_HIT = "/jax/compilation_cache/cache_hits"
+
+_clock = threading.Lock()
+_compile = {"trace": 0.0, "lower": 0.0, "backend": 0.0, "compiled": 0, "cache_hits": 0}
+_registered = False
+
+
+def _on_duration(event: str, duration: float, **_) -> None:
+    kind = _COMPILE_EVENTS.get(event)
+    if kind is not None:
+        with _clock:
+            _compile[kind] += float(duration)
+            if kind == "backend":
+                _compile["compiled"] += 1
+
+
+def _on_event(event: str, **_) -> None:
+    if event == _CACHE_HIT:
+        with _clock:
+            _compile["cache_hits"] += 1
+
+
+def compile_totals() -> dict:
+    """Compilation so far in this process: seconds of ``trace``, ``lower``, ``backend`` (XLA compile or
+    persistent-cache load), ``compiled`` (backend compilations, cache loads included) and ``cache_hits``.
+
+    The listener is registered when JAX is imported (`jaxci._lazy.when_imported`), not by this call: a run that
+    never imports JAX compiled nothing and does not import it to say so."""
+    global _registered
+    if not _registered:
+        from ._lazy import when_imported
+
+        _registered = True
+        when_imported("jax", _register)
+    with _clock:
+        return dict(_compile)
+
+
+def _register() -> None:
+    from jax import monitoring
+
+    monitoring.register_event_duration_secs_listener(_on_duration)
+    monitoring.register_event_listener(_on_event)
+
 
 _lock = threading.Lock()
 _totals = {"h2d_bytes": 0, "d2h_bytes": 0, "device_s": 0.0}
@@ -89,8 +142,6 @@ def program(fn):
     """`fn` (a compiled entry point) timed: each outermost call waits for its outputs (`jax.block_until_ready`)
     and adds its seconds, less the compilation it triggered, to ``device_s``. Nested calls (a program calling
     another from Python) are timed once, by the outermost."""
-    from .phases import compile_totals
-
     @functools.wraps(fn)
     def timed(*args, **kwargs):
         depth = getattr(_depth, "n", 0)
