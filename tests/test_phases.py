@@ -13,7 +13,7 @@ from jaxci.generate import box, perturb_box
 from jaxci.io import write_mesh
 from jaxci.phases import PhaseClock, compile_totals
 
-PHASE_KEYS = {"seconds", "compile_seconds", "compiled", "cache_hits"}
+PHASE_KEYS = {"seconds", "compile_seconds", "compiled", "cache_hits", "h2d_bytes", "d2h_bytes", "device_s", "host_s"}
 
 
 def test_phase_clock_counts_compilations():
@@ -118,3 +118,34 @@ def test_every_phase_gives_the_heap_free_pages_back(monkeypatch):
     assert ran is (memory._malloc_trim() is not None)
     if sys.platform.startswith("linux") and "glibc" in " ".join(__import__("platform").libc_ver()):
         assert ran
+
+
+def test_phase_counts_transfers_and_time_in_programs():
+    """A phase records the bytes `jaxci.transfer` moves each way, the seconds inside `program` calls (their
+    compilation excluded) and the rest as host seconds."""
+    import time
+
+    import jax
+    import numpy as np
+
+    from jaxci.transfer import program, to_device, to_host
+
+    @program
+    @jax.jit
+    def double(a):
+        return a * 2.0
+
+    clock = PhaseClock()
+    a = np.arange(1000, dtype=np.float64)
+    with clock.phase("p"):
+        d = to_device(a)
+        double(d)  # compiles: not device time
+        out = to_host(double(d))
+        time.sleep(0.05)  # host time
+    rec = clock.as_dict()["p"]
+    assert rec["h2d_bytes"] == a.nbytes and rec["d2h_bytes"] == a.nbytes
+    np.testing.assert_array_equal(out, 2 * a)
+    assert rec["compiled"] >= 1 and rec["compile_seconds"] > 0
+    assert 0 < rec["device_s"] < rec["seconds"] - rec["compile_seconds"]
+    assert rec["host_s"] >= 0.05
+    assert abs(rec["host_s"] + rec["device_s"] + rec["compile_seconds"] - rec["seconds"]) < 1e-3
