@@ -65,6 +65,20 @@ MIN_EXCESS = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
+class Rest:
+    """The cells the polish does not see (outside a window of the worst cells, `jaxci.optim.polish_window`): none
+    of their nodes moves, so their figures stay as they are, and enter the polish's as these sums: `n_cells`,
+    `n_corners`, `e_sum` (the sum of their corner excesses ``(kappa/3)^2 - 1``), `k_sum` and `k_max` (the sum and
+    the max of each cell's worst corner kappa/3)."""
+
+    n_cells: int = 0
+    n_corners: int = 0
+    e_sum: float = 0.0
+    k_sum: float = 0.0
+    k_max: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
 class PolishParams:
     """`budget`: the most the mean element quality (the mean over the cells of each cell's worst corner kappa/3)
     may rise above the start's, as a fraction (default 0.01); `work`: the most kernel passes over cells, two per
@@ -78,13 +92,16 @@ class PolishParams:
 
 
 def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: PolishParams = PolishParams(),
-           blocks: dict | None = None):
+           blocks: dict | None = None, rest: Rest | None = None):
     """Polish the worst elements of `mesh` at `x` (see the module docstring).
 
-    **Arguments:** `mesh` the `HexMesh` (the geometry of `cons`); `cons` its numpy float64 `Constraints`; `par`
-    a numpy `Parametrisation` of `cons` (its scales and flat regions are used, not its base); `x` float64
-    ``(n, 3)`` on the boundary; `p` the `PolishParams`; `blocks` the cells by type (default
-    `jaxci.cells.element_blocks` of `mesh`).
+    **Arguments:** `mesh` the `HexMesh` (the geometry of `cons`; only read for `blocks` where they are not
+    given); `cons` its numpy float64 `Constraints`; `par` a numpy `Parametrisation` of `cons` (its scales and
+    flat regions are used, not its base); `x` float64 ``(n, 3)`` on the boundary; `p` the `PolishParams`;
+    `blocks` the cells by type (default `jaxci.cells.element_blocks` of `mesh`); `rest`: the cells of the mesh
+    that `blocks` leaves out, where `blocks`, `cons`, `par` and `x` are a window of it (the nodes of `blocks`
+    that are also nodes of cells left out are fixed in `cons`): the worst cell, the mean and F are the whole
+    mesh's.
 
     **Returns:** ``(x, report)``: the polished coordinates (a new array; `x` itself when nothing was kept) and a
     dict: ``rounds``, ``steps``, ``kept`` (rounds kept), ``worst`` and ``mean`` (before, after), ``objective``
@@ -93,6 +110,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
     """
     blocks = element_blocks(mesh) if blocks is None else blocks
     blocks = {t: np.asarray(c, np.int64) for t, c in blocks.items() if len(c)}
+    rest = Rest() if rest is None else rest
     x = np.array(x, dtype=np.float64)
     cells = CellCorners(blocks)
     terms = cells.terms_all(x)
@@ -100,15 +118,19 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
     order = list(worst)
     k = np.concatenate([worst[t] for t in order])
     offsets = dict(zip(order, np.cumsum([0] + [len(worst[t]) for t in order])[:-1].tolist(), strict=True))
-    n_corners = cells.n_corners
-    e_sum = float(sum(np.sum(t - 1.0) for t in terms))
-    w0, mean0 = float(k.max()), float(k.mean())
+    n_corners = cells.n_corners + rest.n_corners
+    e_sum = float(sum(np.sum(t - 1.0) for t in terms)) + rest.e_sum
+
+    def figures(k):  # the worst cell and the mean cell of the whole mesh, the rest included
+        return max(float(k.max()), rest.k_max), (float(k.sum()) + rest.k_sum) / (len(k) + rest.n_cells)
+
+    w0, mean0 = figures(k)
     report = {"rounds": 0, "steps": 0, "kept": 0, "worst": [w0, w0], "mean": [mean0, mean0], "objective": [],
               "max_condition": [], "stopped": "", "limited": False}
     if not np.isfinite(w0) or w0 <= 1.0 + MIN_EXCESS:
         report["stopped"] = "inverted cells" if not np.isfinite(w0) else "worst element within 1e-3 of ideal"
         return x, report
-    free = np.zeros(mesh.n_nodes, bool)
+    free = np.zeros(len(x), bool)
     for nodes in (cons.interior_nodes, cons.surface_nodes, cons.edge_nodes):
         free[np.asarray(nodes)] = True
     layout = _Layout(cons, par, free)
@@ -125,7 +147,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
             report["stopped"] = "its work bound (the L-BFGS solve's steps times cells)"
             break
         level = 1.0 + gamma * (w - 1.0)
-        region = np.zeros(mesh.n_nodes, bool)
+        region = np.zeros(len(x), bool)
         for t in order:
             above = worst[t] > level
             region[blocks[t][above].ravel()] = True
@@ -157,7 +179,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
         k_new = k.copy()
         for t, idx in sub.cell_index.items():
             k_new[offsets[t] + idx] = new_worst[t]
-        w_new, mean_new = float(k_new.max()), float(k_new.mean())
+        w_new, mean_new = figures(k_new)
         e_new = e_sum + float(sum(np.sum(a - 1.0) for a in new_terms) - sum(np.sum(a - 1.0) for a in old_terms))
         if (w_new < w * (1.0 - 1e-4) and mean_new <= mean0 * (1.0 + p.budget)
                 and e_new <= p.f_limit * n_corners * (1.0 - 1e-9)):
@@ -172,7 +194,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
         report["max_condition"].append(w)
         if tick is not None:
             tick(report["rounds"], e_sum / n_corners, w)
-    report["worst"][1], report["mean"][1] = float(k.max()), float(k.mean())
+    report["worst"][1], report["mean"][1] = figures(k)
     return x, report
 
 
