@@ -77,7 +77,7 @@ import functools
 import numpy as np
 
 from .. import native
-from .._lazy import compute_platform, jax, jnp
+from .._lazy import compute_platform, filter_jit, jax, jit, jnp
 from ..cells import corner_invariants, pmean_weights
 from ..errors import ConfigError
 from ..geometry.projection import project_np
@@ -91,6 +91,7 @@ from ..metrics.hexahedron import (
 )
 from ..metrics.objective import extra_barrier, extra_cells, extra_terms, has_extra, no_extra, objective_and_max
 from ..phases import progress
+from ..transfer import program, to_host
 from . import _params as _p
 from ._buckets import bucket, padded_connectivity, to_device
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED
@@ -394,11 +395,16 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
 
         run_conn, weight, run_par = place_problem(run_conn, weight, run_par, devices)
 
-    def real(y):  # the real free coordinates of the iterate (numpy)
-        y = np.asarray(y)
-        return y if index is None else y[index]
+    if on_host:
+        def real(y):  # the real free coordinates of the iterate (numpy)
+            return y if index is None else y[index]
+    else:  # on the device: the iterate never comes down (`_reach`, `_final_points`)
+        dev_index = None if index is None else to_device(index, np.int32)
 
-    y = np.zeros(run_par.n_free) if on_host else to_device(np.zeros(run_par.n_free), par.x0.dtype)
+        def real(y):
+            return y if dev_index is None else _take(y, dev_index)
+
+    y = np.zeros(run_par.n_free) if on_host else jnp.zeros((run_par.n_free,), par.x0.dtype)
     hist_f, hist_k, starts = [], [], []
     steps = 0
     f0 = None
@@ -447,8 +453,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             y = replicate(y, devices) if n_dev else y  # one input sharding for every run: one compilation
             y, k, result, hf, hk = solve_loop(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
+        k, hf, hk = to_host((k, hf, hk))  # the step count and the histories (max_steps + 1 floats each)
         k = int(k)
-        seg_f, seg_k = np.asarray(hf)[: k + 1], np.asarray(hk)[: k + 1]  # sliced on the host: no compilation
+        seg_f, seg_k = hf[: k + 1], hk[: k + 1]  # sliced on the host: no compilation
         if runs == 0:
             f0 = float(seg_f[np.isfinite(seg_f)][0]) if np.isfinite(seg_f).any() else float(seg_f[0])
             hist_f.append(seg_f)
@@ -467,18 +474,43 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             break
         if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
             break
-        if strict and par.reach(real(y)) > FLAT_REACH:
+        if strict and (par.reach(real(y)) if on_host else float(to_host(_reach(par, real(y))))) > FLAT_REACH:
             strict, max_runs = False, max_runs + 1  # the flat regions may have held it back: once more, projected
             continue
         if runs >= 2 and not gain > p.restart_tol * abs(f0):
             break
     if on_host and host_fn.best is not None and np.array_equal(host_fn.best[0], y):
         x = np.asarray(host_fn.best[1], par.x0.dtype)  # the points of the best iterate as evaluated (on the boundary)
-    else:
+    elif on_host:
         x = par.final_points(real(y))
+    else:  # on the device: projected where a node left its flat region (exactly onto the boundary later, in
+        # float64: `jaxci.invariants`)
+        x = _final_points(par, real(y))
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
     return x, steps, hist, params
+
+
+@program
+@jit
+def _take(y, index):
+    """The real free coordinates ``y[index]`` of a padded iterate, on the device."""
+    return y[index]
+
+
+@program
+@filter_jit
+def _reach(par: Parametrisation, v):
+    """`Parametrisation.reach` of `v` on the device (a scalar)."""
+    return par.reach_of(par.lift(v), jnp)
+
+
+@program
+@filter_jit
+def _final_points(par: Parametrisation, v):
+    """The node coordinates of `v` ``(n, 3)`` on the device, projected (`jaxci.geometry.projection.project`) where
+    a node left its flat region."""
+    return dataclasses.replace(par, strict=False).points(v)
 
 
 def _method(name):

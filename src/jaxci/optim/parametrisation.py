@@ -80,14 +80,14 @@ class Parametrisation:
     def reach(self, v) -> float:
         """How far the moving boundary nodes of `v` went into their flat regions: the largest distance from the
         region's origin over 0.999 times its radius (numpy float64; < 1: `points` needs no projection)."""
-        return self._reach(self._lift_np(v))
+        return float(self.reach_of(self._lift_np(v)))
 
     def final_points(self, v):
         """`points` of `v`, in numpy float64 outside `jax.jit` (the exact `jaxci.geometry.projection.project_np` only
         where a node left its flat region), returned in the dtype of `x0`: compiling `points` for this one call cost
         0.5 s of the 729-element cold start, running it op by op 1 s."""
         x = self._lift_np(v)
-        if not (self.shortcut and self._reach(x) < 1.0):
+        if not (self.shortcut and self.reach_of(x) < 1.0):
             x = project_np(self.cons, x)
         return to_device(x, self.x0.dtype)
 
@@ -95,11 +95,13 @@ class Parametrisation:
         f64 = np.float64
         return lift_points(np, np.asarray(self.x0, f64), np.asarray(self.scale, f64), self.cons, np.asarray(v, f64))
 
-    def _reach(self, x) -> float:
-        d = x[np.asarray(self.flat_nodes)] - np.asarray(self.flat_origin, dtype=np.float64)
-        r = 0.999 * np.asarray(self.flat_radius, dtype=np.float64)
-        dist = np.sqrt(np.sum(d * d, axis=-1))
-        return float(np.max(np.divide(dist, r, out=np.full_like(dist, np.inf), where=r > 0), initial=0.0))
+    def reach_of(self, x, xp=np):
+        """`reach` of the node coordinates `x` ``(n, 3)``, with `xp` numpy (float64) or `jax.numpy` (traceable):
+        a scalar."""
+        d = x[self.flat_nodes] - xp.asarray(self.flat_origin, x.dtype)
+        r = 0.999 * xp.asarray(self.flat_radius, x.dtype)
+        dist = xp.sqrt(xp.sum(d * d, axis=-1))
+        return xp.max(xp.where(r > 0, dist / xp.where(r > 0, r, 1.0), xp.inf), initial=0.0)
 
     def params(self, points):
         """Scaled free coordinates of `points` ``(n, 3)``: ``B^T (points - x0) / scale`` (inverse of `lift`)."""
