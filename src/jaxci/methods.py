@@ -41,7 +41,9 @@ class Problem:
     `jaxci.metrics.objective.CornerTable`), None for a hexahedral one; the colouring (`colour`) on first use;
     `devices`: None (one device) or the `jax.sharding.Mesh` the compiled methods shard the elements over;
     `plan`: the `jaxci.engine.Plan` the methods run on (its engine: numpy arrays on the host engine, JAX arrays
-    on the JAX engine)."""
+    on the JAX engine); `tables`: where the mesh lives on the device (`jaxci.device_run`), the boundary's float64
+    tables on the host (`jaxci.geometry.tables.BoundaryTables`: the exact projection of the boundary nodes and the
+    worst-element polish's window read them), else None."""
 
     mesh: HexMesh
     info: BoundaryInfo
@@ -53,6 +55,7 @@ class Problem:
     table: mixed.CornerTable | None = None
     devices: object = None
     plan: object = None
+    tables: object = None
 
     @property
     def host(self) -> bool:

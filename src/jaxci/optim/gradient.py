@@ -556,8 +556,15 @@ def run_gradient(problem, method: str, params: dict):
 
             xl, sweeps, pre, _ = run_laplace(problem, "smart-laplace", sweep)
         # exactly on the boundary again (float64, the host's float64 constraints: the original boundary, not its
-        # float32 rounding), so that the flat-region shortcut of the parametrisation holds
-        x0 = project_np(problem.host_cons, np.asarray(xl, dtype=np.float64))
+        # float32 rounding), so that the flat-region shortcut of the parametrisation holds; where the mesh lives on
+        # the device, its boundary nodes only (`project_boundary`: O(boundary) down and up)
+        if problem.tables is not None:
+            from ..geometry.device_constraints import project_boundary
+
+            with jax.enable_x64(True):
+                x0 = project_boundary(problem.cons, problem.tables, _as_float64(xl))
+        else:
+            x0 = project_np(problem.host_cons, np.asarray(xl, dtype=np.float64))
         del xl
     par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled, dtype=problem.dtype)
     extra = None
@@ -581,7 +588,8 @@ def run_gradient(problem, method: str, params: dict):
 
 def _polish(problem, par: Parametrisation, x, steps: int, hist: dict, p: GradientParams):
     """The worst-element polish (`jaxci.optim.polish`) of the solver's result `x`, on the host whatever the engine
-    (numpy float64 constraints and parametrisation are made where the run's are JAX arrays): ``(x, steps, hist)``
+    (numpy float64 constraints and parametrisation are made where the run's are JAX arrays; where the mesh lives
+    on the device, of a window of its worst cells, `jaxci.optim.polish_window`): ``(x, steps, hist)``
     with one step and one history entry per polish round, and ``polish`` (the polish's report) in the history.
     Its work is bounded by the solve's (`steps` times the cells); F may end above the method's input's
     where the worst element fell (`jaxci.metrics.guard.worst_first`: the run's final check)."""
@@ -589,22 +597,40 @@ def _polish(problem, par: Parametrisation, x, steps: int, hist: dict, p: Gradien
     from .polish import PolishParams, polish
 
     mesh = problem.mesh
+    blocks = element_blocks(mesh)
+    n_cells = sum(len(c) for c in blocks.values())
+    pp = PolishParams(budget=p.polish_budget, work=float(max(steps, 1)) * n_cells)
+    if problem.tables is not None:  # the mesh on the device: the polish on a window of its worst cells
+        from .polish_window import put_back, window
+
+        with jax.enable_x64(True):
+            x = _as_float64(x)
+            win = window(x, problem.conn, problem.cons, par, problem.tables)
+            y, report = polish(None, win.cons, win.par, win.x, pp, win.blocks, win.rest)
+            return put_back(x, win, y), steps + int(report["rounds"]), _polish_history(hist, report)
     x = np.asarray(x, np.float64)
     cons = problem.host_cons  # shared with the run's final check
     if problem.host and np.asarray(par.x0).dtype == np.float64:
         hpar = par
     else:
         hpar = make_parametrisation(mesh, problem.info, cons, x, scaled=p.scaled, dtype=np.float64)
-    blocks = element_blocks(mesh)
-    n_cells = sum(len(c) for c in blocks.values())
-    pp = PolishParams(budget=p.polish_budget, work=float(max(steps, 1)) * n_cells)
     y, report = polish(mesh, cons, hpar, x, pp, blocks)
-    rounds = int(report["rounds"])
+    return np.asarray(y, np.asarray(x).dtype), steps + int(report["rounds"]), _polish_history(hist, report)
+
+
+def _polish_history(hist: dict, report: dict) -> dict:
+    """The run's history with the polish's rounds appended (F and max kappa/3 after each) and its report."""
     hist = {**hist, "polish": {k: v for k, v in report.items() if k not in ("objective", "max_condition")}}
     hist["objective"] = np.concatenate([np.asarray(hist["objective"], np.float64), report["objective"]])
     hist["max_condition"] = np.concatenate([np.asarray(hist["max_condition"], np.float64),
                                             report["max_condition"]])
-    return np.asarray(y, np.asarray(x).dtype), steps + rounds, hist
+    return hist
+
+
+@program
+@jit
+def _as_float64(x):
+    return x.astype(jnp.float64)
 
 
 # ---------------------------------------------------------------------------------------------- mixed meshes

@@ -5,8 +5,8 @@ The polish (`jaxci.optim.polish`) moves only the nodes of the cells above its le
 worst cell down; on the JAX engine the mesh is on the device, and bringing it to the host for the polish would
 be O(mesh) host work and traffic for an O(worst elements) job. `window` finds on the device the `window_size`
 worst cells (their worst corner kappa/3, float64) and every cell that shares a node with them (the ring), brings
-down those cells and the data of their nodes (coordinates, classes, constraint rows, free-coordinate scales and
-flat regions), and gives the polish a compact problem in which:
+down those cells and the data of their nodes (coordinates, classes, free-coordinate scales and flat regions;
+their constraint rows are the host's float64 tables), and gives the polish a compact problem in which:
 
 - the nodes of the worst cells move as in the whole mesh (their class, constraints, scales, flat regions);
 - the other nodes of the ring cells are fixed (some of their cells are outside the window);
@@ -109,11 +109,9 @@ def _node_rows(x, cons: Constraints, par: Parametrisation, nodes):
 
 @program
 @jit
-def _gather_rows(cons: Constraints, par: Parametrisation, s_rows, e_rows, coords, flat):
-    """The constraint rows of the window's surface and edge nodes, the scales of its free coordinates `coords`
-    and the flat regions of rows `flat`."""
-    return (cons.surface_basis[s_rows], cons.edge_tangent[e_rows], cons.surface_cand[s_rows],
-            cons.edge_cand[e_rows], par.scale[coords], par.flat_origin[flat], par.flat_radius[flat])
+def _gather_rows(par: Parametrisation, coords, flat):
+    """The scales of the free coordinates `coords` and the flat regions of rows `flat`."""
+    return par.scale[coords], par.flat_origin[flat], par.flat_radius[flat]
 
 
 def window(x, conn, cons: Constraints, par: Parametrisation, tables: Constraints, k: int | None = None) -> Window:
@@ -121,8 +119,10 @@ def window(x, conn, cons: Constraints, par: Parametrisation, tables: Constraints
 
     **Arguments:** `x` ``(n, 3)`` float64 device coordinates (on the boundary); `conn` ``(8, N)`` the device
     hexahedra (transposed); `cons`, `par` the run's device `Constraints` and `Parametrisation` (unpadded);
-    `tables` numpy float64 constraints whose boundary tables (`triangles`, `triangle_patch`, `segments`,
-    `segment_curve`) the window's projections use; `k`: the worst cells to hold (default `window_size`).
+    `tables` the boundary's tables on the host in float64 (`jaxci.geometry.tables.BoundaryTables`, or numpy
+    float64 `Constraints`): the rows of the window's surface and edge nodes (`surface_basis`, `edge_tangent`,
+    `surface_cand`, `edge_cand`, indexed as `cons`' rows) and the triangles and segments its projections search;
+    `k`: the worst cells to hold (default `window_size`).
 
     Traffic: O(window) each way, and the four small programs above.
     """
@@ -152,10 +152,9 @@ def window(x, conn, cons: Constraints, par: Parametrisation, tables: Constraints
         a = np.asarray(a, np.int32)
         return np.concatenate([a, np.zeros(bucket(max(len(a), 1)) - len(a), np.int32)])
 
-    basis, tangent, s_cand, e_cand, scale, origin, radius = to_host(_gather_rows(
-        cons, par, to_device(pad(s_rows)), to_device(pad(e_rows)), to_device(pad(coords)),
-        to_device(pad(np.maximum(f_rows, 0)))))
+    scale, origin, radius = to_host(_gather_rows(par, to_device(pad(coords)), to_device(pad(np.maximum(f_rows, 0)))))
     f64 = np.float64
+    s_cand, e_cand = np.asarray(tables.surface_cand), np.asarray(tables.edge_cand)
     row_new = np.zeros(len(nodes), np.int32)
     row_new[groups[SURFACE]] = np.arange(len(s_rows))
     row_new[groups[EDGE]] = np.arange(len(e_rows))
@@ -168,10 +167,10 @@ def window(x, conn, cons: Constraints, par: Parametrisation, tables: Constraints
         surface_nodes=groups[SURFACE].astype(np.int32),
         edge_nodes=groups[EDGE].astype(np.int32),
         corner_nodes=groups[CORNER].astype(np.int32),
-        surface_basis=np.asarray(basis[: len(s_rows)], f64),
-        edge_tangent=np.asarray(tangent[: len(e_rows)], f64),
-        surface_cand=s_cand[: max(len(s_rows), 1)],
-        edge_cand=e_cand[: max(len(e_rows), 1)],
+        surface_basis=np.asarray(tables.surface_basis, f64)[s_rows],
+        edge_tangent=np.asarray(tables.edge_tangent, f64)[e_rows],
+        surface_cand=s_cand[s_rows] if len(s_rows) else s_cand[:1],
+        edge_cand=e_cand[e_rows] if len(e_rows) else e_cand[:1],
         triangles=np.asarray(tables.triangles, f64),
         triangle_patch=np.asarray(tables.triangle_patch),
         segments=np.asarray(tables.segments, f64),
