@@ -79,7 +79,7 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
 
     Measured in float64 on the host (`jaxci.metrics.elements.hex_corner_measures`: the threaded C pass of
     `jaxci.native`, else numpy; no compilation, which cost 0.4 s of a 729-element cold start), over blocks of
-    `REPORT_CHUNK` hexahedra (`_HexFigures`). The coordinates are
+    `REPORT_CHUNK` hexahedra (`HexFigures`). The coordinates are
     measured in the unit frame of `jaxci.mesh.unit_frame` (the metrics are scale-invariant): a mesh in metres,
     nanometres or light years gives the same report, without overflow or underflow. The same report from
     coordinates on a device: `jaxci.metrics.device.quality_report_device`.
@@ -98,7 +98,7 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
             raise non_finite_error(mesh, k, pts[k])
     pts = to_unit(pts, unit_frame(pts))
     hexes = mesh.hexes
-    acc = _HexFigures()
+    acc = HexFigures()
     for lo in range(0, mesh.n_hexes, REPORT_CHUNK):
         kappa3, sj = hex_corner_measures(pts, hexes[lo:lo + REPORT_CHUNK])
         acc.add(figure_totals(np, kappa3, sj, axis=1), lo)
@@ -117,7 +117,7 @@ def non_finite_error(mesh: HexMesh, k: int, row) -> MeshError:
                      f"{np.asarray(row, np.float64).tolist()}")
 
 
-def build_report(mesh: HexMesh, acc: _HexFigures, pts) -> QualityReport:
+def build_report(mesh: HexMesh, acc: HexFigures, pts) -> QualityReport:
     """The `QualityReport` of `mesh` from its hexahedra's figures `acc` and, for its other cell types, the unit
     frame coordinates `pts` ``(n, 3)`` (unused, and may be None, on a hexahedral mesh)."""
     return QualityReport(
@@ -173,7 +173,7 @@ def figure_totals(xp, kappa3, sj, axis: int) -> dict:
             "sj_min": xp.min(sj), "hist": hist}
 
 
-class _HexFigures:
+class HexFigures:
     """The hexahedra's report figures, accumulated block by block (`add`)."""
 
     def __init__(self):
@@ -204,7 +204,7 @@ class _HexFigures:
                 "verdict_condition": self.max_ok}
 
 
-def _by_type(mesh: HexMesh, points, hexa: _HexFigures) -> dict:
+def _by_type(mesh: HexMesh, points, hexa: HexFigures) -> dict:
     """The `by_type` and `overall` fields of `quality_report`: the hexahedra's from `hexa` (accumulated above),
     `jaxci.metrics.elements.corner_figures` for the other types (measured at `points`; unused on a mesh of
     hexahedra only, whose blocks are then not concatenated)."""
@@ -226,10 +226,10 @@ def _by_type(mesh: HexMesh, points, hexa: _HexFigures) -> dict:
 
 
 def _overall(parts: list) -> dict:
-    """`jaxci.metrics.elements.summary` over every cell: the hexahedra's accumulated figures (`_HexFigures`) and
+    """`jaxci.metrics.elements.summary` over every cell: the hexahedra's accumulated figures (`HexFigures`) and
     the other types' `corner_figures`."""
     figs = [p for p in parts if isinstance(p, dict)]
-    hexa = [p for p in parts if isinstance(p, _HexFigures)]
+    hexa = [p for p in parts if isinstance(p, HexFigures)]
     if not hexa:
         return summary(figs)
     h = hexa[0]
