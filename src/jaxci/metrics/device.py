@@ -92,7 +92,6 @@ def report_figures(points, conn) -> dict:
     bad = ~jnp.all(jnp.isfinite(p), axis=1)
     first = jnp.argmax(bad)
     _, kappa3, sj, _ = _corners(_unit(p), conn)
-    kappa3, sj = jax.lax.optimization_barrier((kappa3, sj))  # formed once; XLA would form them per reduction
     return {**figure_totals(jnp, kappa3, sj, axis=0), "n_bad": jnp.sum(bad), "first_bad": first,
             "bad_row": p[first]}
 
