@@ -11,7 +11,9 @@ From the start the method ran from (the input, or the untangling stage's result)
   weighs the worst element first (the default pipeline's worst-element polish), rose only while the worst cell
   fell (`jaxci.metrics.guard.worst_first`).
 
-Otherwise the start is returned, with a note saying why.
+Otherwise the start is returned, with a note saying why. `enforce` checks numpy coordinates on the host;
+`enforce_device` checks coordinates on a device (the JAX engine, hexahedral meshes), where the figures are reduced
+(`jaxci.metrics.device.final_figures`); both decide by `checked`, from the figures alone.
 """
 
 from __future__ import annotations
