@@ -155,6 +155,23 @@ def test_worst_elements_ties_go_to_the_lower_index():
     assert [w["index"] for w in dev] == [w["index"] for w in worst_elements(mesh, mesh.points, n=5)]
 
 
+@pytest.mark.parametrize("k", [1, 10, 37])
+def test_top_k_is_a_stable_sort(k):
+    """The two-stage top-k lists what the host's stable sort lists, ties (many, and infinities) by lower index."""
+    from jaxci.metrics.device import top_k
+
+    rng = np.random.default_rng(k)
+    values = rng.integers(0, 40, 9000).astype(np.float64)
+    values[rng.integers(0, 9000, 5)] = np.inf
+    with jax.enable_x64(True):
+        v = transfer.to_device(values)
+        with jax.transfer_guard("disallow"):
+            vals, idx = transfer.to_host(jax.jit(top_k, static_argnums=1)(v, k))
+    expected = np.argsort(-values, kind="stable")[:k]
+    np.testing.assert_array_equal(idx, expected)
+    np.testing.assert_array_equal(vals, values[expected])
+
+
 # ---------------------------------------------------------------------------------------------- validation
 @pytest.mark.parametrize("make", MESHES)
 def test_inverted_hexes_count_the_host_inverted_cells(make):

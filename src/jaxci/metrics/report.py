@@ -144,12 +144,15 @@ def build_report(mesh: HexMesh, acc: HexFigures, pts) -> QualityReport:
 REPORT_CHUNK = 65_536
 
 
-def figure_totals(xp, kappa3, sj, axis: int) -> dict:
+def figure_totals(xp, kappa3, sj, axis: int, reduce_rows=None) -> dict:
     """The report's figures of a set of hexahedra, with the array module `xp` (numpy for a block on the host,
     `jax.numpy` for the whole mesh on a device: `jaxci.metrics.device`).
 
     **Arguments:** `kappa3` every corner's kappa/3 (``inf`` where det <= 0) and `sj` its scaled Jacobian, float64,
-    the 8 corners of a hexahedron along `axis` (1: ``(B, 8)``; 0: ``(8, B)``).
+    the 8 corners of a hexahedron along `axis` (1: ``(B, 8)``; 0: ``(8, B)``); `reduce_rows` how the per-corner
+    figures are reduced over each element's corners: a function ``(fields, axis)`` -> per-element arrays, `fields`
+    name -> ``(array, "sum" | "max" | "min")`` (default `reduce_rows_np`; on a device
+    `jaxci.metrics.device.reduce_rows`, one variadic reduction: XLA forms the corners once for all of them).
 
     **Returns:** a dict of scalars (`xp` arrays): ``count``, ``inverted`` (elements), ``inverted_corners``,
     ``n_ok`` (corners of valid elements) and ``sum_ok`` (their kappa/3 summed), ``n_valid`` (valid corners) and
@@ -158,19 +161,32 @@ def figure_totals(xp, kappa3, sj, axis: int) -> dict:
     corners, ``(7,)``; a value a rounding error below 1 counts in the first bin).
     """
     valid = xp.isfinite(kappa3)  # inf exactly where det <= 0
-    ok = xp.all(valid, axis=axis)
-    elem_max = xp.where(ok, xp.max(kappa3, axis=axis), -xp.inf)
-    worst = xp.argmax(elem_max)
-    n_valid = xp.sum(valid)
     kv = xp.where(valid, kappa3, 0.0)
-    above = [xp.sum(kv >= e) for e in HISTOGRAM_EDGES[1:-1]]  # valid corners at or above each inner bin edge
-    hist = xp.stack([n_valid - above[0], *(a - b for a, b in zip(above[:-1], above[1:], strict=True)),
-                     above[-1]])
-    n_ok = 8 * xp.sum(ok)
-    return {"count": xp.asarray(ok.shape[0]), "inverted": ok.shape[0] - xp.sum(ok), "inverted_corners":
-            kappa3.size - n_valid, "n_ok": n_ok, "sum_ok": xp.sum(xp.where(xp.expand_dims(ok, axis), kappa3, 0.0)),
-            "n_valid": n_valid, "sq_sum": xp.sum(kv * kv), "max_ok": elem_max[worst], "worst": worst,
-            "sj_min": xp.min(sj), "hist": hist}
+    one = xp.int32
+    fields = {"n_valid": (valid.astype(one), "sum"), "k_max": (kappa3, "max"), "k_sum": (kv, "sum"),
+              "k_sq": (kv * kv, "sum"), "sj_min": (sj, "min")}
+    inner = HISTOGRAM_EDGES[1:-1]
+    fields.update({f"above{i}": ((kv >= e).astype(one), "sum") for i, e in enumerate(inner)})  # valid corners
+    el = (reduce_rows or reduce_rows_np)(fields, axis)  # per element, (B,) each
+    corners = kappa3.shape[axis]
+    ok = el["n_valid"] == corners
+    elem_max = xp.where(ok, el["k_max"], -xp.inf)
+    worst = xp.argmax(elem_max)
+    n_valid = xp.sum(el["n_valid"], dtype=xp.int64)
+    above = [xp.sum(el[f"above{i}"], dtype=xp.int64) for i in range(len(inner))]
+    hist = xp.stack([n_valid - above[0], *(a - b for a, b in zip(above[:-1], above[1:], strict=True)), above[-1]])
+    count = ok.shape[0]
+    n_ok = xp.sum(ok, dtype=xp.int64)
+    return {"count": xp.asarray(count), "inverted": count - n_ok, "inverted_corners": corners * count - n_valid,
+            "n_ok": corners * n_ok, "sum_ok": xp.sum(xp.where(ok, el["k_sum"], 0.0)), "n_valid": n_valid,
+            "sq_sum": xp.sum(el["k_sq"]), "max_ok": elem_max[worst], "worst": worst, "sj_min": xp.min(el["sj_min"]),
+            "hist": hist}
+
+
+def reduce_rows_np(fields: dict, axis: int) -> dict:
+    """`figure_totals`' per-element reductions in numpy: name -> ``(array, op)`` -> name -> the array reduced
+    over `axis` by ``np.sum`` / ``np.max`` / ``np.min``."""
+    return {name: getattr(np, op)(a, axis=axis) for name, (a, op) in fields.items()}
 
 
 class HexFigures:
