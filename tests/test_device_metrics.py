@@ -283,6 +283,21 @@ def test_enforce_device_decides_as_enforce(smoothed, which, kw):
     np.testing.assert_array_equal(dev_x, host_x)
 
 
+@pytest.mark.parametrize("make", MESHES)
+def test_enforce_device_on_meshes(make):
+    """Real meshes and boxes, valid and tangled: the result of a small shake (F up or down, a cell worse or not)
+    and of a larger one, with the guard and the worst-first order, checked as on the host."""
+    mesh = make()
+    rng = np.random.default_rng(3)
+    h = float(np.ptp(mesh.points, axis=0).max()) / max(mesh.n_hexes, 1) ** (1 / 3)  # a typical edge
+    for scale in (1e-3, 0.05):
+        x = mesh.points + rng.normal(scale=scale * h, size=mesh.points.shape)
+        for kw in ({}, {"keep_worst": True, "worst_first": True}):
+            host_x, host_notes, dev_x, notes = _both(mesh, mesh.points, x, **kw)
+            assert notes == host_notes
+            np.testing.assert_array_equal(dev_x, host_x)
+
+
 def test_enforce_device_exercises_every_decision(smoothed):
     """The cases above reach every outcome: kept, put back, refused for an inverted cell, refused for a rise."""
     mesh, r = smoothed
