@@ -74,7 +74,8 @@ def reduce_rows(fields: dict, axis: int) -> dict:
     """`jaxci.metrics.report.reduce_rows_np` as ONE variadic `jax.lax.reduce`: name -> ``(array, "sum" | "max" |
     "min")`` -> name -> the array reduced over `axis`. Several reductions of one corner computation written
     apart make XLA:CPU form the corners once per reduction, or store their columns (measured at 10^6
-    hexahedra: the report's figures 2.9 s apart, 1.1 s as one reduction, its kappa/3 alone 0.56 s)."""
+    hexahedra on the shared 2-core CPU: the report's figures 2.9 s apart, 1.1 s as one reduction; the max kappa/3
+    alone 0.56 s)."""
     import math
 
     def identity(op, dtype):
