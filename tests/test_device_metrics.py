@@ -337,3 +337,21 @@ def test_enforce_device_projects_with_the_given_function(smoothed):
         y, notes = enforce_device(mesh, c, s, x, project=project)
     assert calls == [(mesh.n_nodes, 3)] and notes == []
     assert math.isclose(float(transfer.to_host(y)[0, 0]), float(r["good"][0, 0]))
+
+
+def test_bench_device_metrics_measures_every_pair(tmp_path, monkeypatch):
+    """scripts/bench_device_metrics.py on a 2^3 box: a row per device function, its host function beside it."""
+    import json
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    import bench_device_metrics
+
+    out = tmp_path / "dm.json"
+    assert bench_device_metrics.main(["--n", "2", "--repeats", "1", "--out", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["hexes"] == 8 and set(data["rows"]) == {"quality_report", "worst_elements", "inverted_cells",
+                                                         "check_volume", "enforce", "enforce_guarded"}
+    for row in data["rows"].values():
+        assert row["compile_s"] >= 0 and row["call_s"] > 0 and row["host_s"] > 0 and 0 < row["device_s"]
+    assert data["commit"] and data["date"]
