@@ -521,18 +521,25 @@ def as_hex_mesh(obj, caller: str) -> HexMesh:
     raise UsageError(f"{caller} expects a jaxci HexMesh, got {cls.__module__}.{cls.__name__}; {hint}")
 
 
-def check_volume(mesh: HexMesh) -> None:
+def check_volume(mesh: HexMesh, moments: tuple[np.ndarray, int] | None = None) -> None:
     """`MeshError` if the nodes of the hexahedra lie in one plane, on one line or at one point (a mesh of zero
-    volume, which neither untangling nor smoothing can repair): a 3 x 3 eigenvalue problem, O(n)."""
-    used = np.zeros(mesh.n_nodes, bool)
-    used[mesh.hexes] = True  # a scatter, not np.unique's sort (10x faster at 10^6 hexahedra)
-    nodes = np.flatnonzero(used)
-    p = to_unit(mesh.points[nodes], unit_frame(mesh.points[nodes]))
-    p = p - p.mean(axis=0)
-    w, v = np.linalg.eigh(np.einsum("ij,ik->jk", p, p))  # ascending; einsum: no BLAS threads (jaxci.optim._anderson)
+    volume, which neither untangling nor smoothing can repair): a 3 x 3 eigenvalue problem, O(n).
+
+    `moments`: ``(m, count)``, the 3 x 3 moment matrix of the hexahedra's nodes about their mean in their unit
+    frame and how many nodes they are, where the caller has them (a mesh on a device:
+    `jaxci.metrics.device.volume_moments` reduces them there); default: computed here from `mesh`."""
+    if moments is None:
+        used = np.zeros(mesh.n_nodes, bool)
+        used[mesh.hexes] = True  # a scatter, not np.unique's sort (10x faster at 10^6 hexahedra)
+        nodes = np.flatnonzero(used)
+        p = to_unit(mesh.points[nodes], unit_frame(mesh.points[nodes]))
+        p = p - p.mean(axis=0)
+        moments = np.einsum("ij,ik->jk", p, p), len(nodes)  # einsum: no BLAS threads (jaxci.optim._anderson)
+    m, count = moments
+    w, v = np.linalg.eigh(m)  # ascending
     if w[2] <= 0 or w[0] <= (1e-12) ** 2 * w[2]:
         where = f"{mesh.source}: " if mesh.source else ""
         what = ("all at one point" if w[2] <= 0 else "on one line" if w[1] <= (1e-12) ** 2 * w[2]
                 else f"in one plane (normal {np.round(v[:, 0], 6).tolist()})")
-        raise MeshError(f"{where}the {len(nodes)} nodes of the hexahedra lie {what}: the mesh has no volume, and "
+        raise MeshError(f"{where}the {count} nodes of the hexahedra lie {what}: the mesh has no volume, and "
                         f"no moving of nodes can untangle or smooth it")

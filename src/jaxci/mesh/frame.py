@@ -7,8 +7,6 @@ a power of two, so that they lie within [-1, 1] whatever the file's units (numpy
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 
@@ -23,12 +21,18 @@ def unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
     p = np.asarray(points, dtype=np.float64)
     if not len(p):
         return np.zeros(3), 1.0
-    lo, hi = p.min(axis=0), p.max(axis=0)
+    centre, scale = box_frame(np, p.min(axis=0), p.max(axis=0))
+    return centre, float(scale)
+
+
+def box_frame(xp, lo, hi):
+    """`unit_frame` of the points whose bounding box is ``lo``, ``hi`` (each ``(3,)``), with the array module `xp`
+    (numpy, or `jax.numpy` for points on a device): ``(centre (3,), scale ())``, the same numbers with either."""
     centre = 0.5 * lo + 0.5 * hi  # no overflow near the float64 limit
-    extent = float((0.5 * hi - 0.5 * lo).max()) * 2.0
-    if not (extent > 0 and np.isfinite(extent)):
-        return centre, 1.0
-    return centre, math.ldexp(1.0, math.frexp(extent)[1] - 1)
+    extent = (0.5 * hi - 0.5 * lo).max() * 2.0
+    ok = (extent > 0) & xp.isfinite(extent)
+    exponent = xp.frexp(xp.where(ok, extent, 1.0))[1]
+    return centre, xp.where(ok, xp.ldexp(xp.ones_like(extent), exponent - 1), 1.0)
 
 
 def to_unit(points: np.ndarray, frame: tuple[np.ndarray, float]) -> np.ndarray:

@@ -32,7 +32,11 @@ def worst(mesh: HexMesh, points) -> float:
     return max((float(k.max()) for k in cell_worst(mesh, points).values() if len(k)), default=1.0)
 
 
-def keep_worst(mesh: HexMesh, before, after, *, rtol: float = 1e-12,
+#: `keep_worst`'s relative slack on the input's worst cell (float64 rounding).
+KEEP_WORST_RTOL = 1e-12
+
+
+def keep_worst(mesh: HexMesh, before, after, *, rtol: float = KEEP_WORST_RTOL,
                worst_before: float | None = None) -> tuple[np.ndarray, int, float, float]:
     """`after` with the nodes of cells worse than the worst cell at `before` put back to `before`.
 
@@ -64,9 +68,12 @@ def keep_worst(mesh: HexMesh, before, after, *, rtol: float = 1e-12,
     return x, int(back.sum()), w0, w1
 
 
+#: `worst_first`'s relative margin: the worst cell must fall by more than this.
+WORST_FIRST_RTOL = 1e-9
+
 
 def worst_first(mesh: HexMesh, start, x, f0: float, f1: float, *, worst_start: float | None = None,
-                rtol: float = 1e-9) -> str | None:
+                rtol: float = WORST_FIRST_RTOL) -> str | None:
     """The worst-first order's verdict on a result `x` whose F (`f1`) rose above its start's (`f0`, at `start`):
     a note saying why it is kept where its worst cell fell (max kappa/3 below the start's by more than `rtol`,
     both in float64 over every cell type), else None (the start is to be returned).
@@ -76,7 +83,12 @@ def worst_first(mesh: HexMesh, start, x, f0: float, f1: float, *, worst_start: f
     by its worst element first, then by the mean. `worst_start`: `worst` at `start` where the caller has it.
     """
     w0 = worst(mesh, start) if worst_start is None else float(worst_start)
-    w1 = worst(mesh, x)
+    return worst_first_note(w0, worst(mesh, x), f0, f1, rtol=rtol)
+
+
+def worst_first_note(w0: float, w1: float, f0: float, f1: float, *, rtol: float = WORST_FIRST_RTOL) -> str | None:
+    """`worst_first`'s verdict from the worst cells `w0` (start) and `w1` (result), F `f0` and `f1`: a note where
+    the worst cell fell, else None (from device figures too: `jaxci.invariants.enforce_device`)."""
     if not (np.isfinite(w0) and np.isfinite(w1) and w1 < w0 * (1.0 - rtol)):
         return None
     return (f"F rose from {f0:.6g} to {f1:.6g} (+{100.0 * (f1 - f0) / max(abs(f0), 1e-300):.2g}%) while the worst "

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from ..cells import element_blocks
+from ..cells import ELEMENT_TYPES, element_blocks
 from ..errors import MeshError
 from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
 from .elements import corner_figures, hex_corner_measures, summary
@@ -74,25 +74,15 @@ class QualityReport:
         return d
 
 
-def corner_histogram(kappa3: np.ndarray) -> tuple[tuple[float, float, int], ...]:
-    """Counts of corner kappa/3 values (finite ones) in the paper's Table 1 bins `HISTOGRAM_EDGES`."""
-    k = np.asarray(kappa3, dtype=np.float64).ravel()
-    k = k[np.isfinite(k)]
-    edges = np.asarray(HISTOGRAM_EDGES)
-    # values a rounding error below 1 belong to the first bin
-    idx = np.clip(np.searchsorted(edges, k, side="right") - 1, 0, len(edges) - 2)
-    counts = np.bincount(idx, minlength=len(edges) - 1)
-    return tuple((float(edges[i]), float(edges[i + 1]), int(counts[i])) for i in range(len(edges) - 1))
-
-
 def quality_report(mesh: HexMesh, points=None) -> QualityReport:
     """The quality report of `mesh` (or of `mesh` with node coordinates `points` of shape ``(n, 3)``).
 
     Measured in float64 on the host (`jaxci.metrics.elements.hex_corner_measures`: the threaded C pass of
     `jaxci.native`, else numpy; no compilation, which cost 0.4 s of a 729-element cold start), over blocks of
-    `REPORT_CHUNK` hexahedra (`_HexFigures`). The coordinates are
+    `REPORT_CHUNK` hexahedra (`HexFigures`). The coordinates are
     measured in the unit frame of `jaxci.mesh.unit_frame` (the metrics are scale-invariant): a mesh in metres,
-    nanometres or light years gives the same report, without overflow or underflow.
+    nanometres or light years gives the same report, without overflow or underflow. The same report from
+    coordinates on a device: `jaxci.metrics.device.quality_report_device`.
 
     **Arguments:** `mesh` a `HexMesh` (a `meshio.Mesh` is converted; anything else raises `UsageError`);
     `points` optional coordinates of shape ``(n_nodes, 3)``, finite (`MeshError` otherwise).
@@ -102,17 +92,34 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
         pts = mesh.points
     else:
         pts = np.asarray(points, dtype=np.float64)
-        if pts.shape != mesh.points.shape:
-            raise MeshError(f"quality_report: points have shape {pts.shape}, the mesh has {mesh.points.shape}")
+        check_report_points(mesh, pts.shape)
         if not np.isfinite(pts).all():
             k = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
-            raise MeshError(f"quality_report: node {mesh.node_label(k)} has non-finite coordinates "
-                            f"{pts[k].tolist()}")
+            raise non_finite_error(mesh, k, pts[k])
     pts = to_unit(pts, unit_frame(pts))
     hexes = mesh.hexes
-    acc = _HexFigures()
+    acc = HexFigures()
     for lo in range(0, mesh.n_hexes, REPORT_CHUNK):
-        acc.add(pts, hexes[lo:lo + REPORT_CHUNK], lo)
+        kappa3, sj = hex_corner_measures(pts, hexes[lo:lo + REPORT_CHUNK])
+        acc.add(figure_totals(np, kappa3, sj, axis=1), lo)
+    return build_report(mesh, acc, pts)
+
+
+def check_report_points(mesh: HexMesh, shape: tuple) -> None:
+    """`MeshError` unless coordinates of shape `shape` fit `mesh` (``(n_nodes, 3)``)."""
+    if tuple(shape) != mesh.points.shape:
+        raise MeshError(f"quality_report: points have shape {tuple(shape)}, the mesh has {mesh.points.shape}")
+
+
+def non_finite_error(mesh: HexMesh, k: int, row) -> MeshError:
+    """The `MeshError` of `quality_report` for node `k` (the first with a non-finite coordinate, at `row`)."""
+    return MeshError(f"quality_report: node {mesh.node_label(k)} has non-finite coordinates "
+                     f"{np.asarray(row, np.float64).tolist()}")
+
+
+def build_report(mesh: HexMesh, acc: HexFigures, pts) -> QualityReport:
+    """The `QualityReport` of `mesh` from its hexahedra's figures `acc` and, for its other cell types, the unit
+    frame coordinates `pts` ``(n, 3)`` (unused, and may be None, on a hexahedral mesh)."""
     return QualityReport(
         n_nodes=mesh.n_nodes,
         n_elements=mesh.n_hexes,
@@ -137,7 +144,52 @@ def quality_report(mesh: HexMesh, points=None) -> QualityReport:
 REPORT_CHUNK = 65_536
 
 
-class _HexFigures:
+def figure_totals(xp, kappa3, sj, axis: int, reduce_rows=None) -> dict:
+    """The report's figures of a set of hexahedra, with the array module `xp` (numpy for a block on the host,
+    `jax.numpy` for the whole mesh on a device: `jaxci.metrics.device`).
+
+    **Arguments:** `kappa3` every corner's kappa/3 (``inf`` where det <= 0) and `sj` its scaled Jacobian, float64,
+    the 8 corners of a hexahedron along `axis` (1: ``(B, 8)``; 0: ``(8, B)``); `reduce_rows` how the per-corner
+    figures are reduced over each element's corners: a function ``(fields, axis)`` -> per-element arrays, `fields`
+    name -> ``(array, "sum" | "max" | "min")`` (default `reduce_rows_np`; on a device
+    `jaxci.metrics.device.reduce_rows`, one variadic reduction: XLA forms the corners once for all of them).
+
+    **Returns:** a dict of scalars (`xp` arrays): ``count``, ``inverted`` (elements), ``inverted_corners``,
+    ``n_ok`` (corners of valid elements) and ``sum_ok`` (their kappa/3 summed), ``n_valid`` (valid corners) and
+    ``sq_sum`` (their (kappa/3)^2 summed), ``max_ok`` (max element kappa/3 over valid elements, ``-inf`` if none)
+    and ``worst`` (its first element), ``sj_min`` and ``hist`` (Table 1's bins `HISTOGRAM_EDGES` of the valid
+    corners, ``(7,)``; a value a rounding error below 1 counts in the first bin).
+    """
+    valid = xp.isfinite(kappa3)  # inf exactly where det <= 0
+    kv = xp.where(valid, kappa3, 0.0)
+    one = xp.int32
+    fields = {"n_valid": (valid.astype(one), "sum"), "k_max": (kappa3, "max"), "k_sum": (kv, "sum"),
+              "k_sq": (kv * kv, "sum"), "sj_min": (sj, "min")}
+    inner = HISTOGRAM_EDGES[1:-1]
+    fields.update({f"above{i}": ((kv >= e).astype(one), "sum") for i, e in enumerate(inner)})  # valid corners
+    el = (reduce_rows or reduce_rows_np)(fields, axis)  # per element, (B,) each
+    corners = kappa3.shape[axis]
+    ok = el["n_valid"] == corners
+    elem_max = xp.where(ok, el["k_max"], -xp.inf)
+    worst = xp.argmax(elem_max)
+    n_valid = xp.sum(el["n_valid"], dtype=xp.int64)
+    above = [xp.sum(el[f"above{i}"], dtype=xp.int64) for i in range(len(inner))]
+    hist = xp.stack([n_valid - above[0], *(a - b for a, b in zip(above[:-1], above[1:], strict=True)), above[-1]])
+    count = ok.shape[0]
+    n_ok = xp.sum(ok, dtype=xp.int64)
+    return {"count": xp.asarray(count), "inverted": count - n_ok, "inverted_corners": corners * count - n_valid,
+            "n_ok": corners * n_ok, "sum_ok": xp.sum(xp.where(ok, el["k_sum"], 0.0)), "n_valid": n_valid,
+            "sq_sum": xp.sum(el["k_sq"]), "max_ok": elem_max[worst], "worst": worst, "sj_min": xp.min(el["sj_min"]),
+            "hist": hist}
+
+
+def reduce_rows_np(fields: dict, axis: int) -> dict:
+    """`figure_totals`' per-element reductions in numpy: name -> ``(array, op)`` -> name -> the array reduced
+    over `axis` by ``np.sum`` / ``np.max`` / ``np.min``."""
+    return {name: getattr(np, op)(a, axis=axis) for name, (a, op) in fields.items()}
+
+
+class HexFigures:
     """The hexahedra's report figures, accumulated block by block (`add`)."""
 
     def __init__(self):
@@ -146,28 +198,19 @@ class _HexFigures:
         self.max_ok = self.sj_min = self.worst = None
         self.hist = np.zeros(len(HISTOGRAM_EDGES) - 1, np.int64)
 
-    def add(self, pts, hexes, offset: int) -> None:
-        """The figures of hexahedra `hexes` (``(B, 8)``), the first of which is hexahedron `offset`."""
-        kappa3, sj = hex_corner_measures(pts, hexes)
-        valid = np.isfinite(kappa3)  # inf exactly where det <= 0
-        inv_el = ~valid.all(axis=1)
-        elem_max = kappa3.max(axis=1)
-        ok = ~inv_el
-        self.count += len(hexes)
-        self.inverted += int(inv_el.sum())
-        self.inverted_corners += int((~valid).sum())
-        if ok.any():
-            k = int(np.argmax(np.where(ok, elem_max, -np.inf)))
-            if self.max_ok is None or elem_max[k] > self.max_ok:
-                self.max_ok, self.worst = float(elem_max[k]), offset + k
-            self.sum_ok += float(kappa3[ok].sum())
-            self.n_ok += int(ok.sum()) * 8
-        kv = kappa3[valid]
-        self.sq_sum += float(np.sum(kv * kv))
-        self.n_valid += len(kv)
-        self.hist += np.asarray([c for _, _, c in corner_histogram(kv)], np.int64)
-        m = float(sj.min())
-        self.sj_min = m if self.sj_min is None else min(self.sj_min, m)
+    def add(self, totals: dict, offset: int) -> None:
+        """Add the `figure_totals` of hexahedra (numpy values) the first of which is hexahedron `offset`."""
+        t = totals
+        for key in ("count", "inverted", "inverted_corners", "n_ok", "n_valid"):
+            setattr(self, key, getattr(self, key) + int(t[key]))
+        self.sum_ok += float(t["sum_ok"])
+        self.sq_sum += float(t["sq_sum"])
+        if int(t["n_ok"]) and (self.max_ok is None or float(t["max_ok"]) > self.max_ok):
+            self.max_ok, self.worst = float(t["max_ok"]), offset + int(t["worst"])
+        if int(t["count"]):
+            m = float(t["sj_min"])
+            self.sj_min = m if self.sj_min is None else min(self.sj_min, m)
+        self.hist += np.asarray(t["hist"], np.int64)
 
     def summary(self) -> dict:
         """`jaxci.metrics.elements.summary` of the hexahedra, plus ``verdict_condition`` (max element kappa/3)."""
@@ -177,17 +220,20 @@ class _HexFigures:
                 "verdict_condition": self.max_ok}
 
 
-def _by_type(mesh: HexMesh, points, hexa: _HexFigures) -> dict:
+def _by_type(mesh: HexMesh, points, hexa: HexFigures) -> dict:
     """The `by_type` and `overall` fields of `quality_report`: the hexahedra's from `hexa` (accumulated above),
-    `jaxci.metrics.elements.corner_figures` for the other types."""
+    `jaxci.metrics.elements.corner_figures` for the other types (measured at `points`; unused on a mesh of
+    hexahedra only, whose blocks are then not concatenated)."""
     by_type = {}
     parts = []
-    for t, cells in element_blocks(mesh).items():
+    others = [t for t in ELEMENT_TYPES[1:] if any(b.type == t and len(b.data) for b in mesh.cells)]
+    blocks = element_blocks(mesh) if others else {}
+    for t in ("hexahedron", *others):
         if t == "hexahedron":
             by_type[t] = hexa.summary()
             parts.append(hexa)
             continue
-        f = corner_figures(points, cells, t)
+        f = corner_figures(points, blocks[t], t)
         ok = ~f["inverted"]
         by_type[t] = {**summary([f]), "verdict_condition": float(f["verdict_condition"][ok].max()) if ok.any()
                       else None}
@@ -196,10 +242,10 @@ def _by_type(mesh: HexMesh, points, hexa: _HexFigures) -> dict:
 
 
 def _overall(parts: list) -> dict:
-    """`jaxci.metrics.elements.summary` over every cell: the hexahedra's accumulated figures (`_HexFigures`) and
+    """`jaxci.metrics.elements.summary` over every cell: the hexahedra's accumulated figures (`HexFigures`) and
     the other types' `corner_figures`."""
     figs = [p for p in parts if isinstance(p, dict)]
-    hexa = [p for p in parts if isinstance(p, _HexFigures)]
+    hexa = [p for p in parts if isinstance(p, HexFigures)]
     if not hexa:
         return summary(figs)
     h = hexa[0]
@@ -250,9 +296,7 @@ def worst_elements(mesh: HexMesh, points, node_class=None, feature_edges=None, c
     cell's worst corner kappa/3, inf if inverted), "corner" (that corner's local node), "nodes" (the corner's
     node and its three edge neighbours, indices), "limits": [names of `LIMITS` that apply]}``.
     """
-    from ..cells import CORNERS
     from .elements import corner_condition
-    from .objective import cell_label
 
     pts = np.asarray(points, np.float64)
     found = []
@@ -263,31 +307,44 @@ def worst_elements(mesh: HexMesh, points, node_class=None, feature_edges=None, c
         top = np.argsort(-worst, kind="stable")[:n]
         found += [(float(worst[e]), t, int(e), int(np.argmax(k[e])), cells[e]) for e in top]
     found.sort(key=lambda f: -f[0])
+    found = found[:n]
     cls = None if node_class is None else np.asarray(node_class)
+    classes = None if cls is None else [cls[np.asarray(f[4], np.int64)] for f in found]
+    return listed_worst(mesh, found, classes, feature_edges, coincident)
+
+
+def listed_worst(mesh: HexMesh, found: list, classes, feature_edges, coincident) -> tuple[dict, ...]:
+    """The dicts of `worst_elements` for the worst cells `found`, worst first: rows ``(kappa3, type, index,
+    corner (the worst corner's row of `jaxci.cells.CORNERS`), cell (its nodes, ``(k,)``))``; `classes` None or,
+    per row, the node classes of its cell's nodes (``(k,)``, aligned with the cell); `feature_edges` and
+    `coincident` as `worst_elements` takes them (O(boundary), on the host)."""
+    from ..cells import CORNERS
+    from .objective import cell_label
+
     edges = set()
     if feature_edges is not None and len(feature_edges):
         fe = np.sort(np.asarray(feature_edges, np.int64), axis=1)
         edges = set(map(tuple, fe.tolist()))
-    shared = np.zeros(len(pts), bool)
-    if coincident is not None:
-        shared[np.asarray(coincident, np.int64)] = True
+    shared = np.zeros(0, np.int64) if coincident is None else np.asarray(coincident, np.int64)
     out = []
-    for kappa, t, e, c, cell in found[:n]:
+    for i, (kappa, t, e, c, cell) in enumerate(found):
         row = CORNERS[t][c]
+        cell = np.asarray(cell, np.int64)
         nodes = [int(cell[j]) for j in row]
         limits = []
-        if cls is not None:
-            if (cls[nodes] == 3).all():
+        if classes is not None:
+            cls = np.asarray(classes[i])[row]
+            if (cls == 3).all():
                 limits.append("fixed corner")
-            elif (cls[nodes] >= 1).all():
+            elif (cls >= 1).all():
                 limits.append("boundary corner")
         if any(tuple(sorted((nodes[0], b))) in edges for b in nodes[1:]):
             limits.append("feature edge")
-        if shared[np.asarray(cell, np.int64)].any():
+        if np.isin(cell, shared).any():
             limits.append("coincident nodes")
         label = f"element {mesh.hex_label(e)}" if t == "hexahedron" else cell_label(mesh, t, e)
-        out.append({"element": label, "type": t, "index": e, "kappa3": kappa, "corner": int(row[0]), "nodes": nodes,
-                    "limits": limits})
+        out.append({"element": label, "type": t, "index": e, "kappa3": float(kappa), "corner": int(row[0]),
+                    "nodes": nodes, "limits": limits})
     return tuple(out)
 
 
