@@ -404,7 +404,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         def real(y):
             return y if dev_index is None else _take(y, dev_index)
 
-    y = np.zeros(run_par.n_free) if on_host else jnp.zeros((run_par.n_free,), par.x0.dtype)
+    y = np.zeros(run_par.n_free) if on_host else _zeros(run_par.n_free, np.dtype(par.x0.dtype))
     hist_f, hist_k, starts = [], [], []
     steps = 0
     f0 = None
@@ -489,6 +489,13 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
     return x, steps, hist, params
+
+
+@program
+@jit(static_argnums=(0, 1))
+def _zeros(n: int, dtype):
+    """A zero vector ``(n,)`` of `dtype` made on the device."""
+    return jnp.zeros((n,), dtype)
 
 
 @program
