@@ -175,6 +175,27 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryT
     else:
         face_type = np.zeros(len(single), np.int8)
         face_hex = face_cell
+    return topology_from_faces(faces, face_hex, nonmanifold, int(n), face_type=face_type, face_cell=face_cell)
+
+
+def topology_from_faces(faces: np.ndarray, face_hex: np.ndarray, nonmanifold: np.ndarray, n_nodes: int, *,
+                        face_type: np.ndarray | None = None, face_cell: np.ndarray | None = None) -> BoundaryTopology:
+    """The `BoundaryTopology` of given boundary faces: their edges, each face's edges and each edge's faces, in
+    O(boundary) (one sort of the faces' sides); what `boundary_topology` builds once it has found the faces, and
+    what `jaxci.geometry.device_topology` builds from the faces it finds on the device.
+
+    **Arguments:** `faces` ``(n_faces, 4)`` int64, outward, in the order of the result; `face_hex` ``(n_faces,)``
+    (-1 for a face of another cell type); `nonmanifold` ``(k, 4)`` (`BoundaryTopology.nonmanifold_faces`);
+    `n_nodes` (one more than the largest index); `face_type` (int8, default 0: hexahedra) and `face_cell`
+    (default `face_hex`), both ``(n_faces,)``.
+
+    **Returns:** a `BoundaryTopology`.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    face_hex = np.asarray(face_hex, dtype=np.int64)
+    n = np.int64(max(int(n_nodes), 1))
+    if face_type is None:
+        face_type = np.zeros(len(faces), np.int8)
     rolled = np.roll(faces, -1, axis=1)  # the sides (f0,f1), (f1,f2), (f2,f3), (f3,f0) of each face, face-major
     lo, hi = np.minimum(faces, rolled).ravel(), np.maximum(faces, rolled).ravel()
     del rolled
@@ -202,14 +223,14 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryT
     edge_face_ptr = np.append(np.flatnonzero(efirst), len(ekey)).astype(np.int64)
     return BoundaryTopology(
         faces=faces,
-        face_hex=face_hex.astype(np.int64),
+        face_hex=face_hex,
         edges=edges,
         face_edges=face_edges,
         edge_face_ptr=edge_face_ptr,
         edge_face=edge_face,
-        nonmanifold_faces=nonmanifold,
+        nonmanifold_faces=np.asarray(nonmanifold, dtype=np.int64),
         face_type=face_type,
-        face_cell=face_cell.astype(np.int64),
+        face_cell=(face_hex if face_cell is None else np.asarray(face_cell)).astype(np.int64),
     )
 
 
