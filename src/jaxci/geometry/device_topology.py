@@ -3,7 +3,7 @@ down to the host.
 
 `device_mesh_topology` keys each of the 6 M faces of the device connectivity by its 4 sorted nodes, as
 `jaxci.geometry.topology.boundary_topology` does on the host, and groups equal keys by ONE sort of 64-bit words
-(a program, `_face_codes`): a multiplicative hash of the key in the high bits, the face's number in the low
+(a program, `_face_groups`): a multiplicative hash of the key in the high bits, the face's number in the low
 bits (XLA:CPU sorts one array of words several times faster than it sorts two keys with a payload: 0.8 s
 against 3.4 s for the 6 x 10^6 faces of 10^6 hexahedra). Equal keys then lie side by side in runs of one hash;
 the keys themselves are compared to make the grouping exact. A run that holds two different keys (a collision
@@ -60,8 +60,6 @@ def _shift(x, d: int, fill):
 _RUN, _REAL = _WINDOW, _WINDOW + 1
 
 
-@program
-@functools.partial(jax.jit, static_argnames=("exact", "hash_bits"))
 def _face_codes(conn, n_nodes, n_hexes, *, exact: bool = False, hash_bits: int | None = None):
     """Sort the faces of `conn` ``(8, M)`` (its first `n_hexes` columns; int64 device scalars, as `n_nodes`) by
     their keys and compare each with the next `_WINDOW` in that order. `exact`: sort the keys themselves;
@@ -89,8 +87,8 @@ def _face_codes(conn, n_nodes, n_hexes, *, exact: bool = False, hash_bits: int |
         k1, k2 = k1[order], k2[order]
     real = (order % conn.shape[1]) < n_hexes
     u8 = jnp.uint8
-    codes = real.astype(u8) << _REAL  # one fused pass (XLA fuses the comparisons; mixed with the counts of
-    for d in range(1, _WINDOW + 1):  # `_face_masks` it recomputed them per use: 1.8 s against 0.06 s)
+    codes = real.astype(u8) << _REAL  # one fused pass over the sorted keys
+    for d in range(1, _WINDOW + 1):
         key = (k1 == _shift(k1, d, -1)) & (k2 == _shift(k2, d, -1))
         run = real & _shift(real, d, False) & (key if h is None else h == _shift(h, d, 0))
         codes = codes | ((run & key).astype(u8) << (d - 1))
@@ -99,8 +97,6 @@ def _face_codes(conn, n_nodes, n_hexes, *, exact: bool = False, hash_bits: int |
     return order.astype(jnp.int32), codes
 
 
-@program
-@jax.jit
 def _face_masks(codes):
     """The boundary faces and the non-manifold faces (one of each group of three or more) among `codes`
     (`_face_codes`), bool ``(6 M,)`` each, and int64 ``[their counts, 1 if a run of one hash was too long]``.
@@ -160,11 +156,36 @@ def _face_nodes(conn, fid):
 
 
 @program
-@functools.partial(jax.jit, static_argnames=("n_boundary", "n_nonmanifold"))
-def _face_lists(conn, order, boundary, nonmanifold, *, n_boundary: int, n_nonmanifold: int):
-    """The boundary faces (by face number, as `boundary_topology` orders them) and the non-manifold faces of
-    `_face_masks`' output, padded to `n_boundary` and `n_nonmanifold` rows: ``(faces (n_boundary, 4),
-    face_hex (n_boundary,), nonmanifold (n_nonmanifold, 4))``."""
+@functools.partial(jax.jit, static_argnames=("size", "exact", "hash_bits"))
+def _face_groups(conn, n_nodes, n_hexes, *, size: int, exact: bool = False, hash_bits: int | None = None):
+    """`_face_codes` and `_face_masks` of `conn` ``(8, M)`` (its first `n_hexes` columns; `n_nodes` nodes, both
+    int64 device scalars), and `_unused_mask` (`size`: its size class): ``(order, boundary, nonmanifold,
+    unused, counts)``, counts int64 ``[n boundary, n non-manifold, overflow, n unused]``."""
+    order, codes = _face_codes(conn, n_nodes, n_hexes, exact=exact, hash_bits=hash_bits)
+    # materialised: fused into `_face_masks`' shifted reads, the comparisons ran once per read (1.8 s against
+    # 0.06 s at 10^6 hexahedra)
+    order, codes = jax.lax.optimization_barrier((order, codes))
+    boundary, nonmanifold, counts = _face_masks(codes)
+    unused, n_unused = _unused_mask(conn, n_hexes, n_nodes, size)
+    return order, boundary, nonmanifold, unused, jnp.append(counts, n_unused)
+
+
+def _unused_mask(conn, n_hexes, n_nodes, size: int):
+    """Which of `n_nodes` nodes no hexahedron of `conn` ``(8, M)`` (its first `n_hexes`) uses, as a mask of
+    `size` >= `n_nodes` entries (a size class: the entries past `n_nodes` False), and how many."""
+    real = jnp.arange(conn.shape[1]) < n_hexes
+    idx = jnp.where(real[None, :], conn, size).ravel()
+    used = jnp.zeros(size, bool).at[idx].set(True, mode="drop")
+    unused = ~used & (jnp.arange(size) < n_nodes)
+    return unused, jnp.count_nonzero(unused).astype(jnp.int64)
+
+
+@program
+@functools.partial(jax.jit, static_argnames=("n_boundary", "n_nonmanifold", "n_unused"))
+def _face_lists(conn, order, boundary, nonmanifold, unused, *, n_boundary: int, n_nonmanifold: int, n_unused: int):
+    """The boundary faces (by face number, as `boundary_topology` orders them), the non-manifold faces and the
+    unused nodes of `_face_groups`' output, padded to `n_boundary`, `n_nonmanifold` and `n_unused` rows:
+    ``(faces (n_boundary, 4), face_hex (n_boundary,), nonmanifold (n_nonmanifold, 4), unused (n_unused,))``."""
     m = order.shape[0]
     big = conn.shape[1]
 
@@ -174,23 +195,7 @@ def _face_lists(conn, order, boundary, nonmanifold, *, n_boundary: int, n_nonman
 
     faces, cell = _face_nodes(conn, jnp.sort(numbers(boundary, n_boundary)))
     nm, _ = _face_nodes(conn, numbers(nonmanifold, n_nonmanifold))
-    return faces, cell, nm
-
-
-@program
-@functools.partial(jax.jit, static_argnames=("n_nodes",))
-def _unused_mask(conn, n_hexes, *, n_nodes: int):
-    """Which of `n_nodes` nodes no hexahedron of `conn` ``(8, M)`` (its first `n_hexes`) uses, and how many."""
-    real = jnp.arange(conn.shape[1]) < n_hexes
-    idx = jnp.where(real[None, :], conn, n_nodes).ravel()
-    used = jnp.zeros(n_nodes, bool).at[idx].set(True, mode="drop")
-    return ~used, jnp.sum(~used)
-
-
-@program
-@functools.partial(jax.jit, static_argnames=("size",))
-def _compact(mask, *, size: int):
-    return compact(mask, size)
+    return faces, cell, nm, compact(unused, n_unused)
 
 
 def device_mesh_topology(conn, n_nodes: int, *, n_hexes: int | None = None,
@@ -216,18 +221,14 @@ def device_mesh_topology(conn, n_nodes: int, *, n_hexes: int | None = None,
     m = int(conn.shape[1]) if n_hexes is None else int(n_hexes)
     with enable_x64():
         nn, nh = to_device(np.int64(n_nodes)), to_device(np.int64(m))
-        order, codes = _face_codes(conn, nn, nh, hash_bits=_hash_bits)
-        boundary, nonmanifold, counts = _face_masks(codes)
-        unused_mask, n_unused = _unused_mask(conn, nh, n_nodes=int(n_nodes))
-        counts, n_unused = to_host((counts, n_unused))
-        (nb, nk, overflow), n_unused = counts.tolist(), int(n_unused)
+        size = bucket(n_nodes)
+        *groups, counts = _face_groups(conn, nn, nh, size=size, hash_bits=_hash_bits)
+        nb, nk, overflow, n_unused = to_host(counts).tolist()
         if overflow:  # a long run of one hash with different keys: sort the keys themselves
-            order, codes = _face_codes(conn, nn, nh, exact=True)
-            boundary, nonmanifold, again = _face_masks(codes)
-            nb, nk, _ = to_host(again).tolist()
-        faces, face_hex, nm, unused = to_host((
-            *_face_lists(conn, order, boundary, nonmanifold, n_boundary=bucket(nb), n_nonmanifold=bucket(nk)),
-            _compact(unused_mask, size=bucket(n_unused))))
+            *groups, counts = _face_groups(conn, nn, nh, size=size, exact=True)
+            nb, nk, _, n_unused = to_host(counts).tolist()
+        faces, face_hex, nm, unused = to_host(_face_lists(
+            conn, *groups, n_boundary=bucket(nb), n_nonmanifold=bucket(nk), n_unused=bucket(n_unused)))
     nm = np.sort(np.asarray(nm[:nk], dtype=np.int64), axis=1)
     nm = nm[np.lexsort(nm.T[::-1])]  # in the order of their sorted nodes, as boundary_topology's
     topo = topology_from_faces(np.asarray(faces[:nb], dtype=np.int64), np.asarray(face_hex[:nb], dtype=np.int64),
