@@ -29,9 +29,9 @@ from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.geometry.topology import boundary_topology
 from jaxci.mesh import unit_frame
 from jaxci.mesh.blocks import CellBlock
-from jaxci.mesh.sorting import _MIX, position_bits
-from jaxci.optim._buckets import bucket
+from jaxci.mesh.sorting import HASH_MIX, position_bits
 from jaxci.shapes import annulus
+from jaxci.sizes import bucket
 from jaxci.transfer import to_device, to_host
 
 EXODUS = SHARED / "data" / "exodus"
@@ -112,7 +112,7 @@ def _hash_clashes(hexes, n_nodes, bits: int) -> int:
     keys = np.unique(s[:, 0] * n_nodes + s[:, 1] + 1j * (s[:, 2] * n_nodes + s[:, 3]))
     k1, k2 = keys.real.astype(np.int64).view(np.uint64), keys.imag.astype(np.int64).view(np.uint64)
     with np.errstate(over="ignore"):
-        h = (k1 * _MIX[0] + k2) * _MIX[1] >> np.uint64(64 - bits)
+        h = (k1 * HASH_MIX[0] + k2) * HASH_MIX[1] >> np.uint64(64 - bits)
     _, counts = np.unique(h, return_counts=True)
     return int((counts * (counts - 1) // 2).sum())
 

@@ -144,7 +144,7 @@ class BoundaryInfo:
 def mesh_topology(mesh: HexMesh) -> BoundaryTopology:
     """`jaxci.geometry.topology.boundary_topology` of every volume cell of `mesh` (hexahedra, wedges, pyramids,
     tetrahedra; quadratic cells by their corner nodes)."""
-    cells = _non_hex_cells(mesh)
+    cells = non_hex_cells(mesh)
     hexes = mesh.hexes
     quad = [np.asarray(b.data)[:, :8] for b in mesh.cells if b.type in ("hexahedron20", "hexahedron27")
             and len(b.data)]
@@ -153,7 +153,7 @@ def mesh_topology(mesh: HexMesh) -> BoundaryTopology:
     return boundary_topology(hexes, mesh.n_nodes, cells or None)
 
 
-def _non_hex_cells(mesh: HexMesh) -> dict[str, np.ndarray]:
+def non_hex_cells(mesh: HexMesh) -> dict[str, np.ndarray]:
     """`jaxci.cells.volume_cells` of `mesh` but the hexahedra (linear and quadratic), without the copy of the
     hexahedra it would make (64 MB at 10^6 hexahedra)."""
     blocks = tuple(b for b in mesh.cells if QUADRATIC_TYPES.get(b.type, b.type) != "hexahedron")
@@ -261,7 +261,7 @@ def classify_boundary(
     if unused is None:
         used = np.zeros(n, dtype=bool)
         used[mesh.hexes.ravel()] = True
-        for cells in _non_hex_cells(mesh).values():
+        for cells in non_hex_cells(mesh).values():
             used[cells.ravel()] = True
         unused = np.flatnonzero(~used)
     pinned = [np.asarray(unused, dtype=np.int64)]

@@ -35,7 +35,7 @@ from ..cells import fixed_nodes as fixed_cell_nodes
 from ..mesh import HexMesh
 from ..mesh.frame import frame_of_bounds
 from ..transfer import program, to_device, to_host
-from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, _non_hex_cells, classify_boundary
+from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, classify_boundary, non_hex_cells
 from .projection import TABLE_FIELDS, Constraints, project_on_groups
 from .tables import BoundaryTables, boundary_tables
 from .topology import BoundaryTopology
@@ -44,7 +44,7 @@ from .topology import BoundaryTopology
 def hexahedral(mesh: HexMesh) -> bool:
     """Whether the volume cells of `mesh` are linear hexahedra only (the device path's meshes)."""
     quadratic = any(len(b.data) and QUADRATIC_TYPES.get(b.type) == "hexahedron" for b in mesh.cells)
-    return not quadratic and not _non_hex_cells(mesh) and not len(fixed_cell_nodes(mesh))
+    return not quadratic and not non_hex_cells(mesh) and not len(fixed_cell_nodes(mesh))
 
 
 @program

@@ -29,8 +29,8 @@ import functools
 import numpy as np
 
 from .._lazy import enable_x64, jax, jnp
-from ..mesh.sorting import _MIX, position_bits
-from ..optim._buckets import bucket
+from ..mesh.sorting import HASH_MIX, position_bits
+from ..sizes import bucket
 from ..transfer import program, to_device, to_host
 from .topology import HEX_FACES, BoundaryTopology, topology_from_faces
 
@@ -78,7 +78,7 @@ def _face_codes(conn, n_nodes, n_hexes, *, exact: bool = False, hash_bits: int |
     else:
         bits = position_bits(m)
         u = jnp.uint64
-        h = (k1.astype(u) * u(int(_MIX[0])) + k2.astype(u)) * u(int(_MIX[1]))
+        h = (k1.astype(u) * u(int(HASH_MIX[0])) + k2.astype(u)) * u(int(HASH_MIX[1]))
         h = h >> u(bits if hash_bits is None else 64 - hash_bits)
         h = jnp.where(real, h, u((1 << (64 - bits)) - 1))  # padding faces last
         words = jnp.sort((h << u(bits)) | pos.astype(u))
