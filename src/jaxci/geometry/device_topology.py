@@ -3,20 +3,22 @@ down to the host.
 
 `device_mesh_topology` keys each of the 6 M faces of the device connectivity by its 4 sorted nodes, as
 `jaxci.geometry.topology.boundary_topology` does on the host, and groups equal keys by ONE sort of 64-bit words
-(a program, `_face_groups`): a multiplicative hash of the key in the high bits, the face's number in the low
-bits (XLA:CPU sorts one array of words several times faster than it sorts two keys with a payload: 0.8 s
-against 3.4 s for the 6 x 10^6 faces of 10^6 hexahedra). Equal keys then lie side by side in runs of one hash;
-the keys themselves are compared to make the grouping exact. A run that holds two different keys (a collision
-of the truncated hash: expect a few among 10^6 hexahedra) is resolved by comparing each of its faces with its
-neighbours up to `_WINDOW` - 1 places away; in the vanishingly rare case of such a run longer than that, the
-program runs again with the keys themselves sorted (two keys and a payload: slower, exact by construction).
-A face of a group of one is a boundary face; one face of each group of three or more is a non-manifold face.
+(a program, `_face_groups`): the face's position in the low bits, above it a multiplicative hash of the key,
+and on top the leading bits of the face's lowest node (windows of faces of nearby hexahedra, whose keys the
+program then reads from cache). XLA:CPU sorts one array of words several times faster than it sorts two keys
+with a payload (0.8 s against 3.4 s for the 6 x 10^6 faces of 10^6 hexahedra). Equal keys then lie side by side
+in runs of one word; the keys themselves are compared to make the grouping exact. A run that holds different
+keys (a collision of the truncated hash: expect a few among 10^6 hexahedra) is resolved by comparing each face
+with its neighbours up to `_WINDOW` - 1 places away; should such a run be longer than that, the program runs
+again with the keys themselves sorted (three keys: slower, exact by construction). A face of a group of one is
+a boundary face; one face of each group of three or more is a non-manifold face. The same program marks the
+nodes no hexahedron uses.
 
 A second program (`_face_lists`) gathers the boundary faces in the host function's order (by face number:
-hexahedron-major, `HEX_FACES` order within one), oriented as the hexahedron lists them, into arrays padded to a
-size class (`jaxci.optim._buckets.bucket`) of their count, which comes down first as 3 integers. The host then
-builds the edges (`jaxci.geometry.topology.topology_from_faces`, O(boundary)). The result equals
-``boundary_topology(hexes, n_nodes)`` array for array.
+hexahedron-major, `HEX_FACES` order within one), oriented as the hexahedron lists them, the non-manifold faces
+and the unused nodes, into arrays padded to the size classes (`jaxci.sizes.bucket`) of their counts, which come
+down first as 4 integers. The host then builds the edges (`jaxci.geometry.topology.topology_from_faces`,
+O(boundary)). The result equals ``boundary_topology(hexes, n_nodes)`` array for array.
 
 The device path is for hexahedral meshes: meshes with wedges, pyramids, tetrahedra or quadratic cells keep
 the host's `jaxci.geometry.boundary.mesh_topology`.
@@ -35,8 +37,15 @@ from ..transfer import program, to_device, to_host
 from .topology import HEX_FACES, BoundaryTopology, topology_from_faces
 
 #: A run of one hash holding different keys is resolved by comparing each face with the faces up to this many
-#: places away minus one; a longer such run sends the program to the exact sort.
-_WINDOW = 4
+#: places away minus one; a longer such run sends the program to the exact sort. Such a run takes 4 keys of one
+#: hash (interior faces come in pairs): about 10^-6 of the 3 x 10^7 distinct faces of 10^7 hexahedra (38 bits of
+#: hash), but some among 10^8 (34 bits), where the exact sort runs. 6 comparisons and 2 flags fill the uint8
+#: `_face_codes`.
+_WINDOW = 6
+#: The sort puts the faces in windows of about ``2**_LOCAL_BITS`` positions of close lowest nodes (as
+#: `jaxci.mesh.sorting.group_pairs` does): faces of nearby hexahedra, whose keys are then gathered from cache
+#: (0.2 s against 0.7 s for the two gathers at 10^6 hexahedra).
+_LOCAL_BITS = 16
 
 
 def _sorted_face_keys(conn, n_nodes):
@@ -77,9 +86,12 @@ def _face_codes(conn, n_nodes, n_hexes, *, exact: bool = False, hash_bits: int |
         h = None
     else:
         bits = position_bits(m)
+        lead = min(max(bits - _LOCAL_BITS, 0), 64 - bits - 32)
         u = jnp.uint64
         h = (k1.astype(u) * u(int(HASH_MIX[0])) + k2.astype(u)) * u(int(HASH_MIX[1]))
-        h = h >> u(bits if hash_bits is None else 64 - hash_bits)
+        h = h >> u(bits + lead if hash_bits is None else 64 - hash_bits)
+        if lead and hash_bits is None:  # the leading bits: those of the face's lowest node, s0 / n_nodes
+            h = h | ((((k1 // n_nodes) << lead) // n_nodes).astype(u) << u(64 - bits - lead))
         h = jnp.where(real, h, u((1 << (64 - bits)) - 1))  # padding faces last
         words = jnp.sort((h << u(bits)) | pos.astype(u))
         order = (words & u((1 << bits) - 1)).astype(jnp.int64)
@@ -162,12 +174,11 @@ def _face_groups(conn, n_nodes, n_hexes, *, size: int, exact: bool = False, hash
     int64 device scalars), and `_unused_mask` (`size`: its size class): ``(order, boundary, nonmanifold,
     unused, counts)``, counts int64 ``[n boundary, n non-manifold, overflow, n unused]``."""
     order, codes = _face_codes(conn, n_nodes, n_hexes, exact=exact, hash_bits=hash_bits)
-    # materialised: fused into `_face_masks`' shifted reads, the comparisons ran once per read (1.8 s against
-    # 0.06 s at 10^6 hexahedra)
-    order, codes = jax.lax.optimization_barrier((order, codes))
     boundary, nonmanifold, counts = _face_masks(codes)
     unused, n_unused = _unused_mask(conn, n_hexes, n_nodes, size)
-    return order, boundary, nonmanifold, unused, jnp.append(counts, n_unused)
+    # `codes` is an output only to be materialised: XLA:CPU otherwise recomputed it within `_face_masks` (2 s
+    # more at 10^6 hexahedra, with or without an optimization barrier)
+    return order, boundary, nonmanifold, unused, jnp.append(counts, n_unused), codes
 
 
 def _unused_mask(conn, n_hexes, n_nodes, size: int):
@@ -214,18 +225,18 @@ def device_mesh_topology(conn, n_nodes: int, *, n_hexes: int | None = None,
     (`jaxci.geometry.topology`) array for array; and the sorted int64 indices of the nodes no hexahedron uses
     (`jaxci.geometry.boundary.classify_boundary`'s `unused`).
 
-    Moves host <- device: 3 + 1 integers, then the boundary faces and their hexahedra (padded to a size
-    class), the non-manifold faces, and the unused nodes (padded); host -> device: 2 scalars. Host work:
-    O(boundary faces). Runs inside ``jax.enable_x64(True)`` (64-bit keys).
+    Moves host <- device: 4 integers, then the boundary faces and their hexahedra, the non-manifold faces and
+    the unused nodes (each padded to a size class); host -> device: 2 scalars. Host work: O(boundary faces).
+    Runs inside ``jax.enable_x64(True)`` (64-bit keys).
     """
     m = int(conn.shape[1]) if n_hexes is None else int(n_hexes)
     with enable_x64():
         nn, nh = to_device(np.int64(n_nodes)), to_device(np.int64(m))
         size = bucket(n_nodes)
-        *groups, counts = _face_groups(conn, nn, nh, size=size, hash_bits=_hash_bits)
+        *groups, counts, _ = _face_groups(conn, nn, nh, size=size, hash_bits=_hash_bits)
         nb, nk, overflow, n_unused = to_host(counts).tolist()
         if overflow:  # a long run of one hash with different keys: sort the keys themselves
-            *groups, counts = _face_groups(conn, nn, nh, size=size, exact=True)
+            *groups, counts, _ = _face_groups(conn, nn, nh, size=size, exact=True)
             nb, nk, _, n_unused = to_host(counts).tolist()
         faces, face_hex, nm, unused = to_host(_face_lists(
             conn, *groups, n_boundary=bucket(nb), n_nonmanifold=bucket(nk), n_unused=bucket(n_unused)))
