@@ -42,7 +42,7 @@ from ..cells import QUADRATIC_TYPES, volume_cells
 from ..cells import fixed_nodes as fixed_cell_nodes
 from ..errors import MeshError
 from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
-from .topology import BoundaryTopology, boundary_topology, components
+from .topology import BoundaryTopology, boundary_topology, components, sorted_unique
 
 #: Node classes (values of `BoundaryInfo.node_class`).
 INTERIOR = 0
@@ -240,7 +240,8 @@ def classify_boundary(
             raise MeshError(f"{where}fixed_sets: the mesh has no point set {name!r} (point sets: {known})")
     topo = mesh_topology(mesh) if topology is None else topology
     # the boundary nodes, numbered 0 .. m - 1 in increasing order (`local`): every array below is O(boundary)
-    bnodes, local = np.unique(topo.faces, return_inverse=True)
+    bnodes = topo.nodes
+    local = np.searchsorted(bnodes, topo.faces)
     if points is None:
         points = mesh.points[bnodes]
     elif np.shape(points) != (len(bnodes), 3):
@@ -248,7 +249,7 @@ def classify_boundary(
                          f"shape ({len(bnodes)}, 3), got {np.shape(points)}")
     # normals and angles are scale-invariant; no overflow
     pts = to_unit(points, unit_frame(mesh.points) if frame is None else frame)
-    geo = _boundary_classes(topo, bnodes, local.reshape(topo.faces.shape), pts, mesh.face_sets, feature_angle)
+    geo = _boundary_classes(topo, bnodes, local, pts, mesh.face_sets, feature_angle)
     cls, patch, curve = geo.classes
     notes = list(geo.notes)
     for msg in notes:
@@ -279,8 +280,8 @@ def classify_boundary(
         cls[:] = CORNER
     pinned += [topo.nonmanifold_nodes, fixed.astype(np.int64)]
     pinned += [np.asarray(mesh.point_sets[name], dtype=np.int64).ravel() for name in fixed_sets]
-    pinned = np.unique(np.concatenate(pinned))
-    nodes = np.union1d(bnodes, pinned)
+    pinned = sorted_unique(np.concatenate(pinned))
+    nodes = sorted_unique(np.concatenate([bnodes, pinned]))
     classes = NodeClasses(nodes, np.full(len(nodes), CORNER, np.int8), np.full(len(nodes), -1, np.int32),
                           np.full(len(nodes), -1, np.int32))
     at = np.searchsorted(nodes, bnodes)
@@ -354,7 +355,7 @@ def _boundary_classes(topo: BoundaryTopology, bnodes: np.ndarray, faces: np.ndar
     if len(tri):  # the repeated node of a triangle is one corner of it
         ca, cb = np.concatenate([ca, 4 * tri + 2]), np.concatenate([cb, 4 * tri + 3])
     _, corner_comp = components(4 * n_faces, ca, cb)
-    node_comp = np.unique(faces.ravel() * np.int64(4 * n_faces) + corner_comp)  # distinct (node, fan) pairs
+    node_comp = sorted_unique(faces.ravel() * np.int64(4 * n_faces) + corner_comp)  # distinct (node, fan) pairs
     nm_vertex = np.bincount(node_comp // max(4 * n_faces, 1), minlength=m) > 1
 
     # --- geometric node classes (every node here is on a boundary face)
@@ -460,7 +461,7 @@ def _reclassify(info: BoundaryInfo, nodes: np.ndarray, cls: int, patch) -> Bound
     node_class[nodes], patch_id[nodes], curve_id[nodes] = cls, patch, -1
     classes = None
     if info.classes is not None:  # the listed nodes and these (none of them INTERIOR)
-        at = np.union1d(info.classes.nodes, nodes)
+        at = sorted_unique(np.concatenate([info.classes.nodes, nodes]))
         classes = NodeClasses(at, node_class[at], patch_id[at], curve_id[at])
     return dataclasses.replace(info, node_class=node_class, patch_id=patch_id, curve_id=curve_id, classes=classes)
 

@@ -38,7 +38,7 @@ from ..transfer import program, to_device, to_host
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, classify_boundary, non_hex_cells
 from .projection import TABLE_FIELDS, Constraints, project_on_groups
 from .tables import BoundaryTables, boundary_tables
-from .topology import BoundaryTopology
+from .topology import BoundaryTopology, sorted_unique
 
 
 def hexahedral(mesh: HexMesh) -> bool:
@@ -138,7 +138,7 @@ def device_constraints(points, info: BoundaryInfo, *, dtype=None) -> tuple[Const
     of = {k: c.node_class == k for k in (SURFACE, EDGE, CORNER)}
     surf, edge, corner = (c.nodes[of[k]] for k in (SURFACE, EDGE, CORNER))
     faces, fedges = info.topology.faces, info.feature_edges
-    need = np.unique(np.concatenate([faces.ravel(), fedges.ravel(), c.nodes]).astype(np.int64))
+    need = sorted_unique(np.concatenate([faces.ravel(), fedges.ravel(), c.nodes]).astype(np.int64))
     with enable_x64():  # the dtypes as given (float64 tables too)
         coords = _boundary_points(points, need)
         tables = boundary_tables(need, coords, faces, info.face_patch, fedges, info.edge_curve, surf,

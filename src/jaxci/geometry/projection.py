@@ -61,6 +61,7 @@ from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo
 if TYPE_CHECKING:
     from jaxtyping import Array, Float, Int
 from .tables import BoundaryTables, boundary_tables
+from .topology import sorted_unique
 
 
 @pytree_dataclass
@@ -166,7 +167,7 @@ def host_tables(points: np.ndarray, info: BoundaryInfo, surf: np.ndarray, edge: 
     """`jaxci.geometry.tables.boundary_tables` of `info` with the coordinates taken from `points` ``(n_nodes,
     3)`` (float64) at the boundary nodes; `surf`, `edge`, `corner` the sorted nodes of each class."""
     faces, fedges = info.topology.faces, info.feature_edges
-    need = np.unique(np.concatenate([faces.ravel(), fedges.ravel(), surf, edge, corner]).astype(np.int64))
+    need = sorted_unique(np.concatenate([faces.ravel(), fedges.ravel(), surf, edge, corner]).astype(np.int64))
     return boundary_tables(need, points[need], faces, info.face_patch, fedges, info.edge_curve, surf,
                            np.asarray(info.patch_id)[surf], edge, np.asarray(info.curve_id)[edge], corner)
 

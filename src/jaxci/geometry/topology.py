@@ -98,7 +98,7 @@ class BoundaryTopology:
     @property
     def nonmanifold_nodes(self) -> np.ndarray:
         """Sorted nodes of `nonmanifold_faces` (without the -1 padding of triangles)."""
-        v = np.unique(self.nonmanifold_faces)
+        v = sorted_unique(self.nonmanifold_faces)
         return v[v >= 0]
 
     @property
@@ -113,7 +113,7 @@ class BoundaryTopology:
     @property
     def nodes(self) -> np.ndarray:
         """Sorted indices of the nodes on the boundary, shape ``(n_boundary_nodes,)``."""
-        return np.unique(self.faces)
+        return sorted_unique(self.faces)
 
 
 def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryTopology:
@@ -256,6 +256,13 @@ def unique_edges(pairs: np.ndarray) -> np.ndarray:
     """
     e = np.sort(np.asarray(pairs, dtype=np.int64).reshape(-1, 2), axis=1)
     return np.stack(_distinct_pairs(e[:, 0], e[:, 1]), axis=1)
+
+
+def sorted_unique(a) -> np.ndarray:
+    """The distinct values of an integer array (any shape), sorted: ``np.unique(a)`` by one ``np.sort`` (numpy 2's
+    ``np.unique`` hashes integers: 39 ms against 5 ms for the 240,000 corners of a 100^3 box's boundary faces)."""
+    s = np.sort(np.asarray(a).ravel())
+    return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
 
 
 def _distinct_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
