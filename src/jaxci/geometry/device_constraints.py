@@ -36,6 +36,7 @@ from ..mesh import HexMesh
 from ..mesh.frame import frame_of_bounds
 from ..transfer import program, to_device, to_host
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, classify_boundary, non_hex_cells
+from .device_topology import first_true
 from .projection import TABLE_FIELDS, Constraints, project_on_groups
 from .tables import BoundaryTables, boundary_tables
 from .topology import BoundaryTopology, sorted_unique
@@ -114,7 +115,7 @@ def _per_node(points, nodes, node_class, group, surf, edge, *, n_interior: int, 
     grp = jnp.full(n, -1, jnp.int32).at[nodes].set(group)
     row = jnp.zeros(n, jnp.int32).at[surf].set(jnp.arange(surf.shape[0], dtype=jnp.int32))
     row = row.at[edge].set(jnp.arange(edge.shape[0], dtype=jnp.int32))
-    interior = jnp.nonzero(cls == INTERIOR, size=n_interior)[0].astype(jnp.int32)
+    interior = first_true(cls == INTERIOR, n_interior)  # a sort: jnp.nonzero compiles 7 times slower
     return points.astype(dtype), cls, grp, row, interior
 
 

@@ -137,19 +137,28 @@ def _face_masks(codes):
 
 
 def compact(mask, size: int):
-    """``jnp.nonzero(mask, size=size, fill_value=len(mask))[0]`` for a `mask` ``(m,)`` with at most `size` True
-    entries, in two levels (jit-able; `size` static): the blocks of `_BLOCK` entries holding one, then the
-    entries of those blocks. Its prefix sums run over ``m / _BLOCK + size * _BLOCK`` entries, not m (0.07 s
-    against 0.4 s for ``jnp.nonzero`` at m = 6 x 10^6, size 65536, XLA:CPU)."""
+    """``jnp.nonzero(mask, size=size, fill_value=len(mask))[0]`` (int32) for a `mask` ``(m,)`` with at most `size`
+    True entries, in two levels (jit-able; `size` static): the blocks of `_BLOCK` entries holding one, then the
+    entries of those blocks, each level by a sort of the True entries' positions (the others past the end). It
+    sorts ``m / _BLOCK + size * _BLOCK`` entries, not m; and compiles in 0.2 s where ``jnp.nonzero``'s prefix
+    sums compile in 0.5-0.7 s each (XLA:CPU; 0.15 s against 0.06 s to run at m = 6 x 10^6, size 65536)."""
     m = mask.shape[0]
     if size == 0:
-        return jnp.zeros(0, jnp.int64)
+        return jnp.zeros(0, jnp.int32)
     rows = -(-m // _BLOCK)
     blocks = jnp.concatenate([mask, jnp.zeros(rows * _BLOCK - m + _BLOCK, bool)]).reshape(rows + 1, _BLOCK)
-    hit = jnp.nonzero(blocks[:rows].any(axis=1), size=size, fill_value=rows)[0]
-    inner = jnp.nonzero(blocks[hit].ravel(), size=size, fill_value=size * _BLOCK)[0]
+    hit = first_true(blocks[:rows].any(axis=1), size)
+    inner = first_true(blocks[hit].ravel(), size)
     found = jnp.append(hit, rows)[inner // _BLOCK] * _BLOCK + inner % _BLOCK
-    return jnp.where(found < m, found, m).astype(jnp.int64)
+    return jnp.where(found < m, found, m)
+
+
+def first_true(mask, size: int):
+    """The positions of the first `size` True entries of `mask` ``(m,)``, int32, padded with m (jit-able; `size`
+    static): one sort (it compiles in 0.07 s, ``jnp.nonzero`` in 0.5 s on XLA:CPU)."""
+    m = mask.shape[0]
+    first = jnp.sort(jnp.where(mask, jnp.arange(m, dtype=jnp.int32), m))[:size]
+    return jnp.concatenate([first, jnp.full(size - first.shape[0], m, jnp.int32)])
 
 
 #: `compact`'s block size.
