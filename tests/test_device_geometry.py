@@ -27,7 +27,7 @@ from jaxci.geometry.device_constraints import (
 from jaxci.geometry.device_topology import compact, device_mesh_topology
 from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.geometry.topology import boundary_topology
-from jaxci.mesh import unit_frame
+from jaxci.mesh import hex_mesh, unit_frame
 from jaxci.mesh.blocks import CellBlock
 from jaxci.mesh.sorting import HASH_MIX, position_bits
 from jaxci.shapes import annulus
@@ -42,8 +42,11 @@ INFO_FIELDS = ("node_class", "patch_id", "curve_id", "face_patch", "edge_is_feat
 
 def _meshes() -> dict:
     """Boxes, a curved annulus and the real meshes of ../shared (those present)."""
+    cube = perturb_box(1, amplitude=0.0)
     out = {"box": perturb_box(5, amplitude=0.3, seed=1), "flat_box": perturb_box(3, 4, 2, amplitude=0.0),
-           "annulus": annulus(16, 2, 3)}
+           "annulus": annulus(16, 2, 3),
+           # a hexahedron listed twice: no boundary face, every node interior
+           "doubled_hex": hex_mesh(cube.points, np.concatenate([cube.hexes, cube.hexes]))}
     for path in sorted(MESQUITE.glob("*.vtk")) + sorted(EXODUS.glob("*.g")):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -55,7 +58,7 @@ MESHES = _meshes()
 #: The meshes the device path is checked on (each compiles its programs: a few seconds): boxes, a curved
 #: boundary, real meshes with inverted cells (pave3), shells and side sets (2block1, two-block).
 HEXAHEDRAL = {k: m for k, m in MESHES.items() if hexahedral(m) and k in (
-    "box", "annulus", "single_hex.vtk", "pave3.e.vtk", "2block1.g", "two-block.g")}
+    "box", "annulus", "doubled_hex", "single_hex.vtk", "pave3.e.vtk", "2block1.g", "two-block.g")}
 
 
 def _conn(hexes, pad: int | None = None):
@@ -206,7 +209,7 @@ def test_device_path_refuses_other_cells():
 
 @pytest.mark.parametrize("name, dtype", [("box", np.float64), ("box", np.float32), ("annulus", np.float32),
                                          ("pave3.e.vtk", np.float64), ("2block1.g", np.float32),
-                                         ("two-block.g", np.float64)])
+                                         ("two-block.g", np.float64), ("doubled_hex", np.float32)])
 def test_device_constraints_are_build_constraints(name, dtype):
     if name not in HEXAHEDRAL:
         pytest.skip("../shared/data not present")

@@ -106,17 +106,21 @@ def device_classify_boundary(mesh: HexMesh, points, topology: BoundaryTopology, 
 
 
 @program
-@functools.partial(jax.jit, static_argnames=("n_interior", "dtype"))
-def _per_node(points, nodes, node_class, group, surf, edge, *, n_interior: int, dtype):
-    """The per-node arrays of `Constraints` from the classes of the listed `nodes` (every other node INTERIOR):
-    ``(x_orig, node_class, group, row, interior_nodes)``."""
+@functools.partial(jax.jit, static_argnames=("n_interior", "dtype", "per_face"))
+def _per_node(points, nodes, node_class, group, surf, edge, quad_cand, face_patch, *, n_interior: int, dtype,
+              per_face: bool):
+    """The per-node arrays of `Constraints` from the classes of the listed `nodes` (every other node INTERIOR),
+    and the per-triangle ones from the per-face ones (`quad_cand` ``(ns, K)``: the candidate faces of each
+    surface node; `face_patch` ``(n_faces,)``, or without `per_face` the triangles' already; 4 triangles per
+    face): ``(x_orig, node_class, group, row, interior_nodes, surface_cand, triangle_patch)``."""
     n = points.shape[0]
     cls = jnp.zeros(n, jnp.int32).at[nodes].set(node_class)
     grp = jnp.full(n, -1, jnp.int32).at[nodes].set(group)
     row = jnp.zeros(n, jnp.int32).at[surf].set(jnp.arange(surf.shape[0], dtype=jnp.int32))
     row = row.at[edge].set(jnp.arange(edge.shape[0], dtype=jnp.int32))
     interior = first_true(cls == INTERIOR, n_interior)  # a sort: jnp.nonzero compiles 7 times slower
-    return points.astype(dtype), cls, grp, row, interior
+    tri_cand = (4 * quad_cand[:, :, None] + jnp.arange(4, dtype=jnp.int32)).reshape(quad_cand.shape[0], -1)
+    return points.astype(dtype), cls, grp, row, interior, tri_cand, jnp.repeat(face_patch, 4 if per_face else 1)
 
 
 def device_constraints(points, info: BoundaryInfo, *, dtype=None) -> tuple[Constraints, BoundaryTables]:
@@ -148,12 +152,20 @@ def device_constraints(points, info: BoundaryInfo, *, dtype=None) -> tuple[Const
         i32 = {k: np.asarray(v, dtype=np.int32) for k, v in (("nodes", c.nodes), ("node_class", c.node_class),
                                                              ("group", group), ("surf", surf), ("edge", edge),
                                                              ("corner", corner))}
+        # the 4 triangles of each face are expanded on the device: their candidates (4 per candidate face: 15 MB
+        # at 10^6 hexahedra, against 4 MB of faces) and patches
+        if len(faces):
+            i32["quad_cand"], i32["face_patch"] = tables.surface_cand[:, ::4] // 4, info.face_patch
+        else:  # `boundary_tables`' placeholders: one candidate, one triangle of patch -1
+            i32["quad_cand"], i32["face_patch"] = np.zeros((1, 1), np.int32), tables.triangle_patch
+        i32 = {k: np.asarray(v, dtype=np.int32) for k, v in i32.items()}
         tab = {k: np.asarray(v, dtype=np.int32 if v.dtype.kind in "iu" else dtype)
-               for k, v in ((k, getattr(tables, k)) for k in TABLE_FIELDS)}
+               for k, v in ((k, getattr(tables, k)) for k in TABLE_FIELDS if k not in ("surface_cand",
+                                                                                       "triangle_patch"))}
         up, tab = to_device((i32, tab))
-        x_orig, node_class, grp, row, interior = _per_node(
-            points, up["nodes"], up["node_class"], up["group"], up["surf"], up["edge"],
-            n_interior=int(points.shape[0]) - len(c.nodes), dtype=dtype)
+        x_orig, node_class, grp, row, interior, tab["surface_cand"], tab["triangle_patch"] = _per_node(
+            points, up["nodes"], up["node_class"], up["group"], up["surf"], up["edge"], up["quad_cand"],
+            up["face_patch"], n_interior=int(points.shape[0]) - len(c.nodes), dtype=dtype, per_face=bool(len(faces)))
     cons = Constraints(x_orig=x_orig, node_class=node_class, group=grp, row=row, interior_nodes=interior,
                        surface_nodes=up["surf"], edge_nodes=up["edge"], corner_nodes=up["corner"], **tab)
     return cons, tables
