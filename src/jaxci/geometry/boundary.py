@@ -42,7 +42,7 @@ from ..cells import QUADRATIC_TYPES, volume_cells
 from ..cells import fixed_nodes as fixed_cell_nodes
 from ..errors import MeshError
 from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
-from .topology import BoundaryTopology, boundary_topology, components
+from .topology import BoundaryTopology, boundary_topology, components, sorted_unique
 
 #: Node classes (values of `BoundaryInfo.node_class`).
 INTERIOR = 0
@@ -53,6 +53,28 @@ CORNER = 3
 #: Names of the node classes, indexed by class.
 CLASS_NAMES = ("interior", "surface", "edge", "corner")
 
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class NodeClasses:
+    """The classification of the nodes that are not INTERIOR, in O(boundary) (`BoundaryInfo.classes`): every
+    node not listed is INTERIOR, of no patch and no curve.
+
+    **Arguments:** `nodes` sorted int64 ``(k,)``; `node_class` int8 ``(k,)`` (`SURFACE`, `EDGE` or `CORNER`);
+    `patch_id`, `curve_id` int32 ``(k,)`` (-1 but for a SURFACE, an EDGE node).
+    """
+
+    nodes: np.ndarray
+    node_class: np.ndarray
+    patch_id: np.ndarray
+    curve_id: np.ndarray
+
+    @classmethod
+    def of(cls, node_class: np.ndarray, patch_id: np.ndarray, curve_id: np.ndarray) -> NodeClasses:
+        """The `NodeClasses` of per-node arrays ``(n_nodes,)`` (an O(n_nodes) pass)."""
+        nodes = np.flatnonzero(np.asarray(node_class) != INTERIOR)
+        return cls(nodes, np.asarray(node_class)[nodes].astype(np.int8), np.asarray(patch_id)[nodes].astype(np.int32),
+                   np.asarray(curve_id)[nodes].astype(np.int32))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -72,6 +94,9 @@ class BoundaryInfo:
     - `n_patches`, `n_curves`: numbers of patches and curves.
     - `feature_angle`: the feature angle in degrees it was computed with.
     - `notes`: sentences about what was unusual (open or non-manifold boundary, fixed non-hex nodes, ...).
+    - `classes`: the same classification restricted to the nodes that are not INTERIOR (`NodeClasses`), or None
+      (then `boundary_classes` derives it from the per-node arrays). `classify_boundary` and `fix_nodes` keep
+      the two in agreement; whoever replaces the per-node arrays replaces it too (or sets None).
     """
 
     node_class: np.ndarray
@@ -86,26 +111,40 @@ class BoundaryInfo:
     n_curves: int
     feature_angle: float
     notes: tuple[str, ...] = ()
+    classes: NodeClasses | None = None
 
     @property
     def n_nodes(self) -> int:
         return int(self.node_class.shape[0])
 
+    @property
+    def boundary_classes(self) -> NodeClasses:
+        """`classes`, or (None) the `NodeClasses` of the per-node arrays (an O(n_nodes) pass)."""
+        if self.classes is not None:
+            return self.classes
+        return NodeClasses.of(self.node_class, self.patch_id, self.curve_id)
+
     def nodes_of(self, cls: int) -> np.ndarray:
         """Sorted indices of the nodes of class `cls`, int64 array."""
+        if cls != INTERIOR and self.classes is not None:
+            return self.classes.nodes[self.classes.node_class == cls]
         return np.flatnonzero(self.node_class == cls)
 
     @property
     def counts(self) -> dict[str, int]:
         """Number of nodes per class, by name (``{"interior": ..., "surface": ..., "edge": ..., "corner": ...}``)."""
-        c = np.bincount(self.node_class, minlength=4)
+        if self.classes is not None:
+            c = np.bincount(self.classes.node_class, minlength=4)
+            c[INTERIOR] = self.n_nodes - len(self.classes.nodes)
+        else:
+            c = np.bincount(self.node_class, minlength=4)
         return {name: int(c[i]) for i, name in enumerate(CLASS_NAMES)}
 
 
 def mesh_topology(mesh: HexMesh) -> BoundaryTopology:
     """`jaxci.geometry.topology.boundary_topology` of every volume cell of `mesh` (hexahedra, wedges, pyramids,
     tetrahedra; quadratic cells by their corner nodes)."""
-    cells = _non_hex_cells(mesh)
+    cells = non_hex_cells(mesh)
     hexes = mesh.hexes
     quad = [np.asarray(b.data)[:, :8] for b in mesh.cells if b.type in ("hexahedron20", "hexahedron27")
             and len(b.data)]
@@ -114,7 +153,7 @@ def mesh_topology(mesh: HexMesh) -> BoundaryTopology:
     return boundary_topology(hexes, mesh.n_nodes, cells or None)
 
 
-def _non_hex_cells(mesh: HexMesh) -> dict[str, np.ndarray]:
+def non_hex_cells(mesh: HexMesh) -> dict[str, np.ndarray]:
     """`jaxci.cells.volume_cells` of `mesh` but the hexahedra (linear and quadratic), without the copy of the
     hexahedra it would make (64 MB at 10^6 hexahedra)."""
     blocks = tuple(b for b in mesh.cells if QUADRATIC_TYPES.get(b.type, b.type) != "hexahedron")
@@ -152,22 +191,36 @@ def classify_boundary(
     fixed_nodes: Sequence[int] | np.ndarray | None = None,
     fixed_sets: Sequence[str] = (),
     topology: BoundaryTopology | None = None,
+    points: np.ndarray | None = None,
+    frame: tuple[np.ndarray, float] | None = None,
+    unused: np.ndarray | None = None,
 ) -> BoundaryInfo:
     """Classify every node of `mesh` as interior, surface, edge or corner (see this module's docstring).
 
+    The work is O(boundary) but for what the last three arguments stand for when they are not given (the
+    frame, the boundary nodes' coordinates, the nodes of no cell: O(mesh)) and the per-node arrays of the
+    result (an ``np.full`` of each, then the boundary nodes written).
+
     **Arguments:**
 
-    - `mesh`: the `HexMesh`; its current coordinates define the boundary geometry.
+    - `mesh`: the `HexMesh`; its current coordinates define the boundary geometry (unless `points` is given).
     - `feature_angle`: angle in degrees (0 < angle < 180) above which the normals of two boundary faces across an
       edge, or the directions of two feature edges at a node, make a feature. Keyword only argument.
     - `fix_boundary`: make every boundary node a corner (only interior nodes move). Keyword only argument.
     - `fixed_nodes`: indices of further nodes to fix. Keyword only argument.
     - `fixed_sets`: names of `mesh.point_sets` whose nodes are fixed. Keyword only argument.
-    - `topology`: a precomputed `boundary_topology(mesh.hexes, mesh.n_nodes, others)` (`mesh_topology`). Keyword
-      only argument.
+    - `topology`: a precomputed `boundary_topology(mesh.hexes, mesh.n_nodes, others)` (`mesh_topology`, or
+      `jaxci.geometry.device_topology.device_mesh_topology`). Keyword only argument.
+    - `points`: the coordinates of the boundary nodes ``topology.nodes`` (sorted), shape ``(n_boundary_nodes,
+      3)``, in place of ``mesh.points[topology.nodes]``. Keyword only argument.
+    - `frame`: the ``(centre, scale)`` the angles are measured in (`jaxci.mesh.unit_frame`; scale-invariant
+      but for rounding), default ``unit_frame(mesh.points)``. Keyword only argument.
+    - `unused`: the sorted indices of the nodes no volume cell uses (they are fixed), default found from the
+      mesh's cells. Keyword only argument.
 
-    **Returns:** a `BoundaryInfo`. Raises `MeshError` for a bad `feature_angle`, an out-of-range fixed node
-    or an unknown point set; warns (`UserWarning`) about an open or non-manifold boundary.
+    **Returns:** a `BoundaryInfo` (with its `classes`). Raises `MeshError` for a bad `feature_angle`, an
+    out-of-range fixed node or an unknown point set; warns (`UserWarning`) about an open or non-manifold
+    boundary.
     """
     mesh = as_hex_mesh(mesh, "classify_boundary")
     if isinstance(feature_angle, (bool, str)) or not isinstance(feature_angle, (int, float, np.integer, np.floating)) \
@@ -177,7 +230,6 @@ def classify_boundary(
         raise MeshError(f"fixed_sets must be a list of node set names, got the string {fixed_sets!r} (write "
                         f"[{fixed_sets!r}])")
     where = f"{mesh.source}: " if mesh.source else ""
-    hexes = mesh.hexes
     n = mesh.n_nodes
     fixed = np.zeros(0, dtype=np.int64) if fixed_nodes is None else np.asarray(fixed_nodes).ravel()
     if fixed.size and (fixed.dtype.kind not in "iu" or fixed.min() < 0 or fixed.max() >= n):
@@ -186,9 +238,92 @@ def classify_boundary(
         if not isinstance(name, str) or name not in mesh.point_sets:
             known = ", ".join(sorted(mesh.point_sets)) or "none"
             raise MeshError(f"{where}fixed_sets: the mesh has no point set {name!r} (point sets: {known})")
-    pts = to_unit(mesh.points, unit_frame(mesh.points))  # normals and angles are scale-invariant; no overflow
     topo = mesh_topology(mesh) if topology is None else topology
-    faces, edges = topo.faces, topo.edges
+    # the boundary nodes, numbered 0 .. m - 1 in increasing order (`local`): every array below is O(boundary)
+    bnodes = topo.nodes
+    local = np.searchsorted(bnodes, topo.faces)
+    if points is None:
+        points = mesh.points[bnodes]
+    elif np.shape(points) != (len(bnodes), 3):
+        raise ValueError(f"classify_boundary: points must be the coordinates of the {len(bnodes)} boundary nodes, "
+                         f"shape ({len(bnodes)}, 3), got {np.shape(points)}")
+    # normals and angles are scale-invariant; no overflow
+    pts = to_unit(points, unit_frame(mesh.points) if frame is None else frame)
+    geo = _boundary_classes(topo, bnodes, local, pts, mesh.face_sets, feature_angle)
+    cls, patch, curve = geo.classes
+    notes = list(geo.notes)
+    for msg in notes:
+        warnings.warn(f"{where}{msg}", stacklevel=2)
+    if geo.n_border:
+        notes.append(f"{geo.n_border} boundary edges on the borders of the mesh's {len(mesh.face_sets)} face "
+                     f"sets (side sets) are feature edges: each set keeps its extent")
+
+    # --- nodes that must not move
+    if unused is None:
+        used = np.zeros(n, dtype=bool)
+        used[mesh.hexes.ravel()] = True
+        for cells in non_hex_cells(mesh).values():
+            used[cells.ravel()] = True
+        unused = np.flatnonzero(~used)
+    pinned = [np.asarray(unused, dtype=np.int64)]
+    if mesh.held_nodes is not None and len(mesh.held_nodes):
+        held = np.asarray(mesh.held_nodes, dtype=np.int64)
+        pinned.append(held)
+        notes.append(f"{len(np.unique(held))} nodes of cells that are not smoothed (shell, beam or sphere blocks) "
+                     f"are held where they are")
+    quadratic = fixed_cell_nodes(mesh)
+    if len(quadratic):
+        pinned.append(quadratic)
+        notes.append(f"{len(quadratic)} nodes of quadratic non-hexahedral cells (wedge, pyramid, tetrahedron with "
+                     f"midside nodes) are fixed")
+    if fix_boundary:  # every boundary node (used by a cell, or pinned as unused anyway)
+        cls[:] = CORNER
+    pinned += [topo.nonmanifold_nodes, fixed.astype(np.int64)]
+    pinned += [np.asarray(mesh.point_sets[name], dtype=np.int64).ravel() for name in fixed_sets]
+    pinned = sorted_unique(np.concatenate(pinned))
+    nodes = sorted_unique(np.concatenate([bnodes, pinned]))
+    classes = NodeClasses(nodes, np.full(len(nodes), CORNER, np.int8), np.full(len(nodes), -1, np.int32),
+                          np.full(len(nodes), -1, np.int32))
+    at = np.searchsorted(nodes, bnodes)
+    classes.node_class[at], classes.patch_id[at], classes.curve_id[at] = cls, patch, curve
+    classes.node_class[np.searchsorted(nodes, pinned)] = CORNER
+    classes.patch_id[classes.node_class != SURFACE] = -1
+    classes.curve_id[classes.node_class != EDGE] = -1
+    return BoundaryInfo(
+        node_class=_dense(n, classes.nodes, classes.node_class, 0),
+        patch_id=_dense(n, classes.nodes, classes.patch_id, -1),
+        curve_id=_dense(n, classes.nodes, classes.curve_id, -1),
+        topology=topo,
+        face_patch=geo.face_patch,
+        edge_is_feature=geo.feature,
+        feature_edges=topo.edges[geo.feature],
+        edge_curve=geo.edge_curve,
+        n_patches=geo.n_patches,
+        n_curves=geo.n_curves,
+        feature_angle=float(feature_angle),
+        notes=tuple(notes),
+        classes=classes,
+    )
+
+
+def _dense(n: int, nodes: np.ndarray, values: np.ndarray, fill) -> np.ndarray:
+    """An array ``(n,)`` of `values`' dtype: `values` at `nodes`, `fill` elsewhere."""
+    out = np.full(n, fill, dtype=values.dtype)
+    out[nodes] = values
+    return out
+
+
+def _boundary_classes(topo: BoundaryTopology, bnodes: np.ndarray, faces: np.ndarray, pts: np.ndarray, face_sets,
+                      feature_angle: float) -> types.SimpleNamespace:
+    """The geometric part of `classify_boundary`, on the boundary nodes `bnodes` (sorted, ``(m,)``) numbered
+    0 .. m - 1: `faces` ``(n_faces, 4)`` are ``topo.faces`` so numbered, `pts` ``(m, 3)`` the nodes' coordinates
+    (unit frame).
+
+    **Returns:** a namespace: ``classes`` (class int8, patch int32, curve int32, each ``(m,)``), ``face_patch``,
+    ``feature`` (over ``topo.edges``), ``edge_curve``, ``n_patches``, ``n_curves``, ``notes`` (about a broken
+    boundary), ``n_border`` (feature edges on the borders of face sets)."""
+    m = len(pts)
+    edges = np.searchsorted(bnodes, topo.edges)  # the edges, so numbered
     n_faces = len(faces)
     cos_t = float(np.cos(np.radians(feature_angle)))
     notes: list[str] = []
@@ -203,7 +338,7 @@ def classify_boundary(
     normal = _unit(face_normals(pts, faces))
     cos_e = np.einsum("ij,ij->i", normal[fa], normal[fb])
     feature = ~manifold | (cos_e < cos_t)
-    sets = face_set_signature(faces, mesh.face_sets)
+    sets = face_set_signature(topo.faces, face_sets)
     border = np.zeros_like(feature) if sets is None else manifold & (sets[fa] != sets[fb]) & ~feature
     feature |= border
     fedges = edges[feature]
@@ -220,14 +355,12 @@ def classify_boundary(
     if len(tri):  # the repeated node of a triangle is one corner of it
         ca, cb = np.concatenate([ca, 4 * tri + 2]), np.concatenate([cb, 4 * tri + 3])
     _, corner_comp = components(4 * n_faces, ca, cb)
-    node_comp = np.unique(faces.ravel() * np.int64(4 * n_faces) + corner_comp)  # distinct (node, fan) pairs
-    nm_vertex = np.bincount(node_comp // max(4 * n_faces, 1), minlength=n) > 1
+    node_comp = sorted_unique(faces.ravel() * np.int64(4 * n_faces) + corner_comp)  # distinct (node, fan) pairs
+    nm_vertex = np.bincount(node_comp // max(4 * n_faces, 1), minlength=m) > 1
 
-    # --- geometric node classes
-    on_boundary = np.zeros(n, dtype=bool)
-    on_boundary[faces.ravel()] = True
-    deg = np.bincount(fedges.ravel(), minlength=n)
-    cls = np.where(on_boundary, SURFACE, INTERIOR).astype(np.int8)
+    # --- geometric node classes (every node here is on a boundary face)
+    deg = np.bincount(fedges.ravel(), minlength=m)
+    cls = np.full(m, SURFACE, dtype=np.int8)
     cls[deg == 2] = EDGE
     cls[(deg == 1) | (deg >= 3) | nm_vertex] = CORNER
     half_node = fedges.ravel()
@@ -246,13 +379,13 @@ def classify_boundary(
     # --- curves: feature edges joined at EDGE nodes
     joined = two[cls[v] == EDGE]
     n_curves, edge_curve = components(len(fedges), he[joined], he[joined + 1])
-    curve_id = np.full(n, -1, dtype=np.int32)
+    curve_id = np.full(m, -1, dtype=np.int32)
     curve_id[hn] = edge_curve[he]
 
     # --- patches: faces joined across manifold non-feature edges
     smooth = np.flatnonzero(~feature)
     n_patches, face_patch = components(n_faces, fa[smooth], fb[smooth])
-    patch_id = np.full(n, -1, dtype=np.int32)
+    patch_id = np.full(m, -1, dtype=np.int32)
     patch_id[faces.ravel()] = np.repeat(face_patch, 4)
 
     # --- broken boundaries
@@ -276,51 +409,9 @@ def classify_boundary(
             f"non-manifold boundary: {int(nm_vertex.sum())} boundary nodes join separate fans of boundary faces "
             f"(elements touching at a vertex); they are fixed as corners"
         )
-    for msg in notes:
-        warnings.warn(f"{where}{msg}", stacklevel=2)
-
-    if border.any():
-        notes.append(f"{int(border.sum())} boundary edges on the borders of the mesh's {len(mesh.face_sets)} face "
-                     f"sets (side sets) are feature edges: each set keeps its extent")
-
-    # --- nodes that must not move
-    used = np.zeros(n, dtype=bool)
-    used[hexes.ravel()] = True
-    for cells in _non_hex_cells(mesh).values():
-        used[cells.ravel()] = True
-    cls[~used] = CORNER
-    if mesh.held_nodes is not None and len(mesh.held_nodes):
-        held = np.asarray(mesh.held_nodes, dtype=np.int64)
-        cls[held] = CORNER
-        notes.append(f"{len(np.unique(held))} nodes of cells that are not smoothed (shell, beam or sphere blocks) "
-                     f"are held where they are")
-    quadratic = fixed_cell_nodes(mesh)
-    if len(quadratic):
-        cls[quadratic] = CORNER
-        notes.append(f"{len(quadratic)} nodes of quadratic non-hexahedral cells (wedge, pyramid, tetrahedron with "
-                     f"midside nodes) are fixed")
-    cls[topo.nonmanifold_nodes] = CORNER
-    if fix_boundary:
-        cls[on_boundary & used] = CORNER
-    cls[fixed.astype(np.int64)] = CORNER
-    for name in fixed_sets:
-        cls[np.asarray(mesh.point_sets[name], dtype=np.int64).ravel()] = CORNER
-    patch_id[cls != SURFACE] = -1
-    curve_id[cls != EDGE] = -1
-    return BoundaryInfo(
-        node_class=cls,
-        patch_id=patch_id,
-        curve_id=curve_id,
-        topology=topo,
-        face_patch=face_patch,
-        edge_is_feature=feature,
-        feature_edges=fedges,
-        edge_curve=edge_curve,
-        n_patches=n_patches,
-        n_curves=n_curves,
-        feature_angle=float(feature_angle),
-        notes=tuple(notes),
-    )
+    return types.SimpleNamespace(classes=(cls, patch_id, curve_id), face_patch=face_patch, feature=feature,
+                                 edge_curve=edge_curve, n_patches=n_patches, n_curves=n_curves, notes=notes,
+                                 n_border=int(border.sum()))
 
 
 def face_set_signature(faces: np.ndarray, face_sets) -> np.ndarray | None:
@@ -368,7 +459,11 @@ def _reclassify(info: BoundaryInfo, nodes: np.ndarray, cls: int, patch) -> Bound
     nodes = np.asarray(nodes, dtype=np.int64)
     node_class, patch_id, curve_id = np.array(info.node_class), np.array(info.patch_id), np.array(info.curve_id)
     node_class[nodes], patch_id[nodes], curve_id[nodes] = cls, patch, -1
-    return dataclasses.replace(info, node_class=node_class, patch_id=patch_id, curve_id=curve_id)
+    classes = None
+    if info.classes is not None:  # the listed nodes and these (none of them INTERIOR)
+        at = sorted_unique(np.concatenate([info.classes.nodes, nodes]))
+        classes = NodeClasses(at, node_class[at], patch_id[at], curve_id[at])
+    return dataclasses.replace(info, node_class=node_class, patch_id=patch_id, curve_id=curve_id, classes=classes)
 
 
 def slide_on_surface(info: BoundaryInfo, nodes: np.ndarray) -> BoundaryInfo:

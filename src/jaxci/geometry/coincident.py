@@ -152,7 +152,7 @@ def joined_info(joined: Joined, info: BoundaryInfo, points: np.ndarray) -> Bound
         topo, faces=node_of[topo.faces], edges=np.sort(node_of[topo.edges], axis=1),
         nonmanifold_faces=np.where(topo.nonmanifold_faces >= 0, node_of[np.maximum(topo.nonmanifold_faces, 0)], -1))
     return dataclasses.replace(info, node_class=new_cls.astype(cls.dtype), patch_id=patch.astype(np.int32),
-                               curve_id=curve.astype(np.int32), topology=remap_faces, feature_edges=fe,
+                               curve_id=curve.astype(np.int32), topology=remap_faces, feature_edges=fe, classes=None,
                                edge_curve=edge_curve.astype(np.asarray(info.edge_curve).dtype))
 
 

@@ -49,22 +49,19 @@ import numpy as np
 from .._lazy import filter_jit, jax, jnp, pytree_dataclass
 from ..mesh import HexMesh
 from ._closest import (
-    SEG_ROWS,
-    TRI_ROWS,
     closest_on_segments,
     closest_on_triangles,
     inside_tolerance,
     nearest_candidates,
     segment_centres,
-    segment_table,
     triangle_centres,
-    triangle_table,
 )
-from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, face_normals
+from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo
 
 if TYPE_CHECKING:
     from jaxtyping import Array, Float, Int
-from .topology import csr_gather, incidence, unique_per_row
+from .tables import BoundaryTables, boundary_tables
+from .topology import sorted_unique
 
 
 @pytree_dataclass
@@ -111,80 +108,6 @@ class Constraints:
     segment_curve: Int[Array, " nsg"]
 
 
-def _pad_rows(indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
-    """CSR rows as a dense (n_rows, max_len) int32 array, short rows padded by repeating their first entry.
-    At least shape (1, 1) (a row of zeros) when there is nothing."""
-    n_rows = len(indptr) - 1
-    lens = np.diff(indptr)
-    width = max(int(lens.max(initial=0)), 1)
-    out = np.zeros((max(n_rows, 1), width), dtype=np.int32)
-    if n_rows:
-        out[:n_rows] = indices[np.minimum(indptr[:-1], max(len(indices) - 1, 0))][:, None]
-        rows = np.repeat(np.arange(n_rows), lens)
-        out[rows, np.arange(len(indices)) - np.repeat(indptr[:-1], lens)] = indices
-    return out
-
-
-def _ring_candidates(
-    cells: np.ndarray, n_nodes: int, nodes: np.ndarray, cell_group: np.ndarray, node_group: np.ndarray
-) -> np.ndarray:
-    """For each of `nodes`, the cells (faces or segments) of its own group within its 2-ring, padded."""
-    if not len(cells):
-        return np.zeros((1, 1), dtype=np.int32)
-    indptr, indices = incidence(cells, n_nodes)
-    owner, c = csr_gather(indptr, indices, np.asarray(nodes, dtype=np.int64))  # the cells around each node
-    k = cells.shape[1]
-    near_p, near = unique_per_row(np.repeat(owner, k), cells[c].ravel(), len(nodes))  # their nodes (1-ring)
-    owner, c = csr_gather(indptr, indices, near)  # the cells around those
-    ring_p, ring = unique_per_row(np.repeat(np.arange(len(nodes)), np.diff(near_p))[owner], c, len(nodes))
-    rows = np.repeat(np.arange(len(nodes)), np.diff(ring_p))
-    keep = cell_group[ring] == node_group[nodes][rows]
-    indptr = np.zeros(len(nodes) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows[keep], minlength=len(nodes)), out=indptr[1:])
-    return _pad_rows(indptr, ring[keep])
-
-
-def _node_sums(cells: np.ndarray, n_nodes: int, nodes: np.ndarray, values: np.ndarray, cell_group: np.ndarray,
-               node_group: np.ndarray) -> np.ndarray:
-    """For each of `nodes`, the sum of `values` ``(n_cells, d)`` over the distinct cells of its own group it
-    belongs to (``cell_group[cell] == node_group[node]``): shape ``(len(nodes), d)`` (a triangle stored as
-    ``[a, b, c, c]`` counts once for ``c``)."""
-    indptr, indices = incidence(cells, n_nodes)
-    owner, c = csr_gather(indptr, indices, np.asarray(nodes, dtype=np.int64))
-    mine = cell_group[c] == node_group[np.asarray(nodes)[owner]]
-    ptr, c = unique_per_row(owner[mine], c[mine], len(nodes))
-    owner = np.repeat(np.arange(len(nodes)), np.diff(ptr))
-    return np.stack([np.bincount(owner, values[c, j], minlength=len(nodes)) for j in range(values.shape[1])],
-                    axis=1)
-
-
-def _unit_rows(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
-
-
-def _tangent_bases(normals: np.ndarray) -> np.ndarray:
-    """Orthonormal tangent pairs (m, 2, 3) of unit normals (m, 3) (an arbitrary pair for a zero normal)."""
-    m = len(normals)
-    helper = np.zeros((m, 3))
-    helper[np.arange(m), np.argmin(np.abs(normals), axis=1)] = 1.0
-    t1 = _unit_rows(helper - (helper * normals).sum(1, keepdims=True) * normals)
-    t2 = np.cross(normals, t1)
-    t2 = np.where(np.linalg.norm(t2, axis=1, keepdims=True) > 0, t2, _unit_rows(np.cross(t1, helper[:, ::-1])))
-    return np.stack([t1, t2], axis=1)
-
-
-def _edge_tangents(points: np.ndarray, fedges: np.ndarray, edge: np.ndarray) -> np.ndarray:
-    """Unit tangents (m, 3) of EDGE nodes from their two feature edges (bisecting a slight turn)."""
-    if not len(edge):
-        return np.zeros((0, 3))
-    owner, e = csr_gather(*incidence(fedges, len(points)), edge)
-    other = np.where(fedges[e, 0] == edge[owner], fedges[e, 1], fedges[e, 0])
-    first = np.r_[True, owner[1:] != owner[:-1]]  # each EDGE node has exactly two feature edges
-    prev, nxt = other[first], other[~first]
-    return _unit_rows(_unit_rows(points[edge] - points[prev]) + _unit_rows(points[nxt] - points[edge]))
-
-
 def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: bool = True) -> Constraints:
     """Keep a copy of the boundary of `mesh` and precompute everything the projections need.
 
@@ -197,34 +120,21 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     - `device`: put the arrays on JAX's default device (default; for jitted functions, which would copy numpy
       arrays in at every call), or keep them in numpy (the numpy path: JAX is not imported).
 
-    **Returns:** a `Constraints`.
+    **Returns:** a `Constraints`. Its per-node arrays are built here from the mesh's points (O(mesh); on the
+    device, `jaxci.geometry.device_constraints.device_constraints` builds them there), its boundary tables by
+    `jaxci.geometry.tables.boundary_tables` from the boundary nodes' coordinates.
     """
     dtype = jnp.result_type(float) if dtype is None else dtype
     pts = np.asarray(mesh.points, dtype=np.float64)
     n = mesh.n_nodes
     cls = np.asarray(info.node_class)
-    faces, fedges = info.topology.faces, info.feature_edges
     group = np.where(cls == SURFACE, info.patch_id, np.where(cls == EDGE, info.curve_id, -1)).astype(np.int32)
-    nodes = {c: np.flatnonzero(cls == c) for c in (INTERIOR, SURFACE, EDGE, CORNER)}
+    nodes = {c: info.nodes_of(c) for c in (INTERIOR, SURFACE, EDGE, CORNER)}
     surf, edge = nodes[SURFACE], nodes[EDGE]
     row = np.zeros(n, dtype=np.int32)
     row[surf] = np.arange(len(surf))
     row[edge] = np.arange(len(edge))
-    # normals of surface nodes: area-weighted over the faces of their own patch around them (every face around a
-    # surface node, except for a corner or edge node made a surface node by `jaxci.geometry.boundary.slide_on_surface`)
-    normals = np.zeros((len(surf), 3))
-    if len(faces) and len(surf):
-        normals = _unit_rows(_node_sums(faces, n, surf, face_normals(pts, faces), info.face_patch, group))
-    if len(faces):
-        tris, tri_patch = triangle_table(pts, faces), np.repeat(info.face_patch, 4)
-    else:
-        tris, tri_patch = np.zeros((TRI_ROWS, 1)), np.full(1, -1)
-    quad_cand = _ring_candidates(faces, n, surf, info.face_patch, group)
-    tri_cand = (4 * quad_cand[:, :, None] + np.arange(4)).reshape(len(quad_cand), -1)
-    if len(fedges):
-        segs, seg_curve = segment_table(pts, fedges), info.edge_curve
-    else:
-        segs, seg_curve = np.zeros((SEG_ROWS, 1)), np.full(1, -1)
+    tables = host_tables(pts, info, surf, edge, nodes[CORNER])
 
     put = jax.device_put if device else (lambda a: a)
 
@@ -243,15 +153,23 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
         surface_nodes=i32(surf),
         edge_nodes=i32(edge),
         corner_nodes=i32(nodes[CORNER]),
-        surface_basis=f(_tangent_bases(normals)),
-        edge_tangent=f(_edge_tangents(pts, fedges, edge)),
-        surface_cand=i32(tri_cand),
-        edge_cand=i32(_ring_candidates(fedges, n, edge, info.edge_curve, group)),
-        triangles=f(tris),
-        triangle_patch=i32(tri_patch),
-        segments=f(segs),
-        segment_curve=i32(seg_curve),
+        **{k: (i32 if getattr(tables, k).dtype.kind in "iu" else f)(getattr(tables, k)) for k in TABLE_FIELDS},
     )
+
+
+#: The fields of `Constraints` that `jaxci.geometry.tables.BoundaryTables` holds too.
+TABLE_FIELDS = ("surface_basis", "edge_tangent", "surface_cand", "edge_cand", "triangles", "triangle_patch",
+                "segments", "segment_curve")
+
+
+def host_tables(points: np.ndarray, info: BoundaryInfo, surf: np.ndarray, edge: np.ndarray,
+                corner: np.ndarray) -> BoundaryTables:
+    """`jaxci.geometry.tables.boundary_tables` of `info` with the coordinates taken from `points` ``(n_nodes,
+    3)`` (float64) at the boundary nodes; `surf`, `edge`, `corner` the sorted nodes of each class."""
+    faces, fedges = info.topology.faces, info.feature_edges
+    need = sorted_unique(np.concatenate([faces.ravel(), fedges.ravel(), surf, edge, corner]).astype(np.int64))
+    return boundary_tables(need, points[need], faces, info.face_patch, fedges, info.edge_curve, surf,
+                           np.asarray(info.patch_id)[surf], edge, np.asarray(info.curve_id)[edge], corner)
 
 
 # ---------------------------------------------------------------------------------------------------- JAX
@@ -392,21 +310,38 @@ def project_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
     c = constraints
     x = np.array(points, dtype=np.float64)
     group = np.asarray(c.group)
-    for nodes, table, cell_group, closest, centres in (
-        (c.surface_nodes, c.triangles, c.triangle_patch, closest_on_triangles, triangle_centres),
-        (c.edge_nodes, c.segments, c.segment_curve, closest_on_segments, segment_centres),
+    surf, edge, corners = (np.asarray(a) for a in (c.surface_nodes, c.edge_nodes, c.corner_nodes))
+    x[surf], x[edge] = project_on_groups(c, x[surf], group[surf], x[edge], group[edge])
+    x[corners] = np.asarray(c.x_orig, dtype=np.float64)[corners]
+    return x
+
+
+def project_on_groups(tables, xs: np.ndarray, surface_group: np.ndarray, xe: np.ndarray,
+                      edge_group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`project_np`'s exact search for some points only: the points `xs` ``(k, 3)`` onto the patches
+    `surface_group` ``(k,)``, the points `xe` ``(l, 3)`` onto the curves `edge_group` ``(l,)``.
+
+    **Arguments:** `tables`: a `Constraints` or a `jaxci.geometry.tables.BoundaryTables` (its `triangles`,
+    `triangle_patch`, `segments`, `segment_curve` are read); then the points and their groups.
+
+    **Returns:** the nearest points ``(k, 3)`` and ``(l, 3)``, float64.
+    """
+    out = []
+    for x, node_group, table, cell_group, closest, centres in (
+        (xs, surface_group, tables.triangles, tables.triangle_patch, closest_on_triangles, triangle_centres),
+        (xe, edge_group, tables.segments, tables.segment_curve, closest_on_segments, segment_centres),
     ):
-        nodes = np.asarray(nodes)
+        x = np.array(x, dtype=np.float64).reshape(-1, 3)
+        node_group = np.asarray(node_group)
         table = np.asarray(table)
         eps = float(np.finfo(table.dtype).eps) if table.dtype.kind == "f" else float(np.finfo(np.float64).eps)
         table = table.astype(np.float64, copy=False)
         cell_group = np.asarray(cell_group)
-        for g in np.unique(group[nodes]):
-            sel = nodes[group[nodes] == g]
+        for g in np.unique(node_group):
+            sel = np.flatnonzero(node_group == g)
             x[sel] = _search(table, np.flatnonzero(cell_group == g), x[sel], closest, centres, eps)
-    corners = np.asarray(c.corner_nodes)
-    x[corners] = np.asarray(c.x_orig, dtype=np.float64)[corners]
-    return x
+        out.append(x)
+    return out[0], out[1]
 
 
 # ---------------------------------------------------------------------------------------------------- parameters

@@ -98,7 +98,7 @@ class BoundaryTopology:
     @property
     def nonmanifold_nodes(self) -> np.ndarray:
         """Sorted nodes of `nonmanifold_faces` (without the -1 padding of triangles)."""
-        v = np.unique(self.nonmanifold_faces)
+        v = sorted_unique(self.nonmanifold_faces)
         return v[v >= 0]
 
     @property
@@ -113,7 +113,7 @@ class BoundaryTopology:
     @property
     def nodes(self) -> np.ndarray:
         """Sorted indices of the nodes on the boundary, shape ``(n_boundary_nodes,)``."""
-        return np.unique(self.faces)
+        return sorted_unique(self.faces)
 
 
 def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryTopology:
@@ -175,6 +175,27 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryT
     else:
         face_type = np.zeros(len(single), np.int8)
         face_hex = face_cell
+    return topology_from_faces(faces, face_hex, nonmanifold, int(n), face_type=face_type, face_cell=face_cell)
+
+
+def topology_from_faces(faces: np.ndarray, face_hex: np.ndarray, nonmanifold: np.ndarray, n_nodes: int, *,
+                        face_type: np.ndarray | None = None, face_cell: np.ndarray | None = None) -> BoundaryTopology:
+    """The `BoundaryTopology` of given boundary faces: their edges, each face's edges and each edge's faces, in
+    O(boundary) (one sort of the faces' sides); what `boundary_topology` builds once it has found the faces, and
+    what `jaxci.geometry.device_topology` builds from the faces it finds on the device.
+
+    **Arguments:** `faces` ``(n_faces, 4)`` int64, outward, in the order of the result; `face_hex` ``(n_faces,)``
+    (-1 for a face of another cell type); `nonmanifold` ``(k, 4)`` (`BoundaryTopology.nonmanifold_faces`);
+    `n_nodes` (one more than the largest index); `face_type` (int8, default 0: hexahedra) and `face_cell`
+    (default `face_hex`), both ``(n_faces,)``.
+
+    **Returns:** a `BoundaryTopology`.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    face_hex = np.asarray(face_hex, dtype=np.int64)
+    n = np.int64(max(int(n_nodes), 1))
+    if face_type is None:
+        face_type = np.zeros(len(faces), np.int8)
     rolled = np.roll(faces, -1, axis=1)  # the sides (f0,f1), (f1,f2), (f2,f3), (f3,f0) of each face, face-major
     lo, hi = np.minimum(faces, rolled).ravel(), np.maximum(faces, rolled).ravel()
     del rolled
@@ -202,14 +223,14 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryT
     edge_face_ptr = np.append(np.flatnonzero(efirst), len(ekey)).astype(np.int64)
     return BoundaryTopology(
         faces=faces,
-        face_hex=face_hex.astype(np.int64),
+        face_hex=face_hex,
         edges=edges,
         face_edges=face_edges,
         edge_face_ptr=edge_face_ptr,
         edge_face=edge_face,
-        nonmanifold_faces=nonmanifold,
+        nonmanifold_faces=np.asarray(nonmanifold, dtype=np.int64),
         face_type=face_type,
-        face_cell=face_cell.astype(np.int64),
+        face_cell=(face_hex if face_cell is None else np.asarray(face_cell)).astype(np.int64),
     )
 
 
@@ -235,6 +256,13 @@ def unique_edges(pairs: np.ndarray) -> np.ndarray:
     """
     e = np.sort(np.asarray(pairs, dtype=np.int64).reshape(-1, 2), axis=1)
     return np.stack(_distinct_pairs(e[:, 0], e[:, 1]), axis=1)
+
+
+def sorted_unique(a) -> np.ndarray:
+    """The distinct values of an integer array (any shape), sorted: ``np.unique(a)`` by one ``np.sort`` (numpy 2's
+    ``np.unique`` hashes integers: 39 ms against 5 ms for the 240,000 corners of a 100^3 box's boundary faces)."""
+    s = np.sort(np.asarray(a).ravel())
+    return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
 
 
 def _distinct_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,8 +1,9 @@
 """The unit frame in which jaxci measures and smooths: node coordinates centred on their bounding box and scaled by
 a power of two, so that they lie within [-1, 1] whatever the file's units (numpy only).
 
-`unit_frame` gives the frame ``(centre, scale)`` of an array of points of shape ``(n, 3)``; `to_unit` and
-`from_unit` map points into it and back (exactly: the scale is a power of two).
+`unit_frame` gives the frame ``(centre, scale)`` of an array of points of shape ``(n, 3)`` (`frame_of_bounds`: of
+their bounding box); `to_unit` and `from_unit` map points into it and back (exactly: the scale is a power of
+two).
 """
 
 from __future__ import annotations
@@ -21,7 +22,13 @@ def unit_frame(points: np.ndarray) -> tuple[np.ndarray, float]:
     p = np.asarray(points, dtype=np.float64)
     if not len(p):
         return np.zeros(3), 1.0
-    centre, scale = box_frame(np, p.min(axis=0), p.max(axis=0))
+    return frame_of_bounds(p.min(axis=0), p.max(axis=0))
+
+
+def frame_of_bounds(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
+    """`unit_frame` of points whose bounding box is ``[lo, hi]`` (float64 ``(3,)`` each: the points' minima and
+    maxima, e.g. reduced on a device)."""
+    centre, scale = box_frame(np, np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64))
     return centre, float(scale)
 
 

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-#: The odd multipliers of `group_pairs`' hash of two int64 keys.
-_MIX = (np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9))
+#: The odd multipliers of `group_pairs`' hash of two int64 keys (`HASH_MIX`: the same, for the device's face keys,
+#: `jaxci.geometry.device_topology`).
+_MIX = HASH_MIX = (np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9))
 #: `group_pairs` sorts in windows of about ``2**_WINDOW_BITS`` positions of close first keys.
 _WINDOW_BITS = 16
 

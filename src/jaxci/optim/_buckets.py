@@ -21,30 +21,14 @@ from __future__ import annotations
 
 import numpy as np
 
+# the ladder itself (stage 0: the device programs of jaxci.geometry size their downloads by it too)
+from ..sizes import MIN_BUCKET, bucket  # noqa: F401
+
 # `to_device`: a numpy array as a device array of a dtype, converted on the host (no compilation), its bytes
 # counted; `device_dtype`: that array kept on the host (padded before it goes there, so that the device never
 # holds both forms)
 from ..transfer import host_dtype as device_dtype  # noqa: F401
 from ..transfer import to_device  # noqa: F401
-
-#: The smallest size of the ladder.
-MIN_BUCKET = 8
-
-
-def bucket(n: int, minimum: int = MIN_BUCKET, multiple: int = 1) -> int:
-    """The smallest size of the ladder ``minimum, ..., 2^k, 3 * 2^(k-1), 2^(k+1), ...`` that is at least `n`
-    (0 stays 0: an empty class keeps its static branch), rounded up to a multiple of `multiple` (the device
-    count of a sharded run, `jaxci.optim.sharding`: every device gets as many elements)."""
-    n = int(n)
-    if n <= 0:
-        return 0
-    n = max(n, int(minimum))
-    p = 1 << (n - 1).bit_length()  # the power of two >= n
-    q = 3 * p // 4
-    b = q if q >= n and p >= 4 else p
-    return -(-b // int(multiple)) * int(multiple)
-
-
 
 
 def pad_rows(a: np.ndarray, n: int, fill) -> np.ndarray:
