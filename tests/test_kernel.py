@@ -11,6 +11,7 @@ import pytest
 from helpers import MESQUITE
 
 from jaxci.generate import perturb_box
+from jaxci.metrics import incidence as I
 from jaxci.metrics.hexahedron import objective_t, objective_terms_and_grad, transposed
 from jaxci.metrics.incidence import FORMS, default_form, node_incidence, valence_class
 
@@ -69,6 +70,12 @@ def test_padding_elements_reach_no_node(form):
     slots = np.asarray(inc.table).ravel() if form == "gather" else np.asarray(inc.order)[np.asarray(inc.keys) < len(x)]
     listed = slots[slots < conn.size] % conn.shape[1]
     assert listed.max() < n_el and len(listed) == 8 * n_el
+    # values at every slot, padding slots included: only the real slots reach their nodes
+    vals = np.random.default_rng(0).standard_normal((2, *conn.shape))
+    got = np.asarray(I.accumulate(tuple(jnp.asarray(v) for v in vals), conn, x.shape[0], inc))
+    real = np.asarray(conn)[:, :n_el].ravel()
+    want = np.stack([np.bincount(real, v[:, :n_el].ravel(), minlength=x.shape[0]) for v in vals], axis=1)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
     ref_conn = transposed(mesh.hexes)
     for power, block in [(None, 0), (None, 16), (4.0, 0)]:
         f, k, g = _KERNEL(x, conn, weight, power=power, block=block, incidence=inc)
@@ -136,7 +143,6 @@ def test_the_solver_builds_the_incidences_once_and_follows_the_scatter_form(monk
     """L-BFGS on the JAX engine without the C kernel, its problem padded to a size class: the gather form's
     incidences are built once for the whole run (restarts included) from the padded connectivity, and the run
     takes the scatter form's steps to the same points (float64)."""
-    from jaxci.metrics import incidence as I
     from jaxci.metrics import native_grad
     from jaxci.optim import gradient as G
     from jaxci.smooth import build_problem

@@ -296,7 +296,7 @@ def objective_terms_and_grad(points, conn, weight=None, power=None, block: int |
     |A|^2 = |a|^2 + |b|^2 + |c|^2 and |adj A|^2 = |u|^2 + |v|^2 + |w|^2, the term t = |A|^2 |adj A|^2 / (9 det^2)
     has ``dt/da = t (2 a / |A|^2 + 2 (v x c + b x w) / |adj A|^2 - 2 u / det)`` (and cyclically for b, c); a
     column is the difference of two nodes, so its gradient goes to one node with + and to the corner's node
-    with -; the 8 per-element node gradients are scattered into the nodes.
+    with -; the 8 per-element node gradients are summed into the nodes (`incidence`).
 
     One division per corner (``1/det``; ``2t/|A|^2``, ``2t/|adj A|^2``, ``2t/det`` are products of it).
     Measured on this 2-core CPU (float32, warm, minimum of 5 runs, value and gradient with respect to the scaled
@@ -305,8 +305,8 @@ def objective_terms_and_grad(points, conn, weight=None, power=None, block: int |
     not fuse a kernel with 24 outputs per element into one loop; it materialises the gathered and permuted corner
     coordinates and recomputes the shared corner quantities per output (barriers, per-element rows and chunking
     with `lax.map` were measured and are not faster); past the caches (60^3: 7 MB per corner array) it is
-    memory-bound. The scatter-add into the nodes is ~10% (a gather over a node-incidence table and
-    `segment_sum` cost the same).
+    memory-bound. Summing into the nodes: see `jaxci.metrics.incidence` (its forms measured by
+    scripts/bench_kernel.py).
 
     **Arguments:** `points` of shape ``(n, 3)``; `conn` the transposed connectivity ``(8, N)``; `weight`
     optional ``(N,)``: 1 for a real element, 0 for a padding one (`jaxci.optim._buckets`), which then adds
@@ -325,6 +325,11 @@ def objective_terms_and_grad(points, conn, weight=None, power=None, block: int |
     `n_corners` (with `weight`, F only, no blocks): what F and its gradient are divided by instead of the real
     corners of `conn` (the default); 1 gives their sums, as one device's share of a sharded mesh needs
     (`jaxci.optim.sharding.sharded_terms_and_grad` divides the exchanged sums by the whole mesh's count).
+
+    `incidence`: how the per-element node gradients reach the nodes (`jaxci.metrics.incidence`): None (default)
+    by 24 scatter-adds, else `jaxci.metrics.incidence.node_incidence` of `conn` (and `weight`) for a gather over
+    each node's incident slots or a sorted segment sum, padding elements never summed into a node. Built once
+    per problem and passed in (an argument of the compiled function, not a constant in it).
     """
     if block is None:
         block = grad_block(int(conn.shape[1]))
