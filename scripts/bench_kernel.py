@@ -119,12 +119,12 @@ def run(sizes=SIZES, dtypes=("float32", "float64"), rounds: int = ROUNDS, kernel
 
 
 def table(rows: list[dict]) -> str:
-    """The rows as a text table: G corners/s per kernel (columns) for each size and dtype (lines)."""
+    """The rows as a text table: M corners/s per kernel (columns) for each size and dtype (lines)."""
     kernels = [k for k in KERNELS if any(r["kernel"] == k for r in rows)]
-    lines = [f"{'hexahedra':>10} {'dtype':>8} " + " ".join(f"{k:>9}" for k in kernels) + "   (G corners/s)"]
+    lines = [f"{'hexahedra':>10} {'dtype':>8} " + " ".join(f"{k:>9}" for k in kernels) + "   (M corners/s)"]
     for key in dict.fromkeys((r["hexes"], r["dtype"]) for r in rows):
-        got = {r["kernel"]: r["corners_per_s"] / 1e9 for r in rows if (r["hexes"], r["dtype"]) == key}
-        lines.append(f"{key[0]:>10,} {key[1]:>8} " + " ".join(f"{got[k]:9.3f}" if k in got else f"{'-':>9}"
+        got = {r["kernel"]: r["corners_per_s"] / 1e6 for r in rows if (r["hexes"], r["dtype"]) == key}
+        lines.append(f"{key[0]:>10,} {key[1]:>8} " + " ".join(f"{got[k]:9.2f}" if k in got else f"{'-':>9}"
                                                                for k in kernels))
     return "\n".join(lines)
 

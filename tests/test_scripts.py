@@ -196,4 +196,4 @@ def test_bench_kernel_times_every_kernel_form(tmp_path):
     for r in d["rows"]:
         assert r["hexes"] == 1000 and len(r["times"]) == 3 and r["corners_per_s"] == pytest.approx(8000 / r["seconds"])
         assert (r["incidence_warm_s"] is not None) == (r["kernel"] in ("gather", "segment"))
-    assert "G corners/s" in p.stdout and "segment" in p.stdout
+    assert "M corners/s" in p.stdout and "segment" in p.stdout

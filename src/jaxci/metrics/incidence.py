@@ -35,13 +35,18 @@ FORMS = ("scatter", "gather", "segment")
 
 
 def default_form(platform: str | None = None) -> str:
-    """The form the JAX engine's closed-form gradient uses on `platform` (default: the one JAX computes on).
+    """The form the JAX engine's closed-form gradient uses on `platform` (default: the one JAX computes on): the
+    one rule, from scripts/bench_kernel.py (F + gradient, warm, median of alternated rounds; docs/results/kernel.md).
 
-    The one rule, from scripts/bench_kernel.py (F + gradient, warm, median; G corners/s):
-
-    - CPU (2 shared cores, jax 0.10.2, float32 / float64, 10^5 and 10^6 hexahedra): FILLED BELOW.
-    - GPU: ``"gather"`` (no atomics, no write conflicts; the form expected to win where the scatter's atomics
-      contend; not yet measured: scripts/bench_gpu.py runs scripts/bench_kernel.py on a GPU).
+    - CPU: ``"scatter"``. XLA:CPU's scatter is a sequential loop (no atomics, deterministic), and the other forms
+      must first write the per-element gradients out. Measured 2026-11-29 at 272eb82 on 2 shared cores (load
+      ~10), M corners/s scatter / gather / segment (the C kernel, which `jaxci.optim.gradient` runs instead on
+      CPU devices where it is built): 10^5 hexahedra float32 4.1 / 3.2 / 3.1 (14.6) and 2.9 / 2.8 / 2.6 (10.4),
+      float64 2.6 / 2.2 / 2.2 (16.4) and 1.3 / 0.9 / 0.8 (6.7); 10^6 float32 3.1 / 2.4 / 2.5 (8.8) and
+      2.5 / 2.3 / 1.9 (7.6), float64 1.5 / 1.3 / 1.3 (9.6) and 1.4 / 1.2 / 1.2 (8.0).
+    - Any other platform (GPU): ``"gather"``: no atomics, no write conflicts, bit-identical from run to run,
+      where the scatter-adds are contended atomics. Not yet measured against the others on a GPU (the H200's
+      scatter form: 14.8 G corners/s float32 at 10^7 hexahedra, docs/results/gpu.md).
     """
     platform = compute_platform() if platform is None else platform
     return "scatter" if platform == "cpu" else "gather"
