@@ -116,8 +116,8 @@ def node_incidence(conn, n_nodes: int, weight=None, form: str | None = None) -> 
     """The incidences of `conn` ``(8, N)`` (a JAX array: built where it lives) over `n_nodes` nodes for the
     `form` (default `default_form`): an `Incidence`, or None for ``"scatter"``. `weight` optional ``(N,)``: the
     slots of elements of weight 0 (padding) are left out. One sort on the device; only the largest valence
-    (a scalar) comes to the host, for the gather table's static height. Warm on 2 shared CPU cores: 0.5 s at
-    10^5 hexahedra, FILLED."""
+    (a scalar) comes to the host, for the gather table's static height. Warm on 2 shared CPU cores (load ~10):
+    0.05-0.21 s at 10^5 hexahedra, 2.2-4.5 s at 10^6 (docs/results/kernel.md)."""
     form = default_form() if form is None else form
     if form not in FORMS:
         raise ValueError(f"unknown kernel form {form!r}; choose one of {', '.join(FORMS)}")
