@@ -178,3 +178,22 @@ def test_bench_local_ci_times_ci_to_its_target_against_lbfgs(tmp_path):
         assert c["ratio"] == pytest.approx(c["seconds_to_target"] / r["lbfgs"]["seconds"])
     assert box["ci"]["max_at_target"] <= 1.0001 and box["lbfgs"]["seconds_to_target"] > 0
     assert mesh["ci"]["F_at_target"] <= 1.01 * mesh["lbfgs"]["F"]
+
+
+def test_bench_kernel_times_every_kernel_form(tmp_path):
+    """scripts/bench_kernel.py --small: a row per kernel form and dtype with its corners/s, the incidences'
+    build for the gather and segment forms, the C kernel's row where it is built; the JSON says where it ran."""
+    out = tmp_path / "kernel.json"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_kernel.py"), "--small", "--out", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    d = json.loads(out.read_text())
+    assert d["commit"] and d["date"] and "bench_kernel.py --small" in d["command"] and d["machine"]["cpus"] >= 1
+    from jaxci.metrics import native_grad
+
+    kernels = {"scatter", "gather", "segment"} | ({"ffi"} if native_grad.available("cpu") else set())
+    assert {(r["kernel"], r["dtype"]) for r in d["rows"]} == {(k, t) for k in kernels for t in ("float32", "float64")}
+    for r in d["rows"]:
+        assert r["hexes"] == 1000 and len(r["times"]) == 3 and r["corners_per_s"] == pytest.approx(8000 / r["seconds"])
+        assert (r["incidence_warm_s"] is not None) == (r["kernel"] in ("gather", "segment"))
+    assert "M corners/s" in p.stdout and "segment" in p.stdout

@@ -33,6 +33,7 @@ import numpy as np
 
 from .._lazy import compute_platform, is_jax_array, jax, jit, jnp
 from ..cells import CORNER_NEIGHBOURS, corner_invariants, pmean_weights
+from .incidence import accumulate, scatter_add
 
 #: Names of the per-corner condition metrics `corner_condition` accepts.
 METRICS = ("frobenius", "frobenius-cond", "2-norm")
@@ -287,14 +288,15 @@ def grad_block(n_elements: int) -> int:
     return GRAD_BLOCK if compute_platform() == "cpu" else GRAD_BLOCK_ACCELERATOR
 
 
-def objective_terms_and_grad(points, conn, weight=None, power=None, block: int | None = None, n_corners=None):
+def objective_terms_and_grad(points, conn, weight=None, power=None, block: int | None = None, n_corners=None,
+                             incidence=None):
     """F (Eq. 3.1), max kappa/3 and the gradient of F with respect to the node coordinates, in closed form.
 
     With columns a, b, c of a corner matrix, u = b x c, v = c x a, w = a x b, det = a . u,
     |A|^2 = |a|^2 + |b|^2 + |c|^2 and |adj A|^2 = |u|^2 + |v|^2 + |w|^2, the term t = |A|^2 |adj A|^2 / (9 det^2)
     has ``dt/da = t (2 a / |A|^2 + 2 (v x c + b x w) / |adj A|^2 - 2 u / det)`` (and cyclically for b, c); a
     column is the difference of two nodes, so its gradient goes to one node with + and to the corner's node
-    with -; the 8 per-element node gradients are scattered into the nodes.
+    with -; the 8 per-element node gradients are summed into the nodes (`incidence`).
 
     One division per corner (``1/det``; ``2t/|A|^2``, ``2t/|adj A|^2``, ``2t/det`` are products of it).
     Measured on this 2-core CPU (float32, warm, minimum of 5 runs, value and gradient with respect to the scaled
@@ -303,8 +305,8 @@ def objective_terms_and_grad(points, conn, weight=None, power=None, block: int |
     not fuse a kernel with 24 outputs per element into one loop; it materialises the gathered and permuted corner
     coordinates and recomputes the shared corner quantities per output (barriers, per-element rows and chunking
     with `lax.map` were measured and are not faster); past the caches (60^3: 7 MB per corner array) it is
-    memory-bound. The scatter-add into the nodes is ~10% (a gather over a node-incidence table and
-    `segment_sum` cost the same).
+    memory-bound. Summing into the nodes: see `jaxci.metrics.incidence` (its forms measured by
+    scripts/bench_kernel.py).
 
     **Arguments:** `points` of shape ``(n, 3)``; `conn` the transposed connectivity ``(8, N)``; `weight`
     optional ``(N,)``: 1 for a real element, 0 for a padding one (`jaxci.optim._buckets`), which then adds
@@ -323,13 +325,18 @@ def objective_terms_and_grad(points, conn, weight=None, power=None, block: int |
     `n_corners` (with `weight`, F only, no blocks): what F and its gradient are divided by instead of the real
     corners of `conn` (the default); 1 gives their sums, as one device's share of a sharded mesh needs
     (`jaxci.optim.sharding.sharded_terms_and_grad` divides the exchanged sums by the whole mesh's count).
+
+    `incidence`: how the per-element node gradients reach the nodes (`jaxci.metrics.incidence`): None (default)
+    by 24 scatter-adds, else `jaxci.metrics.incidence.node_incidence` of `conn` (and `weight`) for a gather over
+    each node's incident slots or a sorted segment sum, padding elements never summed into a node. Built once
+    per problem and passed in (an argument of the compiled function, not a constant in it).
     """
     if block is None:
         block = grad_block(int(conn.shape[1]))
     block = int(block)
     if power is None and 0 < block < conn.shape[1] and n_corners is None:
-        return _terms_and_grad_blocks(points, conn, weight, block)
-    return _terms_and_grad(jnp, points, conn, weight, power, n_corners)
+        return _terms_and_grad_blocks(points, conn, weight, block, incidence)
+    return _terms_and_grad(jnp, points, conn, weight, power, n_corners, incidence)
 
 
 def objective_terms_and_grad_np(points: np.ndarray, conn: np.ndarray, power: float | None = None
@@ -401,10 +408,10 @@ def _node_grads(xp, parts, w2):
     return nodes
 
 
-def _terms_and_grad(xp, points, conn, weight, power=None, n_corners=None):
+def _terms_and_grad(xp, points, conn, weight, power=None, n_corners=None, incidence=None):
     """The body of `objective_terms_and_grad` with the array module `xp` (`jax.numpy` or `numpy`); `power`
-    (static) p: the p-mean ``M_p`` of the excesses (`pmean_objective`) instead of their mean F; `n_corners` as
-    there."""
+    (static) p: the p-mean ``M_p`` of the excesses (`pmean_objective`) instead of their mean F; `n_corners` and
+    `incidence` (JAX only) as there."""
     parts, term = _corner_parts(xp, points, conn)
     # the mean of term - 1 (small numbers near the optimum), not mean(term) - 1: in float32 over 8 M corners the
     # rounding of a sum of values near 1 swamped the decrease of F that the line search tests
@@ -424,23 +431,22 @@ def _terms_and_grad(xp, points, conn, weight, power=None, n_corners=None):
         f, weights = pmean_weights(xp, term - 1.0, real, power)
         w2 = w2 * weights
     n = points.shape[0]
-    grads = []
-    for node in _node_grads(xp, parts, w2):
-        if xp is np:  # one bincount: np.add.at is ~20x slower
-            grads.append(np.bincount(conn.reshape(-1), weights=node.reshape(-1), minlength=n).astype(points.dtype))
-            continue
-        g = jnp.zeros(n, points.dtype)
-        for m in range(8):
-            g = g.at[conn[m]].add(node[m])
-        grads.append(g)
-    return f, kmax, xp.stack(grads, axis=1)
+    nodes = _node_grads(xp, parts, w2)
+    if xp is not np:
+        return f, kmax, accumulate(nodes, conn, n, incidence)
+    # one bincount per component: np.add.at is ~20x slower
+    return f, kmax, np.stack([np.bincount(conn.reshape(-1), weights=node.reshape(-1), minlength=n)
+                              .astype(points.dtype) for node in nodes], axis=1)
 
 
-def _terms_and_grad_blocks(points, conn, weight, block: int):
+def _terms_and_grad_blocks(points, conn, weight, block: int, incidence=None):
     """`_terms_and_grad` (F, not the p-mean) over blocks of `block` elements in a `lax.fori_loop`: only one
-    block's corner arrays are live, and each block's node gradients are scattered into the gradient carried
-    through the loop. The last block starts at ``N - block`` (no padding, no copy of `conn`); its elements
-    already counted by the block before get weight 0. Needs ``N >= block``."""
+    block's corner arrays are live. The last block starts at ``N - block`` (no padding, no copy of `conn`); its
+    elements already counted by the block before get weight 0 in F and the max. Needs ``N >= block``.
+
+    Without `incidence` each block's node gradients are scattered into the gradient carried through the loop;
+    with one, they are written into per-element arrays ``(8, N)`` (the overlap of the last block rewrites the
+    same values) and summed into the nodes once after the loop (`jaxci.metrics.incidence.accumulate`)."""
     n_el = conn.shape[1]
     n_blocks = -(-n_el // block)
     dtype = points.dtype
@@ -453,25 +459,27 @@ def _terms_and_grad_blocks(points, conn, weight, block: int):
     columns = tuple(points[:, d] for d in range(3))  # once, not per block
 
     def body(i, carry):
-        s, m, gx, gy, gz = carry
+        s, m, grads = carry
         start = jnp.minimum(i * block, n_el - block)
         c = jax.lax.dynamic_slice_in_dim(conn, start, block, axis=1)
-        real = start + jnp.arange(block, dtype=start.dtype) >= i * block
-        if weight is not None:
-            real = real & (jax.lax.dynamic_slice_in_dim(weight, start, block) > 0)
+        new = start + jnp.arange(block, dtype=start.dtype) >= i * block
+        real = jnp.ones(block, bool) if weight is None else jax.lax.dynamic_slice_in_dim(weight, start, block) > 0
         parts, term = _corner_parts(jnp, points, c, columns)
-        s = s + jnp.sum(jnp.where(real, term - 1.0, 0.0))
-        m = jnp.maximum(m, jnp.max(jnp.where(real, term, 0.0)))
+        s = s + jnp.sum(jnp.where(new & real, term - 1.0, 0.0))
+        m = jnp.maximum(m, jnp.max(jnp.where(new & real, term, 0.0)))
         # masked elements' node gradients zeroed at the end: masking a corner input (a per-element w2 or 1/det)
         # instead was measured 3x slower (XLA then recomputes the corner quantities per output)
-        nx, ny, nz = (jnp.where(real, t, 0.0) for t in _node_grads(jnp, parts, w2))
-        for k in range(8):
-            gx = gx.at[c[k]].add(nx[k])
-            gy = gy.at[c[k]].add(ny[k])
-            gz = gz.at[c[k]].add(nz[k])
-        return s, m, gx, gy, gz
+        if incidence is None:
+            nodes = (jnp.where(new & real, t, 0.0) for t in _node_grads(jnp, parts, w2))
+            grads = tuple(scatter_add(g, c, t) for g, t in zip(grads, nodes, strict=True))
+        else:
+            nodes = (jnp.where(real, t, 0.0) for t in _node_grads(jnp, parts, w2))
+            grads = tuple(jax.lax.dynamic_update_slice_in_dim(g, t, start, axis=1)
+                          for g, t in zip(grads, nodes, strict=True))
+        return s, m, grads
 
     zero = jnp.zeros((), dtype)
-    g0 = jnp.zeros(n, dtype)
-    s, m, gx, gy, gz = jax.lax.fori_loop(0, n_blocks, body, (zero, zero, g0, g0, g0))
-    return s / n_corners, jnp.sqrt(m), jnp.stack([gx, gy, gz], axis=1)
+    g0 = (jnp.zeros(n if incidence is None else conn.shape, dtype),) * 3
+    s, m, grads = jax.lax.fori_loop(0, n_blocks, body, (zero, zero, g0))
+    g = jnp.stack(grads, axis=1) if incidence is None else accumulate(grads, conn, n, incidence)
+    return s / n_corners, jnp.sqrt(m), g

@@ -89,6 +89,7 @@ from ..metrics.hexahedron import (
     objective_terms_and_grad,
     squared_condition_from_invariants,
 )
+from ..metrics.incidence import node_incidence
 from ..metrics.objective import extra_barrier, extra_cells, extra_terms, has_extra, no_extra, objective_and_max
 from ..phases import progress
 from ..transfer import program, to_host
@@ -128,54 +129,66 @@ _CORNERS_PER_NODE = 32.0
 
 
 # ---------------------------------------------------------------------------------------------- objective
-def _objective_closed(points, conn, weight, power=None, block=None, mesh=None):
+def _objective_closed(points, conn, weight, power=None, block=None, mesh=None, incidence=None):
     """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent).
     `weight`: None, or ``(N,)`` element weights (0: a padding element, `objective_terms_and_grad`); `power`
     (static): None for F, p for the p-mean (`jaxci.metrics.hexahedron.pmean_objective`). A `jax.custom_jvp` built on
     first use (importing this module imports no JAX). `block` (static): elements per block
     (`jaxci.metrics.hexahedron.objective_terms_and_grad`; None: its default; 0: the whole mesh at once). `mesh`
     (static): None, or the `jax.sharding.Mesh` that `conn` and `weight` are sharded over: F (not the p-mean) then
-    by `jaxci.optim.sharding.sharded_terms_and_grad`."""
-    return _objective_closed_jvp()(points, conn, weight, power, block, mesh)
+    by `jaxci.optim.sharding.sharded_terms_and_grad`. `incidence`: the node incidences of `conn`
+    (`closed_incidence`; None: the gradient is scattered into the nodes)."""
+    return _objective_closed_jvp()(points, conn, weight, incidence, power, block, mesh)
 
 
-def _terms_and_grad(points, conn, weight, power, block, mesh):
+def closed_incidence(conn, n_nodes: int, weight=None, power=None):
+    """The node incidences (`jaxci.metrics.incidence.node_incidence`, the platform's `default_form`) with which
+    `_objective_closed` sums the XLA kernel's gradient of `conn` ``(8, N)`` over `n_nodes` nodes: built once per
+    problem, on the device. None where the C kernel computes the gradient instead (F on a CPU with the
+    extension) or the form is the scatter."""
+    if power is None and native_grad.available(compute_platform()):
+        return None
+    return node_incidence(conn, n_nodes, weight)
+
+
+def _terms_and_grad(points, conn, weight, incidence, power, block, mesh):
     """``(F, max kappa/3, dF/dx)`` for `_objective_closed`: each device's share summed and exchanged once where
-    the elements are sharded over `mesh` (F, not the p-mean), else `objective_terms_and_grad`."""
+    the elements are sharded over `mesh` (F, not the p-mean; the gradient scattered: no `incidence`), else
+    `objective_terms_and_grad`."""
     if mesh is not None and power is None and weight is not None:
         from .sharding import sharded_terms_and_grad
 
         return sharded_terms_and_grad(points, conn, weight, mesh)
     if power is None and native_grad.available(compute_platform()):
         return native_grad.terms_and_grad(points, conn, weight)
-    return objective_terms_and_grad(points, conn, weight, power, block)
+    return objective_terms_and_grad(points, conn, weight, power, block, incidence=incidence)
 
 
 @functools.cache
 def _objective_closed_jvp():
-    @functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5))
-    def objective(points, conn, weight, power=None, block=None, mesh=None):
-        return _terms_and_grad(points, conn, weight, power, block, mesh)[:2]
+    @functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6))
+    def objective(points, conn, weight, incidence, power=None, block=None, mesh=None):
+        return _terms_and_grad(points, conn, weight, incidence, power, block, mesh)[:2]
 
     @objective.defjvp
     def _jvp(power, block, mesh, primals, tangents):
-        points, conn, weight = primals
-        f, k, g = _terms_and_grad(points, conn, weight, power, block, mesh)
+        points, conn, weight, incidence = primals
+        f, k, g = _terms_and_grad(points, conn, weight, incidence, power, block, mesh)
         return (f, k), (jnp.sum(g * tangents[0]), jnp.zeros_like(k))
 
     return objective
 
 
-def _objective(x, conn, closed: bool, extra=None, weight=None, power=None, block=None, mesh=None):
+def _objective(x, conn, closed: bool, extra=None, weight=None, power=None, block=None, mesh=None, incidence=None):
     """F and max kappa/3 of coordinates `x` (``inf`` for an inverted mesh); over every corner of the hexahedra and
     of `extra` (`jaxci.metrics.objective.ExtraCells`, static types) when it has cells. `weight` (hexahedral meshes
     only): None, or ``(N,)`` element weights, 0 for the padding elements of a size class (`jaxci.optim._buckets`): they
     add nothing and F is the mean over the real corners. With `power` and `extra` cells: the p-mean over every
-    corner (`_mixed_pmean`)."""
+    corner (`_mixed_pmean`). `incidence`: the closed form's node incidences (`closed_incidence`)."""
     if power is not None and extra is not None and extra.types:
         return _mixed_pmean(x, conn, extra, power)
     if closed:  # one kernel for F, its gradient and the max
-        f, kmax = _objective_closed(x, conn, weight, power, block, mesh)
+        f, kmax = _objective_closed(x, conn, weight, power, block, mesh, incidence)
     else:  # the hexahedra's F and max from one pass over their corners
         f, kmax = objective_and_max(x, conn, no_extra(), weight)
     if extra is not None and extra.types:
@@ -197,8 +210,8 @@ def _min_fn(v, args):
 
 
 def _min_fn_closed(v, args):
-    par, conn, s, stops, extra, weight, power, block, mesh = args
-    f, kmax = _objective(par.points(v), conn, True, extra, weight, power, block, mesh)
+    par, conn, s, stops, extra, weight, incidence, power, block, mesh = args
+    f, kmax = _objective(par.points(v), conn, True, extra, weight, power, block, mesh, incidence)
     return s * f, (f, kmax, _done(f, kmax, stops))
 
 
@@ -257,7 +270,7 @@ BUCKETED = ("bfgs", "lbfgs", "cg")
 
 
 def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extra=None, weight=None,
-                n_hex: int | None = None, block: int | None = None, mesh=None):
+                n_hex: int | None = None, block: int | None = None, mesh=None, incidence=None):
     """The objective function and its `args` for `solve_loop` (``fn(v, args) -> (value, (F, max kappa/3, stop))``,
     stop: `_done`, F <= ``p.ftol`` or max kappa/3 <= 1 + ``p.ktol``).
 
@@ -267,7 +280,9 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
     element of `conn` is real). `block`: the closed-form gradient's elements per block (None: its default,
     `jaxci.metrics.hexahedron.GRAD_BLOCK`; 0: the whole mesh at once, as on sharded elements: each device holds
     its own block already). `mesh`: None, or the `jax.sharding.Mesh` `conn` and `weight` are sharded over
-    (the closed-form objective then sums each device's share explicitly: `_objective_closed`).
+    (the closed-form objective then sums each device's share explicitly: `_objective_closed`). `incidence`: the
+    node incidences of `conn` for the closed-form gradient (`closed_incidence`, built once per problem; None: the
+    gradient is scattered into the nodes).
     """
     extra = no_extra() if extra is None else extra
     n_hex = conn.shape[1] if n_hex is None else n_hex
@@ -279,7 +294,7 @@ def solver_args(method: str, par: Parametrisation, conn, p: GradientParams, extr
         fn = _min_fn_closed if p.gradient == "closed" else _min_fn
     args = (par, conn, s, to_device(np.asarray([p.ftol, 1.0 + p.ktol]), dtype), extra, weight)
     if fn is _min_fn_closed:  # static (filter_jit): the p-mean's power (one compilation per power), the block, the mesh
-        args = (*args, float(p.p) if p.objective == "pmean" else None, block, mesh)
+        args = (*args, incidence, float(p.p) if p.objective == "pmean" else None, block, mesh)
     return fn, args
 
 
@@ -405,6 +420,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             return y if dev_index is None else _take(y, dev_index)
 
     y = np.zeros(run_par.n_free) if on_host else _zeros(run_par.n_free, np.dtype(par.x0.dtype))
+    incidence = None  # the closed-form gradient's node incidences: once for every run
+    if not (on_host or own_loop or n_dev > 1 or method in LEAST_SQUARES or p.gradient != "closed"):
+        incidence = closed_incidence(run_conn, run_par.x0.shape[0], weight,
+                                     float(p.p) if p.objective == "pmean" else None)
     hist_f, hist_k, starts = [], [], []
     steps = 0
     f0 = None
@@ -449,7 +468,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             result = result_name(code)
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None,
-                                   devices if n_dev > 1 else None)
+                                   devices if n_dev > 1 else None, incidence)
             y = replicate(y, devices) if n_dev else y  # one input sharding for every run: one compilation
             y, k, result, hf, hk = solve_loop(solver, fn, y, args, int(p.max_steps),
                                           to_device(np.int32(p.max_steps - steps)), _max_rejected(method, p))
