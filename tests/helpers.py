@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -104,3 +105,48 @@ def spiked_sweep():
     spike = np.zeros_like(error)
     spike[31] = [0.1, 0.1, 0.05]  # an interior node, 0.4 h at the factor 8
     return mesh, (spike - error) / 8
+
+
+@contextlib.contextmanager
+def no_implicit_transfers():
+    """Within the body, an implicit transfer between host and device raises: JAX's transfer guard
+    (``jax.transfer_guard("disallow")``: numpy arrays or Python scalars into compiled code, eager jax.numpy on
+    host values), and, for the copies of device arrays to numpy that the guard lets through on a CPU (the array's
+    buffer protocol), `numpy.asarray` / `array` / `asanyarray` / `ascontiguousarray` of a device array and the
+    conversions that go through ``jax.Array._value`` (``float``, ``int``, ``bool``, ``tolist``, ``item``),
+    outside `jaxci.transfer.to_host`. A numpy function applied to a device array directly (``np.max(x)``)
+    converts it inside numpy's C code and is not caught here."""
+    import jax
+
+    from jaxci import transfer
+
+    array_type = type(jax.device_put(0.0))
+    value = array_type.__dict__["_value"]
+
+    def refuse(what):
+        raise AssertionError(f"implicit device-to-host transfer ({what}) outside jaxci.transfer.to_host")
+
+    def checked_value(self):
+        if not transfer.explicit():
+            refuse("jax.Array._value")
+        return value.fget(self)
+
+    originals = {name: getattr(np, name) for name in ("asarray", "array", "asanyarray", "ascontiguousarray")}
+
+    def wrap(name, fn):
+        def checked(a, *args, **kwargs):
+            if isinstance(a, jax.Array) and not transfer.explicit():
+                refuse(f"numpy.{name}")
+            return fn(a, *args, **kwargs)
+        return checked
+
+    array_type._value = property(checked_value)
+    for name, fn in originals.items():
+        setattr(np, name, wrap(name, fn))
+    try:
+        with jax.transfer_guard("disallow"):
+            yield
+    finally:
+        array_type._value = value
+        for name, fn in originals.items():
+            setattr(np, name, fn)

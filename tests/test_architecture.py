@@ -21,7 +21,7 @@ STAGES = {
     "jaxci.metrics": 3,
     "jaxci.optim": 4,
     "jaxci.methods": 5, "jaxci.smooth": 5, "jaxci.engine": 5, "jaxci.seeds": 5, "jaxci.invariants": 5,
-    "jaxci.result": 5,
+    "jaxci.result": 5, "jaxci.device_run": 5,
     "jaxci.experiments": 6,
     "jaxci.cli": 7, "jaxci.__main__": 7,
     "jaxci": 8,  # the public API re-exports every stage

@@ -52,7 +52,8 @@ from .result import SmoothResult
 
 #: The plan's note where the worst-element polish (`jaxci.optim.polish`) runs on the host beside the JAX engine.
 POLISH_ON_HOST = ("the worst-element polish runs on the host engine (numpy and C kernels) after the JAX engine's "
-                  "solve: its small sub-problems, one per level, would each be compiled anew")
+                  "solve, on a window of the worst cells where the mesh lives on the device: its small "
+                  "sub-problems, one per level, would each be compiled anew")
 
 #: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
 OPTIMAL_F = 1e-14
@@ -198,17 +199,21 @@ def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=
     """`smooth` as a generator: it yields one `MethodRun` (unless no method needs to run), receives its output
     and returns the `SmoothResult`; `_drive` runs one, `jaxci.seeds.smooth_seeds` several at once. `seeds`: how
     many seeds of this mesh run together (the plan's batch rule: `jaxci.engine.resolve_plan`)."""
-    from .mesh import from_unit, to_unit, unit_frame
+    from .mesh import check_volume, from_unit, to_unit, unit_frame
     from .mesh import merge_coincident as merge
     from .phases import PhaseClock
 
     clock = PhaseClock() if clock is None else clock
     user_presmooth = "presmooth" in params
     with clock.phase("validate"):
-        mesh, method, seed, fixed_sets, untangle_params, params, auto, shard, shard_note, plan = _validate(
+        mesh, method, seed, fixed_sets, untangle_params, params, auto, shard, shard_note, plan, tangled = _validate(
             mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, params,
             {"fix_boundary": fix_boundary, "merge_coincident": merge_coincident, "keep_worst": keep_worst,
              "untangle_boundary": untangle_boundary}, engine, device, devices, seeds)
+        on_device = plan.engine == "jax" and not merge_coincident and not untangle_boundary and _device_run().applies(
+            mesh, method, plan, shard, len(mesh.coincident_nodes()), tangled, untangle)
+        if not on_device:  # else on the device, after its upload
+            check_volume(mesh)
     clock.progress("engine", plan.describe())
     t0 = time.perf_counter()
     notes: list[str] = []
@@ -216,6 +221,13 @@ def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=
         notes.append(_auto_note(auto))
     if shard is not None:
         notes.append(shard_note)
+    if on_device:
+        notes.extend(plan.notes)
+        real, res = yield from _device_run().smooth_unit_device(
+            mesh, method, seed, plan, feature_angle, fix_boundary, _fixed_nodes(mesh, fixed_nodes), fixed_sets,
+            params, notes, clock, keep_worst)
+        out = mesh if real is mesh.points else mesh.with_points(real, trusted=True)
+        return _finish(res, out, t0, auto, method, seed, plan, feature_angle, fix_boundary, shard, notes, clock)
     if merge_coincident:
         merged = merge(mesh)
         if merged is not mesh:
@@ -259,14 +271,29 @@ def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=
     moved = (points != unit.points).any(axis=1)
     real = np.array(mesh.points)
     real[moved] = from_unit(points[moved], frame)
+    return _finish(res, mesh.with_points(real), t0, auto, method, seed, plan, feature_angle, fix_boundary, shard,
+                   notes, clock)
+
+
+def _finish(res: SmoothResult, mesh: HexMesh, t0: float, auto, method, seed, plan, feature_angle, fix_boundary,
+            shard, notes, clock) -> SmoothResult:
+    """The `SmoothResult` of a run: `res` with the smoothed `mesh`, the wall time since `t0`, the run's
+    parameters, notes, phases and plan."""
     return dataclasses.replace(
-        res, mesh=mesh.with_points(real), wall_time=time.perf_counter() - t0,
+        res, mesh=mesh, wall_time=time.perf_counter() - t0,
         method="auto" if auto else method,
         params={**res.params, "seed": seed, "dtype": plan.dtype, "feature_angle": feature_angle,
                 "fix_boundary": fix_boundary, **({"pipeline": auto} if auto else {}),
                 **({} if shard is None else {"devices": int(shard.devices.size)})},
         notes=tuple(notes), phases=clock.as_dict(), plan=plan,
     )
+
+
+def _device_run():
+    """`jaxci.device_run` (imported on use: it imports JAX)."""
+    from . import device_run
+
+    return device_run
 
 
 def _sharding(method, devices, params: dict, device: str):
@@ -292,7 +319,7 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     from .engine import DEVICES, engine_request, resolve_plan, stage_params
     from .generate import check_seed
     from .memory import check_fits, smooth_bytes
-    from .mesh import as_hex_mesh, check_volume
+    from .mesh import as_hex_mesh
 
     mesh = as_hex_mesh(mesh, "smooth")
     if not isinstance(method, str) or method not in METHODS:
@@ -318,8 +345,10 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
         if not isinstance(flag, bool):
             raise ConfigError(f"smooth: {name} must be True or False, got {flag!r}")
     untangle_params = {k: params.pop(k) for k in list(params) if isinstance(k, str) and k.startswith("untangle_")}
-    untangling = untangle == "always" or (untangle != "never" and any(
-        b.any() for b in mixed.inverted_cells(mesh, mesh.points).values()))
+    # the hexahedra were counted when the mesh was made
+    tangled = bool(mesh.inverted_hexes) or (mixed.has_extra(mesh) and any(
+        b.any() for t, b in mixed.inverted_cells(mesh, mesh.points).items() if t != "hexahedron"))
+    untangling = untangle == "always" or (untangle != "never" and tangled)
     plan = resolve_plan(mesh, "lbfgs" if method == "auto" else method, params, engine=engine, device=device,
                         dtype=dtype, devices=shard, untangling=untangling, seeds=seeds)
     auto = ""
@@ -345,8 +374,7 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     n_cells = mesh.n_hexes + sum(len(c) for c in mixed.extra_blocks(mesh).values())
     check_fits(smooth_bytes(n_cells, plan.dtype, trials, host=plan.engine == "host", method=method),
                f"{where}smoothing {mesh.n_hexes} hexahedra in {plan.dtype}")
-    check_volume(mesh)
-    return mesh, method, seed, fixed_sets, untangle_params, params, auto, shard, shard_note, plan
+    return mesh, method, seed, fixed_sets, untangle_params, params, auto, shard, shard_note, plan, tangled
 
 
 def _auto_note(description: str) -> str:
@@ -459,12 +487,9 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
         notes.append(f"global CI of {resolved['batched_seeds']} seeds ran as one batched program on the JAX engine "
                      f"(jaxci.seeds.smooth_seeds); this run's smooth phase is its equal share of the batch's time")
     notes.extend(problem.info.notes)
-    cap = _CAPS.get(method)
-    if cap is not None and cap in resolved:
-        run = int(iterations) - int(np.asarray(history.get("presmooth", 0)))
-        if run >= int(resolved[cap]):
-            notes.append(f"{method} stopped at its cap of {resolved[cap]} iterations ({cap}) before it converged; "
-                         f"--param {cap}=N lets it go further")
+    cap = cap_note(method, resolved, iterations, history)
+    if cap:
+        notes.append(cap)
     with clock.phase("checks"), enable_x64(x64):
         power = float(resolved["p"]) if resolved.get("objective") == "pmean" else None
         # the input's worst cell from its report (valid input: every corner counted), not recomputed
@@ -484,6 +509,17 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
         node_class=np.asarray(problem.info.node_class),
     )
     return points, res
+
+
+def cap_note(method: str, resolved: dict, iterations, history: dict) -> str | None:
+    """The note of a method that stopped at its iteration cap (`_CAPS`), or None."""
+    cap = _CAPS.get(method)
+    if cap is not None and cap in resolved:
+        run = int(iterations) - int(np.asarray(history.get("presmooth", 0)))
+        if run >= int(resolved[cap]):
+            return (f"{method} stopped at its cap of {resolved[cap]} iterations ({cap}) before it converged; "
+                    f"--param {cap}=N lets it go further")
+    return None
 
 
 def _refuse_stuck(mesh: HexMesh, info: BoundaryInfo) -> None:

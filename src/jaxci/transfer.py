@@ -127,10 +127,25 @@ def to_device(a, dtype=None, device=None):
 
 def to_host(a):
     """Device arrays `a` (an array or a pytree) as numpy arrays (numpy leaves pass through); the bytes of the
-    device arrays are counted (``d2h_bytes``)."""
-    out = jax.device_get(a)
+    device arrays are counted (``d2h_bytes``). `explicit` is True while it runs."""
+    _explicit.on = True
+    try:
+        out = jax.device_get(a)
+    finally:
+        _explicit.on = False
     _add("d2h_bytes", _nbytes([v for v in jax.tree_util.tree_leaves(a) if isinstance(v, jax.Array)]))
     return out
+
+
+#: Whether this thread is inside `to_host` (`explicit`).
+_explicit = threading.local()
+
+
+def explicit() -> bool:
+    """Whether this thread is inside `to_host`: a test that refuses every other device-to-host copy asks (JAX's
+    transfer guard refuses implicit host-to-device transfers on every platform, but not the copies of a CPU
+    array to numpy, which its buffer protocol makes without JAX)."""
+    return getattr(_explicit, "on", False)
 
 
 def scalar(a) -> float:

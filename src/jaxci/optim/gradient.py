@@ -344,7 +344,7 @@ def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra,
 
 
 def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAULT_PARAMS, extra=None,
-             devices=None):
+             devices=None, project=None):
     """Run one gradient baseline from ``par.points(0)``.
 
     **Arguments:**
@@ -359,6 +359,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
       compiled loop with the elements sharded over it (`jaxci.optim.sharding.place_problem`), never the host path;
       ``"lbfgs"`` on F over hexahedra then runs `jaxci.optim.sharded_lbfgs.lbfgs_loop` (the host path's
       algorithm, its memory split over the devices), the other methods optimistix's loop.
+    - `project`: None, or (a compiled run whose mesh lives on the device) a function of device coordinates
+      ``(n, 3)`` that projects them exactly onto the original boundary: the result is lifted on the device and
+      projected by it where a node left its flat region (else `Parametrisation.final_points`, in numpy).
 
     **Returns:** ``(points, iterations, history, params)``: coordinates ``(n, 3)`` (the best valid iterate), the
     number of solver steps, a dict of numpy arrays of length ``iterations + 1`` (entry 0 = input):
@@ -500,11 +503,13 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             break
     if on_host and host_fn.best is not None and np.array_equal(host_fn.best[0], y):
         x = np.asarray(host_fn.best[1], par.x0.dtype)  # the points of the best iterate as evaluated (on the boundary)
-    elif on_host:
-        x = par.final_points(real(y))
-    else:  # on the device: projected where a node left its flat region (exactly onto the boundary later, in
-        # float64: `jaxci.invariants`)
-        x = _final_points(par, real(y))
+    elif on_host or project is None:
+        x = par.final_points(real(y))  # numpy, exactly projected where a node left its flat region
+    else:  # the mesh on the device: lifted there, and exactly projected (`project`) where a node left its region
+        v = real(y)
+        x = _lift(par, v)
+        if not (par.shortcut and float(to_host(_reach(par, v))) < 1.0):
+            x = project(x)
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
     return x, steps, hist, params
@@ -533,10 +538,9 @@ def _reach(par: Parametrisation, v):
 
 @program
 @filter_jit
-def _final_points(par: Parametrisation, v):
-    """The node coordinates of `v` ``(n, 3)`` on the device, projected (`jaxci.geometry.projection.project`) where
-    a node left its flat region."""
-    return dataclasses.replace(par, strict=False).points(v)
+def _lift(par: Parametrisation, v):
+    """`Parametrisation.lift` of `v` on the device: node coordinates ``(n, 3)``, not projected."""
+    return par.lift(v)
 
 
 def _method(name):
@@ -567,6 +571,14 @@ def run_gradient(problem, method: str, params: dict):
     """
     p = _p.make_params(GradientParams, params, method)
     x0, pre = problem.x0, None
+    project = None
+    if problem.tables is not None:  # the mesh on the device: its boundary nodes projected on the host, exactly
+        from ..geometry.device_constraints import project_boundary
+
+        def project(x):
+            with jax.enable_x64(True):
+                return project_boundary(problem.cons, problem.tables, _as_float64(x))
+
     if p.presmooth:
         sweep = {"max_sweeps": int(p.presmooth), "buckets": p.buckets}
         if problem.host:  # the host engine's sweeps, in numpy and C
@@ -584,13 +596,7 @@ def run_gradient(problem, method: str, params: dict):
         # exactly on the boundary again (float64, the host's float64 constraints: the original boundary, not its
         # float32 rounding), so that the flat-region shortcut of the parametrisation holds; where the mesh lives on
         # the device, its boundary nodes only (`project_boundary`: O(boundary) down and up)
-        if problem.tables is not None:
-            from ..geometry.device_constraints import project_boundary
-
-            with jax.enable_x64(True):
-                x0 = project_boundary(problem.cons, problem.tables, _as_float64(xl))
-        else:
-            x0 = project_np(problem.host_cons, np.asarray(xl, dtype=np.float64))
+        x0 = project_np(problem.host_cons, np.asarray(xl, dtype=np.float64)) if project is None else project(xl)
         del xl
     par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled, dtype=problem.dtype)
     extra = None
@@ -598,7 +604,7 @@ def run_gradient(problem, method: str, params: dict):
         extra = extra_cells(problem.mesh, device=False)
         if not use_host(method, p, problem.mesh.n_hexes, extra):
             extra = extra_cells(problem.mesh)
-    x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra, problem.devices)
+    x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra, problem.devices, project)
     if p.polish:
         x, steps, hist = _polish(problem, par, x, steps, hist, p)
     if pre is None:
