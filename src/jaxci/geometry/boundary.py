@@ -42,7 +42,8 @@ from ..cells import QUADRATIC_TYPES, volume_cells
 from ..cells import fixed_nodes as fixed_cell_nodes
 from ..errors import MeshError
 from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
-from .topology import BoundaryTopology, boundary_topology, components, sorted_unique
+from ..mesh.sorting import sorted_unique
+from .topology import BoundaryTopology, boundary_topology, components
 
 #: Node classes (values of `BoundaryInfo.node_class`).
 INTERIOR = 0

@@ -34,12 +34,13 @@ from ..cells import QUADRATIC_TYPES
 from ..cells import fixed_nodes as fixed_cell_nodes
 from ..mesh import HexMesh
 from ..mesh.frame import frame_of_bounds
+from ..mesh.sorting import sorted_unique
 from ..transfer import program, to_device, to_host
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, classify_boundary, non_hex_cells
 from .device_topology import first_true
 from .projection import TABLE_FIELDS, Constraints, project_on_groups
 from .tables import BoundaryTables, boundary_tables
-from .topology import BoundaryTopology, sorted_unique
+from .topology import BoundaryTopology
 
 
 def hexahedral(mesh: HexMesh) -> bool:

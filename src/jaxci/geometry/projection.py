@@ -48,6 +48,7 @@ import numpy as np
 
 from .._lazy import filter_jit, jax, jnp, pytree_dataclass
 from ..mesh import HexMesh
+from ..mesh.sorting import sorted_unique
 from ._closest import (
     closest_on_segments,
     closest_on_triangles,
@@ -61,7 +62,6 @@ from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo
 if TYPE_CHECKING:
     from jaxtyping import Array, Float, Int
 from .tables import BoundaryTables, boundary_tables
-from .topology import sorted_unique
 
 
 @pytree_dataclass

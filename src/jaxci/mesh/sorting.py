@@ -4,7 +4,8 @@ numpy 2 sorts an array of 64-bit integers with x86-simd-sort (AVX-512 or AVX2), 
 ``np.argsort``, ``np.lexsort`` or ``np.sort(axis=1)``. `sort_positions` makes an argsort of such a sort: the key
 in a word's high bits, the position in its low bits. `group_pairs` puts equal int64 key pairs together with it
 (a hash of the pair, checked exactly), `sort4` sorts 4 columns elementwise by a sorting network.
-`jaxci.geometry.topology` finds the boundary faces with them, `jaxci.mesh.coincident` the nodes of one grid cell.
+`jaxci.geometry.topology` finds the boundary faces with them, `jaxci.mesh.coincident` the nodes of one grid cell;
+`sorted_unique` is ``np.unique`` of integers by one sort.
 """
 
 from __future__ import annotations
@@ -94,3 +95,10 @@ def sort4(c: list) -> None:
         np.minimum(c[i], c[j], out=tmp)
         np.maximum(c[i], c[j], out=c[j])
         c[i], tmp = tmp, c[i]
+
+
+def sorted_unique(a) -> np.ndarray:
+    """The distinct values of an integer array (any shape), sorted: ``np.unique(a)`` by one ``np.sort`` (numpy 2's
+    ``np.unique`` hashes integers: 39 ms against 5 ms for the 240,000 corners of a 100^3 box's boundary faces)."""
+    s = np.sort(np.asarray(a).ravel())
+    return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
