@@ -251,23 +251,22 @@ def on_interrupt(fn):
 
 @contextlib.contextmanager
 def removing_temporaries(target: str | os.PathLike):
-    """Within the block, an emergency exit removes the temporary files and folders of an atomic write of
-    `target` (``.<name>.*.tmp`` beside it, as `jaxci.io.write_mesh` and `jaxci.experiments.results.write_text` make)
-    that appeared during the block."""
+    """Within the block, an emergency exit removes the temporary folders of an atomic write of `target` that this
+    process made beside it (``.jaxci-tmp-<pid>-<name>.*``, `jaxci.io._place.make_temporary`, as
+    `jaxci.io.write_mesh` and `jaxci.experiments.results.stage` make). A SIGKILL, which no handler sees, leaves
+    them: the next write in that folder removes them (`jaxci.io._place.remove_stale`)."""
+    from ..io._place import temporary_prefix
+
     target = Path(target)
     folder = target.parent
-    prefix = f".{target.name}."
-
-    def ours() -> set[str]:
-        try:
-            return {e for e in os.listdir(folder) if e.startswith(prefix) and e.endswith(".tmp")}
-        except OSError:
-            return set()
-
-    before = ours()
+    prefix = temporary_prefix(target.name)
 
     def clean() -> None:
-        for name in ours() - before:
+        try:
+            ours = [e for e in os.listdir(folder) if e.startswith(prefix)]
+        except OSError:
+            return
+        for name in ours:
             p = folder / name
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)
