@@ -42,7 +42,7 @@ def write_report(out, data: bytes, mesh) -> None:
     from ..errors import MeshWriteError
     from ..io._paths import os_reason
     from ..io._place import Taken, make_temporary, place_files, sync_folder, sync_tree
-    from ._interrupt import removing_temporaries
+    from ._interrupt import completed, removing_temporaries
 
     out.check_inputs(mesh)
     path = Path(out.path)
@@ -69,3 +69,4 @@ def write_report(out, data: bytes, mesh) -> None:
             raise MeshWriteError(f"{path}: cannot write the report ({os_reason(exc)})") from None
         finally:
             temporary.remove()
+    completed(f"wrote {path} (complete)")
