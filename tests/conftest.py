@@ -1,7 +1,31 @@
 import jax
 import pytest
+from helpers import SHARED_REASON, shared_missing
 
 jax.config.update("jax_enable_x64", True)
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "shared: reads the real meshes of ../shared/data or ../shared/peers; "
+                                       "skipped (one line says why) where ../shared is not beside the repository")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``shared`` are skipped, with `helpers.SHARED_REASON`, where ../shared is missing; with
+    ../shared present nothing is skipped for that reason."""
+    if not shared_missing():
+        return
+    skip = pytest.mark.skip(reason=SHARED_REASON)
+    for item in items:
+        if item.get_closest_marker("shared") is not None:
+            item.add_marker(skip)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """One line for every test skipped for want of ../shared (pytest -q shows no skip reasons by default)."""
+    skipped = [r for r in terminalreporter.stats.get("skipped", []) if SHARED_REASON in str(r.longrepr)]
+    if skipped:
+        terminalreporter.write_line(f"{len(skipped)} tests skipped: {SHARED_REASON}")
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -10,6 +10,24 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 MESQUITE = SHARED / "data" / "mesquite"
+EXODUS = SHARED / "data" / "exodus"
+PEERS = SHARED / "peers"
+
+#: The files a test marked ``shared`` may read: one per folder of ../shared it uses.
+SHARED_FILES = (MESQUITE / "pave3.e.vtk", EXODUS / "cube.g", PEERS / "cube9_pert.vtk")
+
+
+def shared_missing() -> list[Path]:
+    """The files of `SHARED_FILES` that are not there (empty when ../shared is complete)."""
+    return [p for p in SHARED_FILES if not p.is_file()]
+
+
+#: Why a test marked ``shared`` is skipped where ../shared is missing: what is missing and how to get it.
+SHARED_REASON = (
+    "needs the real meshes of ../shared (data/mesquite: Mesquite's meshFiles/3D/vtk/hexes from github.com/trilinos/"
+    "mesquite; data/exodus: SEACAS test files from github.com/sandialabs/seacas; peers: Mesquite's cubes), "
+    f"not found beside the repository at {SHARED}; put the project's shared/ folder there to run them"
+)
 
 #: ../shared/data/mesquite/README.md: file -> (hexes, nodes, inverted corners, inverted elements, max k/3, F,
 #: min corner scaled Jacobian); None where the README gives '-' or 'inf'.

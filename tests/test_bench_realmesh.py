@@ -17,10 +17,9 @@ import bench_realmesh as bench  # noqa: E402
 import realmesh_corpus as corpus  # noqa: E402
 
 
+@pytest.mark.shared
 def test_cube_recipe_reproduces_the_peers_cube():
     path = corpus.PEERS / "cube9_pert.vtk"
-    if not path.exists():
-        pytest.skip(f"{path} not here")
     import meshio
 
     m = meshio.read(path)

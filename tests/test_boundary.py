@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import MESQUITE
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -17,8 +18,6 @@ from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_bo
 from jaxci.geometry.topology import HEX_FACES, boundary_topology, colour_nodes, node_adjacency
 from jaxci.mesh import CellBlock, HexMesh, hex_mesh
 from jaxci.shapes import annulus, bevelled_box, l_block
-
-MESQUITE = Path(__file__).resolve().parents[2] / "shared" / "data" / "mesquite"
 
 
 def read_mesh(path: Path) -> HexMesh:
@@ -148,6 +147,7 @@ def test_colouring_valid_for_any_numbering(seed, n):
     assert col.n_colours <= 27  # first-fit: at most max degree + 1
 
 
+@pytest.mark.shared
 @settings(max_examples=10, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 4))
 def test_c_colouring_is_the_first_fit_of_the_numpy_rounds(seed, n):
@@ -282,6 +282,7 @@ MESQUITE_COUNTS = {
 }
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("name", sorted(MESQUITE_COUNTS))
 def test_mesquite_meshes_classify(name):
     path = MESQUITE / name

@@ -21,6 +21,7 @@ def run(capsys, *argv):
     return code, out, err
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("name", sorted(MESQUITE_FIGURES))
 def test_quality_json_reproduces_mesquite_readme(capsys, name):
     code, out, err = run(capsys, "quality", MESQUITE / name, "--json")
@@ -40,6 +41,7 @@ def test_quality_json_reproduces_mesquite_readme(capsys, name):
     assert sum(d[k] for k in ("corner_nodes", "edge_nodes", "surface_nodes", "interior_nodes")) <= d["n_nodes"]
 
 
+@pytest.mark.shared
 def test_quality_table(capsys):
     code, out, _ = run(capsys, "quality", MESQUITE / "hexes_4by2by2.vtk")
     assert code == 0
@@ -68,6 +70,7 @@ def test_generate_then_smooth_roundtrip(capsys, tmp_path):
     assert code == 0 and "default method (auto): L-BFGS" in out and "after (L-BFGS on F" in out
 
 
+@pytest.mark.shared
 def test_classify_writes_node_classes(capsys, tmp_path):
     import meshio
 
@@ -82,15 +85,20 @@ def test_classify_writes_node_classes(capsys, tmp_path):
     assert d["corner_nodes"] == 8
 
 
+def _real(name: str) -> str:
+    """The text of a Mesquite mesh of ../shared/data."""
+    return (MESQUITE / name).read_text()
+
+
 @pytest.mark.parametrize("make,match", [
     (lambda p: p / "missing.vtk", "no such file"),
     (lambda p: _write(p / "mesh.xyz", "1 2 3\n"), "extension"),
     (lambda p: _write(p / "corrupt.vtu", "\x00\x01garbage<VTKFile"), ""),
-    (lambda p: _write(p / "trunc.vtk", (MESQUITE / "hexes_4by2by2.vtk").read_text()[:500]), ""),
-    (lambda p: _write(p / "nan.vtk", (MESQUITE / "single_hex.vtk").read_text().replace("0 0 0", "nan 0 0", 1)),
-     "non-finite"),
-    (lambda p: _write(p / "range.vtk", (MESQUITE / "single_hex.vtk").read_text().replace("2 1 0", "2 1 99")),
-     "out of range"),
+    pytest.param(lambda p: _write(p / "trunc.vtk", _real("hexes_4by2by2.vtk")[:500]), "", marks=pytest.mark.shared),
+    pytest.param(lambda p: _write(p / "nan.vtk", _real("single_hex.vtk").replace("0 0 0", "nan 0 0", 1)), "non-finite",
+                 marks=pytest.mark.shared),
+    pytest.param(lambda p: _write(p / "range.vtk", _real("single_hex.vtk").replace("2 1 0", "2 1 99")), "out of range",
+                 marks=pytest.mark.shared),
 ])
 def test_bad_input_one_line_exit_2(capsys, tmp_path, make, match):
     path = make(tmp_path)

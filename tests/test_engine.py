@@ -12,11 +12,10 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import fail_seed_method
+from helpers import MESQUITE, PEERS, fail_seed_method
 
 from jaxci import engine, native
 from jaxci.cli import main
@@ -26,10 +25,8 @@ from jaxci.io import read_mesh, write_mesh
 from jaxci.seeds import smooth_seeds
 from jaxci.smooth import smooth
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-PAVE3 = SHARED / "data" / "mesquite" / "pave3.e.vtk"
-TANGLED = [SHARED / "peers" / "cube9_pert.vtk", SHARED / "data" / "mesquite" / "hex_5_tangled.vtk"]
-needs_shared = pytest.mark.skipif(not PAVE3.exists(), reason="../shared/data is not beside the repository")
+PAVE3 = MESQUITE / "pave3.e.vtk"
+TANGLED = [PEERS / "cube9_pert.vtk", MESQUITE / "hex_5_tangled.vtk"]
 
 
 def _mixed():
@@ -439,7 +436,7 @@ pytestmark_native = pytest.mark.skipif(not native.AVAILABLE, reason="the host's 
 TIGHT = {"rtol": 1e-12, "atol": 1e-12, "max_steps": 5000, "precondition": "none"}
 
 
-@needs_shared
+@pytest.mark.shared
 @pytestmark_native
 @pytest.mark.parametrize("method, params", [("lbfgs", TIGHT), ("laplace", {"tol": 1e-10, "max_sweeps": 5000}),
                                             ("smart-laplace", {"tol": 1e-10, "max_sweeps": 5000})])
@@ -457,7 +454,7 @@ def test_both_engines_reach_the_same_optimum_with_sliding_flat_walls(method, par
     _same_optimum(_both(box, method, fixed_nodes=[43, 50, 64, 72], **params))
 
 
-@needs_shared
+@pytest.mark.shared
 @pytest.mark.parametrize("path", TANGLED, ids=lambda p: p.name)
 def test_both_engines_untangle_to_the_same_mesh(path):
     from jaxci.geometry.boundary import classify_boundary

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import MESQUITE
 
 from jaxci.generate import perturb_box
 from jaxci.geometry import projection
@@ -20,8 +20,6 @@ from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.mesh import HexMesh
 from jaxci.optim import parametrisation
 from jaxci.optim.parametrisation import node_lengths
-
-MESQUITE = Path(__file__).resolve().parents[2] / "shared" / "data" / "mesquite"
 
 
 def exhaustive(c, x, closest_on=None):
@@ -51,14 +49,13 @@ def exhaustive(c, x, closest_on=None):
 def _mesh(name):
     if name == "box":
         return perturb_box(6, amplitude=0.3, seed=0)
-    if not MESQUITE.is_dir():
-        pytest.skip("the shared meshes are not present")
     from jaxci.io import read_mesh
 
     return read_mesh(str(MESQUITE / "pave3.e.vtk"))  # curved walls
 
 
-@pytest.mark.parametrize(("name", "shift"), [("box", 0.0), ("box", 1e5), ("pave", 0.0)])
+@pytest.mark.parametrize(("name", "shift"), [("box", 0.0), ("box", 1e5),
+                                                  pytest.param("pave", 0.0, marks=pytest.mark.shared)])
 def test_project_np_is_the_exhaustive_search(name, shift):
     """Bit for bit the nearest point over the whole patch or curve, for moves from rounding noise to many
     elements, for points on the grid of vertices and centres (exact ties), on curved walls, far from the origin."""

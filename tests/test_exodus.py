@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import EXODUS
 
 import jaxci
 from jaxci.cli import main
@@ -21,8 +22,7 @@ from jaxci.mesh import CellBlock, HexMesh
 
 netCDF4 = pytest.importorskip("netCDF4")
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "exodus"
-needs_data = pytest.mark.skipif(not (DATA / "cube.g").exists(), reason="../shared/data/exodus not present")
+DATA = EXODUS
 COORDS = ("coordx", "coordy", "coordz", "coord")
 
 
@@ -92,7 +92,7 @@ def exodus_file(path, points, blocks, node_ids=None) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------ reading
-@needs_data
+@pytest.mark.shared
 @pytest.mark.parametrize("name, nodes, blocks, sets", [
     ("cube.g", 27, [("hexahedron", 8)], {f"surface_{k}": 9 for k in range(1, 7)}),
     ("two-block.g", 45, [("hexahedron", 8)] * 2, {"surface_1": 9, "surface_16": 9}),
@@ -110,7 +110,7 @@ def test_reads_seacas_files(name, nodes, blocks, sets):
     assert mesh.field_data["exodus:file"] == str(DATA / name)
 
 
-@needs_data
+@pytest.mark.shared
 def test_side_set_nodes_are_the_nodes_of_their_faces():
     mesh = read_mesh(DATA / "cube.g")  # 2x2x2 bricks on [0, 2]^3: side set k is one face of the cube
     flat = []
@@ -123,7 +123,7 @@ def test_side_set_nodes_are_the_nodes_of_their_faces():
 
 
 # ------------------------------------------------------------------------------------------------ in place
-@needs_data
+@pytest.mark.shared
 @pytest.mark.parametrize("name", ["cube.g", "two-block.g", "2block1.g", "8-block.g", "NETCDF4", "NETCDF3_64BIT_DATA"])
 def test_written_back_with_only_the_coordinates_changed(tmp_path, name):
     src = DATA / (name if name.endswith(".g") else "8-block.g")
@@ -146,7 +146,7 @@ def test_written_back_with_only_the_coordinates_changed(tmp_path, name):
     assert netcdf_contents(tmp_path / "same.e", skip=()) == netcdf_contents(src, skip=())
 
 
-@needs_data
+@pytest.mark.shared
 def test_smooth_through_the_cli_end_to_end(tmp_path, capsys):
     mesh = read_mesh(DATA / "8-block.g")
     write_mesh(perturbed(mesh, seed=3), tmp_path / "in.e")
@@ -230,7 +230,7 @@ def test_written_afresh_from_another_format(tmp_path):
         assert ds.variables["connect1"].elem_type == "HEX8" and ds.variables["connect2"].elem_type == "SHELL4"
 
 
-@needs_data
+@pytest.mark.shared
 def test_a_mesh_that_no_longer_matches_its_file_is_written_afresh_with_a_warning(tmp_path):
     mesh = read_mesh(DATA / "cube.g")
     other = dataclasses.replace(mesh, point_sets={}, fix_orientation=False)
@@ -283,7 +283,7 @@ def test_bad_files_exit_2_with_one_clear_line(tmp_path, capsys, case, message):
 
 
 # ---------------------------------------------------------------------------------- side sets, shell blocks
-@needs_data
+@pytest.mark.shared
 def test_nodes_of_shell_blocks_on_the_bricks_are_held():
     """2block1.g: a 4^3 brick block with two SHELL4 blocks of 16 on two of its faces. The shells' nodes (50, on
     the bricks' boundary) are held, so smoothing leaves the shells as they are; without the rule those on the
@@ -305,7 +305,7 @@ def test_nodes_of_shell_blocks_on_the_bricks_are_held():
     np.testing.assert_array_equal(res.mesh.points[shells], mesh.points[shells])
 
 
-@needs_data
+@pytest.mark.shared
 def test_side_sets_keep_their_extent():
     """two-block.g: two bricks of 2x2x2 side by side, 12 side sets (each block's six faces). Where two side sets
     meet on one flat face of the whole, the border is a feature curve: its nodes slide along it (EDGE), not across

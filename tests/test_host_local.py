@@ -44,6 +44,7 @@ def test_local_sums_equal_the_local_terms_of_the_compiled_sweep():
     np.testing.assert_allclose(got[finite], ref[finite], rtol=1e-12)
 
 
+@pytest.mark.shared
 def test_star_incidences_are_the_relabelled_node_lists():
     """The host sweeps' stars are incidences (8 e + s, 8x less memory): `star_nodes` turns them into exactly the
     compiled path's relabelled node lists, real slots and mask the same, on a mesh with uneven valences."""
@@ -239,6 +240,7 @@ def test_local_ci_stops_once_every_corner_is_ideal_within_ktol(backend):
     np.testing.assert_allclose(np.asarray(res.history["max_condition"]), k_full[: first + 1], rtol=1e-12)
 
 
+@pytest.mark.shared
 def test_local_ci_reaches_lbfgs_on_pave3_in_30_sweeps():
     """On pave3 (paved, unstructured, 106 inverted elements first untangled) 30 sweeps of local CI
     come within 1% of L-BFGS's final F; Anderson acceleration over the sweeps (`CIParams.anderson`) is what takes

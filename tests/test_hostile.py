@@ -39,7 +39,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 import pytest
-from helpers import MESQUITE, SHARED
+from helpers import MESQUITE, PEERS
 from hostile_kit import assert_ok, assert_refused, changes, cli_in, inside, run_in, run_in_child, snapshot
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
@@ -622,12 +622,10 @@ def test_replaced_number_deep(capsys, tmp_path, fmt, role, data):
 
 REAL_VTK = [MESQUITE / n for n in ("single_hex.vtk", "hexes_4by2by2.vtk", "hex_5_tangled.vtk",
                                     "large_box_hex_1000.vtk", "1000hex-block-internal-bias.vtk", "pave3.e.vtk")]
-REAL_VTK += [SHARED / "peers" / "cube9_pert.vtk"]
+REAL_VTK += [PEERS / "cube9_pert.vtk"]
 
 
 def _real(capsys, tmp_path, path, data, mode):
-    if not path.exists():
-        pytest.skip(f"{path} not found (../shared)")
     raw = path.read_bytes()
     toks = scan_vtk(raw.decode())
     words = raw.decode().split()
@@ -647,6 +645,7 @@ def _real(capsys, tmp_path, path, data, mode):
         expect_quality(capsys, d, "real.vtk", "refuse" if mode == "cut" else "any", n_nodes, n_cells, what)
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("mode", ["cut", "flip"])
 @pytest.mark.parametrize("path", REAL_VTK, ids=lambda p: p.name)
 @settings(max_examples=4, **_COMMON)
@@ -655,6 +654,7 @@ def test_real_mesh_corrupted(capsys, tmp_path, path, mode, data):
     _real(capsys, tmp_path, path, data, mode)
 
 
+@pytest.mark.shared
 @pytest.mark.deep
 @pytest.mark.parametrize("mode", ["cut", "flip"])
 @pytest.mark.parametrize("path", REAL_VTK, ids=lambda p: p.name)

@@ -144,6 +144,7 @@ def test_native_hexahedron_order_is_vtk_order(tmp_path, name):
     np.testing.assert_array_equal(mesh.points, unit_cube())
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("name", sorted(MESQUITE_FIGURES))
 def test_mesquite_meshes(name):
     n_hexes, n_nodes = MESQUITE_FIGURES[name][:2]

@@ -162,6 +162,7 @@ def test_mixed_kernel_is_the_gradient_of_the_mixed_objective():
     assert kernel(y)[0] == np.inf
 
 
+@pytest.mark.shared
 def test_near_projector_in_c_is_the_numpy_one():
     """`jaxci.geometry.near.NearProjector` with the C search against its numpy search on a paved mesh with curved
     walls: the same points bit for bit and the same triangles, with and without hints and kept nodes."""
@@ -203,6 +204,7 @@ def _pave3_constraints():
     return mesh, build_constraints(mesh, classify_boundary(mesh), dtype=np.float64, device=False)
 
 
+@pytest.mark.shared
 def test_lift_its_transpose_and_the_pullback_in_c_are_numpys():
     """The steps of `jaxci.optim.host.HostObjective` around the kernel, in C (`native.lift`, `lift_t`,
     `flat_keep`, `pullback`) against the numpy code they replace, on a paved mesh with curved walls (interior,
@@ -240,6 +242,7 @@ def test_lift_its_transpose_and_the_pullback_in_c_are_numpys():
         native.lift_t(g[:3], scale, lay)
 
 
+@pytest.mark.shared
 def test_face_spheres_change_nothing_in_the_search():
     """The C search passes over a boundary face whose sphere (holding its four triangles') cannot come nearer:
     the same points and triangles as the search over every triangle's sphere, for the projection of whole meshes
@@ -297,6 +300,7 @@ def test_lbfgs_direction_in_c_is_the_two_loop_recursion(history, f32, monkeypatc
     assert len(mem.order) == history and sorted(mem.order) == list(range(history))
 
 
+@pytest.mark.shared
 def test_untangling_without_the_extension_takes_the_same_path(monkeypatch):
     """The untangling stage on the host without the C extension (numpy's `hex_kernel` over the corner table)
     untangles what it untangles with it, in the same number of rounds."""

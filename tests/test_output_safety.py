@@ -571,14 +571,14 @@ def test_sigint_run_over_earlier_results(tmp_path, earlier):
     _check_partial(tmp_path, tmp_path / "prev", old, err, "SIGINT")
 
 
-#: `jaxci run --force` paused inside the move of its results into place (the first rename of
-#: `jaxci.experiments.results._put_in_place`), until the test creates the file GO.
+#: `jaxci run --force` paused inside the move of its results into place (just before the swap of the two folders
+#: in `jaxci.experiments.results._put_in_place`), until the test creates the file GO.
 PAUSED_COMMIT = """\
 import sys, time
 from pathlib import Path
 FLAG, GO = Path(sys.argv[1]), Path(sys.argv[1] + ".go")
 import jaxci.experiments.results as results
-real, calls = results.rename_noreplace, []
+real, calls = results.exchange, []
 def paused(src, dst):
     calls.append(1)
     if len(calls) == 1:
@@ -587,7 +587,7 @@ def paused(src, dst):
         while not GO.exists() and time.monotonic() - t < 60:
             time.sleep(0.01)
     return real(src, dst)
-results.rename_noreplace = paused
+results.exchange = paused
 from jaxci.cli import entry
 sys.argv = ["jaxci", *sys.argv[2:]]
 entry()
@@ -596,8 +596,8 @@ entry()
 
 @pytestmark_signals
 def test_sigterm_while_results_are_put_in_place(tmp_path, earlier):
-    """SIGTERM while `jaxci run --force` moves its complete results in (the earlier ones already moved aside): the
-    move is finished, not cut in half, and the signal is not lost: exit 143, the new results in prev, nothing
+    """SIGTERM while `jaxci run --force` moves its complete results in (about to swap them with the earlier ones):
+    the move is finished, not cut in half, and the signal is not lost: exit 143, the new results in prev, nothing
     left aside, no "Exception ignored" from the interrupt."""
     cfg, prev = _setup(tmp_path, earlier)
     flag = tmp_path.parent / f"{tmp_path.name}.moving"
@@ -643,10 +643,11 @@ STUCK_WRITE = """\
 import ctypes, signal, sys, tempfile
 from pathlib import Path
 import jaxci.io
+from jaxci.io._place import temporary_prefix
 FLAG = Path(sys.argv[1])
 def stuck(mesh, path, **kwargs):
     path = Path(path)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=temporary_prefix(path.name), dir=path.parent))
     (tmp / path.name).write_text("half a mesh")
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     FLAG.write_text("stuck")
@@ -660,7 +661,8 @@ entry()
 
 @pytestmark_signals
 def test_sigint_during_write_leaves_no_temporary(tmp_path):
-    (tmp_path / ".o.vtu.older.tmp").mkdir()  # not this process's: left alone
+    (tmp_path / ".o.vtu.older.tmp").mkdir()  # not jaxci's: left alone
+    (tmp_path / ".jaxci-tmp-1-o.vtu.older").mkdir()  # another jaxci's, still running (pid 1): left alone
     before = snapshot(tmp_path)
     flag = tmp_path.parent / f"{tmp_path.name}.stuck"
     proc = _spawn(["-c", STUCK_WRITE, str(flag), "generate", "box", "--n", "2", "o.vtu"], tmp_path)

@@ -137,6 +137,7 @@ def _run(argv, *, tty: bool, cwd, timeout=240) -> tuple[int, str, str]:
     return code, out, err.decode(errors="replace")
 
 
+@pytest.mark.shared
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pseudo-terminals as on Linux")
 def test_smooth_shows_progress_on_a_terminal_only(tmp_path):
     code, out, err = _run(["smooth", PAVE3, "a.vtk"], tty=True, cwd=tmp_path)

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import functools
 import warnings
-from pathlib import Path
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import MESQUITE, MESQUITE_FIGURES
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -30,7 +30,6 @@ from jaxci.shapes import annulus, bevelled_box, l_block
 
 jax.config.update("jax_enable_x64", True)
 
-MESQUITE = Path(__file__).resolve().parents[2] / "shared" / "data" / "mesquite"
 
 
 @functools.cache
@@ -197,11 +196,10 @@ def test_random_moves_stay_on_the_curved_annulus(seed, amplitude):
         assert np.abs(project_np(c, out) - out).max() <= 1e-12 < 1e-3 * h
 
 
-@pytest.mark.parametrize("name", sorted(p.name for p in MESQUITE.glob("*.vtk")) or ["none"])
+@pytest.mark.shared
+@pytest.mark.parametrize("name", sorted(MESQUITE_FIGURES))
 def test_jax_equals_numpy_on_mesquite_meshes(name):
     path = MESQUITE / name
-    if not path.exists():
-        pytest.skip(f"{path} not found")
     import meshio
 
     m = meshio.vtk.read(str(path))
@@ -346,10 +344,10 @@ def test_constraints_without_sliding_nodes():
     np.testing.assert_array_equal(project_np(c1, one.points + 0.1), one.points)
 
 
+@pytest.mark.shared
 def test_planar_rings_in_blocks_are_the_whole_computation(monkeypatch):
     """`planar_rings` works through the surface nodes in blocks of `RING_CHUNK` (bounded temporaries): the same
     origins, normals and radii for any block size, on a paved mesh with curved walls and planar parts."""
-    from helpers import MESQUITE
 
     from jaxci.io import read_mesh
     from jaxci.optim import _moves

@@ -58,6 +58,7 @@ def test_random_hexes_match_vtk(random_hex_mesh, measure, fn):
     assert_rel(fn(pts, hexes), vtk_quality(pts, hexes, measure))
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("name", sorted(MESQUITE_FIGURES))
 def test_mesquite_meshes_match_vtk(name):
     pts, hexes = read_vtk_hexes(MESQUITE / name)
@@ -77,6 +78,7 @@ def test_mesquite_meshes_match_vtk(name):
                                rtol=1e-6, atol=1e-12)
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("name", sorted(MESQUITE_FIGURES))
 def test_mesquite_readme_figures(name):
     n_hex, n_nodes, inv_c, inv_e, kmax, F, sj = MESQUITE_FIGURES[name]
@@ -91,6 +93,7 @@ def test_mesquite_readme_figures(name):
     assert sum(b[2] for b in r.histogram) == 8 * n_hex - inv_c
 
 
+@pytest.mark.shared
 def test_tangled_objective_with_signed_kappa():
     """The README's F = 79.82 for hex_5_tangled counts inverted corners with their (negative) kappa."""
     pts, hexes = read_vtk_hexes(MESQUITE / "hex_5_tangled.vtk")

@@ -23,6 +23,7 @@ import pytest
 from jaxci.errors import JaxciError, MeshReadError, MeshWriteError, UsageError
 from jaxci.generate import box, perturb_box
 from jaxci.io import LossyWriteWarning, read_mesh, write_mesh
+from jaxci.io._place import TEMP_PREFIX
 from jaxci.mesh import CellBlock, HexMesh
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -607,7 +608,7 @@ def test_disk_full_names_the_output_and_says_so(tmp_path, monkeypatch, name):
     real_open = open
 
     def full_disk(file, mode="r", *args, **kwargs):
-        if "w" in mode and ".tmp" in str(file):
+        if "w" in mode and TEMP_PREFIX in str(file):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(file))
         return real_open(file, mode, *args, **kwargs)
 
@@ -617,7 +618,7 @@ def test_disk_full_names_the_output_and_says_so(tmp_path, monkeypatch, name):
         write_mesh(box(1), tmp_path / name)
     message = str(info.value)
     assert message == f"{tmp_path / name}: cannot write (No space left on device)"
-    assert ".tmp" not in message and os.listdir(tmp_path) == []
+    assert TEMP_PREFIX not in message and os.listdir(tmp_path) == []
 
 
 def test_numpy_write_error_on_a_full_disk(tmp_path, monkeypatch):
@@ -630,7 +631,7 @@ def test_numpy_write_error_on_a_full_disk(tmp_path, monkeypatch):
     with pytest.raises(MeshWriteError, match=r"m\.vtu: cannot write \(no space left on device: problem writing "
                                              r"element 555 to file\)") as info:
         write_mesh(box(1), tmp_path / "m.vtu")
-    assert ".tmp" not in str(info.value)
+    assert TEMP_PREFIX not in str(info.value)
 
 
 def test_writer_errors_name_the_output_not_the_temporary_file(tmp_path):

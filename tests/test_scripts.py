@@ -126,14 +126,12 @@ def test_bench_device_memory_measures_both_programs(tmp_path):
         assert row["live"] > 32 and row["arguments"] > 0 and row["peak_estimate"] >= row["live"]
 
 
-MESQUITE = ROOT.parent / "shared" / "data" / "mesquite"
 
 
+@pytest.mark.shared
 def test_compare_methods_corpus_reports_before_and_after_per_method(tmp_path):
     """``compare_methods.py --corpus`` on two tiny Mesquite meshes (one tangled): every row has before AND after
     max and mean kappa/3, and a capped CI says so (no gmsh needed)."""
-    if not (MESQUITE / "hexes_4by2by2.vtk").exists() or not (MESQUITE / "hex_5_tangled.vtk").exists():
-        pytest.skip("the shared Mesquite meshes are not here")
     out = tmp_path / "cmp"
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "compare_methods.py"), "--corpus", "--meshes",
                         "hexes_4by2by2", "hex_5_tangled", "--methods", "lbfgs", "lbfgs-pmean", "ci",
@@ -158,13 +156,12 @@ def test_compare_methods_corpus_reports_before_and_after_per_method(tmp_path):
     assert "max k/3 before" in md and "mean k/3 after" in md and "stopped at cap (max_sweeps=3)" in md
 
 
+@pytest.mark.shared
 @pytest.mark.skipif(not native.AVAILABLE, reason="needs the C kernels (jaxci.native)")
 def test_bench_local_ci_times_ci_to_its_target_against_lbfgs(tmp_path):
     """``bench_local_ci.py`` on a 4^3 box and Mesquite's 4x2x2 hexes: per mesh L-BFGS's time and result, CI's
     run, the first sweep at the target (box: max kappa/3 1.0001; mesh: F within 1% of L-BFGS's), CI's time to
     it and the ratio, in the JSON."""
-    if not (MESQUITE / "hexes_4by2by2.vtk").exists():
-        pytest.skip("the shared Mesquite meshes are not here")
     out = tmp_path / "ci.json"
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_local_ci.py"), "--boxes", "4", "--meshes",
                         "hexes_4by2by2", "--repeats", "1", "--out", str(out)], capture_output=True, text=True,

@@ -45,6 +45,7 @@ def test_worst_elements_are_ranked_with_ids_and_centroids():
     assert after[0].after < before[0].before
 
 
+@pytest.mark.shared
 def test_corner_histogram_counts_every_corner_and_the_inverted_apart():
     mesh = read_mesh(MESQUITE / "hex_5_tangled.vtk")  # 125 hexahedra, 48 inverted corners
     edges = np.geomspace(1.0, 1e6, 21)
@@ -53,6 +54,7 @@ def test_corner_histogram_counts_every_corner_and_the_inverted_apart():
     assert counts.sum() + inverted == 8 * 125
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("suffix", [".html", ".png"])
 def test_cli_report_on_a_real_mesh(tmp_path, capsys, suffix):
     out, rep = tmp_path / "out.vtk", tmp_path / f"report{suffix}"

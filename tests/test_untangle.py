@@ -27,6 +27,7 @@ def boundary_error(mesh_in, points) -> float:
     return float(np.abs(project_np(cons, x) - x).max()) / size
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("name,method,params", [
     ("hex_5_tangled.vtk", "lbfgs", {}),
     ("pave3.e.vtk", "smart-laplace", {"max_sweeps": 10}),  # a few sweeps: this test is about untangling
@@ -53,6 +54,7 @@ def test_tangled_meshes_are_untangled_with_the_boundary_kept(name, method, param
 NEEDS_C = pytest.mark.skipif(not native.AVAILABLE, reason="the untangling's Laplace sweeps are the C kernels")
 
 
+@pytest.mark.shared
 @pytest.mark.parametrize("name,sweeps,laplace", [
     pytest.param("hex_5_tangled.vtk", 1, True, marks=NEEDS_C),  # one sweep of the plain Laplacian untangles it
     pytest.param("pave3.e.vtk", 1, False, marks=NEEDS_C),  # one leaves 57 of 106 inverted: the Winslow rounds
@@ -77,6 +79,7 @@ def test_a_laplace_sweep_first_where_it_untangles(name, sweeps, laplace):
         assert res.after.max_condition <= 1 + 1e-5
 
 
+@pytest.mark.shared
 @NEEDS_C
 def test_a_laplace_untangled_mesh_skips_the_default_presmoothing(monkeypatch):
     """Where the untangling's plain Laplace sweep untangled the mesh it has just smoothed it too: the default
@@ -96,6 +99,7 @@ def test_a_laplace_untangled_mesh_skips_the_default_presmoothing(monkeypatch):
     assert int(winslow.history["presmooth"]) == 3
 
 
+@pytest.mark.shared
 def test_the_default_laplace_sweep_from_a_size_on():
     """Below `LAPLACE_UNTANGLE_FROM` hexahedra the default untangles with the Winslow rounds alone (their
     set-up is cheaper than the sweep's); the threshold is where one sweep paid on cube60_pert."""
@@ -145,6 +149,7 @@ def hex5():
     return mesh, info, build_constraints(mesh, info, dtype=np.float64)
 
 
+@pytest.mark.shared
 def test_every_round_runs_in_one_compiled_loop(hex5):
     """Rounds, steps, margin, theta and tolerances are traced: once compiled for a mesh, no value compiles again,
     however many rounds a run takes."""
@@ -159,6 +164,7 @@ def test_every_round_runs_in_one_compiled_loop(hex5):
     assert len(many["min_det"]) == many["rounds"] + 1 and few["untangled"]
 
 
+@pytest.mark.shared
 def test_flat_regions_first_then_the_projection(hex5):
     """On a box every moving boundary node has a flat region: the rounds run without the projection; a round
     that ends with a node near the edge of its region (here: any move, flat_reach=0) hands over to the

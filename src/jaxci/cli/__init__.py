@@ -103,20 +103,34 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI with `argv` (default ``sys.argv[1:]``) and return the exit code."""
-    with _interrupt.guard() as guard, _streams.checked():
+    with _interrupt.guard() as guard:
+        code = _guarded(argv, guard)
+    return _ended(guard, code)
+
+
+def _guarded(argv, guard) -> int:
+    """`_main` under the interrupt `guard`: its exit code, or 130 / 143 with the interrupt's line."""
+    with _streams.checked():
         try:
             code = _main(argv)
+            guard.claim_exit()  # from here on a signal is only recorded (`_ended` reports it)
+            return code
         except KeyboardInterrupt as e:  # SIGINT or SIGTERM (`_interrupt`); a command may add what it kept
             guard.claim_exit()
-            detail = e.args[0] if e.args and isinstance(e.args[0], str) else ""
+            detail = e.args[0] if e.args and isinstance(e.args[0], str) else guard.detail
             _streams.say(f"jaxci: interrupted ({_interrupt.signal_name(guard.signum)})"
                          + (f": {detail}" if detail else ""))
             return guard.exit_code
-    if guard.signum is not None and code not in INTERRUPTED:  # it came as the command ended: not lost
-        _streams.say(f"jaxci: interrupted ({_interrupt.signal_name(guard.signum)}) as the command ended; its "
-                     f"output was complete" + ("" if code == 0 else f" (exit status {code} without the signal)"))
-        return guard.exit_code
-    return code
+
+
+def _ended(guard, code: int) -> int:
+    """The exit code, and the interrupt's line, of a signal that came as the command ended: not lost."""
+    if guard.signum is None or code in INTERRUPTED:
+        return code
+    done = f" ({guard.detail})" if guard.detail else ""
+    _streams.say(f"jaxci: interrupted ({_interrupt.signal_name(guard.signum)}) as the command ended; its output "
+                 f"was complete{done}" + ("" if code == 0 else f" (exit status {code} without the signal)"))
+    return guard.exit_code
 
 
 def _main(argv) -> int:
@@ -169,11 +183,14 @@ def entry() -> None:  # pragma: no cover - console script
     """The command: `main`, then out of the process without the interpreter's shutdown. Every output is complete
     by then (written atomically, temporaries removed), so only the exit handlers and the streams are left:
     tearing down JAX and every module cost 0.2-0.3 s after a 1.5 s run (a quarter of a small mesh's wall time),
-    and after an interrupt it would wait for an XLA computation to finish."""
+    and after an interrupt it would wait for an XLA computation to finish. The signal handlers stay until the
+    end (`_interrupt.guard`'s ``keep_handlers``): a SIGINT or SIGTERM while the exit handlers run still gives
+    its line and exit code."""
     import atexit
     import logging
 
-    code = main()
+    with _interrupt.guard(keep_handlers=True) as guard:
+        code = _guarded(None, guard)
     try:
         if code not in INTERRUPTED:
             atexit._run_exitfuncs()  # what sys.exit would run: JAX's and logging's handlers
@@ -184,4 +201,4 @@ def entry() -> None:  # pragma: no cover - console script
                 stream.flush()
             except (OSError, ValueError):  # reported already (`_streams`), or nowhere to report it
                 pass
-        os._exit(code)
+        os._exit(_ended(guard, code))

@@ -16,7 +16,8 @@ and put in place so that nothing that is not ours is replaced, even if it appear
 `Output.write` then writes the mesh atomically (`jaxci.io.write_mesh` inside `_interrupt.removing_temporaries`)
 with ``overwrite`` set to what was checked: without ``--force`` the final move refuses any file that appeared at
 the output's name meanwhile; with ``--force`` it replaces only the very file (device, inode, change time) that was
-there when it was checked, unchanged, or nothing.
+there when it was checked, unchanged, or nothing. Once it is in place, an interrupt's line says so
+(`_interrupt.completed`).
 """
 
 from __future__ import annotations
@@ -62,11 +63,12 @@ class Output:
     def write(self, mesh) -> None:
         """Write `mesh` to `path` (`check_inputs` first), replacing only what was checked."""
         from ..io import write_mesh
-        from ._interrupt import removing_temporaries
+        from ._interrupt import completed, removing_temporaries
 
         self.check_inputs(mesh)
         with removing_temporaries(self.path):
             write_mesh(mesh, self.path, overwrite=self.allowed)
+        completed(f"wrote {self.path} (complete)")
 
 
 def _refuse_inputs(output: Path, targets, inputs, source=None) -> None:

@@ -19,6 +19,10 @@ nothing when imported, and nothing when `main` runs outside the main thread) ins
   line ``jaxci: interrupted (SIGTERM): ...`` on stderr and ends the process with `os._exit`. Once it has begun,
   the main thread's handler blocks, so the main thread never continues past the native call.
 
+Once an output is complete the command says so (`completed`), and the line of a later interrupt names it. With
+``guard(keep_handlers=True)`` (`jaxci.cli.entry`) the handlers stay until the process ends, so that a signal after
+the command (while the exit handlers run) is reported too, not a silent death by the default action.
+
 Exit code 128 + the signal number: 130 for SIGINT, 143 for SIGTERM. A signal that the parent process set to
 be ignored (``nohup``, a background job) stays ignored.
 """
@@ -78,6 +82,12 @@ class Guard:
         self._closed = False  # the command is over
         self._count = 0  # signals seen by the watchdog
         self._old_unraisable = sys.unraisablehook
+        self.done: list[str] = []  # outputs complete so far (`completed`), for the interrupt's line
+
+    @property
+    def detail(self) -> str:
+        """What the command has completed (`completed`), for the line of an interrupt that comes after."""
+        return "; ".join(self.done)
 
     @property
     def exit_code(self) -> int:
@@ -167,6 +177,7 @@ class Guard:
                 detail = f"clean-up failed ({type(e).__name__}: {e})"
             if detail:
                 details.append(detail)
+        details = details or self.done
         line = f"jaxci: interrupted ({signal_name(self.signum)})" + (": " + "; ".join(details) if details else "")
         if os.isatty(2):
             line = "\r\x1b[2K\x1b[?25h" + line  # clear a progress bar's line, show the cursor again
@@ -188,9 +199,12 @@ _ACTIVE: list[Guard] = []
 
 
 @contextlib.contextmanager
-def guard():
+def guard(keep_handlers: bool = False):
     """Install the handlers and the watchdog for one command; yields the `Guard`. Outside the main thread it
-    installs nothing (a `Guard` that sees no signal)."""
+    installs nothing (a `Guard` that sees no signal). `keep_handlers`: leave the signal handlers installed at the
+    end (the watchdog stopped): a signal then is only recorded in `Guard.signum`, for the caller to report, up to
+    the process's end (`jaxci.cli.entry`, whose exit handlers run after the command); with the default handlers
+    back it would end the process at once, without a word."""
     g = Guard()
     if threading.current_thread() is not threading.main_thread():
         yield g
@@ -221,11 +235,19 @@ def guard():
         sys.unraisablehook = g._old_unraisable
         signal.set_wakeup_fd(old_fd)
         for s, h in old.items():
-            signal.signal(s, h if h is not None else signal.SIG_DFL)
+            if not keep_handlers:
+                signal.signal(s, h if h is not None else signal.SIG_DFL)
         with contextlib.suppress(OSError):
             os.write(w, b"\0")
         thread.join(timeout=5)
         os.close(w)
+
+
+def completed(detail: str) -> None:
+    """Note that an output of the command is complete (``detail``: what and where, e.g. "wrote out.vtk
+    (complete)"): the line of an interrupt that comes later says so. No-op outside `guard`."""
+    if _ACTIVE:
+        _ACTIVE[-1].done.append(detail)
 
 
 def signalled() -> bool:
@@ -251,23 +273,22 @@ def on_interrupt(fn):
 
 @contextlib.contextmanager
 def removing_temporaries(target: str | os.PathLike):
-    """Within the block, an emergency exit removes the temporary files and folders of an atomic write of
-    `target` (``.<name>.*.tmp`` beside it, as `jaxci.io.write_mesh` and `jaxci.experiments.results.write_text` make)
-    that appeared during the block."""
+    """Within the block, an emergency exit removes the temporary folders of an atomic write of `target` that this
+    process made beside it (``.jaxci-tmp-<pid>-<name>.*``, `jaxci.io._place.make_temporary`, as
+    `jaxci.io.write_mesh` and `jaxci.experiments.results.stage` make). A SIGKILL, which no handler sees, leaves
+    them: the next write in that folder removes them (`jaxci.io._place.remove_stale`)."""
+    from ..io._place import temporary_prefix
+
     target = Path(target)
     folder = target.parent
-    prefix = f".{target.name}."
-
-    def ours() -> set[str]:
-        try:
-            return {e for e in os.listdir(folder) if e.startswith(prefix) and e.endswith(".tmp")}
-        except OSError:
-            return set()
-
-    before = ours()
+    prefix = temporary_prefix(target.name)
 
     def clean() -> None:
-        for name in ours() - before:
+        try:
+            ours = [e for e in os.listdir(folder) if e.startswith(prefix)]
+        except OSError:
+            return
+        for name in ours:
             p = folder / name
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)

@@ -8,7 +8,6 @@ written.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 #: Report formats by extension.
@@ -37,27 +36,31 @@ def check_report(path: str | os.PathLike, inputs, mesh_output, *, force: bool):
 
 
 def write_report(out, data: bytes, mesh) -> None:
-    """Write `data` at the checked output `out` atomically: a temporary file beside it, then moved in place
-    replacing only what was checked there (`jaxci.io._place.place_files`); never a file `mesh` was read from."""
+    """Write `data` at the checked output `out` atomically: a file in a temporary folder beside it
+    (`jaxci.io._place.make_temporary`), synced, then moved in place replacing only what was checked there
+    (`jaxci.io._place.place_files`); never a file `mesh` was read from."""
     from ..errors import MeshWriteError
     from ..io._paths import os_reason
-    from ..io._place import Taken, place_files
-    from ._interrupt import removing_temporaries
+    from ..io._place import Taken, make_temporary, place_files, sync_folder, sync_tree
+    from ._interrupt import completed, removing_temporaries
 
     out.check_inputs(mesh)
     path = Path(out.path)
     with removing_temporaries(path):
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            temporary = make_temporary(path.parent, path.name)
         except OSError as exc:
             raise MeshWriteError(f"{path}: cannot write the report ({os_reason(exc)})") from None
         try:
+            tmp = temporary.path / path.name
             umask = os.umask(0)
             os.umask(umask)
-            os.fchmod(fd, 0o666 & ~umask)
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 & ~umask)
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
-            place_files([(Path(tmp), path)], {path: out.allowed[os.path.abspath(path)]})
+            sync_tree(tmp)
+            place_files([(tmp, path)], {path: out.allowed[os.path.abspath(path)]})
+            sync_folder(path.parent)
         except Taken as exc:
             why = "was replaced by another file" if exc.changed else "appeared"
             raise MeshWriteError(f"{exc.path}: {why} while the report was being written; left as it is (the "
@@ -65,5 +68,5 @@ def write_report(out, data: bytes, mesh) -> None:
         except OSError as exc:
             raise MeshWriteError(f"{path}: cannot write the report ({os_reason(exc)})") from None
         finally:
-            if os.path.lexists(tmp):
-                os.unlink(tmp)
+            temporary.remove()
+    completed(f"wrote {path} (complete)")

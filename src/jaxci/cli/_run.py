@@ -69,7 +69,7 @@ def _kept_line(res) -> str:
         return "the finished runs could not be written in time (a temporary folder may remain)"
     s = res.summary
     done = f"{s['runs_done']} of {s['runs_planned']} runs" if s else f"{len(res.records)} runs"
-    line = f"{done} finished, written to {res.out}" + (" (partial)" if res.partial else "")
+    line = f"{done} finished, written to {res.out}" + (" (partial)" if res.partial else " (complete)")
     if res.taken is not None:
         line += f"; {res.taken}: left as it is"
     elif res.kept is not None:
@@ -81,7 +81,7 @@ def run(args) -> int:
     from ..errors import ConfigError, MeshReadError
     from ..experiments.runner import ExperimentResult, load_config, run_experiment
     from ..io._paths import check_regular
-    from ._interrupt import on_interrupt
+    from ._interrupt import completed, on_interrupt
     from ._progress import wanted
 
     try:  # a FIFO or a device would make reading the config wait forever
@@ -101,9 +101,12 @@ def run(args) -> int:
                                  strict=getattr(args, "debug", False), on_start=abort.append)
     except KeyboardInterrupt as e:
         partial = e.args[0] if e.args else None
+        if not isinstance(partial, ExperimentResult) and abort:  # the results were written as it returned?
+            partial = abort[0](write=False)
         if isinstance(partial, ExperimentResult):
             raise KeyboardInterrupt(_kept_line(partial)) from None
         raise
+    completed(_kept_line(res))  # an interrupt from here on says where the results are, complete
     for r in res.failed:
         print(f"jaxci: run failed: {r.mesh} / {r.label} / seed {r.seed}: {r.error}", file=sys.stderr)
     if res.taken is not None:

@@ -9,17 +9,24 @@ Rules (`stage` checks them before anything runs; a refusal is a `ConfigError` an
   is never replaced, whatever its files are called; an empty folder may be used. It must not be, or hold, the
   current folder or an input of the experiment (its config, its mesh files and every file read through them:
   `jaxci.io.input_paths`; by path and by device and inode, so a hard link counts).
-- The new results are written into a hidden temporary sibling folder (``.<name>.*.tmp``, every file via a
-  temporary file and `os.replace`) and moved into place at the end (`Staged.commit`): earlier results are
-  replaced only by a complete run. A partial run (interrupted) or one where every run failed goes into the
-  folder itself if it did not exist or was empty, else beside it, into the first free ``<name>.partial-N`` or
-  ``<name>.failed-N`` (N = 1, 2, ...): the earlier results stay as they were.
+- The new results are written into a hidden temporary sibling folder (``.jaxci-tmp-<pid>-<name>.*``,
+  `jaxci.io._place.make_temporary`; every file via a temporary file and `os.replace`), synced to the disk and
+  moved into place at the end (`Staged.commit`): earlier results are replaced only by a complete run, and in one
+  step (``renameat2(RENAME_EXCHANGE)`` swaps the two folders), so that even a SIGKILL leaves DIR holding the
+  earlier results or the new ones, whole; the earlier ones, swapped out to the temporary name, are then removed
+  (by the next run in that folder if the process was killed first: `jaxci.io._place.remove_stale`). Where the
+  system cannot swap two folders, the earlier results are first moved aside (``.jaxci-old-<name>.*``, never
+  removed by a later run), and a SIGKILL between the two renames leaves them there. A partial run (interrupted)
+  or one where every run failed goes into the folder itself if it did not exist or was empty, else beside it,
+  into the first free ``<name>.partial-N`` or ``<name>.failed-N`` (N = 1, 2, ...): the earlier results stay as
+  they were.
 - The checks hold at the moment of the move, not only at the start: the new folder is renamed without replacing
   anything (`jaxci.io._place.rename_noreplace`, so not even an empty folder made meanwhile), and a folder that is
-  replaced is first moved aside and checked again (the same folder, by device and inode, still holding only what
-  jaxci wrote and no input) before it is removed. A folder that appeared, or changed, while the experiment ran is
-  left as it is and the results go beside it, ``<name>.new-N`` (`Staged.taken` says why).
-- `uninterrupted` holds off a `KeyboardInterrupt` of the jaxci command's signal handler until the two renames
+  replaced is checked again (the same folder, by device and inode, still holding only what jaxci wrote and no
+  input) before and after it is swapped out (swapped back if it changed), and only then removed. A folder that
+  appeared, or changed, while the experiment ran is left as it is and the results go beside it,
+  ``<name>.new-N`` (`Staged.taken` says why).
+- `uninterrupted` holds off a `KeyboardInterrupt` of the jaxci command's signal handler until the renames
   that swap a folder are done (the handler asks `defer_interrupt`); this module installs no signal handler.
 
 Files and folders get the permissions of the process umask (``0o666``/``0o777`` masked), like any file.
@@ -37,7 +44,17 @@ from pathlib import Path
 
 from ..errors import ConfigError
 from ..io._paths import os_reason
-from ..io._place import identity, rename_noreplace, same_inode
+from ..io._place import (
+    TEMP_PREFIX,
+    Temporary,
+    exchange,
+    identity,
+    make_temporary,
+    rename_noreplace,
+    same_inode,
+    sync_folder,
+    sync_tree,
+)
 
 #: The marker file of a results folder: JSON ``{"jaxci_results": 1, "jaxci": version, "partial": bool,
 #: "entries": [relative paths, folders ending in "/"]}``.
@@ -52,12 +69,16 @@ class Staged:
     they are not in `out` although the run was complete: it appeared or changed meanwhile; else None)."""
 
     out: Path
-    tmp: Path
+    temporary: Temporary
     earlier: bool
     ident: tuple[int, int, int] | None = None
     inputs: frozenset = frozenset()
     committed: Path | None = None
     taken: str | None = None
+
+    @property
+    def tmp(self) -> Path:
+        return self.temporary.path
 
     def commit(self, *, complete: bool, partial: bool, inputs=()) -> Path:
         """Write the marker, then move `tmp` into place: onto `out` when the run is `complete` or `out` held no
@@ -65,29 +86,38 @@ class Staged:
         to ``<out>.new-N`` when `out` is no longer what `stage` checked (`taken`). `inputs`: more input files
         known by now (read through the meshes), never removed with `out`. Returns where the results went (also
         set as `committed`)."""
-        for p in list(self.tmp.rglob(".*.tmp")):  # an interrupted atomic write's temporary file or folder
+        # an interrupted atomic write's temporary file or folder
+        for p in [*self.tmp.rglob(".*.tmp"), *self.tmp.rglob(f"{TEMP_PREFIX}*")]:
             if p.is_dir():
                 shutil.rmtree(p, ignore_errors=True)
-            else:
+            elif p.exists():
                 p.unlink(missing_ok=True)
         write_marker(self.tmp, partial=partial)
         os.chmod(self.tmp, 0o777 & ~_umask())
-        with uninterrupted():
-            if complete or not self.earlier:
-                try:
-                    _put_in_place(self.tmp, self.out, self.ident, self.inputs | _identities(inputs))
-                    self.committed = self.out
-                except _NotOurs as e:
-                    self.taken = str(e)
-                    self.committed = _move_beside(self.tmp, self.out, "new")
-            else:
-                self.committed = _move_beside(self.tmp, self.out, "partial" if partial else "failed")
+        sync_tree(self.tmp)  # every file on the disk before the folder is renamed into place
+        try:
+            with uninterrupted():
+                self._move(complete, partial, inputs)
+        finally:
+            self.temporary.release()
+        sync_folder(self.out.absolute().parent)
         return self.committed
+
+    def _move(self, complete: bool, partial: bool, inputs) -> None:
+        if complete or not self.earlier:
+            try:
+                _put_in_place(self.tmp, self.out, self.ident, self.inputs | _identities(inputs))
+                self.committed = self.out
+            except _NotOurs as e:
+                self.taken = str(e)
+                self.committed = _move_beside(self.tmp, self.out, "new")
+        else:
+            self.committed = _move_beside(self.tmp, self.out, "partial" if partial else "failed")
 
     def discard(self) -> None:
         """Remove the temporary folder (nothing was committed)."""
         if self.committed is None:
-            shutil.rmtree(self.tmp, ignore_errors=True)
+            self.temporary.remove()
 
 
 def stage(out: str | os.PathLike, key: str, force: bool, inputs=()) -> Staged:
@@ -121,13 +151,13 @@ def stage(out: str | os.PathLike, key: str, force: bool, inputs=()) -> Staged:
         p = p.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{_name(out)}.", suffix=".tmp", dir=parent))
+        temporary = make_temporary(parent, _name(out))
     except OSError as e:
         for c in created:
             with contextlib.suppress(OSError):
                 c.rmdir()
         raise ConfigError(f"{key}: cannot write {out} ({e.strerror or e}); nothing was written") from None
-    return Staged(out, tmp, earlier, ident, ids)
+    return Staged(out, temporary, earlier, ident, ids)
 
 
 def _name(out: Path) -> str:
@@ -211,10 +241,24 @@ class _NotOurs(Exception):
     """The output folder is not what `stage` checked any more (the message says what it is now)."""
 
 
+def _not_ours(folder: Path, ident: tuple[int, int, int], ids: frozenset, shown: Path) -> str | None:
+    """Why the folder at `folder` may not be replaced (not the folder `ident` checked by `stage`, a file jaxci did
+    not write, an input of the experiment), or None."""
+    if not same_inode(identity(folder), ident):
+        return f"{shown} was replaced by another folder while the experiment ran"
+    if foreign := foreign_entries(folder, limit=1):
+        return f"{shown} got {foreign[0]}, which jaxci did not write, while the experiment ran"
+    if (held := _input_inside(folder, ids)) is not None:
+        return f"{shown} holds {held}, an input of this experiment"
+    return None
+
+
 def _put_in_place(tmp: Path, out: Path, ident: tuple[int, int, int] | None, ids: frozenset) -> None:
     """Rename `tmp` to `out`. `ident` None: nothing may be at `out`. Else `out` (that folder, checked by `stage`)
-    is moved aside, checked again (the same folder, only what jaxci wrote, no input), and removed once `tmp` is
-    in place; put back if anything fails. `_NotOurs` when `out` is not what was checked."""
+    is checked again (the same folder, only what jaxci wrote, no input), swapped with `tmp` in one step and
+    checked once more where it went (swapped back if it changed in between), then removed; where the system
+    cannot swap two folders, moved aside, checked, and put back if anything fails. `_NotOurs` when `out` is not
+    what was checked."""
     shown, out = out, out.absolute()
     if ident is None:
         try:
@@ -225,9 +269,28 @@ def _put_in_place(tmp: Path, out: Path, ident: tuple[int, int, int] | None, ids:
     now = identity(out)
     if now is None:  # removed meanwhile: nothing to replace, and nothing may appear
         return _put_in_place(tmp, shown, None, ids)
-    if not same_inode(now, ident):
-        raise _NotOurs(f"{shown} was replaced by another folder while the experiment ran")
-    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+    why = _not_ours(out, ident, ids, shown)
+    if why is not None:
+        raise _NotOurs(why)
+    try:
+        swapped = exchange(tmp, out)
+    except FileNotFoundError:  # removed meanwhile: nothing to replace, and nothing may appear
+        return _put_in_place(tmp, shown, None, ids)
+    if swapped:  # the earlier results are at tmp's name now
+        why = _not_ours(tmp, ident, ids, shown)
+        if why is not None:
+            exchange(tmp, out)
+            raise _NotOurs(why)
+        shutil.rmtree(tmp, ignore_errors=True)
+        return
+    _move_aside_and_put_in_place(tmp, out, shown, ident, ids)
+
+
+def _move_aside_and_put_in_place(tmp: Path, out: Path, shown: Path, ident: tuple[int, int, int],
+                                 ids: frozenset) -> None:
+    """`_put_in_place` where two folders cannot be swapped in one step: `out` moved aside into
+    ``.jaxci-old-<name>.*`` (a name that no later run removes), checked, and removed once `tmp` is in place."""
+    trash = Path(tempfile.mkdtemp(prefix=f".jaxci-old-{out.name}.", dir=out.parent))
     old = trash / "old"
     try:
         os.rename(out, old)
@@ -237,13 +300,7 @@ def _put_in_place(tmp: Path, out: Path, ident: tuple[int, int, int] | None, ids:
     except OSError:
         trash.rmdir()
         raise
-    why = None
-    if not same_inode(identity(old), ident):
-        why = f"{shown} was replaced by another folder while the experiment ran"
-    elif foreign := foreign_entries(old, limit=1):
-        why = f"{shown} got {foreign[0]}, which jaxci did not write, while the experiment ran"
-    elif (held := _input_inside(old, ids)) is not None:
-        why = f"{shown} holds {held}, an input of this experiment"
+    why = _not_ours(old, ident, ids, shown)
     if why is None:
         try:
             rename_noreplace(tmp, out)

@@ -109,6 +109,8 @@ def run_experiment(
       from another thread (the jaxci command's interrupt watchdog, while this thread is stuck in a long XLA
       call): it writes the finished runs as a partial result (no figures) and returns its `ExperimentResult`,
       the result already written, or None if it could not get hold of the output within 10 s.
+      ``finish(write=False)`` only returns the result already written, or None (the command, when an interrupt
+      comes as `run_experiment` returns).
 
     **Returns:** an `ExperimentResult`. A run that raises a `JaxciError` (e.g. an inverted mesh that cannot be
     untangled) is recorded as ``"failed"`` and the others go on. On `KeyboardInterrupt` the finished runs are
@@ -195,12 +197,13 @@ class _Run:
             raise KeyboardInterrupt(self.result)
         return self.result
 
-    def abort(self) -> ExperimentResult | None:
-        """From another thread: write the finished runs as a partial result (no figures) unless done."""
+    def abort(self, write: bool = True) -> ExperimentResult | None:
+        """From another thread: write the finished runs as a partial result (no figures) unless done; returns the
+        result written. `write` False: only the result already written, or None (nothing is written)."""
         if not self.lock.acquire(timeout=10.0):
             return None
         try:
-            if self.result is None:
+            if self.result is None and write:
                 self.result = self._write(True, figures=False)
             return self.result
         finally:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -34,7 +33,7 @@ from ._meshio import read_meshio, write_meshio
 from ._nastran import read_nastran
 from ._nastran_write import write_nastran
 from ._paths import check_regular, same_file
-from ._place import Taken, place_files
+from ._place import Taken, make_temporary, place_files, sync_folder, sync_tree
 
 #: File extension (lower case) -> format name. ``.msh`` is Gmsh (written as 4.1; ``file_format="gmsh22"``
 #: writes 2.2), ``.inp`` is Abaqus, ``.mac``/``.apdl``/``.ans``/``.cdb`` are ANSYS APDL input files and
@@ -258,8 +257,11 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
 
     - `mesh`: the `HexMesh` to write.
     - `path`: the file to write. The file (and its companions, `companion_files`) is written under a temporary
-      name in a new hidden folder beside it, then moved into place, all files or none, so a failed write leaves
-      nothing behind.
+      name in a new hidden folder beside it (``.jaxci-tmp-<pid>-<name>.*``, `jaxci.io._place.make_temporary`),
+      synced to the disk, then moved into place, all files or none, so a failed write leaves nothing behind. A
+      file that is replaced is swapped out in one step (``renameat2(RENAME_EXCHANGE)``, else `os.replace`): even
+      a SIGKILL leaves the old file or the new one whole, and the next write in that folder removes the
+      temporary folder a killed jaxci left (`jaxci.io._place.remove_stale`).
     - `file_format`: keyword only; a format name to use instead of the one the extension says.
     - `overwrite`: keyword only. True (default): an existing regular file at `path` or a companion's name is
       replaced. False: none is; the final move itself refuses (``renameat2(RENAME_NOREPLACE)`` or a hard link),
@@ -304,12 +306,14 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     if path.is_dir():
         raise MeshWriteError(f"{path}: is a folder")
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder))
+        temporary = make_temporary(folder, path.name)
     except OSError as exc:
         raise MeshWriteError(f"{path}: cannot write in folder {folder} ({_os_reason(exc, folder)})") from exc
+    tmp = temporary.path
     try:
         _WRITERS[fmt](mesh, tmp / path.name)
         produced = sorted(tmp.iterdir(), key=lambda p: p.name == path.name)  # companions first, the file last
+        sync_tree(tmp)  # on the disk before the rename: a crash never leaves a renamed but empty file
         for p in produced:
             _refuse_input(folder / p.name, inputs)
         if overwrite is True:
@@ -318,6 +322,7 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
             given = {} if overwrite is False else {os.path.abspath(k): v for k, v in overwrite.items()}
             allowed = {folder / p.name: given.get(os.path.abspath(folder / p.name)) for p in produced}
         place_files([(p, folder / p.name) for p in produced], allowed)
+        sync_folder(folder)
     except Taken as exc:
         why = "was replaced by another file" if exc.changed else "appeared"
         raise MeshWriteError(f"{exc.path}: {why} while the mesh was being written; left as it is (nothing was "
@@ -328,7 +333,7 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
     except OSError as exc:
         raise MeshWriteError(f"{path}: cannot write ({_os_reason(exc, folder)})") from exc
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        temporary.remove()
 
 
 def _os_reason(exc: OSError, folder: Path) -> str:

@@ -125,7 +125,7 @@ def rename_noreplace(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     os.unlink(src)
 
 
-def _exchange(a: Path, b: Path) -> bool:
+def exchange(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     """Swap `a` and `b` atomically; False when the system cannot."""
     return _renameat2(a, b, _EXCHANGE)
 
@@ -177,10 +177,10 @@ def _place_one(src: Path, dst: Path, want) -> Path | None:
         raise Taken(dst, changed=True)
     if stat.S_ISDIR(os.lstat(dst).st_mode):
         raise IsADirectoryError(errno.EISDIR, "is a folder", os.fspath(dst))
-    if _exchange(src, dst):  # the old file is now at src: check it is the one allowed, else swap back
+    if exchange(src, dst):  # the old file is now at src: check it is the one allowed, else swap back
         old = identity(src)
         if (want is not ANY and not same_inode(old, want)) or stat.S_ISDIR(os.lstat(src).st_mode):
-            _exchange(src, dst)
+            exchange(src, dst)
             raise Taken(dst, changed=True)
         return src
     backup = src.with_name(src.name + ".old")
@@ -190,3 +190,127 @@ def _place_one(src: Path, dst: Path, want) -> Path | None:
         backup = None
     os.replace(src, dst)
     return backup
+
+
+# ------------------------------------------------------------------------------------ temporary files and folders
+#: Every temporary file or folder jaxci makes beside an output starts with this, then the process id and the
+#: output's name: ``.jaxci-tmp-<pid>-<name>.<random>``. Only such names are ever removed as stale (`remove_stale`).
+TEMP_PREFIX = ".jaxci-tmp-"
+#: The longest part of the output's name kept in a temporary name (a name of 255 bytes still gets a temporary).
+_NAME_CHARS = 100
+
+
+class Temporary:
+    """A temporary folder beside an output (`make_temporary`): its `path`, locked (``flock``) by this process until
+    `release` (or the process's end, even by SIGKILL), so that `remove_stale` of another process leaves it alone."""
+
+    def __init__(self, path: Path, fd: int):
+        self.path, self._fd = path, fd
+
+    def release(self) -> None:
+        """Unlock (the folder itself is left as it is: removed, renamed into place, or stale)."""
+        if self._fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._fd)
+            self._fd = None
+
+    def remove(self) -> None:
+        """Remove the folder (if still there under its temporary name), then unlock."""
+        import shutil
+
+        shutil.rmtree(self.path, ignore_errors=True)
+        self.release()
+
+
+def temporary_prefix(name: str, pid: int | None = None) -> str:
+    """The start of the temporary names that process `pid` (default: this one) makes for an output `name`."""
+    return f"{TEMP_PREFIX}{os.getpid() if pid is None else pid}-{name[:_NAME_CHARS]}."
+
+
+def make_temporary(folder: str | os.PathLike, name: str) -> Temporary:
+    """A new, locked temporary folder in `folder` for the output `name` (`TEMP_PREFIX`); stale temporaries of
+    killed jaxci processes in `folder` are removed first (`remove_stale`). `OSError` when it cannot be made."""
+    import fcntl
+    import tempfile
+
+    remove_stale(folder)
+    path = Path(tempfile.mkdtemp(prefix=temporary_prefix(name), dir=folder))
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return Temporary(path, fd)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale(folder: str | os.PathLike) -> list[str]:
+    """Remove the temporary files and folders that jaxci processes which are no longer running left in `folder`
+    (a SIGKILL, a power cut): entries named `TEMP_PREFIX` ``<pid>-...`` whose process is gone and whose lock
+    (`Temporary`) nobody holds. Nothing else is touched. Returns the names removed."""
+    import fcntl
+    import shutil
+
+    removed = []
+    try:
+        names = [e for e in os.listdir(folder) if e.startswith(TEMP_PREFIX)]
+    except OSError:
+        return removed
+    for name in names:
+        pid = name[len(TEMP_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or _alive(int(pid)):
+            continue
+        path = os.path.join(folder, name)
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError: another process holds it
+            if stat.S_ISDIR(os.fstat(fd).st_mode):
+                shutil.rmtree(path)
+            else:
+                os.unlink(path)
+            removed.append(name)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+    return removed
+
+
+def sync_tree(path: str | os.PathLike) -> None:
+    """``fsync`` the file `path`, or every file and folder under the folder `path` (the folder last): what is
+    renamed into place afterwards is on the disk, not only in the page cache."""
+    paths = []
+    if os.path.isdir(path):
+        for root, _, files in os.walk(path, topdown=False):
+            paths += [os.path.join(root, f) for f in files] + [root]
+    else:
+        paths = [path]
+    for p in paths:
+        _fsync(p)
+
+
+def sync_folder(folder: str | os.PathLike) -> None:
+    """``fsync`` a folder: the renames done in it are on the disk."""
+    _fsync(folder)
+
+
+def _fsync(path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # a file system without fsync on folders (some network ones): the rename is still atomic
+        pass
+    finally:
+        os.close(fd)
