@@ -38,6 +38,7 @@ import collections
 import dataclasses
 import functools
 import importlib
+import importlib.util
 import io
 import pickle
 import sys
@@ -283,7 +284,13 @@ def _export(t: _Target, split: _Split, avals: tuple, platform: str, file: str, k
         compile_cache.write_entry(file, data)
         return jax.export.deserialize(bytearray(blob))
 
-    return _Program(_timed(store), box["tree"], box["mask"], box["static"], t.name, file)
+    try:
+        stored = _timed(store)
+    except Unkeyable:
+        raise
+    except Exception as e:  # noqa: BLE001 - not serializable: the program runs as the function
+        raise Unkeyable(f"its exported program cannot be stored: {type(e).__name__}: {str(e)[:200]}") from e
+    return _Program(stored, box["tree"], box["mask"], box["static"], t.name, file)
 
 
 def _prepare(t: _Target, split: _Split, avals: tuple, platform: str):
@@ -307,6 +314,11 @@ def _prepare(t: _Target, split: _Split, avals: tuple, platform: str):
 
 
 # ----------------------------------------------------------------------------------------------- the wrapper
+@functools.cache
+def _serializable() -> bool:
+    return importlib.util.find_spec("flatbuffers") is not None
+
+
 def exportable(fn: Callable) -> Callable:
     """`fn` (a `jax.jit` or `equinox.filter_jit` function, or one of `jaxci._lazy`'s) called through exported
     programs (see the module docstring); the same arguments, the same results."""
@@ -334,6 +346,8 @@ def exportable(fn: Callable) -> Callable:
         try:
             if t.kind is None:
                 raise Unkeyable(t.why)
+            if not _serializable():
+                raise Unkeyable("the flatbuffers package (jax.export's serialization) is not installed")
             split = t.split(args, kwargs)
             avals, platform = _avals(split)
             mkey = (split.treedef, split.static, split.fixed(), avals, platform, trace_context())
