@@ -114,6 +114,7 @@ def _same(a, b):
     for u, v in zip(la, lb, strict=True):
         if isinstance(u, jax.Array):
             assert u.dtype == v.dtype and np.array_equal(np.asarray(u), np.asarray(v))
+            assert u.committed == v.committed  # as jit's: a later call compiles nothing for a committed input
         else:
             assert u == v
 

@@ -160,7 +160,7 @@ def _avals(split: _Split) -> tuple[tuple, str]:
         elif not (_is_array(v) or type(v) in (bool, int, float, complex)):
             raise Unkeyable(f"a dynamic argument of type {qualified(type(v))}")
         aval = jax.typeof(v)
-        avals.append((tuple(aval.shape), str(aval.dtype), bool(aval.weak_type)))
+        avals.append((tuple(aval.shape), aval.dtype, bool(aval.weak_type)))
     if len(platforms) > 1:
         raise Unkeyable(f"arrays on several platforms ({', '.join(sorted(platforms))})")
     return tuple(avals), (platforms.pop() if platforms else compute_platform())
@@ -171,8 +171,8 @@ def _key(t: _Target, split: _Split, avals: tuple, platform: str) -> str:
     return sha("\n".join([
         f"format {FORMAT}", f"function {t.kind} {keyer(t.raw)}", f"static {keyer(split.static)}",
         f"static leaves {keyer(split.fixed())}", f"arguments {treedef_key(split.treedef, keyer)}",
-        f"avals {avals}", f"platform {platform}", f"context {trace_context_key(trace_context(), keyer)}",
-        f"environment {environment()}"]).encode())
+        f"avals {[(shape, str(dtype), weak) for shape, dtype, weak in avals]}", f"platform {platform}",
+        f"context {trace_context_key(trace_context(), keyer)}", f"environment {environment()}"]).encode())
 
 
 # ------------------------------------------------------------------------------------------------ entries
@@ -226,8 +226,26 @@ class _Program:
         self.call = jax.jit(_named(lambda *a: exported.call(*a), name))
 
     def __call__(self, dyn: list):
-        out, static = iter(self.call(*dyn)), iter(self.static)
+        out = self.call(*dyn)
+        if not any(isinstance(v, jax.Array) and v.committed for v in dyn):
+            out = [_uncommitted(v) for v in out]
+        out, static = iter(out), iter(self.static)
         return jax.tree_util.tree_unflatten(self.tree, [next(out) if m else next(static) for m in self.mask])
+
+
+def _uncommitted(x):
+    """`x` (a single-device array) as an uncommitted array on the same buffer: a jitted function's outputs are
+    committed only where an input was, but JAX commits every output of an exported program (its lowering counts
+    the program's output memory as a transfer), and a later jitted call would compile again for committed
+    inputs. Through JAX's array class (no public way); where that fails, `x` itself."""
+    if not x.committed:
+        return x
+    try:
+        from jax._src.array import ArrayImpl
+
+        return ArrayImpl(x.aval, x.sharding, x._arrays, committed=False, _skip_checks=True)
+    except Exception:  # noqa: BLE001 - another jax: committed outputs cost at most a compilation
+        return x
 
 
 def _load(file: str, key: str, name: str) -> _Program | None:
@@ -262,7 +280,7 @@ def _export(t: _Target, split: _Split, avals: tuple, platform: str, file: str, k
         box.update(tree=tree, mask=mask, static=[v for v, m in zip(leaves, mask, strict=True) if not m])
         return [v for v, m in zip(leaves, mask, strict=True) if m]
 
-    specs = [jax.ShapeDtypeStruct(shape, np.dtype(dtype), weak_type=weak) for shape, dtype, weak in avals]
+    specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in avals]
     checks = [jax.export.DisabledSafetyCheck.custom_call(name) for name in compile_cache.own_targets()]
     try:
         exported = jax.export.export(jax.jit(_named(flat, t.name)), platforms=(platform,),
@@ -311,6 +329,9 @@ def _prepare(t: _Target, split: _Split, avals: tuple, platform: str):
     except Unkeyable as e:
         compile_cache.count("plain", str(e))
         return None
+    except Exception as e:  # noqa: BLE001 - never the user's error: the plain call repeats a genuine one
+        compile_cache.count("plain", f"{type(e).__name__}: {str(e)[:200]}")
+        return None
 
 
 # ----------------------------------------------------------------------------------------------- the wrapper
@@ -354,8 +375,8 @@ def exportable(fn: Callable) -> Callable:
             hash(mkey)
         except _Nested:
             return fn(*args, **kwargs)
-        except (Unkeyable, TypeError) as e:
-            return plain(str(e), args, kwargs)
+        except Exception as e:  # noqa: BLE001 - Unkeyable, or unhashable static values: as jit would say
+            return plain(str(e) if isinstance(e, Unkeyable) else f"{type(e).__name__}: {e}", args, kwargs)
         with lock:
             prog = memo.get(mkey, False)
             if prog is not False:

@@ -33,7 +33,7 @@ VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")
 #: Modules of pure-Python classes whose instances are keyed by their attributes (their code is versioned or hashed).
 KEYED_BY_STATE = ("jaxci.", "equinox.", "optimistix.", "lineax.")
 #: Types written as their repr.
-SIMPLE = (type(None), bool, int, float, complex, str, bytes)
+SIMPLE = (type(None), type(Ellipsis), bool, int, float, complex, str, bytes)
 #: Largest numpy array keyed by its contents (a static array is a constant of the program).
 MAX_STATIC_BYTES = 1 << 16
 #: The environment variable of the cache folder: not part of any key (moving the cache keeps its entries).
