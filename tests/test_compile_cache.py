@@ -256,7 +256,9 @@ res = jaxci.smooth(perturb_box(6, amplitude=0.3, seed=2), "lbfgs", engine="jax",
 import jax
 print(json.dumps({"points": hashlib.sha256(np.ascontiguousarray(res.mesh.points).tobytes()).hexdigest(),
                   "stats": compile_cache.stats(), "phases": res.phases["total"],
-                  "jax_cache": jax.config.jax_compilation_cache_dir}))
+                  "jax_cache": jax.config.jax_compilation_cache_dir,
+                  "thresholds": [jax.config.jax_persistent_cache_min_compile_time_secs,
+                                 jax.config.jax_persistent_cache_min_entry_size_bytes]}))
 """
 
 
@@ -271,7 +273,7 @@ def test_a_second_process_compiles_nothing_and_the_results_agree(tmp_path):
     warm = _child(_SMOOTH, {"JAXCI_CACHE_DIR": str(cache)})
     assert cold["stats"]["exported"] >= 1 and cold["stats"]["plain"] == 0, cold["stats"]
     assert cold["phases"]["compiled"] > cold["phases"]["cache_hits"]
-    assert cold["jax_cache"] == str(cache)
+    assert cold["jax_cache"] == str(cache) and cold["thresholds"] == [0.0, -1]  # small programs cached too
     assert warm["stats"]["loaded"] == cold["stats"]["exported"] and warm["stats"]["exported"] == 0, warm["stats"]
     assert warm["phases"]["compiled"] == warm["phases"]["cache_hits"], warm["phases"]  # nothing compiled anew
     assert warm["phases"]["compile_seconds"] < 1.0, warm["phases"]

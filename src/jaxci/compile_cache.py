@@ -5,7 +5,8 @@ One folder holds them: ``$JAXCI_CACHE_DIR``, else ``$XDG_CACHE_HOME/jaxci/jax``,
 its programs anew. It holds two things:
 
 - JAX's persistent compilation cache (XLA executables, keyed by the lowered program), every program cached
-  however quickly it compiled (``jax_persistent_cache_min_compile_time_secs`` 0: the small ones too);
+  however quickly it compiled and however small (``jax_persistent_cache_min_compile_time_secs`` 0,
+  ``jax_persistent_cache_min_entry_size_bytes`` -1);
 - ``exported/``: the JAX engine's compiled entry points as serialized `jax.export` programs (`jaxci._export`),
   so that a later process skips tracing and lowering them, which the persistent cache alone does not.
 
@@ -66,9 +67,9 @@ def directory(env: dict | None = None) -> Path | None:
 
 def enable() -> Path | None:
     """Set up the cache once per process (later calls return at once): make the folder (owner only) and point
-    JAX's persistent compilation cache at it, every program cached, unless the user set JAX's cache folder
-    already. Returns the folder, or None where the cache is off (``JAXCI_CACHE_DIR=``) or the folder cannot be
-    made (a read-only home: then nothing is cached, nothing fails)."""
+    JAX's persistent compilation cache at it, every program cached (no time or size threshold), unless the user
+    set JAX's cache folder already. Returns the folder, or None where the cache is off (``JAXCI_CACHE_DIR=``) or
+    the folder cannot be made (a read-only home: then nothing is cached, nothing fails)."""
     if _state["done"]:
         return _state["dir"]
     with _lock:
@@ -84,6 +85,7 @@ def enable() -> Path | None:
         if folder is not None and not jax.config.jax_compilation_cache_dir:
             jax.config.update("jax_compilation_cache_dir", str(folder))
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+            jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # -1: no size limit, no override
         _state.update(done=True, dir=folder)
         return folder
 
