@@ -163,7 +163,17 @@ def _avals(split: _Split) -> tuple[tuple, str]:
         avals.append((tuple(aval.shape), aval.dtype, bool(aval.weak_type)))
     if len(platforms) > 1:
         raise Unkeyable(f"arrays on several platforms ({', '.join(sorted(platforms))})")
-    return tuple(avals), (platforms.pop() if platforms else compute_platform())
+    return tuple(avals), _lowering_platform(platforms.pop() if platforms else compute_platform())
+
+
+def _lowering_platform(platform: str) -> str:
+    """`platform` as `jax.export` lowers for it: ``"gpu"`` is ``"cuda"`` or ``"rocm"`` (whichever JAX has)."""
+    from jax._src import xla_bridge
+
+    try:
+        return xla_bridge.canonicalize_platform(platform)
+    except Exception as e:  # noqa: BLE001 - no such backend: not exported
+        raise Unkeyable(f"no lowering platform for {platform!r}") from e
 
 
 def _key(t: _Target, split: _Split, avals: tuple, platform: str) -> str:
