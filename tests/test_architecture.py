@@ -14,6 +14,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 #: Stage of each module (longest matching prefix): a module may import its own stage and the ones before it.
 STAGES = {
     "jaxci.errors": 0, "jaxci._lazy": 0, "jaxci.runtime": 0, "jaxci.phases": 0, "jaxci.memory": 0, "jaxci.transfer": 0,
+    "jaxci.compile_cache": 0, "jaxci._keys": 0, "jaxci._export": 0,
     "jaxci.cells": 0, "jaxci.native": 0, "jaxci._ckernels": 0, "jaxci.sizes": 0,
     "jaxci.mesh": 1,
     "jaxci.generate": 1, "jaxci.shapes": 1, "jaxci.io": 1,

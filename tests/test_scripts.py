@@ -194,3 +194,24 @@ def test_bench_kernel_times_every_kernel_form(tmp_path):
         assert r["hexes"] == 1000 and len(r["times"]) == 3 and r["corners_per_s"] == pytest.approx(8000 / r["seconds"])
         assert (r["incidence_warm_s"] is not None) == (r["kernel"] in ("gather", "segment"))
     assert "M corners/s" in p.stdout and "segment" in p.stdout
+
+
+@pytest.mark.slow
+def test_bench_compile_measures_cold_and_warm_processes(tmp_path):
+    """scripts/bench_compile.py --small: the CLI and the library on a 4^3 box, cold then warm, each a fresh
+    process: the warm ones load every program (nothing compiled anew), and the JSON is stamped."""
+    out = tmp_path / "compile.json"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_compile.py"), "--small", "--out", str(out)],
+                       capture_output=True, text=True, timeout=900)
+    assert p.returncode == 0, p.stderr[-2000:]
+    data = json.loads(out.read_text())
+    assert data["date"] and data["command"] and data["machine"]["cpus"] and "commit" in data
+    assert [(r["hexes"], r["way"]) for r in data["rows"]] == [(64, "cli"), (64, "library")]
+    for row in data["rows"]:
+        cold, warm = row["cold"], row["warm"]
+        assert cold["compiled"] > cold["cache_hits"] and warm["compiled"] == warm["cache_hits"] > 0, row
+        assert warm["compile_seconds"] < cold["compile_seconds"] and warm["max_condition"] == cold["max_condition"]
+    lib = data["rows"][1]["warm"]
+    assert lib["exported_programs"]["loaded"] >= 1 and lib["exported_programs"]["exported"] == 0
+    assert set(lib["split"]) >= {"trace", "lower", "backend", "exported"}
+    assert "library  warm" in p.stdout

@@ -7,7 +7,8 @@ name JAX through this module:
 
 - `jax`, `jnp`, `eqx`: stand-ins for the modules that import them on the first attribute access (so a function
   that uses ``jnp.where`` imports JAX when it runs, not when its module is imported);
-- `jit`, `filter_jit`: `jax.jit` / `equinox.filter_jit` built on the first call;
+- `jit`, `filter_jit`: `jax.jit` / `equinox.filter_jit` built on the first call (or by the wrapper's
+  ``built()``, which returns it);
 - `pytree_dataclass`: a frozen dataclass that is a JAX pytree (array fields are leaves, the fields named
   `static` are auxiliary data, as `equinox.field(static=True)`), registered with JAX when JAX is imported,
   whoever imports it (`when_imported`).
@@ -82,12 +83,16 @@ def _deferred(module: str, name: str, fn, kwargs):
         return lambda f: _deferred(module, name, f, kwargs)
     built = []
 
-    @functools.wraps(fn)
-    def wrapper(*args, **kw):
+    def build():
         if not built:
             built.append(getattr(importlib.import_module(module), name)(fn, **kwargs))
-        return built[0](*args, **kw)
+        return built[0]
 
+    @functools.wraps(fn)
+    def wrapper(*args, **kw):
+        return (built[0] if built else build())(*args, **kw)
+
+    wrapper.built = build  # the jitted function itself (`jaxci._export` reads its options)
     return wrapper
 
 

@@ -32,6 +32,7 @@ import importlib.metadata
 import importlib.util
 import os
 
+from . import compile_cache
 from .errors import ConfigError
 
 #: The engines a user may ask for.
@@ -110,10 +111,12 @@ class Plan:
     def context(self):
         """The context a stage runs in: on the JAX engine, where the plan's platform is not JAX's default one
         (a GPU machine asked for ``device="cpu"``), JAX's default device set to this process's first device of
-        it; else nothing."""
+        it; else nothing. The JAX engine's first stage sets up the compilation cache (`jaxci.compile_cache`)."""
         if self.engine == "host":
             return contextlib.nullcontext()
         import jax
+
+        compile_cache.enable()
 
         platform = _jax_platform(self.device)
         if _platform_name(jax.default_backend()) == self.device:

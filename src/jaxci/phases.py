@@ -1,9 +1,11 @@
 """Where the time of a run goes: wall seconds per phase, and the JAX compilation inside each phase.
 
 `PhaseClock` times named phases (``with clock.phase("read"): ...``); JAX reports every compilation through
-`jax.monitoring` (tracing, lowering to MLIR, and the XLA backend compile or its persistent-cache load), and a
-listener registered once per process adds those durations up, so each phase also says how much of it was
-compilation and how many functions were compiled or loaded from the persistent compilation cache.
+`jax.monitoring` (tracing, lowering to MLIR, and the XLA backend compile or its persistent-cache load; jaxci
+adds its reading and writing of exported programs, `jaxci._export`), and a listener registered once per process
+adds those durations up (`jaxci.transfer.compile_totals`), so each phase also says how much of it was compilation
+(``compile_seconds``: the sum of `jaxci.transfer.COMPILE_KINDS`) and how many functions were compiled or loaded
+from the persistent compilation cache.
 
 Library code only records; whoever runs the clock (the command line) may pass ``on_event`` to hear of each
 phase as it starts and ends, and of the progress inside it: code deep inside a phase (a solver's loop) reports
@@ -88,7 +90,7 @@ class PhaseClock:
             _running.reset(token)
             c1, m1 = compile_totals(), transfer.totals()
             self.add(name, time.perf_counter() - t0,
-                     sum(c1[k] - c0[k] for k in ("trace", "lower", "backend")),
+                     sum(c1[k] - c0[k] for k in transfer.COMPILE_KINDS),
                      c1["compiled"] - c0["compiled"], c1["cache_hits"] - c0["cache_hits"],
                      *(m1[k] - m0[k] for k in ("h2d_bytes", "d2h_bytes", "device_s")))
             if self.on_event is not None:

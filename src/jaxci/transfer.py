@@ -28,18 +28,25 @@ import time
 
 import numpy as np
 
+from . import compile_cache
+from ._export import EVENT as _EXPORTED_EVENT
+from ._export import exportable
 from ._lazy import jax, loaded
 
-#: jax.monitoring duration events that are compilation (names as in jax._src.dispatch).
+#: jax.monitoring duration events that are compilation (names as in jax._src.dispatch, and `jaxci._export`'s
+#: reading, deserializing, serializing and writing of exported programs).
 _COMPILE_EVENTS = {
     "/jax/core/compile/jaxpr_trace_duration": "trace",
     "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
     "/jax/core/compile/backend_compile_duration": "backend",
+    _EXPORTED_EVENT: "exported",
 }
 _CACHE_HIT = "/jax/compilation_cache/cache_hits"
+#: The seconds of `compile_totals` that are compilation (the phases' ``compile_seconds``).
+COMPILE_KINDS = ("trace", "lower", "backend", "exported")
 
 _clock = threading.Lock()
-_compile = {"trace": 0.0, "lower": 0.0, "backend": 0.0, "compiled": 0, "cache_hits": 0}
+_compile = {"trace": 0.0, "lower": 0.0, "backend": 0.0, "exported": 0.0, "compiled": 0, "cache_hits": 0}
 _registered = False
 
 
@@ -60,7 +67,8 @@ def _on_event(event: str, **_) -> None:
 
 def compile_totals() -> dict:
     """Compilation so far in this process: seconds of ``trace``, ``lower``, ``backend`` (XLA compile or
-    persistent-cache load), ``compiled`` (backend compilations, cache loads included) and ``cache_hits``.
+    persistent-cache load) and ``exported`` (exported programs read or written: `jaxci._export`), ``compiled``
+    (backend compilations, cache loads included) and ``cache_hits``.
 
     The listener is registered when JAX is imported (`jaxci._lazy.when_imported`), not by this call: a run that
     never imports JAX compiled nothing and does not import it to say so."""
@@ -116,7 +124,9 @@ def host_dtype(a, dtype=None) -> np.ndarray:
 
 def to_device(a, dtype=None, device=None):
     """`a` (a numpy array, a scalar, or a pytree of them) as device arrays of `dtype` (default: each its own,
-    canonicalised), on `device` (default: JAX's default device); the bytes are counted (``h2d_bytes``)."""
+    canonicalised), on `device` (default: JAX's default device); the bytes are counted (``h2d_bytes``). The first
+    upload of a process sets up the compilation cache (`jaxci.compile_cache.enable`)."""
+    compile_cache.enable()
     if isinstance(a, (np.ndarray, np.generic, int, float, bool)) or dtype is not None:
         out = jax.device_put(host_dtype(a, dtype), device)
     else:
@@ -154,20 +164,25 @@ def scalar(a) -> float:
 
 
 def program(fn):
-    """`fn` (a compiled entry point) timed: each outermost call waits for its outputs (`jax.block_until_ready`)
-    and adds its seconds, less the compilation it triggered, to ``device_s``. Nested calls (a program calling
-    another from Python) are timed once, by the outermost."""
+    """`fn` (a compiled entry point: a `jax.jit` or `equinox.filter_jit` function, or `jaxci._lazy`'s) compiled
+    once per machine and timed. Its calls go through exported programs in the compilation cache
+    (`jaxci._export`: a later process at a size seen before neither traces nor compiles it; the first call sets
+    the cache up, `jaxci.compile_cache.enable`). Each outermost call waits for its outputs
+    (`jax.block_until_ready`) and adds its seconds, less the compilation it triggered, to ``device_s``. Nested
+    calls (a program calling another from Python) are timed once, by the outermost."""
+    run = exportable(fn)
+
     @functools.wraps(fn)
     def timed(*args, **kwargs):
         depth = getattr(_depth, "n", 0)
         if depth:
-            return fn(*args, **kwargs)
+            return run(*args, **kwargs)
         _depth.n = 1
         try:
             c0, t0 = compile_totals(), time.perf_counter()
-            out = jax.block_until_ready(fn(*args, **kwargs))
+            out = jax.block_until_ready(run(*args, **kwargs))
             c1 = compile_totals()
-            compiling = sum(c1[k] - c0[k] for k in ("trace", "lower", "backend"))
+            compiling = sum(c1[k] - c0[k] for k in COMPILE_KINDS)
             _add("device_s", max(0.0, time.perf_counter() - t0 - compiling))
             return out
         finally:

@@ -20,6 +20,8 @@ import os
 import sys
 import warnings
 
+from .. import compile_cache
+from .._lazy import when_imported
 from ..runtime import TUNABLE, apply_cpu_device_flags
 from . import _interrupt, _streams
 
@@ -40,27 +42,19 @@ CLOSED_OUTPUT = 141
 
 
 def _setup_jax() -> None:
-    """float64 for reports, and JAX's persistent compilation cache so a second CLI call skips compiling.
+    """float64 for reports, and the compilation cache (`jaxci.compile_cache`) so a second CLI call skips
+    compiling.
 
-    Set through JAX's environment variables while JAX is not imported yet: a small mesh's run (numpy path,
-    `jaxci.optim.host`) never imports it (0.4-0.5 s of a 1-2 s run), and one that does gets these settings
-    when it does."""
-    cache = os.environ.get("JAXCI_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "jaxci", "jax"))
-    try:
-        os.makedirs(cache, exist_ok=True)
-    except OSError:  # pragma: no cover - an unwritable home only costs compile time
-        cache = None
-    settings = {"jax_enable_x64": True}
-    if cache is not None:
-        settings.update(jax_compilation_cache_dir=cache, jax_persistent_cache_min_compile_time_secs=0.0)
+    Set when JAX is imported, not before: a small mesh's run (numpy path, `jaxci.optim.host`) never imports it
+    (0.4-0.5 s of a 1-2 s run); one that does gets float64 through JAX's environment variable and the cache
+    (the library's set-up, at the same place, ``JAXCI_CACHE_DIR=`` to turn it off) as soon as it imports JAX."""
     if "jax" in sys.modules:
         import jax
 
-        for name, value in settings.items():
-            jax.config.update(name, value)
-        return
-    for name, value in settings.items():
-        os.environ[name.upper()] = str(value)
+        jax.config.update("jax_enable_x64", True)
+    else:
+        os.environ["JAX_ENABLE_X64"] = "True"
+    when_imported("jax", compile_cache.enable)
 
 
 def _runtime_line() -> str:

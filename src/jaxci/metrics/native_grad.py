@@ -22,7 +22,7 @@ import os
 
 import numpy as np
 
-from .. import native
+from .. import compile_cache, native
 from .._lazy import jax, jnp
 
 #: The custom call's name in XLA's registry.
@@ -86,6 +86,9 @@ def _registered() -> bool:
             why = f"jax.ffi.register_ffi_target refused it: {type(e).__name__}: {e}"
     _REFUSALS.append(why)
     return False
+
+
+compile_cache.register_target(TARGET, _registered)  # an exported program that calls it registers it first
 
 
 def terms_and_grad(points, conn, weight=None, n_corners=None, threads: int | None = None):

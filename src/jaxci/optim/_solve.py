@@ -12,9 +12,11 @@ import numpy as np
 import optimistix as optx
 
 from ..errors import ConfigError
+from ..transfer import program
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED  # noqa: F401  (re-exported)
 
 
+@program
 @eqx.filter_jit
 def solve_loop(solver, fn, y0, args, max_steps: int, limit=None, max_rejected: int = MAX_REJECTED_UNCAPPED):
     """optimistix's iteration (init, step, terminate in a bounded loop), recording per step what `fn` reports.

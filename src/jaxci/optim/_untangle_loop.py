@@ -23,6 +23,7 @@ import numpy as np
 from .._lazy import filter_jit, jax, jnp
 from ..cells import CORNER_NEIGHBOURS
 from ..metrics import elements as E
+from ..transfer import program
 from ._params import MAX_REJECTED_UNCAPPED
 
 #: Corners one interior node moves (8 elements x 4 corners): the energy is a per-node sum (as F in
@@ -209,6 +210,7 @@ def _direction(g, S, Y, rho, head, n_mem):
     return -r
 
 
+@program
 @filter_jit
 def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol, atol, state=None,
                     flat_reach=FLAT_REACH, *, history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED):

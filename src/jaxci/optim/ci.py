@@ -50,6 +50,7 @@ import numpy as np
 
 from ..geometry.projection import Constraints
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
+from ..transfer import program
 from ._anderson import anderson_point
 from ._buckets import to_device
 from ._local import gather_star
@@ -167,6 +168,7 @@ def _anderson_move(x, f, k, starts, moves, valid, conn, cons: Constraints, extra
     return _take_if_better(x, f, k, y, *objective_and_max(y, conn, extra, weight))
 
 
+@program
 @functools.partial(jax.jit, static_argnames=("s", "chunk"))
 def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: StaticParams, d: dict, chunk: int,
                   extra: ExtraCells, weight=None, n_colours=None):

@@ -31,6 +31,7 @@ import numpy as np
 
 from ..geometry.projection import params_to_points, project
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
+from ..transfer import program
 from .cohort import follow, split_params
 from .parametrisation import Parametrisation
 
@@ -115,6 +116,7 @@ def _attempt_behaviours(keys, centre, w, t: int, par, conn, extra, mesh, batch: 
     return f[:, :S], k[:, :S]
 
 
+@program
 @functools.partial(jax.jit, static_argnames=("s", "mesh", "batch"))
 def _global_ci_run(keys, par: Parametrisation, conn, scale, s, d: dict, extra: ExtraCells, mesh=None,
                    batch: int = 1):

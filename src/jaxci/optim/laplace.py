@@ -36,6 +36,7 @@ from ..metrics.objective import (
     no_extra,
     objective_and_max,
 )
+from ..transfer import program
 from . import _params as _p
 from ._buckets import bucket, device_dtype, to_device
 from ._local import HEX_EDGES, edge_neighbours, gather_star  # noqa: F401  (re-exported)
@@ -123,6 +124,7 @@ def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n
     return x, jnp.max(jnp.where(mask, move, 0.0), initial=0.0)  # initial: a mesh with no movable node
 
 
+@program
 @jit(static_argnames=("smart", "p"))
 def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smart: bool, p: LaplaceParams,
                  extra: ExtraCells, weight=None, n_colours=None):
