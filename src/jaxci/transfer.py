@@ -173,4 +173,10 @@ def program(fn):
         finally:
             _depth.n = 0
 
+    def lower(*args, **kwargs):
+        """The jitted function's own ahead-of-time lowering (its HLO, its compiled memory analysis)."""
+        built = getattr(fn, "built", None)
+        return (built() if built is not None else fn).lower(*args, **kwargs)
+
+    timed.lower = lower
     return timed
