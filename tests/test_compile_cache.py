@@ -212,6 +212,7 @@ def test_a_program_is_timed_without_its_compilation(tmp_path):
     assert c1["exported"] > c0["exported"] and c1["compiled"] == c0["compiled"] + 1
     compiling = sum(c1[k] - c0[k] for k in ("trace", "lower", "backend", "exported"))
     assert 0 <= d1 - d0 < compiling
+    assert timed.lower(x, 1.0).compile().memory_analysis() is not None  # the jitted function's own AOT lowering
 
 
 def test_sentinels_keep_their_identity_through_an_entry():

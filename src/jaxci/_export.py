@@ -69,6 +69,9 @@ from ._lazy import compute_platform, jax
 FORMAT = 1
 #: The jax.monitoring duration event of the seconds spent reading, deserializing, serializing and writing programs.
 EVENT = "/jaxci/compile/exported_duration"
+#: The jax.monitoring duration event of the host seconds spent keying a call and importing what lowering needs
+#: (not compilation, not device time: `jaxci.transfer.program` counts them as host time).
+HOST_EVENT = "/jaxci/compile/exported_host_duration"
 #: Programs kept in memory per entry point (the least recently used dropped first).
 MEMORY = 16
 
@@ -325,10 +328,12 @@ def _prepare(t: _Target, split: _Split, avals: tuple, platform: str):
     """The program of a call not seen in this process: read from the cache, else exported and stored; None (with
     the reason counted) where it cannot be."""
     try:
+        t0 = time.perf_counter()
         key = _key(t, split, avals, platform)
         file = f"{t.name[:40]}-{key[:40]}.jxp"
         if platform == "cpu":  # see the module docstring
             importlib.import_module("scipy.linalg.cython_lapack")
+        jax.monitoring.record_event_duration_secs(HOST_EVENT, time.perf_counter() - t0)
         prog = _timed(_load, file, key, t.name)
         if prog is not None:
             compile_cache.count("loaded")

@@ -30,6 +30,7 @@ import numpy as np
 
 from . import compile_cache
 from ._export import EVENT as _EXPORTED_EVENT
+from ._export import HOST_EVENT as _PREPARE_EVENT
 from ._export import exportable
 from ._lazy import jax, loaded
 
@@ -40,13 +41,15 @@ _COMPILE_EVENTS = {
     "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
     "/jax/core/compile/backend_compile_duration": "backend",
     _EXPORTED_EVENT: "exported",
+    _PREPARE_EVENT: "prepare",  # host seconds keying an exported program's call: neither compilation nor device
 }
 _CACHE_HIT = "/jax/compilation_cache/cache_hits"
 #: The seconds of `compile_totals` that are compilation (the phases' ``compile_seconds``).
 COMPILE_KINDS = ("trace", "lower", "backend", "exported")
 
 _clock = threading.Lock()
-_compile = {"trace": 0.0, "lower": 0.0, "backend": 0.0, "exported": 0.0, "compiled": 0, "cache_hits": 0}
+_compile = {"trace": 0.0, "lower": 0.0, "backend": 0.0, "exported": 0.0, "prepare": 0.0, "compiled": 0,
+            "cache_hits": 0}
 _registered = False
 
 
@@ -67,7 +70,8 @@ def _on_event(event: str, **_) -> None:
 
 def compile_totals() -> dict:
     """Compilation so far in this process: seconds of ``trace``, ``lower``, ``backend`` (XLA compile or
-    persistent-cache load) and ``exported`` (exported programs read or written: `jaxci._export`), ``compiled``
+    persistent-cache load) and ``exported`` (exported programs read or written: `jaxci._export`; ``prepare``: the
+    host seconds keying their calls, not compilation), ``compiled``
     (backend compilations, cache loads included) and ``cache_hits``.
 
     The listener is registered when JAX is imported (`jaxci._lazy.when_imported`), not by this call: a run that
@@ -182,10 +186,16 @@ def program(fn):
             c0, t0 = compile_totals(), time.perf_counter()
             out = jax.block_until_ready(run(*args, **kwargs))
             c1 = compile_totals()
-            compiling = sum(c1[k] - c0[k] for k in COMPILE_KINDS)
+            compiling = sum(c1[k] - c0[k] for k in (*COMPILE_KINDS, "prepare"))  # "prepare": host time
             _add("device_s", max(0.0, time.perf_counter() - t0 - compiling))
             return out
         finally:
             _depth.n = 0
 
+    def lower(*args, **kwargs):
+        """The jitted function's own ahead-of-time lowering (its HLO, its compiled memory analysis)."""
+        built = getattr(fn, "built", None)
+        return (built() if built is not None else fn).lower(*args, **kwargs)
+
+    timed.lower = lower
     return timed
