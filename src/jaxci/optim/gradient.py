@@ -77,7 +77,7 @@ import functools
 import numpy as np
 
 from .. import native
-from .._lazy import compute_platform, jax, jnp
+from .._lazy import compute_platform, is_jax_array, jax, jnp
 from ..cells import corner_invariants, pmean_weights
 from ..errors import ConfigError
 from ..geometry.projection import project_np
@@ -113,6 +113,7 @@ from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
     make_parametrisation,
     node_lengths,
     pad_parametrisation,
+    pad_problem_device,
 )
 
 #: The parameters a solver call takes when given none.
@@ -321,9 +322,12 @@ def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra,
     `n_devices` (the elements then a multiple of it); else as given (`weight` and `index` None)."""
     if not ((p.buckets or n_devices) and method in BUCKETED and not extra.types):
         return par, conn, None, None
+    n_el = bucket(int(conn.shape[1]), multiple=max(n_devices, 1))
+    if is_jax_array(conn) and is_jax_array(par.x0):  # on the device: nothing moves
+        padded, index, c, w = pad_problem_device(par, conn, n_el)
+        return padded, c, w, index
     padded, index = pad_parametrisation(par)
-    hexes = np.asarray(conn).T
-    c, w = padded_connectivity(hexes, bucket(len(hexes), multiple=max(n_devices, 1)))
+    c, w = padded_connectivity(np.asarray(conn).T, n_el)
     return padded, to_device(c, np.asarray(conn).dtype), to_device(w, par.x0.dtype), index
 
 
