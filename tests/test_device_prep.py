@@ -104,8 +104,9 @@ def test_sweep_data_is_the_host_build(name, dtype):
         faces = pr.info.topology.faces
         with jax.transfer_guard("disallow"):
             dev = to_device(colour, np.int32)
-            d = sweep_data(pr.x0, pr.conn, pr.cons, faces, colour=(dev, int(colour.max()) + 1))
-            lists = sweep_data(pr.x0, pr.conn, pr.cons, faces, colour=(dev, int(colour.max()) + 1), lists=True)
+            d = sweep_data(pr.x0, pr.conn, pr.cons, faces, colour=(dev, int(colour.max()) + 1), split=False)
+            lists = sweep_data(pr.x0, pr.conn, pr.cons, faces, colour=(dev, int(colour.max()) + 1), lists=True,
+                               split=False)
         real = np.asarray(cs.mask)
         for field in ("nodes", "mask", "smask", "basis", "dims", "plane"):
             a, b = np.asarray(getattr(cs, field)), np.asarray(getattr(d.cs, field))
@@ -146,6 +147,37 @@ def test_device_colouring_sweeps_as_well_as_the_host_colouring(name):
     f0, f_host, f_dev = host[2]["objective"][0], host[2]["objective"][-1], dev[2]["objective"][-1]
     assert f_dev < f0 / 10 and f_dev <= 1.3 * f_host
     assert dev_data.colours <= 32
+
+
+def test_split_rows_hold_parts_of_colours(monkeypatch):
+    """Where one row a colour pads many slots (colours of unequal sizes: the host's 8 colours of a box, the last
+    cut into 10 small ones; no slot slack), a colour spans several rows: every movable node in one slot, no two
+    nodes of a row in one hexahedron, and the sweeps lower F as one row a colour does."""
+    monkeypatch.setattr(M, "_SLACK_UNTIL", 1)
+    mesh, pr = _problem("box9", np.float32)
+    faces = pr.info.topology.faces
+    colour = np.asarray(pr.colour).copy()
+    last = colour == colour.max()
+    colour[last] += np.arange(last.sum()) % 10
+    given = (to_device(colour, np.int32), int(colour.max()) + 1)
+    p = L.LaplaceParams(max_sweeps=3)
+    with jax.transfer_guard("disallow"):
+        split = sweep_data(pr.x0, pr.conn, pr.cons, faces, colour=given)
+        whole = sweep_data(pr.x0, pr.conn, pr.cons, faces, colour=given, split=False, inc=split.inc)
+        f_split = L.laplace_device(split, p, smart=True)[2]["objective"]
+        f_whole = L.laplace_device(whole, p, smart=True)[2]["objective"]
+    rows = int(np.asarray(split.n_colours))
+    assert rows > split.colours == whole.colours == int(np.asarray(whole.n_colours)) == 17
+    assert rows * sum(split.cs.nodes.shape[1:]) <= 0.9 * 17 * whole.cs.nodes.shape[1]
+    nodes, mask = np.asarray(split.cs.nodes), np.asarray(split.cs.mask)
+    movable = np.flatnonzero(np.asarray(pr.cons.node_class) != 3)
+    assert np.array_equal(np.sort(nodes[mask]), movable)
+    hexes = np.asarray(mesh.hexes)
+    for r in range(rows):
+        row = np.zeros(mesh.n_nodes, bool)
+        row[nodes[r][mask[r]]] = True
+        assert (row[hexes].sum(axis=1) <= 1).all()
+    assert f_split[-1] < f_split[0] / 10 and f_split[-1] <= 1.3 * f_whole[-1]
 
 
 @pytest.mark.parametrize("name", MESHES)
@@ -230,3 +262,22 @@ def test_flat_intervals_vectorised(name):
         pts = pts.copy()
         pts[edge[::3]] += 1e-3
     np.testing.assert_array_equal(flat_intervals(pts, fe, edge), _flat_edge_loop(pts, fe, edge))
+
+
+@pytest.mark.parametrize("step", [0.01, 2.0])
+def test_reach_and_final_points_of_a_device_parametrisation(step):
+    """A device parametrisation's `reach` and `final_points` of a device vector run on the device (one scalar
+    comes down) and agree with the host's; a step out of the flat regions (2 local lengths) takes the exact
+    projection on the host, as before."""
+    mesh, pr = _problem("box5")
+    with jax.enable_x64(True):
+        par = make_parametrisation(mesh, pr.info, pr.cons, dtype=np.float64)
+        v = step * np.random.default_rng(0).uniform(-1, 1, par.n_free)
+        ref_reach, ref_points = par.reach(v), np.asarray(par.final_points(v))
+        guard = "disallow" if step < 1 else "allow"  # the exact projection is still the host's
+        with jax.transfer_guard(guard):
+            dev = to_device(v)
+            reach, points = par.reach(dev), par.final_points(dev)
+    assert (ref_reach < 1) == (step < 1)
+    assert reach == pytest.approx(ref_reach, rel=1e-12)
+    np.testing.assert_allclose(np.asarray(points), ref_points, rtol=0, atol=1e-13)

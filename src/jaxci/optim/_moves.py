@@ -54,7 +54,9 @@ class ColouredStars:
     slots are projected onto triangles and only edge slots onto segments.
 
     - `nodes` ``(n_colours, M)`` (padding: index n_nodes, dropped on write); `mask` ``(n_colours, M)``;
-    - `star` ``(n_colours, M, K, 8)``; `smask` ``(n_colours, M, K)``; `basis` ``(n_colours, M, 3, 3)``;
+    - `star` ``(n_colours, M, K, 8)`` the relabelled node lists of each slot's hexahedra, or their incidences
+      ``(n_colours, M, K)`` (`jaxci.optim.device_stars`; relabelled in the sweep: `jaxci.optim._local.star_coords`);
+      `smask` ``(n_colours, M, K)``; `basis` ``(n_colours, M, 3, 3)``;
     - `dims` ``(n_colours, M)`` free coordinates per node.
     - `plane` ``(n_colours, M, 7)``: for a SURFACE node whose ring of boundary faces is planar, the original
       position (3), the plane's unit normal (3) and the radius of the disk around the original position that

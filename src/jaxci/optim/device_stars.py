@@ -60,7 +60,8 @@ class SweepData:
       0), `weight` ``(N_pad,)`` (1 real, 0 padding), `cons` the padded `Constraints`;
     - `cs` the `ColouredStars` (``star``: incidences ``(C, M, K)``, or with ``lists`` the node lists
       ``(C, M, K, 8)``), `nbr`, `nmask` ``(C, M, Kn)`` the slots' edge neighbours;
-    - `n_colours` the real colour count (a device scalar: the loops skip the padded colours);
+    - `n_colours` the real row count (a device scalar: the loops skip the padded rows; a row is a colour, or part
+      of one: `slot_layout`);
     - `n_nodes` the real node count (host int), `colours` the colour count (host int);
     - `inc` the mesh's `Incidences` (unpadded; for `jaxci.optim.device_parametrisation`), `planes` the planar
       rings of the surface nodes ``(n_surface, 7)`` (host, float64: `surface_planes`).
@@ -81,7 +82,8 @@ class SweepData:
 
 
 def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=None, inc: Incidences | None = None,
-               lists: bool = False, multiple: int = 1, plane_points=None, palette: int = PALETTE) -> SweepData:
+               lists: bool = False, split: bool = True, multiple: int = 1, plane_points=None,
+               palette: int = PALETTE) -> SweepData:
     """Build the padded sweep data of a hexahedral mesh on the device.
 
     **Arguments:**
@@ -95,6 +97,8 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
     - `inc`: the mesh's `Incidences` if at hand (default: built).
     - `lists`: the stars as relabelled node lists ``(C, M, K, 8)`` (8x the memory; the sweep gathers no
       relabelling) instead of incidences.
+    - `split`: a colour over several rows where one row a colour pads a tenth or more of the slots
+      (`slot_layout`; False: one row a colour, `coloured_stars`' layout).
     - `multiple`: the padded element count a multiple of it.
     - `plane_points`: the coordinates the planar rings are tested on (device ``(n, 3)``; default
       ``cons.x_orig``, as `coloured_stars` does).
@@ -125,17 +129,47 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
         n_words *= 2  # a node found every colour of the words taken
     inc = Incidences(table=table_, valence=v)
     counts = np.asarray(counts, np.int64)[:n_col]
-    present = counts.sum(axis=1) > 0
-    rows = max(int(present.sum()), 1)
-    sizes = tuple(int(a) for a in counts[present].max(axis=0)) if present.any() else (0, 0, 0)
-    blocks = padded_blocks(sizes, [int(a) for a in counts.sum(axis=0)], rows)
+    blocks, row_start, rows = slot_layout(counts[counts.sum(axis=1) > 0], split)
     planes = surface_planes(boundary_view(cons.x_orig if plane_points is None else plane_points, faces, cons))
-    x, c, cs, nbr, nmask, cons_p, w, n_real = _build(
+    x, c, cs, nbr, nmask, cons_p, w = _build(
         points, conn, inc, col, cons, to_device(planes, cons.x_orig.dtype), nbr_table, degree,
-        rows=bucket(rows), blocks=blocks, width=bucket(width, 4), nbr_width=bucket(max(kn, 1), 4),
-        n_pad=bucket(n + 1), n_elements=bucket(int(conn.shape[1]), multiple=multiple), lists=bool(lists))
-    return SweepData(x=x, conn=c, cs=cs, nbr=nbr, nmask=nmask, cons=cons_p, weight=w, n_colours=n_real, n_nodes=n,
-                     colours=rows, inc=inc, planes=planes)
+        to_device(row_start, np.int32), rows=bucket(rows), blocks=blocks, width=bucket(width, 4),
+        nbr_width=bucket(max(kn, 1), 4), n_pad=bucket(n + 1),
+        n_elements=bucket(int(conn.shape[1]), multiple=multiple), lists=bool(lists))
+    return SweepData(x=x, conn=c, cs=cs, nbr=nbr, nmask=nmask, cons=cons_p, weight=w,
+                     n_colours=to_device(np.int32(rows)), n_nodes=n, colours=len(row_start), inc=inc, planes=planes)
+
+
+def slot_layout(counts: np.ndarray, split: bool = True) -> tuple[tuple[int, int, int], np.ndarray, int]:
+    """The slots of the colours of `counts` ``(C, 3)`` (movable interior, surface, edge nodes of each colour
+    holding some): ``(blocks, row_start, rows)``, the padded interior / surface / edge blocks of a row
+    (`jaxci.optim._moves.padded_blocks`), the first row of each colour and the row count.
+
+    One row a colour (`coloured_stars`' layout), or with `split`, where blocks sized for 1/2, 1/3 or 1/4 of the
+    largest colour save a tenth or more of the slots, each colour over the fewest rows of such blocks (the
+    largest blocks within 5% of the fewest slots: fewer rows, fewer sequential steps): a row is a part of one
+    colour, so its nodes still share no hexahedron. Colours of unequal sizes pad their rows up to the largest
+    (the device's colouring at 10^6 hexahedra: 16 colours of 59,000 interior nodes and 4 of 1 to 20,000; 1.44 M
+    slots in one row a colour, 1.29 M in 36 rows of halves).
+    """
+    counts = np.asarray(counts, np.int64).reshape(-1, 3)
+    if not len(counts):
+        return padded_blocks((0, 0, 0), [0, 0, 0], 1), np.zeros(1, np.int64), 1
+    totals = [int(a) for a in counts.sum(axis=0)]
+    options = []
+    for d in (1, 2, 3, 4) if split else (1,):
+        sizes = tuple(-(-int(m) // d) for m in counts.max(axis=0))
+        blocks = padded_blocks(sizes, totals, d * len(counts))
+        per = np.ones(len(counts), np.int64)
+        for j, b in enumerate(blocks):
+            if b:
+                per = np.maximum(per, -(-counts[:, j] // b))
+        options.append((int(per.sum()) * sum(blocks), d, blocks, per))
+    least = min(o[0] for o in options)
+    # the fewest rows (sequential steps) within 5% of the least padding, if that saves a tenth of one a colour's
+    _, _, blocks, per = next(o for o in options if o[0] <= 1.05 * least) if least <= 0.9 * options[0][0] \
+        else options[0]
+    return blocks, np.cumsum(per) - per, int(per.sum())
 
 
 @program
@@ -206,19 +240,22 @@ def _group_positions(group, valid, n_groups: int):
 
 @program
 @jit(static_argnames=("rows", "blocks", "width", "nbr_width", "n_pad", "n_elements", "lists"))
-def _build(points, conn, inc: Incidences, colour, cons: Constraints, planes, nbr_table, degree, *, rows: int,
-           blocks: tuple, width: int, nbr_width: int, n_pad: int, n_elements: int, lists: bool):
-    """The padded `SweepData` arrays: ``(x, conn, cs, nbr, nmask, cons, weight, n_colours)``."""
+def _build(points, conn, inc: Incidences, colour, cons: Constraints, planes, nbr_table, degree, row_start, *,
+           rows: int, blocks: tuple, width: int, nbr_width: int, n_pad: int, n_elements: int, lists: bool):
+    """The padded `SweepData` arrays: ``(x, conn, cs, nbr, nmask, cons, weight)``; the colours holding movable
+    nodes, in increasing order, from rows `row_start` (`slot_layout`)."""
     n = points.shape[0]
     conn = conn.astype(jnp.int32)
     cls = cons.node_class
     movable = cls != CORNER
     kind = jnp.clip(cls, 0, 2)
-    # the colours holding movable nodes, in increasing order, are the rows (colour values are below n)
+    # each node's place among the movable nodes of its colour and class, in node order (colour values are below n)
     has = jnp.zeros(n + 1, bool).at[jnp.where(movable, colour, n)].set(True)[:n]
-    row = jnp.where(movable, (jnp.cumsum(has, dtype=jnp.int32) - 1)[colour], 0)
-    start = jnp.asarray(np.cumsum((0,) + tuple(blocks[:-1])), jnp.int32)
-    slot = start[kind] + _group_positions(row * 3 + kind, movable, rows * 3)
+    rank = jnp.where(movable, (jnp.cumsum(has, dtype=jnp.int32) - 1)[colour], 0)
+    pos = _group_positions(rank * 3 + kind, movable, row_start.shape[0] * 3)
+    size = jnp.asarray([max(b, 1) for b in blocks], jnp.int32)[kind]
+    row = row_start[rank] + pos // size
+    slot = jnp.asarray(np.cumsum((0,) + tuple(blocks[:-1])), jnp.int32)[kind] + pos % size
     m = sum(blocks)
     nodes = jnp.full((rows, m), n_pad, jnp.int32).at[jnp.where(movable, row, rows), slot].set(
         jnp.arange(n, dtype=jnp.int32), mode="drop")
@@ -254,8 +291,7 @@ def _build(points, conn, inc: Incidences, colour, cons: Constraints, planes, nbr
     nmask = (kn < degree[safe][..., None]) & mask[..., None]
     nbr = jnp.where(mask[..., None], nbr, 0)
     c, w = pad_connectivity(conn, n_elements, points.dtype)
-    n_real = jnp.maximum(jnp.sum(has, dtype=jnp.int32), 1)
-    return (pad_rows(points, n_pad, 0.0), c, cs, nbr, nmask, padded_constraints(cons, n_pad), w, n_real)
+    return (pad_rows(points, n_pad, 0.0), c, cs, nbr, nmask, padded_constraints(cons, n_pad), w)
 
 
 def _bases(cons: Constraints, cls, row, mask):

@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._lazy import is_jax_array, jax, jit, jnp, pytree_dataclass
+from .._lazy import enable_x64, is_jax_array, jax, jit, jnp, pytree_dataclass
 from ..cells import CORNER_NEIGHBOURS
 from ..geometry.boundary import BoundaryInfo
 from ..geometry.projection import Constraints, n_free, project, project_np
 from ..metrics import objective as mixed
-from ..transfer import program
+from ..transfer import program, to_host
 from ._buckets import bucket, free_index, free_layout, pad_connectivity, pad_rows, padded_constraints, to_device
 
 
@@ -80,13 +80,25 @@ class Parametrisation:
 
     def reach(self, v) -> float:
         """How far the moving boundary nodes of `v` went into their flat regions: the largest distance from the
-        region's origin over 0.999 times its radius (numpy float64; < 1: `points` needs no projection)."""
+        region's origin over 0.999 times its radius (float64; < 1: `points` needs no projection). For a device
+        parametrisation and a device `v`, on the device (one scalar comes down)."""
+        if is_jax_array(self.x0) and is_jax_array(v):
+            with enable_x64():
+                return float(to_host(_lift_reach(self, v, None)[1]))
         return self._reach(self._lift_np(v))
 
     def final_points(self, v):
-        """`points` of `v`, in numpy float64 outside `jax.jit` (the exact `jaxci.geometry.projection.project_np` only
+        """`points` of `v`, in float64 outside `jax.jit` (the exact `jaxci.geometry.projection.project_np` only
         where a node left its flat region), returned in the dtype of `x0`: compiling `points` for this one call cost
-        0.5 s of the 729-element cold start, running it op by op 1 s."""
+        0.5 s of the 729-element cold start, running it op by op 1 s. For a device parametrisation and a device
+        `v`, the lift and the test run on the device (one scalar comes down); only where a node left its flat
+        region do the points come to the host for the exact projection."""
+        if is_jax_array(self.x0) and is_jax_array(v):
+            with enable_x64():
+                x, r = _lift_reach(self, v, np.dtype(self.x0.dtype))
+                if self.shortcut and float(to_host(r)) < 1.0:
+                    return x
+                v = to_host(v)
         x = self._lift_np(v)
         if not (self.shortcut and self._reach(x) < 1.0):
             x = project_np(self.cons, x)
@@ -111,6 +123,19 @@ class Parametrisation:
         ue = jnp.sum(d[c.edge_nodes] * c.edge_tangent.astype(d.dtype), axis=-1)
         scale = self.scale
         return jnp.where(scale > 0, jnp.concatenate([ui, us, ue]) / jnp.where(scale > 0, scale, 1.0), 0.0)
+
+
+@program
+@jit(static_argnames=("dtype",))
+def _lift_reach(par: Parametrisation, v, dtype):
+    """`Parametrisation.reach` on the device, float64: ``(points, reach)``, the lifted points in `dtype` (None:
+    none)."""
+    f64 = jnp.float64
+    x = lift_points(jnp, par.x0.astype(f64), par.scale.astype(f64), par.cons, v.astype(f64))
+    dist = jnp.sqrt(jnp.sum((x[par.flat_nodes] - par.flat_origin.astype(f64)) ** 2, axis=-1))
+    r = 0.999 * par.flat_radius.astype(f64)
+    reach = jnp.max(jnp.where(r > 0, dist / jnp.where(r > 0, r, 1.0), jnp.inf), initial=0.0)
+    return (None if dtype is None else x.astype(dtype)), reach
 
 
 def pad_parametrisation(par: Parametrisation) -> tuple[Parametrisation, np.ndarray]:
