@@ -6,7 +6,8 @@ alternated (old, new, old, new; the first of each pays its compilation):
 
 - the presmoothing: colouring, stars, neighbours, padding and upload, then 3 smart-Laplace sweeps (old: the
   host's first-fit colouring, `coloured_stars`, `coloured_neighbours`, `laplace`; new: `sweep_data` with the
-  device's colouring, `laplace_device`);
+  device's colouring, `laplace_device`, its two parts also timed alone; with the stars as incidences, and as
+  node lists relabelled once, ``_lists``);
 - the parametrisation with its padding to the size class (old: `make_parametrisation`, then the copy back and
   `pad_parametrisation` in numpy as `minimise` did; new: `make_parametrisation_device`, `pad_problem_device`).
 
@@ -54,6 +55,7 @@ def run(size: int) -> dict:
     from jaxci.optim.device_parametrisation import make_parametrisation_device
     from jaxci.optim.device_stars import sweep_data
     from jaxci.optim.parametrisation import make_parametrisation, pad_parametrisation, pad_problem_device
+    from jaxci.transfer import to_host
 
     mesh = perturb_box(size, amplitude=0.3, seed=0)
     pr = build_problem(mesh, dtype=np.float32)
@@ -66,19 +68,21 @@ def run(size: int) -> dict:
         cs = coloured_stars(hexes, pr.cons, colour, faces, place=False)
         nbr, nmask = L.coloured_neighbours(cs, hexes, mesh.n_nodes, place=False)
         x, sweeps, hist, _ = L.laplace(pr.x0, pr.conn, cs, nbr, nmask, pr.cons, p, smart=True)
-        return jax.block_until_ready(x), hist, int(colour.max()) + 1
+        return jax.block_until_ready(x), hist, int(colour.max()) + 1, {}
 
-    def new_presmooth():
-        data = sweep_data(pr.x0, pr.conn, pr.cons, faces)
-        x, sweeps, hist, _ = L.laplace_device(data, p, smart=True)
-        return jax.block_until_ready(x), hist, data.colours
+    def new_presmooth(lists=False):
+        build, data = _measure(lambda: jax.block_until_ready(sweep_data(pr.x0, pr.conn, pr.cons, faces, lists=lists)))
+        sweeps, (x, _, hist, _) = _measure(lambda: jax.block_until_ready(L.laplace_device(data, p, smart=True)))
+        rows = int(to_host(data.n_colours))
+        return x, hist, data.colours, {"build": build, "sweeps": sweeps, "rows": rows,
+                                       "slots": rows * int(data.cs.nodes.shape[1])}
 
     points64 = to_device(np.asarray(mesh.points, np.float64))
     n_el = bucket(mesh.n_hexes)
 
     def old_parametrisation():
         par = make_parametrisation(mesh, info, pr.cons, dtype=np.float32)
-        padded, _ = pad_parametrisation(jax.tree_util.tree_map(np.asarray, par))  # the copy back `_bucketed` made
+        padded, _ = pad_parametrisation(to_host(par))  # the copy back `_bucketed` made
         c, w = padded_connectivity(np.asarray(pr.conn).T, n_el)
         return jax.block_until_ready((padded, to_device(c, np.int32), to_device(w, np.float32)))
 
@@ -92,13 +96,14 @@ def run(size: int) -> dict:
     rows = {}
     for rep in ("cold", "warm"):
         for name, fn in (("presmooth_host", old_presmooth), ("presmooth_device", new_presmooth),
+                         ("presmooth_device_lists", lambda: new_presmooth(lists=True)),
                          ("parametrisation_host", old_parametrisation),
                          ("parametrisation_device", new_parametrisation)):
             figures, out = _measure(fn)
             if name.startswith("presmooth"):
-                _, hist, colours = out
+                _, hist, colours, parts = out
                 figures.update(colours=colours, objective=[float(v) for v in hist["objective"]],
-                               max_condition=[float(v) for v in hist["max_condition"]])
+                               max_condition=[float(v) for v in hist["max_condition"]], **parts)
             rows.setdefault(name, {})[rep] = figures
             print(name, rep, figures, flush=True)
     from bench_host_prep import stamp

@@ -16,6 +16,7 @@ from jaxci.io import read_mesh
 from jaxci.methods import build_problem
 from jaxci.optim import _moves as M
 from jaxci.optim import laplace as L
+from jaxci.optim._buckets import free_layout
 from jaxci.optim._local import node_stars, relabel
 from jaxci.optim.device_parametrisation import make_parametrisation_device, node_lengths_device
 from jaxci.optim.device_stars import sweep_data
@@ -25,6 +26,7 @@ from jaxci.optim.parametrisation import (
     node_lengths,
     pad_parametrisation,
     pad_problem_device,
+    unpad_free,
 )
 from jaxci.transfer import to_device
 
@@ -229,6 +231,10 @@ def test_padding_on_the_device(name):
     for a, b, c in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(out2),
                        strict=True):
         assert a.shape == b.shape == c.shape and a.dtype == b.dtype and np.array_equal(a, b) and np.array_equal(a, c)
+    v = np.arange(out.n_free, dtype=np.float64)
+    with jax.transfer_guard("disallow"):
+        real = unpad_free(to_device(v), free_layout(par.cons), free_layout(out.cons))
+    assert np.array_equal(np.asarray(real), v[index])
     hexes = np.asarray(mesh.hexes)
     assert np.array_equal(np.asarray(conn), np.concatenate([hexes, np.repeat(hexes[:1], mesh.n_hexes, axis=0)]).T)
     assert np.array_equal(np.asarray(weight), np.repeat([1.0, 0.0], mesh.n_hexes))
@@ -281,3 +287,24 @@ def test_reach_and_final_points_of_a_device_parametrisation(step):
     assert (ref_reach < 1) == (step < 1)
     assert reach == pytest.approx(ref_reach, rel=1e-12)
     np.testing.assert_allclose(np.asarray(points), ref_points, rtol=0, atol=1e-13)
+
+
+def test_parametrisation_takes_the_sweep_datas_incidences_and_planes():
+    """The presmoothing's incidences, boundary view and planes (found on the float64 points) serve the
+    parametrisation: the same one as built alone, with fewer programs and transfers."""
+    from jaxci import transfer
+
+    mesh, pr = _problem("1000hex-block-internal-bias.vtk", np.float32)
+    info = pr.info
+    with jax.enable_x64(True), jax.transfer_guard("disallow"):
+        pts = to_device(np.asarray(mesh.points, np.float64))
+        data = sweep_data(pr.x0, pr.conn, pr.cons, info.topology.faces, plane_points=pts)
+        alone = make_parametrisation_device(pts, pr.conn, info.topology.faces, info.feature_edges, pr.cons)
+        before = transfer.totals()
+        shared = make_parametrisation_device(pts, pr.conn, info.topology.faces, info.feature_edges, pr.cons,
+                                             inc=data.inc, view=data.view, planes=data.planes)
+        after = transfer.totals()
+    assert after["d2h_bytes"] - before["d2h_bytes"] < 16  # the shortcut's boolean alone
+    assert alone.shortcut == shared.shortcut
+    for a, b in zip(jax.tree_util.tree_leaves(alone), jax.tree_util.tree_leaves(shared), strict=True):
+        assert np.array_equal(np.asarray(a), np.asarray(b))

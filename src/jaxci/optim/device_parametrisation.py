@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._lazy import enable_x64, jax, jit, jnp
+from .._lazy import enable_x64, jit, jnp
 from ..cells import CORNER_NEIGHBOURS
 from ..geometry.device_colouring import Incidences, incidences
 from ..geometry.projection import Constraints
@@ -26,8 +26,11 @@ from ..transfer import program, to_device, to_host
 from .device_stars import BoundaryView, boundary_view, surface_planes
 from .parametrisation import Parametrisation, flat_intervals
 
-#: Nodes per block of `node_lengths_device` (its gathered edge ends: 3 K coordinates a node).
-LENGTH_BLOCK = 1 << 16
+#: The 12 edges of a hexahedron (local corners i < j) and, per corner, the index of its 3 edges in that list
+#: (to its neighbours `CORNER_NEIGHBOURS`, in their order).
+_EDGES = sorted({(min(i, int(j)), max(i, int(j))) for i in range(8) for j in CORNER_NEIGHBOURS[i]})
+_CORNER_EDGES = np.array([[_EDGES.index((min(i, int(j)), max(i, int(j)))) for j in CORNER_NEIGHBOURS[i]]
+                          for i in range(8)], np.int32)
 
 
 def node_lengths_device(conn, points, inc: Incidences):
@@ -45,32 +48,21 @@ def _node_lengths(conn, points, inc: Incidences):
 
 
 def node_lengths_traced(conn, points, inc: Incidences):
-    """`node_lengths_device`'s sums (traceable)."""
-    n, k = inc.table.shape
-    blocks = -(-n // LENGTH_BLOCK)
-    pad = blocks * LENGTH_BLOCK - n
-    flat = conn.reshape(-1).astype(jnp.int32)
-    nb = jnp.asarray(CORNER_NEIGHBOURS, jnp.int32)
-
-    def block(args):
-        table, real, v = args  # (b, K), (b, K), (b,)
-        ends = flat[nb[table & 7] * conn.shape[1] + (table >> 3)[..., None]]  # (b, K, 3)
-        d = points[ends] - points[v][:, None, None]
-        length = jnp.sqrt(jnp.sum(d * d, axis=-1))
-        return jnp.sum(jnp.where(real[..., None], length, 0.0), axis=(1, 2))
-
-    def blocked(a, fill):
-        return jnp.concatenate([a, jnp.full((pad,) + a.shape[1:], fill, a.dtype)]).reshape((blocks, -1) + a.shape[1:])
-
-    v = jnp.arange(n, dtype=jnp.int32)
-    total = jax.lax.map(block, (blocked(inc.table, 0), blocked(inc.mask(), False), blocked(v, 0))).reshape(-1)[:n]
+    """`node_lengths_device`'s sums (traceable): the 12 edge lengths of every hexahedron, then each node's sum
+    over the 3 edges at it of each of its incidences (a gather, no scatter)."""
+    n_hex = conn.shape[1]
+    at = [points[:, d][conn.astype(jnp.int32)] for d in range(3)]  # (8, N) each
+    length = jnp.stack([jnp.sqrt(sum((c[j] - c[i]) ** 2 for c in at)) for i, j in _EDGES])  # (12, N)
+    edges = jnp.asarray(_CORNER_EDGES)[inc.table & 7]  # (n, K, 3)
+    per = length.reshape(-1)[edges * n_hex + (inc.table >> 3)[..., None]]
+    total = jnp.sum(jnp.where(inc.mask()[..., None], per, 0.0), axis=(1, 2))
     count = 3 * inc.valence
     return jnp.where(count > 0, total / jnp.maximum(count, 1).astype(points.dtype), 0.0)
 
 
 def make_parametrisation_device(points, conn, faces: np.ndarray, feature_edges: np.ndarray, cons: Constraints,
                                 x0=None, *, scaled: bool = True, dtype=None, inc: Incidences | None = None,
-                                view: BoundaryView | None = None) -> Parametrisation:
+                                view: BoundaryView | None = None, planes: np.ndarray | None = None) -> Parametrisation:
     """`jaxci.optim.parametrisation.make_parametrisation` from device arrays.
 
     **Arguments:**
@@ -82,8 +74,9 @@ def make_parametrisation_device(points, conn, faces: np.ndarray, feature_edges: 
     - `x0`: base coordinates ``(n, 3)`` (device; default `points`); boundary nodes must lie on the boundary.
     - `scaled`, `dtype` (default: that of `cons`): as `make_parametrisation`.
     - `inc`: the `Incidences` if at hand (default: built; only with `scaled`; `jaxci.optim.device_stars.SweepData`
-      holds them); `view`: the `jaxci.optim.device_stars.BoundaryView` of `points` if at hand (default: it comes
-      down).
+      holds them); `view`, `planes`: the `jaxci.optim.device_stars.BoundaryView` of `points` and its
+      `jaxci.optim.device_stars.surface_planes` if at hand (default: the view comes down and the planes are
+      found; a `SweepData` built with ``plane_points=points`` holds both).
 
     Programs: the incidences unless given (`jaxci.geometry.device_colouring.incidences`), the boundary view (its
     O(boundary) arrays come down), the parametrisation (the flat regions' radii go up; one boolean comes down).
@@ -96,7 +89,7 @@ def make_parametrisation_device(points, conn, faces: np.ndarray, feature_edges: 
         if scaled and inc is None:
             inc = incidences(conn, int(points.shape[0]))
         view = boundary_view(points, faces, cons) if view is None else view
-        rings = surface_planes(view)
+        rings = surface_planes(view) if planes is None else planes
         fe = view.local(np.asarray(feature_edges, np.int64).reshape(-1, 2)) if len(view.edge) else np.zeros((0, 2),
                                                                                                              np.int64)
         ns = len(view.surf)

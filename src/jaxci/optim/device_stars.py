@@ -63,8 +63,9 @@ class SweepData:
     - `n_colours` the real row count (a device scalar: the loops skip the padded rows; a row is a colour, or part
       of one: `slot_layout`);
     - `n_nodes` the real node count (host int), `colours` the colour count (host int);
-    - `inc` the mesh's `Incidences` (unpadded; for `jaxci.optim.device_parametrisation`), `planes` the planar
-      rings of the surface nodes ``(n_surface, 7)`` (host, float64: `surface_planes`).
+    - for `jaxci.optim.device_parametrisation`: `inc` the mesh's `Incidences` (unpadded), `view` the
+      `BoundaryView` of the points the planes were found on and `planes` the planar rings of the surface nodes
+      ``(n_surface, 7)`` (host, float64: `surface_planes`).
     """
 
     x: jax.Array
@@ -78,6 +79,7 @@ class SweepData:
     n_nodes: int
     colours: int
     inc: Incidences
+    view: BoundaryView
     planes: np.ndarray
 
 
@@ -130,14 +132,16 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
     inc = Incidences(table=table_, valence=v)
     counts = np.asarray(counts, np.int64)[:n_col]
     blocks, row_start, rows = slot_layout(counts[counts.sum(axis=1) > 0], split)
-    planes = surface_planes(boundary_view(cons.x_orig if plane_points is None else plane_points, faces, cons))
+    view = boundary_view(cons.x_orig if plane_points is None else plane_points, faces, cons)
+    planes = surface_planes(view)
     x, c, cs, nbr, nmask, cons_p, w = _build(
         points, conn, inc, col, cons, to_device(planes, cons.x_orig.dtype), nbr_table, degree,
         to_device(row_start, np.int32), rows=bucket(rows), blocks=blocks, width=bucket(width, 4),
         nbr_width=bucket(max(kn, 1), 4), n_pad=bucket(n + 1),
         n_elements=bucket(int(conn.shape[1]), multiple=multiple), lists=bool(lists))
     return SweepData(x=x, conn=c, cs=cs, nbr=nbr, nmask=nmask, cons=cons_p, weight=w,
-                     n_colours=to_device(np.int32(rows)), n_nodes=n, colours=len(row_start), inc=inc, planes=planes)
+                     n_colours=to_device(np.int32(rows)), n_nodes=n, colours=len(row_start), inc=inc, view=view,
+                     planes=planes)
 
 
 def slot_layout(counts: np.ndarray, split: bool = True) -> tuple[tuple[int, int, int], np.ndarray, int]:
