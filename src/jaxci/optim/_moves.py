@@ -274,9 +274,15 @@ def padded_blocks(sizes, totals, n_colours: int) -> tuple[int, int, int]:
     c_pad = bucket(n_colours)
     out = []
     for j, m in enumerate(sizes):
-        slack = _SLOT_SLACK[j] if totals[j] < _SLACK_UNTIL else 1
+        slack = 1 if without_slack(totals[j]) else _SLOT_SLACK[j]
         out.append(bucket(max(m, -(-slack * bucket(totals[j]) // c_pad))) if m else 0)
     return tuple(out)
+
+
+def without_slack(total: int) -> bool:
+    """Whether a class of `total` nodes gets its slots without slack (`slot_sizes`: `_SLACK_UNTIL` nodes or
+    more): sized to its largest colour, not to a size class shared with other meshes."""
+    return total >= _SLACK_UNTIL
 
 
 #: `slot_sizes`: interior, surface, edge blocks hold this many times the mean per colour of their size class

@@ -43,7 +43,7 @@ from ..geometry.projection import Constraints
 from ..transfer import program, to_device, to_host
 from ._buckets import bucket, pad_connectivity, pad_rows, padded_constraints
 from ._local import relabel
-from ._moves import ColouredStars, padded_blocks, surface_rings
+from ._moves import ColouredStars, padded_blocks, surface_rings, without_slack
 
 #: Nodes per block of the edge-neighbour deduplication (`_edge_neighbours`: ``(block, 3K, 3K)`` comparisons).
 NEIGHBOUR_BLOCK = 1 << 14
@@ -149,8 +149,9 @@ def slot_layout(counts: np.ndarray, split: bool = True) -> tuple[tuple[int, int,
     holding some): ``(blocks, row_start, rows)``, the padded interior / surface / edge blocks of a row
     (`jaxci.optim._moves.padded_blocks`), the first row of each colour and the row count.
 
-    One row a colour (`coloured_stars`' layout), or with `split`, where blocks sized for 1/2, 1/3 or 1/4 of the
-    largest colour save a tenth or more of the slots, each colour over the fewest rows of such blocks (the
+    One row a colour (`coloured_stars`' layout), or with `split` on a large mesh (a class of nodes without slot
+    slack: `jaxci.optim._moves.without_slack`), where blocks sized for 1/2, 1/3 or 1/4 of the largest colour
+    save a tenth or more of the slots, each colour over the fewest rows of such blocks (the
     largest blocks within 5% of the fewest slots: fewer rows, fewer sequential steps): a row is a part of one
     colour, so its nodes still share no hexahedron. Colours of unequal sizes pad their rows up to the largest
     (the device's colouring at 10^6 hexahedra: 16 colours of 59,000 interior nodes and 4 of 1 to 20,000; 1.44 M
@@ -161,7 +162,8 @@ def slot_layout(counts: np.ndarray, split: bool = True) -> tuple[tuple[int, int,
         return padded_blocks((0, 0, 0), [0, 0, 0], 1), np.zeros(1, np.int64), 1
     totals = [int(a) for a in counts.sum(axis=0)]
     options = []
-    for d in (1, 2, 3, 4) if split else (1,):
+    # small meshes keep one row a colour: their slots' slack lets meshes of a size class share the sweep loop
+    for d in (1, 2, 3, 4) if split and without_slack(max(totals)) else (1,):
         sizes = tuple(-(-int(m) // d) for m in counts.max(axis=0))
         blocks = padded_blocks(sizes, totals, d * len(counts))
         per = np.ones(len(counts), np.int64)
