@@ -150,7 +150,8 @@ def test_padded_sweeps_give_the_unpadded_result(buckets):
 @pytest.mark.slow
 def test_cli_second_mesh_of_a_size_class_loads_the_solver_from_the_cache(tmp_path):
     """Through the CLI, fresh processes and an empty JAXCI_CACHE_DIR: the second mesh of the size class compiles
-    nothing in its smoothing phase (every program comes from the persistent cache)."""
+    nothing in its smoothing phase but the padding of its own size (the solver comes from the persistent
+    cache)."""
     from jaxci.io import write_mesh
 
     for name, dims, seed in (("a.vtk", (9, 9, 10), 1), ("b.vtk", (10, 10, 9), 2)):
@@ -159,7 +160,9 @@ def test_cli_second_mesh_of_a_size_class_loads_the_solver_from_the_cache(tmp_pat
     first = _cli_smooth(tmp_path / "a.vtk", tmp_path / "a_out.vtk", cache)
     second = _cli_smooth(tmp_path / "b.vtk", tmp_path / "b_out.vtk", cache)
     assert first["compiled"] > first["cache_hits"]
-    assert second["compiled"] == second["cache_hits"], second
+    # one program of the mesh's own size: the parametrisation and the hexahedra padded on the device
+    # (`jaxci.optim.parametrisation.pad_problem_device`); the solver comes from the cache
+    assert second["compiled"] - second["cache_hits"] <= 1, second
 
 
 def test_padded_sweeps_keep_their_unpadded_stars_on_the_host(monkeypatch):

@@ -144,7 +144,7 @@ def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angl
                                             fixed_sets=tuple(fixed_sets))
             cons, tables = device_constraints(dm.x, info, dtype=np_dtype)
             problem = Problem(mesh, info, cons, dm.conn, _as_dtype(dm.x, cons.x_orig), np_dtype, plan=plan,
-                              tables=tables)
+                              tables=tables, points64=dm.x)
         if n_free(cons) == 0:
             notes.extend(info.notes)
             notes.append(f"no node can move (all {mesh.n_nodes} nodes are fixed: boundary corners, fixed sets or "

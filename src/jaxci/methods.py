@@ -43,7 +43,8 @@ class Problem:
     `plan`: the `jaxci.engine.Plan` the methods run on (its engine: numpy arrays on the host engine, JAX arrays
     on the JAX engine); `tables`: where the mesh lives on the device (`jaxci.device_run`), the boundary's float64
     tables on the host (`jaxci.geometry.tables.BoundaryTables`: the exact projection of the boundary nodes and the
-    worst-element polish's window read them), else None."""
+    worst-element polish's window read them) and `points64` its coordinates in float64 on the device (the
+    geometry the presmoothing's planes and the parametrisation are measured on), else None."""
 
     mesh: HexMesh
     info: BoundaryInfo
@@ -56,6 +57,7 @@ class Problem:
     devices: object = None
     plan: object = None
     tables: object = None
+    points64: object = None
 
     @property
     def host(self) -> bool:

@@ -19,7 +19,11 @@ compiles a small ``jit(stage)`` program per shape and dtype in jax 0.10 (measure
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+
+from .._lazy import is_jax_array, jit, jnp
 
 # the ladder itself (stage 0: the device programs of jaxci.geometry size their downloads by it too)
 from ..sizes import MIN_BUCKET, bucket  # noqa: F401
@@ -28,94 +32,118 @@ from ..sizes import MIN_BUCKET, bucket  # noqa: F401
 # counted; `device_dtype`: that array kept on the host (padded before it goes there, so that the device never
 # holds both forms)
 from ..transfer import host_dtype as device_dtype  # noqa: F401
-from ..transfer import to_device  # noqa: F401
+from ..transfer import program, to_device  # noqa: F401
 
 
-def pad_rows(a: np.ndarray, n: int, fill) -> np.ndarray:
-    """`a` with rows appended up to `n` rows: `fill` (a scalar or a row) in each new row."""
-    a = np.asarray(a)
+def _xp(a):
+    """The array module of `a`: `jax.numpy` for a JAX array (or a tracer inside a jitted function), else numpy."""
+    return jnp if is_jax_array(a) else np
+
+
+def pad_rows(a, n: int, fill):
+    """`a` with rows appended up to `n` rows: `fill` (a scalar or a row) in each new row (numpy, or jax.numpy
+    for a JAX array)."""
+    xp = _xp(a)
+    a = a if xp is jnp else np.asarray(a)
     extra = n - a.shape[0]
     if extra <= 0:
         return a
-    pad = np.empty((extra,) + a.shape[1:], a.dtype)
-    pad[...] = fill
-    return np.concatenate([a, pad])
+    pad = xp.broadcast_to(xp.asarray(fill, dtype=a.dtype), (extra,) + a.shape[1:])
+    return xp.concatenate([a, pad])
 
 
-def pad_cols(a: np.ndarray, n: int, *, repeat_first: bool = True, fill=0) -> np.ndarray:
-    """`a` ``(r, c)`` with columns appended up to `n`: copies of its first column, or `fill`."""
-    a = np.asarray(a)
+def pad_cols(a, n: int, *, repeat_first: bool = True, fill=0):
+    """`a` ``(r, c)`` with columns appended up to `n`: copies of its first column, or `fill` (numpy, or
+    jax.numpy for a JAX array)."""
+    xp = _xp(a)
+    a = a if xp is jnp else np.asarray(a)
     extra = n - a.shape[1]
     if extra <= 0:
         return a
     if repeat_first and a.shape[1]:
-        pad = np.repeat(a[:, :1], extra, axis=1)
+        pad = xp.broadcast_to(a[:, :1], (a.shape[0], extra))
     else:
-        pad = np.full((a.shape[0], extra), fill, a.dtype)
-    return np.concatenate([a, pad], axis=1)
+        pad = xp.full((a.shape[0], extra), fill, a.dtype)
+    return xp.concatenate([a, pad], axis=1)
 
 
 def padded_connectivity(hexes: np.ndarray, n_elements: int) -> tuple[np.ndarray, np.ndarray]:
     """The transposed connectivity ``(8, n_elements)`` (padding elements repeat element 0) and the element
     weights ``(n_elements,)`` (1 real, 0 padding), numpy."""
-    hexes = np.asarray(hexes)
-    n = len(hexes)
-    conn = np.concatenate([hexes, np.repeat(hexes[:1], n_elements - n, axis=0)]).T
-    weight = np.concatenate([np.ones(n), np.zeros(n_elements - n)])
-    return np.ascontiguousarray(conn), weight
+    return pad_connectivity(np.asarray(hexes).T, n_elements, np.float64)
+
+
+def pad_connectivity(conn, n_elements: int, dtype):
+    """The transposed connectivity `conn` ``(8, N)`` padded to ``(8, n_elements)`` (padding elements repeat
+    element 0) and the element weights ``(n_elements,)`` in `dtype` (1 real, 0 padding); numpy, or jax.numpy
+    for a JAX array (under `jax.jit`)."""
+    xp = _xp(conn)
+    n = conn.shape[1]
+    c = pad_cols(conn, n_elements)
+    weight = xp.concatenate([xp.ones(n, dtype), xp.zeros(n_elements - n, dtype)])
+    return (np.ascontiguousarray(c) if xp is np else c), weight
 
 
 def pad_constraints(cons, n_nodes: int):
     """`cons` (`jaxci.geometry.projection.Constraints`) padded for a mesh of `n_nodes` nodes (more than it has: node
-    ``n_real`` is the dummy every padded entry points to), numpy-built, every size on the ladder.
+    ``n_real`` is the dummy every padded entry points to), every size on the ladder: on the device for device
+    constraints (nothing moves), else built in numpy and placed.
 
     Padded nodes are CORNER nodes at the origin: `jaxci.geometry.projection.project` puts them back there. Padded
     entries of the interior, surface, edge and corner node lists are the dummy node (zero basis and tangent:
     they never move it); padded candidate rows and columns repeat an entry (the padded triangles and segments
     copy the first one and belong to no patch or curve).
     """
-    from ..geometry.boundary import CORNER
-    from ..geometry.projection import Constraints
-
     n = cons.x_orig.shape[0]
     if n_nodes <= n:
         raise ValueError(f"pad_constraints needs at least one padding node: {n_nodes} <= {n}")
-    fdt = cons.x_orig.dtype
-    g = {k: np.asarray(getattr(cons, k)) for k in ("x_orig", "node_class", "group", "row", "interior_nodes",
-                                                    "surface_nodes", "edge_nodes", "corner_nodes", "surface_basis",
-                                                    "edge_tangent", "surface_cand", "edge_cand", "triangles",
-                                                    "triangle_patch", "segments", "segment_curve")}
-    ns, ne = len(g["surface_nodes"]), len(g["edge_nodes"])
-    ns_p, ne_p = bucket(ns), bucket(ne)
+    if is_jax_array(cons.x_orig):
+        return _pad_constraints_device(cons, int(n_nodes))
+    host = type(cons)(**{f.name: np.asarray(getattr(cons, f.name)) for f in dataclasses.fields(cons)})
+    return to_device(padded_constraints(host, n_nodes))
+
+
+@program
+@jit(static_argnames=("n_nodes",))
+def _pad_constraints_device(cons, n_nodes: int):
+    return padded_constraints(cons, n_nodes)
+
+
+def padded_constraints(c, n_nodes: int):
+    """`pad_constraints`' arrays, over the array module of `c`'s (numpy, or jax.numpy under `jax.jit`)."""
+    from ..geometry.boundary import CORNER
+
+    n = c.x_orig.shape[0]
+    fdt = c.x_orig.dtype
+    ns_p, ne_p = bucket(c.surface_nodes.shape[0]), bucket(c.edge_nodes.shape[0])
 
     def nodes(a):
-        return pad_rows(a, bucket(len(a)), n)
+        return pad_rows(a.astype(np.int32), bucket(a.shape[0]), n)
 
     def cand(a, rows):
-        a = pad_cols(a, bucket(a.shape[1], 4))
+        a = pad_cols(a.astype(np.int32), bucket(a.shape[1], 4))
         return pad_rows(a, max(rows, a.shape[0]), a[0]) if rows else a
 
-    tri = pad_cols(g["triangles"], bucket(g["triangles"].shape[1]))
-    seg = pad_cols(g["segments"], bucket(g["segments"].shape[1]))
-    out = Constraints(
-        x_orig=to_device(pad_rows(g["x_orig"], n_nodes, 0.0), fdt),
-        node_class=to_device(pad_rows(g["node_class"], n_nodes, CORNER), np.int32),
-        group=to_device(pad_rows(g["group"], n_nodes, -1), np.int32),
-        row=to_device(pad_rows(g["row"], n_nodes, 0), np.int32),
-        interior_nodes=to_device(nodes(g["interior_nodes"]), np.int32),
-        surface_nodes=to_device(nodes(g["surface_nodes"]), np.int32),
-        edge_nodes=to_device(nodes(g["edge_nodes"]), np.int32),
-        corner_nodes=to_device(nodes(g["corner_nodes"]), np.int32),
-        surface_basis=to_device(pad_rows(g["surface_basis"], ns_p, 0.0), fdt),
-        edge_tangent=to_device(pad_rows(g["edge_tangent"], ne_p, 0.0), fdt),
-        surface_cand=to_device(cand(g["surface_cand"], ns_p), np.int32),
-        edge_cand=to_device(cand(g["edge_cand"], ne_p), np.int32),
-        triangles=to_device(tri, fdt),
-        triangle_patch=to_device(pad_rows(g["triangle_patch"], tri.shape[1], -1), np.int32),
-        segments=to_device(seg, fdt),
-        segment_curve=to_device(pad_rows(g["segment_curve"], seg.shape[1], -1), np.int32),
+    tri = pad_cols(c.triangles.astype(fdt), bucket(c.triangles.shape[1]))
+    seg = pad_cols(c.segments.astype(fdt), bucket(c.segments.shape[1]))
+    return type(c)(
+        x_orig=pad_rows(c.x_orig, n_nodes, 0.0),
+        node_class=pad_rows(c.node_class.astype(np.int32), n_nodes, CORNER),
+        group=pad_rows(c.group.astype(np.int32), n_nodes, -1),
+        row=pad_rows(c.row.astype(np.int32), n_nodes, 0),
+        interior_nodes=nodes(c.interior_nodes),
+        surface_nodes=nodes(c.surface_nodes),
+        edge_nodes=nodes(c.edge_nodes),
+        corner_nodes=nodes(c.corner_nodes),
+        surface_basis=pad_rows(c.surface_basis.astype(fdt), ns_p, 0.0),
+        edge_tangent=pad_rows(c.edge_tangent.astype(fdt), ne_p, 0.0),
+        surface_cand=cand(c.surface_cand, ns_p),
+        edge_cand=cand(c.edge_cand, ne_p),
+        triangles=tri,
+        triangle_patch=pad_rows(c.triangle_patch.astype(np.int32), tri.shape[1], -1),
+        segments=seg,
+        segment_curve=pad_rows(c.segment_curve.astype(np.int32), seg.shape[1], -1),
     )
-    return out
 
 
 def free_layout(cons) -> tuple[int, int, int]:

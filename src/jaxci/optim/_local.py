@@ -97,6 +97,21 @@ def gather_star(points, star):
     return tuple(points[:, d][star] for d in range(3))
 
 
+def relabel(conn, inc):
+    """The relabelled node lists ``inc.shape + (8,)`` of incidences `inc` (``8 e + s``, int32) on the device:
+    hexahedron ``e`` of the transposed connectivity `conn` ``(8, N)`` with its local node ``s`` moved to slot 0
+    (`star_nodes`' lists, gathered from `conn` and the constant `ROTATE_TO_SLOT`)."""
+    rot = jnp.asarray(ROTATE_TO_SLOT, jnp.int32)[inc & 7]  # (..., 8) old local node of each new slot
+    return conn.reshape(-1)[rot * conn.shape[1] + (inc >> 3)[..., None]]
+
+
+def star_coords(points, conn, star):
+    """`gather_star` of one colour's stars `star`: node lists ``(M, K, 8)``, or incidences ``(M, K)`` (the
+    device-built stars of `jaxci.optim.device_stars`), relabelled here from `conn` ``(8, N)``; the number of
+    axes tells them apart (static)."""
+    return gather_star(points, star if star.ndim == 3 else relabel(conn, star))
+
+
 def local_terms(E, smask, y):
     """Sum of (kappa/3)^2 over the corners around node slot 0 when the node is at `y`.
 

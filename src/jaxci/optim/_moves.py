@@ -54,7 +54,9 @@ class ColouredStars:
     slots are projected onto triangles and only edge slots onto segments.
 
     - `nodes` ``(n_colours, M)`` (padding: index n_nodes, dropped on write); `mask` ``(n_colours, M)``;
-    - `star` ``(n_colours, M, K, 8)``; `smask` ``(n_colours, M, K)``; `basis` ``(n_colours, M, 3, 3)``;
+    - `star` ``(n_colours, M, K, 8)`` the relabelled node lists of each slot's hexahedra, or their incidences
+      ``(n_colours, M, K)`` (`jaxci.optim.device_stars`; relabelled in the sweep: `jaxci.optim._local.star_coords`);
+      `smask` ``(n_colours, M, K)``; `basis` ``(n_colours, M, 3, 3)``;
     - `dims` ``(n_colours, M)`` free coordinates per node.
     - `plane` ``(n_colours, M, 7)``: for a SURFACE node whose ring of boundary faces is planar, the original
       position (3), the plane's unit normal (3) and the radius of the disk around the original position that
@@ -93,22 +95,22 @@ when_imported("jax", lambda: jax.tree_util.register_dataclass(
 RING_CHUNK = 4096
 
 
-def _ring_normal(points: np.ndarray, faces: np.ndarray, cand: np.ndarray) -> np.ndarray:
+def _ring_normal(points: np.ndarray, faces: np.ndarray, ring: np.ndarray) -> np.ndarray:
     """The unit normal of each node's first ring face (`planar_rings`), from the float64 geometry (the
     constraints' bases may be float32: their rounding alone made every plane that is not axis-aligned fail the
-    1e-12 planarity test); `cand` the nodes' candidate columns ``(m, K)`` (4 per face)."""
-    f0 = points[faces[np.min(cand, axis=1) // 4]]  # (m, 4, 3); a triangle [a, b, c, c] gives (c - a) x (c - b)
+    1e-12 planarity test); `ring` the nodes' ring faces ``(m, K)`` (repeats allowed)."""
+    f0 = points[faces[np.min(ring, axis=1)]]  # (m, 4, 3); a triangle [a, b, c, c] gives (c - a) x (c - b)
     normal = np.cross(f0[:, 2] - f0[:, 0], f0[:, 3] - f0[:, 1])
     length = np.linalg.norm(normal, axis=1, keepdims=True)
     return np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
 
 
-def _ring_radius(points: np.ndarray, faces: np.ndarray, cand: np.ndarray, surf: np.ndarray, normal: np.ndarray,
+def _ring_radius(points: np.ndarray, faces: np.ndarray, ring: np.ndarray, surf: np.ndarray, normal: np.ndarray,
                  n: int):
-    """``(radius, deviation)`` of the planar rings of the surface nodes `surf` ``(m,)`` with candidate columns
-    `cand` ``(m, K)`` and first-face normals `normal` ``(m, 3)`` (`planar_rings`): the distance to the outer
-    boundary of the ring's faces, and the largest distance of a ring node from the plane of the first face."""
-    ring = np.sort(cand // 4, axis=1)  # (m, K) faces, each 4 times
+    """``(radius, deviation)`` of the planar rings of the surface nodes `surf` ``(m,)`` with ring faces `ring`
+    ``(m, K)`` (repeats allowed) and first-face normals `normal` ``(m, 3)`` (`planar_rings`): the distance to the
+    outer boundary of the ring's faces, and the largest distance of a ring node from the plane of the first face."""
+    ring = np.sort(ring, axis=1)  # (m, K) faces, a face possibly several times
     first = np.ones(ring.shape, bool)
     first[:, 1:] = ring[:, 1:] != ring[:, :-1]  # unique faces per row
     # compact each row to its unique faces (padded with repeats of the first): 4x less work below
@@ -159,22 +161,29 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
     (edges used by one face of the ring), so the ring covers that disk. The radius is 0 for nodes that are not
     SURFACE nodes, or whose ring is not planar to 1e-12 relative.
     """
-    n = len(points)
-    out = np.zeros((n, 7))
+    out = np.zeros((len(points), 7))
     surf = np.asarray(cons.surface_nodes)
+    out[surf] = surface_rings(points, faces, surf, np.asarray(cons.surface_cand)[: len(surf)] // 4)
+    return out
+
+
+def surface_rings(points: np.ndarray, faces: np.ndarray, surf: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """`planar_rings` of the surface nodes `surf` ``(m,)`` alone, ``(m, 7)``, from their ring faces `ring`
+    ``(m, K)`` (indices into `faces`, repeats allowed: the candidate triangles of `Constraints.surface_cand`
+    divided by 4, or each face once); `points` float64, indexed by the nodes of `faces` and `surf`."""
+    out = np.zeros((len(surf), 7))
     if len(surf) == 0 or len(faces) == 0:
         return out
-    cand = np.asarray(cons.surface_cand)[: len(surf)]
-    normal = _ring_normal(points, faces, cand)
+    n = len(points)
+    normal = _ring_normal(points, faces, ring)
     radius, dev = np.empty(len(surf)), np.empty(len(surf))
     for lo in range(0, len(surf), RING_CHUNK):  # in blocks: the per-face arrays are ~100 entries a node
         sl = slice(lo, lo + RING_CHUNK)
-        radius[sl], dev[sl] = _ring_radius(points, faces, cand[sl], surf[sl], normal[sl], n)
-    x0 = points[surf]
+        radius[sl], dev[sl] = _ring_radius(points, faces, ring[sl], surf[sl], normal[sl], n)
     planar = np.isfinite(radius) & (dev <= 1e-12 * np.maximum(radius, 1e-300))
-    out[surf[planar], :3] = x0[planar]
-    out[surf[planar], 3:6] = normal[planar]
-    out[surf[planar], 6] = radius[planar]
+    out[planar, :3] = points[surf[planar]]
+    out[planar, 3:6] = normal[planar]
+    out[planar, 6] = radius[planar]
     return out
 
 
@@ -256,13 +265,24 @@ def slot_sizes(cs: ColouredStars) -> tuple[int, int, int]:
     sizes = (cs.n_interior, cs.n_surface, cs.n_edge)
     mask = np.asarray(cs.mask)
     bounds = np.cumsum((0,) + sizes)
-    c_pad = bucket(mask.shape[0])
+    return padded_blocks(sizes, [int(mask[:, bounds[j] : bounds[j + 1]].sum()) for j in range(3)], mask.shape[0])
+
+
+def padded_blocks(sizes, totals, n_colours: int) -> tuple[int, int, int]:
+    """`slot_sizes` from the most interior, surface and edge nodes in one colour (`sizes`), their totals
+    (`totals`) and the colour count."""
+    c_pad = bucket(n_colours)
     out = []
     for j, m in enumerate(sizes):
-        total = int(mask[:, bounds[j] : bounds[j + 1]].sum())
-        slack = _SLOT_SLACK[j] if total < _SLACK_UNTIL else 1
-        out.append(bucket(max(m, -(-slack * bucket(total) // c_pad))) if m else 0)
+        slack = 1 if without_slack(totals[j]) else _SLOT_SLACK[j]
+        out.append(bucket(max(m, -(-slack * bucket(totals[j]) // c_pad))) if m else 0)
     return tuple(out)
+
+
+def without_slack(total: int) -> bool:
+    """Whether a class of `total` nodes gets its slots without slack (`slot_sizes`: `_SLACK_UNTIL` nodes or
+    more): sized to its largest colour, not to a size class shared with other meshes."""
+    return total >= _SLACK_UNTIL
 
 
 #: `slot_sizes`: interior, surface, edge blocks hold this many times the mean per colour of their size class

@@ -77,7 +77,7 @@ import functools
 import numpy as np
 
 from .. import native
-from .._lazy import compute_platform, filter_jit, jax, jit, jnp
+from .._lazy import compute_platform, is_jax_array, jax, jit, jnp
 from ..cells import corner_invariants, pmean_weights
 from ..errors import ConfigError
 from ..geometry.projection import project_np
@@ -94,7 +94,7 @@ from ..metrics.objective import extra_barrier, extra_cells, extra_terms, has_ext
 from ..phases import progress
 from ..transfer import program, to_host
 from . import _params as _p
-from ._buckets import bucket, padded_connectivity, to_device
+from ._buckets import bucket, free_layout, padded_connectivity, to_device
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED
 from .gradient_params import (  # noqa: F401  (re-exported: the parameters and names of these methods)
     CG_METHODS,
@@ -112,9 +112,12 @@ from .host import HOST_MAX, HostObjective, runs_on_host
 from .host import lbfgs as host_lbfgs
 from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
     Parametrisation,
+    lift_reach,
     make_parametrisation,
     node_lengths,
     pad_parametrisation,
+    pad_problem_device,
+    unpad_free,
 )
 
 #: The parameters a solver call takes when given none.
@@ -337,9 +340,12 @@ def _bucketed(method: str, par: Parametrisation, conn, p: GradientParams, extra,
     `n_devices` (the elements then a multiple of it); else as given (`weight` and `index` None)."""
     if not ((p.buckets or n_devices) and method in BUCKETED and not extra.types):
         return par, conn, None, None
+    n_el = bucket(int(conn.shape[1]), multiple=max(n_devices, 1))
+    if is_jax_array(conn) and is_jax_array(par.x0):  # on the device: nothing moves
+        padded, index, c, w = pad_problem_device(par, conn, n_el)
+        return padded, c, w, index
     padded, index = pad_parametrisation(par)
-    hexes = np.asarray(conn).T
-    c, w = padded_connectivity(hexes, bucket(len(hexes), multiple=max(n_devices, 1)))
+    c, w = padded_connectivity(np.asarray(conn).T, n_el)
     return padded, to_device(c, np.asarray(conn).dtype), to_device(w, par.x0.dtype), index
 
 
@@ -416,11 +422,11 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     if on_host:
         def real(y):  # the real free coordinates of the iterate (numpy)
             return y if index is None else y[index]
-    else:  # on the device: the iterate never comes down (`_reach`, `_final_points`)
-        dev_index = None if index is None else to_device(index, np.int32)
+    else:  # on the device: the iterate never comes down (`Parametrisation.reach`, `lift_reach`)
+        layouts = None if index is None else (free_layout(par.cons), free_layout(run_par.cons))
 
         def real(y):
-            return y if dev_index is None else _take(y, dev_index)
+            return y if layouts is None else _unpad(y, *layouts)
 
     y = np.zeros(run_par.n_free) if on_host else _zeros(run_par.n_free, np.dtype(par.x0.dtype))
     incidence = None  # the closed-form gradient's node incidences: once for every run
@@ -496,7 +502,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             break
         if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
             break
-        if strict and (par.reach(real(y)) if on_host else float(to_host(_reach(par, real(y))))) > FLAT_REACH:
+        if strict and par.reach(real(y)) > FLAT_REACH:
             strict, max_runs = False, max_runs + 1  # the flat regions may have held it back: once more, projected
             continue
         if runs >= 2 and not gain > p.restart_tol * abs(f0):
@@ -506,9 +512,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     elif on_host or project is None:
         x = par.final_points(real(y))  # numpy, exactly projected where a node left its flat region
     else:  # the mesh on the device: lifted there, and exactly projected (`project`) where a node left its region
-        v = real(y)
-        x = _lift(par, v)
-        if not (par.shortcut and float(to_host(_reach(par, v))) < 1.0):
+        with jax.enable_x64(True):
+            x, reach = lift_reach(par, real(y), np.dtype(par.x0.dtype))
+        if not (par.shortcut and float(to_host(reach)) < 1.0):
             x = project(x)
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
@@ -523,24 +529,10 @@ def _zeros(n: int, dtype):
 
 
 @program
-@jit
-def _take(y, index):
-    """The real free coordinates ``y[index]`` of a padded iterate, on the device."""
-    return y[index]
-
-
-@program
-@filter_jit
-def _reach(par: Parametrisation, v):
-    """`Parametrisation.reach` of `v` on the device (a scalar)."""
-    return par.reach_of(par.lift(v), jnp)
-
-
-@program
-@filter_jit
-def _lift(par: Parametrisation, v):
-    """`Parametrisation.lift` of `v` on the device: node coordinates ``(n, 3)``, not projected."""
-    return par.lift(v)
+@jit(static_argnums=(1, 2))
+def _unpad(y, real: tuple, padded: tuple):
+    """The real free coordinates of a padded iterate, on the device (`unpad_free`)."""
+    return unpad_free(y, real, padded)
 
 
 def _method(name):
@@ -589,6 +581,14 @@ def run_gradient(problem, method: str, params: dict):
             xl, sweeps, pre, _ = laplace_np(problem.x0, mesh.hexes, problem.cons, problem.colour,
                                             problem.info.topology.faces,
                                             _p.make_params(LaplaceParams, sweep, "smart-laplace"), smart=True)
+        elif problem.tables is not None:  # the mesh on the device: the sweeps' data built there
+            from .device_stars import sweep_data
+            from .laplace import LaplaceParams, laplace_device
+
+            data = sweep_data(problem.x0, problem.conn, problem.cons, problem.info.topology.faces,
+                              plane_points=problem.points64)
+            xl, sweeps, pre, _ = laplace_device(data, _p.make_params(LaplaceParams, sweep, "smart-laplace"),
+                                                smart=True)
         else:
             from .laplace import run_laplace
 
@@ -598,7 +598,16 @@ def run_gradient(problem, method: str, params: dict):
         # the device, its boundary nodes only (`project_boundary`: O(boundary) down and up)
         x0 = project_np(problem.host_cons, np.asarray(xl, dtype=np.float64)) if project is None else project(xl)
         del xl
-    par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled, dtype=problem.dtype)
+    if problem.tables is not None:  # the mesh on the device (the presmoothing's incidences and planes reused)
+        from .device_parametrisation import make_parametrisation_device
+
+        kept = {} if pre is None else {"inc": data.inc, "view": data.view, "planes": data.planes}
+        par = make_parametrisation_device(problem.points64, problem.conn, problem.info.topology.faces,
+                                          problem.info.feature_edges, problem.cons, x0, scaled=p.scaled,
+                                          dtype=problem.dtype, **kept)
+    else:
+        par = make_parametrisation(problem.mesh, problem.info, problem.cons, x0, scaled=p.scaled,
+                                   dtype=problem.dtype)
     extra = None
     if has_extra(problem.mesh):
         extra = extra_cells(problem.mesh, device=False)

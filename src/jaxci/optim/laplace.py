@@ -36,10 +36,10 @@ from ..metrics.objective import (
     no_extra,
     objective_and_max,
 )
-from ..transfer import program
+from ..transfer import program, to_host
 from . import _params as _p
 from ._buckets import bucket, device_dtype, to_device
-from ._local import HEX_EDGES, edge_neighbours, gather_star  # noqa: F401  (re-exported)
+from ._local import HEX_EDGES, edge_neighbours, gather_star, star_coords  # noqa: F401  (re-exported)
 from ._moves import (
     ColouredStars,
     colour_slice,
@@ -94,8 +94,9 @@ class LaplaceParams:
 
 
 
-def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n_steps: int):
-    """Move every node of one colour; returns new points and the largest move relative to h."""
+def _colour_step(x, conn, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n_steps: int):
+    """Move every node of one colour; returns new points and the largest move relative to h (`conn`: the
+    hexahedra the stars' incidences refer to, where they are incidences: `jaxci.optim._local.star_coords`)."""
     nodes, mask = cs_i.nodes, cs_i.mask
     safe = jnp.minimum(nodes, x.shape[0] - 1)
     x0 = x[safe]  # (M, 3)
@@ -108,7 +109,7 @@ def _colour_step(x, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n
     trials = x0[:, None] + fractions[None, :, None] * dt[:, None]  # (M, S, 3)
     trials = project_trials(cons, cs_i, trials)
     if smart:
-        E = gather_star(x, cs_i.star)
+        E = star_coords(x, conn, cs_i.star)
         f0 = local_sum(x, cs_i, E, x0[:, None])[:, 0]
         ft = local_sum(x, cs_i, E, trials)
         ok = (ft < f0[:, None]) & jnp.isfinite(ft)
@@ -135,7 +136,7 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
 
     def h_colour(i):
         cs_i = colour_slice(cs, i)
-        h = local_scale(x, cs_i, gather_star(x, cs_i.star))
+        h = local_scale(x, cs_i, star_coords(x, conn, cs_i.star))
         return jnp.where(h > 0, h, 1.0)
 
     h = jax.lax.map(h_colour, jnp.arange(cs.nodes.shape[0]))  # (n_colours, M)
@@ -149,8 +150,8 @@ def _laplace_run(x, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, smar
 
         def colour(i, c):
             x, mv = c
-            x, m = _colour_step(x, colour_slice(cs, i), nbr[i], nmask[i], h[i], cons, smart, p.backtrack if smart
-                                else 1)
+            x, m = _colour_step(x, conn, colour_slice(cs, i), nbr[i], nmask[i], h[i], cons, smart,
+                                p.backtrack if smart else 1)
             return x, jnp.maximum(mv, m)
 
         x, mv = jax.lax.fori_loop(0, n_colours, colour, (x, jnp.zeros((), dtype)))
@@ -208,6 +209,28 @@ def laplace(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, p: L
     hist = {"objective": np.asarray(hf)[: s + 1], "max_condition": np.asarray(hk)[: s + 1],
             "max_move": np.asarray(hm)[: s + 1]}
     return x, s, hist, {"method": "smart-laplace" if smart else "laplace", **dataclasses.asdict(p)}
+
+
+def laplace_device(data, p: LaplaceParams = LaplaceParams(), *, smart: bool = False):
+    """`laplace` on sweep data built on the device (`jaxci.optim.device_stars.sweep_data`: hexahedral meshes,
+    one device): the same sweeps, and only the history (O(sweeps)) comes down.
+
+    **Returns:** as `laplace`; the points a device array ``(n, 3)``.
+    """
+    x, s, hf, hk, hm = _laplace_run(data.x, data.conn, data.cs, data.nbr, data.nmask, data.cons, bool(smart), p,
+                                    no_extra(), data.weight, data.n_colours)
+    s, hf, hk, hm = to_host((s, hf, hk, hm))
+    s = int(s)
+    hist = {"objective": hf[: s + 1], "max_condition": hk[: s + 1], "max_move": hm[: s + 1]}
+    return head_rows(x, data.n_nodes), s, hist, {"method": "smart-laplace" if smart else "laplace",
+                                                  **dataclasses.asdict(p)}
+
+
+@program
+@jit(static_argnames=("n",))
+def head_rows(x, n: int):
+    """The first `n` rows of `x`, on the device (the real nodes of padded points)."""
+    return x[:n]
 
 
 def padded(p: LaplaceParams, devices=None, extra: ExtraCells | None = None) -> bool:

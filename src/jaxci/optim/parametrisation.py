@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._lazy import is_jax_array, jax, jnp, pytree_dataclass
+from .._lazy import enable_x64, is_jax_array, jax, jit, jnp, pytree_dataclass
 from ..cells import CORNER_NEIGHBOURS
 from ..geometry.boundary import BoundaryInfo
 from ..geometry.projection import Constraints, n_free, project, project_np
 from ..metrics import objective as mixed
-from ._buckets import bucket, free_index, free_layout, pad_constraints, pad_rows, to_device
+from ..transfer import program, to_host
+from ._buckets import bucket, free_index, free_layout, pad_connectivity, pad_rows, padded_constraints, to_device
 
 
 @pytree_dataclass(static=("shortcut", "strict"))
@@ -79,13 +80,25 @@ class Parametrisation:
 
     def reach(self, v) -> float:
         """How far the moving boundary nodes of `v` went into their flat regions: the largest distance from the
-        region's origin over 0.999 times its radius (numpy float64; < 1: `points` needs no projection)."""
+        region's origin over 0.999 times its radius (float64; < 1: `points` needs no projection). For a device
+        parametrisation and a device `v`, on the device (one scalar comes down)."""
+        if is_jax_array(self.x0) and is_jax_array(v):
+            with enable_x64():
+                return float(to_host(lift_reach(self, v, None)[1]))
         return float(self.reach_of(self._lift_np(v)))
 
     def final_points(self, v):
-        """`points` of `v`, in numpy float64 outside `jax.jit` (the exact `jaxci.geometry.projection.project_np` only
+        """`points` of `v`, in float64 outside `jax.jit` (the exact `jaxci.geometry.projection.project_np` only
         where a node left its flat region), returned in the dtype of `x0`: compiling `points` for this one call cost
-        0.5 s of the 729-element cold start, running it op by op 1 s."""
+        0.5 s of the 729-element cold start, running it op by op 1 s. For a device parametrisation and a device
+        `v`, the lift and the test run on the device (one scalar comes down); only where a node left its flat
+        region do the points come to the host for the exact projection."""
+        if is_jax_array(self.x0) and is_jax_array(v):
+            with enable_x64():
+                x, r = lift_reach(self, v, np.dtype(self.x0.dtype))
+                if self.shortcut and float(to_host(r)) < 1.0:
+                    return x
+                v = to_host(v)
         x = self._lift_np(v)
         if not (self.shortcut and self.reach_of(x) < 1.0):
             x = project_np(self.cons, x)
@@ -114,38 +127,94 @@ class Parametrisation:
         return jnp.where(scale > 0, jnp.concatenate([ui, us, ue]) / jnp.where(scale > 0, scale, 1.0), 0.0)
 
 
+@program
+@jit(static_argnames=("dtype",))
+def lift_reach(par: Parametrisation, v, dtype):
+    """`Parametrisation.lift` and `Parametrisation.reach` of a device `v` on the device, float64: ``(points,
+    reach)``, the lifted points in `dtype` (None: none)."""
+    f64 = jnp.float64
+    x = lift_points(jnp, par.x0.astype(f64), par.scale.astype(f64), par.cons, v.astype(f64))
+    return (None if dtype is None else x.astype(dtype)), par.reach_of(x, jnp)
+
+
 def pad_parametrisation(par: Parametrisation) -> tuple[Parametrisation, np.ndarray]:
-    """`par` padded to the size class of its mesh (`jaxci.optim._buckets`): ``(padded, index)``.
+    """`par` padded to the size class of its mesh (`jaxci.optim._buckets`): ``(padded, index)``; on the device
+    for a device `par` (one program: nothing moves between host and device), else built in numpy and placed.
 
     Nodes, the interior / surface / edge blocks of the free coordinates, the flat regions and every array of
     the constraints (`jaxci.optim._buckets.pad_constraints`) are rounded up to the ladder, with at least one
     padding node (the dummy node every padded entry points to). Padded free coordinates have scale 0 and a zero
     basis: they never move a node and their gradient is exactly 0; the padded flat regions are the dummy node's
-    own position with radius 1 (always inside). `index` ``(n_free,)`` is the position of every real free
-    coordinate in the padded vector: ``v = v_pad[index]``.
+    own position with radius 1 (always inside). `index` ``(n_free,)`` (numpy, from the sizes alone) is the
+    position of every real free coordinate in the padded vector: ``v = v_pad[index]`` (on the device:
+    `unpad_free`).
     """
-    n = int(par.x0.shape[0])
-    n_pad = bucket(n + 1)
-    real = free_layout(par.cons)
-    cons = pad_constraints(par.cons, n_pad)
-    padded = free_layout(cons)
-    index = free_index(real, padded)
+    n_pad = bucket(int(par.x0.shape[0]) + 1)
+    index = free_index(free_layout(par.cons), _padded_layout(par.cons))
+    if is_jax_array(par.x0):
+        return _pad_parametrisation_device(par, n_pad), index
+    host = jax.tree_util.tree_map(np.asarray, par)
+    return to_device(_padded_parametrisation(host, n_pad)), index
+
+
+def _padded_layout(cons: Constraints) -> tuple[int, int, int]:
+    """`free_layout` of `cons` padded (`jaxci.optim._buckets.pad_constraints`: each node list to the ladder)."""
+    return tuple(bucket(k) for k in free_layout(cons))
+
+
+@program
+@jit(static_argnames=("n_pad",))
+def _pad_parametrisation_device(par: Parametrisation, n_pad: int) -> Parametrisation:
+    return _padded_parametrisation(par, n_pad)
+
+
+def pad_problem_device(par: Parametrisation, conn, n_elements: int):
+    """`pad_parametrisation` of a device `par` with its hexahedra `conn` ``(8, N)`` padded to `n_elements`
+    (`jaxci.optim._buckets.pad_connectivity`) in the same program (one compilation per mesh size):
+    ``(padded, index, conn, weight)``."""
+    n_pad = bucket(int(par.x0.shape[0]) + 1)
+    padded, c, w = _pad_problem_device(par, conn, n_pad, int(n_elements))
+    return padded, free_index(free_layout(par.cons), _padded_layout(par.cons)), c, w
+
+
+@program
+@jit(static_argnames=("n_pad", "n_elements"))
+def _pad_problem_device(par: Parametrisation, conn, n_pad: int, n_elements: int):
+    c, w = pad_connectivity(conn.astype(jnp.int32), n_elements, par.x0.dtype)
+    return _padded_parametrisation(par, n_pad), c, w
+
+
+def _padded_parametrisation(par: Parametrisation, n_pad: int) -> Parametrisation:
+    """`pad_parametrisation`'s padded `par`, over the array module of its arrays (numpy, or jax.numpy under
+    `jax.jit`): the scale's blocks with zeros after each (no scatter)."""
+    xp = jnp if is_jax_array(par.x0) else np
+    n = par.x0.shape[0]
+    (ni, ns, ne), (pi, ps, pe) = free_layout(par.cons), _padded_layout(par.cons)
     dtype = par.x0.dtype
-    scale = np.zeros(3 * padded[0] + 2 * padded[1] + padded[2])
-    scale[index] = np.asarray(par.scale, np.float64)
-    flat = np.asarray(par.flat_nodes)
-    m = bucket(len(flat))
-    out = Parametrisation(
-        cons=cons,
-        x0=to_device(pad_rows(np.asarray(par.x0), n_pad, 0.0), dtype),
-        scale=to_device(scale, dtype),
-        flat_nodes=to_device(pad_rows(flat, m, n), np.int32),
-        flat_origin=to_device(pad_rows(np.asarray(par.flat_origin), m, 0.0), dtype),
-        flat_radius=to_device(pad_rows(np.asarray(par.flat_radius), m, 1.0), dtype),
+    s = par.scale.astype(dtype)
+    blocks = [s[: 3 * ni], xp.zeros(3 * (pi - ni), dtype), s[3 * ni : 3 * ni + 2 * ns], xp.zeros(2 * (ps - ns), dtype),
+              s[3 * ni + 2 * ns :], xp.zeros(pe - ne, dtype)]
+    m = bucket(par.flat_nodes.shape[0])
+    return Parametrisation(
+        cons=padded_constraints(par.cons, n_pad),
+        x0=pad_rows(par.x0, n_pad, 0.0),
+        scale=xp.concatenate(blocks),
+        flat_nodes=pad_rows(par.flat_nodes.astype(np.int32), m, n),
+        flat_origin=pad_rows(par.flat_origin.astype(dtype), m, 0.0),
+        flat_radius=pad_rows(par.flat_radius.astype(dtype), m, 1.0),
         shortcut=par.shortcut,
         strict=par.strict,
     )
-    return out, index
+
+
+@program
+@jit(static_argnames=("real", "padded"))
+def unpad_free(v, real: tuple[int, int, int], padded: tuple[int, int, int]):
+    """The real free coordinates ``(n_free,)`` of a padded vector `v` (`pad_parametrisation`'s layout; `real`
+    and `padded` the `jaxci.optim._buckets.free_layout` of the constraints before and after padding), on the
+    device: three slices."""
+    (ni, ns, ne), (pi, ps, _) = real, padded
+    return jnp.concatenate([v[: 3 * ni], v[3 * pi : 3 * pi + 2 * ns], v[3 * pi + 2 * ps : 3 * pi + 2 * ps + ne]])
 
 
 def lift_points(xp, x0, scale, c: Constraints, v):
@@ -196,24 +265,36 @@ def _flat_surface(points: np.ndarray, info: BoundaryInfo, cons: Constraints) -> 
 
 def _flat_edge(points: np.ndarray, info: BoundaryInfo, edge_nodes: np.ndarray) -> np.ndarray:
     """Per EDGE node, the half-length of the straight interval around it made by its two feature edges (0: none);
-    straightness is tested in the float64 geometry (the constraints' tangents may be float32)."""
+    straightness is tested in the float64 geometry (the constraints' tangents may be float32). `points` are
+    indexed by node (any array with the rows of the nodes of `info.feature_edges`)."""
+    return flat_intervals(points, np.asarray(info.feature_edges), np.asarray(edge_nodes))
+
+
+def flat_intervals(points: np.ndarray, fe: np.ndarray, edge_nodes: np.ndarray) -> np.ndarray:
+    """`_flat_edge` for the feature edges `fe` ``(m, 2)`` (node pairs) and the nodes `edge_nodes` ``(ne,)``:
+    vectorised over the nodes (a node with other than two feature edges has none)."""
     out = np.zeros(len(edge_nodes))
-    fe = np.asarray(info.feature_edges)
     if not len(edge_nodes) or not len(fe):
         return out
-    for j, v in enumerate(edge_nodes):
-        rows = fe[(fe[:, 0] == v) | (fe[:, 1] == v)]
-        if len(rows) != 2:
-            continue
-        other = np.where(rows[:, 0] == v, rows[:, 1], rows[:, 0])
-        rel = points[other] - points[v]
-        chord = rel[1] - rel[0]
-        t = chord / max(float(np.linalg.norm(chord)), 1e-300)
-        along = rel @ t
-        perp = np.linalg.norm(rel - along[:, None] * t, axis=1)
-        r = float(np.min(np.abs(along)))
-        if along.min() < 0 < along.max() and perp.max() <= 1e-12 * max(r, 1e-300):
-            out[j] = r
+    # each node's feature edges: the other end of each, the edges of a node in their order in `fe`
+    ends = fe.reshape(-1)
+    other = fe[:, ::-1].reshape(-1)
+    order = np.argsort(ends, kind="stable")
+    ends, other = ends[order], other[order]
+    lo = np.searchsorted(ends, edge_nodes, "left")
+    two = np.searchsorted(ends, edge_nodes, "right") - lo == 2
+    j = np.flatnonzero(two)
+    if not len(j):
+        return out
+    v = edge_nodes[j]
+    rel = points[other[np.stack([lo[j], lo[j] + 1], axis=1)]] - points[v][:, None]  # (k, 2, 3)
+    chord = rel[:, 1] - rel[:, 0]
+    t = chord / np.maximum(np.linalg.norm(chord, axis=1), 1e-300)[:, None]
+    along = np.einsum("kij,kj->ki", rel, t)
+    perp = np.linalg.norm(rel - along[..., None] * t[:, None], axis=2)
+    r = np.min(np.abs(along), axis=1)
+    ok = (along.min(axis=1) < 0) & (0 < along.max(axis=1)) & (perp.max(axis=1) <= 1e-12 * np.maximum(r, 1e-300))
+    out[j[ok]] = r[ok]
     return out
 
 
