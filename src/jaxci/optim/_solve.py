@@ -8,11 +8,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
 
 from ..errors import ConfigError
-from ..transfer import program
+from ..transfer import program, to_host
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED  # noqa: F401  (re-exported)
 
 
@@ -143,8 +142,8 @@ class _GaussNewtonArmijo(optx.AbstractGaussNewton):
 
 def result_message(result) -> str:
     """optimistix's result as a name (``"successful"``, ``"nonlinear_max_steps_reached"``, ...)."""
-    code = int(np.asarray(result._value))  # on the host: comparing the items compiles a program
+    code = int(to_host(result._value))  # on the host: comparing the items compiles a program
     for name in ("successful", "nonlinear_max_steps_reached", "nonfinite"):
-        if code == int(np.asarray(getattr(optx.RESULTS, name)._value)):
+        if code == int(to_host(getattr(optx.RESULTS, name)._value)):
             return name
     return str(optx.RESULTS[result])

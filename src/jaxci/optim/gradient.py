@@ -441,7 +441,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     # (not where the start is already outside a flat region, e.g. after presmooth or untangling, and not for a
     # solver that accepts every step: it would accept a NaN point)
     never_rejects = method == "gauss-newton" and p.gn_search == "none"
-    strict = par.shortcut and not never_rejects and not on_host and par.reach(np.zeros(nf)) < FLAT_REACH
+    strict = par.shortcut and not never_rejects and not on_host and par.reach(
+        _zeros(nf, np.dtype(par.x0.dtype)) if is_jax_array(par.x0) else np.zeros(nf)) < FLAT_REACH
     runs, max_runs = 0, 1 + int(p.restarts)
     host_fn = precond = None
     after = 0
