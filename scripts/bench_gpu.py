@@ -3,32 +3,34 @@
     python scripts/bench_gpu.py --out bench_gpu.json            # on a GPU machine: at most ~8 minutes
     python scripts/bench_gpu.py --small --out small.json        # the same sections at small sizes (CPU, tests)
 
-Every figure comes from a fresh process (a child of this script, or the ``jaxci`` command itself), so cold
-times include JAX's start and the compilation, and peak memory is the run's own. Sections, in order (each
-skipped once the time budget ``--budget`` would be overrun; the JSON is rewritten after each):
+Every figure comes from a fresh process (a child of this script, or the ``jaxci`` command itself), so times include
+JAX's start; ``cold`` is a process with an empty compilation cache (``JAXCI_CACHE_DIR``), ``warm`` a second
+process with the cache the cold one filled (`jaxci.compile_cache`: nothing traced or compiled anew). The default
+sections, in order (each skipped once the time budget ``--budget`` would be overrun; the JSON is rewritten after
+each):
 
 1. ``environment``: jax and jaxci versions, the devices, CPU count.
-2. ``throughput``: F and its gradient (`jaxci.metrics.hexahedron.objective_terms_and_grad`, the JAX engine's
-   kernel) on perturbed boxes, float32 and float64: corners per second, warm (median of 10 calls).
-3. ``threshold``: ``jaxci smooth`` (the default pipeline) in a fresh process with an empty compilation cache,
-   ``--engine jax`` on the accelerator against ``--engine host``, on boxes of increasing size: the size from
-   which the JAX engine wins is `jaxci.engine.ACCELERATOR_FROM`.
-4. ``lbfgs``: `jaxci.smooth` (default pipeline, stopped at max kappa/3 <= 1.0001) on perturbed boxes of 10^6 and
-   10^7 hexahedra: wall time per phase, iterations, peak device memory (bytes per hexahedron), the host engine
-   beside it at 10^6.
-5. ``cube60_pert``: untangling + smoothing of the tangled 216,000-hex cube (scripts/realmesh_corpus.py) by
-   ``jaxci smooth`` in a fresh process, both engines.
-6. ``global_ci``: 30 seeds of the paper's cube729, global CI with its defaults (1000 attempts), as one batched
-   program against one seed after the other on the accelerator, and the host engine (a few seeds, per seed).
-7. ``largest``: the largest box that the measured bytes per hexahedron say fits on the device, smoothed.
+2. ``kernels``: F and its gradient in every kernel form (`scripts/bench_kernel.py`: scatter-add, gather over the
+   node incidences, sorted segment sum; the C kernel on a CPU), float32 and float64, at 10^6 and 10^7 hexahedra:
+   corners per second, warm.
+3. ``smooth``: `jaxci.smooth` (the default pipeline, stopped at max kappa/3 <= 1.0001) on perturbed boxes of 10^6
+   and 10^7 hexahedra on the JAX engine, cold then warm: wall time, every phase with its compile seconds, its
+   seconds inside compiled programs (``device_s``), its host seconds (``host_s``) and the bytes moved each way
+   (``h2d_bytes``, ``d2h_bytes``; `jaxci.transfer`), the host's share of the wall time, the bytes against the
+   mesh's own (float64 coordinates and int64 connectivity), peak device memory per hexahedron.
+4. ``engines``: ``jaxci smooth`` (the CLI) at 10^4, 10^5 and 10^6 hexahedra, ``--engine jax`` cold and warm
+   against ``--engine host``: the size from which the accelerator wins (`jaxci.engine.ACCELERATOR_FROM`).
+5. ``largest``: the largest box that the bytes per hexahedron measured at 10^7 say fits on the device (at most
+   10^8 hexahedra), smoothed in a fresh process (cold: a size of its own).
 
-``host_prep`` and ``device_memory`` (run after ``lbfgs``) are `scripts/bench_host_prep.py` and
-`scripts/bench_device_memory.py` at 10^6 hexahedra on the JAX engine: the host's work around the solver (numpy
-and C on the CPU) by phase and by function, under cProfile, and the device bytes per hexahedron of the
-presmoothing and L-BFGS programs (live arrays and XLA's memory analysis).
+Further sections (``--sections``): ``host_prep`` and ``device_memory`` (`scripts/bench_host_prep.py`,
+`scripts/bench_device_memory.py` at 10^6: the host's work by function, the programs' device bytes),
+``global_ci`` (30 seeds of cube729 batched against one by one and the host engine), ``cube60_pert`` (the tangled
+216,000-hex cube, both engines).
 
-The targets of one H100-class GPU are printed beside the figures (F + gradient >= 20 G corners/s float32;
-10^7 hexahedra smoothed in <= 10 s, file I/O aside; <= 1.5 kB per hexahedron on the device).
+The targets of one H100/H200-class GPU are printed beside the figures (F + gradient >= 40 G corners/s float32;
+10^7 hexahedra in <= 10 s warm and <= 20 s cold, file I/O aside; <= 1 kB per hexahedron on the device; the JAX
+engine faster than the host engine from 10^5 hexahedra warm).
 """
 
 from __future__ import annotations
@@ -43,11 +45,14 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-TARGETS = {"corners_per_s_float32": 20e9, "smooth_1e7_s": 10.0, "bytes_per_hex": 1500.0}
-FULL = {"throughput": [100, 215], "threshold": [22, 46, 100], "lbfgs": [100, 215], "host_lbfgs": [100],
+TARGETS = {"corners_per_s_float32": 40e9, "smooth_1e7_warm_s": 10.0, "smooth_1e7_cold_s": 20.0,
+           "bytes_per_hex": 1000.0, "jax_wins_from_hexes": 100_000}
+SECTIONS = ("kernels", "smooth", "engines", "largest")
+MORE = ("host_prep", "device_memory", "global_ci", "cube60_pert")
+FULL = {"kernels": [1_000_000, 10_000_000], "smooth": [100, 215], "engines": [22, 46, 100], "largest": 464,
         "host_prep": [100], "cube": 60, "gci_seeds": 30, "gci_host_seeds": 4, "gci_attempts": None,
         "gci_case": "cube729"}
-SMALL = {"throughput": [8, 12], "threshold": [6, 10], "lbfgs": [8], "host_lbfgs": [8], "host_prep": [8], "cube": 9,
+SMALL = {"kernels": [1000], "smooth": [8], "engines": [6, 10], "largest": 12, "host_prep": [8], "cube": 9,
          "gci_seeds": 3, "gci_host_seeds": 2, "gci_attempts": 20, "gci_case": "cube27"}
 
 
@@ -65,36 +70,17 @@ def _rss_peak() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def child_throughput(n: int, dtype: str, block: int | None = None) -> dict:
-    import jax
-    import numpy as np
+def child_kernels(*sizes: int) -> dict:
+    """`bench_kernel.run`: F + gradient in every kernel form at `sizes` hexahedra, float32 and float64."""
+    from bench_kernel import run
 
-    jax.config.update("jax_enable_x64", True)
-    from jaxci.generate import perturb_box
-    from jaxci.metrics.hexahedron import objective_terms_and_grad, transposed
-
-    mesh = perturb_box(n, amplitude=0.3, seed=0)
-    x = jax.device_put(np.asarray(mesh.points, dtype))
-    conn = transposed(mesh.hexes)
-    fn = jax.jit(lambda x, c: objective_terms_and_grad(x, c, block=block))
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(x, conn))
-    compile_s = time.perf_counter() - t0
-    times = []
-    for _ in range(10):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(x, conn))
-        times.append(time.perf_counter() - t0)
-    t = float(np.median(times))
-    corners = 8 * mesh.n_hexes
-    from jaxci.metrics.hexahedron import grad_block
-
-    return {"hexes": mesh.n_hexes, "dtype": dtype, "block": grad_block(mesh.n_hexes) if block is None else block,
-            "seconds": t, "first_call_s": compile_s,
-            "corners_per_s": corners / t, "device_peak_bytes": _device_peak()}
+    return run(sizes=sizes, dtypes=("float32", "float64"), rounds=5)
 
 
 def child_smooth(n: int, engine: str, ktol: float) -> dict:
+    """`jaxci.smooth` of a perturbed box of n^3 hexahedra on `engine` in this (fresh) process: wall time, the
+    phases (`jaxci.phases`: compile, device and host seconds, bytes each way), the host's share and the bytes
+    against the mesh's own, peak memory."""
     from jaxci.generate import perturb_box
     from jaxci.smooth import smooth
 
@@ -105,11 +91,15 @@ def child_smooth(n: int, engine: str, ktol: float) -> dict:
     res = smooth(mesh, engine=engine, ktol=ktol)
     wall = time.perf_counter() - t0
     peak = _device_peak() if res.plan.engine == "jax" and res.plan.device != "cpu" else None
+    total = res.phases["total"]
+    own = mesh.points.nbytes + mesh.hexes.nbytes  # float64 coordinates, int64 connectivity
     return {"hexes": mesh.n_hexes, "engine": res.plan.to_dict(), "generate_s": gen, "wall_s": wall,
-            "phases": {k: v["seconds"] for k, v in res.phases.items()}, "iterations": res.iterations,
-            "max_condition": res.after.max_condition, "mean_condition": res.after.mean_condition,
-            "inverted": res.after.inverted_elements, "device_peak_bytes": peak,
-            "device_bytes_per_hex": None if peak is None else peak / mesh.n_hexes, "rss_peak_bytes": _rss_peak()}
+            "phases": res.phases, "host_share": total["host_s"] / max(total["seconds"], 1e-9),
+            "h2d_per_mesh": total["h2d_bytes"] / own, "d2h_per_mesh": total["d2h_bytes"] / own,
+            "iterations": res.iterations, "max_condition": res.after.max_condition,
+            "mean_condition": res.after.mean_condition, "inverted": res.after.inverted_elements,
+            "device_peak_bytes": peak, "device_bytes_per_hex": None if peak is None else peak / mesh.n_hexes,
+            "rss_peak_bytes": _rss_peak()}
 
 
 def child_global_ci(case: str, seeds: int, engine: str, mode: str, attempts: int | None) -> dict:
@@ -164,7 +154,7 @@ def child_device_memory(n: int) -> dict:
     return run(n ** 3)
 
 
-CHILDREN = {"throughput": child_throughput, "smooth": child_smooth, "global_ci": child_global_ci,
+CHILDREN = {"kernels": child_kernels, "smooth": child_smooth, "global_ci": child_global_ci,
             "host_prep": child_host_prep, "device_memory": child_device_memory, "environment": None}
 
 
@@ -185,21 +175,24 @@ class Bench:
         tmp.write_text(json.dumps(self.data, indent=1, default=str) + "\n")
         os.replace(tmp, out)
 
-    def child(self, section: str, name: str, *args, timeout: float = 600) -> dict:
-        """Run child `name` with `args` in a fresh process; its JSON, or ``{"error": ...}``."""
+    def child(self, section: str, name: str, *args, timeout: float = 600, cache: str | None = None) -> dict:
+        """Run child `name` with `args` in a fresh process (`cache`: its compilation cache folder; default an
+        empty one); its JSON, or ``{"error": ...}``."""
         timeout = min(timeout, self.left())
         if timeout < 5:
             return {"skipped": "time budget"}
         cmd = [sys.executable, __file__, "--child", name, *map(str, args)]
-        return _run_json(cmd, timeout, self._env())
+        with tempfile.TemporaryDirectory() as empty:
+            return _run_json(cmd, timeout, {**self._env(), "JAXCI_CACHE_DIR": cache or empty})
 
-    def cli(self, args: list[str], timeout: float = 600) -> dict:
-        """``jaxci ARGS --json`` in a fresh process with an empty compilation cache: its JSON and wall time."""
+    def cli(self, args: list[str], timeout: float = 600, cache: str | None = None) -> dict:
+        """``jaxci ARGS --json`` in a fresh process (`cache`: its compilation cache folder; default an empty one):
+        its JSON and wall time."""
         timeout = min(timeout, self.left())
         if timeout < 5:
             return {"skipped": "time budget"}
-        with tempfile.TemporaryDirectory() as cache:
-            env = {**self._env(), "JAXCI_CACHE_DIR": cache}
+        with tempfile.TemporaryDirectory() as empty:
+            env = {**self._env(), "JAXCI_CACHE_DIR": cache or empty}
             t0 = time.perf_counter()
             out = _run_json([sys.executable, "-m", "jaxci", *args, "--json", "--force"], timeout, env)
             out["process_wall_s"] = time.perf_counter() - t0
@@ -255,16 +248,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/bench_gpu.json")
     ap.add_argument("--small", action="store_true", help="small sizes (a CPU check of the script)")
     ap.add_argument("--budget", type=float, default=480.0, help="seconds for all sections (default 480)")
-    ap.add_argument("--sections", nargs="+", default=["throughput", "lbfgs", "host_prep", "device_memory",
-                                                       "threshold", "global_ci", "cube60_pert", "largest"],
-                    choices=["throughput", "lbfgs", "host_prep", "device_memory", "threshold", "global_ci",
-                             "cube60_pert", "largest"],
+    ap.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=[*SECTIONS, *MORE],
                     help="the sections to run, in this order")
-    ap.add_argument("--threshold-sizes", type=int, nargs="+", default=None, metavar="N",
-                    help="box edges of the threshold section (default 22 46 100; --small: 6 10)")
-    ap.add_argument("--blocks", type=int, nargs="+", default=None, metavar="B",
-                    help="also time F + gradient on the largest throughput box in float32 in blocks of B elements "
-                         "(0: the whole mesh)")
+    ap.add_argument("--engines-sizes", type=int, nargs="+", default=None, metavar="N",
+                    help="box edges of the engines section (default 22 46 100; --small: 6 10)")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
@@ -277,8 +264,8 @@ def main(argv=None) -> int:
         return 0
     sys.path[:0] = [str(ROOT / "src"), str(ROOT / "scripts")]
     size = dict(SMALL if args.small else FULL)
-    if args.threshold_sizes:
-        size["threshold"] = args.threshold_sizes
+    if args.engines_sizes:
+        size["engines"] = args.engines_sizes
     b = Bench(args)
     ktol = 1e-4
     b.data["environment"] = b.child("environment", "environment", timeout=120)
@@ -298,21 +285,34 @@ def main(argv=None) -> int:
 def _sections(b: Bench, args, size: dict, tmp: Path, ktol: float, gpu: bool) -> dict:
     """Each section of the benchmark as a function of no arguments (run in the order of ``--sections``)."""
 
-    def throughput():
-        runs = [(n, dt, None) for n in size["throughput"] for dt in ("float32", "float64")]
-        runs += [(size["throughput"][-1], "float32", blk) for blk in args.blocks or ()]
-        b.section("throughput", (b.child("throughput", "throughput", n, dt, blk, timeout=120) for n, dt, blk in runs))
+    def kernels():
+        b.section("kernels", [b.child("kernels", "kernels", *size["kernels"], timeout=300)])
 
-    def lbfgs():
-        rows = [("jax", n) for n in size["lbfgs"]]
-        rows[1:1] = [("host", n) for n in size["host_lbfgs"]]
-        b.section("lbfgs", (b.child("lbfgs", "smooth", n, e, ktol, timeout=300) for e, n in rows))
+    def smooth():
+        rows = []
+        for n in size["smooth"]:
+            cache = str(tmp / f"cache-smooth-{n}")
+            rows += [("jax", n, "cold", cache), ("jax", n, "warm", cache)]
+        rows.append(("host", size["smooth"][0], "-", None))
+        b.section("smooth", ({"process": kind, **b.child("smooth", "smooth", n, e, ktol, timeout=300, cache=cache)}
+                             for e, n, kind, cache in rows))
 
-    def threshold():
-        b.section("threshold", ({"hexes": n ** 3, "engine_asked": e,
-                                 **b.cli(["smooth", str(_box(tmp, n)), str(tmp / f"o{n}{e}.vtu"), "--engine", e],
-                                         timeout=180)}
-                                for n in size["threshold"] for e in ("jax", "host")))
+    def engines():
+        def row(n, e, kind):
+            cache = str(tmp / f"cache-engines-{n}")
+            return {"hexes": n ** 3, "engine_asked": e, "process": kind,
+                    **b.cli(["smooth", str(_box(tmp, n)), str(tmp / f"o{n}{e}.vtu"), "--engine", e], timeout=180,
+                            cache=cache if e == "jax" else None)}
+
+        b.section("engines", (row(n, e, kind) for n in size["engines"]
+                              for e, kind in (("jax", "cold"), ("jax", "warm"), ("host", "-"))))
+
+    def largest():
+        per_hex = max((r.get("device_bytes_per_hex") or 0 for r in b.data.get("smooth", [])), default=0)
+        total = ((b.data["environment"] or {}).get("accelerator") or {}).get("bytes_limit") or 0
+        if gpu and per_hex and total:
+            n = min(int((0.85 * total / per_hex) ** (1 / 3)), size["largest"])
+            b.section("largest", [b.child("largest", "smooth", n, "jax", ktol, timeout=600)])
 
     def global_ci():
         case, seeds, att = size["gci_case"], size["gci_seeds"], size["gci_attempts"]
@@ -329,13 +329,6 @@ def _sections(b: Bench, args, size: dict, tmp: Path, ktol: float, gpu: bool) -> 
                                    **b.cli(["smooth", str(path), str(tmp / f"c{e}.vtk"), "--engine", e], timeout=240)}
                                   for e in ("jax", "host")))
 
-    def largest():
-        per_hex = max((r.get("device_bytes_per_hex") or 0 for r in b.data.get("lbfgs", [])), default=0)
-        total = ((b.data["environment"] or {}).get("accelerator") or {}).get("bytes_limit") or 0
-        if gpu and per_hex and total:
-            n = int((0.85 * total / per_hex) ** (1 / 3))
-            b.section("largest", [b.child("largest", "smooth", n, "jax", ktol, timeout=600)])
-
     def host_prep():
         b.section("host_prep", (b.child("host_prep", "host_prep", n, "jax", timeout=300) for n in size["host_prep"]))
 
@@ -343,8 +336,8 @@ def _sections(b: Bench, args, size: dict, tmp: Path, ktol: float, gpu: bool) -> 
         b.section("device_memory", (b.child("device_memory", "device_memory", n, timeout=300)
                                     for n in size["host_prep"]))
 
-    return {"throughput": throughput, "lbfgs": lbfgs, "threshold": threshold, "global_ci": global_ci,
-            "cube60_pert": cube, "largest": largest, "host_prep": host_prep, "device_memory": device_memory}
+    return {"kernels": kernels, "smooth": smooth, "engines": engines, "largest": largest, "global_ci": global_ci,
+            "cube60_pert": cube, "host_prep": host_prep, "device_memory": device_memory}
 
 
 def child_environment() -> dict:
@@ -369,15 +362,25 @@ def child_environment() -> dict:
 
 def _summary(d: dict) -> None:
     """The figures against the targets, one line each."""
-    best32 = max((r.get("corners_per_s", 0) for r in d.get("throughput", []) if r.get("dtype") == "float32"),
-                 default=0)
+    rows = [r for k in d.get("kernels", []) for r in k.get("rows", [])]
+    best32 = max((r["corners_per_s"] for r in rows if r.get("dtype") == "float32"), default=0)
+    forms = ", ".join(f"{r['kernel']} {r['corners_per_s'] / 1e9:.2f}" for r in rows
+                      if r.get("dtype") == "float32" and r["hexes"] == max(x["hexes"] for x in rows))
     goal = TARGETS["corners_per_s_float32"] / 1e9
-    print(f"F + gradient, float32: {best32 / 1e9:.2f} G corners/s (target >= {goal:g})")
-    for r in d.get("lbfgs", []):
+    print(f"F + gradient, float32: {best32 / 1e9:.2f} G corners/s (target >= {goal:g}){f' [{forms}]' if forms else ''}")
+    for r in d.get("smooth", []):
         if "wall_s" in r:
-            print(f"smooth {r['hexes']:,} hexes, {r['engine']['name']} on {r['engine']['device']}: {r['wall_s']:.1f} s "
-                  f"(smooth phase {r['phases'].get('smooth', 0):.1f} s), max kappa/3 {r['max_condition']:.6f}, "
+            t = r["phases"]["total"]
+            print(f"smooth {r['hexes']:,} hexes, {r['engine']['name']} on {r['engine']['device']} ({r['process']}): "
+                  f"{r['wall_s']:.1f} s, compile {t['compile_seconds']:.1f} s, device {t['device_s']:.1f} s, host "
+                  f"{t['host_s']:.1f} s ({100 * r['host_share']:.0f}%), up {r['h2d_per_mesh']:.2f} / down "
+                  f"{r['d2h_per_mesh']:.2f} x the mesh, max kappa/3 {r['max_condition']:.6f}, "
                   f"{(r['device_bytes_per_hex'] or 0):.0f} B/hex on the device")
+    for r in d.get("engines", []):
+        if "process_wall_s" in r:
+            print(f"jaxci smooth {r['hexes']:,} hexes --engine {r['engine_asked']} ({r['process']}): "
+                  f"{r['process_wall_s']:.1f} s")
+    print(f"targets: {TARGETS}")
     print(f"elapsed {d.get('elapsed_s', 0):.0f} s")
 
 
