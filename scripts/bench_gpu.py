@@ -252,6 +252,8 @@ def main(argv=None) -> int:
                     help="the sections to run, in this order")
     ap.add_argument("--engines-sizes", type=int, nargs="+", default=None, metavar="N",
                     help="box edges of the engines section (default 22 46 100; --small: 6 10)")
+    ap.add_argument("--smooth-sizes", type=int, nargs="+", default=None, metavar="N",
+                    help="box edges of the smooth section (default 100 215; --small: 8)")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
@@ -266,6 +268,8 @@ def main(argv=None) -> int:
     size = dict(SMALL if args.small else FULL)
     if args.engines_sizes:
         size["engines"] = args.engines_sizes
+    if args.smooth_sizes:
+        size["smooth"] = args.smooth_sizes
     b = Bench(args)
     ktol = 1e-4
     b.data["environment"] = b.child("environment", "environment", timeout=120)
