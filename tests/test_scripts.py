@@ -75,8 +75,8 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     """scripts/bench_gpu.py, ready for a GPU: with --small on this CPU every section runs and writes its JSON
     (the accelerator's own sections, the largest box, are skipped without one)."""
     out = tmp_path / "gpu.json"
-    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_gpu.py"), "--small", "--out", str(out)],
-                       capture_output=True, text=True, timeout=600)
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_gpu.py"), "--small", "--threshold-sizes", "6",
+                        "--out", str(out)], capture_output=True, text=True, timeout=600)  # one size: 2 runs, not 4
     assert p.returncode == 0, p.stderr[-2000:]
     d = json.loads(out.read_text())
     assert d["environment"]["default_backend"] in ("cpu", "gpu", "tpu") and d["commit"] is not None
