@@ -15,6 +15,13 @@ from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.metrics.guard import cell_worst
 
+
+@pytest.fixture(autouse=True)
+def _small_meshes_on_the_device(monkeypatch):
+    """The run on the device from any size here (`device_run.DEVICE_RUN_FROM`: the suite's meshes are small)."""
+    monkeypatch.setattr(device_run, "DEVICE_RUN_FROM", 0)
+
+
 #: The phases of a run on the device, in order.
 DEVICE_PHASES = ["validate", "upload", "report", "setup", "smooth", "checks", "download"]
 
@@ -90,7 +97,8 @@ def test_a_real_mesh_with_a_sliding_boundary_is_smoothed_on_the_device():
 
 
 def test_other_runs_take_the_general_path():
-    """Tangled input, other methods, coincident nodes, the host engine: no upload phase."""
+    """Tangled input, other methods, coincident nodes, the host engine, a mesh under `DEVICE_RUN_FROM`
+    hexahedra: no upload phase."""
     box = perturb_box(3, amplitude=0.2, seed=1)
     tangled = box.with_points(box.points * np.where(np.arange(box.n_nodes) == 21, -1.0, 1.0)[:, None])
     assert tangled.inverted_hexes
@@ -98,3 +106,8 @@ def test_other_runs_take_the_general_path():
                      (box, {"engine": "host"})):
         res = jaxci.smooth(mesh, **kw)
         assert "upload" not in res.phases, kw
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(device_run, "DEVICE_RUN_FROM", box.n_hexes + 1)
+        assert "upload" not in jaxci.smooth(box, engine="jax").phases
+        mp.setattr(device_run, "DEVICE_RUN_FROM", box.n_hexes)
+        assert "upload" in jaxci.smooth(box, engine="jax").phases

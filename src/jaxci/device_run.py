@@ -42,7 +42,7 @@ from .geometry.device_topology import device_mesh_topology
 from .geometry.projection import n_free
 from .invariants import enforce_device
 from .mesh import HexMesh, check_volume
-from .methods import Problem
+from .methods import OPTIMAL_F, MethodRun, Problem, cap_note, standard_history
 from .metrics.device import quality_report_device, volume_moments, worst_elements_device
 from .result import SmoothResult
 from .transfer import program, to_device, to_host
@@ -50,13 +50,21 @@ from .transfer import program, to_device, to_host
 #: The methods whose run lives on the device (`applies`).
 DEVICE_METHODS = ("lbfgs",)
 
+#: Hexahedra from which the run lives on the device (`applies`). Its programs are compiled for the mesh's own
+#: sizes (the boundary's, the colours', the worst window's), so a mesh of a new size compiles about 27 of them
+#: (7.5 s on a 2-core Xeon; 0.7 s to load them from the persistent cache at a size seen before), where the general
+#: path's compiled programs are shared by every mesh of a size class and its O(mesh) host stages take well under
+#: that on a smaller mesh.
+DEVICE_RUN_FROM = 100_000
+
 
 def applies(mesh: HexMesh, method: str, plan, shard, n_pairs: int, tangled: bool, untangle: str) -> bool:
     """Whether `jaxci.smooth` runs `method` on `mesh` with its mesh on the device (see the module docstring):
-    the JAX engine's `plan`, one device (`shard` None), linear hexahedra only, no coincident node pairs
-    (`n_pairs`), no inverted element (`tangled`) and no untangling asked for, a method of `DEVICE_METHODS`."""
+    the JAX engine's `plan`, one device (`shard` None), linear hexahedra only, at least `DEVICE_RUN_FROM` of
+    them, no coincident node pairs (`n_pairs`), no inverted element (`tangled`) and no untangling asked for, a
+    method of `DEVICE_METHODS`."""
     return (plan.engine == "jax" and shard is None and method in DEVICE_METHODS and not n_pairs and not tangled
-            and untangle in ("auto", "never") and hexahedral(mesh))
+            and untangle in ("auto", "never") and hexahedral(mesh) and mesh.n_hexes >= DEVICE_RUN_FROM)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,10 +126,9 @@ def _as_float64(x):
 def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angle, fix_boundary, fixed_nodes,
                        fixed_sets, params: dict, notes: list, clock, keep_worst: bool):
     """`jaxci.smooth._smooth_unit` with the mesh on the device (a generator: it yields the
-    `jaxci.smooth.MethodRun` of the method and receives its output). Returns ``(points, result)``: the result's
+    `jaxci.methods.MethodRun` of the method and receives its output). Returns ``(points, result)``: the result's
     coordinates in the mesh's own frame (float64, host) and the `SmoothResult` (its mesh and wall time are
     filled in by `jaxci.smooth`)."""
-    from .smooth import OPTIMAL_F, MethodRun, _standard_history, cap_note
 
     np_dtype = np.float64 if plan.dtype == "float64" else np.float32
     with clock.phase("upload"):
@@ -171,7 +178,7 @@ def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angl
     with clock.phase("download"):
         real = dm.download(points)
     res = SmoothResult(
-        mesh=mesh, history=_standard_history(history), iterations=int(iterations), wall_time=0.0, method=method,
+        mesh=mesh, history=standard_history(history), iterations=int(iterations), wall_time=0.0, method=method,
         params=resolved, before=before, after=after, boundary=info.counts, node_class=info.node_class,
     )
     return real, res

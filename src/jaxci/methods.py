@@ -5,6 +5,7 @@ engine its plan names (`run_method`, `method_params`; the plan: `jaxci.engine`),
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 from collections.abc import Sequence
@@ -33,6 +34,13 @@ METHODS = ("auto", "ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton
 #: untangling (216,000 hexes, max kappa/3 25.8) reached max kappa/3 1.0001 in about 100 host L-BFGS steps alone,
 #: in 3 sweeps and about 20 steps after them.
 AUTO_PRESMOOTH_FROM = 100_001
+
+#: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
+OPTIMAL_F = 1e-14
+
+#: The iteration cap of each method: the parameter that stops it, for the note when it does.
+_CAPS = {"ci": "max_sweeps", "laplace": "max_sweeps", "smart-laplace": "max_sweeps", "bfgs": "max_steps",
+         "lbfgs": "max_steps", "cg": "max_steps", "lm": "max_steps", "gauss-newton": "max_steps"}
 
 @dataclasses.dataclass(frozen=True)
 class Problem:
@@ -240,3 +248,49 @@ def method_param_class(method: str):
 
         return LaplaceParams
     return None
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodRun:
+    """What `smooth_steps` asks its driver to run: `method` with `seed` and `params` on `problem` (a `Problem`,
+    whose `plan` says where), timed in `clock`'s ``smooth`` phase. The driver sends back ``(points, iterations,
+    history, resolved params)`` (`jaxci.methods.run_method`)."""
+
+    problem: Problem
+    method: str
+    seed: int
+    params: dict
+    clock: object
+
+    def context(self):
+        """The contexts the method runs in: the plan's dtype and device on the JAX engine."""
+        plan = self.problem.plan
+        stack = contextlib.ExitStack()
+        if plan.engine != "host":
+            stack.enter_context(jax.enable_x64(plan.dtype == "float64"))
+        stack.enter_context(plan.context())
+        return stack
+
+    def run(self):
+        """The method alone, in its plan's contexts, timed in its clock: `run_method`'s output."""
+        with self.context(), self.clock.phase("smooth"):
+            return run_method(self.problem, self.method, self.seed, self.params)
+
+
+def cap_note(method: str, resolved: dict, iterations, history: dict) -> str | None:
+    """The note of a method that stopped at its iteration cap (`_CAPS`), or None."""
+    cap = _CAPS.get(method)
+    if cap is not None and cap in resolved:
+        run = int(iterations) - int(np.asarray(history.get("presmooth", 0)))
+        if run >= int(resolved[cap]):
+            return (f"{method} stopped at its cap of {resolved[cap]} iterations ({cap}) before it converged; "
+                    f"--param {cap}=N lets it go further")
+    return None
+
+
+def standard_history(h: dict) -> dict:
+    """Every method's history with `objective` and `max_condition` lists (entry 0 = input)."""
+    out = {k: np.asarray(v).tolist() for k, v in h.items()}
+    if "objective" not in out and "best" in out:
+        out["objective"] = out["best"]
+    return out

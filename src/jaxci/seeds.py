@@ -17,8 +17,8 @@ import numpy as np
 
 from ._lazy import jax
 from .errors import ConfigError
-from .methods import free_scale, global_parametrisation, method_params
-from .smooth import MethodRun, SmoothResult, smooth_steps
+from .methods import MethodRun, free_scale, global_parametrisation, method_params
+from .smooth import SmoothResult, smooth_steps
 
 
 def smooth_seeds(meshes, method: str, seeds, *, errors: str = "raise", **kwargs) -> list:

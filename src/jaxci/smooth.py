@@ -38,12 +38,16 @@ from .mesh import HexMesh
 from .methods import (  # noqa: F401  (Problem, build_problem, method_params ... are also reached as jaxci.smooth.X)
     AUTO_PRESMOOTH_FROM,
     METHODS,
+    OPTIMAL_F,
+    MethodRun,
     Problem,
     auto_pipeline,
     build_problem,
+    cap_note,
     free_scale,
     method_params,
     run_method,
+    standard_history,
 )
 from .metrics import objective as mixed
 from .metrics.elements import objective_on_host
@@ -54,13 +58,6 @@ from .result import SmoothResult
 POLISH_ON_HOST = ("the worst-element polish runs on the host engine (numpy and C kernels) after the JAX engine's "
                   "solve, on a window of the worst cells where the mesh lives on the device: its small "
                   "sub-problems, one per level, would each be compiled anew")
-
-#: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
-OPTIMAL_F = 1e-14
-
-#: The iteration cap of each method: the parameter that stops it, for the note when it does.
-_CAPS = {"ci": "max_sweeps", "laplace": "max_sweeps", "smart-laplace": "max_sweeps", "bfgs": "max_steps",
-         "lbfgs": "max_steps", "cg": "max_steps", "lm": "max_steps", "gauss-newton": "max_steps"}
 
 _DTYPES = {"float32": np.float32, "float64": np.float64}
 
@@ -154,33 +151,6 @@ def smooth(
                                 untangle=untangle, untangle_boundary=untangle_boundary,
                                 merge_coincident=merge_coincident, keep_worst=keep_worst, clock=clock,
                                 devices=devices, engine=engine, device=device, **params))
-
-
-@dataclasses.dataclass(frozen=True)
-class MethodRun:
-    """What `smooth_steps` asks its driver to run: `method` with `seed` and `params` on `problem` (a `Problem`,
-    whose `plan` says where), timed in `clock`'s ``smooth`` phase. The driver sends back ``(points, iterations,
-    history, resolved params)`` (`jaxci.methods.run_method`)."""
-
-    problem: Problem
-    method: str
-    seed: int
-    params: dict
-    clock: object
-
-    def context(self):
-        """The contexts the method runs in: the plan's dtype and device on the JAX engine."""
-        plan = self.problem.plan
-        stack = contextlib.ExitStack()
-        if plan.engine != "host":
-            stack.enter_context(jax.enable_x64(plan.dtype == "float64"))
-        stack.enter_context(plan.context())
-        return stack
-
-    def run(self):
-        """The method alone, in its plan's contexts, timed in its clock: `run_method`'s output."""
-        with self.context(), self.clock.phase("smooth"):
-            return run_method(self.problem, self.method, self.seed, self.params)
 
 
 def _drive(steps):
@@ -504,22 +474,11 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
         after = dataclasses.replace(after, worst_elements=worst_elements(
             mesh, points, problem.info.node_class, problem.info.feature_edges))
     res = SmoothResult(
-        mesh=mesh, history=_standard_history(history), iterations=int(iterations), wall_time=0.0, method=method,
+        mesh=mesh, history=standard_history(history), iterations=int(iterations), wall_time=0.0, method=method,
         params=resolved, before=before, after=after, boundary=problem.info.counts,
         node_class=np.asarray(problem.info.node_class),
     )
     return points, res
-
-
-def cap_note(method: str, resolved: dict, iterations, history: dict) -> str | None:
-    """The note of a method that stopped at its iteration cap (`_CAPS`), or None."""
-    cap = _CAPS.get(method)
-    if cap is not None and cap in resolved:
-        run = int(iterations) - int(np.asarray(history.get("presmooth", 0)))
-        if run >= int(resolved[cap]):
-            return (f"{method} stopped at its cap of {resolved[cap]} iterations ({cap}) before it converged; "
-                    f"--param {cap}=N lets it go further")
-    return None
 
 
 def _refuse_stuck(mesh: HexMesh, info: BoundaryInfo) -> None:
@@ -564,11 +523,3 @@ def _fixed_nodes(mesh: HexMesh, fixed_nodes) -> np.ndarray:
 
 def _label(mesh: HexMesh, cell_type: str, k: int) -> str:
     return f"element {mesh.hex_label(k)}" if cell_type == "hexahedron" else mixed.cell_label(mesh, cell_type, k)
-
-
-def _standard_history(h: dict) -> dict:
-    """Every method's history with `objective` and `max_condition` lists (entry 0 = input)."""
-    out = {k: np.asarray(v).tolist() for k, v in h.items()}
-    if "objective" not in out and "best" in out:
-        out["objective"] = out["best"]
-    return out

@@ -141,7 +141,10 @@ def to_device(a, dtype=None, device=None):
 
 def to_host(a):
     """Device arrays `a` (an array or a pytree) as numpy arrays (numpy leaves pass through); the bytes of the
-    device arrays are counted (``d2h_bytes``). `explicit` is True while it runs."""
+    device arrays are counted (``d2h_bytes``). `explicit` is True while it runs. Without JAX loaded nothing can
+    be on a device: `a` is returned as it is (the host engine never imports JAX)."""
+    if not loaded():
+        return a
     _explicit.on = True
     try:
         out = jax.device_get(a)

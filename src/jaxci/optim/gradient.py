@@ -422,7 +422,11 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     if on_host:
         def real(y):  # the real free coordinates of the iterate (numpy)
             return y if index is None else y[index]
-    else:  # on the device: the iterate never comes down (`Parametrisation.reach`, `lift_reach`)
+    elif project is None:  # compiled, the mesh on the host: the iterate comes down (programs of the size class only)
+        def real(y):
+            y = to_host(y)
+            return y if index is None else y[index]
+    else:  # the mesh on the device: the iterate never comes down (`Parametrisation.reach`, `lift_reach`)
         layouts = None if index is None else (free_layout(par.cons), free_layout(run_par.cons))
 
         def real(y):
@@ -442,7 +446,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     # solver that accepts every step: it would accept a NaN point)
     never_rejects = method == "gauss-newton" and p.gn_search == "none"
     strict = par.shortcut and not never_rejects and not on_host and par.reach(
-        _zeros(nf, np.dtype(par.x0.dtype)) if is_jax_array(par.x0) else np.zeros(nf)) < FLAT_REACH
+        _zeros(nf, np.dtype(par.x0.dtype)) if project is not None else np.zeros(nf)) < FLAT_REACH
     runs, max_runs = 0, 1 + int(p.restarts)
     host_fn = precond = None
     after = 0
