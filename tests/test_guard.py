@@ -54,7 +54,7 @@ def test_smooth_applies_the_guard_to_any_method(case, monkeypatch):
 
     from jaxci.mesh import to_unit, unit_frame
 
-    S = importlib.import_module("jaxci.smooth")  # the module (the package's `jaxci.smooth` is the function)
+    S = importlib.import_module("jaxci.methods")  # where `MethodRun.run` looks up `run_method`
     mesh, _, bad, _ = case
     real = S.run_method
     bad_unit = to_unit(bad, unit_frame(mesh.points))  # smooth works in the unit frame
