@@ -106,8 +106,9 @@ def test_other_runs_take_the_general_path():
                      (box, {"engine": "host"})):
         res = jaxci.smooth(mesh, **kw)
         assert "upload" not in res.phases, kw
+        if res.plan.engine == "jax":
+            plan = res.plan
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(device_run, "DEVICE_RUN_FROM", box.n_hexes + 1)
-        assert "upload" not in jaxci.smooth(box, engine="jax").phases
-        mp.setattr(device_run, "DEVICE_RUN_FROM", box.n_hexes)
-        assert "upload" in jaxci.smooth(box, engine="jax").phases
+        for threshold, applies in ((box.n_hexes + 1, False), (box.n_hexes, True)):
+            mp.setattr(device_run, "DEVICE_RUN_FROM", threshold)
+            assert device_run.applies(box, "lbfgs", plan, None, 0, False, "auto") is applies

@@ -76,8 +76,8 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     JSON (the largest box, the accelerator's own, is skipped without one): the kernel forms, the JAX engine cold
     then warm with its phases' device and host seconds and bytes, the engines side by side."""
     out = tmp_path / "gpu.json"
-    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_gpu.py"), "--small", "--out", str(out)],
-                       capture_output=True, text=True, timeout=900)
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_gpu.py"), "--small", "--engines-sizes", "6",
+                        "--out", str(out)], capture_output=True, text=True, timeout=900)  # one size: 3 runs, not 6
     assert p.returncode == 0, p.stderr[-2000:]
     d = json.loads(out.read_text())
     assert d["environment"]["default_backend"] in ("cpu", "gpu", "tpu") and d["commit"] is not None
