@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import MESQUITE, SHARED
+from helpers import MESQUITE, SHARED, SHARED_REASON
 
 from jaxci import read_mesh
 from jaxci.generate import perturb_box
@@ -212,7 +212,7 @@ def test_device_path_refuses_other_cells():
                                          ("two-block.g", np.float64), ("doubled_hex", np.float32)])
 def test_device_constraints_are_build_constraints(name, dtype):
     if name not in HEXAHEDRAL:
-        pytest.skip("../shared/data not present")
+        pytest.skip(SHARED_REASON)
     mesh = HEXAHEDRAL[name]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -232,7 +232,7 @@ def test_device_constraints_are_build_constraints(name, dtype):
 @pytest.mark.parametrize("name", ["box", "annulus", "pave3.e.vtk"])
 def test_project_boundary_is_project_np(name):
     if name not in HEXAHEDRAL:
-        pytest.skip("../shared/data not present")
+        pytest.skip(SHARED_REASON)
     mesh = HEXAHEDRAL[name]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

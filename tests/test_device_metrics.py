@@ -11,7 +11,7 @@ import math
 import jax
 import numpy as np
 import pytest
-from helpers import MESQUITE
+from helpers import MESQUITE, SHARED_REASON
 
 import jaxci
 from jaxci import transfer
@@ -26,7 +26,6 @@ from jaxci.metrics.device import inverted_hexes, quality_report_device, volume_m
 from jaxci.metrics.report import quality_report, worst_elements
 
 REAL = sorted(MESQUITE.glob("*.vtk")) if MESQUITE.is_dir() else []
-_NO_REAL = "the real meshes of ../shared/data/mesquite are absent"
 
 #: Float figures agree to rounding (XLA may fuse multiply-adds where numpy/C round each product).
 RTOL = 1e-12
@@ -47,7 +46,7 @@ def _real(path):
 MESHES = [pytest.param(_box, id="box"), pytest.param(_tangled, id="tangled-box")] + [
     pytest.param(lambda p=p: _real(p), id=p.name) for p in REAL]
 if not REAL:
-    MESHES.append(pytest.param(None, id="real", marks=pytest.mark.skip(reason=_NO_REAL)))
+    MESHES.append(pytest.param(None, id="real", marks=pytest.mark.skip(reason=SHARED_REASON)))
 
 
 def _on_device(mesh: HexMesh, points=None):

@@ -4,11 +4,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import jax
 import numpy as np
 import pytest
+from helpers import MESQUITE, SHARED_REASON
 
 from jaxci.generate import perturb_box
 from jaxci.geometry.device_colouring import colour_nodes_device, incidences, valid_colouring
@@ -30,8 +29,6 @@ from jaxci.optim.parametrisation import (
 )
 from jaxci.transfer import to_device
 
-MESQUITE = Path(__file__).resolve().parents[2] / "shared" / "data" / "mesquite"
-
 
 def _mesh(name):
     """A box (``box<k>``: perturb_box(k)) or a Mesquite mesh (skipped when ../shared is absent)."""
@@ -39,7 +36,7 @@ def _mesh(name):
         return perturb_box(int(name[3:]), amplitude=0.3, seed=4)
     path = MESQUITE / name
     if not path.exists():
-        pytest.skip(f"{path} absent: the real test meshes live in ../shared/data/mesquite")
+        pytest.skip(SHARED_REASON)
     return read_mesh(path)
 
 

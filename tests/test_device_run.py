@@ -73,8 +73,7 @@ def test_the_same_mesh_as_the_general_path():
     np.testing.assert_allclose(res.mesh.points, ref.mesh.points, rtol=0, atol=1e-9)
 
 
-@pytest.mark.skipif(not (MESQUITE / "1000hex-block-internal-bias.vtk").exists(),
-                    reason="../shared/data/mesquite is absent (the real meshes beside the repository)")
+@pytest.mark.shared
 def test_a_real_mesh_with_a_sliding_boundary_is_smoothed_on_the_device():
     mesh = jaxci.read_mesh(MESQUITE / "1000hex-block-internal-bias.vtk")
     jaxci.smooth(mesh, engine="jax")

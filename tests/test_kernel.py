@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import MESQUITE
+from helpers import MESQUITE, SHARED_REASON
 
 from jaxci.generate import perturb_box
 from jaxci.metrics import incidence as I
@@ -26,7 +26,7 @@ def _mesh(name: str):
 
     path = MESQUITE / name
     if not path.exists():
-        pytest.skip(f"{path} is absent (the shared test meshes are not on this machine)")
+        pytest.skip(SHARED_REASON)
     return read_mesh(path)
 
 
