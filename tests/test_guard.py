@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxci
-from jaxci.generate import perturb_box
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics import guard
 
 

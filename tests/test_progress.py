@@ -1,4 +1,4 @@
-"""Progress on long work: `jaxci.phases`' progress and step events (nothing when nobody listens), the command's
+"""Progress on long work: `jaxci.runtime.phases`' progress and step events (nothing when nobody listens), the command's
 progress line (`jaxci.cli._progress.Display`), and through real processes: on a terminal (a pseudo-terminal the
 test opens) `jaxci smooth` and `jaxci run` draw it; piped, or with ``--quiet``, stderr stays empty; ``-v`` keeps its
 phase lines."""
@@ -14,9 +14,10 @@ import sys
 import pytest
 from helpers import CUBE27_EXPERIMENT, MESQUITE
 
-from jaxci import native, phases
+from jaxci import native
 from jaxci.cli._progress import Display, step_text
-from jaxci.phases import PhaseClock
+from jaxci.runtime.phases import PhaseClock
+from jaxci.runtime.process import phases
 
 PAVE3 = MESQUITE / "pave3.e.vtk"  # 106 inverted elements: untangling rounds, then a few hundred L-BFGS steps
 
@@ -56,7 +57,7 @@ def test_steps_and_stages_reach_the_running_phase(monkeypatch):
 
 def test_listening_reaches_clocks_made_without_a_listener():
     import jaxci
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
 
     events = []
     with phases.listening(lambda kind, name, rec: events.append((kind, name, rec))):

@@ -2,7 +2,7 @@
 phase, the stage inside it, the latest step, F, the worst element (max kappa/3) and the time since the command
 started; and with ``--verbose`` a line per finished phase (its time and compilation) and per stage.
 
-`Display` is a `jaxci.phases.PhaseClock` listener (``on_event``). The live line is drawn only where stderr is a
+`Display` is a `jaxci.runtime.phases.PhaseClock` listener (``on_event``). The live line is drawn only where stderr is a
 terminal (and not with ``--quiet``): piped or redirected, stderr gets nothing but the ``--verbose`` lines. A
 thread redraws the line twice a second so that the elapsed time moves during a long compiled call that reports
 nothing; `close` (always called, also on an error or an interrupt) stops it and erases the line before anything
