@@ -50,8 +50,8 @@ def run(n: int, repeats: int = 3) -> dict:
 
     from jaxci.mesh.generate import perturb_box
     from jaxci.metrics.report import quality_report
+    from jaxci.runtime import transfer
     from jaxci.runtime.phases import compile_totals
-    from jaxci.runtime.process import transfer
 
     jax.config.update("jax_enable_x64", True)
     mesh = perturb_box(n, amplitude=0.3, seed=0)

@@ -28,8 +28,8 @@ import numpy as np
 
 def _measure(fn) -> tuple[dict, object]:
     """``(figures, result)`` of `fn()`: wall, compile, device and host seconds, bytes each way."""
+    from jaxci.runtime import transfer
     from jaxci.runtime.phases import compile_totals
-    from jaxci.runtime.process import transfer
 
     c0, t0 = compile_totals(), transfer.totals()
     w0 = time.perf_counter()

@@ -136,7 +136,7 @@ def no_implicit_transfers():
     converts it inside numpy's C code and is not caught here."""
     import jax
 
-    from jaxci.runtime.process import transfer
+    from jaxci.runtime import transfer
 
     array_type = type(jax.device_put(0.0))
     value = array_type.__dict__["_value"]

@@ -20,10 +20,10 @@ import numpy as np
 import optimistix as optx
 import pytest
 
+from jaxci.runtime import compile_cache
 from jaxci.runtime._export import _dumps, exportable
 from jaxci.runtime._keys import Keyer, Unkeyable
 from jaxci.runtime._lazy import jit, pytree_dataclass
-from jaxci.runtime.process import compile_cache
 from jaxci.runtime.transfer import compile_totals, program
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")

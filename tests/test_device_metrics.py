@@ -23,7 +23,7 @@ from jaxci.metrics import guard
 from jaxci.metrics import objective as mixed
 from jaxci.metrics.device import inverted_hexes, quality_report_device, volume_moments, worst_elements_device
 from jaxci.metrics.report import quality_report, worst_elements
-from jaxci.runtime.process import transfer
+from jaxci.runtime import transfer
 
 REAL = sorted(MESQUITE.glob("*.vtk")) if MESQUITE.is_dir() else []
 _NO_REAL = "the real meshes of ../shared/data/mesquite are absent"

@@ -292,7 +292,7 @@ def test_reach_and_final_points_of_a_device_parametrisation(step):
 def test_parametrisation_takes_the_sweep_datas_incidences_and_planes():
     """The presmoothing's incidences, boundary view and planes (found on the float64 points) serve the
     parametrisation: the same one as built alone, with fewer programs and transfers."""
-    from jaxci.runtime.process import transfer
+    from jaxci.runtime import transfer
 
     mesh, pr = _problem("1000hex-block-internal-bias.vtk", np.float32)
     info = pr.info

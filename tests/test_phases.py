@@ -104,7 +104,7 @@ def test_every_phase_gives_the_heap_free_pages_back(monkeypatch):
     Linux with glibc it runs, elsewhere it is a no-op that says so."""
     import sys
 
-    from jaxci.runtime.process import memory, phases
+    from jaxci.runtime import memory, phases
 
     calls = []
     monkeypatch.setattr(phases, "release_free_memory", lambda: calls.append(1))

@@ -16,8 +16,8 @@ from helpers import CUBE27_EXPERIMENT, MESQUITE
 
 from jaxci import native
 from jaxci.cli._progress import Display, step_text
+from jaxci.runtime import phases
 from jaxci.runtime.phases import PhaseClock
-from jaxci.runtime.process import phases
 
 PAVE3 = MESQUITE / "pave3.e.vtk"  # 106 inverted elements: untangling rounds, then a few hundred L-BFGS steps
 
