@@ -77,8 +77,8 @@ def test_display_draws_in_place_and_erases():
     d.close()
     text = out.getvalue()
     assert "\r\x1b[2Kjaxci: [" in text and "smooth: L-BFGS step 12: F 0.5, worst kappa/3 1.25" in text
-    assert text.endswith("\r\x1b[2K")  # erased: the next line starts clean
-    assert "\n" not in text  # nothing permanent without --verbose
+    assert text.endswith("\x1b[2K") and "\x1b[?25h" in text  # erased, the cursor shown: the next line starts clean
+    assert text.count("\n") == text.count("\x1b[1A")  # nothing permanent without --verbose (every newline taken back)
     d.close()  # twice is harmless
     assert out.getvalue() == text
 
@@ -146,7 +146,7 @@ def test_smooth_shows_progress_on_a_terminal_only(tmp_path):
     assert "\r\x1b[2K" in err  # drawn in place
     assert "untangle: round 1: min det J" in err  # a stage inside a phase
     assert "smooth: L-BFGS step 1: F " in err and "worst kappa/3 " in err  # a step, F and the worst element
-    assert err.endswith("\r\x1b[2K")  # erased before the result was printed
+    assert err.endswith("\x1b[2K")  # erased before the result was printed
     assert "after (" in out and "\x1b" not in out
 
     code, out, err = _run(["smooth", PAVE3, "b.vtk"], tty=False, cwd=tmp_path)
@@ -167,6 +167,27 @@ def test_run_shows_the_run_and_its_steps_on_a_terminal(tmp_path):
     assert code == 0, err
     assert "run 1/1: cube27 / CI local / seed 0 | smooth" in err
     assert "local CI sweep 1: F " in err
-    assert err.endswith("\r\x1b[2K")
+    assert err.endswith("\x1b[2K")
     code, out, err = _run(["run", "exp.yaml", "--out", "r2"], tty=False, cwd=tmp_path)
     assert code == 0 and err == ""
+
+
+def test_display_verbose_lines_print_above_the_live_line(monkeypatch):
+    """On a terminal with ``--verbose``: a finished phase's line is printed once, permanently, and the live line
+    goes on below it; steps of one stage are redrawn at most every `STEP_REDRAW` seconds, a new stage at once."""
+    from jaxci.cli import _progress
+
+    monkeypatch.setattr(_progress, "REFRESH", 100.0)  # no redraw by the refresh thread during the test
+    out = io.StringIO()
+    d = Display(live=True, verbose=True, stream=out)
+    d.on_event("start", "smooth", None)
+    for step in (1, 2, 3):  # within STEP_REDRAW of each other: only the first is drawn
+        d.on_event("step", "smooth", {"stage": "L-BFGS", "unit": "step", "step": step, "F": 0.5, "worst": 1.25})
+    d.on_event("step", "smooth", {"stage": "polish", "unit": "sweep", "step": 1, "F": 0.4, "worst": 1.2})
+    d.on_event("end", "smooth", {"seconds": 1.5, "compile_seconds": 0.25, "compiled": 2, "cache_hits": 0})
+    d.close()
+    text = out.getvalue()
+    assert text.count("jaxci: smooth        1.50 s (compilation 0.25 s, 2 compiled)\n") == 1
+    assert "L-BFGS step 1: F 0.5" in text and "polish sweep 1: F 0.4" in text
+    assert "L-BFGS step 2:" not in text and "L-BFGS step 3:" not in text
+    assert text.endswith("\x1b[2K")
