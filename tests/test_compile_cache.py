@@ -251,7 +251,7 @@ def test_concurrent_writers_leave_whole_entries(tmp_path):
 # ------------------------------------------------------------------------------------- fresh processes
 _SMOOTH = """
 import json, hashlib, numpy as np, jaxci
-from jaxci import compile_cache
+from jaxci.runtime import compile_cache
 from jaxci.mesh.generate import perturb_box
 res = jaxci.smooth(perturb_box(6, amplitude=0.3, seed=2), "lbfgs", engine="jax", dtype="float64")
 import jax

@@ -6,9 +6,10 @@ started; and with ``--verbose`` a line per finished phase (its time and compilat
 terminal (and not with ``--quiet``): piped or redirected, stderr gets nothing but the ``--verbose`` lines. The line
 is a `rich.live.Live` display (rich is already loaded by the mesh reader, meshio: its live display adds 2-5 ms to
 the command's start): its thread redraws the line twice a second, so that the elapsed time moves during a long
-compiled call that reports nothing, and a new phase, stage or message at once; steps inside a stage at most every
-`STEP_REDRAW` seconds (a redraw costs about 0.2 ms, a host solver's step on a small mesh 1 ms). `close` (always
-called, also on an error or an interrupt) stops it and erases the line before anything else is printed.
+compiled call that reports nothing, and every event at once (a redraw costs about 0.2 ms; a loop reports a step
+at most every `jaxci.runtime.phases.STEP_INTERVAL` seconds). `close` (always called, also on an error or an
+interrupt) stops it and erases the line before anything else is printed. The line is cut to the terminal's width
+(``COLUMNS`` where that is set).
 """
 
 from __future__ import annotations
@@ -18,8 +19,6 @@ import time
 
 #: Seconds between two redraws of the live line by the refresh thread.
 REFRESH = 0.5
-#: Least seconds between two redraws for steps of one stage (the first step of a stage is drawn at once).
-STEP_REDRAW = 0.1
 
 
 def _number(x) -> str:
@@ -51,8 +50,6 @@ class Display:
         self.context = ""  # what the whole command is at (`jaxci run`: the run), before the phase
         self._phase = ""
         self._detail = ""
-        self._stage = None  # the stage of the last step drawn, and when it was drawn
-        self._drawn_at = 0.0
         self._live = None
         if live:
             from rich.console import Console
@@ -65,7 +62,6 @@ class Display:
 
     # -- events --------------------------------------------------------------------------------------------
     def on_event(self, kind: str, name: str, rec: dict | None) -> None:
-        now = None
         if kind == "start":
             self._phase, self._detail = name, ""
         elif kind == "end":
@@ -80,10 +76,6 @@ class Display:
                 self.print(f"jaxci: {name:<9} ... {rec['text']}")
         elif kind == "step":
             self._phase, self._detail = name, step_text(rec)
-            now = time.perf_counter()
-            if rec["stage"] == self._stage and now - self._drawn_at < STEP_REDRAW:
-                return  # the refresh thread shows it
-            self._stage, self._drawn_at = rec["stage"], now
         self._draw()
 
     def set_context(self, text: str) -> None:
