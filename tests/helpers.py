@@ -96,19 +96,18 @@ def interrupted_on_call(real, n: int = 2):
 
 
 def fail_seed_method(monkeypatch, seed: int, error: Exception) -> None:
-    """Make the method run of seed `seed` raise `error` (`jaxci.interface.smooth.run_method`, where
+    """Make the method run of seed `seed` raise `error` (`jaxci.interface.methods.run_method`, where
     `MethodRun.run` looks it up); every other seed runs as it would."""
-    import importlib
+    from jaxci.interface import methods
 
-    smooth_module = importlib.import_module("jaxci.interface.smooth")
-    run_method = smooth_module.run_method
+    run_method = methods.run_method
 
     def failing(problem, method, s, params):
         if s == seed:
             raise error
         return run_method(problem, method, s, params)
 
-    monkeypatch.setattr(smooth_module, "run_method", failing)
+    monkeypatch.setattr(methods, "run_method", failing)
 
 
 def spiked_sweep():

@@ -215,7 +215,7 @@ def test_every_stage_runs_on_the_plans_engine_inside_its_context(asked, monkeypa
         return run
 
     monkeypatch.setattr(engine.Plan, "context", context)
-    smooth_module = importlib.import_module("jaxci.interface.smooth")
+    from jaxci.interface import smooth as smooth_module
     monkeypatch.setattr(smooth_module, "build_problem", spy("setup", smooth_module.build_problem,
                                                             lambda out, *a, plan, **kw: plan.engine))
     monkeypatch.setattr(untangle, "untangle_stage", spy(

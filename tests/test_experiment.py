@@ -183,7 +183,7 @@ def test_force_replaces_and_seeds_override(small_run, tmp_path, capsys):
 
 
 def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):
-    smooth_module = importlib.import_module("jaxci.interface.smooth")
+    from jaxci.interface import smooth as smooth_module
     monkeypatch.setattr(smooth_module, "smooth", interrupted_on_call(smooth_module.smooth))
     cfg = _write(tmp_path, SMALL)
     code, _, err = _run(["run", str(cfg), "--out", str(tmp_path / "out"), "--quiet"], capsys)
@@ -196,8 +196,7 @@ def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):
 def test_failed_run_recorded(tmp_path, monkeypatch, capsys):
     """A run that raises a JaxciError (e.g. an inverted mesh) is recorded as failed; the others go on; exit 1."""
     from jaxci.errors import InvertedMeshError
-
-    smooth_module = importlib.import_module("jaxci.interface.smooth")
+    from jaxci.interface import smooth as smooth_module
     real = smooth_module.smooth
 
     def failing(mesh, method, *, seed, **kw):

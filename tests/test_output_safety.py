@@ -5,7 +5,6 @@ stderr without a traceback, and that nothing but the files asked for appeared, c
 
 from __future__ import annotations
 
-import importlib
 import json
 import os
 import shutil
@@ -157,7 +156,7 @@ def test_run_force_replaces_only_when_complete(tmp_path, earlier, monkeypatch, c
     from jaxci.errors import InvertedMeshError
 
     cfg, prev = _setup(tmp_path, earlier)
-    smooth_module = importlib.import_module("jaxci.interface.smooth")
+    from jaxci.interface import smooth as smooth_module
     real = smooth_module.smooth
     old = snapshot(prev)
 
@@ -348,7 +347,7 @@ def test_run_inputs_read_through_the_config_meshes(tmp_path, earlier, capsys):
 # ------------------------------------------------------------------------------------------ late arrivals
 def _meanwhile(monkeypatch, action):
     """Make `action()` happen while the (first) smoothing runs: something the user does while jaxci works."""
-    smooth_module = importlib.import_module("jaxci.interface.smooth")
+    from jaxci.interface import smooth as smooth_module
     real = smooth_module.smooth
     done = []
 
