@@ -4,7 +4,7 @@
 
 From the config (default: the paper reproduction, 30 seeds) it keeps the global CI entries on one mesh and runs
 them three ways, each in a fresh ``jaxci run`` process with an empty compilation cache: ``batch_seeds: true``
-(the default: `jaxci.engine.BATCH_SEEDS_FROM` or more seeds run as one program on the JAX engine), one seed
+(the default: `jaxci.interface.engine.BATCH_SEEDS_FROM` or more seeds run as one program on the JAX engine), one seed
 after the other on the host engine (``batch_seeds: false``: what ``auto`` picks for one seed on a CPU), and one
 seed after the other on the JAX engine (``engine: jax``, ``batch_seeds: false``). It prints and writes the wall
 time of each, the engine every run reports, the mean final F per method, and whether the batched runs' meshes

@@ -24,10 +24,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxci.generate import box  # noqa: E402
 from jaxci.geometry.boundary import classify_boundary  # noqa: E402
 from jaxci.geometry.projection import build_constraints, project, project_nodes, project_np  # noqa: E402
 from jaxci.geometry.topology import boundary_topology, colour_nodes, node_adjacency  # noqa: E402
+from jaxci.mesh.generate import box  # noqa: E402
 
 
 def timed(fn, repeats: int) -> tuple[float, object]:

@@ -4,18 +4,19 @@
     python scripts/bench_compile.py --small --out small.json                   # a tiny box (a check of the script)
     python scripts/bench_compile.py --src /path/to/other/checkout/src          # another checkout's jaxci
 
-For each box (perturbed, `jaxci.generate.perturb_box`: 22^3 = 10,648 and 100^3 = 10^6 hexahedra by default) and
+For each box (perturbed, `jaxci.mesh.generate.perturb_box`: 22^3 = 10,648 and 100^3 = 10^6 hexahedra by default) and
 each way in, every run a fresh process (a child of this script) on the JAX engine with the default pipeline:
 
 - ``cli``: ``python -m jaxci smooth BOX OUT --engine jax --json`` (its ``phases``: compile seconds, compiled
   programs, persistent-cache hits); wall time of the whole process, start-up and file I/O included;
 - ``library``: ``jaxci.smooth(mesh, engine="jax")`` on the generated mesh: its phases, and the compilation split
   into tracing, lowering, XLA compile or cache load, and jaxci's reading and writing of exported programs
-  (`jaxci.transfer.compile_totals`), with `jaxci.compile_cache.stats` (programs loaded, exported, run plain).
+  (`jaxci.runtime.transfer.compile_totals`), with `jaxci.runtime.compile_cache.stats` (programs loaded, exported, run
+  plain).
 
 ``cold``: an empty cache folder (``JAXCI_CACHE_DIR``); ``warm``: a second process with the folder the cold one
 filled. ``--off`` adds a run with ``JAXCI_CACHE_DIR=`` (no cache). The JSON has the date, the commit
-(`bench_gpu.commit`), the machine and the command; `run` is what `scripts/bench_gpu.py` calls (on a GPU the same
+(`bench_stamp.commit`), the machine and the command; `run` is what `scripts/bench_gpu.py` calls (on a GPU the same
 runs go to the accelerator: the plan's device is in each row).
 """
 
@@ -42,15 +43,15 @@ def child_library(n: int) -> dict:
     import jax
 
     import jaxci
-    from jaxci.generate import perturb_box
-    from jaxci.phases import compile_totals
+    from jaxci.mesh.generate import perturb_box
+    from jaxci.runtime.phases import compile_totals
 
     mesh = perturb_box(n, amplitude=0.3, seed=0)
     c0, t0 = compile_totals(), time.perf_counter()
     res = jaxci.smooth(mesh, engine="jax")
     wall, c1 = time.perf_counter() - t0, compile_totals()
     try:
-        from jaxci.compile_cache import stats
+        from jaxci.runtime.compile_cache import stats
     except ImportError:  # a checkout from before the cache
         stats = dict
     total = res.phases["total"]
@@ -128,7 +129,7 @@ def run(sizes=SIZES, src: str | os.PathLike | None = None, off: bool = False, ti
     """Cold and warm fresh processes, CLI and library, for boxes of ``n^3`` hexahedra for each n of `sizes`
     (``off``: and one with the cache turned off each); every child gets at most `timeout` seconds. The rows,
     stamped with date, commit, machine and command."""
-    from bench_gpu import commit
+    from bench_stamp import commit
 
     src = Path(src) if src is not None else ROOT / "src"
     data = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": commit(), "src": str(src), "machine": machine(),

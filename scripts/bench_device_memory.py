@@ -25,8 +25,8 @@ def run(hexes: int, max_steps: int = 3) -> dict:
 
     import jaxci.optim._solve as solve
     import jaxci.optim.laplace as laplace
-    from jaxci.generate import perturb_box
-    from jaxci.smooth import smooth
+    from jaxci.interface.smooth import smooth
+    from jaxci.mesh.generate import perturb_box
 
     n = max(2, round(hexes ** (1 / 3)))
     mesh = perturb_box(n, amplitude=0.3, seed=0)
@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, help="JSON path")
     args = ap.parse_args(argv)
     out = run(args.hexes)
-    from bench_host_prep import stamp
+    from bench_stamp import stamp
 
     out |= stamp()
     print(f"{out['hexes']:,} hexahedra, {out['engine']['device_kind']} ({out['engine']['dtype']}), bytes per "

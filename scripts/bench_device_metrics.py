@@ -2,8 +2,8 @@
 they stand for, on one perturbed box.
 
 For each pair (the quality report, the worst elements, the inverted-cell count, the volume check, the final
-checks without and with the worst-cell guard): the device function's compilation (seconds of `jaxci.phases`'
-compile totals on its first call), its seconds inside compiled programs (``device_s`` of `jaxci.transfer`) and
+checks without and with the worst-cell guard): the device function's compilation (seconds of `jaxci.runtime.phases`'
+compile totals on its first call), its seconds inside compiled programs (``device_s`` of `jaxci.runtime.transfer`) and
 per call, and the host function's seconds per call; the minimum of `--repeats` calls, device and host
 alternated (a shared machine's load falls on both alike). Printed, and written as JSON with `--out`.
 
@@ -22,7 +22,7 @@ from pathlib import Path
 def cases(mesh, points, conn, x, x_host, worst_start):
     """name -> (device call, host call) on `mesh` (coordinates `points`, `conn` and the result `x` on the device;
     `x_host` the same result in numpy)."""
-    from jaxci.invariants import enforce, enforce_device
+    from jaxci.interface.invariants import enforce, enforce_device
     from jaxci.mesh import check_volume
     from jaxci.metrics import device as D
     from jaxci.metrics import objective as mixed
@@ -43,15 +43,15 @@ def cases(mesh, points, conn, x, x_host, worst_start):
 
 
 def run(n: int, repeats: int = 3) -> dict:
-    """The rows of a perturbed box of n^3 hexahedra (`jaxci.generate.perturb_box`, amplitude 0.3, seed 0); the
+    """The rows of a perturbed box of n^3 hexahedra (`jaxci.mesh.generate.perturb_box`, amplitude 0.3, seed 0); the
     method's result is the box with every node shaken by 1e-4 of the side."""
     import jax
     import numpy as np
 
-    from jaxci import transfer
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
     from jaxci.metrics.report import quality_report
-    from jaxci.phases import compile_totals
+    from jaxci.runtime import transfer
+    from jaxci.runtime.phases import compile_totals
 
     jax.config.update("jax_enable_x64", True)
     mesh = perturb_box(n, amplitude=0.3, seed=0)
@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     out = run(args.n, args.repeats)
     if args.out is not None:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from bench_host_prep import stamp
+        from bench_stamp import stamp
 
         args.out.write_text(json.dumps(out | stamp(), indent=1))
         print(f"wrote {args.out}")

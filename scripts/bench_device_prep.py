@@ -12,7 +12,7 @@ alternated (old, new, old, new; the first of each pays its compilation):
   `pad_parametrisation` in numpy as `minimise` did; new: `make_parametrisation_device`, `pad_problem_device`).
 
 For each: wall seconds, seconds compiling, seconds inside compiled programs (``device_s``), the rest
-(``host_s``), and the bytes each way (`jaxci.transfer`); and F after the sweeps with each colouring.
+(``host_s``), and the bytes each way (`jaxci.runtime.transfer`); and F after the sweeps with each colouring.
 
     python scripts/bench_device_prep.py --size 100 --out device_prep.json
 """
@@ -28,8 +28,8 @@ import numpy as np
 
 def _measure(fn) -> tuple[dict, object]:
     """``(figures, result)`` of `fn()`: wall, compile, device and host seconds, bytes each way."""
-    from jaxci import transfer
-    from jaxci.phases import compile_totals
+    from jaxci.runtime import transfer
+    from jaxci.runtime.phases import compile_totals
 
     c0, t0 = compile_totals(), transfer.totals()
     w0 = time.perf_counter()
@@ -46,16 +46,16 @@ def _measure(fn) -> tuple[dict, object]:
 def run(size: int) -> dict:
     import jax
 
-    from jaxci.generate import perturb_box
     from jaxci.geometry.topology import colour_nodes
-    from jaxci.methods import build_problem
+    from jaxci.interface.methods import build_problem
+    from jaxci.mesh.generate import perturb_box
     from jaxci.optim import laplace as L
     from jaxci.optim._buckets import bucket, padded_connectivity, to_device
     from jaxci.optim._moves import coloured_stars
     from jaxci.optim.device_parametrisation import make_parametrisation_device
     from jaxci.optim.device_stars import sweep_data
     from jaxci.optim.parametrisation import make_parametrisation, pad_parametrisation, pad_problem_device
-    from jaxci.transfer import to_host
+    from jaxci.runtime.transfer import to_host
 
     mesh = perturb_box(size, amplitude=0.3, seed=0)
     pr = build_problem(mesh, dtype=np.float32)
@@ -106,7 +106,7 @@ def run(size: int) -> dict:
                                max_condition=[float(v) for v in hist["max_condition"]], **parts)
             rows.setdefault(name, {})[rep] = figures
             print(name, rep, figures, flush=True)
-    from bench_host_prep import stamp
+    from bench_stamp import stamp
 
     mesh_bytes = mesh.points.nbytes + 4 * hexes.size
     return {**stamp(), "hexes": mesh.n_hexes, "nodes": mesh.n_nodes, "mesh_bytes": int(mesh_bytes),

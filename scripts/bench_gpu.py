@@ -5,7 +5,7 @@
 
 Every figure comes from a fresh process (a child of this script, or the ``jaxci`` command itself), so times include
 JAX's start; ``cold`` is a process with an empty compilation cache (``JAXCI_CACHE_DIR``), ``warm`` a second
-process with the cache the cold one filled (`jaxci.compile_cache`: nothing traced or compiled anew). The default
+process with the cache the cold one filled (`jaxci.runtime.compile_cache`: nothing traced or compiled anew). The default
 sections, in order (each skipped once the time budget ``--budget`` would be overrun; the JSON is rewritten after
 each):
 
@@ -16,10 +16,10 @@ each):
 3. ``smooth``: `jaxci.smooth` (the default pipeline, stopped at max kappa/3 <= 1.0001) on perturbed boxes of 10^6
    and 10^7 hexahedra on the JAX engine, cold then warm: wall time, every phase with its compile seconds, its
    seconds inside compiled programs (``device_s``), its host seconds (``host_s``) and the bytes moved each way
-   (``h2d_bytes``, ``d2h_bytes``; `jaxci.transfer`), the host's share of the wall time, the bytes against the
+   (``h2d_bytes``, ``d2h_bytes``; `jaxci.runtime.transfer`), the host's share of the wall time, the bytes against the
    mesh's own (float64 coordinates and int64 connectivity), peak device memory per hexahedron.
 4. ``engines``: ``jaxci smooth`` (the CLI) at 10^4, 10^5 and 10^6 hexahedra, ``--engine jax`` cold and warm
-   against ``--engine host``: the size from which the accelerator wins (`jaxci.engine.ACCELERATOR_FROM`).
+   against ``--engine host``: the size from which the accelerator wins (`jaxci.interface.engine.ACCELERATOR_FROM`).
 5. ``largest``: the largest box that the bytes per hexahedron measured at 10^7 say fits on the device (at most
    10^8 hexahedra), smoothed in a fresh process (cold: a size of its own).
 
@@ -79,11 +79,11 @@ def child_kernels(*sizes: int) -> dict:
 
 def child_smooth(n: int, engine: str, ktol: float) -> dict:
     """`jaxci.smooth` of a perturbed box of n^3 hexahedra on `engine` in this (fresh) process: wall time, the
-    phases (`jaxci.phases`: compile, device and host seconds, bytes each way), the host's share and the bytes
+    phases (`jaxci.runtime.phases`: compile, device and host seconds, bytes each way), the host's share and the bytes
     against the mesh's own, peak memory."""
-    from jaxci import device_run
-    from jaxci.generate import perturb_box
-    from jaxci.smooth import smooth
+    from jaxci.interface import device_run
+    from jaxci.interface.smooth import smooth
+    from jaxci.mesh.generate import perturb_box
 
     # the section measures the run on the device; --small's boxes are under its threshold (DEVICE_RUN_FROM)
     device_run.DEVICE_RUN_FROM = min(device_run.DEVICE_RUN_FROM, n ** 3)
@@ -107,14 +107,14 @@ def child_smooth(n: int, engine: str, ktol: float) -> dict:
 
 def child_global_ci(case: str, seeds: int, engine: str, mode: str, attempts: int | None) -> dict:
     """Global CI on `seeds` seeds of `case`, as `jaxci run` smooths them: ``mode`` "batched" (one program for
-    every seed, `jaxci.seeds.smooth_seeds`) or "serial" (`jaxci.smooth` one seed after the other, the same
+    every seed, `jaxci.interface.seeds.smooth_seeds`) or "serial" (`jaxci.smooth` one seed after the other, the same
     compiled program) on the JAX engine, or the host engine per seed. Whole runs: reports and checks included."""
     import jax
     import numpy as np
 
-    from jaxci.generate import paper_case
-    from jaxci.seeds import smooth_seeds
-    from jaxci.smooth import smooth
+    from jaxci.interface.seeds import smooth_seeds
+    from jaxci.interface.smooth import smooth
+    from jaxci.mesh.generate import paper_case
 
     params = {} if attempts is None else {"attempts": attempts}
     meshes = [paper_case(case, seed=s) for s in range(seeds)]
@@ -164,6 +164,8 @@ CHILDREN = {"kernels": child_kernels, "smooth": child_smooth, "global_ci": child
 # -------------------------------------------------------------------------------------------------- parent
 class Bench:
     def __init__(self, args):
+        from bench_stamp import commit
+
         self.args, self.t0 = args, time.perf_counter()
         self.data: dict = {"command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]), "targets": TARGETS,
                            "date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": commit()}
@@ -216,15 +218,6 @@ class Bench:
             print(f"{name}: {json.dumps(row, default=str)[:400]}", flush=True)
 
 
-def commit() -> str:
-    """The checkout's commit (``git describe --always --dirty``), or "" without git."""
-    try:
-        return subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
-                              text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
-
-
 def _run_json(cmd, timeout, env) -> dict:
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
@@ -237,8 +230,8 @@ def _run_json(cmd, timeout, env) -> dict:
 
 
 def _box(tmp: Path, n: int) -> Path:
-    from jaxci.generate import perturb_box
     from jaxci.io import write_mesh
+    from jaxci.mesh.generate import perturb_box
 
     path = tmp / f"box{n}.vtu"
     if not path.exists():

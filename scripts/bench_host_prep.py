@@ -5,7 +5,7 @@ the input, the quality reports, classifying the boundary, building the constrain
 colouring and padding the presmoothing's stars, projecting the result exactly, the final checks) decides the
 wall time of a large mesh. This benchmark runs `jaxci.smooth` on a perturbed box under cProfile, with the
 solver's steps capped (``--max-steps``) so that the host's work is what is measured, and prints and writes (JSON)
-the seconds of each phase (`jaxci.phases`) and the cumulative seconds of the host functions that matter
+the seconds of each phase (`jaxci.runtime.phases`) and the cumulative seconds of the host functions that matter
 (`FUNCTIONS`; a function absent from the profile is reported as 0).
 
     python scripts/bench_host_prep.py --hexes 1000000 --engine jax --out host_prep.json
@@ -59,19 +59,11 @@ def _key(name: str) -> str:
     return "HexMesh.__post_init__" if name == "__post_init__" else name
 
 
-def stamp() -> dict:
-    """What a benchmark's JSON says of its own run: the commit (`bench_gpu.commit`), the date and the command."""
-    from bench_gpu import commit
-
-    return {"commit": commit(), "date": time.strftime("%Y-%m-%d"),
-            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
-
-
 def run(hexes: int, engine: str = "jax", max_steps: int = 5) -> dict:
     """`jaxci.smooth` on a perturbed box of about `hexes` hexahedra under cProfile: the JSON row (phases, host
     functions, the plan)."""
-    from jaxci.generate import perturb_box
-    from jaxci.smooth import smooth
+    from jaxci.interface.smooth import smooth
+    from jaxci.mesh.generate import perturb_box
 
     n = max(2, round(hexes ** (1 / 3)))
     t0 = time.perf_counter()
@@ -92,6 +84,8 @@ def run(hexes: int, engine: str = "jax", max_steps: int = 5) -> dict:
 
 
 def main(argv=None) -> int:
+    from bench_stamp import stamp
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--hexes", type=int, default=1_000_000, help="box size (rounded to a cube; default 10^6)")
     ap.add_argument("--engine", default="jax", choices=("jax", "host"), help="the engine (default jax)")

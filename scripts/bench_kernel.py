@@ -4,7 +4,7 @@ The JAX engine's closed-form F + gradient (`jaxci.metrics.hexahedron.objective_t
 per-element gradient into the nodes in one of the forms of `jaxci.metrics.incidence` (``scatter``: 24
 scatter-adds; ``gather``: a gather over the node incidences; ``segment``: one sorted segment sum); on CPU devices
 the C kernel (``ffi``, `jaxci.metrics.native_grad`) replaces the XLA kernel where it is built. This script times
-each, on perturbed boxes (`jaxci.generate.perturb_box`), float32 and float64, as the engine runs it (64-bit
+each, on perturbed boxes (`jaxci.mesh.generate.perturb_box`), float32 and float64, as the engine runs it (64-bit
 integers and floats only for float64): warm, the forms called in turn round after round, the median of the
 rounds. Corners per second = 8 x hexahedra / seconds per call. It prints a table and writes JSON.
 
@@ -74,7 +74,7 @@ def measure(hexes: int, dtype: str, rounds: int = ROUNDS, kernels=KERNELS) -> li
     import jax
     import numpy as np
 
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
     from jaxci.metrics import native_grad
     from jaxci.metrics.hexahedron import grad_block, transposed
     from jaxci.metrics.incidence import node_incidence
@@ -139,7 +139,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, help="JSON path")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_host_prep import stamp
+    from bench_stamp import stamp
 
     sizes = args.sizes or (SMALL_SIZES if args.small else SIZES)
     rounds = args.rounds or (SMALL_ROUNDS if args.small else ROUNDS)

@@ -24,7 +24,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxci.generate import perturb_box  # noqa: E402
+from jaxci.mesh.generate import perturb_box  # noqa: E402
 from jaxci.metrics import hexahedron as q  # noqa: E402
 
 

@@ -1,5 +1,5 @@
 """Scaling benchmark: perturbed boxes from 10^3 to 100^3 hexes, time to reach max kappa/3 <= 1.01 and <= 1.0001,
-both engines side by side (``--engines host jax``, the default: `jaxci.engine`).
+both engines side by side (``--engines host jax``, the default: `jaxci.interface.engine`).
 
 For every (size, method) a fresh subprocess (so peak memory and 'cold' are clean) generates the box (amplitude
 0.3, sliding boundary, seed 0, inverting draws redrawn), runs `jaxci.smooth` once cold (compilation included)
@@ -11,16 +11,16 @@ re-timed runs (each would take minutes on a 2-core CPU). ``--repeats N`` makes e
 to a threshold the fastest of N runs (default 1, as before). It also
 times the objective kernel alone on the mesh (corner evaluations per second). Device: `--device cpu|gpu|auto`
 (unchanged code on a GPU machine); ``--engines`` the engines to run each (size, method) on (``auto`` lets
-`jaxci.engine.resolve_plan` choose; every row records the plan that ran). The children run with transparent
+`jaxci.interface.engine.resolve_plan` choose; every row records the plan that ran). The children run with transparent
 huge pages for glibc's large allocations
-where that applies (`jaxci.runtime`; ``--hugepages off`` to compare). Prints a table and writes JSON (`--out`).
+where that applies (`jaxci.runtime.process`; ``--hugepages off`` to compare). Prints a table and writes JSON (`--out`).
 
 ``--devices 1 2 4`` runs every (size, method) once per device count, sharded (`jaxci.smooth`'s ``devices``: the
 elements split over the devices, `jaxci.optim.sharding`); each child is started with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` so that a CPU has N devices (on a GPU machine the GPUs
 are counted instead). Each row records its ``devices``, the time and the peak resident memory (also per
 hexahedron) and ``xla_cpu_threads`` / ``cpus``: XLA:CPU's intra-op pool has max(cores, N) threads, so N forced
-devices beyond the cores oversubscribe them; those children also get `jaxci.runtime.cpu_device_flags`
+devices beyond the cores oversubscribe them; those children also get `jaxci.runtime.process.cpu_device_flags`
 (XLA's per-fusion partitioning off; docs/sharding.md); without ``--devices`` the runs are on one device, with
 no ``devices`` argument (a sharded run is the JAX engine's: host rows are not run with ``--devices``).
 
@@ -64,8 +64,8 @@ def _measure(args) -> dict:
 
     import numpy as np
 
-    from jaxci.generate import perturb_box
-    from jaxci.smooth import smooth
+    from jaxci.interface.smooth import smooth
+    from jaxci.mesh.generate import perturb_box
 
     n = args.size
     t0 = time.perf_counter()
@@ -178,7 +178,8 @@ def main(argv=None):
                     help="each warm time (and each time to a threshold) is the fastest of this many runs")
     ap.add_argument("--out", default="results/benchmark.json")
     ap.add_argument("--hugepages", choices=["on", "off"], default="on",
-                    help="run the children with GLIBC_TUNABLES=glibc.malloc.hugetlb=1 where it applies (jaxci.runtime)")
+                    help="run the children with GLIBC_TUNABLES=glibc.malloc.hugetlb=1 where it applies "
+                         "(jaxci.runtime.process)")
     ap.add_argument("--devices", type=int, nargs="+", default=None, metavar="N",
                     help="device counts to run each (size, method) on, sharded (forced CPU devices on a CPU); "
                          "default: one device, unsharded")
@@ -199,7 +200,7 @@ def main(argv=None):
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
         return
-    from jaxci.runtime import cpu_device_flags, hugepage_environment
+    from jaxci.runtime.process import cpu_device_flags, hugepage_environment
 
     rows = []
     head = (f"{'n^3':>5} {'hexes':>8} {'method':>14} {'engine':>10} {'dev':>4} {'cold s':>8} {'warm s':>8} {'it':>5} "
@@ -222,7 +223,8 @@ def main(argv=None):
             if devices:  # read when JAX starts in the child: a CPU gets this many devices
                 env["XLA_FLAGS"] = " ".join(filter(None, [env.get("XLA_FLAGS"), "--xla_force_host_platform_"
                                                            f"device_count={devices}"]))
-                # more devices than cores: no per-fusion partitions (jaxci.runtime.cpu_device_flags; docs/sharding.md)
+                # more devices than cores: no per-fusion partitions (jaxci.runtime.process.cpu_device_flags;
+                # docs/sharding.md)
                 env["XLA_FLAGS"] = cpu_device_flags(env) or env["XLA_FLAGS"]
             p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
             line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]

@@ -106,7 +106,7 @@ def run_cell(label, cases, kwargs, dtype, repeats, budget, pmean_p=2.0):
     import jax
 
     from jaxci.errors import ConfigError, InvertedMeshError
-    from jaxci.smooth import auto_pipeline, build_problem, run_method, smooth
+    from jaxci.interface.smooth import auto_pipeline, build_problem, run_method, smooth
 
     method, params = method_of(label, pmean_p)
     kwargs = {**kwargs, **params}
@@ -217,9 +217,9 @@ def corpus_job(job: dict) -> dict:
     import jax
 
     from jaxci.errors import ConfigError, InvertedMeshError, JaxciError
+    from jaxci.interface.smooth import smooth
     from jaxci.io import read_mesh
     from jaxci.metrics.report import quality_report
-    from jaxci.smooth import smooth
 
     mesh = read_mesh(job["path"])
     if job["kind"] == "describe":

@@ -12,7 +12,7 @@ from helpers import SHARED_REASON, shared_missing
 
 jax.config.update("jax_enable_x64", True)
 # The suite's own process runs the JAX engine's programs as plain jit, without the compilation cache
-# (jaxci.compile_cache): its tests spy on and patch traced code, which a program loaded from the cache would not
+# (jaxci.runtime.compile_cache): its tests spy on and patch traced code, which a program loaded from the cache would not
 # run. tests/test_compile_cache.py, and the tests that start processes, give their own cache folders.
 os.environ["JAXCI_CACHE_DIR"] = ""
 

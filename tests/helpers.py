@@ -96,11 +96,10 @@ def interrupted_on_call(real, n: int = 2):
 
 
 def fail_seed_method(monkeypatch, seed: int, error: Exception) -> None:
-    """Make the method run of seed `seed` raise `error` (`jaxci.methods.run_method`, where `MethodRun.run` looks
-    it up); every other seed runs as it would."""
-    import importlib
+    """Make the method run of seed `seed` raise `error` (`jaxci.interface.methods.run_method`, where
+    `MethodRun.run` looks it up); every other seed runs as it would."""
+    from jaxci.interface import methods
 
-    methods = importlib.import_module("jaxci.methods")
     run_method = methods.run_method
 
     def failing(problem, method, s, params):
@@ -115,7 +114,7 @@ def spiked_sweep():
     """A 4^3 box perturbed by 0.1 h and a sweep displacement D along which F falls fastest at the factor 4, where
     one node moved too far makes the worst corner worse (max kappa/3 1.196 against 1.084); at the factor 2 both F and
     the max are lower (0.0201, 1.043)."""
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
 
     grid = perturb_box(4, amplitude=0.0)
     mesh = perturb_box(4, amplitude=0.1, seed=2)
@@ -132,17 +131,17 @@ def no_implicit_transfers():
     host values), and, for the copies of device arrays to numpy that the guard lets through on a CPU (the array's
     buffer protocol), `numpy.asarray` / `array` / `asanyarray` / `ascontiguousarray` of a device array and the
     conversions that go through ``jax.Array._value`` (``float``, ``int``, ``bool``, ``tolist``, ``item``),
-    outside `jaxci.transfer.to_host`. A numpy function applied to a device array directly (``np.max(x)``)
+    outside `jaxci.runtime.transfer.to_host`. A numpy function applied to a device array directly (``np.max(x)``)
     converts it inside numpy's C code and is not caught here."""
     import jax
 
-    from jaxci import transfer
+    from jaxci.runtime import transfer
 
     array_type = type(jax.device_put(0.0))
     value = array_type.__dict__["_value"]
 
     def refuse(what):
-        raise AssertionError(f"implicit device-to-host transfer ({what}) outside jaxci.transfer.to_host")
+        raise AssertionError(f"implicit device-to-host transfer ({what}) outside jaxci.runtime.transfer.to_host")
 
     def checked_value(self):
         if not transfer.explicit():

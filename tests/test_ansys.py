@@ -12,10 +12,10 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from jaxci.errors import MeshError, MeshReadError, MeshWriteError
-from jaxci.generate import box, perturb_box
 from jaxci.io import LossyWriteWarning, read_ansys_listing, read_mesh, write_mesh
 from jaxci.io._ansys import TO_BRICK
 from jaxci.mesh import MIRROR_HEX, CellBlock, HexMesh
+from jaxci.mesh.generate import box, perturb_box
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "ansys"
 ATTRS = ("ansys:mat", "ansys:typ", "ansys:rel", "ansys:esy", "ansys:sec")

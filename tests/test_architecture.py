@@ -1,6 +1,7 @@
 """The package layout keeps the data flow (README, "Architecture"): no module imports from a later stage, no
-module imports another module's private names, and the imports form no circle. Read from the source (ast), so
-imports inside functions count too; those under ``if TYPE_CHECKING:`` do not (they never run)."""
+module imports another module's private names, the imports form no circle (in `src/` and among `scripts/`), and
+`src/jaxci/` holds at most `MAX_FLAT` modules outside its folders. Read from the source (ast), so imports inside
+functions count too; those under ``if TYPE_CHECKING:`` do not (they never run)."""
 
 from __future__ import annotations
 
@@ -9,24 +10,26 @@ from pathlib import Path
 
 import pytest
 
-SRC = Path(__file__).resolve().parents[1] / "src"
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src"
+SCRIPTS = ROOT / "scripts"
 
 #: Stage of each module (longest matching prefix): a module may import its own stage and the ones before it.
 STAGES = {
-    "jaxci.errors": 0, "jaxci._lazy": 0, "jaxci.runtime": 0, "jaxci.phases": 0, "jaxci.memory": 0, "jaxci.transfer": 0,
-    "jaxci.compile_cache": 0, "jaxci._keys": 0, "jaxci._export": 0,
-    "jaxci.cells": 0, "jaxci.native": 0, "jaxci._ckernels": 0, "jaxci.sizes": 0,
-    "jaxci.mesh": 1,
-    "jaxci.generate": 1, "jaxci.shapes": 1, "jaxci.io": 1,
+    "jaxci.errors": 0, "jaxci.runtime": 0, "jaxci.cells": 0, "jaxci.native": 0, "jaxci._ckernels": 0,
+    "jaxci.mesh": 1, "jaxci.io": 1,
     "jaxci.geometry": 2,
     "jaxci.metrics": 3,
     "jaxci.optim": 4,
-    "jaxci.methods": 5, "jaxci.smooth": 5, "jaxci.engine": 5, "jaxci.seeds": 5, "jaxci.invariants": 5,
-    "jaxci.result": 5, "jaxci.device_run": 5,
+    "jaxci.interface": 5,
     "jaxci.experiments": 6,
     "jaxci.cli": 7, "jaxci.__main__": 7,
     "jaxci": 8,  # the public API re-exports every stage
 }
+
+#: At most this many modules directly in `src/jaxci/` (the public API, ``python -m jaxci``, the errors, the C
+#: kernels' loader and the cell tables they share with every stage); every other module lives in its stage's folder.
+MAX_FLAT = 10
 
 #: Import circles kept on purpose, each with its reason (none: the model converts a meshio.Mesh itself,
 #: `jaxci.mesh.convert`, instead of importing the formats).
@@ -97,20 +100,20 @@ def test_no_private_name_is_imported_from_another_module(name):
     assert not bad, f"{name} imports private names of other modules: {bad}"
 
 
-def test_the_imports_form_no_circle():
-    graph = {m: {t for t, _, _ in EDGES[m] if t in MODULES and t != m} for m in MODULES}
+def _circles(graph: dict[str, set[str]], known=frozenset()) -> list[tuple]:
+    """Every circle of `graph` (module -> the modules it imports), apart from the pairs in `known`: pairs that
+    import each other, and longer circles (a module that reaches itself)."""
     circles = []
     for a in graph:
         for b in graph[a]:
-            if a < b and a in graph.get(b, ()) and frozenset({a, b}) not in KNOWN_CIRCLES:
+            if a < b and a in graph.get(b, ()) and frozenset({a, b}) not in known:
                 circles.append((a, b))
-    # longer circles: a module that reaches itself through modules other than the known pairs
     state: dict[str, int] = {}
 
     def visit(m, stack):
         state[m] = 1
         for t in graph[m]:
-            if frozenset({m, t}) in KNOWN_CIRCLES:
+            if frozenset({m, t}) in known:
                 continue
             if state.get(t) == 1:
                 circles.append(tuple(stack[stack.index(t):] + [t]))
@@ -121,4 +124,31 @@ def test_the_imports_form_no_circle():
     for m in sorted(graph):
         if m not in state and m != "jaxci":
             visit(m, [m])
-    assert not circles, f"import circles: {sorted(set(circles))}"
+    return sorted(set(circles))
+
+
+def test_the_imports_form_no_circle():
+    graph = {m: {t for t, _, _ in EDGES[m] if t in MODULES and t != m} for m in MODULES}
+    assert not _circles(graph, KNOWN_CIRCLES), f"import circles: {_circles(graph, KNOWN_CIRCLES)}"
+
+
+def test_the_scripts_import_each_other_in_no_circle():
+    """`scripts/` imports its own modules by name (the folder on ``sys.path``): those imports form no circle."""
+    names = {p.stem for p in SCRIPTS.glob("*.py")}
+    graph = {}
+    for name in names:
+        tree = ast.parse((SCRIPTS / f"{name}.py").read_text())
+        found = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                found.update(a.name.partition(".")[0] for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                found.add(node.module.partition(".")[0])
+        graph[name] = (found & names) - {name}
+    assert any(graph.values()), "no script imports another: the check reads nothing"
+    assert not _circles(graph), f"import circles among scripts/: {_circles(graph)}"
+
+
+def test_src_jaxci_has_at_most_max_flat_modules():
+    flat = sorted(p.name for p in (SRC / "jaxci").glob("*.py"))
+    assert len(flat) <= MAX_FLAT, f"{len(flat)} modules directly in src/jaxci/ (at most {MAX_FLAT}): {flat}"

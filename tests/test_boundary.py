@@ -13,11 +13,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxci.errors import MeshError
-from jaxci.generate import box
 from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals
 from jaxci.geometry.topology import HEX_FACES, boundary_topology, colour_nodes, node_adjacency
 from jaxci.mesh import CellBlock, HexMesh, hex_mesh
-from jaxci.shapes import annulus, bevelled_box, l_block
+from jaxci.mesh.generate import box
+from jaxci.mesh.shapes import annulus, bevelled_box, l_block
 
 
 def read_mesh(path: Path) -> HexMesh:

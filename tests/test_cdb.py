@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 import jaxci
+from jaxci import smooth
 from jaxci.cells import EDGES
 from jaxci.cli import main
 from jaxci.errors import MeshError, MeshReadError, MeshWriteError
 from jaxci.io import LossyWriteWarning, read_mesh, write_mesh
 from jaxci.mesh import MIRROR_HEX, CellBlock, HexMesh
-from jaxci.smooth import smooth  # not jaxci.smooth: once the module is imported, that name is the module
 
 mapdl_archive = pytest.importorskip("mapdl_archive")
 EXAMPLES = Path(mapdl_archive.__file__).parent / "examples"

@@ -17,12 +17,12 @@ from jaxci.cells import corner_determinants
 from jaxci.cli import main
 from jaxci.errors import ConfigError, InvertedMeshError
 from jaxci.experiments.runner import load_config, run_experiment
-from jaxci.generate import perturb_box
 from jaxci.geometry.projection import build_constraints, project_np
+from jaxci.interface.smooth import build_problem, method_params, smooth
+from jaxci.mesh.generate import perturb_box
+from jaxci.mesh.shapes import annulus, l_block
 from jaxci.metrics import hexahedron as q
 from jaxci.optim.ci import GLOBAL_DEFAULTS, CIParams
-from jaxci.shapes import annulus, l_block
-from jaxci.smooth import build_problem, method_params, smooth
 
 FAST = dict(max_sweeps=12)
 

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from jaxci import native, smooth
-from jaxci.engine import host_plan
 from jaxci.errors import ConfigError
-from jaxci.generate import perturb_box
+from jaxci.interface.engine import host_plan
+from jaxci.interface.smooth import build_problem
+from jaxci.mesh.generate import perturb_box
+from jaxci.mesh.shapes import annulus
 from jaxci.optim import coarse, host
 from jaxci.optim.parametrisation import make_parametrisation
-from jaxci.shapes import annulus
-from jaxci.smooth import build_problem
 
 
 def _wavy(n_theta: int = 32, n_r: int = 4, n_z: int = 4, seed: int = 0):

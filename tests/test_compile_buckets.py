@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from jax import monitoring
 
-from jaxci.generate import perturb_box
+from jaxci.interface.smooth import build_problem, smooth
+from jaxci.mesh.generate import perturb_box
 from jaxci.optim import _buckets as B
 from jaxci.optim.gradient import GradientParams, _objective, make_parametrisation, minimise, pad_parametrisation
-from jaxci.smooth import build_problem, smooth
 
 _COUNTS: collections.Counter = collections.Counter()
 _LISTENING = False

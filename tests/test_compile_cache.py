@@ -1,6 +1,6 @@
-"""Compilation once per machine (`jaxci.compile_cache`, `jaxci._export`, `jaxci._keys`): where the cache lives and
-how to turn it off, that importing jaxci changes no JAX setting, that a compiled entry point called through its
-exported program gives what the jitted function gives, that a second fresh process at a size seen before
+"""Compilation once per machine (`jaxci.runtime.compile_cache`, `jaxci.runtime._export`, `jaxci.runtime._keys`): where
+the cache lives and how to turn it off, that importing jaxci changes no JAX setting, that a compiled entry point called
+through its exported program gives what the jitted function gives, that a second fresh process at a size seen before
 compiles nothing new, and that an unreadable entry is rewritten, never an error."""
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from jaxci import compile_cache
-from jaxci._export import _dumps, exportable
-from jaxci._keys import Keyer, Unkeyable
-from jaxci._lazy import jit, pytree_dataclass
-from jaxci.transfer import compile_totals, program
+from jaxci.runtime import compile_cache
+from jaxci.runtime._export import _dumps, exportable
+from jaxci.runtime._keys import Keyer, Unkeyable
+from jaxci.runtime._lazy import jit, pytree_dataclass
+from jaxci.runtime.transfer import compile_totals, program
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 
@@ -48,7 +48,7 @@ def _child(code: str, env: dict, timeout: float = 600) -> dict:
 
 
 def test_importing_jaxci_or_running_the_host_engine_changes_no_jax_setting(tmp_path):
-    code = ("import json, jaxci; from jaxci.generate import perturb_box; "
+    code = ("import json, jaxci; from jaxci.mesh.generate import perturb_box; "
             "jaxci.smooth(perturb_box(3, amplitude=0.2, seed=0), engine='host'); import jax; "
             "print(json.dumps([jax.config.jax_compilation_cache_dir, "
             "jax.config.jax_persistent_cache_min_compile_time_secs]))")
@@ -82,7 +82,7 @@ def test_keys_tell_apart_what_tracing_depends_on_and_refuse_what_they_cannot_key
 
 
 def test_a_key_is_the_same_in_another_process():
-    code = ("import inspect, json, optimistix as optx; from jaxci._keys import Keyer;"
+    code = ("import inspect, json, optimistix as optx; from jaxci.runtime._keys import Keyer;"
             "from jaxci.optim._solve import solve_loop; from jaxci.optim.gradient import _min_fn_closed as f;"
             "print(json.dumps([Keyer()(optx.LBFGS(rtol=1e-3, atol=1e-4)), Keyer()(f),"
             "Keyer()(inspect.unwrap(solve_loop))]))")
@@ -202,7 +202,7 @@ def test_with_the_cache_off_nothing_is_exported(tmp_path):
 
 
 def test_a_program_is_timed_without_its_compilation(tmp_path):
-    from jaxci.transfer import totals
+    from jaxci.runtime.transfer import totals
 
     timed, x = program(_toy), jnp.arange(7.0)
     with compile_cache.exporting_to(tmp_path):
@@ -251,8 +251,8 @@ def test_concurrent_writers_leave_whole_entries(tmp_path):
 # ------------------------------------------------------------------------------------- fresh processes
 _SMOOTH = """
 import json, hashlib, numpy as np, jaxci
-from jaxci import compile_cache
-from jaxci.generate import perturb_box
+from jaxci.runtime import compile_cache
+from jaxci.mesh.generate import perturb_box
 res = jaxci.smooth(perturb_box(6, amplitude=0.3, seed=2), "lbfgs", engine="jax", dtype="float64")
 import jax
 print(json.dumps({"points": hashlib.sha256(np.ascontiguousarray(res.mesh.points).tobytes()).hexdigest(),
@@ -294,3 +294,17 @@ def test_a_second_process_compiles_nothing_and_the_results_agree(tmp_path):
                                                           "reasons": {}}
     assert off["phases"]["cache_hits"] == 0 and not home.exists()
     assert off["points"] == cold["points"]
+
+
+def test_the_package_hash_covers_every_folder_of_jaxci(monkeypatch):
+    """`package_hash` (part of every key) reads jaxci's own files from the package root, not from the folder of
+    `jaxci.runtime._keys`: a change to the interface, a model module or the C kernels makes new keys too."""
+    from jaxci.runtime import _keys
+
+    read = []
+    monkeypatch.setattr(_keys, "_file_hash", lambda path: read.append(Path(path)) or "0")
+    _keys.package_hash.__wrapped__()
+    root = Path(_keys.__file__).resolve().parents[1]
+    names = {p.relative_to(root).as_posix() for p in read}
+    assert {"__init__.py", "native.py", "_ckernels.c", "interface/smooth.py", "mesh/generate.py",
+            "runtime/_keys.py"} <= names, sorted(names)

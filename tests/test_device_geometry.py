@@ -1,6 +1,6 @@
 """The device path of the boundary (jaxci.geometry.device_topology, jaxci.geometry.device_constraints) against the
 host functions: the same topology, classification, constraints and exact projection, computed under
-``jax.transfer_guard("disallow")`` (every transfer explicit, through jaxci.transfer)."""
+``jax.transfer_guard("disallow")`` (every transfer explicit, through jaxci.runtime.transfer)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ import pytest
 from helpers import MESQUITE, SHARED, SHARED_REASON
 
 from jaxci import read_mesh
-from jaxci.generate import perturb_box
 from jaxci.geometry import device_topology
 from jaxci.geometry.boundary import classify_boundary, fix_nodes
 from jaxci.geometry.device_constraints import (
@@ -29,10 +28,11 @@ from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.geometry.topology import boundary_topology
 from jaxci.mesh import hex_mesh, unit_frame
 from jaxci.mesh.blocks import CellBlock
+from jaxci.mesh.generate import perturb_box
+from jaxci.mesh.shapes import annulus
 from jaxci.mesh.sorting import HASH_MIX, position_bits
-from jaxci.shapes import annulus
-from jaxci.sizes import bucket
-from jaxci.transfer import to_device, to_host
+from jaxci.runtime.sizes import bucket
+from jaxci.runtime.transfer import to_device, to_host
 
 EXODUS = SHARED / "data" / "exodus"
 TOPOLOGY_FIELDS = ("faces", "face_hex", "edges", "face_edges", "edge_face_ptr", "edge_face", "nonmanifold_faces",
@@ -197,7 +197,7 @@ def test_device_unit_frame_is_unit_frame():
 
 
 def test_device_path_refuses_other_cells():
-    from jaxci.shapes import l_block
+    from jaxci.mesh.shapes import l_block
 
     mesh = l_block(2)
     wedge = dataclasses.replace(mesh, cells=[*mesh.cells, CellBlock("wedge", np.array([[0, 1, 2, 3, 4, 5]]))])

@@ -1,7 +1,7 @@
-"""The quality figures and checks measured on the device (`jaxci.metrics.device`, `jaxci.invariants.enforce_device`,
-`jaxci.mesh.check_volume` from the device's `volume_moments`) against the host functions they stand for, on boxes
-(smooth and tangled) and real meshes, each device call under ``jax.transfer_guard("disallow")``: nothing but the
-explicit `jaxci.transfer` moves crosses."""
+"""The quality figures and checks measured on the device (`jaxci.metrics.device`,
+`jaxci.interface.invariants.enforce_device`, `jaxci.mesh.check_volume` from the device's `volume_moments`) against the
+host functions they stand for, on boxes (smooth and tangled) and real meshes, each device call under
+``jax.transfer_guard("disallow")``: nothing but the explicit `jaxci.runtime.transfer` moves crosses."""
 
 from __future__ import annotations
 
@@ -14,16 +14,16 @@ import pytest
 from helpers import MESQUITE, SHARED_REASON
 
 import jaxci
-from jaxci import transfer
 from jaxci.errors import MeshError, UsageError
-from jaxci.generate import perturb_box
 from jaxci.geometry.boundary import classify_boundary
-from jaxci.invariants import enforce, enforce_device
+from jaxci.interface.invariants import enforce, enforce_device
 from jaxci.mesh import CellBlock, HexMesh, check_volume, hex_mesh
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics import guard
 from jaxci.metrics import objective as mixed
 from jaxci.metrics.device import inverted_hexes, quality_report_device, volume_moments, worst_elements_device
 from jaxci.metrics.report import quality_report, worst_elements
+from jaxci.runtime import transfer
 
 REAL = sorted(MESQUITE.glob("*.vtk")) if MESQUITE.is_dir() else []
 

@@ -1,6 +1,6 @@
 """The presmoothing's data and the parametrisation built on the device (`jaxci.geometry.device_colouring`,
 `jaxci.optim.device_stars`, `jaxci.optim.device_parametrisation`), against the host's builds, under
-``jax.transfer_guard("disallow")``: only the explicit `jaxci.transfer` moves cross."""
+``jax.transfer_guard("disallow")``: only the explicit `jaxci.runtime.transfer` moves cross."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from helpers import MESQUITE, SHARED_REASON
 
-from jaxci.generate import perturb_box
 from jaxci.geometry.device_colouring import colour_nodes_device, incidences, valid_colouring
+from jaxci.interface.methods import build_problem
 from jaxci.io import read_mesh
-from jaxci.methods import build_problem
+from jaxci.mesh.generate import perturb_box
 from jaxci.optim import _moves as M
 from jaxci.optim import laplace as L
 from jaxci.optim._buckets import free_layout
@@ -27,7 +27,7 @@ from jaxci.optim.parametrisation import (
     pad_problem_device,
     unpad_free,
 )
-from jaxci.transfer import to_device
+from jaxci.runtime.transfer import to_device
 
 
 def _mesh(name):
@@ -289,7 +289,7 @@ def test_reach_and_final_points_of_a_device_parametrisation(step):
 def test_parametrisation_takes_the_sweep_datas_incidences_and_planes():
     """The presmoothing's incidences, boundary view and planes (found on the float64 points) serve the
     parametrisation: the same one as built alone, with fewer programs and transfers."""
-    from jaxci import transfer
+    from jaxci.runtime import transfer
 
     mesh, pr = _problem("1000hex-block-internal-bias.vtk", np.float32)
     info = pr.info

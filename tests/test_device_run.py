@@ -1,6 +1,6 @@
-"""A smoothing run on the JAX engine keeps its mesh on the device from upload to download (jaxci.device_run): no
-implicit transfer between host and device, the traffic and host time counted per phase, the guarantees of
-`jaxci.smooth` kept, and the same mesh as the run whose stages run on the host."""
+"""A smoothing run on the JAX engine keeps its mesh on the device from upload to download
+(`jaxci.interface.device_run`): no implicit transfer between host and device, the traffic and host time counted per
+phase, the guarantees of `jaxci.smooth` kept, and the same mesh as the run whose stages run on the host."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import pytest
 from helpers import MESQUITE, no_implicit_transfers
 
 import jaxci
-from jaxci import device_run
-from jaxci.generate import perturb_box
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints, project_np
+from jaxci.interface import device_run
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics.guard import cell_worst
 
 

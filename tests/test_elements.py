@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from jaxci.cli import main
-from jaxci.generate import perturb_box
 from jaxci.mesh import CellBlock, HexMesh
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics import elements as E
 from jaxci.metrics import hexahedron as q
 from jaxci.metrics.report import quality_report

@@ -1,5 +1,5 @@
-"""One engine decision per run (`jaxci.engine`): the plan's rules, that every stage and every report follows and
-states it, the batched seeds of global CI, and that both engines reach the same optimum on the same meshes."""
+"""One engine decision per run (`jaxci.interface.engine`): the plan's rules, that every stage and every report follows
+and states it, the batched seeds of global CI, and that both engines reach the same optimum on the same meshes."""
 
 from __future__ import annotations
 
@@ -17,13 +17,14 @@ import numpy as np
 import pytest
 from helpers import MESQUITE, PEERS, fail_seed_method
 
-from jaxci import engine, native
+from jaxci import native
 from jaxci.cli import main
 from jaxci.errors import ConfigError, MeshError
-from jaxci.generate import paper_case, perturb_box
+from jaxci.interface import engine
+from jaxci.interface.seeds import smooth_seeds
+from jaxci.interface.smooth import smooth
 from jaxci.io import read_mesh, write_mesh
-from jaxci.seeds import smooth_seeds
-from jaxci.smooth import smooth
+from jaxci.mesh.generate import paper_case, perturb_box
 
 PAVE3 = MESQUITE / "pave3.e.vtk"
 TANGLED = [PEERS / "cube9_pert.vtk", MESQUITE / "hex_5_tangled.vtk"]
@@ -214,7 +215,7 @@ def test_every_stage_runs_on_the_plans_engine_inside_its_context(asked, monkeypa
         return run
 
     monkeypatch.setattr(engine.Plan, "context", context)
-    smooth_module = importlib.import_module("jaxci.smooth")
+    from jaxci.interface import smooth as smooth_module
     monkeypatch.setattr(smooth_module, "build_problem", spy("setup", smooth_module.build_problem,
                                                             lambda out, *a, plan, **kw: plan.engine))
     monkeypatch.setattr(untangle, "untangle_stage", spy(
@@ -275,7 +276,7 @@ def test_a_jax_plan_on_the_cpu_of_an_accelerator_machine_runs_the_kernel_it_name
 @pytest.mark.slow
 def test_without_the_c_extension_the_plan_names_what_ran(tmp_path):
     script = (
-        "import jaxci\nfrom jaxci.generate import perturb_box\nm = perturb_box(3, 3, 3, amplitude=0.2, seed=0)\n"
+        "import jaxci\nfrom jaxci.mesh.generate import perturb_box\nm = perturb_box(3, 3, 3, amplitude=0.2, seed=0)\n"
         "for method in ('lbfgs', 'ci'):\n"
         "    r = jaxci.smooth(m, method, max_sweeps=2) if method == 'ci' else jaxci.smooth(m, method)\n"
         "    print(method, r.plan.engine, r.plan.kernel, any('C kernels' in n for n in r.notes))\n")
@@ -288,8 +289,9 @@ def test_without_the_c_extension_the_plan_names_what_ran(tmp_path):
 @pytest.mark.slow
 def test_without_the_c_extension_the_host_engines_default_pipeline_runs_or_is_refused():
     script = (
-        "import jaxci, jaxci.methods\nfrom jaxci.errors import ConfigError\nfrom jaxci.generate import perturb_box\n"
-        "jaxci.methods.AUTO_PRESMOOTH_FROM = 1  # the size rule, on a small mesh\n"
+        "import jaxci, jaxci.interface.methods\nfrom jaxci.errors import ConfigError\n"
+        "from jaxci.mesh.generate import perturb_box\n"
+        "jaxci.interface.methods.AUTO_PRESMOOTH_FROM = 1  # the size rule, on a small mesh\n"
         "try:\n    r = jaxci.smooth(perturb_box(3, 3, 3, amplitude=0.2, seed=0), engine='host')\n"
         "    print('ok', r.plan.engine, r.plan.kernel, r.after.inverted_elements)\n"
         "except ConfigError as e:\n    print('refused', e)\n")
@@ -364,7 +366,7 @@ def test_a_seed_batched_with_one_whose_trials_leave_their_flat_regions_gets_its_
     import jax
     from scipy.spatial.transform import Rotation
 
-    from jaxci.methods import build_problem, free_scale, global_parametrisation, method_params
+    from jaxci.interface.methods import build_problem, free_scale, global_parametrisation, method_params
     from jaxci.optim.global_ci import global_ci_batched
 
     rot = Rotation.from_euler("xyz", [0.3, 0.7, 1.1]).as_matrix()
@@ -492,7 +494,7 @@ def test_plan_is_a_frozen_record():
 
 def test_the_polish_on_the_host_beside_the_jax_engine_is_in_the_plan():
     """The default pipeline's worst-element polish always runs on the host: on the JAX engine the plan says so."""
-    from jaxci.smooth import POLISH_ON_HOST
+    from jaxci.interface.smooth import POLISH_ON_HOST
 
     box = perturb_box(3, 3, 3, amplitude=0.3, seed=2)
     assert POLISH_ON_HOST in smooth(box, engine="jax").plan.notes

@@ -15,9 +15,9 @@ import jaxci.mesh as mesh_module
 import jaxci.mesh.coincident as coincident
 import jaxci.mesh.sorting as sorting
 from jaxci.errors import MeshError
-from jaxci.generate import perturb_box
 from jaxci.geometry.topology import CELL_FACES, boundary_topology
 from jaxci.mesh import CellBlock, HexMesh, close_pairs
+from jaxci.mesh.generate import perturb_box
 
 
 def reference_faces(blocks: dict) -> tuple[list, list]:

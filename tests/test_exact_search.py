@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from helpers import MESQUITE
 
-from jaxci.generate import perturb_box
 from jaxci.geometry import projection
 from jaxci.geometry._closest import (
     closest_on_segments,
@@ -18,6 +17,7 @@ from jaxci.geometry._closest import (
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.mesh import HexMesh
+from jaxci.mesh.generate import perturb_box
 from jaxci.optim import parametrisation
 from jaxci.optim.parametrisation import node_lengths
 

@@ -16,9 +16,9 @@ from helpers import EXODUS
 import jaxci
 from jaxci.cli import main
 from jaxci.errors import MeshReadError
-from jaxci.generate import perturb_box
 from jaxci.io import LossyWriteWarning, read_mesh, write_mesh
 from jaxci.mesh import CellBlock, HexMesh
+from jaxci.mesh.generate import perturb_box
 
 netCDF4 = pytest.importorskip("netCDF4")
 

@@ -183,7 +183,7 @@ def test_force_replaces_and_seeds_override(small_run, tmp_path, capsys):
 
 
 def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):
-    smooth_module = importlib.import_module("jaxci.smooth")
+    from jaxci.interface import smooth as smooth_module
     monkeypatch.setattr(smooth_module, "smooth", interrupted_on_call(smooth_module.smooth))
     cfg = _write(tmp_path, SMALL)
     code, _, err = _run(["run", str(cfg), "--out", str(tmp_path / "out"), "--quiet"], capsys)
@@ -196,8 +196,7 @@ def test_keyboard_interrupt_writes_partial(tmp_path, monkeypatch, capsys):
 def test_failed_run_recorded(tmp_path, monkeypatch, capsys):
     """A run that raises a JaxciError (e.g. an inverted mesh) is recorded as failed; the others go on; exit 1."""
     from jaxci.errors import InvertedMeshError
-
-    smooth_module = importlib.import_module("jaxci.smooth")
+    from jaxci.interface import smooth as smooth_module
     real = smooth_module.smooth
 
     def failing(mesh, method, *, seed, **kw):
@@ -260,7 +259,7 @@ def test_bad_config(tmp_path, capsys, name, text, key, line):
 
 
 def test_unknown_method_lists_valid(tmp_path):
-    from jaxci.smooth import METHODS
+    from jaxci.interface.smooth import METHODS
 
     with pytest.raises(ConfigError, match=re.escape(", ".join(METHODS))):
         load_config(_write(tmp_path, SMALL.replace("method: ci", "method: simplex")))
@@ -314,8 +313,8 @@ def test_report_engines_table_has_one_row_per_engine_and_rule():
 def test_summary_and_report_name_the_accelerator_jax_sees(tmp_path, monkeypatch):
     """summary.json's device: what was asked for, the accelerator JAX sees (simulated here) and the CPU; report.md
     says both."""
-    from jaxci import engine
     from jaxci.experiments import report
+    from jaxci.interface import engine
 
     monkeypatch.setattr(engine, "accelerator", lambda: ("gpu", "Simulated GPU"))
     exp = load_config(_write(tmp_path, SMALL + "device: cpu\n"))

@@ -9,8 +9,8 @@ import pytest
 
 import jaxci
 from jaxci.errors import InvertedMeshError
-from jaxci.generate import box
 from jaxci.geometry.boundary import classify_boundary
+from jaxci.mesh.generate import box
 from jaxci.optim.feasibility import stuck_cells
 
 

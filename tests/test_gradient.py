@@ -19,9 +19,10 @@ from hypothesis import strategies as st
 
 from jaxci import native
 from jaxci.errors import ConfigError
-from jaxci.generate import box, perturb_box
 from jaxci.geometry.boundary import INTERIOR
 from jaxci.geometry.projection import params_to_points
+from jaxci.interface.smooth import build_problem, smooth
+from jaxci.mesh.generate import box, perturb_box
 from jaxci.metrics.hexahedron import objective_t, objective_terms_and_grad, transposed
 from jaxci.optim._solve import make_solver as _solver
 from jaxci.optim._solve import solve_loop
@@ -32,7 +33,6 @@ from jaxci.optim.gradient import (
     objective_and_grad,
     solver_args,
 )
-from jaxci.smooth import build_problem, smooth
 
 
 def grid_error(mesh_out, n: int) -> float:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxci
-from jaxci.generate import perturb_box
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics import guard
 
 
@@ -50,11 +50,9 @@ def test_keep_worst_leaves_a_better_result_alone(case):
 
 def test_smooth_applies_the_guard_to_any_method(case, monkeypatch):
     """Whatever a method returns, smooth's float64 checks keep the worst cell (and say what it cost)."""
-    import importlib
-
+    from jaxci.interface import methods as S  # MethodRun.run looks run_method up there
     from jaxci.mesh import to_unit, unit_frame
 
-    S = importlib.import_module("jaxci.methods")  # where `MethodRun.run` looks up `run_method`
     mesh, _, bad, _ = case
     real = S.run_method
     bad_unit = to_unit(bad, unit_frame(mesh.points))  # smooth works in the unit frame

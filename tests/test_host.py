@@ -14,17 +14,17 @@ import pytest
 
 from jaxci import native
 from jaxci.errors import ConfigError
-from jaxci.generate import perturb_box
 from jaxci.geometry.near import NearProjector, project_near_np
 from jaxci.geometry.projection import project_np
+from jaxci.interface.smooth import build_problem, smooth
 from jaxci.mesh import HexMesh
+from jaxci.mesh.generate import perturb_box
+from jaxci.mesh.shapes import annulus
 from jaxci.metrics.hexahedron import objective_terms_and_grad, objective_terms_and_grad_np, transposed
 from jaxci.metrics.report import quality_report
 from jaxci.optim.gradient import GradientParams, minimise, use_host
 from jaxci.optim.host import HOST_MAX, lbfgs
 from jaxci.optim.parametrisation import make_parametrisation
-from jaxci.shapes import annulus
-from jaxci.smooth import build_problem, smooth
 
 
 def _wavy_annulus(seed: int = 0) -> HexMesh:
@@ -204,7 +204,7 @@ def test_a_mesh_whose_nodes_are_all_fixed_returns_at_once_with_a_note():
     """A single hexahedron (every node a boundary corner): nothing can move, so no method runs and nothing
     compiles (it used to compile 45 small programs in the solver's set-up)."""
     from jaxci import smooth
-    from jaxci.phases import compile_totals
+    from jaxci.runtime.phases import compile_totals
 
     mesh = perturb_box(1, amplitude=0.0)
     mesh = mesh.with_points(mesh.points + np.array([[0.2, 0, 0]] + [[0, 0, 0]] * 7))
@@ -309,11 +309,11 @@ def test_near_projector_leaves_kept_nodes_alone():
 
 def test_pytrees_are_registered_when_jax_comes_after_jaxci():
     """A process that imports jaxci first (no JAX) and JAX later: Constraints, Parametrisation, ExtraCells and
-    ColouredStars (registered by `_moves`) are JAX pytrees once JAX is imported (`jaxci._lazy`), and a jitted
+    ColouredStars (registered by `_moves`) are JAX pytrees once JAX is imported (`jaxci.runtime._lazy`), and a jitted
     function takes numpy constraints moved to the device."""
     code = """
 import sys
-from jaxci.generate import perturb_box
+from jaxci.mesh.generate import perturb_box
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints, project_np
 from jaxci.optim.parametrisation import make_parametrisation

@@ -13,10 +13,10 @@ from helpers import MESQUITE, spiked_sweep
 
 import jaxci
 from jaxci import native
-from jaxci.engine import host_plan
 from jaxci.errors import ConfigError
-from jaxci.generate import perturb_box
-from jaxci.smooth import smooth
+from jaxci.interface.engine import host_plan
+from jaxci.interface.smooth import smooth
+from jaxci.mesh.generate import perturb_box
 
 pytestmark = pytest.mark.skipif(not native.AVAILABLE, reason="the C kernels are not built")
 
@@ -126,7 +126,7 @@ def test_cli_local_ci_on_a_small_mesh_never_imports_jax(tmp_path):
 def test_lbfgs_with_presmoothing_runs_on_the_host_without_jax():
     """L-BFGS after smart-Laplace sweeps (the default pipeline's recipe from 100,001 hexahedra) on a mesh the host
     takes: sweeps and solver in numpy and C, JAX never imported."""
-    code = ("import sys; from jaxci.generate import perturb_box; from jaxci.smooth import smooth; "
+    code = ("import sys; from jaxci.mesh.generate import perturb_box; from jaxci.interface.smooth import smooth; "
             "r = smooth(perturb_box(6, amplitude=0.3, seed=1), 'lbfgs', presmooth=2); "
             "print(r.history['presmooth'], r.after.max_condition < r.before.max_condition, 'jax' in sys.modules)")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -147,7 +147,7 @@ def test_host_and_compiled_laplacians_agree(method):
 def test_host_smart_laplace_keeps_a_curved_boundary_and_never_raises_f():
     from test_ci import boundary_error
 
-    from jaxci.shapes import annulus
+    from jaxci.mesh.shapes import annulus
 
     mesh0 = annulus(16, 3, 2)
     rng = np.random.default_rng(1)
@@ -193,8 +193,8 @@ def test_host_local_length_is_the_mean_edge_length_at_the_node(monkeypatch):
     test) is `jaxci.optim._local.local_length`, the compiled path's: on a unit box of 4^3 cells, the spacing 0.25
     at every node (it was once sqrt(l1^2 + l2^2 + l3^2) / 3, 0.58 x the spacing); computed in blocks of nodes
     (`LENGTH_CHUNK`), the same numbers as at once on a perturbed box."""
-    from jaxci.generate import box
-    from jaxci.methods import build_problem
+    from jaxci.interface.methods import build_problem
+    from jaxci.mesh.generate import box
     from jaxci.optim import host_local
     from jaxci.optim.host_local import _colours, _local_length
 
@@ -261,9 +261,9 @@ def test_host_pattern_move_never_worsens_the_worst_corner():
     """On the host too (`_Sweeper.pattern`, the same condition as the compiled `jaxci.optim.ci._better`): along
     a sweep displacement whose lowest-F factor (4) makes the worst corner's excess more than `EXCESS_GROWTH` times
     worse, the factor 2 is taken, which lowers both F and max kappa/3."""
+    from jaxci.interface.smooth import build_problem
     from jaxci.optim.ci_params import EXCESS_GROWTH, CIParams
     from jaxci.optim.host_local import _Sweeper
-    from jaxci.smooth import build_problem
 
     mesh, D = spiked_sweep()
     pb = build_problem(mesh, dtype=np.float64, plan=host_plan())
@@ -280,9 +280,9 @@ def test_host_pattern_move_stops_at_the_first_factor_where_f_rises():
     """`_Sweeper.pattern` tries the factors in order and stops after the first whose F is not below its
     predecessor's: along the spiked sweep F falls at 1, 2, 4 and rises at 8, so 4 of the 6 factors are evaluated,
     and the choice is the one of all six (the factor 2, as the test above)."""
+    from jaxci.interface.smooth import build_problem
     from jaxci.optim.ci_params import PATTERN_FACTORS, CIParams
     from jaxci.optim.host_local import _Sweeper
-    from jaxci.smooth import build_problem
 
     mesh, D = spiked_sweep()
     pb = build_problem(mesh, dtype=np.float64, plan=host_plan())

@@ -13,9 +13,9 @@ import pytest
 from helpers import MESQUITE, MESQUITE_FIGURES, read_vtk_hexes, unit_cube
 
 from jaxci.errors import MeshError, MeshReadError, MeshWriteError, UnsupportedFormatError
-from jaxci.generate import box, perturb_box
 from jaxci.io import FORMATS, LossyWriteWarning, read_mesh, write_mesh
 from jaxci.mesh import MIRROR_HEX, CellBlock, HexMesh
+from jaxci.mesh.generate import box, perturb_box
 
 QUADS = np.array([[0, 1, 5, 4], [1, 2, 6, 5]])
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from helpers import MESQUITE, SHARED_REASON
 
-from jaxci.generate import perturb_box
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics import incidence as I
 from jaxci.metrics.hexahedron import objective_t, objective_terms_and_grad, transposed
 from jaxci.metrics.incidence import FORMS, default_form, node_incidence, valence_class
@@ -143,9 +143,9 @@ def test_the_solver_builds_the_incidences_once_and_follows_the_scatter_form(monk
     """L-BFGS on the JAX engine without the C kernel, its problem padded to a size class: the gather form's
     incidences are built once for the whole run (restarts included) from the padded connectivity, and the run
     takes the scatter form's steps to the same points (float64)."""
+    from jaxci.interface.smooth import build_problem
     from jaxci.metrics import native_grad
     from jaxci.optim import gradient as G
-    from jaxci.smooth import build_problem
 
     monkeypatch.setattr(native_grad, "available", lambda platform: False)
     built = []

@@ -7,10 +7,10 @@ import pytest
 
 from jaxci.cells import corner_determinants
 from jaxci.errors import ConfigError
-from jaxci.generate import box, grid_hexes, perturb_box
+from jaxci.interface.smooth import build_problem, smooth
 from jaxci.mesh import hex_mesh
+from jaxci.mesh.generate import box, grid_hexes, perturb_box
 from jaxci.optim.laplace import edge_neighbours, run_laplace
-from jaxci.smooth import build_problem, smooth
 
 
 def v_notch(nx: int = 8, ny: int = 4, nz: int = 2, depth: float = 0.8, width: float = 0.25):

@@ -12,8 +12,8 @@ import pytest
 
 from jaxci.cli import main
 from jaxci.errors import MeshReadError
-from jaxci.generate import perturb_box
 from jaxci.io import LossyWriteWarning, read_mesh, write_mesh
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics.report import quality_report
 
 OTHER = ("*PART\npart one\n$ pid secid mid\n         1         1         1\n*MAT_ELASTIC\n"

@@ -11,9 +11,9 @@ import pytest
 
 from jaxci.cli import main
 from jaxci.errors import MeshReadError
-from jaxci.generate import perturb_box
 from jaxci.io import LossyWriteWarning, read_mesh, write_mesh
 from jaxci.mesh import CellBlock, HexMesh
+from jaxci.mesh.generate import perturb_box
 
 
 def mixed_mesh() -> HexMesh:

@@ -11,7 +11,6 @@ from helpers import unit_cube
 import jaxci
 from jaxci.cells import corner_determinants
 from jaxci.errors import MeshError
-from jaxci.generate import box, box_free_axes, perturb_box
 from jaxci.mesh import (
     MIRROR_HEX,
     CellBlock,
@@ -24,6 +23,7 @@ from jaxci.mesh import (
     to_unit,
     unit_frame,
 )
+from jaxci.mesh.generate import box, box_free_axes, perturb_box
 
 
 def test_valid_cube():

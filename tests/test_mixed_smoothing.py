@@ -11,17 +11,17 @@ import numpy as np
 import pytest
 
 from jaxci.cells import EDGES, volume_cells
-from jaxci.generate import box, perturb_box
 from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals, mesh_topology
 from jaxci.geometry.projection import build_constraints, project, project_np
 from jaxci.geometry.topology import CELL_FACES, HEX_FACES
+from jaxci.interface.smooth import METHODS, build_problem, smooth
 from jaxci.mesh import CellBlock, HexMesh
+from jaxci.mesh.generate import box, perturb_box
 from jaxci.metrics import elements as E
 from jaxci.metrics import objective as mixed
 from jaxci.metrics.hexahedron import objective_t, transposed
 from jaxci.optim._local import gather_star
 from jaxci.optim._moves import colour_slice, coloured_stars, local_sum
-from jaxci.smooth import METHODS, build_problem, smooth
 
 #: Unit cells of every type, node orders of `jaxci.metrics.elements`.
 UNIT = {

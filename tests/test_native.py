@@ -7,7 +7,7 @@ import pytest
 
 from jaxci import native
 from jaxci.cells import CORNER_NEIGHBOURS
-from jaxci.generate import perturb_box
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics.hexahedron import objective_terms_and_grad_np
 from jaxci.optim._untangle_loop import corner_table, hex_kernel
 
@@ -306,8 +306,8 @@ def test_untangling_without_the_extension_takes_the_same_path(monkeypatch):
     untangles what it untangles with it, in the same number of rounds."""
     from helpers import MESQUITE
 
+    from jaxci.interface.smooth import smooth
     from jaxci.io import read_mesh
-    from jaxci.smooth import smooth
 
     mesh = read_mesh(str(MESQUITE / "hex_5_tangled.vtk"))
     with_c = smooth(mesh)

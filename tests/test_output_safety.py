@@ -5,7 +5,6 @@ stderr without a traceback, and that nothing but the files asked for appeared, c
 
 from __future__ import annotations
 
-import importlib
 import json
 import os
 import shutil
@@ -157,7 +156,7 @@ def test_run_force_replaces_only_when_complete(tmp_path, earlier, monkeypatch, c
     from jaxci.errors import InvertedMeshError
 
     cfg, prev = _setup(tmp_path, earlier)
-    smooth_module = importlib.import_module("jaxci.smooth")
+    from jaxci.interface import smooth as smooth_module
     real = smooth_module.smooth
     old = snapshot(prev)
 
@@ -348,7 +347,7 @@ def test_run_inputs_read_through_the_config_meshes(tmp_path, earlier, capsys):
 # ------------------------------------------------------------------------------------------ late arrivals
 def _meanwhile(monkeypatch, action):
     """Make `action()` happen while the (first) smoothing runs: something the user does while jaxci works."""
-    smooth_module = importlib.import_module("jaxci.smooth")
+    from jaxci.interface import smooth as smooth_module
     real = smooth_module.smooth
     done = []
 
@@ -490,7 +489,7 @@ XLA_FOREVER = """\
 import importlib, sys
 from pathlib import Path
 FLAG = Path(sys.argv[1])
-sm = importlib.import_module("jaxci.smooth")
+sm = importlib.import_module("jaxci.interface.smooth")
 def forever(*args, **kwargs):
     import jax
     loop = jax.jit(lambda x: jax.lax.while_loop(lambda c: c[1] >= 0, lambda c: (c[0] * 0.5 + 1.0, c[1]), (x, 0))[0])
@@ -537,7 +536,7 @@ SECOND_HELD = """\
 import ctypes, importlib, signal, sys, time
 from pathlib import Path
 FLAG = Path(sys.argv[1])
-sm = importlib.import_module("jaxci.smooth")
+sm = importlib.import_module("jaxci.interface.smooth")
 real, calls = sm.smooth, []
 def held(*args, **kwargs):
     calls.append(1)
@@ -678,7 +677,7 @@ def test_sigint_during_write_leaves_no_temporary(tmp_path):
 GC_BUSY = """\
 import gc, sys, time
 from pathlib import Path
-import jaxci.generate
+import jaxci.mesh.generate
 FLAG = Path(sys.argv[1])
 def busy(*args, **kwargs):
     def slow_callback(phase, info):
@@ -689,7 +688,7 @@ def busy(*args, **kwargs):
     FLAG.write_text("busy")
     while True:
         gc.collect()
-jaxci.generate.perturb_box = busy
+jaxci.mesh.generate.perturb_box = busy
 from jaxci.cli import entry
 sys.argv = ["jaxci", *sys.argv[2:]]
 entry()
@@ -710,7 +709,8 @@ def test_sigterm_inside_gc_callback_not_lost(tmp_path):
 
 
 #: A `sitecustomize` that holds the jaxci command still while it starts: the import of ``jaxci.errors`` (the first
-#: after jaxci's start-up handlers, `jaxci.runtime.quiet_interrupts_while_starting`) waits until the signal ends it.
+#: after jaxci's start-up handlers, `jaxci.runtime.process.quiet_interrupts_while_starting`) waits until the signal
+#: ends it.
 HELD_IMPORT = """\
 import os, sys, time
 class _Hold:

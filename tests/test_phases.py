@@ -1,5 +1,5 @@
-"""Phase timings (`jaxci.phases`), the default pipeline (``method="auto"``), the note when an iteration cap stops
-a method, and the already-optimal shortcut."""
+"""Phase timings (`jaxci.runtime.phases`), the default pipeline (``method="auto"``), the note when an iteration cap
+stops a method, and the already-optimal shortcut."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 
 import jaxci
 from jaxci.cli import main
-from jaxci.generate import box, perturb_box
 from jaxci.io import write_mesh
-from jaxci.phases import PhaseClock, compile_totals
+from jaxci.mesh.generate import box, perturb_box
+from jaxci.runtime.phases import PhaseClock, compile_totals
 
 PHASE_KEYS = {"seconds", "compile_seconds", "compiled", "cache_hits", "h2d_bytes", "d2h_bytes", "device_s", "host_s"}
 
@@ -46,8 +46,8 @@ def test_default_is_auto_and_reports_phases():
 def test_auto_presmooths_large_meshes_on_the_host_and_every_mesh_on_jax(monkeypatch):
     import dataclasses
 
-    from jaxci import methods
-    from jaxci.engine import host_plan
+    from jaxci.interface import methods
+    from jaxci.interface.engine import host_plan
 
     mesh = box(4, 4, 4)  # 64 hexahedra
     host = host_plan()
@@ -99,12 +99,12 @@ def test_cli_json_and_verbose_phases(tmp_path, monkeypatch, capsys):
 
 
 def test_every_phase_gives_the_heap_free_pages_back(monkeypatch):
-    """A phase starts by handing the C heap's free pages back to the OS (`jaxci.memory.release_free_memory`,
+    """A phase starts by handing the C heap's free pages back to the OS (`jaxci.runtime.memory.release_free_memory`,
     glibc's malloc_trim: the last phase's temporaries do not stay resident under the next one's arrays); on
     Linux with glibc it runs, elsewhere it is a no-op that says so."""
     import sys
 
-    from jaxci import memory, phases
+    from jaxci.runtime import memory, phases
 
     calls = []
     monkeypatch.setattr(phases, "release_free_memory", lambda: calls.append(1))
@@ -121,14 +121,14 @@ def test_every_phase_gives_the_heap_free_pages_back(monkeypatch):
 
 
 def test_phase_counts_transfers_and_time_in_programs():
-    """A phase records the bytes `jaxci.transfer` moves each way, the seconds inside `program` calls (their
+    """A phase records the bytes `jaxci.runtime.transfer` moves each way, the seconds inside `program` calls (their
     compilation excluded) and the rest as host seconds."""
     import time
 
     import jax
     import numpy as np
 
-    from jaxci.transfer import program, to_device, to_host
+    from jaxci.runtime.transfer import program, to_device, to_host
 
     @program
     @jax.jit

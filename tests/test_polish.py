@@ -8,17 +8,17 @@ import pytest
 
 from jaxci import native
 from jaxci.cells import element_blocks
-from jaxci.generate import perturb_box
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints
 from jaxci.geometry.topology import HEX_FACES
+from jaxci.interface.smooth import smooth
 from jaxci.mesh import CellBlock, HexMesh
+from jaxci.mesh.generate import perturb_box
 from jaxci.metrics.elements import checked_objective, mixed_objective
 from jaxci.metrics.guard import cell_worst
 from jaxci.optim import weighted
 from jaxci.optim.parametrisation import make_parametrisation
 from jaxci.optim.polish import PolishParams, polish
-from jaxci.smooth import smooth
 
 
 def all_types_box(seed: int = 1) -> HexMesh:
@@ -174,7 +174,7 @@ def test_default_trades_F_for_the_worst_element_at_an_optimum_of_F():
         assert float(mixed_objective(res.mesh.points, opt)) <= f0
         assert not any(n.startswith("F rose") for n in res.notes)
     # the check after untangling, as if `opt` were the untangled start: the same order
-    from jaxci.invariants import enforce
+    from jaxci.interface.invariants import enforce
 
     cons = build_constraints(opt, classify_boundary(opt, fix_boundary=True), dtype=np.float64, device=False)
     for worst_first in (True, False):
@@ -187,7 +187,7 @@ def test_default_trades_F_for_the_worst_element_at_an_optimum_of_F():
 
 
 def test_worst_first_keeps_a_higher_F_only_where_the_worst_element_fell():
-    from jaxci.invariants import enforce
+    from jaxci.interface.invariants import enforce
     from jaxci.metrics.guard import worst, worst_first
 
     mesh = perturb_box(3, amplitude=0.25, seed=2)

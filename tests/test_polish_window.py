@@ -9,13 +9,13 @@ import pytest
 
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints
+from jaxci.interface.smooth import smooth
+from jaxci.mesh.shapes import bevelled_box
 from jaxci.metrics.guard import cell_worst
 from jaxci.optim.parametrisation import make_parametrisation
 from jaxci.optim.polish import PolishParams, Rest, polish
 from jaxci.optim.polish_window import put_back, window
-from jaxci.shapes import bevelled_box
-from jaxci.smooth import smooth
-from jaxci.transfer import to_device, to_host, totals
+from jaxci.runtime.transfer import to_device, to_host, totals
 
 
 def _setup(mesh, x):

@@ -1,4 +1,4 @@
-"""Progress on long work: `jaxci.phases`' progress and step events (nothing when nobody listens), the command's
+"""Progress on long work: `jaxci.runtime.phases`' progress and step events (nothing when nobody listens), the command's
 progress line (`jaxci.cli._progress.Display`), and through real processes: on a terminal (a pseudo-terminal the
 test opens) `jaxci smooth` and `jaxci run` draw it; piped, or with ``--quiet``, stderr stays empty; ``-v`` keeps its
 phase lines."""
@@ -14,9 +14,10 @@ import sys
 import pytest
 from helpers import CUBE27_EXPERIMENT, MESQUITE
 
-from jaxci import native, phases
+from jaxci import native
 from jaxci.cli._progress import Display, step_text
-from jaxci.phases import PhaseClock
+from jaxci.runtime import phases
+from jaxci.runtime.phases import PhaseClock
 
 PAVE3 = MESQUITE / "pave3.e.vtk"  # 106 inverted elements: untangling rounds, then a few hundred L-BFGS steps
 
@@ -56,7 +57,7 @@ def test_steps_and_stages_reach_the_running_phase(monkeypatch):
 
 def test_listening_reaches_clocks_made_without_a_listener():
     import jaxci
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
 
     events = []
     with phases.listening(lambda kind, name, rec: events.append((kind, name, rec))):
@@ -76,8 +77,8 @@ def test_display_draws_in_place_and_erases():
     d.close()
     text = out.getvalue()
     assert "\r\x1b[2Kjaxci: [" in text and "smooth: L-BFGS step 12: F 0.5, worst kappa/3 1.25" in text
-    assert text.endswith("\r\x1b[2K")  # erased: the next line starts clean
-    assert "\n" not in text  # nothing permanent without --verbose
+    assert text.endswith("\x1b[2K") and "\x1b[?25h" in text  # erased, the cursor shown: the next line starts clean
+    assert text.count("\n") == text.count("\x1b[1A")  # nothing permanent without --verbose (every newline taken back)
     d.close()  # twice is harmless
     assert out.getvalue() == text
 
@@ -101,7 +102,8 @@ def test_display_verbose_lines_without_a_terminal():
 def _run(argv, *, tty: bool, cwd, timeout=240) -> tuple[int, str, str]:
     """Run ``python -m jaxci ARGV`` with stderr on a pseudo-terminal (`tty`) or a pipe; ``(code, out, err)``."""
     cmd = [sys.executable, "-m", "jaxci", *map(str, argv)]
-    env = {**os.environ, "JAXCI_HUGEPAGES": "0"}
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}  # the terminal's width decides
+    env["JAXCI_HUGEPAGES"] = "0"  # (pytest-xdist's workers set COLUMNS=80, which the line would honour)
     if not tty:
         p = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, timeout=timeout, env=env)
         return p.returncode, p.stdout, p.stderr
@@ -145,7 +147,7 @@ def test_smooth_shows_progress_on_a_terminal_only(tmp_path):
     assert "\r\x1b[2K" in err  # drawn in place
     assert "untangle: round 1: min det J" in err  # a stage inside a phase
     assert "smooth: L-BFGS step 1: F " in err and "worst kappa/3 " in err  # a step, F and the worst element
-    assert err.endswith("\r\x1b[2K")  # erased before the result was printed
+    assert err.endswith("\x1b[2K")  # erased before the result was printed
     assert "after (" in out and "\x1b" not in out
 
     code, out, err = _run(["smooth", PAVE3, "b.vtk"], tty=False, cwd=tmp_path)
@@ -166,6 +168,28 @@ def test_run_shows_the_run_and_its_steps_on_a_terminal(tmp_path):
     assert code == 0, err
     assert "run 1/1: cube27 / CI local / seed 0 | smooth" in err
     assert "local CI sweep 1: F " in err
-    assert err.endswith("\r\x1b[2K")
+    assert err.endswith("\x1b[2K")
     code, out, err = _run(["run", "exp.yaml", "--out", "r2"], tty=False, cwd=tmp_path)
     assert code == 0 and err == ""
+
+
+def test_display_verbose_lines_print_above_the_live_line(monkeypatch):
+    """On a terminal with ``--verbose``: a finished phase's line is printed once, permanently, above the live
+    line, which goes on below it with every step reported, and is erased at the end."""
+    from jaxci.cli import _progress
+
+    monkeypatch.setattr(_progress, "REFRESH", 100.0)  # no redraw by the refresh thread during the test
+    out = io.StringIO()
+    d = Display(live=True, verbose=True, stream=out)
+    d.on_event("start", "smooth", None)
+    d.on_event("step", "smooth", {"stage": "L-BFGS", "unit": "step", "step": 1, "F": 0.5, "worst": 1.25})
+    d.on_event("step", "smooth", {"stage": "L-BFGS", "unit": "step", "step": 2, "F": 0.4, "worst": 1.2})
+    d.on_event("end", "smooth", {"seconds": 1.5, "compile_seconds": 0.25, "compiled": 2, "cache_hits": 0})
+    d.on_event("start", "checks", None)
+    d.close()
+    text = out.getvalue()
+    permanent = "jaxci: smooth        1.50 s (compilation 0.25 s, 2 compiled)\n"
+    assert text.count(permanent) == 1
+    assert text.index("L-BFGS step 1: F 0.5") < text.index("L-BFGS step 2: F 0.4") < text.index(permanent)
+    assert "checks ..." in text[text.index(permanent):]  # the live line again, below the permanent one
+    assert text.endswith("\x1b[2K")

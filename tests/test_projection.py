@@ -14,7 +14,6 @@ from helpers import MESQUITE, MESQUITE_FIGURES
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxci.generate import box, perturb_box
 from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary
 from jaxci.geometry.projection import (
     build_constraints,
@@ -26,7 +25,8 @@ from jaxci.geometry.projection import (
     project_np,
 )
 from jaxci.mesh import hex_mesh
-from jaxci.shapes import annulus, bevelled_box, l_block
+from jaxci.mesh.generate import box, perturb_box
+from jaxci.mesh.shapes import annulus, bevelled_box, l_block
 
 jax.config.update("jax_enable_x64", True)
 

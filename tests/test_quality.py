@@ -8,8 +8,8 @@ from helpers import MESQUITE, MESQUITE_FIGURES, random_valid_hexes, read_vtk_hex
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxci.generate import box, perturb_box
 from jaxci.mesh import hex_mesh
+from jaxci.mesh.generate import box, perturb_box
 from jaxci.metrics import hexahedron as q
 from jaxci.metrics.report import quality_report
 

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 from jaxci.errors import JaxciError, MeshReadError, MeshWriteError, UsageError
-from jaxci.generate import box, perturb_box
 from jaxci.io import LossyWriteWarning, read_mesh, write_mesh
 from jaxci.io._place import TEMP_PREFIX
 from jaxci.mesh import CellBlock, HexMesh
+from jaxci.mesh.generate import box, perturb_box
 
 FIXTURES = Path(__file__).parent / "fixtures"
 DECK = FIXTURES / "abaqus" / "block_c3d8_variants.inp"

@@ -1,4 +1,5 @@
-"""`jaxci.runtime`: the jaxci command re-executes itself with huge pages for glibc's allocations; nothing else."""
+"""`jaxci.runtime.process`: the jaxci command re-executes itself with huge pages for glibc's allocations;
+nothing else."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import sys
 
 import pytest
 
-from jaxci.runtime import TUNABLE, _glibc_version, hugepage_environment, is_jaxci_command
+from jaxci.runtime.process import TUNABLE, _glibc_version, hugepage_environment, is_jaxci_command
 
 
 @pytest.mark.parametrize("argv,expected", [
@@ -59,7 +60,7 @@ def test_the_command_runs_with_the_tunable_where_it_applies():
 
 
 def test_the_command_loads_openblas_single_threaded_unless_told_otherwise():
-    """`jaxci.runtime.single_threaded_blas`: the jaxci command (here a process whose ``sys.orig_argv`` says so,
+    """`jaxci.runtime.process.single_threaded_blas`: the jaxci command (here a process whose ``sys.orig_argv`` says so,
     not re-executed) loads numpy with ``OPENBLAS_NUM_THREADS=1``, so no OpenBLAS thread spins beside the C
     kernels; a user's setting stays, and a program that imports jaxci is left alone."""
     code = ("import sys; sys.orig_argv = {argv!r}; import os, jaxci; "
@@ -81,7 +82,7 @@ def test_a_small_mesh_is_not_worth_a_second_start(tmp_path):
     """`jaxci smooth / quality / classify` on a mesh file below `SMALL_INPUT_BYTES` runs in the first process
     (such meshes are solved on the host: the tunable changes nothing there); a large file, an option before the
     input, a missing file or another command keep the re-execution."""
-    from jaxci.runtime import SMALL_INPUT_BYTES, small_input
+    from jaxci.runtime.process import SMALL_INPUT_BYTES, small_input
 
     small, big = tmp_path / "small.vtk", tmp_path / "big.vtk"
     small.write_text("x")
@@ -98,7 +99,7 @@ def test_a_small_mesh_is_not_worth_a_second_start(tmp_path):
 
 # ------------------------------------------------------------------------- more forced CPU devices than cores
 def test_cpu_device_flags_only_where_forced_devices_outnumber_the_cores():
-    from jaxci.runtime import PARTITION_PASS, cpu_device_flags, forced_cpu_devices
+    from jaxci.runtime.process import PARTITION_PASS, cpu_device_flags, forced_cpu_devices
 
     four = {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
     assert forced_cpu_devices(four) == 4 and forced_cpu_devices({}) == 0
@@ -116,7 +117,7 @@ def test_cpu_device_flags_only_where_forced_devices_outnumber_the_cores():
 
 PARTS = """
 import sys
-from jaxci.runtime import apply_cpu_device_flags
+from jaxci.runtime.process import apply_cpu_device_flags
 import jax, jax.numpy as jnp
 applied = apply_cpu_device_flags() if sys.argv[1] == "apply" else False
 text = jax.jit(lambda x: jnp.sin(x) * 2 + jnp.cos(x)).lower(jnp.ones(2**20)).compile().as_text()
@@ -129,7 +130,7 @@ def test_more_forced_devices_than_cores_compile_without_per_fusion_partitions():
     into that many parts that wait on each other (4 devices on 2 cores: 2.4-3x the CPU time, docs/sharding.md).
     `apply_cpu_device_flags` (run after ``import jax``, before any device exists) turns that split off; without it
     the same program is split."""
-    from jaxci.runtime import schedulable_cpus
+    from jaxci.runtime.process import schedulable_cpus
 
     n = schedulable_cpus() + 1
     env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}", JAX_PLATFORMS="cpu")
@@ -144,7 +145,7 @@ def test_more_forced_devices_than_cores_compile_without_per_fusion_partitions():
 
 
 def test_the_jaxci_command_applies_the_cpu_device_flags(tmp_path):
-    from jaxci.runtime import PARTITION_PASS, schedulable_cpus
+    from jaxci.runtime.process import PARTITION_PASS, schedulable_cpus
 
     n = schedulable_cpus() + 1
     env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}", JAX_PLATFORMS="cpu")

@@ -162,9 +162,9 @@ SCRIPT = textwrap.dedent(
     import re
     import sys
     jax.config.update("jax_enable_x64", True)
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
     from jaxci.optim import sharded_lbfgs
-    from jaxci.smooth import smooth
+    from jaxci.interface.smooth import smooth
 
     sys.path.insert(0, TESTS)
     from test_coarse import _wavy

@@ -17,8 +17,8 @@ import pytest
 
 import jaxci
 from jaxci.errors import ConfigError
-from jaxci.generate import perturb_box
-from jaxci.smooth import smooth
+from jaxci.interface.smooth import smooth
+from jaxci.mesh.generate import perturb_box
 
 #: The start of every 4-device script: compilations counted per function (`COUNTS`), then JAX with 4 devices.
 PREAMBLE = textwrap.dedent(
@@ -54,9 +54,9 @@ SCRIPT = textwrap.dedent(
     """
     import contextlib, io
     from jaxci.errors import ConfigError
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
     from jaxci.geometry.boundary import INTERIOR
-    from jaxci.smooth import smooth
+    from jaxci.interface.smooth import smooth
 
     def loops(counts):
         return {k: v for k, v in counts.items() if "solve_loop" in k or "lbfgs_loop" in k or "laplace_run" in k}
@@ -119,8 +119,8 @@ def test_sharded_smooth_matches_single_device_and_compiles_once(tmp_path):
 CI_SCRIPT = textwrap.dedent(
     """
     from jaxci.geometry.boundary import INTERIOR
-    from jaxci.generate import perturb_box
-    from jaxci.smooth import smooth
+    from jaxci.mesh.generate import perturb_box
+    from jaxci.interface.smooth import smooth
 
     m = perturb_box(5, 4, 4, amplitude=0.3, seed=3)  # 80 hexes; surface and edge nodes slide
     runs = {}
@@ -197,8 +197,8 @@ PROCESS = textwrap.dedent(
     init_distributed(f"localhost:{port}", 2, pid, initialization_timeout=120)
     assert jax.process_count() == 2 and len(jax.devices()) == 2 and len(jax.local_devices()) == 1
     import numpy as np
-    from jaxci.generate import perturb_box
-    from jaxci.smooth import smooth
+    from jaxci.mesh.generate import perturb_box
+    from jaxci.interface.smooth import smooth
     m = perturb_box(6, 5, 4, amplitude=0.3, seed=1)
     r = smooth(m, "lbfgs", devices="all", dtype="float64", fix_boundary=True)  # one element half per process
     assert r.params["devices"] == 2 and r.after.inverted_corners == 0
@@ -254,7 +254,7 @@ def test_methods_with_a_host_path_run_compiled_when_sharded(method):
 TERMS_SCRIPT = textwrap.dedent(
     """
     import jax.numpy as jnp
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
     from jaxci.metrics.hexahedron import objective_terms_and_grad
     from jaxci.optim.sharding import device_mesh, shard_elements, sharded_terms_and_grad
 

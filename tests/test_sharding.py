@@ -15,7 +15,7 @@ SCRIPT = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     import numpy as np, jax.numpy as jnp
     assert len(jax.devices()) == 4, jax.devices()
-    from jaxci.generate import perturb_box
+    from jaxci.mesh.generate import perturb_box
     from jaxci.metrics import hexahedron as q
     from jaxci.optim.sharding import device_mesh, shard_elements, weighted_objective, sharded_candidates_objective
     m = perturb_box(5, 4, 3, amplitude=0.3, seed=1)  # 60 hexes: padded to a multiple of 4 is not needed ...

@@ -15,8 +15,8 @@ from helpers import MESQUITE
 import jaxci
 from jaxci.cli import main
 from jaxci.experiments import smooth_report as R
-from jaxci.generate import box
 from jaxci.io import read_mesh, write_mesh
+from jaxci.mesh.generate import box
 from jaxci.metrics.guard import cell_worst
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -10,13 +10,13 @@ from helpers import MESQUITE
 from jaxci import native
 from jaxci.cells import corner_determinants
 from jaxci.errors import ConfigError, InvertedMeshError
-from jaxci.generate import perturb_box
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints, project_np
+from jaxci.interface.smooth import smooth
 from jaxci.io import read_mesh
+from jaxci.mesh.generate import perturb_box
 from jaxci.optim.untangle import UntangleParams, untangle
-from jaxci.phases import compile_totals
-from jaxci.smooth import smooth
+from jaxci.runtime.phases import compile_totals
 
 
 def boundary_error(mesh_in, points) -> float:
@@ -85,9 +85,9 @@ def test_a_laplace_untangled_mesh_skips_the_default_presmoothing(monkeypatch):
     """Where the untangling's plain Laplace sweep untangled the mesh it has just smoothed it too: the default
     pipeline then runs L-BFGS without its smart-Laplace sweeps (and says so); presmoothing the user asked for
     runs as asked."""
-    import jaxci.methods
+    import jaxci.interface.methods
 
-    monkeypatch.setattr(jaxci.methods, "AUTO_PRESMOOTH_FROM", 1)  # the default presmoothing on a small mesh
+    monkeypatch.setattr(jaxci.interface.methods, "AUTO_PRESMOOTH_FROM", 1)  # the default presmoothing on a small mesh
     mesh = read_mesh(MESQUITE / "hex_5_tangled.vtk")
     auto = smooth(mesh, untangle_laplace_sweeps=1)
     assert int(auto.history.get("presmooth", 0)) == 0 and auto.params.get("presmooth", 0) == 0
@@ -188,7 +188,7 @@ def pit_slab():
     """A 2 x 2 x 1 box whose top centre node is pushed below the bottom face: its four hexahedra are inverted,
     and only boundary nodes touch them (the top centre a corner of the pit it makes, the rest the box's corners
     and edges, the bottom centre held in the bottom plane), so no allowed move untangles them."""
-    from jaxci.generate import box
+    from jaxci.mesh.generate import box
 
     mesh = box(2, 2, 1)
     p = np.array(mesh.points, dtype=np.float64)

@@ -15,9 +15,9 @@ import pytest
 import jaxci
 from jaxci.cli import main
 from jaxci.errors import ConfigError, InvertedMeshError, JaxciError, MeshError, UsageError
-from jaxci.generate import box, perturb_box
 from jaxci.io import read_mesh, write_mesh
 from jaxci.mesh import hex_mesh, merge_coincident
+from jaxci.mesh.generate import box, perturb_box
 from jaxci.metrics.report import quality_report
 
 
@@ -178,9 +178,9 @@ def test_huge_boxes_refused_before_allocating():
 
 
 def test_smooth_refuses_what_does_not_fit(monkeypatch):
-    import jaxci.memory
+    import jaxci.runtime.memory
 
-    monkeypatch.setattr(jaxci.memory, "available_bytes", lambda: 10**6)
+    monkeypatch.setattr(jaxci.runtime.memory, "available_bytes", lambda: 10**6)
     with pytest.raises(MeshError, match=r"smoothing 8 hexahedra in float64 needs about .* GB .* and 0.001 GB"):
         jaxci.smooth(box(2), "laplace", dtype="float64")
 
@@ -189,10 +189,10 @@ def test_the_memory_estimate_of_a_host_run_is_the_host_path_s(monkeypatch):
     """A run entirely on the host (numpy and C) is estimated with its own measured bytes per hexahedron and
     fixed part (no JAX runtime, no compilation): with 300 MB free, a small host run goes ahead and the same run
     compiled is refused."""
-    import jaxci.memory
+    import jaxci.runtime.memory
 
-    assert jaxci.memory.smooth_bytes(10**6, host=True) < 0.6 * jaxci.memory.smooth_bytes(10**6)
-    monkeypatch.setattr(jaxci.memory, "available_bytes", lambda: 300 * 2**20)
+    assert jaxci.runtime.memory.smooth_bytes(10**6, host=True) < 0.6 * jaxci.runtime.memory.smooth_bytes(10**6)
+    monkeypatch.setattr(jaxci.runtime.memory, "available_bytes", lambda: 300 * 2**20)
     assert jaxci.smooth(box(2), "lbfgs", dtype="float64").after.inverted_elements == 0
     with pytest.raises(MeshError, match=r"smoothing 8 hexahedra in float64 needs about .* GB"):
         jaxci.smooth(box(2), "lbfgs", dtype="float64", engine="jax")
@@ -320,10 +320,10 @@ def test_cli_smooth_keeps_coincident_nodes(capsys, tmp_path):
 
 
 def test_the_memory_estimate_counts_each_ci_form_s_own_default_cohort():
-    """`jaxci.memory.ci_trials` (the YAML configs' up-front check) takes each CI form's defaults from the same
+    """`jaxci.runtime.memory.ci_trials` (the YAML configs' up-front check) takes each CI form's defaults from the same
     numbers as `CIParams.for_method`."""
-    from jaxci.memory import CI_DEFAULT_TRIALS, ci_trials
     from jaxci.optim.ci_params import CIParams
+    from jaxci.runtime.memory import CI_DEFAULT_TRIALS, ci_trials
 
     for method, (cohort, variations) in CI_DEFAULT_TRIALS.items():
         p = CIParams.for_method(method)
@@ -336,7 +336,7 @@ def test_the_memory_estimate_counts_each_ci_form_s_own_default_cohort():
 def test_the_host_memory_estimate_of_ci_is_ci_s_own():
     """CI on the host holds more than the default pipeline (Anderson's history, global CI's trial meshes): its
     estimate is its own, measured one, and grows with global CI's trials."""
-    from jaxci.memory import smooth_bytes
+    from jaxci.runtime.memory import smooth_bytes
 
     n = 10**5
     base = smooth_bytes(n, host=True)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxci.generate import perturb_box
 from jaxci.io import read_mesh, write_mesh
+from jaxci.mesh.generate import perturb_box
 
 
 def test_legacy_vtk_is_4_2_unless_5_1_is_asked_for(tmp_path):

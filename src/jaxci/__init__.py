@@ -1,16 +1,15 @@
 """jaxci: hexahedral mesh smoothing with Cohort Intelligence, batched in JAX.
 
-The public API. `smooth` is imported at once (a function named like its module must be bound before anything
-imports the module, or ``jaxci.smooth`` would become the module); the rest of the JAX-side API (I/O, quality
-kernels, constraints, CI parameters) is loaded on first use.
+The public API. The errors, the mesh model and `smooth` (`jaxci.interface.smooth`) are imported at once; the rest
+of the JAX-side API (I/O, quality kernels, constraints, CI parameters, `smooth_seeds`) is loaded on first use.
 """
 
 # ruff: noqa: E402  (the re-exec of the jaxci command must come before the imports below)
-from . import runtime as _runtime
+from .runtime import process as _process
 
-_runtime.reexec_with_hugepages()  # the jaxci command only: huge pages for XLA's buffers (jaxci.runtime)
-_runtime.quiet_interrupts_while_starting()  # the jaxci command only: Ctrl-C while importing exits 130, quietly
-_runtime.single_threaded_blas()  # the jaxci command only: no OpenBLAS threads spinning beside the C kernels
+_process.reexec_with_hugepages()  # the jaxci command only: huge pages for XLA's buffers (jaxci.runtime.process)
+_process.quiet_interrupts_while_starting()  # the jaxci command only: Ctrl-C while importing exits 130, quietly
+_process.single_threaded_blas()  # the jaxci command only: no OpenBLAS threads spinning beside the C kernels
 
 from importlib import import_module
 
@@ -24,9 +23,9 @@ from .errors import (
     UnsupportedFormatError,
     UsageError,
 )
-from .generate import PAPER_CASES, box, paper_case, perturb_box
+from .interface.smooth import METHODS, SmoothResult, smooth
 from .mesh import CellBlock, HexMesh, hex_mesh, merge_coincident
-from .smooth import METHODS, SmoothResult, smooth  # eager: the function must shadow its module's name
+from .mesh.generate import PAPER_CASES, box, paper_case, perturb_box
 
 #: name -> module of the lazily loaded public API.
 _LAZY = {
@@ -45,7 +44,7 @@ _LAZY = {
     "project_np": "geometry.projection",
     "CIParams": "optim.ci",
     "init_distributed": "optim.sharding",
-    "smooth_seeds": "seeds",
+    "smooth_seeds": "interface.seeds",
 }
 
 __all__ = [

@@ -20,9 +20,9 @@ import os
 import sys
 import warnings
 
-from .. import compile_cache
-from .._lazy import when_imported
-from ..runtime import TUNABLE, apply_cpu_device_flags
+from ..runtime import compile_cache
+from ..runtime._lazy import when_imported
+from ..runtime.process import TUNABLE, apply_cpu_device_flags
 from . import _interrupt, _streams
 
 #: subcommand -> (module, one-line help)
@@ -42,7 +42,7 @@ CLOSED_OUTPUT = 141
 
 
 def _setup_jax() -> None:
-    """float64 for reports, and the compilation cache (`jaxci.compile_cache`) so a second CLI call skips
+    """float64 for reports, and the compilation cache (`jaxci.runtime.compile_cache`) so a second CLI call skips
     compiling.
 
     Set when JAX is imported, not before: a small mesh's run (numpy path, `jaxci.optim.host`) never imports it
@@ -61,7 +61,7 @@ def _runtime_line() -> str:
     import jax
 
     pages = "on" if TUNABLE in os.environ.get("GLIBC_TUNABLES", "") else "off"
-    return f"jax {jax.__version__}; huge pages for glibc allocations {pages} (jaxci.runtime)"
+    return f"jax {jax.__version__}; huge pages for glibc allocations {pages} (jaxci.runtime.process)"
 
 
 class _Version(argparse.Action):

@@ -23,7 +23,7 @@ def add_args(p) -> None:
 
 
 def run(args) -> int:
-    from ..generate import paper_case, perturb_box
+    from ..mesh.generate import paper_case, perturb_box
     from ._files import check_output
 
     out = check_output(args.out, force=args.force)

@@ -39,12 +39,12 @@ def add_args(p) -> None:
 def _progress(enabled: bool):
     """The progress line on stderr (`_progress.Display`; a no-op context when disabled): ``(context, update)``,
     `update(done, total, text)` for `run_experiment`; inside the context each run's `jaxci.smooth` reports its
-    phases, stages and steps to the line (`jaxci.phases.listening`)."""
+    phases, stages and steps to the line (`jaxci.runtime.phases.listening`)."""
     import contextlib
 
     if not enabled:
         return contextlib.nullcontext(), None
-    from ..phases import listening
+    from ..runtime.phases import listening
     from ._progress import Display
 
     display = Display(live=True)

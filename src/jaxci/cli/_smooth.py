@@ -2,10 +2,10 @@
 [--quiet] [--report FILE] [--force]`: smooth a mesh, write it as OUT.
 
 ``--engine auto|host|jax`` and ``--device auto|cpu|gpu`` are `jaxci.smooth`'s ``engine`` and ``device``: one
-decision (`jaxci.engine.resolve_plan`), printed with the result (``engine:`` line; ``--json``: the ``engine``
+decision (`jaxci.interface.engine.resolve_plan`), printed with the result (``engine:`` line; ``--json``: the ``engine``
 object with its name, device, dtype and kernel; ``--verbose``: as the run starts).
 
-Without ``--method`` the default pipeline runs (``auto``: `jaxci.smooth.auto_pipeline`), and the output says
+Without ``--method`` the default pipeline runs (``auto``: `jaxci.interface.smooth.auto_pipeline`), and the output says
 which. ``--json`` reports the time of each phase (``phases``: ``startup`` (process start, imports and JAX set-up),
 ``read``, then `jaxci.smooth`'s ``validate``, ``report``, ``untangle``, ``setup``, ``smooth``, ``checks``, and
 ``write``; each with its compilation seconds and count); ``--verbose`` prints one line per phase on stderr as it
@@ -15,7 +15,7 @@ the result is printed; nothing when stderr is not a terminal or with ``--quiet``
 ``.png``) draws what the smoothing did (`jaxci.experiments.smooth_report`), an output checked and written as OUT is
 (`_report`). ``--devices`` shards the elements over several devices
 (`jaxci.smooth`'s ``devices``; on a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` makes N; with
-more N than cores the command also turns XLA's per-fusion split off: `jaxci.runtime.cpu_device_flags`).
+more N than cores the command also turns XLA's per-fusion split off: `jaxci.runtime.process.cpu_device_flags`).
 
 OUT is checked before the smoothing (`_files.check_output`: never the input, an existing file only with
 ``--force``) and written atomically; an interrupt leaves no OUT and no temporary file.
@@ -28,7 +28,7 @@ import sys
 
 
 def add_args(p) -> None:
-    from ..smooth import METHODS
+    from ..interface.smooth import METHODS
 
     p.add_argument("input", help="input mesh file (never modified)")
     p.add_argument("output", help="output mesh file; its extension picks the format")
@@ -121,7 +121,7 @@ def _devices(text: str | None):
 def run(args) -> int:
     import time
 
-    from ..phases import process_age
+    from ..runtime.phases import process_age
     from ._progress import Display, wanted
 
     age = process_age()
@@ -133,15 +133,15 @@ def run(args) -> int:
 
 
 def _smooth(args, display, age) -> int:
-    from ..phases import PhaseClock
+    from ..runtime.phases import PhaseClock
 
     clock = PhaseClock(display.on_event if display.live or display.verbose else None)
     if age is not None:
         clock.add("startup", age)
         if clock.on_event is not None:
             clock.on_event("end", "startup", clock.as_dict()["startup"])
+    from ..interface.smooth import smooth
     from ..io import read_mesh
-    from ..smooth import smooth
     from ._files import check_output
     from ._quality import format_table
 

@@ -6,7 +6,7 @@ A config names meshes, methods and seeds; `load_config` reads and checks it into
 ```yaml
 description: the paper's 27-element cube
 mesh:                                  # one entry or a list
-  - generate: {case: cube27}           # a paper cube (jaxci.generate.PAPER_CASES), perturbed by the run seed
+  - generate: {case: cube27}           # a paper cube (jaxci.mesh.generate.PAPER_CASES), perturbed by the run seed
   - name: block
     generate: {box: [10, 10, 10], amplitude: 0.3, which: sliding, size: [1, 1, 1]}   # optional seed: fixed
   - file: ../../shared/data/mesquite/1000hex-block-internal-bias.vtk   # relative to this file's folder
@@ -15,7 +15,7 @@ boundary: {feature_angle: 40, fix_boundary: false, fixed_sets: [], fixed_nodes: 
 methods:
   - {name: CI local, method: ci, params: {max_sweeps: 50}}
   - {name: CI global, method: ci-global, params: {attempts: 500}, meshes: [cube27]}   # meshes: restrict
-  - {name: L-BFGS (JAX), method: lbfgs, engine: jax}   # engine: auto (default) | host | jax (jaxci.engine)
+  - {name: L-BFGS (JAX), method: lbfgs, engine: jax}   # engine: auto (default) | host | jax (jaxci.interface.engine)
 seeds: [0, 1, 2]                       # or runs: N (seeds 0..N-1); default [0]
 dtype: float32                         # float32 | float64: the JAX engine's (the host engine is float64)
 device: auto                           # auto (default: an accelerator where JAX sees one) | cpu | gpu
@@ -52,7 +52,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from ..cells import EXTRA_TYPES
 from ..errors import ConfigError, JaxciError
-from ..generate import MAX_SEED
+from ..mesh.generate import MAX_SEED
 from .config_errors import Locator, check_duplicates, pydantic_message
 
 #: Most runs (seeds) of one config.
@@ -77,7 +77,7 @@ class GenerateSpec(_Model):
 
     @model_validator(mode="after")
     def _values(self):
-        from ..generate import PAPER_CASES
+        from ..mesh.generate import PAPER_CASES
 
         if self.case is not None and self.case not in PAPER_CASES:
             raise ValueError(f"case: unknown case {self.case!r}; choose one of {', '.join(PAPER_CASES)}")
@@ -102,7 +102,7 @@ class GenerateSpec(_Model):
 
 
 class BoundarySpec(_Model):
-    """How boundary nodes may move (the keyword arguments of `jaxci.smooth.smooth` of the same names)."""
+    """How boundary nodes may move (the keyword arguments of `jaxci.interface.smooth.smooth` of the same names)."""
 
     feature_angle: float = 40.0
     fix_boundary: bool = False
@@ -133,8 +133,8 @@ class MeshSpec(_Model):
 
 
 class MethodSpec(_Model):
-    """One method entry: a `name` (label, default the method), a `method` of `jaxci.smooth.METHODS`, `params`,
-    the `engine` it runs on (`jaxci.engine.ENGINES`), the `meshes` it runs on (default all)."""
+    """One method entry: a `name` (label, default the method), a `method` of `jaxci.interface.smooth.METHODS`, `params`,
+    the `engine` it runs on (`jaxci.interface.engine.ENGINES`), the `meshes` it runs on (default all)."""
 
     name: str | None = None
     method: str
@@ -228,14 +228,14 @@ class ResolvedMesh:
 
     @property
     def paper_case(self) -> str | None:
-        """The paper case name when this mesh is one of `jaxci.generate.PAPER_CASES`, else None."""
+        """The paper case name when this mesh is one of `jaxci.mesh.generate.PAPER_CASES`, else None."""
         return self.spec.generate.case if self.spec.generate is not None else None
 
     def build(self, seed: int):
         """The input `HexMesh` of the run with `seed` (generated meshes are perturbed by it)."""
         if self.mesh is not None:
             return self.mesh
-        from ..generate import paper_case, perturb_box
+        from ..mesh.generate import paper_case, perturb_box
 
         g = self.spec.generate
         s = seed if g.seed is None else g.seed
@@ -247,7 +247,7 @@ class ResolvedMesh:
 @dataclasses.dataclass(frozen=True)
 class ResolvedMethod:
     """A validated method entry: unique `label` (and `slug`), `method` name, `params`, meshes it runs on, and
-    the `engine` asked for (`jaxci.engine.engine_request`: with the ``backend`` parameter folded in)."""
+    the `engine` asked for (`jaxci.interface.engine.engine_request`: with the ``backend`` parameter folded in)."""
 
     label: str
     slug: str
@@ -282,7 +282,7 @@ def slugify(text: str) -> str:
 
 
 def _validate_params(method: str, params: dict, fail: Callable[[tuple, str], ConfigError]) -> None:
-    from ..methods import method_param_class  # the one method -> parameter class table (imported on use)
+    from ..interface.methods import method_param_class  # the one method -> parameter class table (imported on use)
 
     cls = method_param_class(method)
     if cls is None:
@@ -323,10 +323,10 @@ def load_config(path: str | os.PathLike) -> Experiment:
     missing or malformed file, unknown keys, wrong types or values, unknown methods or method parameters,
     missing or unreadable mesh files.
     """
-    from ..engine import HOST_METHODS, engine_request
-    from ..generate import PAPER_CASES
-    from ..memory import check_fits, ci_trials, smooth_bytes
-    from ..smooth import METHODS
+    from ..interface.engine import HOST_METHODS, engine_request
+    from ..interface.smooth import METHODS
+    from ..mesh.generate import PAPER_CASES
+    from ..runtime.memory import check_fits, ci_trials, smooth_bytes
 
     path = Path(path)
     try:

@@ -100,11 +100,11 @@ def aggregate(records) -> list[dict]:
 def build_summary(exp, records, *, partial: bool, total_runs: int, elapsed: float) -> dict:
     """The ``summary.json`` object: config echo, versions, the machine (``device``: what was asked for, the
     accelerator JAX sees if any, the CPU), per-run records (each with the engine that ran it: ``engine``, a
-    `jaxci.engine.Plan` dict) and aggregates."""
+    `jaxci.interface.engine.Plan` dict) and aggregates."""
     import importlib.metadata
 
     from .. import __version__
-    from ..engine import accelerator, cpu_model
+    from ..interface.engine import accelerator, cpu_model
 
     cfg = exp.config
     return {

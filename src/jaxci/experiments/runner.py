@@ -2,7 +2,7 @@
 
 `run_experiment` smooths every (mesh, method, seed) of an `Experiment` (a YAML config read and validated by
 `jaxci.experiments.config.load_config`, re-exported here; the config format is described in `jaxci.experiments.config`)
-with `jaxci.smooth.smooth` and writes one output folder. The output folder is checked before anything runs
+with `jaxci.interface.smooth.smooth` and writes one output folder. The output folder is checked before anything runs
 (`jaxci.experiments.results.stage`): one that exists (without ``force``), that is not a jaxci results folder (with
 ``force``: a folder is replaced only if it holds earlier jaxci results and nothing else), that holds an input or
 the current folder, or that cannot be written is a `jaxci.errors.ConfigError`, as is ``device: gpu`` on a
@@ -65,8 +65,8 @@ class ExperimentResult:
 
 def check_device(exp: Experiment) -> None:
     """`ConfigError` naming the config when it asks for ``device: gpu`` and JAX sees no accelerator (before
-    anything runs); ``cpu`` and ``auto`` always hold (`jaxci.engine`)."""
-    from ..engine import accelerator, no_accelerator_message
+    anything runs); ``cpu`` and ``auto`` always hold (`jaxci.interface.engine`)."""
+    from ..interface.engine import accelerator, no_accelerator_message
 
     if exp.config.device == "gpu" and accelerator() is None:
         line = Locator(exp.path, yaml.compose(exp.path.read_text(), Loader=yaml.SafeLoader)).line(("device",))
@@ -241,7 +241,8 @@ class _Run:
 
 def _work(exp: Experiment, plan):
     """The runs of `plan` as work items ``(mesh, seeds, method)`` in plan order: global CI with several seeds of
-    one mesh as one item (the first seed's place; `jaxci.seeds.smooth_seeds` batches it), every other run alone."""
+    one mesh as one item (the first seed's place; `jaxci.interface.seeds.smooth_seeds` batches it), every other run
+    alone."""
     batched = len(exp.seeds) > 1 and exp.config.batch_seeds
     seen = set()
     for rm, seed, meth in plan:
@@ -254,11 +255,11 @@ def _work(exp: Experiment, plan):
 
 
 def _runs(exp: Experiment, rm: ResolvedMesh, seeds: tuple, meth: ResolvedMethod, inputs: dict, strict: bool):
-    """Smooth `rm` with `meth` for `seeds` (`jaxci.seeds.iter_smooth_seeds`: global CI's seeds as one program
+    """Smooth `rm` with `meth` for `seeds` (`jaxci.interface.seeds.iter_smooth_seeds`: global CI's seeds as one program
     where it can); yields ``(RunRecord, input mesh, SmoothResult or None)`` per seed as each ends (an interrupt
     keeps those that ended). A seed's failure (its mesh, its run) is its own; with `strict` a failure that is not a
     `JaxciError` (a bug) is raised."""
-    from ..seeds import iter_smooth_seeds
+    from ..interface.seeds import iter_smooth_seeds
 
     b = rm.boundary
     kwargs = dict(dtype=exp.config.dtype, feature_angle=b.feature_angle, fix_boundary=b.fix_boundary,
@@ -301,7 +302,7 @@ def _runs(exp: Experiment, rm: ResolvedMesh, seeds: tuple, meth: ResolvedMethod,
 
 def _one(mesh, method: str, seed: int, kwargs: dict) -> tuple:
     """``(0, result)`` of `jaxci.smooth` on one seed: its `SmoothResult`, or the exception that ended it."""
-    from ..smooth import smooth
+    from ..interface.smooth import smooth
 
     try:
         return 0, smooth(mesh, method, seed=seed, **kwargs)

@@ -60,8 +60,8 @@ class Joined:
 
     def unjoin(self, original: HexMesh, solved: HexMesh, points: np.ndarray, res):
         """``(points, result)`` of `jaxci.smooth` on the merged mesh `solved` (`points` its coordinates, `res` its
-        `jaxci.smooth.SmoothResult`) taken back to `original` (the same frame): `expand`ed points, node classes
-        and counts per original node, node counts in the reports, and the worst elements' limits naming the
+        `jaxci.interface.smooth.SmoothResult`) taken back to `original` (the same frame): `expand`ed points, node
+        classes and counts per original node, node counts in the reports, and the worst elements' limits naming the
         sets."""
         from ..cells import element_blocks
 

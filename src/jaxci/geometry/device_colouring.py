@@ -18,15 +18,15 @@ the device, and these are its versions, jitted programs over the transposed conn
   of increasing indices (hundreds of rounds on a 100^3 box, each a pass over the mesh); hashed priorities take
   a few dozen.
 
-Hexahedral meshes only; a mixed mesh keeps the host's colouring (`jaxci.methods.Problem.colour`).
+Hexahedral meshes only; a mixed mesh keeps the host's colouring (`jaxci.interface.methods.Problem.colour`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .._lazy import jax, jit, jnp, pytree_dataclass
-from ..transfer import program, to_host
+from ..runtime._lazy import jax, jit, jnp, pytree_dataclass
+from ..runtime.transfer import program, to_host
 
 #: Bits of a colour word of `colour_nodes_device` (uint32 masks of the colours a node's neighbours hold).
 WORD = 32

@@ -16,7 +16,7 @@ results:
   nodes only, downloaded, searched on the host (`project_on_groups`) and put back on the device with the
   corners' original positions.
 
-Every transfer goes through `jaxci.transfer` (`to_device`, `to_host`): the functions run under
+Every transfer goes through `jaxci.runtime.transfer` (`to_device`, `to_host`): the functions run under
 ``jax.transfer_guard("disallow")``. For results equal to the host functions' the device points are float64
 (the coordinates the host functions read from the mesh); with float32 points the tables are built from those
 rounded coordinates. The device path is for hexahedral meshes (`hexahedral`): meshes with wedges, pyramids,
@@ -29,13 +29,13 @@ import functools
 
 import numpy as np
 
-from .._lazy import enable_x64, jax, jnp
 from ..cells import QUADRATIC_TYPES
 from ..cells import fixed_nodes as fixed_cell_nodes
 from ..mesh import HexMesh
 from ..mesh.frame import frame_of_bounds
 from ..mesh.sorting import sorted_unique
-from ..transfer import program, to_device, to_host
+from ..runtime._lazy import enable_x64, jax, jnp
+from ..runtime.transfer import program, to_device, to_host
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, classify_boundary, non_hex_cells
 from .device_topology import first_true
 from .projection import TABLE_FIELDS, Constraints, project_on_groups

@@ -16,7 +16,7 @@ nodes no hexahedron uses.
 
 A second program (`_face_lists`) gathers the boundary faces in the host function's order (by face number:
 hexahedron-major, `HEX_FACES` order within one), oriented as the hexahedron lists them, the non-manifold faces
-and the unused nodes, into arrays padded to the size classes (`jaxci.sizes.bucket`) of their counts, which come
+and the unused nodes, into arrays padded to the size classes (`jaxci.runtime.sizes.bucket`) of their counts, which come
 down first as 4 integers. The host then builds the edges (`jaxci.geometry.topology.topology_from_faces`,
 O(boundary)). The result equals ``boundary_topology(hexes, n_nodes)`` array for array.
 
@@ -30,10 +30,10 @@ import functools
 
 import numpy as np
 
-from .._lazy import enable_x64, jax, jnp
 from ..mesh.sorting import HASH_MIX, position_bits
-from ..sizes import bucket
-from ..transfer import program, to_device, to_host
+from ..runtime._lazy import enable_x64, jax, jnp
+from ..runtime.sizes import bucket
+from ..runtime.transfer import program, to_device, to_host
 from .topology import HEX_FACES, BoundaryTopology, topology_from_faces
 
 #: A run of one hash holding different keys is resolved by comparing each face with the faces up to this many

@@ -46,9 +46,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._lazy import filter_jit, jax, jnp, pytree_dataclass
 from ..mesh import HexMesh
 from ..mesh.sorting import sorted_unique
+from ..runtime._lazy import filter_jit, jax, jnp, pytree_dataclass
 from ._closest import (
     closest_on_segments,
     closest_on_triangles,

@@ -311,7 +311,7 @@ class HexMesh:
         - `points`: the new coordinates, shape ``(n_nodes, 3)``.
         - `notes`: keyword only; the new mesh's notes (default none).
         - `trusted`: keyword only; the caller has checked that `points` are finite and leave no hexahedron
-          inverted or degenerate (a smoothing run on the device: `jaxci.device_run`), so the new mesh is made
+          inverted or degenerate (a smoothing run on the device: `jaxci.interface.device_run`), so the new mesh is made
           without its checks (a pass over every corner: 1 s at 10^6 hexahedra). Meshes with midside nodes are
           checked whatever this says.
         - `midside`: keyword only; what happens to the midside nodes of quadratic cells (`midside_edges`), whose

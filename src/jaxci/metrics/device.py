@@ -3,15 +3,16 @@
 A run on the JAX engine keeps the node coordinates ``points`` ``(n, 3)`` and the transposed hexahedra ``conn``
 ``(8, N)`` (`jaxci.metrics.hexahedron.transposed`) on the device from upload to download. What the host
 functions measure over every corner (`jaxci.metrics.report.quality_report`, `worst_elements`, the validity and
-volume checks, the final checks of `jaxci.invariants.enforce`) is measured there, by the jitted programs of this
-module (each an entry point timed by `jaxci.transfer.program`), and only their few figures come down, in one
-`jaxci.transfer.to_host` per call: O(1), or O(k) for the k worst elements, never O(mesh).
+volume checks, the final checks of `jaxci.interface.invariants.enforce`) is measured there, by the jitted programs of
+this
+module (each an entry point timed by `jaxci.runtime.transfer.program`), and only their few figures come down, in one
+`jaxci.runtime.transfer.to_host` per call: O(1), or O(k) for the k worst elements, never O(mesh).
 
 - `quality_report_device`: the `QualityReport` of `quality_report` (measured in the unit frame, as there);
 - `worst_elements_device`: the list of `worst_elements` (a `jax.lax.top_k` of the cells' worst corners);
 - `inverted_hexes`: the count and first index of inverted hexahedra (`jaxci.metrics.objective.inverted_cells`);
 - `volume_moments`: the moment matrix `jaxci.mesh.check_volume` decides from;
-- `final_figures`: the figures `jaxci.invariants.enforce_device` decides from (newly inverted cells, F or the
+- `final_figures`: the figures `jaxci.interface.invariants.enforce_device` decides from (newly inverted cells, F or the
   p-mean, the worst cells, `jaxci.metrics.guard.keep_worst`'s put-back as a device mask).
 
 Every function here runs inside ``jax.enable_x64(True)`` and measures in float64 (coordinates of another dtype are
@@ -28,12 +29,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._lazy import enable_x64, jax, jit, jnp
 from ..cells import ELEMENT_TYPES, corner_invariants, pmean_weights
 from ..errors import UsageError
 from ..mesh import HexMesh
 from ..mesh.frame import box_frame
-from ..transfer import program, to_device, to_host
+from ..runtime._lazy import enable_x64, jax, jit, jnp
+from ..runtime.transfer import program, to_device, to_host
 from .guard import KEEP_WORST_RTOL
 from .hexahedron import condition_from_invariants, corner_columns, squared_condition_from_invariants
 from .report import (
@@ -289,8 +290,8 @@ def _put_back(conn, before, after, cell_worst, limit, run):
 @program
 @jit(static_argnames=("keep_worst", "power"))
 def final_figures(conn, start, x, worst_start, keep_worst: bool, power: float | None) -> tuple:
-    """The figures `jaxci.invariants.enforce_device` decides from, of the method's result `x` ``(n, 3)`` against
-    `start` ``(n, 3)`` (float64 on the device; `conn` ``(8, N)``).
+    """The figures `jaxci.interface.invariants.enforce_device` decides from, of the method's result `x`
+    ``(n, 3)`` against `start` ``(n, 3)`` (float64 on the device; `conn` ``(8, N)``).
 
     `worst_start`: a float64 device scalar, the start's worst cell where the caller has it, else NaN (computed
     here); `keep_worst` (static): run the put-back of `jaxci.metrics.guard.keep_worst`; `power` (static): the

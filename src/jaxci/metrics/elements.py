@@ -74,7 +74,6 @@ import math
 
 import numpy as np
 
-from .._lazy import jax, jit, jnp
 from ..cells import (
     CORNERS,
     ELEMENT_TYPES,
@@ -88,6 +87,7 @@ from ..cells import (
     pmean_weights,
 )
 from ..mesh import HexMesh
+from ..runtime._lazy import jax, jit, jnp
 
 #: The inverse of the regular tetrahedron's corner matrix: the target of Verdict's aspect Frobenius
 #: (``wedge_condition``).

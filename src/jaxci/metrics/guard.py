@@ -88,7 +88,7 @@ def worst_first(mesh: HexMesh, start, x, f0: float, f1: float, *, worst_start: f
 
 def worst_first_note(w0: float, w1: float, f0: float, f1: float, *, rtol: float = WORST_FIRST_RTOL) -> str | None:
     """`worst_first`'s verdict from the worst cells `w0` (start) and `w1` (result), F `f0` and `f1`: a note where
-    the worst cell fell, else None (from device figures too: `jaxci.invariants.enforce_device`)."""
+    the worst cell fell, else None (from device figures too: `jaxci.interface.invariants.enforce_device`)."""
     if not (np.isfinite(w0) and np.isfinite(w1) and w1 < w0 * (1.0 - rtol)):
         return None
     return (f"F rose from {f0:.6g} to {f1:.6g} (+{100.0 * (f1 - f0) / max(abs(f0), 1e-300):.2g}%) while the worst "

@@ -31,8 +31,8 @@ import functools
 
 import numpy as np
 
-from .._lazy import compute_platform, is_jax_array, jax, jit, jnp
 from ..cells import CORNER_NEIGHBOURS, corner_invariants, pmean_weights
+from ..runtime._lazy import compute_platform, is_jax_array, jax, jit, jnp
 from .incidence import accumulate, scatter_add
 
 #: Names of the per-corner condition metrics `corner_condition` accepts.

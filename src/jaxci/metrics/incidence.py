@@ -28,7 +28,7 @@ from __future__ import annotations
 import functools
 from typing import NamedTuple
 
-from .._lazy import compute_platform, jax, jit, jnp
+from ..runtime._lazy import compute_platform, jax, jit, jnp
 
 #: The ways `accumulate` sums per-element values into the nodes.
 FORMS = ("scatter", "gather", "segment")

@@ -22,8 +22,9 @@ import os
 
 import numpy as np
 
-from .. import compile_cache, native
-from .._lazy import jax, jnp
+from .. import native
+from ..runtime import compile_cache
+from ..runtime._lazy import jax, jnp
 
 #: The custom call's name in XLA's registry.
 TARGET = "jaxci_hex_terms_and_grad"
@@ -76,7 +77,7 @@ def check_version(built: tuple[int, int] | None, running: tuple[int, int] | None
 def _registered() -> bool:
     """Register the handler with XLA once, after checking the API version it was built against
     (`check_version`); False, with the reason in `refusal`, where either refuses (then XLA's kernel runs and the
-    run's `jaxci.engine.Plan` says so)."""
+    run's `jaxci.interface.engine.Plan` says so)."""
     why = check_version(native.ffi_api_version(), _header_version())
     if not why:
         try:

@@ -28,10 +28,10 @@ import dataclasses
 
 import numpy as np
 
-from .._lazy import jax, jnp, pytree_dataclass
 from ..cells import EDGES, KERNELS, corner_invariants, element_blocks, volume_cells
 from ..geometry.topology import unique_edges
 from ..mesh import HexMesh
+from ..runtime._lazy import jax, jnp, pytree_dataclass
 from . import elements as E
 
 

@@ -23,16 +23,16 @@ import dataclasses
 
 import numpy as np
 
-from .._lazy import is_jax_array, jit, jnp
+from ..runtime._lazy import is_jax_array, jit, jnp
 
 # the ladder itself (stage 0: the device programs of jaxci.geometry size their downloads by it too)
-from ..sizes import MIN_BUCKET, bucket  # noqa: F401
+from ..runtime.sizes import MIN_BUCKET, bucket  # noqa: F401
 
 # `to_device`: a numpy array as a device array of a dtype, converted on the host (no compilation), its bytes
 # counted; `device_dtype`: that array kept on the host (padded before it goes there, so that the device never
 # holds both forms)
-from ..transfer import host_dtype as device_dtype  # noqa: F401
-from ..transfer import program, to_device  # noqa: F401
+from ..runtime.transfer import host_dtype as device_dtype  # noqa: F401
+from ..runtime.transfer import program, to_device  # noqa: F401
 
 
 def _xp(a):

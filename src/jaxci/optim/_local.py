@@ -17,9 +17,9 @@ import dataclasses
 
 import numpy as np
 
-from .._lazy import jax, jnp
 from ..cells import ROTATE_TO_SLOT, corner_invariants
 from ..metrics.hexahedron import squared_condition_from_invariants
+from ..runtime._lazy import jax, jnp
 
 #: The corners whose matrix involves local node 0, and their (base, column nodes) in VTK convention.
 AFFECTED_CORNERS = ((0, (1, 3, 4)), (1, (2, 0, 5)), (3, (0, 2, 7)), (4, (7, 5, 0)))

@@ -17,10 +17,10 @@ import dataclasses
 
 import numpy as np
 
-from .._lazy import jax, jnp, when_imported
 from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..geometry.projection import Constraints, project_nodes
 from ..metrics.objective import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
+from ..runtime._lazy import jax, jnp, when_imported
 from ._buckets import bucket, device_dtype, pad_constraints, pad_rows, padded_connectivity, to_device
 from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars, star_nodes
 

@@ -8,7 +8,7 @@ the valid range and the value given; an integral float (``4.0``) counts as the i
 typo from hanging a run or exhausting memory (loop bounds, history arrays and batch shapes grow with them).
 
 `make_params` builds a dataclass from a dict of keyword parameters, listing the valid names for an unknown one and
-naming the method in every message. (The one seed rule of jaxci, `check_seed`, is `jaxci.generate`'s.)
+naming the method in every message. (The one seed rule of jaxci, `check_seed`, is `jaxci.mesh.generate`'s.)
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from ..errors import ConfigError
-from ..transfer import program, to_host
+from ..runtime.transfer import program, to_host
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED  # noqa: F401  (re-exported)
 
 

@@ -20,10 +20,10 @@ import functools
 
 import numpy as np
 
-from .._lazy import filter_jit, jax, jnp
 from ..cells import CORNER_NEIGHBOURS
 from ..metrics import elements as E
-from ..transfer import program
+from ..runtime._lazy import filter_jit, jax, jnp
+from ..runtime.transfer import program
 from ._params import MAX_REJECTED_UNCAPPED
 
 #: Corners one interior node moves (8 elements x 4 corners): the energy is a per-node sum (as F in

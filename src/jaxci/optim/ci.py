@@ -50,7 +50,7 @@ import numpy as np
 
 from ..geometry.projection import Constraints
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
-from ..transfer import program
+from ..runtime.transfer import program
 from ._anderson import anderson_point
 from ._buckets import to_device
 from ._local import gather_star

@@ -129,7 +129,8 @@ class CIParams:
         """The parameters of CI form `method`: ``"ci"`` (local, the field defaults) or ``"ci-global"`` (the
         paper's, `GLOBAL_DEFAULTS` over the field defaults), with `params` (field names) over its defaults.
 
-        The one source of CI defaults: `jaxci.smooth.method_params` (hence `jaxci.smooth`, ``jaxci smooth`` and
+        The one source of CI defaults: `jaxci.interface.smooth.method_params` (hence `jaxci.smooth`, ``jaxci smooth``
+        and
         ``jaxci run``) and `jaxci.experiments.config`'s up-front check build CI parameters here. Raises `ConfigError`
         for another method or a bad value, `TypeError` for an unknown field (`jaxci.optim._params.make_params` names
         it first)."""
@@ -159,7 +160,7 @@ METHOD_DEFAULTS: Mapping[str, Mapping[str, float]] = types.MappingProxyType(
 def ci_params(method: str, params: Mapping) -> CIParams:
     """`CIParams.for_method` from a mapping of the user's parameters (`params`: field names to values), checked
     as `jaxci.optim._params.make_params` checks them: an unknown name is listed with the valid ones, and every
-    `ConfigError` names `method` (``"ci"`` or ``"ci-global"``). `jaxci.smooth.method_params` calls it."""
+    `ConfigError` names `method` (``"ci"`` or ``"ci-global"``). `jaxci.interface.smooth.method_params` calls it."""
     if method not in METHOD_DEFAULTS:
         CIParams.for_method(method)  # the error naming the CI methods
     if isinstance(params, Mapping):  # else make_params says what is wrong with it

@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._lazy import enable_x64, jit, jnp
 from ..cells import CORNER_NEIGHBOURS
 from ..geometry.device_colouring import Incidences, incidences
 from ..geometry.projection import Constraints
-from ..transfer import program, to_device, to_host
+from ..runtime._lazy import enable_x64, jit, jnp
+from ..runtime.transfer import program, to_device, to_host
 from .device_stars import BoundaryView, boundary_view, surface_planes
 from .parametrisation import Parametrisation, flat_intervals
 

@@ -28,7 +28,6 @@ import dataclasses
 
 import numpy as np
 
-from .._lazy import jax, jit, jnp
 from ..cells import CORNER_NEIGHBOURS
 from ..geometry.boundary import CORNER, SURFACE
 from ..geometry.device_colouring import (
@@ -40,7 +39,8 @@ from ..geometry.device_colouring import (
     valence,
 )
 from ..geometry.projection import Constraints
-from ..transfer import program, to_device, to_host
+from ..runtime._lazy import jax, jit, jnp
+from ..runtime.transfer import program, to_device, to_host
 from ._buckets import bucket, pad_connectivity, pad_rows, padded_constraints
 from ._local import relabel
 from ._moves import ColouredStars, padded_blocks, surface_rings, without_slack

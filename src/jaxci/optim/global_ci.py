@@ -31,7 +31,7 @@ import numpy as np
 
 from ..geometry.projection import params_to_points, project
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
-from ..transfer import program
+from ..runtime.transfer import program
 from .cohort import follow, split_params
 from .parametrisation import Parametrisation
 

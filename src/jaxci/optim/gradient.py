@@ -77,7 +77,6 @@ import functools
 import numpy as np
 
 from .. import native
-from .._lazy import compute_platform, is_jax_array, jax, jit, jnp
 from ..cells import corner_invariants, pmean_weights
 from ..errors import ConfigError
 from ..geometry.projection import project_np
@@ -91,8 +90,9 @@ from ..metrics.hexahedron import (
 )
 from ..metrics.incidence import node_incidence
 from ..metrics.objective import extra_barrier, extra_cells, extra_terms, has_extra, no_extra, objective_and_max
-from ..phases import progress
-from ..transfer import program, to_host
+from ..runtime._lazy import compute_platform, is_jax_array, jax, jit, jnp
+from ..runtime.phases import progress
+from ..runtime.transfer import program, to_host
 from . import _params as _p
 from ._buckets import bucket, free_layout, padded_connectivity, to_device
 from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED
@@ -501,7 +501,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         runs += 1
         finite = seg_f[np.isfinite(seg_f)]
         progress(f"{method} run {runs}: {steps} steps, F {finite.min(initial=np.inf):.6g}, max kappa/3 "
-                 f"{np.min(seg_k):.6g}")  # to the running phase's listener, if any (`jaxci.phases`)
+                 f"{np.min(seg_k):.6g}")  # to the running phase's listener, if any (`jaxci.runtime.phases`)
         gain = float(seg_f[0] - finite.min()) if len(finite) else 0.0
         if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol or np.min(seg_k) <= 1.0 + p.ktol:
             break
@@ -560,7 +560,7 @@ gauss_newton = _method("gauss-newton")
 def run_gradient(problem, method: str, params: dict):
     """`jaxci.smooth`'s entry: build `GradientParams` from `params` and the parametrisation of `problem`.
 
-    **Arguments:** `problem` a `jaxci.smooth.Problem` (its `x0` is the start); `method` one of `METHODS`;
+    **Arguments:** `problem` a `jaxci.interface.smooth.Problem` (its `x0` is the start); `method` one of `METHODS`;
     `params` keyword hyperparameters (fields of `GradientParams`).
 
     **Returns:** as `minimise`; with ``presmooth`` sweeps of the smart Laplacian first, the history starts with

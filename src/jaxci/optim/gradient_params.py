@@ -1,5 +1,5 @@
 """The parameters of the gradient baselines (`GradientParams`) and their method names: importable without JAX
-(`jaxci.methods` checks a configuration with them before anything is compiled). The methods themselves are
+(`jaxci.interface.methods` checks a configuration with them before anything is compiled). The methods themselves are
 `jaxci.optim.gradient`'s.
 """
 

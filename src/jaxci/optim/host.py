@@ -4,8 +4,8 @@ On a mesh of a few thousand hexahedra, XLA's compilation of the solver loop cost
 (`jaxci smooth` on a 2360-hex mesh, empty compile cache: 2.9 s compiling `solve_loop`, 0.6 s iterating; with a warm
 cache still 0.8 s tracing, lowering and loading it). The same algorithm run by numpy in float64 costs about
 1 ms per objective-and-gradient evaluation at that size (the closed-form kernel of
-`jaxci.metrics.hexahedron.objective_terms_and_grad_np`, with glibc's huge-page tunable of `jaxci.runtime`), so the whole
-solve takes less than the compilation alone. `jaxci.optim.gradient.minimise` uses it for ``"lbfgs"`` on
+`jaxci.metrics.hexahedron.objective_terms_and_grad_np`, with glibc's huge-page tunable of `jaxci.runtime.process`), so
+the whole solve takes less than the compilation alone. `jaxci.optim.gradient.minimise` uses it for ``"lbfgs"`` on
 hexahedral meshes of at most `HOST_MAX` elements (``GradientParams(backend="auto")``; ``"jax"`` or ``"numpy"``
 force one).
 
@@ -31,9 +31,9 @@ import numpy as np
 
 from .. import native
 from ..geometry.near import NearProjector, host_constraints
-from ..memory import release_free_memory
 from ..metrics.hexahedron import objective_terms_and_grad_np
-from ..phases import stepper
+from ..runtime.memory import release_free_memory
+from ..runtime.phases import stepper
 from ._params import MAX_REJECTED_UNCAPPED
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
@@ -289,7 +289,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     `precond` (optional): a function that returns the initial inverse Hessian's ``M``
     (`jaxci.optim.coarse.CoarseSpace`; default I), called once, at the first accepted iterate after
     `precond_after` steps: M is used from then on. `stage`: the name its steps are reported under to the
-    running phase's listener (`jaxci.phases.stepper`: step, F, max kappa/3); None reports nothing.
+    running phase's listener (`jaxci.runtime.phases.stepper`: step, F, max kappa/3); None reports nothing.
 
     **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the accepted
     iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,

@@ -18,7 +18,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector, host_constraints
 from ..geometry.projection import Constraints
-from ..phases import stepper
+from ..runtime.phases import stepper
 from ._moves import onto_plane, planar_rings
 from .ci_params import CIParams
 from .host_local import follow_candidates

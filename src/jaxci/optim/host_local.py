@@ -35,7 +35,7 @@ import numpy as np
 from .. import native
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
-from ..phases import stepper
+from ..runtime.phases import stepper
 from ._anderson import AndersonMemory
 from ._local import edge_neighbours, gather_star, local_length, star_nodes
 from ._moves import coloured_stars, onto_plane
@@ -43,7 +43,8 @@ from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound
 from .laplace import LaplaceParams
 
 #: Largest hexahedral mesh on which ``engine="auto"`` runs the local methods on the host (with the C kernels;
-#: `jaxci.engine.host_limit`). It was 100,000; a 60^3 box (216,000, amplitude 0.3) measured both ways (2026-11-26,
+#: `jaxci.interface.engine.host_limit`). It was 100,000; a 60^3 box (216,000, amplitude 0.3) measured both ways
+#: (2026-11-26,
 #: dd22c91): local CI 79.8 s on the host (float64, ends at max kappa/3 1.00013) against 81.9 s compiled (float32, 9
 #: s of it compiling, stopped at 1.0003); smart Laplace 162 s (converged in 336 sweeps, 1.00000002) against 151 s
 #: (its 500-sweep cap, 1.0000029).

@@ -24,7 +24,6 @@ import dataclasses
 
 import numpy as np
 
-from .._lazy import jax, jit, jnp
 from ..errors import ConfigError
 from ..geometry.projection import Constraints
 from ..metrics.objective import (
@@ -36,7 +35,8 @@ from ..metrics.objective import (
     no_extra,
     objective_and_max,
 )
-from ..transfer import program, to_host
+from ..runtime._lazy import jax, jit, jnp
+from ..runtime.transfer import program, to_host
 from . import _params as _p
 from ._buckets import bucket, device_dtype, to_device
 from ._local import HEX_EDGES, edge_neighbours, gather_star, star_coords  # noqa: F401  (re-exported)

@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._lazy import enable_x64, is_jax_array, jax, jit, jnp, pytree_dataclass
 from ..cells import CORNER_NEIGHBOURS
 from ..geometry.boundary import BoundaryInfo
 from ..geometry.projection import Constraints, n_free, project, project_np
 from ..metrics import objective as mixed
-from ..transfer import program, to_host
+from ..runtime._lazy import enable_x64, is_jax_array, jax, jit, jnp, pytree_dataclass
+from ..runtime.transfer import program, to_host
 from ._buckets import bucket, free_index, free_layout, pad_connectivity, pad_rows, padded_constraints, to_device
 
 

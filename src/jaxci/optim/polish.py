@@ -44,7 +44,7 @@ import numpy as np
 from ..cells import element_blocks
 from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..geometry.projection import Constraints
-from ..phases import stepper
+from ..runtime.phases import stepper
 from .host import HostObjective, lbfgs
 from .parametrisation import Parametrisation
 from .weighted import CellCorners, penalty_kernel

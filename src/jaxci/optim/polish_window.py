@@ -24,12 +24,12 @@ import dataclasses
 
 import numpy as np
 
-from .._lazy import jax, jit, jnp
 from ..cells import corner_invariants
 from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..geometry.projection import Constraints
 from ..metrics.hexahedron import corner_columns, gather_corners, squared_condition_from_invariants
-from ..transfer import program, to_device, to_host
+from ..runtime._lazy import jax, jit, jnp
+from ..runtime.transfer import program, to_device, to_host
 from ._buckets import bucket
 from .parametrisation import Parametrisation
 from .polish import Rest

@@ -36,7 +36,7 @@ import functools
 
 import numpy as np
 
-from .._lazy import jax, jnp
+from ..runtime._lazy import jax, jnp
 from .host import DECREASE, SLOPE
 
 #: Result codes of `lbfgs_loop`, as the host path names them (`jaxci.optim.host.lbfgs`).

@@ -9,7 +9,7 @@ the result equals the single-device one. Cohort candidates ``(C, n, 3)`` are spl
 
 On one host, every local device is used (GPUs, or CPU devices made with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=4``; with more of those than cores, also
-``--xla_disable_hlo_passes=cpu-parallel-task-assigner``: `jaxci.runtime.cpu_device_flags`). On several
+``--xla_disable_hlo_passes=cpu-parallel-task-assigner``: `jaxci.runtime.process.cpu_device_flags`). On several
 hosts, call `init_distributed` first in every process (it wraps `jax.distributed.initialize`, which reads the
 coordinator address, process count and id from the cluster environment or its arguments); then
 `jax.devices()` spans all hosts and the same code runs.
@@ -98,7 +98,7 @@ def xla_cpu_threads() -> int | None:
     2-core machine make 4 threads on 2 cores for EVERY program of the process, sharded or not: the cause of the
     2.3-2.6x slower 4-device runs in docs/sharding.md (a one-device process with ``NPROC=4`` is as slow). No
     setting lowers it below the device count (XLA needs one thread per device to run a collective); what
-    helps is not splitting the fusions (`jaxci.runtime.cpu_device_flags`)."""
+    helps is not splitting the fusions (`jaxci.runtime.process.cpu_device_flags`)."""
     jax.devices("cpu")
     try:
         tasks = os.listdir("/proc/self/task")

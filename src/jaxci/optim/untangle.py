@@ -50,7 +50,6 @@ import time
 import numpy as np
 
 from .. import native
-from .._lazy import enable_x64, is_jax_array, jax
 from ..cells import EDGES, corner_determinants, element_blocks
 from ..errors import InvertedMeshError
 from ..geometry.boundary import CORNER, BoundaryInfo
@@ -58,6 +57,7 @@ from ..geometry.projection import Constraints, n_free
 from ..mesh import HexMesh
 from ..metrics import elements as E
 from ..metrics.objective import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
+from ..runtime._lazy import enable_x64, is_jax_array, jax
 from . import _params as _p
 from ._untangle_loop import FLAT_REACH, corner_table, untangle_rounds
 from .host import UNTANGLE_HOST_MAX, runs_on_host, untangle_rounds_np

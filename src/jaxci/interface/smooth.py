@@ -5,7 +5,7 @@ edge nodes on their feature curve, surface nodes on their surface (`jaxci.geomet
 `jaxci.geometry.projection`). On a hex-dominant mesh F is the mean over the corners of EVERY cell, hexahedra, wedges,
 pyramids and tetrahedra (`jaxci.metrics.elements.mixed_objective`, `jaxci.metrics.objective`), and the nodes of linear
 non-hexahedral cells move too. Whatever the method, `smooth` guarantees on return (checked in float64, not assumed,
-by `jaxci.invariants.enforce`):
+by `jaxci.interface.invariants.enforce`):
 
 - no cell of any type is inverted that was valid in the input, and F (over every corner) did not increase, or,
   where the method weighs the worst element first (the default pipeline's worst-element polish), F rose only
@@ -28,14 +28,17 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ._lazy import enable_x64, jax
+from ..errors import ConfigError, InvertedMeshError, MeshError
+from ..geometry.boundary import BoundaryInfo, classify_boundary, fix_nodes
+from ..geometry.projection import n_free
+from ..mesh import HexMesh
+from ..metrics import objective as mixed
+from ..metrics.elements import objective_on_host
+from ..metrics.report import quality_report, worst_elements
+from ..runtime._lazy import enable_x64, jax
 from .engine import Plan
-from .errors import ConfigError, InvertedMeshError, MeshError
-from .geometry.boundary import BoundaryInfo, classify_boundary, fix_nodes
-from .geometry.projection import n_free
 from .invariants import enforce
-from .mesh import HexMesh
-from .methods import (  # noqa: F401  (Problem, build_problem, method_params ... are also reached as jaxci.smooth.X)
+from .methods import (  # noqa: F401  (Problem, build_problem, method_params ... are also reached as jaxci.interface.smooth.X)
     AUTO_PRESMOOTH_FROM,
     METHODS,
     OPTIMAL_F,
@@ -49,9 +52,6 @@ from .methods import (  # noqa: F401  (Problem, build_problem, method_params ...
     run_method,
     standard_history,
 )
-from .metrics import objective as mixed
-from .metrics.elements import objective_on_host
-from .metrics.report import quality_report, worst_elements
 from .result import SmoothResult
 
 #: The plan's note where the worst-element polish (`jaxci.optim.polish`) runs on the host beside the JAX engine.
@@ -92,7 +92,7 @@ def smooth(
       L-BFGS, with smart-Laplace sweeps first on large meshes), ``"ci"`` batched local Cohort Intelligence,
       ``"ci-global"`` the paper's global CI; ``"bfgs"``, ``"lbfgs"``, ``"cg"``, ``"lm"``, ``"gauss-newton"``
       the optimistix baselines (`jaxci.optim.gradient`); ``"laplace"``, ``"smart-laplace"`` (`jaxci.optim.laplace`).
-    - `seed`: an integer in [0, 2**32 - 1] (`jaxci.generate.check_seed`), the seed of the `jax.random` key
+    - `seed`: an integer in [0, 2**32 - 1] (`jaxci.mesh.generate.check_seed`), the seed of the `jax.random` key
       of stochastic methods (same seed, same result; distinct seeds, distinct keys). The key uses the ``"rbg"``
       generator (XLA's RngBitGenerator): its code compiles in a tenth of the time of threefry's.
     - `dtype`: ``"float32"`` (default, fast) or ``"float64"``: the JAX engine's arithmetic (the host engine
@@ -127,11 +127,11 @@ def smooth(
       result's ``params["devices"]`` is the count).
     - `engine`: ``"auto"`` (default), ``"host"`` (numpy and the C kernels, float64, on the CPU) or ``"jax"``
       (the compiled JAX programs); `device`: ``"auto"`` (default: an accelerator where JAX sees one and the
-      mesh is large enough for it to win, `jaxci.engine.ACCELERATOR_FROM`), ``"cpu"`` or ``"gpu"`` (any
-      accelerator JAX sees). One decision (`jaxci.engine.resolve_plan`) made before any work, followed by every
-      stage; a request that cannot be honoured is a `ConfigError`. The parameters ``backend`` and
+      mesh is large enough for it to win, `jaxci.interface.engine.ACCELERATOR_FROM`), ``"cpu"`` or ``"gpu"`` (any
+      accelerator JAX sees). One decision (`jaxci.interface.engine.resolve_plan`) made before any work, followed by
+      every stage; a request that cannot be honoured is a `ConfigError`. The parameters ``backend`` and
       ``untangle_backend`` (``"numpy"``: host, ``"jax"``) are the same request.
-    - `clock`: a `jaxci.phases.PhaseClock` to record the phases in (default: a new one); the result's
+    - `clock`: a `jaxci.runtime.phases.PhaseClock` to record the phases in (default: a new one); the result's
       ``phases`` is its `as_dict`.
     - `**params`: the method's hyperparameters (e.g. `jaxci.optim.ci.CIParams`,
       `jaxci.optim.gradient.GradientParams`, `jaxci.optim.laplace.LaplaceParams` fields; one not given takes the
@@ -139,7 +139,7 @@ def smooth(
       ``untangle_`` go to `jaxci.optim.untangle.UntangleParams` (e.g. ``untangle_margin=1e-2``).
 
     Every argument is checked before any work (`ConfigError` naming the argument or parameter, the method and
-    the value). The mesh is refused (`MeshError`) if its estimated peak memory (`jaxci.memory.smooth_bytes`)
+    the value). The mesh is refused (`MeshError`) if its estimated peak memory (`jaxci.runtime.memory.smooth_bytes`)
     exceeds the memory available, or if it has no volume (`jaxci.mesh.check_volume`). All the work is done in
     the unit frame of `jaxci.mesh.unit_frame` (scale-invariant metrics, no overflow at 1e300 or underflow at
     1e-300), and the nodes that moved are mapped back; the others keep their input coordinates bit for bit.
@@ -167,11 +167,11 @@ def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=
                  fixed_nodes=None, fixed_sets=(), untangle="auto", untangle_boundary=False, merge_coincident=False,
                  keep_worst=True, clock=None, devices=None, engine="auto", device="auto", seeds=1, **params):
     """`smooth` as a generator: it yields one `MethodRun` (unless no method needs to run), receives its output
-    and returns the `SmoothResult`; `_drive` runs one, `jaxci.seeds.smooth_seeds` several at once. `seeds`: how
-    many seeds of this mesh run together (the plan's batch rule: `jaxci.engine.resolve_plan`)."""
-    from .mesh import check_volume, from_unit, to_unit, unit_frame
-    from .mesh import merge_coincident as merge
-    from .phases import PhaseClock
+    and returns the `SmoothResult`; `_drive` runs one, `jaxci.interface.seeds.smooth_seeds` several at once. `seeds`:
+    how many seeds of this mesh run together (the plan's batch rule: `jaxci.interface.engine.resolve_plan`)."""
+    from ..mesh import check_volume, from_unit, to_unit, unit_frame
+    from ..mesh import merge_coincident as merge
+    from ..runtime.phases import PhaseClock
 
     clock = PhaseClock() if clock is None else clock
     user_presmooth = "presmooth" in params
@@ -207,7 +207,7 @@ def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=
     pairs = mesh.coincident_nodes()
     joined = None
     if len(pairs):
-        from .geometry.coincident import join_coincident
+        from ..geometry.coincident import join_coincident
 
         joined = join_coincident(mesh)  # each set one node; None where a cell has two nodes of one set
         if joined is None:
@@ -224,7 +224,7 @@ def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=
     notes.extend(plan.notes)
     solve, base_info = unit, None
     if joined is not None:
-        from .geometry.coincident import joined_info
+        from ..geometry.coincident import joined_info
 
         solve = dataclasses.replace(joined.mesh, points=to_unit(joined.mesh.points, frame), fix_orientation=False,
                                     notes=(), check_coincident=False)
@@ -260,7 +260,7 @@ def _finish(res: SmoothResult, mesh: HexMesh, t0: float, auto, method, seed, pla
 
 
 def _device_run():
-    """`jaxci.device_run` (imported on use: it imports JAX)."""
+    """`jaxci.interface.device_run` (imported on use: it imports JAX)."""
     from . import device_run
 
     return device_run
@@ -272,7 +272,7 @@ def _sharding(method, devices, params: dict, device: str):
     (on a machine with an accelerator), else JAX's default platform's."""
     if devices is None:
         return None, params, ""
-    from .optim.sharding import resolve_devices, sharded_params
+    from ..optim.sharding import resolve_devices, sharded_params
 
     shard = resolve_devices(devices, platform="cpu" if device == "cpu" else None)
     params, note = sharded_params(method, params, shard)
@@ -284,12 +284,12 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     """`smooth`'s argument checks and the engine's plan, before any work: ``(mesh, method, seed, fixed_sets,
     untangle_params, params, auto, shard, shard_note, plan)`` with the `auto_pipeline` resolved (`auto`: its
     description, else ""), the device mesh of a sharded run (`shard`, None) and its note, and the
-    `jaxci.engine.Plan` every stage follows (their ``backend`` parameters set from it:
-    `jaxci.engine.stage_params`)."""
+    `jaxci.interface.engine.Plan` every stage follows (their ``backend`` parameters set from it:
+    `jaxci.interface.engine.stage_params`)."""
+    from ..mesh import as_hex_mesh
+    from ..mesh.generate import check_seed
+    from ..runtime.memory import check_fits, smooth_bytes
     from .engine import DEVICES, engine_request, resolve_plan, stage_params
-    from .generate import check_seed
-    from .memory import check_fits, smooth_bytes
-    from .mesh import as_hex_mesh
 
     mesh = as_hex_mesh(mesh, "smooth")
     if not isinstance(method, str) or method not in METHODS:
@@ -334,8 +334,8 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
             raise
         raise ConfigError(f"{e} (the default method, auto, runs {method}; --method picks another)") from None
     if untangle_params:
-        from .optim._params import make_params
-        from .optim.untangle import UntangleParams
+        from ..optim._params import make_params
+        from ..optim.untangle import UntangleParams
 
         make_params(UntangleParams, untangle_params, "untangling", prefix="untangle_",
                     what="the untangling stage")
@@ -387,9 +387,9 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
             f"before it can be smoothed, and untangle='never' was given"
         )
     if tangled or untangle == "always":
-        from .optim._params import make_params
-        from .optim.feasibility import put_back, release_features, released_note
-        from .optim.untangle import UntangleParams, untangle_stage
+        from ..optim._params import make_params
+        from ..optim.feasibility import put_back, release_features, released_note
+        from ..optim.untangle import UntangleParams, untangle_stage
 
         up = make_params(UntangleParams, untangle_params, "untangling", prefix="untangle_",
                          what="the untangling stage")
@@ -455,7 +455,8 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
     x = np.asarray(x, dtype=np.float64)
     if resolved.get("batched_seeds"):
         notes.append(f"global CI of {resolved['batched_seeds']} seeds ran as one batched program on the JAX engine "
-                     f"(jaxci.seeds.smooth_seeds); this run's smooth phase is its equal share of the batch's time")
+                     "(jaxci.interface.seeds.smooth_seeds); this run's smooth phase is its equal share of the batch's "
+                     "time")
     notes.extend(problem.info.notes)
     cap = cap_note(method, resolved, iterations, history)
     if cap:
@@ -484,7 +485,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
 def _refuse_stuck(mesh: HexMesh, info: BoundaryInfo) -> None:
     """`InvertedMeshError` at once, naming them, if some inverted cells cannot be fixed by any allowed move
     (`jaxci.optim.feasibility.stuck_cells`: an inverted corner whose four nodes are all fixed)."""
-    from .optim.feasibility import stuck_cells
+    from ..optim.feasibility import stuck_cells
 
     stuck = stuck_cells(mesh, info)
     if not stuck:

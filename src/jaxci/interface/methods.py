@@ -1,5 +1,5 @@
 """The problem every smoothing method works on (`Problem`, `build_problem`), the dispatch to a method on the
-engine its plan names (`run_method`, `method_params`; the plan: `jaxci.engine`), and the default pipeline
+engine its plan names (`run_method`, `method_params`; the plan: `jaxci.interface.engine`), and the default pipeline
 (`auto_pipeline`). `jaxci.smooth` is the one interface over them.
 """
 
@@ -12,16 +12,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from . import native
-from ._lazy import jax, jnp
-from .cells import volume_cells
-from .errors import ConfigError
-from .geometry.boundary import BoundaryInfo, classify_boundary
-from .geometry.projection import Constraints, build_constraints
-from .geometry.topology import colour_nodes, node_adjacency
-from .mesh import HexMesh
-from .metrics import objective as mixed
-from .metrics.hexahedron import transposed
+from .. import native
+from ..cells import volume_cells
+from ..errors import ConfigError
+from ..geometry.boundary import BoundaryInfo, classify_boundary
+from ..geometry.projection import Constraints, build_constraints
+from ..geometry.topology import colour_nodes, node_adjacency
+from ..mesh import HexMesh
+from ..metrics import objective as mixed
+from ..metrics.hexahedron import transposed
+from ..runtime._lazy import jax, jnp
 
 #: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
 #: (`auto_pipeline`).
@@ -48,8 +48,10 @@ class Problem:
     non-hexahedral cells (`extra`: `jaxci.metrics.objective.ExtraCells`; `table`:
     `jaxci.metrics.objective.CornerTable`), None for a hexahedral one; the colouring (`colour`) on first use;
     `devices`: None (one device) or the `jax.sharding.Mesh` the compiled methods shard the elements over;
-    `plan`: the `jaxci.engine.Plan` the methods run on (its engine: numpy arrays on the host engine, JAX arrays
-    on the JAX engine); `tables`: where the mesh lives on the device (`jaxci.device_run`), the boundary's float64
+    `plan`: the `jaxci.interface.engine.Plan` the methods run on (its engine: numpy arrays on the host engine, JAX
+    arrays
+    on the JAX engine); `tables`: where the mesh lives on the device (`jaxci.interface.device_run`), the boundary's
+    float64
     tables on the host (`jaxci.geometry.tables.BoundaryTables`: the exact projection of the boundary nodes and the
     worst-element polish's window read them) and `points64` its coordinates in float64 on the device (the
     geometry the presmoothing's planes and the parametrisation are measured on), else None."""
@@ -97,7 +99,7 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
                   info: BoundaryInfo | None = None, devices=None, plan=None) -> Problem:
     """Classify the boundary and build the constraints of `mesh` (call inside the dtype context).
 
-    `plan`: the `jaxci.engine.Plan` (`Problem.plan`): on the host engine the arrays stay in numpy (JAX is not
+    `plan`: the `jaxci.interface.engine.Plan` (`Problem.plan`): on the host engine the arrays stay in numpy (JAX is not
     imported), else (or without a plan) they go to JAX's default device. `info`: the `BoundaryInfo` of `mesh`
     with these arguments if it is at hand (the untangling stage's), else classified. `devices`:
     `Problem.devices`."""
@@ -117,7 +119,7 @@ def build_problem(mesh: HexMesh, *, dtype=np.float32, feature_angle: float = 40.
 
 
 def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
-    """The default pipeline (``method="auto"``) on `mesh` where `plan` (a `jaxci.engine.Plan`) runs it:
+    """The default pipeline (``method="auto"``) on `mesh` where `plan` (a `jaxci.interface.engine.Plan`) runs it:
     ``(method, params, description)``.
 
     Chosen by measurement on real and generated meshes (docs/results): L-BFGS on F after the untangling stage
@@ -151,9 +153,9 @@ def run_method(problem: Problem, method: str, seed: int, params: dict):
     """Dispatch to a method; returns (points, iterations, history, resolved params). `seed` makes the PRNG key
     of the randomised methods (only there: building it compiles a program)."""
     if problem.host and method in ("ci", "ci-global", "laplace", "smart-laplace"):
-        from .optim.host_global import global_ci_np
-        from .optim.host_local import laplace_np, local_ci_np
-        from .optim.parametrisation import free_lengths
+        from ..optim.host_global import global_ci_np
+        from ..optim.host_local import laplace_np, local_ci_np
+        from ..optim.parametrisation import free_lengths
 
         p = method_params(method, params)
         mesh = problem.mesh
@@ -168,8 +170,8 @@ def run_method(problem: Problem, method: str, seed: int, params: dict):
         return x, it, hist, dataclasses.asdict(p)
     if method in ("ci", "ci-global"):
         key = jax.random.key(seed, impl="rbg")
-        from .optim._moves import coloured_stars
-        from .optim.ci import global_ci, local_ci
+        from ..optim._moves import coloured_stars
+        from ..optim.ci import global_ci, local_ci
 
         p = method_params(method, params)
         if method == "ci":
@@ -182,11 +184,11 @@ def run_method(problem: Problem, method: str, seed: int, params: dict):
                                     problem.extra, devices=problem.devices)
         return x, it, hist, dataclasses.asdict(p)
     if method in ("bfgs", "lbfgs", "cg", "lm", "gauss-newton"):
-        from .optim.gradient import run_gradient
+        from ..optim.gradient import run_gradient
 
         return run_gradient(problem, method, params)
     if method in ("laplace", "smart-laplace"):
-        from .optim.laplace import run_laplace
+        from ..optim.laplace import run_laplace
 
         return run_laplace(problem, method, params)
     raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
@@ -195,7 +197,7 @@ def run_method(problem: Problem, method: str, seed: int, params: dict):
 def global_parametrisation(problem: Problem):
     """The unscaled `jaxci.optim.parametrisation.Parametrisation` of `problem` from its start ``x0``: global CI's
     unknowns (coordinates along each node's free directions)."""
-    from .optim.parametrisation import make_parametrisation
+    from ..optim.parametrisation import make_parametrisation
 
     return make_parametrisation(problem.mesh, problem.info, problem.cons, np.asarray(problem.x0), scaled=False,
                                 dtype=problem.dtype)
@@ -204,7 +206,7 @@ def global_parametrisation(problem: Problem):
 def free_scale(problem: Problem) -> jnp.ndarray:
     """Local edge length per free coordinate (the `jaxci.geometry.projection` layout), shape ``(n_free,)``
     (`jaxci.optim.parametrisation.free_lengths`)."""
-    from .optim.parametrisation import free_lengths
+    from ..optim.parametrisation import free_lengths
 
     return jax.device_put(np.asarray(free_lengths(problem.mesh, problem.cons), problem.dtype))
 
@@ -214,18 +216,18 @@ def method_params(method: str, params: dict):
     parameter for an unknown name or a bad value). A parameter not given takes its METHOD's default: CI's come
     from `jaxci.optim.ci.CIParams.for_method` (``"ci"`` local CI's, ``"ci-global"`` the paper's global CI's),
     the one source for `smooth`, ``jaxci smooth`` and YAML configs (`jaxci.experiments.config`)."""
-    from .optim._params import make_params
+    from ..optim._params import make_params
 
     if params.get("objective", "mean") != "mean" and method not in ("bfgs", "lbfgs", "cg"):
         raise ConfigError(f"objective {params['objective']!r} is for the gradient methods bfgs, lbfgs and cg (and "
                           f"the default pipeline), not {method!r}")
     if method in ("ci", "ci-global"):
-        from .optim.ci_params import ci_params
+        from ..optim.ci_params import ci_params
 
         return ci_params(method, params)
     cls = method_param_class(method)
     if cls is None:  # no parameter class of its own: the gradient methods'
-        from .optim.gradient_params import GradientParams as cls
+        from ..optim.gradient_params import GradientParams as cls
     return make_params(cls, params, method)
 
 
@@ -236,15 +238,15 @@ def method_param_class(method: str):
     unknown name (its parameters are checked when it runs). The one method -> class table (YAML configs,
     `jaxci.experiments.config`, read it too); the class is imported on use."""
     if method in ("ci", "ci-global"):
-        from .optim.ci_params import CIParams
+        from ..optim.ci_params import CIParams
 
         return CIParams
     if method in ("bfgs", "lbfgs", "cg", "lm", "gauss-newton"):
-        from .optim.gradient_params import GradientParams
+        from ..optim.gradient_params import GradientParams
 
         return GradientParams
     if method in ("laplace", "smart-laplace"):
-        from .optim.laplace import LaplaceParams
+        from ..optim.laplace import LaplaceParams
 
         return LaplaceParams
     return None
@@ -254,7 +256,7 @@ def method_param_class(method: str):
 class MethodRun:
     """What `smooth_steps` asks its driver to run: `method` with `seed` and `params` on `problem` (a `Problem`,
     whose `plan` says where), timed in `clock`'s ``smooth`` phase. The driver sends back ``(points, iterations,
-    history, resolved params)`` (`jaxci.methods.run_method`)."""
+    history, resolved params)`` (`jaxci.interface.methods.run_method`)."""
 
     problem: Problem
     method: str

@@ -20,10 +20,10 @@ import numbers
 
 import numpy as np
 
-from .cells import corner_determinants
-from .errors import ConfigError, MeshError
-from .memory import check_fits, generate_bytes
-from .mesh import HexMesh, hex_mesh
+from ..cells import corner_determinants
+from ..errors import ConfigError, MeshError
+from ..runtime.memory import check_fits, generate_bytes
+from . import HexMesh, hex_mesh
 
 #: Largest seed: seeds are integers in [0, MAX_SEED]. A `jax.random` key from an integer keeps 32 bits of it
 #: (2**32 and 0 gave the same key), so larger seeds are refused rather than silently aliased.

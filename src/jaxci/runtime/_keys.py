@@ -1,4 +1,4 @@
-"""Keys of the JAX engine's exported programs (`jaxci._export`): texts that are equal in two processes exactly
+"""Keys of the JAX engine's exported programs (`jaxci.runtime._export`): texts that are equal in two processes exactly
 when tracing would give the same program.
 
 `Keyer` writes a value as a deterministic text, or raises `Unkeyable`: the simple Python values, containers,
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ._lazy import jax
-from .runtime import schedulable_cpus
+from .process import schedulable_cpus
 
 #: Packages whose versions are part of the key (their code is traced).
 VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")
@@ -63,7 +63,7 @@ def _file_hash(path: str) -> str:
 @functools.cache
 def package_hash() -> str:
     """A hash of jaxci's own files (sources and the C extension): any change to them makes new keys."""
-    root = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parents[1]  # the jaxci package (this module lives in jaxci/runtime/)
     h = hashlib.sha256()
     for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".so", ".pyd", ".c") and p.is_file()):
         h.update(str(path.relative_to(root)).encode() + b"\0" + _file_hash(str(path)).encode())

@@ -2,7 +2,8 @@
 
 A box of 1000^3 elements, or a file of 10^9 hexahedra, would run for minutes and then die of `MemoryError` (or be
 killed) part way through. jaxci refuses such a job up front, with the estimate: where a config is validated
-(`jaxci.experiments.config`: generated boxes), in the box builders (`jaxci.generate`) and in `jaxci.smooth.smooth`.
+(`jaxci.experiments.config`: generated boxes), in the box builders (`jaxci.mesh.generate`) and in
+`jaxci.interface.smooth.smooth`.
 
 The figures were measured on this project's 2-core CPU machine (jax 0.10, XLA CPU): one process per case builds a
 perturbed box of n^3 elements (amplitude 0.2) and smooths it (ci with max_sweeps=3, ci-global attempts=3, lbfgs
@@ -23,16 +24,16 @@ import functools
 import os
 import sys
 
-from .errors import MeshError
+from ..errors import MeshError
 
-#: Measured peak bytes per hexahedron of `jaxci.smooth.smooth` (largest over ci, ci-global, lbfgs with and
+#: Measured peak bytes per hexahedron of `jaxci.interface.smooth.smooth` (largest over ci, ci-global, lbfgs with and
 #: without presmoothing, smart-laplace on perturbed boxes of 20^3..50^3 elements), by dtype.
 SMOOTH_BYTES_PER_HEX = {"float32": 3_000, "float64": 4_300}
 #: Measured extra bytes per hexahedron and CI trial (cohort x variations) above the default 16 trials.
 CI_BYTES_PER_TRIAL = 25
 #: Measured fixed part (JAX's runtime and the compilation of the smoothing loops), bytes.
 SMOOTH_FIXED_BYTES = 400 * 2**20
-#: Measured peak bytes per hexahedron of a run on the host engine (`jaxci.engine`: numpy and C, no
+#: Measured peak bytes per hexahedron of a run on the host engine (`jaxci.interface.engine`: numpy and C, no
 #: JAX, nothing compiled; float64 whatever `dtype` says), and its fixed part: the default pipeline (3 smart-Laplace
 #: sweeps, L-BFGS, reports) on perturbed boxes peaked at 0.98 GB in all at 10^6 (100^3, `jaxci smooth`) and 8.7 GB
 #: at 9.9 x 10^6 (215^3, in process), mesh included; the tangled cube60_pert (216,000 hexahedra, untangling first)
@@ -47,7 +48,7 @@ HOST_FIXED_BYTES = 100 * 2**20
 #: hexahedron and trial: 3 coordinates of 8 bytes a node).
 HOST_CI_BYTES_PER_HEX = {"ci": 1_800, "ci-global": 3_700}
 HOST_BYTES_PER_TRIAL = 24
-#: Measured peak bytes per hexahedron of `jaxci.generate.perturb_box` (numpy: grid, connectivity, corner
+#: Measured peak bytes per hexahedron of `jaxci.mesh.generate.perturb_box` (numpy: grid, connectivity, corner
 #: determinants of the redraw test, mesh validation; measured the same way for n = 20..80: 715 bytes).
 GENERATE_BYTES_PER_HEX = 720
 #: Safety factor on the measured figures: unstructured meshes (more elements per node: larger stars), other
@@ -149,7 +150,7 @@ def release_free_memory() -> bool:
     """Give the C heap's free pages back to the operating system (glibc's ``malloc_trim(0)``; a no-op elsewhere),
     so that the temporaries of one phase do not stay resident under the next one's arrays: numpy arrays below
     glibc's mmap threshold (up to 32 MB) come from the heap and stay mapped after they are freed. Called at every
-    phase of `jaxci.smooth` (`jaxci.phases.Clock.phase`) and at the start of the host L-BFGS loop
+    phase of `jaxci.smooth` (`jaxci.runtime.phases.Clock.phase`) and at the start of the host L-BFGS loop
     (`jaxci.optim.host.lbfgs`): at 10^6 hexahedra it returned 85 MB there (517 -> 432 MB resident), in
     milliseconds. Returns whether it ran."""
     trim = _malloc_trim()

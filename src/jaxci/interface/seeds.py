@@ -1,8 +1,9 @@
 """Several seeds of one smoothing: `smooth_seeds` and `iter_smooth_seeds`, global CI's seeds as ONE program.
 
-`jaxci.smooth` is a generator underneath (`jaxci.smooth.smooth_steps`): it validates, reports, untangles and sets
-up, then yields the method's run (`jaxci.smooth.MethodRun`) and takes its output back for the checks. Here each
-seed's generator is taken to its method run in turn: global CI on the JAX engine (one device, a hexahedral mesh)
+`jaxci.smooth` is a generator underneath (`jaxci.interface.smooth.smooth_steps`): it validates, reports, untangles and
+sets
+up, then yields the method's run (`jaxci.interface.smooth.MethodRun`) and takes its output back for the checks. Here
+each seed's generator is taken to its method run in turn: global CI on the JAX engine (one device, a hexahedral mesh)
 waits there for the others, every other run goes on to its end at once. The waiting seeds whose parameters, plan,
 connectivity and parametrisation shapes agree run as one batched program (`jaxci.optim.global_ci.
 global_ci_batched`: one compilation, one launch; each seed's mesh is the one it gets alone); any other runs alone.
@@ -15,8 +16,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ._lazy import jax
-from .errors import ConfigError
+from ..errors import ConfigError
+from ..runtime._lazy import jax
 from .methods import MethodRun, free_scale, global_parametrisation, method_params
 from .smooth import SmoothResult, smooth_steps
 
@@ -24,8 +25,8 @@ from .smooth import SmoothResult, smooth_steps
 def smooth_seeds(meshes, method: str, seeds, *, errors: str = "raise", **kwargs) -> list:
     """`jaxci.smooth` of ``meshes[i]`` with ``seeds[i]`` for every i, where possible as ONE program: global CI
     (``"ci-global"``) on the JAX engine runs every seed's cohort in one batched program, from
-    `jaxci.engine.BATCH_SEEDS_FROM` seeds also under ``engine="auto"``. The meshes may differ (the paper's cubes
-    are perturbed by the seed) but must share connectivity and boundary classes to be batched; seeds that cannot
+    `jaxci.interface.engine.BATCH_SEEDS_FROM` seeds also under ``engine="auto"``. The meshes may differ (the paper's
+    cubes are perturbed by the seed) but must share connectivity and boundary classes to be batched; seeds that cannot
     join the batch (an inverted input untangled first on another engine, nothing to move, another plan) and every
     other method run one after the other, as `jaxci.smooth` runs them.
 
@@ -46,7 +47,7 @@ def smooth_seeds(meshes, method: str, seeds, *, errors: str = "raise", **kwargs)
 def iter_smooth_seeds(meshes, method: str, seeds, *, errors: str = "raise", **kwargs) -> Iterator[tuple]:
     """`smooth_seeds` as it goes: yields ``(index, result or exception)`` as each seed ends (a caller that is
     interrupted keeps the seeds that ended)."""
-    from .phases import PhaseClock
+    from ..runtime.phases import PhaseClock
 
     if len(meshes) != len(seeds):
         raise ConfigError(f"smooth_seeds: {len(meshes)} meshes for {len(seeds)} seeds")
@@ -120,8 +121,8 @@ def _may_batch(req: MethodRun) -> bool:
 def _batchable(asked: dict) -> tuple[list, list]:
     """The seeds of `asked` (index -> `MethodRun`, all `_may_batch`) that run as one batched program, those with
     the first one's parameters, plan, connectivity and parametrisation shapes (none if fewer than two), and their
-    parametrisations (`jaxci.methods.global_parametrisation`)."""
-    from .optim.global_ci import stackable
+    parametrisations (`jaxci.interface.methods.global_parametrisation`)."""
+    from ..optim.global_ci import stackable
 
     if len(asked) < 2:
         return [], []
@@ -140,8 +141,8 @@ def _run_batch(runs: dict, pars: list) -> dict:
     program; each run's clock gets
     an equal share of the batch's time (and compilation) in its ``smooth`` phase. Returns index -> `run_method`'s
     output, its resolved parameters with ``batched_seeds`` (how many ran together)."""
-    from .optim.global_ci import global_ci_batched
-    from .phases import PhaseClock
+    from ..optim.global_ci import global_ci_batched
+    from ..runtime.phases import PhaseClock
 
     reqs = list(runs.values())
     first = reqs[0]

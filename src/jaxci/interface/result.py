@@ -7,9 +7,9 @@ import dataclasses
 
 import numpy as np
 
+from ..mesh import HexMesh
+from ..metrics.report import QualityReport
 from .engine import Plan
-from .mesh import HexMesh
-from .metrics.report import QualityReport
 
 
 @dataclasses.dataclass(frozen=True)
@@ -23,8 +23,8 @@ class SmoothResult:
     - `before`, `after`: `QualityReport` of input and output; `boundary`: node counts per class.
     - `node_class`: class of every node (`jaxci.geometry.boundary.INTERIOR` ... `CORNER`), shape ``(n_nodes,)``.
     - `notes`: what a user should know (invariant fallbacks, untangling, an iteration cap that stopped it, ...).
-    - `plan`: where it ran (`jaxci.engine.Plan`: engine, device, dtype, kernel, threads, and why).
-    - `phases`: where the time went (`jaxci.phases.PhaseClock.as_dict`: seconds, compile seconds and
+    - `plan`: where it ran (`jaxci.interface.engine.Plan`: engine, device, dtype, kernel, threads, and why).
+    - `phases`: where the time went (`jaxci.runtime.phases.PhaseClock.as_dict`: seconds, compile seconds and
       compilations per phase: ``validate``, ``report`` (quality before), ``untangle``, ``setup`` (boundary
       classification, constraints, colouring), ``smooth`` (the method), ``checks`` (float64 invariants and the
       quality after)).
@@ -46,7 +46,7 @@ class SmoothResult:
 
     def summary(self) -> dict:
         """JSON-ready summary: before/after quality keys, iterations, wall time, method, params and the engine
-        that ran (``engine``: `jaxci.engine.Plan.to_dict`)."""
+        that ran (``engine``: `jaxci.interface.engine.Plan.to_dict`)."""
         return {
             "method": self.method,
             "engine": None if self.plan is None else self.plan.to_dict(),

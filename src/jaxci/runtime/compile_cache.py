@@ -7,11 +7,11 @@ its programs anew. It holds two things:
 - JAX's persistent compilation cache (XLA executables, keyed by the lowered program), every program cached
   however quickly it compiled and however small (``jax_persistent_cache_min_compile_time_secs`` 0,
   ``jax_persistent_cache_min_entry_size_bytes`` -1);
-- ``exported/``: the JAX engine's compiled entry points as serialized `jax.export` programs (`jaxci._export`),
+- ``exported/``: the JAX engine's compiled entry points as serialized `jax.export` programs (`jaxci.runtime._export`),
   so that a later process skips tracing and lowering them, which the persistent cache alone does not.
 
 `enable` sets it up when the JAX engine first uploads an array or calls a compiled program
-(`jaxci.transfer`), not when jaxci is imported: a program that imports jaxci and never runs the JAX engine keeps
+(`jaxci.runtime.transfer`), not when jaxci is imported: a program that imports jaxci and never runs the JAX engine keeps
 JAX's settings as they are. Where the user set JAX's own cache folder (``jax_compilation_cache_dir``), JAX's
 settings are left alone and only ``exported/`` goes into jaxci's folder. The ``jaxci`` command calls `enable`
 as soon as it imports JAX.
@@ -43,7 +43,7 @@ ENV = "JAXCI_CACHE_DIR"
 #: The sub-folder of the exported programs.
 EXPORTED = "exported"
 
-log = logging.getLogger("jaxci.compile_cache")
+log = logging.getLogger("jaxci.runtime.compile_cache")
 
 _lock = threading.Lock()
 _state: dict = {"done": False, "dir": None}

@@ -6,7 +6,7 @@ inverted elements. The mesh's coordinates (float64) and hexahedra (int32) go up 
 every O(mesh) stage then runs as compiled programs on the device:
 
 - the quality report before and after, the worst elements, the final checks (`jaxci.metrics.device`,
-  `jaxci.invariants.enforce_device`), in float64;
+  `jaxci.interface.invariants.enforce_device`), in float64;
 - the boundary faces (a sort of face keys, `jaxci.geometry.device_topology`), the constraints' per-node arrays
   (`jaxci.geometry.device_constraints`);
 - the presmoothing, the parametrisation and L-BFGS (`jaxci.optim.gradient.run_gradient`);
@@ -17,7 +17,7 @@ and the boundary nodes' coordinates (feature edges, patches, curves: graph work 
 the constraints (triangles, segments, candidates) built from them, the exact float64 projection of the boundary
 nodes (`jaxci.geometry.device_constraints.project_boundary`: a k-d tree search per patch), the worst-element
 polish on a window of the worst cells (`jaxci.optim.polish_window`), and the figures the reports and checks
-bring down. The result's coordinates come down once, float64. `jaxci.transfer` counts every byte each way and
+bring down. The result's coordinates come down once, float64. `jaxci.runtime.transfer` counts every byte each way and
 the time inside compiled programs; the run passes under ``jax.transfer_guard("disallow")`` (tested).
 
 Other runs on the JAX engine (mixed or quadratic meshes, coincident nodes, sharded runs, inverted input, other
@@ -30,22 +30,22 @@ import dataclasses
 
 import numpy as np
 
-from ._lazy import enable_x64, jax, jit, jnp
-from .geometry.device_constraints import (
+from ..geometry.device_constraints import (
     device_classify_boundary,
     device_constraints,
     device_unit_frame,
     hexahedral,
     project_boundary,
 )
-from .geometry.device_topology import device_mesh_topology
-from .geometry.projection import n_free
+from ..geometry.device_topology import device_mesh_topology
+from ..geometry.projection import n_free
+from ..mesh import HexMesh, check_volume
+from ..metrics.device import quality_report_device, volume_moments, worst_elements_device
+from ..runtime._lazy import enable_x64, jax, jit, jnp
+from ..runtime.transfer import program, to_device, to_host
 from .invariants import enforce_device
-from .mesh import HexMesh, check_volume
 from .methods import OPTIMAL_F, MethodRun, Problem, cap_note, standard_history
-from .metrics.device import quality_report_device, volume_moments, worst_elements_device
 from .result import SmoothResult
-from .transfer import program, to_device, to_host
 
 #: The methods whose run lives on the device (`applies`).
 DEVICE_METHODS = ("lbfgs",)
@@ -125,9 +125,9 @@ def _as_float64(x):
 
 def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angle, fix_boundary, fixed_nodes,
                        fixed_sets, params: dict, notes: list, clock, keep_worst: bool):
-    """`jaxci.smooth._smooth_unit` with the mesh on the device (a generator: it yields the
-    `jaxci.methods.MethodRun` of the method and receives its output). Returns ``(points, result)``: the result's
-    coordinates in the mesh's own frame (float64, host) and the `SmoothResult` (its mesh and wall time are
+    """`jaxci.interface.smooth._smooth_unit` with the mesh on the device (a generator: it yields the
+    `jaxci.interface.methods.MethodRun` of the method and receives its output). Returns ``(points, result)``: the
+    result's coordinates in the mesh's own frame (float64, host) and the `SmoothResult` (its mesh and wall time are
     filled in by `jaxci.smooth`)."""
 
     np_dtype = np.float64 if plan.dtype == "float64" else np.float32

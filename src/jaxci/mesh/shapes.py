@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import MeshError
+from ..errors import MeshError
+from . import HexMesh, hex_mesh
 from .generate import grid_hexes
-from .mesh import HexMesh, hex_mesh
 
 
 def _compact(points: np.ndarray, hexes: np.ndarray) -> HexMesh:

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry.projection import Constraints, project_np
-from .mesh import HexMesh
-from .metrics import objective as mixed
-from .metrics.elements import checked_objective
-from .metrics.guard import keep_worst as guard
-from .metrics.guard import worst_first as keep_lower_worst
-from .metrics.guard import worst_first_note
+from ..geometry.projection import Constraints, project_np
+from ..mesh import HexMesh
+from ..metrics import objective as mixed
+from ..metrics.elements import checked_objective
+from ..metrics.guard import keep_worst as guard
+from ..metrics.guard import worst_first as keep_lower_worst
+from ..metrics.guard import worst_first_note
 
 
 def enforce(mesh: HexMesh, cons: Constraints, start: np.ndarray, x: np.ndarray, *, untangled: bool = False,
@@ -42,7 +42,7 @@ def enforce(mesh: HexMesh, cons: Constraints, start: np.ndarray, x: np.ndarray, 
     `worst_first`: a higher objective is kept where the worst cell fell.
 
     **Returns:** ``(points, notes)``: the checked coordinates (`x`, its guarded form, or a copy of `start`) and
-    the sentences for `jaxci.smooth.SmoothResult.notes`.
+    the sentences for `jaxci.interface.smooth.SmoothResult.notes`.
     """
     what = "the untangled mesh" if untangled else "the input"
     if not projected:
@@ -78,7 +78,7 @@ def enforce_device(mesh: HexMesh, conn, start, x, *, project=None, untangled: bo
     `start`) and the notes. The figures are reduced on the device (`jaxci.metrics.device.final_figures`: the
     guard's put-back is a node mask there) and come down in one `to_host` of ~8 scalars.
     """
-    from .metrics.device import final_checks, hex_only
+    from ..metrics.device import final_checks, hex_only
 
     hex_only(mesh, "enforce_device")
     what = "the untangled mesh" if untangled else "the input"

@@ -13,7 +13,7 @@ compiled entry point (a jitted function called from Python): each call waits for
 seconds it took, less any compilation it triggered (`compile_totals`: JAX reports every compilation through
 `jax.monitoring`, tracing, lowering to MLIR and the XLA backend compile or its persistent-cache load, and a
 listener registered once per process adds those durations up), to ``device_s``, the time inside compiled
-programs. `jaxci.phases.PhaseClock` records the three per phase, and each phase's ``host_s``:
+programs. `jaxci.runtime.phases.PhaseClock` records the three per phase, and each phase's ``host_s``:
 its seconds outside compiled programs and compilation. A compiled call that is not wrapped counts as host time,
 so ``host_s`` is an upper bound.
 
@@ -34,7 +34,7 @@ from ._export import HOST_EVENT as _PREPARE_EVENT
 from ._export import exportable
 from ._lazy import jax, loaded
 
-#: jax.monitoring duration events that are compilation (names as in jax._src.dispatch, and `jaxci._export`'s
+#: jax.monitoring duration events that are compilation (names as in jax._src.dispatch, and `jaxci.runtime._export`'s
 #: reading, deserializing, serializing and writing of exported programs).
 _COMPILE_EVENTS = {
     "/jax/core/compile/jaxpr_trace_duration": "trace",
@@ -70,11 +70,11 @@ def _on_event(event: str, **_) -> None:
 
 def compile_totals() -> dict:
     """Compilation so far in this process: seconds of ``trace``, ``lower``, ``backend`` (XLA compile or
-    persistent-cache load) and ``exported`` (exported programs read or written: `jaxci._export`; ``prepare``: the
-    host seconds keying their calls, not compilation), ``compiled``
+    persistent-cache load) and ``exported`` (exported programs read or written: `jaxci.runtime._export`; ``prepare``:
+    the host seconds keying their calls, not compilation), ``compiled``
     (backend compilations, cache loads included) and ``cache_hits``.
 
-    The listener is registered when JAX is imported (`jaxci._lazy.when_imported`), not by this call: a run that
+    The listener is registered when JAX is imported (`jaxci.runtime._lazy.when_imported`), not by this call: a run that
     never imports JAX compiled nothing and does not import it to say so."""
     global _registered
     if not _registered:
@@ -129,7 +129,7 @@ def host_dtype(a, dtype=None) -> np.ndarray:
 def to_device(a, dtype=None, device=None):
     """`a` (a numpy array, a scalar, or a pytree of them) as device arrays of `dtype` (default: each its own,
     canonicalised), on `device` (default: JAX's default device); the bytes are counted (``h2d_bytes``). The first
-    upload of a process sets up the compilation cache (`jaxci.compile_cache.enable`)."""
+    upload of a process sets up the compilation cache (`jaxci.runtime.compile_cache.enable`)."""
     compile_cache.enable()
     if isinstance(a, (np.ndarray, np.generic, int, float, bool)) or dtype is not None:
         out = jax.device_put(host_dtype(a, dtype), device)
@@ -171,10 +171,10 @@ def scalar(a) -> float:
 
 
 def program(fn):
-    """`fn` (a compiled entry point: a `jax.jit` or `equinox.filter_jit` function, or `jaxci._lazy`'s) compiled
+    """`fn` (a compiled entry point: a `jax.jit` or `equinox.filter_jit` function, or `jaxci.runtime._lazy`'s) compiled
     once per machine and timed. Its calls go through exported programs in the compilation cache
-    (`jaxci._export`: a later process at a size seen before neither traces nor compiles it; the first call sets
-    the cache up, `jaxci.compile_cache.enable`). Each outermost call waits for its outputs
+    (`jaxci.runtime._export`: a later process at a size seen before neither traces nor compiles it; the first call sets
+    the cache up, `jaxci.runtime.compile_cache.enable`). Each outermost call waits for its outputs
     (`jax.block_until_ready`) and adds its seconds, less the compilation it triggered, to ``device_s``. Nested
     calls (a program calling another from Python) are timed once, by the outermost."""
     run = exportable(fn)

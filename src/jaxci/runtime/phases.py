@@ -2,9 +2,10 @@
 
 `PhaseClock` times named phases (``with clock.phase("read"): ...``); JAX reports every compilation through
 `jax.monitoring` (tracing, lowering to MLIR, and the XLA backend compile or its persistent-cache load; jaxci
-adds its reading and writing of exported programs, `jaxci._export`), and a listener registered once per process
-adds those durations up (`jaxci.transfer.compile_totals`), so each phase also says how much of it was compilation
-(``compile_seconds``: the sum of `jaxci.transfer.COMPILE_KINDS`) and how many functions were compiled or loaded
+adds its reading and writing of exported programs, `jaxci.runtime._export`), and a listener registered once per process
+adds those durations up (`jaxci.runtime.transfer.compile_totals`), so each phase also says how much of it was
+compilation
+(``compile_seconds``: the sum of `jaxci.runtime.transfer.COMPILE_KINDS`) and how many functions were compiled or loaded
 from the persistent compilation cache.
 
 Library code only records; whoever runs the clock (the command line) may pass ``on_event`` to hear of each
@@ -24,7 +25,7 @@ from collections.abc import Callable
 
 from . import transfer
 from .memory import release_free_memory
-from .transfer import compile_totals  # noqa: F401  (also reached as jaxci.phases.compile_totals)
+from .transfer import compile_totals  # noqa: F401  (also reached as jaxci.runtime.phases.compile_totals)
 
 #: What `PhaseClock` records of each phase (and ``host_s``, derived: `PhaseClock.add`).
 _FIELDS = ("seconds", "compile_seconds", "compiled", "cache_hits", "h2d_bytes", "d2h_bytes", "device_s")
@@ -103,7 +104,7 @@ class PhaseClock:
 
     def as_dict(self) -> dict:
         """``{phase: {seconds, compile_seconds, compiled, cache_hits, h2d_bytes, d2h_bytes, device_s, host_s}}``
-        plus ``"total"`` (sums): `jaxci.transfer`'s bytes moved each way between host and device, seconds inside
+        plus ``"total"`` (sums): `jaxci.runtime.transfer`'s bytes moved each way between host and device, seconds inside
         compiled programs, and seconds outside them and compilation."""
         out = {k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in v.items()}
                for k, v in self._phases.items()}

@@ -92,7 +92,7 @@ def _deferred(module: str, name: str, fn, kwargs):
     def wrapper(*args, **kw):
         return (built[0] if built else build())(*args, **kw)
 
-    wrapper.built = build  # the jitted function itself (`jaxci._export` reads its options)
+    wrapper.built = build  # the jitted function itself (`jaxci.runtime._export` reads its options)
     return wrapper
 
 

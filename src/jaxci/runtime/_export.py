@@ -1,22 +1,22 @@
 """The JAX engine's compiled entry points called through `jax.export`: a later process skips tracing and lowering.
 
-JAX's persistent compilation cache (`jaxci.compile_cache`) saves the XLA compile of a program seen before, but
+JAX's persistent compilation cache (`jaxci.runtime.compile_cache`) saves the XLA compile of a program seen before, but
 JAX finds a program in it by the hash of its lowered module, so every process still traces and lowers each
 jitted function before it can look it up (measured on 2 cores at 10,648 hexahedra: 1.6 s tracing
 `_laplace_run`, 0.3-2.7 s `solve_loop`, in every process). `exportable(fn)` calls a jitted entry point through a
-serialized `jax.export.Exported` of it instead, kept in the cache folder under a key (`jaxci._keys`) of all that
+serialized `jax.export.Exported` of it instead, kept in the cache folder under a key (`jaxci.runtime._keys`) of all that
 its tracing depends on: the function (module, name, code, closures) and jit's options; the static arguments and
 the pytree structure of the arguments; each dynamic argument's shape, dtype, weak type and platform; JAX's trace
 context (x64, default device, ...); the ``JAXCI_*`` variables and the CPUs the process may use; the versions of
 Python and of the traced packages; a hash of jaxci's own files.
 
 A later process with that key reads the program, registers the custom-call targets it calls (jaxci's own, through
-`jaxci.compile_cache.register_target`) and calls it: JAX traces one call primitive and lowers the stored module
+`jaxci.runtime.compile_cache.register_target`) and calls it: JAX traces one call primitive and lowers the stored module
 (milliseconds) instead of the function, and takes the XLA executable from the persistent cache. The process that
 exports a program calls the exported program too, not the function, so that both run one program: the same
 results, and one executable in the cache. The seconds spent reading, deserializing, serializing and writing
 programs are reported to `jax.monitoring` as `EVENT` and count as compilation
-(`jaxci.transfer.compile_totals`, ``exported``).
+(`jaxci.runtime.transfer.compile_totals`, ``exported``).
 
 Lowering an exported program for the CPU initialises jaxlib's LAPACK kernels, which imports scipy.linalg (0.3-0.5
 s on 2 cores). Every run of the JAX engine imports it anyway (``scipy.spatial``, for the boundary's exact
@@ -24,7 +24,8 @@ projection, imports it), so it is imported before the first exported call, as th
 timed lowering.
 
 A call runs as a plain jitted call (JAX's persistent cache only), counted with its reason in
-`jaxci.compile_cache.stats`, where it cannot be keyed (`jaxci._keys.Unkeyable`: a static value of a type not
+`jaxci.runtime.compile_cache.stats`, where it cannot be keyed (`jaxci.runtime._keys.Unkeyable`: a static value of a
+type not
 known to be deterministic, a device array in a static argument, arrays sharded over several devices, jit options
 such as donation or shardings), where `jax.export` refuses the program (e.g. a custom call that is neither
 jaxci's nor one JAX guarantees stable), and where a program's first call fails (its entry is removed: the next
@@ -70,7 +71,7 @@ FORMAT = 1
 #: The jax.monitoring duration event of the seconds spent reading, deserializing, serializing and writing programs.
 EVENT = "/jaxci/compile/exported_duration"
 #: The jax.monitoring duration event of the host seconds spent keying a call and importing what lowering needs
-#: (not compilation, not device time: `jaxci.transfer.program` counts them as host time).
+#: (not compilation, not device time: `jaxci.runtime.transfer.program` counts them as host time).
 HOST_EVENT = "/jaxci/compile/exported_host_duration"
 #: Programs kept in memory per entry point (the least recently used dropped first).
 MEMORY = 16
@@ -356,7 +357,7 @@ def _serializable() -> bool:
 
 
 def exportable(fn: Callable) -> Callable:
-    """`fn` (a `jax.jit` or `equinox.filter_jit` function, or one of `jaxci._lazy`'s) called through exported
+    """`fn` (a `jax.jit` or `equinox.filter_jit` function, or one of `jaxci.runtime._lazy`'s) called through exported
     programs (see the module docstring); the same arguments, the same results."""
     built = getattr(fn, "built", None)
     resolved: list[_Target] = []

@@ -15,7 +15,7 @@ every stage (untangling, presmoothing, the method) then runs on that engine (`st
 ``backend``), but for the default pipeline's worst-element polish, which always runs on the host (its small
 sub-problems would each be compiled anew), as the plan's notes then say. A request that cannot be honoured is a
 `jaxci.errors.ConfigError` naming what stands in the way. The plan travels with the result
-(`jaxci.smooth.SmoothResult.plan`), so every report says what ran.
+(`jaxci.interface.smooth.SmoothResult.plan`), so every report says what ran.
 
 With ``engine="auto"``: where JAX sees an accelerator (a GPU or TPU; ``device="auto"`` or ``"gpu"``) and the
 mesh has at least `ACCELERATOR_FROM` cells, or the user asked for ``device="gpu"``, the JAX engine on the
@@ -32,8 +32,8 @@ import importlib.metadata
 import importlib.util
 import os
 
-from . import compile_cache
-from .errors import ConfigError
+from ..errors import ConfigError
+from ..runtime import compile_cache
 
 #: The engines a user may ask for.
 ENGINES = ("auto", "host", "jax")
@@ -50,7 +50,7 @@ DEVICES = ("auto", "cpu", "gpu")
 ACCELERATOR_FROM = 1_000_000
 
 #: Seeds from which ``engine="auto"`` runs global CI on several seeds of one mesh (``jaxci run``,
-#: `jaxci.seeds.smooth_seeds`) on the JAX engine as one batched program (`jaxci.optim.global_ci`), where the
+#: `jaxci.interface.seeds.smooth_seeds`) on the JAX engine as one batched program (`jaxci.optim.global_ci`), where the
 #: host engine would run one seed after the other. Measured (2-core CPU, cube729, the defaults' 1000 attempts):
 #: the host engine 4.3 s a seed; the batched program compiles in 4-5 s, then 1.5-1.9 s a seed (30 seeds: 50 s
 #: against the host's 130 s); on an H200, 30 seeds in 7.0 s cold against 5.0 s a seed on its CPU
@@ -111,7 +111,7 @@ class Plan:
     def context(self):
         """The context a stage runs in: on the JAX engine, where the plan's platform is not JAX's default one
         (a GPU machine asked for ``device="cpu"``), JAX's default device set to this process's first device of
-        it; else nothing. The JAX engine's first stage sets up the compilation cache (`jaxci.compile_cache`)."""
+        it; else nothing. The JAX engine's first stage sets up the compilation cache (`jaxci.runtime.compile_cache`)."""
         if self.engine == "host":
             return contextlib.nullcontext()
         import jax
@@ -182,8 +182,8 @@ def host_limit(method: str, native: bool) -> int:
     """The most cells on which ``engine="auto"`` runs `method` on the host engine, on a CPU (the C kernels
     built: `native`): L-BFGS `jaxci.optim.host.HOST_MAX`, the local methods and global CI
     `jaxci.optim.host_local.HOST_LOCAL_MAX` (measured: docstrings there)."""
-    from .optim.host import HOST_MAX
-    from .optim.host_local import HOST_LOCAL_MAX
+    from ..optim.host import HOST_MAX
+    from ..optim.host_local import HOST_LOCAL_MAX
 
     if method == "lbfgs":
         return HOST_MAX
@@ -193,8 +193,8 @@ def host_limit(method: str, native: bool) -> int:
 def host_obstacle(mesh, method: str, params: dict, untangling: bool) -> str | None:
     """Why the host engine cannot run every stage of `method` with `params` on `mesh` (None: it can).
     `untangling`: the untangling stage runs first (inverted input, or ``untangle="always"``)."""
-    from . import native
-    from .metrics import objective as mixed
+    from .. import native
+    from ..metrics import objective as mixed
 
     extra = mixed.extra_blocks(mesh)
     if method not in HOST_METHODS:
@@ -253,8 +253,8 @@ def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", devic
 
     **Returns:** a `Plan`. Raises `ConfigError` for a request that cannot be honoured.
     """
-    from . import native
-    from .metrics import objective as mixed
+    from .. import native
+    from ..metrics import objective as mixed
 
     _check_choice("engine", engine, ENGINES)
     _check_choice("device", device, DEVICES)
@@ -287,14 +287,15 @@ def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", devic
     if accel is not None and (device == "gpu" or n_cells >= ACCELERATOR_FROM):
         why = ("device 'gpu' asked for" if device == "gpu" else
                f"an accelerator is visible and the mesh has {n_cells:,} >= {ACCELERATOR_FROM:,} cells "
-               f"(jaxci.engine.ACCELERATOR_FROM)")
+               f"(jaxci.interface.engine.ACCELERATOR_FROM)")
         return _jax_plan(method, params, dtype, where, 1, why)
     if method == "ci-global" and seeds >= BATCH_SEEDS_FROM and not untangling:
         return _jax_plan(method, params, dtype, where, 1, f"auto: {seeds} seeds of global CI run as one batched "
-                         f"program on the JAX engine (from {BATCH_SEEDS_FROM} seeds: jaxci.engine.BATCH_SEEDS_FROM)")
+                         f"program on the JAX engine (from {BATCH_SEEDS_FROM} seeds: "
+                         "jaxci.interface.engine.BATCH_SEEDS_FROM)")
     limit = host_limit(method, native.AVAILABLE)
     if untangling:
-        from .optim.host import UNTANGLE_HOST_MAX
+        from ..optim.host import UNTANGLE_HOST_MAX
 
         limit = min(limit, UNTANGLE_HOST_MAX)
     if obstacle is None and n_cells <= limit:
@@ -318,7 +319,7 @@ def no_accelerator_message(asked: str = "device 'gpu'") -> str:
 
 def host_plan(reason: str = "engine 'host' asked for") -> Plan:
     """The host engine's `Plan` (C kernels where built, else numpy's; float64 on the CPU)."""
-    from . import native
+    from .. import native
 
     kernel = "C" if native.AVAILABLE else "numpy"
     notes = () if native.AVAILABLE else ("the C kernels of jaxci.native are not built (or JAXCI_NATIVE=0): numpy's "
@@ -334,8 +335,8 @@ def uses_ffi(method: str, params: dict) -> bool:
 
 
 def _jax_plan(method: str, params: dict, dtype: str, device: str, n_devices: int, reason: str) -> Plan:
-    from . import native
-    from .runtime import schedulable_cpus
+    from .. import native
+    from ..runtime.process import schedulable_cpus
 
     acc = accelerator()
     kind = cpu_model() if device == "cpu" else (acc[1] if acc else device)
@@ -343,7 +344,7 @@ def _jax_plan(method: str, params: dict, dtype: str, device: str, n_devices: int
     if device == "cpu":
         threads = max(schedulable_cpus(), n_devices)
         if uses_ffi(method, params) and native.AVAILABLE:
-            from .metrics import native_grad
+            from ..metrics import native_grad
 
             if native_grad.available("cpu"):
                 kernel, threads = "FFI", native.THREADS
