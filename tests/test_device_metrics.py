@@ -67,6 +67,21 @@ def _close(a, b):
         assert a == b
 
 
+def _same_list(dev_list, host_list):
+    """Worst-element lists equal entry by entry (`_close`), but for cells whose kappa/3 tie to `RTOL` (a mesh's
+    symmetric cells, whose order the last bits of each compiler's arithmetic decide): those may come in either
+    order, each compared with its own entry where the other list has one."""
+    assert len(dev_list) == len(host_list)
+    by_index = {h["index"]: h for h in host_list}
+    for d, h in zip(dev_list, host_list, strict=True):
+        if d["index"] != h["index"]:
+            assert d["kappa3"] == pytest.approx(h["kappa3"], rel=RTOL), (d, h)
+            h = by_index.get(d["index"])
+            if h is None:
+                continue
+        _close(d, h)
+
+
 def assert_same_report(dev, host):
     for f in dataclasses.fields(host):
         _close(getattr(dev, f.name), getattr(host, f.name))
@@ -138,8 +153,7 @@ def test_worst_elements_are_the_host_list(make):
     host = worst_elements(mesh, mesh.points, info.node_class, info.feature_edges, coincident, n=n)
     assert len(on_dev) == min(n, mesh.n_hexes)
     for dev_list, host_list in ((plain, host_plain), (on_dev, host), (on_host, host)):
-        for d, h in zip(dev_list, host_list, strict=True):
-            _close(d, h)
+        _same_list(dev_list, host_list)
     if mesh.n_hexes > 1:
         assert any(w["limits"] for w in host)  # the limits are exercised, not all empty
 
