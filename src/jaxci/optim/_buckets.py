@@ -80,8 +80,13 @@ def pad_connectivity(conn, n_elements: int, dtype):
     xp = _xp(conn)
     n = conn.shape[1]
     c = pad_cols(conn, n_elements)
-    weight = xp.concatenate([xp.ones(n, dtype), xp.zeros(n_elements - n, dtype)])
-    return (np.ascontiguousarray(c) if xp is np else c), weight
+    if xp is np:
+        return np.ascontiguousarray(c), np.concatenate([np.ones(n, dtype), np.zeros(n_elements - n, dtype)])
+    # Under jit, weights made from the shapes alone are a constant that XLA folds into the executable (n_elements
+    # numbers: at 10^6 hexahedra, about a second of a warm process's loading of the program); compared with a
+    # count read from `conn` (its entries are never negative) they stay an iota and a comparison.
+    real = n + xp.minimum(conn[0, 0].astype(xp.int32), 0) if n else 0
+    return c, (xp.arange(n_elements, dtype=xp.int32) < real).astype(dtype)
 
 
 def pad_constraints(cons, n_nodes: int):
