@@ -53,6 +53,36 @@ seeds: [0, 1]
 """
 
 
+#: `CUBE27_EXPERIMENT` without its figures: a quick `jaxci run`.
+QUICK_EXPERIMENT = CUBE27_EXPERIMENT + "figures: false\n"
+
+
+def complete_results(tmp_path_factory) -> Path:
+    """A complete results folder of `QUICK_EXPERIMENT` (`jaxci run`), to copy as a test's earlier results."""
+    from jaxci.cli import main
+
+    folder = tmp_path_factory.mktemp("earlier")
+    (folder / "exp.yaml").write_text(QUICK_EXPERIMENT)
+    assert main(["run", str(folder / "exp.yaml"), "--out", str(folder / "prev"), "--quiet"]) == 0
+    return folder / "prev"
+
+
+def box_or_mesquite(name: str, seed: int):
+    """``box<k>``: `perturb_box(k)` (amplitude 0.3, `seed`); else the Mesquite mesh `name` of ../shared/data/mesquite
+    (the test skipped with `SHARED_REASON` where it is absent)."""
+    import pytest
+
+    from jaxci.io import read_mesh
+    from jaxci.mesh.generate import perturb_box
+
+    if name.startswith("box"):
+        return perturb_box(int(name[3:]), amplitude=0.3, seed=seed)
+    path = MESQUITE / name
+    if not path.exists():
+        pytest.skip(SHARED_REASON)
+    return read_mesh(path)
+
+
 def unit_cube() -> np.ndarray:
     """The 8 nodes of the unit cube in VTK order, shape (8, 3)."""
     return np.array(

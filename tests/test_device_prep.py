@@ -7,12 +7,10 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from helpers import MESQUITE, SHARED_REASON
+from helpers import box_or_mesquite
 
 from jaxci.geometry.device_colouring import colour_nodes_device, incidences, valid_colouring
 from jaxci.interface.methods import build_problem
-from jaxci.io import read_mesh
-from jaxci.mesh.generate import perturb_box
 from jaxci.optim import _moves as M
 from jaxci.optim import laplace as L
 from jaxci.optim._buckets import free_layout
@@ -31,13 +29,8 @@ from jaxci.runtime.transfer import to_device
 
 
 def _mesh(name):
-    """A box (``box<k>``: perturb_box(k)) or a Mesquite mesh (skipped when ../shared is absent)."""
-    if name.startswith("box"):
-        return perturb_box(int(name[3:]), amplitude=0.3, seed=4)
-    path = MESQUITE / name
-    if not path.exists():
-        pytest.skip(SHARED_REASON)
-    return read_mesh(path)
+    """A box (``box<k>``: perturb_box(k), seed 4) or a Mesquite mesh (`helpers.box_or_mesquite`)."""
+    return box_or_mesquite(name, seed=4)
 
 
 MESHES = ["box5", "box9", "1000hex-block-internal-bias.vtk", "large_box_hex_1000.vtk", "pave3.e.vtk"]

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import MESQUITE, SHARED_REASON
+from helpers import box_or_mesquite
 
 from jaxci.mesh.generate import perturb_box
 from jaxci.metrics import incidence as I
@@ -19,15 +19,8 @@ _KERNEL = jax.jit(objective_terms_and_grad, static_argnames=("power", "block"))
 
 
 def _mesh(name: str):
-    """A perturbed box, or a Mesquite mesh from ../shared/data/mesquite (skipped where it is absent)."""
-    if name.startswith("box"):
-        return perturb_box(int(name[3:]), amplitude=0.3, seed=3)
-    from jaxci import read_mesh
-
-    path = MESQUITE / name
-    if not path.exists():
-        pytest.skip(SHARED_REASON)
-    return read_mesh(path)
+    """A perturbed box (seed 3), or a Mesquite mesh (`helpers.box_or_mesquite`)."""
+    return box_or_mesquite(name, seed=3)
 
 
 def _close(g, ref):

@@ -15,13 +15,13 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import CUBE27_EXPERIMENT, interrupted_on_call
+from helpers import QUICK_EXPERIMENT as QUICK
+from helpers import complete_results, interrupted_on_call
 
 import jaxci
 from jaxci.cli import main
 from jaxci.experiments.results import MARKER, foreign_entries
 
-QUICK = CUBE27_EXPERIMENT + "figures: false\n"
 BOX = jaxci.box(2, 2, 2)
 #: QUICK's first run, then a long one (local CI on a perturbed 24^3 box: 10 s or more on 2 cores).
 LONG = """\
@@ -65,10 +65,7 @@ def cli(capsys, *argv):
 @pytest.fixture(scope="module")
 def earlier(tmp_path_factory):
     """A complete results folder of QUICK (`jaxci run`), to copy as the earlier results of a test."""
-    folder = tmp_path_factory.mktemp("earlier")
-    (folder / "quick.yaml").write_text(QUICK)
-    assert main(["run", str(folder / "quick.yaml"), "--out", str(folder / "prev"), "--quiet"]) == 0
-    return folder / "prev"
+    return complete_results(tmp_path_factory)
 
 
 def _setup(tmp_path: Path, earlier: Path, config: str = QUICK) -> tuple[Path, Path]:

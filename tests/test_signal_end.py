@@ -16,9 +16,9 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import CUBE27_EXPERIMENT
+from helpers import QUICK_EXPERIMENT as QUICK
+from helpers import complete_results
 
-from jaxci.cli import main
 from jaxci.experiments.results import MARKER
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals")
@@ -62,17 +62,13 @@ sys.argv = ["jaxci", *sys.argv[3:]]
 entry()
 """
 
-QUICK = CUBE27_EXPERIMENT + "figures: false\n"
 COMPLETE = "2 of 2 runs finished, written to prev (complete)"
 
 
 @pytest.fixture(scope="module")
 def earlier(tmp_path_factory):
     """A complete results folder of QUICK, to copy as the earlier results of a test."""
-    folder = tmp_path_factory.mktemp("earlier")
-    (folder / "exp.yaml").write_text(QUICK)
-    assert main(["run", str(folder / "exp.yaml"), "--out", str(folder / "prev"), "--quiet"]) == 0
-    return folder / "prev"
+    return complete_results(tmp_path_factory)
 
 
 def _setup(tmp_path: Path, earlier: Path) -> str:
