@@ -333,6 +333,17 @@ def _copy_width(out: np.ndarray, v: np.ndarray, fill) -> None:
     out[:, :, k:] = v[:, :, :1] if fill is None else fill
 
 
+def no_extra_slots(shape: tuple, dtype) -> dict:
+    """The empty per-slot arrays of the cells other than hexahedra (`ColouredStars.xnodes`, `xwinv`, `xweight`,
+    `xmask`) for slots of `shape` ``(rows, m)``, put on the device from the host (no bytes). Made inside a jitted
+    program instead, XLA keeps them as constants that grow with the slots (reading the sweep data's cached
+    executable took 1 s at 10^6 hexahedra)."""
+    return {"xnodes": to_device(np.zeros((*shape, 0, 4), np.int32)),
+            "xwinv": to_device(np.zeros((*shape, 0, 9), dtype)),
+            "xweight": to_device(np.zeros((*shape, 0), dtype)),
+            "xmask": to_device(np.zeros((*shape, 0), bool))}
+
+
 def pad_stars(cs: ColouredStars, n_pad: int) -> ColouredStars:
     """`cs` padded to its size class (`jaxci.optim._buckets`) for node coordinates padded to `n_pad` rows:
     colours, the interior / surface / edge slots of each colour (`pad_slots`) and the star width rounded up to
@@ -358,10 +369,7 @@ def pad_stars(cs: ColouredStars, n_pad: int) -> ColouredStars:
         basis=to_device(pad_slots(cs.basis, cs, 0.0), fdt),
         dims=to_device(pad_slots(cs.dims, cs, 0), np.int32),
         plane=to_device(pad_slots(cs.plane, cs, 0.0), fdt),
-        xnodes=to_device(np.zeros((C, M, 0, 4)), np.int32),
-        xwinv=to_device(np.zeros((C, M, 0, 9)), fdt),
-        xweight=to_device(np.zeros((C, M, 0)), fdt),
-        xmask=to_device(np.zeros((C, M, 0), bool)),
+        **no_extra_slots((C, M), fdt),
         n_interior=sizes[0],
         n_surface=sizes[1],
         n_edge=sizes[2],

@@ -43,7 +43,7 @@ from ..runtime._lazy import jax, jit, jnp
 from ..runtime.transfer import program, to_device, to_host
 from ._buckets import bucket, pad_connectivity, pad_rows, padded_constraints
 from ._local import relabel
-from ._moves import ColouredStars, padded_blocks, surface_rings, without_slack
+from ._moves import ColouredStars, no_extra_slots, padded_blocks, surface_rings, without_slack
 
 #: Nodes per block of the edge-neighbour deduplication (`_edge_neighbours`: ``(block, 3K, 3K)`` comparisons).
 NEIGHBOUR_BLOCK = 1 << 14
@@ -139,7 +139,7 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
         to_device(row_start, np.int32), rows=bucket(rows), blocks=blocks, width=bucket(width, 4),
         nbr_width=bucket(max(kn, 1), 4), n_pad=bucket(n + 1),
         n_elements=bucket(int(conn.shape[1]), multiple=multiple), lists=bool(lists))
-    cs = dataclasses.replace(cs, **_no_extra(cs.nodes.shape, cons.x_orig.dtype))
+    cs = dataclasses.replace(cs, **no_extra_slots(cs.nodes.shape, cons.x_orig.dtype))
     return SweepData(x=x, conn=c, cs=cs, nbr=nbr, nmask=nmask, cons=cons_p, weight=w,
                      n_colours=to_device(np.int32(rows)), n_nodes=n, colours=len(row_start), inc=inc, view=view,
                      planes=planes)
@@ -245,16 +245,6 @@ def _group_positions(group, valid, n_groups: int):
     return pos.reshape(-1)[:n]
 
 
-def _no_extra(shape: tuple, dtype) -> dict:
-    """The empty per-slot arrays of the cells other than hexahedra (`ColouredStars.xnodes` ...) for slots of
-    `shape` ``(rows, m)``, put on the device from the host (no bytes). Made inside `_build` they were constants
-    of the program whose loading from the compilation cache grew with the mesh (1 s at 10^6 hexahedra)."""
-    return {"xnodes": to_device(np.zeros((*shape, 0, 4), np.int32)),
-            "xwinv": to_device(np.zeros((*shape, 0, 9), dtype)),
-            "xweight": to_device(np.zeros((*shape, 0), dtype)),
-            "xmask": to_device(np.zeros((*shape, 0), bool))}
-
-
 @program
 @jit(static_argnames=("rows", "blocks", "width", "nbr_width", "n_pad", "n_elements", "lists"))
 def _build(points, conn, inc: Incidences, colour, cons: Constraints, planes, nbr_table, degree, row_start, *,
@@ -295,7 +285,7 @@ def _build(points, conn, inc: Incidences, colour, cons: Constraints, planes, nbr
         dims=jnp.where(mask, jnp.asarray([3, 2, 1, 0], jnp.int32)[c_safe], 0),
         plane=jnp.where(((c_safe == SURFACE) & mask)[..., None], planes[jnp.clip(r_safe, 0, planes.shape[0] - 1)],
                         0.0).astype(dtype),
-        xnodes=None,  # no other cells: their empty arrays are made by `sweep_data` (`_no_extra`)
+        xnodes=None,  # no other cells: their empty arrays are put there by `sweep_data` (`no_extra_slots`)
         xwinv=None,
         xweight=None,
         xmask=None,

@@ -112,7 +112,6 @@ from .host import HOST_MAX, HostObjective, runs_on_host
 from .host import lbfgs as host_lbfgs
 from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
     Parametrisation,
-    lift_reach,
     make_parametrisation,
     node_lengths,
     pad_parametrisation,
@@ -514,13 +513,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             break
     if on_host and host_fn.best is not None and np.array_equal(host_fn.best[0], y):
         x = np.asarray(host_fn.best[1], par.x0.dtype)  # the points of the best iterate as evaluated (on the boundary)
-    elif on_host or project is None:
-        x = par.final_points(real(y))  # numpy, exactly projected where a node left its flat region
-    else:  # the mesh on the device: lifted there, and exactly projected (`project`) where a node left its region
-        with jax.enable_x64(True):
-            x, reach = lift_reach(par, real(y), np.dtype(par.x0.dtype))
-        if not (par.shortcut and float(to_host(reach)) < 1.0):
-            x = project(x)
+    else:  # exactly projected where a node left its flat region (by `project` where the mesh is on the device)
+        x = par.final_points(real(y), project)
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
     return x, steps, hist, params

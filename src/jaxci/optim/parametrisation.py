@@ -87,18 +87,21 @@ class Parametrisation:
                 return float(to_host(lift_reach(self, v, None)[1]))
         return float(self.reach_of(self._lift_np(v)))
 
-    def final_points(self, v):
+    def final_points(self, v, project=None):
         """`points` of `v`, in float64 outside `jax.jit` (the exact `jaxci.geometry.projection.project_np` only
         where a node left its flat region), returned in the dtype of `x0`: compiling `points` for this one call cost
         0.5 s of the 729-element cold start, running it op by op 1 s. For a device parametrisation and a device
         `v`, the lift and the test run on the device (one scalar comes down); only where a node left its flat
-        region do the points come to the host for the exact projection."""
+        region do the points come to the host for the exact projection, or, given `project` (a function of device
+        coordinates ``(n, 3)``: the run whose mesh lives on the device), go to it instead."""
         if is_jax_array(self.x0) and is_jax_array(v):
             with enable_x64():
                 x, r = lift_reach(self, v, np.dtype(self.x0.dtype))
-                if self.shortcut and float(to_host(r)) < 1.0:
-                    return x
-                v = to_host(v)
+            if self.shortcut and float(to_host(r)) < 1.0:
+                return x
+            if project is not None:
+                return project(x)
+            v = to_host(v)
         x = self._lift_np(v)
         if not (self.shortcut and self.reach_of(x) < 1.0):
             x = project_np(self.cons, x)
