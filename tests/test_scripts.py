@@ -199,7 +199,8 @@ def test_bench_kernel_times_every_kernel_form(tmp_path):
 @pytest.mark.slow
 def test_bench_compile_measures_cold_and_warm_processes(tmp_path):
     """scripts/bench_compile.py --small: the CLI and the library on a 4^3 box, cold then warm, each a fresh
-    process: the warm ones load every program (nothing compiled anew), and the JSON is stamped."""
+    process: the warm ones load every program's executable (nothing compiled, nothing looked up in JAX's own
+    cache), and the JSON is stamped."""
     out = tmp_path / "compile.json"
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_compile.py"), "--small", "--out", str(out)],
                        capture_output=True, text=True, timeout=900)
@@ -209,7 +210,7 @@ def test_bench_compile_measures_cold_and_warm_processes(tmp_path):
     assert [(r["hexes"], r["way"]) for r in data["rows"]] == [(64, "cli"), (64, "library")]
     for row in data["rows"]:
         cold, warm = row["cold"], row["warm"]
-        assert cold["compiled"] > cold["cache_hits"] and warm["compiled"] == warm["cache_hits"] > 0, row
+        assert cold["compiled"] > cold["cache_hits"] and warm["compiled"] == warm["cache_hits"] == 0, row
         assert warm["compile_seconds"] < cold["compile_seconds"] and warm["max_condition"] == cold["max_condition"]
     lib = data["rows"][1]["warm"]
     assert lib["exported_programs"]["loaded"] >= 1 and lib["exported_programs"]["exported"] == 0

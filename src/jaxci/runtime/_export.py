@@ -1,36 +1,33 @@
-"""The JAX engine's compiled entry points called through `jax.export`: a later process skips tracing and lowering.
+"""The JAX engine's compiled entry points stored as XLA executables: a later process neither traces, lowers nor
+compiles them.
 
 JAX's persistent compilation cache (`jaxci.runtime.compile_cache`) saves the XLA compile of a program seen before, but
 JAX finds a program in it by the hash of its lowered module, so every process still traces and lowers each
 jitted function before it can look it up (measured on 2 cores at 10,648 hexahedra: 1.6 s tracing
-`_laplace_run`, 0.3-2.7 s `solve_loop`, in every process). `exportable(fn)` calls a jitted entry point through a
-serialized `jax.export.Exported` of it instead, kept in the cache folder under a key (`jaxci.runtime._keys`) of all that
-its tracing depends on: the function (module, name, code, closures) and jit's options; the static arguments and
-the pytree structure of the arguments; each dynamic argument's shape, dtype, weak type and platform; JAX's trace
-context (x64, default device, ...); the ``JAXCI_*`` variables and the CPUs the process may use; the versions of
-Python and of the traced packages; a hash of jaxci's own files.
+`_laplace_run`, 0.3-2.7 s the L-BFGS loop, in every process). `exportable(fn)` calls a jitted entry point through
+its compiled executable instead (`jax.experimental.serialize_executable`), kept in the cache folder under a key
+(`jaxci.runtime._keys`) of all that its tracing and compilation depend on: the function (module, name, code,
+closures) and jit's options; the static arguments and the pytree structure of the arguments; each dynamic
+argument's shape, dtype, weak type and platform; JAX's trace context (x64, default device, ...); the ``JAXCI_*``
+variables and the CPUs the process may use; the versions of Python and of the traced packages (jax and jaxlib
+among them: an executable is only valid for the XLA that built it); a hash of jaxci's own files.
 
-A later process with that key reads the program, registers the custom-call targets it calls (jaxci's own, through
-`jaxci.runtime.compile_cache.register_target`) and calls it: JAX traces one call primitive and lowers the stored module
-(milliseconds) instead of the function, and takes the XLA executable from the persistent cache. The process that
-exports a program calls the exported program too, not the function, so that both run one program: the same
-results, and one executable in the cache. The seconds spent reading, deserializing, serializing and writing
-programs are reported to `jax.monitoring` as `EVENT` and count as compilation
+A later process with that key reads the executable, registers the custom-call targets it calls (jaxci's own,
+through `jaxci.runtime.compile_cache.register_target`) and runs it: a few milliseconds a program, where lowering
+a stored `jax.export` module and looking its executable up in JAX's cache took 15-50 ms (and 0.3-0.6 s of set-up
+for the first: MLIR, and scipy's LAPACK for the CPU's kernels). The process that stores a program runs that same
+executable, so both run one program: the same results. The seconds spent reading, deserializing, serializing and
+writing programs are reported to `jax.monitoring` as `EVENT` and count as compilation
 (`jaxci.runtime.transfer.compile_totals`, ``exported``).
-
-Lowering an exported program for the CPU initialises jaxlib's LAPACK kernels, which imports scipy.linalg (0.3-0.5
-s on 2 cores). Every run of the JAX engine imports it anyway (``scipy.spatial``, for the boundary's exact
-projection, imports it), so it is imported before the first exported call, as the import it is, not inside the
-timed lowering.
 
 A call runs as a plain jitted call (JAX's persistent cache only), counted with its reason in
 `jaxci.runtime.compile_cache.stats`, where it cannot be keyed (`jaxci.runtime._keys.Unkeyable`: a static value of a
-type not
-known to be deterministic, a device array in a static argument, arrays sharded over several devices, jit options
-such as donation or shardings), where `jax.export` refuses the program (e.g. a custom call that is neither
-jaxci's nor one JAX guarantees stable), and where a program's first call fails (its entry is removed: the next
-process exports it again; a genuine error comes back from the plain call). A call inside another traced function
-(tracer arguments) belongs to the outer program and runs as the function.
+type not known to be deterministic, a device array in a static argument, arrays sharded over several devices, jit
+options such as donation or shardings), where the program calls LAPACK (its kernels are set up by lowering, which
+a load skips), where it does not compile ahead of time or its executable cannot be serialized, and where a
+program's first call fails (its entry is removed: the next process stores it again; a genuine error comes back
+from the plain call). A call inside another traced function (tracer arguments) belongs to the outer program and
+runs as the function.
 """
 
 from __future__ import annotations
@@ -67,7 +64,7 @@ from ._keys import (
 from ._lazy import compute_platform, jax
 
 #: Bump when the entries' layout changes (part of every key).
-FORMAT = 1
+FORMAT = 2
 #: The jax.monitoring duration event of the seconds spent reading, deserializing, serializing and writing programs.
 EVENT = "/jaxci/compile/exported_duration"
 #: The jax.monitoring duration event of the host seconds spent keying a call and importing what lowering needs
@@ -164,6 +161,8 @@ def _avals(split: _Split) -> tuple[tuple, str]:
         elif not (_is_array(v) or type(v) in (bool, int, float, complex)):
             raise Unkeyable(f"a dynamic argument of type {qualified(type(v))}")
         aval = jax.typeof(v)
+        if hasattr(v, "dtype") and aval.dtype != v.dtype:  # jit would convert it; an executable takes it as it is
+            raise Unkeyable(f"a {v.dtype} argument narrowed to {aval.dtype} (x64 off)")
         avals.append((tuple(aval.shape), aval.dtype, bool(aval.weak_type)))
     if len(platforms) > 1:
         raise Unkeyable(f"arrays on several platforms ({', '.join(sorted(platforms))})")
@@ -232,15 +231,16 @@ def _timed(fn: Callable, *args):
 
 
 class _Program:
-    """An exported program: called with a call's dynamic leaves, it returns the function's output pytree.
-    `fresh` until its first call has run (`entry`: its file)."""
+    """A stored program: called with a call's dynamic leaves, it returns the function's output pytree.
+    `fresh` until its first call has run (`entry`: its file). `compiled`: the XLA executable (a
+    `jax.stages.Compiled` of the function of the flat dynamic leaves), run as it is: no tracing, no lowering."""
 
-    def __init__(self, exported, tree, mask: tuple[bool, ...], static: list, name: str, entry: str):
+    def __init__(self, compiled, tree, mask: tuple[bool, ...], static: list, entry: str):
         self.tree, self.mask, self.static, self.entry, self.fresh = tree, mask, static, entry, True
-        self.call = jax.jit(_named(lambda *a: exported.call(*a), name))
+        self.compiled = compiled
 
     def __call__(self, dyn: list):
-        out = self.call(*dyn)
+        out = self.compiled(*dyn)
         if not any(isinstance(v, jax.Array) and v.committed for v in dyn):
             out = [_uncommitted(v) for v in out]
         out, static = iter(out), iter(self.static)
@@ -262,29 +262,40 @@ def _uncommitted(x):
         return x
 
 
-def _load(file: str, key: str, name: str) -> _Program | None:
+def _trees(n_in: int, n_out: int):
+    """The pytree structures of a flat program's inputs and outputs (`jax.experimental.serialize_executable`)."""
+    return jax.tree_util.tree_structure(((0,) * n_in, {})), jax.tree_util.tree_structure([0] * n_out)
+
+
+def _load(file: str, key: str) -> _Program | None:
     """The stored program of `key` (None: not stored, or unreadable and removed)."""
+    from jax.experimental.serialize_executable import deserialize_and_load
+
     entry = compile_cache.read_entry(file)
     if entry is None:
         return None
     try:
-        blob = entry["exported"]
+        blob = entry["executable"]
         if entry.get("format") != FORMAT or entry.get("key") != key or entry.get("checksum") != sha(blob):
             raise ValueError("another key or format, or a corrupt program")
         missing = [t for t in entry["targets"] if not compile_cache.ensure_target(t)]
-        exported = jax.export.deserialize(bytearray(blob))
+        if missing:
+            raise Unkeyable(f"custom call {', '.join(missing)} not registered")
+        compiled = deserialize_and_load(blob, *_trees(entry["inputs"], sum(entry["mask"])))
         tree, mask, static = entry["tree"], tuple(entry["mask"]), list(entry["static"])
+    except Unkeyable:
+        raise
     except Exception as e:  # noqa: BLE001 - any unreadable entry is a miss
         compile_cache.discard(file, f"{type(e).__name__}: {e}")
         return None
-    if missing:
-        raise Unkeyable(f"custom call {', '.join(missing)} not registered")
-    return _Program(exported, tree, mask, static, name, file)
+    return _Program(compiled, tree, mask, static, file)
 
 
 def _export(t: _Target, split: _Split, avals: tuple, platform: str, file: str, key: str) -> _Program:
-    """Trace and export the program of this call, store it, and return it as read back (what a later process
-    runs)."""
+    """Trace, lower and compile the program of this call (its flat dynamic leaves in, its array leaves out), store
+    its executable, and return it (what a later process runs)."""
+    from jax.experimental.serialize_executable import serialize
+
     box = {}
 
     def flat(*dyn):
@@ -295,34 +306,34 @@ def _export(t: _Target, split: _Split, avals: tuple, platform: str, file: str, k
         return [v for v, m in zip(leaves, mask, strict=True) if m]
 
     specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in avals]
-    checks = [jax.export.DisabledSafetyCheck.custom_call(name) for name in compile_cache.own_targets()]
     try:
-        exported = jax.export.export(jax.jit(_named(flat, t.name)), platforms=(platform,),
-                                     disabled_checks=checks)(*specs)
+        lowered = jax.jit(_named(flat, t.name)).lower(*specs)
+        text = lowered.as_text()
+        if "lapack" in text:  # its kernels are set up by lowering (scipy's LAPACK), which a later load skips
+            raise Unkeyable("it calls LAPACK")
+        compiled = lowered.compile()
     except Unkeyable:
         raise
-    except Exception as e:  # noqa: BLE001 - refused by jax.export (or a genuine error: the plain call repeats it)
-        raise Unkeyable(f"jax.export refused it: {type(e).__name__}: {str(e)[:200]}") from e
+    except Exception as e:  # noqa: BLE001 - a genuine error: the plain call repeats it
+        raise Unkeyable(f"it does not compile ahead of time: {type(e).__name__}: {str(e)[:200]}") from e
 
     def store():
-        blob = bytes(exported.serialize())
-        text = exported.mlir_module() if compile_cache.own_targets() else ""
+        blob, _, _ = serialize(compiled)
         targets = [name for name in compile_cache.own_targets() if f"@{name}(" in text or f'"{name}"' in text]
-        data = _dumps({"format": FORMAT, "key": key, "checksum": sha(blob), "exported": blob, "targets": targets,
-                       **box})
+        data = _dumps({"format": FORMAT, "key": key, "checksum": sha(blob), "executable": blob, "targets": targets,
+                       "inputs": len(specs), **box})
         back = pickle.loads(data)
         if back["tree"] != box["tree"] or back["static"] != box["static"]:
             raise Unkeyable("its output's structure does not survive pickling")
         compile_cache.write_entry(file, data)
-        return jax.export.deserialize(bytearray(blob))
 
     try:
-        stored = _timed(store)
+        _timed(store)
     except Unkeyable:
         raise
     except Exception as e:  # noqa: BLE001 - not serializable: the program runs as the function
-        raise Unkeyable(f"its exported program cannot be stored: {type(e).__name__}: {str(e)[:200]}") from e
-    return _Program(stored, box["tree"], box["mask"], box["static"], t.name, file)
+        raise Unkeyable(f"its executable cannot be stored: {type(e).__name__}: {str(e)[:200]}") from e
+    return _Program(compiled, box["tree"], box["mask"], box["static"], file)
 
 
 def _prepare(t: _Target, split: _Split, avals: tuple, platform: str):
@@ -332,10 +343,8 @@ def _prepare(t: _Target, split: _Split, avals: tuple, platform: str):
         t0 = time.perf_counter()
         key = _key(t, split, avals, platform)
         file = f"{t.name[:40]}-{key[:40]}.jxp"
-        if platform == "cpu":  # see the module docstring
-            importlib.import_module("scipy.linalg.cython_lapack")
         jax.monitoring.record_event_duration_secs(HOST_EVENT, time.perf_counter() - t0)
-        prog = _timed(_load, file, key, t.name)
+        prog = _timed(_load, file, key)
         if prog is not None:
             compile_cache.count("loaded")
             return prog
