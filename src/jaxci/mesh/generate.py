@@ -194,7 +194,8 @@ def perturb_box(
                 f"perturb_box: no perturbation without inverted elements after {max_redraws} redraws "
                 f"(amplitude {amplitude} is too large)"
             )
-    return mesh.with_points(points)
+    # below half a spacing each node stays inside its own box around its grid point: no two can coincide
+    return mesh.with_points(points, coincident=np.zeros((0, 2), np.int64) if amplitude < 0.5 else None)
 
 
 @dataclasses.dataclass(frozen=True)
