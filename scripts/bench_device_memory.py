@@ -1,7 +1,7 @@
 """What the JAX engine's compiled programs hold on the device, per hexahedron, on any platform (a CPU too).
 
 The default pipeline on the JAX engine runs two large compiled programs: the smart-Laplace presmoothing sweeps
-(`jaxci.optim.laplace`) and the L-BFGS loop (`jaxci.optim._solve.solve_loop`). For each, at its call, this
+(`jaxci.optim.laplace`) and the L-BFGS loop (`jaxci.optim.lbfgs.lbfgs_loop`). For each, at its call, this
 prints and writes (JSON) the bytes per hexahedron of the arrays alive on the device (`jax.live_arrays`) and
 XLA's memory analysis of the compiled program (arguments, outputs, temporaries): the device's peak is about the
 largest of live + temporaries. A GPU's own peak is `scripts/bench_gpu.py`'s ``device_bytes_per_hex``; this is the
@@ -23,8 +23,8 @@ def run(hexes: int, max_steps: int = 3) -> dict:
     programs measured at their calls: the JSON row."""
     import jax
 
-    import jaxci.optim._solve as solve
     import jaxci.optim.laplace as laplace
+    import jaxci.optim.lbfgs as solve
     from jaxci.interface.smooth import smooth
     from jaxci.mesh.generate import perturb_box
 
@@ -44,10 +44,10 @@ def run(hexes: int, max_steps: int = 3) -> dict:
             row["peak_estimate"] = row["live"] + row["temporaries"]
         rows.setdefault(name, row)  # the first call (a restart would repeat it)
 
-    real_solve, real_sweeps = solve.solve_loop, laplace._laplace_run
+    real_solve, real_sweeps = solve.lbfgs_loop, laplace._laplace_run
     sweeps_jit = jax.jit(real_sweeps.__wrapped__, static_argnames=("smart", "p"))
 
-    def solve_loop(*a, **k):
+    def lbfgs_loop(*a, **k):
         measure("lbfgs", real_solve, a, k)
         return real_solve(*a, **k)
 
@@ -55,11 +55,11 @@ def run(hexes: int, max_steps: int = 3) -> dict:
         measure("presmoothing", sweeps_jit, a, k)
         return real_sweeps(*a, **k)
 
-    solve.solve_loop, laplace._laplace_run = solve_loop, sweeps
+    solve.lbfgs_loop, laplace._laplace_run = lbfgs_loop, sweeps
     try:
         res = smooth(mesh, engine="jax", max_steps=max_steps)
     finally:
-        solve.solve_loop, laplace._laplace_run = real_solve, real_sweeps
+        solve.lbfgs_loop, laplace._laplace_run = real_solve, real_sweeps
     return {"hexes": mesh.n_hexes, "engine": res.plan.to_dict(), "bytes_per_hex": rows}
 
 

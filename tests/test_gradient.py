@@ -162,19 +162,21 @@ def test_flat_regions_of_a_rotated_box_in_float32():
 
 
 def test_strict_run_continues_with_the_projection_near_a_flat_region_edge(monkeypatch):
-    import jaxci.optim._solve as S
     import jaxci.optim.gradient as G
+    import jaxci.optim.lbfgs as L
 
     mesh = perturb_box(3, amplitude=0.3, seed=2, which="sliding")
     pr = build_problem(mesh, dtype=np.float64)
     par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)
     seen = []
 
-    def spy(solver, fn, y, args, *rest):
-        seen.append(args[0].strict)
-        return solve_loop(solver, fn, y, args, *rest)
+    loop = L.lbfgs_loop
 
-    monkeypatch.setattr(S, "solve_loop", spy)
+    def spy(objective, args, *rest, **kw):
+        seen.append(args[0].strict)
+        return loop(objective, args, *rest, **kw)
+
+    monkeypatch.setattr(L, "lbfgs_loop", spy)
     # the compiled loop; no early stop: the reach test decides
     p = GradientParams(restart_tol=0.0, ktol=0.0, backend="jax")
     x1, _, _, _ = minimise("lbfgs", par, pr.conn, p)

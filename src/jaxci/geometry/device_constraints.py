@@ -181,24 +181,67 @@ def _take(points, surf, edge):
 @program
 @jax.jit
 def _put(points, surf, ps, edge, pe, corner, pc):
-    return points.at[surf].set(ps).at[edge].set(pe).at[corner].set(pc)
+    return points.astype(ps.dtype).at[surf].set(ps).at[edge].set(pe).at[corner].set(pc)
 
 
-def project_boundary(constraints: Constraints, tables: BoundaryTables, points):
+def project_boundary(constraints: Constraints, tables: BoundaryTables, points, flats=None):
     """`jaxci.geometry.projection.project_np` of device points, searching on the host for the boundary nodes only.
 
     **Arguments:** `constraints`, `tables`: `device_constraints`' results; `points`: device coordinates
-    ``(n_nodes, 3)``.
+    ``(n_nodes, 3)``; `flats` (optional): the flat regions of the surface nodes, ``(origin, normal, radius)``
+    device float64 arrays ``(n_nodes, 3)`` (the original coordinates), ``(n_surface, 3)`` and ``(n_surface,)``
+    (`jaxci.optim.device_parametrisation.flat_regions`; radius 0: none). A surface node whose projection onto the
+    plane of its flat region stays inside it (0.999 of its radius, as the parametrisation's shortcut) is projected
+    there, on the device: that is its nearest point on its patch; the others, and the edge nodes, are searched.
 
-    **Returns:** the projected device coordinates ``(n_nodes, 3)`` in the dtype of `points`: the SURFACE and
+    **Returns:** the projected device coordinates ``(n_nodes, 3)`` in the dtype of `points` (float64 with
+    `flats`): the SURFACE and
     EDGE nodes at the nearest points of their patch and curve (`project_on_groups`, float64, then rounded to
     that dtype), the CORNER nodes at their original positions, the others unchanged; equal to ``project_np``
-    of the points for float64 points. Moves host <- device the surface and edge nodes' coordinates, host ->
-    device their projections and the corners' positions.
+    of the points for float64 points (to rounding, where `flats` projects a node onto its plane). Moves host <-
+    device the searched nodes' coordinates (and with `flats` one flag a surface node), host -> device their
+    projections and the corners' positions.
     """
     with enable_x64():
-        xs, xe = to_host(_take(points, constraints.surface_nodes, constraints.edge_nodes))
-        ps, pe = project_on_groups(tables, xs, tables.surface_group, xe, tables.edge_group)
-        dt = np.dtype(points.dtype)
+        dt = np.dtype(np.float64 if flats is not None else points.dtype)
+        surf, edge = constraints.surface_nodes, constraints.edge_nodes
+        sgroup = tables.surface_group
+        if flats is not None:
+            points, off = _flat_project(as_float64(points), surf, *flats)
+            rows = np.flatnonzero(to_host(off))  # the surface nodes left to search: O(boundary) flags down
+            sgroup = sgroup[rows]
+            # padded to a power of two (repeats of the last row: the same value written twice), so that the
+            # programs below are compiled for a few sizes only
+            pad = np.concatenate([rows, np.full((1 << int(len(rows) - 1).bit_length()) - len(rows) if len(rows)
+                                                else 0, rows[-1] if len(rows) else 0)]).astype(np.int32)
+            surf = _rows(surf, to_device(pad))
+        xs, xe = to_host(_take(points, surf, edge))
+        ps, pe = project_on_groups(tables, xs[: len(sgroup)], sgroup, xe, tables.edge_group)
+        if flats is not None:
+            ps = np.concatenate([ps, np.repeat(ps[-1:], len(xs) - len(ps), axis=0)]) if len(ps) else xs
         ps, pe, pc = to_device(tuple(np.asarray(a, dtype=dt) for a in (ps, pe, tables.corner_points)))
-        return _put(points, constraints.surface_nodes, ps, constraints.edge_nodes, pe, constraints.corner_nodes, pc)
+        return _put(points, surf, ps, edge, pe, constraints.corner_nodes, pc)
+
+
+@program
+@jax.jit
+def _flat_project(points, surf, origin, normal, radius):
+    """The surface nodes projected onto the planes of their flat regions where they stay inside them (float64),
+    and the flags of the others ``(n_surface,)``."""
+    x, o = points[surf], origin[surf]
+    p = x - jnp.sum((x - o) * normal, axis=1)[:, None] * normal
+    inside = (radius > 0) & (jnp.sum((p - o) ** 2, axis=1) < (0.999 * radius) ** 2)
+    return points.at[surf].set(jnp.where(inside[:, None], p, x)), ~inside
+
+
+@program
+@jax.jit
+def _rows(nodes, rows):
+    return nodes[rows]
+
+
+@program
+@jax.jit
+def as_float64(points):
+    """`points` in float64, on the device (call inside ``enable_x64``)."""
+    return points.astype(jnp.float64)

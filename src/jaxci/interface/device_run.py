@@ -35,7 +35,6 @@ from ..geometry.device_constraints import (
     device_constraints,
     device_unit_frame,
     hexahedral,
-    project_boundary,
 )
 from ..geometry.device_topology import device_mesh_topology
 from ..geometry.projection import n_free
@@ -117,12 +116,6 @@ def _as_dtype(x, like):
     return x.astype(like.dtype)
 
 
-@program
-@jit
-def _as_float64(x):
-    return x.astype(jnp.float64)
-
-
 def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angle, fix_boundary, fixed_nodes,
                        fixed_sets, params: dict, notes: list, clock, keep_worst: bool):
     """`jaxci.interface.smooth._smooth_unit` with the mesh on the device (a generator: it yields the
@@ -150,8 +143,9 @@ def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angl
                                             fix_boundary=fix_boundary, fixed_nodes=fixed_nodes,
                                             fixed_sets=tuple(fixed_sets))
             cons, tables = device_constraints(dm.x, info, dtype=np_dtype)
-            problem = Problem(mesh, info, cons, dm.conn, _as_dtype(dm.x, cons.x_orig), np_dtype, plan=plan,
-                              tables=tables, points64=dm.x)
+            with enable_x64():  # the float64 points converted, not narrowed by the x64 mode
+                x0 = _as_dtype(dm.x, cons.x_orig)
+            problem = Problem(mesh, info, cons, dm.conn, x0, np_dtype, plan=plan, tables=tables, points64=dm.x)
         if n_free(cons) == 0:
             notes.extend(info.notes)
             notes.append(f"no node can move (all {mesh.n_nodes} nodes are fixed: boundary corners, fixed sets or "
@@ -168,7 +162,7 @@ def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angl
     with clock.phase("checks"), enable_x64():
         power = float(resolved["p"]) if resolved.get("objective") == "pmean" else None
         points, check_notes = enforce_device(
-            mesh, dm.conn, dm.x, x, project=lambda p: project_boundary(cons, tables, _as_float64(p)),
+            mesh, dm.conn, dm.x, x, project=problem.project_device,
             keep_worst=keep_worst, worst_start=before.max_condition, power=power,
             worst_first=bool(resolved.get("polish")) and power is None)
         notes.extend(check_notes)

@@ -21,7 +21,8 @@ from ..geometry.topology import colour_nodes, node_adjacency
 from ..mesh import HexMesh
 from ..metrics import objective as mixed
 from ..metrics.hexahedron import transposed
-from ..runtime._lazy import jax, jnp
+from ..runtime._lazy import enable_x64, jax, jnp
+from ..runtime.transfer import to_device
 
 #: Method names accepted by `smooth` (and ``jaxci smooth --method``); ``"auto"`` is the default pipeline
 #: (`auto_pipeline`).
@@ -82,6 +83,34 @@ class Problem:
         if self.host and np.asarray(self.x0).dtype == np.float64:
             return self.cons
         return build_constraints(self.mesh, self.info, dtype=np.float64, device=False)
+
+    @functools.cached_property
+    def boundary_planes(self) -> tuple:
+        """Where the mesh lives on the device: ``(view, planes)``, the boundary view of `points64` and the planar
+        rings of its surface nodes (`jaxci.optim.device_stars.boundary_view`, `surface_planes` measured on the
+        device: O(boundary) each way), for the presmoothing, the parametrisation and `project_device`. Built on
+        first use, once per run."""
+        from ..optim.device_stars import boundary_view, surface_planes
+
+        view = boundary_view(self.points64, self.info.topology.faces, self.cons)
+        return view, surface_planes(view, device=True)
+
+    @functools.cached_property
+    def _flats(self) -> tuple:
+        view, planes = self.boundary_planes
+        ns = len(view.surf)
+        return (self.points64, *to_device((np.asarray(planes[:ns, 3:6], np.float64),
+                                           np.asarray(planes[:ns, 6], np.float64))))
+
+    def project_device(self, x):
+        """Where the mesh lives on the device: the device coordinates `x` ``(n, 3)`` (any float dtype) with their
+        boundary nodes projected exactly onto the original boundary, float64
+        (`jaxci.geometry.device_constraints.project_boundary`: the nodes inside the flat regions of
+        `boundary_planes` onto their planes on the device, the others searched on the host)."""
+        from ..geometry.device_constraints import project_boundary
+
+        with enable_x64():
+            return project_boundary(self.cons, self.tables, x, self._flats)
 
     @functools.cached_property
     def colour(self) -> np.ndarray:

@@ -4,7 +4,7 @@ compiled program.
 JAX compiles a jitted function once per argument SHAPE, and its persistent compilation cache (the CLI's
 ``JAXCI_CACHE_DIR``) is keyed by the lowered program, shapes included: without padding a second mesh of
 nearly the same size recompiles the whole solver loop (measured, L-BFGS, 1000-hex boxes, 2-core CPU: 17 s of
-XLA compilation for `jaxci.optim._solve.solve_loop`). Every size below is rounded up to the next size of the
+XLA compilation for the L-BFGS loop, then optimistix's). Every size below is rounded up to the next size of the
 ladder ``8, 12, 16, 24, 32, 48, 64, ...`` (powers of two and 1.5 times powers of two: at most 50% and on
 average about 20% padding), so a mesh of 810 and one of 900 hexahedra both run the 1024-element program.
 

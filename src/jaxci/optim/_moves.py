@@ -95,57 +95,58 @@ when_imported("jax", lambda: jax.tree_util.register_dataclass(
 RING_CHUNK = 4096
 
 
-def _ring_normal(points: np.ndarray, faces: np.ndarray, ring: np.ndarray) -> np.ndarray:
+def _ring_normal(points, faces, ring, xp=np):
     """The unit normal of each node's first ring face (`planar_rings`), from the float64 geometry (the
     constraints' bases may be float32: their rounding alone made every plane that is not axis-aligned fail the
-    1e-12 planarity test); `ring` the nodes' ring faces ``(m, K)`` (repeats allowed)."""
-    f0 = points[faces[np.min(ring, axis=1)]]  # (m, 4, 3); a triangle [a, b, c, c] gives (c - a) x (c - b)
-    normal = np.cross(f0[:, 2] - f0[:, 0], f0[:, 3] - f0[:, 1])
-    length = np.linalg.norm(normal, axis=1, keepdims=True)
-    return np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
+    1e-12 planarity test); `ring` the nodes' ring faces ``(m, K)`` (repeats allowed). `xp`: the array module."""
+    f0 = points[faces[xp.min(ring, axis=1)]]  # (m, 4, 3); a triangle [a, b, c, c] gives (c - a) x (c - b)
+    normal = xp.cross(f0[:, 2] - f0[:, 0], f0[:, 3] - f0[:, 1])
+    length = xp.sqrt(xp.sum(normal * normal, axis=1, keepdims=True))
+    return xp.where(length > 0, normal / xp.where(length > 0, length, 1.0), 0.0)
 
 
-def _ring_radius(points: np.ndarray, faces: np.ndarray, ring: np.ndarray, surf: np.ndarray, normal: np.ndarray,
-                 n: int):
+def _side_distance(x0, pa, pb, xp):
+    """The distance from the points `x0` ``(..., 3)`` to the segments from `pa` to `pb` (broadcast)."""
+    d = pb - pa
+    rel = x0 - pa
+    t = xp.clip(xp.sum(rel * d, axis=-1) / xp.maximum(xp.sum(d * d, axis=-1), 1e-300), 0, 1)
+    rel = rel - t[..., None] * d
+    return xp.sqrt(xp.sum(rel * rel, axis=-1))
+
+
+def _ring_radius(points, faces, ring, surf, normal, n: int, xp=np):
     """``(radius, deviation)`` of the planar rings of the surface nodes `surf` ``(m,)`` with ring faces `ring`
     ``(m, K)`` (repeats allowed) and first-face normals `normal` ``(m, 3)`` (`planar_rings`): the distance to the
-    outer boundary of the ring's faces, and the largest distance of a ring node from the plane of the first face."""
-    ring = np.sort(ring, axis=1)  # (m, K) faces, a face possibly several times
-    first = np.ones(ring.shape, bool)
-    first[:, 1:] = ring[:, 1:] != ring[:, :-1]  # unique faces per row
-    # compact each row to its unique faces (padded with repeats of the first): 4x less work below
-    keep = np.argsort(~first, axis=1, kind="stable")[:, : int(first.sum(axis=1).max())]
-    ring = np.take_along_axis(ring, keep, axis=1)
-    first = np.take_along_axis(first, keep, axis=1)
-    ring = np.where(first, ring, ring[:, :1])
-    quad = faces[ring]  # (ns, Kf, 4)
+    outer boundary of the ring's faces (the sides used by one ring face), and the largest distance of a ring node
+    from the plane of the first face. `xp`: numpy (rows compacted to their distinct faces and the outer sides
+    picked out: 2x faster) or `jax.numpy` (fixed shapes: every side measured, the others masked; with x64)."""
+    ring = xp.sort(ring, axis=1)  # (m, K) faces, a face possibly several times
+    first = xp.concatenate([xp.ones((ring.shape[0], 1), bool), ring[:, 1:] != ring[:, :-1]], axis=1)
+    if xp is np:  # compact each row to its unique faces (padded with repeats of the first): 4x less work below
+        keep = np.argsort(~first, axis=1, kind="stable")[:, : int(first.sum(axis=1).max())]
+        ring = np.take_along_axis(ring, keep, axis=1)
+        first = np.take_along_axis(first, keep, axis=1)
+        ring = np.where(first, ring, ring[:, :1])
+    quad = faces[ring]  # (m, Kf, 4)
     x0 = points[surf]
-    rel = points[quad]  # (ns, Kf, 4, 3); in place below: fewer temporaries
-    rel -= x0[:, None, None]
-    dev = np.abs(np.einsum("skcd,sd->skc", rel, normal)).max(axis=(1, 2))
+    rel = points[quad] - x0[:, None, None]  # (m, Kf, 4, 3)
+    dev = xp.max(xp.abs(xp.einsum("skcd,sd->skc", rel, normal)), axis=(1, 2))
     del rel
-    a = quad
-    b = np.roll(quad, -1, axis=2)
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    b = xp.roll(quad, -1, axis=2)
+    lo, hi = xp.minimum(quad, b), xp.maximum(quad, b)
     # -1 = a duplicate face or the side (c, c) of a triangle [a, b, c, c]
-    key = np.where(first[..., None] & (lo != hi), lo * n + hi, -1).reshape(len(surf), -1)  # (ns, 4Kf)
-    order = np.argsort(key, axis=1)
-    ks = np.take_along_axis(key, order, axis=1)
-    single = np.ones(ks.shape, bool)
-    single[:, 1:] &= ks[:, 1:] != ks[:, :-1]
-    single[:, :-1] &= ks[:, :-1] != ks[:, 1:]
-    single &= ks >= 0
+    key = xp.where(first[..., None] & (lo != hi), lo.astype(xp.int64) * n + hi, -1).reshape(ring.shape[0], -1)
+    ks = xp.sort(key, axis=1)
+    edge = xp.full((ks.shape[0], 1), -2, ks.dtype)
+    single = ((ks != xp.concatenate([ks[:, 1:], edge], axis=1)) & (ks != xp.concatenate([edge, ks[:, :-1]], axis=1))
+              & (ks >= 0))
+    if xp is not np:
+        ia, ib = (xp.where(single, k, 0) for k in (ks // n, ks % n))
+        dist = _side_distance(x0[:, None], points[ia], points[ib], xp)
+        return xp.min(xp.where(single, dist, xp.inf), axis=1), dev
     row, col = np.nonzero(single)  # the outer sides alone (about a quarter of them), row by row
-    ks = ks[row, col]
-    ia, ib = np.divmod(ks, n)
-    pa, d = points[ia], points[ib]
-    d -= pa  # the side's vector
-    rel = x0[row]
-    rel -= pa
-    t = np.clip(np.einsum("kd,kd->k", rel, d) / np.maximum(np.einsum("kd,kd->k", d, d), 1e-300), 0, 1)
-    d *= t[:, None]
-    rel -= d
-    dist = np.linalg.norm(rel, axis=-1)
+    ia, ib = np.divmod(ks[row, col], n)
+    dist = _side_distance(x0[row], points[ia], points[ib], np)
     radius = np.full(len(surf), np.inf)
     if len(row):
         start = np.flatnonzero(np.concatenate([[True], row[1:] != row[:-1]]))
@@ -167,24 +168,25 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
     return out
 
 
-def surface_rings(points: np.ndarray, faces: np.ndarray, surf: np.ndarray, ring: np.ndarray) -> np.ndarray:
+def surface_rings(points, faces, surf, ring, xp=np):
     """`planar_rings` of the surface nodes `surf` ``(m,)`` alone, ``(m, 7)``, from their ring faces `ring`
     ``(m, K)`` (indices into `faces`, repeats allowed: the candidate triangles of `Constraints.surface_cand`
-    divided by 4, or each face once); `points` float64, indexed by the nodes of `faces` and `surf`."""
-    out = np.zeros((len(surf), 7))
+    divided by 4, or each face once); `points` float64, indexed by the nodes of `faces` and `surf`. `xp`: numpy
+    (in blocks of `RING_CHUNK` nodes), or `jax.numpy` (traceable, with x64: `jaxci.optim.device_stars`)."""
     if len(surf) == 0 or len(faces) == 0:
-        return out
+        return xp.zeros((len(surf), 7))
     n = len(points)
-    normal = _ring_normal(points, faces, ring)
-    radius, dev = np.empty(len(surf)), np.empty(len(surf))
-    for lo in range(0, len(surf), RING_CHUNK):  # in blocks: the per-face arrays are ~100 entries a node
-        sl = slice(lo, lo + RING_CHUNK)
-        radius[sl], dev[sl] = _ring_radius(points, faces, ring[sl], surf[sl], normal[sl], n)
-    planar = np.isfinite(radius) & (dev <= 1e-12 * np.maximum(radius, 1e-300))
-    out[planar, :3] = points[surf[planar]]
-    out[planar, 3:6] = normal[planar]
-    out[planar, 6] = radius[planar]
-    return out
+    normal = _ring_normal(points, faces, ring, xp)
+    if xp is np:
+        radius, dev = np.empty(len(surf)), np.empty(len(surf))
+        for lo in range(0, len(surf), RING_CHUNK):  # in blocks: the per-face arrays are ~100 entries a node
+            sl = slice(lo, lo + RING_CHUNK)
+            radius[sl], dev[sl] = _ring_radius(points, faces, ring[sl], surf[sl], normal[sl], n)
+    else:
+        radius, dev = _ring_radius(points, faces, ring, surf, normal, n, xp)
+    planar = xp.isfinite(radius) & (dev <= 1e-12 * xp.maximum(radius, 1e-300))
+    out = xp.concatenate([points[surf], normal, radius[:, None]], axis=1)
+    return xp.where(planar[:, None], out, 0.0)
 
 
 def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, faces: np.ndarray,

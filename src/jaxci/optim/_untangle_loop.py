@@ -4,10 +4,11 @@
 the eps update between rounds) as ONE `jax.lax.while_loop` whose body is one evaluation of the energy and its
 gradient: eps, the round's start energy, the L-BFGS memory and the per-round history are loop-carried, the
 rounds, steps and tolerances are traced, and the history has a fixed size, so a run compiles once per mesh shape
-whatever the number of rounds and reports nothing to Python between rounds. The L-BFGS is optimistix's
-(`optx.LBFGS` as `jaxci.optim._solve` runs it), written out so that the loop holds a single evaluation site:
-optimistix's loop traced the objective three times (start value, the step's linearisation, the round state) and
-compiled 1.1 CPU s of machinery around it.
+whatever the number of rounds and reports nothing to Python between rounds. Its L-BFGS takes jaxci's rules
+(`jaxci.optim.lbfgs`: the Armijo search, the curvature test of a pair, the Cauchy stop; no trial cap), written
+into this loop so that it holds a single evaluation site for every round (a loop per round, as optimistix's,
+traced the objective three times and compiled 1.1 CPU s of machinery around it); the eps schedule is `next_eps`,
+the host's too (`jaxci.optim.host.untangle_rounds_np`).
 
 The hexahedra's energy and its gradient with respect to the node coordinates come from one closed-form kernel
 (`hex_energy`, a `jax.custom_jvp`, as `jaxci.optim.gradient` does for F) over a flat table of corners; the other
@@ -25,6 +26,7 @@ from ..metrics import elements as E
 from ..runtime._lazy import filter_jit, jax, jnp
 from ..runtime.transfer import program
 from ._params import MAX_REJECTED_UNCAPPED
+from .lbfgs import DECREASE, armijo, converged, curvature_ok
 
 #: Corners one interior node moves (8 elements x 4 corners): the energy is a per-node sum (as F in
 #: `jaxci.optim.gradient`).
@@ -47,7 +49,17 @@ def chi(eps, d, xp=jnp):
     (``eps^2 / (2 (sqrt(eps^2 + d^2) - d))``): the same value, finite down to eps = 1e-10 at any d. `xp`: the
     array module."""
     s = xp.sqrt(eps * eps + d * d)
-    return xp.where(d >= 0, 0.5 * (d + s), 0.5 * eps * eps / (s - d))
+    return xp.where(d >= 0, 0.5 * (d + s), 0.5 * eps * eps / xp.where(d >= 0, 1.0, s - d))
+
+
+def next_eps(eps, e_start, e, dmin, xp=jnp):
+    """eps of the next round after a round at `eps` that took the energy from `e_start` to `e` and left the
+    smallest det J at `dmin`: ``sigma = max(1 - e / e_start, 0.1)``, ``mu = (1 - sigma) chi(eps, dmin)``, then
+    ``2 sqrt(mu (mu - dmin))`` if ``dmin < mu`` else `EPS_FLOOR` (the schedule of `jaxci.optim.untangle`, both
+    engines). `xp`: the array module."""
+    sigma = xp.where(e_start > 0, xp.maximum(1.0 - e / xp.where(e_start > 0, e_start, 1.0), 0.1), 0.1)
+    mu = (1.0 - sigma) * chi(eps, dmin, xp)
+    return xp.where(dmin < mu, 2.0 * xp.sqrt(xp.maximum(mu * (mu - dmin), 0.0)), EPS_FLOOR)
 
 
 def _cross(a, b):
@@ -229,16 +241,13 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
 
     One loop iteration is one evaluation of the energy and its gradient (one L-BFGS "step" as optimistix counts
     them: a line-search trial or an accepted point). The first evaluates `v0` for its min det J (eps of the
-    first round: ``sqrt(1e-12 + 0.04 min(d_min, 0)^2)``) and is not counted. Each round is optimistix's `LBFGS`
-    as `jaxci.optim._solve` runs it (the same algorithm, written out so that the loop holds one evaluation
-    site): a fresh memory; its first step evaluates the round's start and is accepted; then a backtracking
-    Armijo search (slope 0.1, halving from step 1) along ``-H g``; pairs with ``s.y > eps_machine`` enter the
-    memory; the round stops on optimistix's Cauchy test (max |s| / (atol + rtol |y|) < 1 and
-    |df| / (atol + rtol |f|) < 1), once every corner has det J >= margin, after `max_rejected` unchanged steps,
-    at a non-finite iterate or after `inner_steps` steps. Its result is the iterate of lowest finite energy. Then
-    ``sigma = max(1 - E / E_start, 0.1)``, ``mu = (1 - sigma) chi(eps, d_min)`` and ``eps = 2 sqrt(mu (mu -
-    d_min))`` if ``d_min < mu`` else 1e-10; rounds go on while ``d_min < margin`` and fewer than `max_rounds`
-    have run.
+    first round: ``sqrt(1e-12 + 0.04 min(d_min, 0)^2)``) and is not counted. Each round is an L-BFGS with
+    jaxci's rules (`jaxci.optim.lbfgs`): a fresh memory; its first step evaluates the round's start and is
+    accepted; then a backtracking Armijo search (`armijo`, halving from step 1) along ``-H g``; pairs that pass
+    `curvature_ok` enter the memory; the round stops on the Cauchy test (`converged`), once every corner has det
+    J >= margin, after `max_rejected` unchanged steps, at a non-finite iterate or after `inner_steps` steps. Its
+    result is the iterate of lowest finite energy. Then eps follows `next_eps`; rounds go on while ``d_min <
+    margin`` and fewer than `max_rounds` have run.
 
     With a strict parametrisation (`Parametrisation.strict`: no projection compiled) a trial with a boundary node
     outside its flat region has a NaN energy and is rejected like any trial that fails the Armijo test; a round
@@ -256,7 +265,6 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
     n = v0.shape[0]
     max_rounds = jnp.minimum(jnp.asarray(max_rounds, jnp.int32), HISTORY)
     inner_steps = jnp.asarray(inner_steps, jnp.int32)
-    tiny = jnp.finfo(dtype).eps
     zero, i0, false = jnp.zeros((), dtype), jnp.int32(0), jnp.array(False)
     nan = jnp.full((HISTORY,), jnp.nan, dtype)
 
@@ -282,28 +290,28 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
     def stepped(c, f_e, d_e, g_e):
         first = c["first"]
         s = c["y_eval"] - c["v"]
-        slope = jnp.dot(c["g"], s)
-        accept = first | ((f_e - c["f"] <= 0.1 * slope) & (slope <= 0))
+        slope = jnp.dot(c["g"], s)  # of the whole trial move
+        accept = first | ((slope <= 0) & armijo(f_e, c["f"], 1.0, slope))
 
         def accepted(c):
             yv = g_e - c["g"]
             inner = jnp.dot(s, yv)
-            upd = ~first & (inner > tiny)
+            upd = ~first & curvature_ok(inner, jnp.dot(s, s), jnp.dot(yv, yv), jnp)
             slot = c["head"] % history
             S = c["S"].at[slot].set(jnp.where(upd, s, c["S"][slot]))
             Y = c["Y"].at[slot].set(jnp.where(upd, yv, c["Y"][slot]))
             rho = c["rho"].at[slot].set(jnp.where(upd, 1.0 / jnp.where(upd, inner, 1.0), c["rho"][slot]))
             head, n_mem = c["head"] + upd, jnp.minimum(c["n_mem"] + upd, history)
-            y_conv = jnp.max(jnp.abs(s) / (atol + rtol * jnp.abs(c["y_eval"])), initial=0.0) < 1
-            f_conv = jnp.abs(f_e - c["f"]) / (atol + rtol * jnp.abs(f_e)) < 1
+            stop = converged(jnp.max(jnp.abs(s), initial=0.0), jnp.max(jnp.abs(c["y_eval"]), initial=0.0), f_e,
+                             c["f"], rtol, atol)
             return {**c, "v": c["y_eval"], "f": f_e, "g": g_e, "d_acc": d_e, "alpha": jnp.ones((), dtype),
                     "d": _direction(g_e, S, Y, rho, head, n_mem), "S": S, "Y": Y, "rho": rho, "head": head,
-                    "n_mem": n_mem}, ~first & y_conv & f_conv
+                    "n_mem": n_mem}, ~first & stop
 
         def rejected(c):
-            return {**c, "alpha": 0.5 * c["alpha"]}, false
+            return {**c, "alpha": DECREASE * c["alpha"]}, false
 
-        c, converged = jax.lax.cond(accept, accepted, rejected, c)
+        c, cauchy = jax.lax.cond(accept, accepted, rejected, c)
         # the bookkeeping of jaxci.optim._solve: steps, unchanged steps, best iterate, stop
         f, v = c["f"], c["v"]
         k = c["k"] + 1
@@ -315,16 +323,13 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
              "e_start": jnp.where(first, f_e, c["e_start"]), "first": false,
              "y_best": jnp.where(better, v, c["y_best"]), "f_best": jnp.where(better, f, c["f_best"]),
              "d_best": jnp.where(better, c["d_acc"], c["d_best"])}
-        end = (converged | ~finite_v | ((c["d_acc"] >= margin) & finite) | (unchanged >= max_rejected)
+        end = (cauchy | ~finite_v | ((c["d_acc"] >= margin) & finite) | (unchanged >= max_rejected)
                | (k >= inner_steps))
         return jax.lax.cond(end, end_round, lambda c: {**c, "y_eval": c["v"] + c["alpha"] * c["d"]}, c)
 
     def end_round(c):
         eps, e, dmin, r = c["eps"], c["f_best"], c["d_best"], c["rounds"]
-        e_start = c["e_start"]
-        sigma = jnp.where(e_start > 0, jnp.maximum(1.0 - e / jnp.where(e_start > 0, e_start, 1.0), 0.1), 0.1)
-        mu = (1.0 - sigma) * chi(eps, dmin)
-        new_eps = jnp.where(dmin < mu, 2.0 * jnp.sqrt(jnp.maximum(mu * (mu - dmin), 0.0)), EPS_FLOOR)
+        new_eps = next_eps(eps, c["e_start"], e, dmin, jnp)
         done = (dmin >= margin) | (r + 1 >= max_rounds)
         left = false
         if par.strict:  # a node near the edge of its flat region: go on with the projection

@@ -39,7 +39,7 @@ from ..geometry.device_colouring import (
     valence,
 )
 from ..geometry.projection import Constraints
-from ..runtime._lazy import jax, jit, jnp
+from ..runtime._lazy import enable_x64, jax, jit, jnp
 from ..runtime.transfer import program, to_device, to_host
 from ._buckets import bucket, pad_connectivity, pad_rows, padded_constraints
 from ._local import relabel
@@ -85,7 +85,8 @@ class SweepData:
 
 def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=None, inc: Incidences | None = None,
                lists: bool = False, split: bool = True, multiple: int = 1, plane_points=None,
-               palette: int = PALETTE) -> SweepData:
+               palette: int = PALETTE, view: BoundaryView | None = None, planes: np.ndarray | None = None
+               ) -> SweepData:
     """Build the padded sweep data of a hexahedral mesh on the device.
 
     **Arguments:**
@@ -104,6 +105,8 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
     - `multiple`: the padded element count a multiple of it.
     - `plane_points`: the coordinates the planar rings are tested on (device ``(n, 3)``; default
       ``cons.x_orig``, as `coloured_stars` does).
+    - `view`, `planes`: the `boundary_view` of those coordinates and its `surface_planes`, if at hand (default:
+      found here).
 
     **Returns:** a `SweepData`.
 
@@ -132,8 +135,9 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
     inc = Incidences(table=table_, valence=v)
     counts = np.asarray(counts, np.int64)[:n_col]
     blocks, row_start, rows = slot_layout(counts[counts.sum(axis=1) > 0], split)
-    view = boundary_view(cons.x_orig if plane_points is None else plane_points, faces, cons)
-    planes = surface_planes(view)
+    if view is None:
+        view = boundary_view(cons.x_orig if plane_points is None else plane_points, faces, cons)
+    planes = surface_planes(view) if planes is None else planes
     x, c, cs, nbr, nmask, cons_p, w = _build(
         points, conn, inc, col, cons, to_device(planes, cons.x_orig.dtype), nbr_table, degree,
         to_device(row_start, np.int32), rows=bucket(rows), blocks=blocks, width=bucket(width, 4),
@@ -359,8 +363,9 @@ def boundary_view(points, faces: np.ndarray, cons: Constraints) -> BoundaryView:
     faces = np.asarray(faces, np.int64).reshape(-1, 4)
     nodes = np.unique(faces)
     ns, ne = int(cons.surface_nodes.shape[0]), int(cons.edge_nodes.shape[0])
-    surf, edge, ring, xb = to_host(_boundary_arrays(cons.surface_nodes, cons.edge_nodes, cons.surface_cand, points,
-                                                    to_device(nodes, np.int32), ns=ns, ne=ne))
+    with enable_x64():  # float64 points come down as they are
+        surf, edge, ring, xb = to_host(_boundary_arrays(cons.surface_nodes, cons.edge_nodes, cons.surface_cand,
+                                                        points, to_device(nodes, np.int32), ns=ns, ne=ne))
     return BoundaryView(nodes=nodes, points=np.asarray(xb, np.float64), faces=np.searchsorted(nodes, faces),
                         surf=np.asarray(surf, np.int64), edge=np.asarray(edge, np.int64),
                         ring=np.asarray(ring, np.int64))
@@ -374,9 +379,20 @@ def _boundary_arrays(surface_nodes, edge_nodes, surface_cand, points, nodes, ns:
     return surface_nodes[:ns], edge_nodes[:ne], surface_cand[:ns, ::4] // 4, points[nodes]
 
 
-def surface_planes(view: BoundaryView) -> np.ndarray:
+def surface_planes(view: BoundaryView, device: bool = False) -> np.ndarray:
     """`jaxci.optim._moves.planar_rings` of the surface nodes ``(n_surface, 7)`` (rows in
-    ``cons.surface_nodes`` order; at least one row), float64 numpy, from a `BoundaryView` (O(boundary))."""
+    ``cons.surface_nodes`` order; at least one row), float64 numpy, from a `BoundaryView` (O(boundary)). `device`:
+    measured by a compiled program (the view's arrays up, the planes down), else in numpy."""
     if not len(view.surf) or not len(view.faces):
         return np.zeros((max(len(view.surf), 1), 7))
-    return surface_rings(view.points, view.faces, view.surf_at, view.ring)
+    if not device:
+        return surface_rings(view.points, view.faces, view.surf_at, view.ring)
+    with enable_x64():
+        i32 = tuple(np.asarray(a, np.int32) for a in (view.faces, view.surf_at, view.ring))
+        return np.asarray(to_host(_surface_rings(to_device(np.asarray(view.points, np.float64)), *to_device(i32))))
+
+
+@program
+@jit
+def _surface_rings(points, faces, surf, ring):
+    return surface_rings(points, faces, surf, ring, jnp)

@@ -1,4 +1,5 @@
-"""Gradient baselines: optimistix minimisers and least-squares solvers on F over the free coordinates.
+"""Gradient baselines: L-BFGS (jaxci's), optimistix's minimisers and least-squares solvers on F over the free
+coordinates.
 
 The unknowns are the free coordinates of `jaxci.geometry.projection` (3 per interior node, 2 per surface node, 1 per
 edge node; corner nodes fixed), divided by the local edge length h of their node: ``u = h * v`` and the solvers see
@@ -6,13 +7,14 @@ edge node; corner nodes fixed), divided by the local edge length h of their node
 every iterate lies on the original boundary. On a mixed mesh F is the mean over the corners of every cell
 (`jaxci.metrics.objective`).
 
-**Step cap and stalls** (`jaxci.optim._solve`). BFGS, L-BFGS and CG trials move no free coordinate more than
-``max_move`` (0.5) local edge lengths, and a capped solver stops after 20 consecutive rejected trials. Measured
-(L-BFGS, float32, perturbed boxes, amplitude 0.3, seed 0): at 30^3 the uncapped first step was halved 35 times
-and 28 rejected trials followed convergence (122 steps; 79 to max kappa/3 <= 1.0001); capped: 83 steps, 55 to
-1.0001. At 60^3: 99 steps to 1.0001 instead of 282-411.
+**Step cap and stalls** (`jaxci.optim.lbfgs`, `jaxci.optim._solve`). BFGS, L-BFGS and CG trials move no free coordinate
+more than ``max_move`` (0.5) local edge lengths, and a capped solver stops after 20 consecutive rejected trials.
+Measured (L-BFGS, float32, perturbed boxes, amplitude 0.3, seed 0): at 30^3 the uncapped first step was halved 35 times
+and 28 rejected trials followed convergence (122 steps; 79 to max kappa/3 <= 1.0001); capped: 83 steps, 55 to 1.0001. At
+60^3: 99 steps to 1.0001 instead of 282-411.
 
-**Methods.** ``"bfgs"``, ``"lbfgs"``, ``"cg"`` minimise ``s F`` with `optx.BFGS`, `optx.LBFGS`,
+**Methods.** ``"lbfgs"`` minimises ``s F`` with jaxci's L-BFGS (`jaxci.optim.lbfgs.lbfgs_loop`, the host engine's
+algorithm, `jaxci.optim.host.lbfgs`: the same iterates); ``"bfgs"`` and ``"cg"`` with `optx.BFGS` and
 `optx.NonlinearCG`. ``s = 8N / 32`` (N elements, 32 = the corners an interior node moves) makes the objective a
 per-node sum, so that the solvers' identity initial (inverse) Hessian has the right order of magnitude.
 ``"lm"`` (`optx.LevenbergMarquardt`) and ``"gauss-newton"`` (optimistix's Gauss-Newton descent,
@@ -37,7 +39,7 @@ more than 3000 steps and L-BFGS stops early (ecosystem.md: at 1.79); with ``v`` 
 tolerance), so ``1e-6`` is the default. float32 reaches 1.000002 (block) and 1.000000 (cube) with the same
 steps, so the user's dtype is kept (float32 by default in `jaxci.smooth`).
 
-**Iterations and history.** The solver runs under one `jax.jit` as optimistix's own loop does (`init`, then
+**Iterations and history.** An optimistix solver runs under one `jax.jit` as optimistix's own loop does (`init`, then
 `step`/`terminate` in a bounded `lax.while_loop`, the same calls `optx.minimise` makes: same iterates, same step
 count; checked in the tests), and records after every step the objective F and the max kappa/3 of the current
 accepted iterate (returned by the objective as auxiliary data, so they cost nothing extra). One step is one
@@ -47,7 +49,7 @@ inverted corner or a NaN (Gauss-Newton takes full steps without a line search), 
 returned instead. Minimisers with a backtracking line search never accept an inverted iterate: F is ``inf``
 there and fails the Armijo test.
 
-**Restarts.** optimistix terminates on small changes of the unknowns and of the objective between accepted
+**Restarts.** The solvers terminate on small changes of the unknowns and of the objective between accepted
 steps; after a run of backtracked (tiny) steps that test fires far from the optimum. On the paper's 27-element
 cube, 30 seeds, BFGS stopped "successful" at max kappa/3 up to 459 (4 seeds above 1.0001 in float32, 1 in float64,
 2.25). Restarting the solver once from its last iterate with a fresh state (identity Hessian, empty L-BFGS
@@ -217,6 +219,24 @@ def _min_fn_closed(v, args):
     return s * f, (f, kmax, _done(f, kmax, stops))
 
 
+def value_and_grad_closed(v, args, conn, weight, n_dev: int, platform: str, power=None, closed: bool = True):
+    """The objective of `jaxci.optim.lbfgs.lbfgs_loop` on one device: ``(s F, its gradient in v, F, max kappa/3)``
+    at the free coordinates `v` ``(n,)``. `args`: ``(par, s, extra, incidence)``, the `Parametrisation`, the
+    objective's scale (`_scale`), the other cell types (`jaxci.metrics.objective.ExtraCells`) and the closed
+    form's node incidences (`closed_incidence`, or None); `power` (static): the p-mean's (None: F); `closed`
+    (static): the closed-form kernel's gradient (False: JAX's autodiff of F). `n_dev`, `platform`: unused (one
+    device)."""
+    del n_dev, platform
+    par, s, extra, incidence = args
+
+    def value(v):
+        f, k = _objective(par.points(v), conn, closed, extra, weight, power, None, None, incidence)
+        return s * f, (f, k)
+
+    (val, (f, k)), gv = jax.value_and_grad(value, has_aux=True)(v)
+    return val, gv, f, k
+
+
 def _lsq_fn(v, args):
     """Residuals kappa/3 per corner, times sqrt(2 s / n_corners): 0.5 |r|^2 = s (F + 1)."""
     par, conn, s, stops, extra, _ = args
@@ -361,9 +381,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     - `extra`: the wedges, pyramids and tetrahedra (`jaxci.metrics.objective.ExtraCells`, default none): F over every
       corner.
     - `devices`: None (one device), or a `jax.sharding.Mesh` (`jaxci.optim.sharding.resolve_devices`): the
-      compiled loop with the elements sharded over it (`jaxci.optim.sharding.place_problem`), never the host path;
-      ``"lbfgs"`` on F over hexahedra then runs `jaxci.optim.sharded_lbfgs.lbfgs_loop` (the host path's
-      algorithm, its memory split over the devices), the other methods optimistix's loop.
+      compiled loop with the elements sharded over it (`jaxci.optim.sharding.place_problem`), never the host path.
+      ``"lbfgs"`` runs `jaxci.optim.lbfgs.lbfgs_loop` (the host path's algorithm; sharded: F over hexahedra, its
+      memory split over the devices), the other methods (and sharded L-BFGS of the p-mean or on mixed meshes)
+      optimistix's loop.
     - `project`: None, or (a compiled run whose mesh lives on the device) a function of device coordinates
       ``(n, 3)`` that projects them exactly onto the original boundary: the result is lifted on the device and
       projected by it where a node left its flat region (else `Parametrisation.final_points`, in numpy).
@@ -405,9 +426,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                           f"(numpy) path, not {method!r} with backend={p.backend!r}"
                           f"{' sharded over devices' if devices is not None else ''}; use precondition='none'")
     n_dev = 0 if devices is None else int(devices.devices.size)
-    # sharded L-BFGS on F over hexahedra: jaxci's own loop, its memory split over the devices
-    own_loop = bool(n_dev) and method == "lbfgs" and p.objective != "pmean" and not extra.types
-    if not on_host and not own_loop:  # optimistix (imported here: 0.08 s the numpy path does without)
+    # L-BFGS: jaxci's own loop (`jaxci.optim.lbfgs`), on one device or sharded (F over hexahedra); the other
+    # methods: optimistix's
+    own_loop = method == "lbfgs" and (not n_dev or (p.objective != "pmean" and not extra.types))
+    if not on_host and not own_loop:  # optimistix (imported here: 0.35 s the other paths do without)
         from ._solve import make_solver, solve_loop
 
         solver = make_solver(method, p)
@@ -433,7 +455,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
 
     y = np.zeros(run_par.n_free) if on_host else _zeros(run_par.n_free, np.dtype(par.x0.dtype))
     incidence = None  # the closed-form gradient's node incidences: once for every run
-    if not (on_host or own_loop or n_dev > 1 or method in LEAST_SQUARES or p.gradient != "closed"):
+    if not (on_host or n_dev or method in LEAST_SQUARES or p.gradient != "closed"):
         incidence = closed_incidence(run_conn, run_par.x0.shape[0], weight,
                                      float(p.p) if p.objective == "pmean" else None)
     hist_f, hist_k, starts = [], [], []
@@ -468,17 +490,23 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                                               done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
                                               precond_after=max(after - steps, 0) if precond else 0)
         elif own_loop:
-            from .sharded_lbfgs import lbfgs_loop, result_name, value_and_grad
+            from .lbfgs import lbfgs_loop, result_name, value_and_grad
 
             dtype = par.x0.dtype
-            consts = np.asarray([p.ftol, 1.0 + p.ktol, p.rtol, p.atol, p.max_move or 0.0])
-            # (numpy arrays placed straight from the host: `replicate`)
-            y, k, code, hf, hk = lbfgs_loop(
-                value_and_grad, (cur, replicate(np.asarray(_scale(n_hex, extra), dtype), devices)), run_conn, weight,
-                replicate(y, devices), replicate(np.asarray(consts, dtype), devices),
-                replicate(np.int32(p.max_steps - steps), devices), mesh=devices,
-                max_steps=int(p.max_steps), history=int(p.history_length), max_rejected=_max_rejected(method, p))
-            result = result_name(code)
+            consts = np.asarray([p.ftol, 1.0 + p.ktol, p.rtol, p.atol, p.max_move or 0.0], dtype)
+            scale = np.asarray(_scale(n_hex, extra), dtype)
+            loop = functools.partial(lbfgs_loop, max_steps=int(p.max_steps), history=int(p.history_length),
+                                     max_rejected=_max_rejected(method, p))
+            if n_dev:  # (numpy arrays placed straight from the host: `replicate`)
+                y, k, code, hf, hk = loop(value_and_grad, (cur, replicate(scale, devices)), run_conn, weight,
+                                          replicate(y, devices), replicate(consts, devices),
+                                          replicate(np.int32(p.max_steps - steps), devices), mesh=devices)
+            else:
+                y, k, code, hf, hk = loop(
+                    value_and_grad_closed, (cur, to_device(scale), extra, incidence), run_conn, weight, y,
+                    to_device(consts), to_device(np.int32(p.max_steps - steps)),
+                    static=(float(p.p) if p.objective == "pmean" else None, p.gradient == "closed"))
+            result = result_name(to_host(code))
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None,
                                    devices if n_dev > 1 else None, incidence)
@@ -562,13 +590,8 @@ def run_gradient(problem, method: str, params: dict):
     """
     p = _p.make_params(GradientParams, params, method)
     x0, pre = problem.x0, None
-    project = None
-    if problem.tables is not None:  # the mesh on the device: its boundary nodes projected on the host, exactly
-        from ..geometry.device_constraints import project_boundary
-
-        def project(x):
-            with jax.enable_x64(True):
-                return project_boundary(problem.cons, problem.tables, _as_float64(x))
+    # the mesh on the device: its boundary nodes projected exactly (onto their planes there, else on the host)
+    project = None if problem.tables is None else problem.project_device
 
     if p.presmooth:
         sweep = {"max_sweeps": int(p.presmooth), "buckets": p.buckets}
@@ -584,8 +607,9 @@ def run_gradient(problem, method: str, params: dict):
             from .device_stars import sweep_data
             from .laplace import LaplaceParams, laplace_device
 
-            data = sweep_data(problem.x0, problem.conn, problem.cons, problem.info.topology.faces,
-                              plane_points=problem.points64)
+            view, planes = problem.boundary_planes
+            data = sweep_data(problem.x0, problem.conn, problem.cons, problem.info.topology.faces, view=view,
+                              planes=planes)
             xl, sweeps, pre, _ = laplace_device(data, _p.make_params(LaplaceParams, sweep, "smart-laplace"),
                                                 smart=True)
         else:
@@ -600,7 +624,8 @@ def run_gradient(problem, method: str, params: dict):
     if problem.tables is not None:  # the mesh on the device (the presmoothing's incidences and planes reused)
         from .device_parametrisation import make_parametrisation_device
 
-        kept = {} if pre is None else {"inc": data.inc, "view": data.view, "planes": data.planes}
+        view, planes = problem.boundary_planes
+        kept = {"view": view, "planes": planes} | ({} if pre is None else {"inc": data.inc})
         par = make_parametrisation_device(problem.points64, problem.conn, problem.info.topology.faces,
                                           problem.info.feature_edges, problem.cons, x0, scaled=p.scaled,
                                           dtype=problem.dtype, **kept)

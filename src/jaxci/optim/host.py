@@ -9,16 +9,14 @@ the whole solve takes less than the compilation alone. `jaxci.optim.gradient.min
 hexahedral meshes of at most `HOST_MAX` elements (``GradientParams(backend="auto")``; ``"jax"`` or ``"numpy"``
 force one).
 
-The iteration is that of the compiled path (`jaxci.optim._solve` with optimistix's `optx.LBFGS`): a two-loop L-BFGS
-direction (initial Hessian scaled by ``s.y / y.y``), each trial capped at ``max_move`` in the max norm, a
-backtracking Armijo search (halve on rejection, slope 0.1, back to step 1 after an accepted one), optimistix's
-Cauchy termination (change of the unknowns AND of the objective below ``atol + rtol |.|``, max norm) checked at
-accepted iterates, and the same stops (``F <= ftol``, `max_rejected` consecutive rejections, the step limit). Every
-objective evaluation is a step, as there. One difference: from step 200 (counted over the solver's restarts) of a
-solve that has not stopped by then, the initial inverse Hessian becomes the two-level preconditioner of
-`jaxci.optim.coarse` (``GradientParams.precondition``, default ``"auto"``; ``"none"`` keeps the compiled path's
-``gamma I``). An inverted corner makes F infinite, so a trial that inverts an element is rejected like any trial
-that does not decrease F enough: validity is kept by construction.
+The iteration is jaxci's L-BFGS, the JAX engine's too (`jaxci.optim.lbfgs`, whose rules it calls: the capped
+trial, the Armijo search, the curvature test of a pair and the Cauchy stop), with the same stops (``F <= ftol``,
+`max_rejected` consecutive rejections, the step limit). Every objective evaluation is a step, as there. One
+difference: from step 200 (counted over the solver's restarts) of a solve that has not stopped by then, the initial
+inverse Hessian becomes the two-level preconditioner of `jaxci.optim.coarse` (``GradientParams.precondition``,
+default ``"auto"``; ``"none"`` keeps the compiled loop's ``gamma I``). An inverted corner makes F infinite, so a
+trial that inverts an element is rejected like any trial that does not decrease F enough: validity is kept by
+construction.
 """
 
 from __future__ import annotations
@@ -35,6 +33,7 @@ from ..metrics.hexahedron import objective_terms_and_grad_np
 from ..runtime.memory import release_free_memory
 from ..runtime.phases import stepper
 from ._params import MAX_REJECTED_UNCAPPED
+from .lbfgs import DECREASE, armijo, cap_factor, converged, curvature_ok
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
 #: Largest hexahedral mesh `jaxci.optim.gradient.minimise` solves in numpy with ``backend="auto"``: 100,000
@@ -77,11 +76,6 @@ def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> b
     if mixed or backend == "jax":
         return False
     return backend == "numpy" or n_hex <= limit
-
-
-#: Armijo slope and step halving (optimistix's `BacktrackingArmijo` defaults).
-SLOPE = 0.1
-DECREASE = 0.5
 
 
 @dataclasses.dataclass
@@ -225,7 +219,7 @@ class _Memory:
         if self.S.dtype != np.float64:  # the curvature of the rounded pair: rho then matches what the loop reads
             s, y = s.astype(self.S.dtype), y.astype(self.S.dtype)
         sy = _dot(s, y)
-        if not sy > 1e-12 * np.sqrt(_dot(s, s) * _dot(y, y)):
+        if not curvature_ok(sy, _dot(s, s), _dot(y, y)):
             return
         slot = self.order.pop(0) if len(self.order) == self.history else len(self.order)
         self.S[slot], self.Y[slot], self.rho[slot] = s, y, 1.0 / sy
@@ -291,8 +285,8 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     `precond_after` steps: M is used from then on. `stage`: the name its steps are reported under to the
     running phase's listener (`jaxci.runtime.phases.stepper`: step, F, max kappa/3); None reports nothing.
 
-    **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the accepted
-    iterate of lowest finite F, the number of steps, optimistix's result name (``"successful"``,
+    **Returns:** ``(y_best, steps, result, hist_f, hist_k)`` as `jaxci.optim.lbfgs.lbfgs_loop`: the accepted
+    iterate of lowest finite F, the number of steps, the result's name (``"successful"``,
     ``"nonlinear_max_steps_reached"``, ``"nonfinite"``), and F and max kappa/3 of the accepted iterate after
     each step (entry 0: `y0`), numpy arrays of length ``steps + 1``.
     """
@@ -310,9 +304,9 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     mem = _Memory(len(y), history)
 
     def capped(d):  # the trial move at step size 1: `d` scaled in place so that no unknown moves more than `cap`
-        big = _amax(d)
-        if cap and big > cap:
-            d *= cap / big
+        k = float(cap_factor(_amax(d), cap or 0.0))
+        if k != 1.0:
+            d *= k
         return d
 
     trial = capped(-g)
@@ -328,10 +322,10 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
         y_try += y
         v_try, g_try, f_try, k_try = fun(y_try)
         steps += 1
-        if g_try is not None and v_try <= value + SLOPE * alpha * slope:
+        if g_try is not None and armijo(v_try, value, alpha, slope):
             s = y_try - y
             mem.push(s, g_try - g)
-            converged = (_amax(s) < atol + rtol * _amax(y_try) and abs(v_try - value) < atol + rtol * abs(v_try))
+            done_here = bool(converged(_amax(s), _amax(y_try), v_try, value, rtol, atol))
             del s
             y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
             accept()
@@ -345,7 +339,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
                 d = -g
             trial = capped(d)
             slope = _dot(g, trial)
-            if converged:
+            if done_here:
                 result, stop = "successful", True
             stop = stop or finished(f, k)
         else:
@@ -380,7 +374,7 @@ def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndar
     result (as evaluated: on the boundary), and a dict ``rounds``, ``steps``, ``dmin0``, ``h_eps``, ``h_dmin``,
     ``h_e`` (numpy arrays, one entry per round).
     """
-    from ._untangle_loop import CORNERS_PER_NODE, EPS_FLOOR, chi, corner_table, hex_kernel
+    from ._untangle_loop import CORNERS_PER_NODE, corner_table, hex_kernel, next_eps
 
     projector = NearProjector(par.cons)
     if native.AVAILABLE:
@@ -418,10 +412,8 @@ def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndar
         h_eps.append(eps)
         h_dmin.append(dmin)
         h_e.append(e)
-        sigma = max(1.0 - e / e_start, 0.1) if e_start > 0 else 0.1
-        mu = (1.0 - sigma) * float(chi(eps, dmin, np))
         if progress is not None:
             progress(rounds, dmin, eps, e)
-        eps = 2.0 * np.sqrt(max(mu * (mu - dmin), 0.0)) if dmin < mu else EPS_FLOOR
+        eps = float(next_eps(eps, e_start, e, dmin, np))
     return v, points, {"rounds": rounds, "steps": steps, "dmin0": float(dmin0), "h_eps": np.asarray(h_eps),
                        "h_dmin": np.asarray(h_dmin), "h_e": np.asarray(h_e), "out_of_time": out_of_time}

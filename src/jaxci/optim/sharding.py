@@ -19,7 +19,7 @@ turns the request into a `Mesh`; `sharded_params` checks the method and sends L-
 (never the numpy host path, which runs on one CPU); `jaxci.optim.gradient.minimise` and the smart-Laplace
 presmoothing (`jaxci.optim.laplace.laplace`) pad the elements to a multiple of the device count and place their
 arguments with `place_problem`: the element arrays (and the sweeps' node slots of every colour) sharded, the
-rest (coordinates, constraints) replicated. L-BFGS runs `jaxci.optim.sharded_lbfgs.lbfgs_loop`, whose memory is
+rest (coordinates, constraints) replicated. L-BFGS runs `jaxci.optim.lbfgs.lbfgs_loop`, whose memory is
 split by free coordinate over the devices (BFGS and CG: optimistix's loop, its vectors replicated). The solver's
 loop and the sweeps then compile once each, as one SPMD program over every device. docs/sharding.md has the
 measurements and the multi-host launch.

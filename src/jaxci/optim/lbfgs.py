@@ -1,46 +1,80 @@
-"""L-BFGS for runs sharded over devices: the host algorithm in one compiled loop, its memory split by coordinate.
+"""L-BFGS: its rules written once for every loop, and the JAX engine's compiled loop (one device or sharded).
 
-`jaxci.optim.gradient.minimise` runs ``"lbfgs"`` with ``devices`` through `lbfgs_loop`. The iteration is the
-host path's (`jaxci.optim.host.lbfgs`) and so optimistix's: the two-loop L-BFGS direction (initial inverse
-Hessian ``s.y / y.y`` I of the newest pair; a pair of non-positive curvature is not stored; the memory forgotten
-when the direction is not one of descent), each trial capped at ``max_move`` in the max norm, a backtracking
-Armijo search (slope 0.1, halve on rejection, step 1 again after an accepted one), optimistix's Cauchy stop
-(change of the unknowns AND of the objective below ``atol + rtol |.|``, max norm) at accepted iterates, the stop
-at ``F <= ftol`` or max kappa/3 <= 1 + ktol, `max_rejected` consecutive rejections and the step limit. Every
-objective evaluation is a step.
+**The rules** (`SLOPE`, `DECREASE`, `cap_factor`, `armijo`, `converged`, `curvature_ok`), over the array module
+(numpy floats or jax.numpy arrays), are those of every L-BFGS loop jaxci runs: the host engine's
+(`jaxci.optim.host.lbfgs`, also the untangler's rounds on the host), the JAX engine's (`lbfgs_loop`, one device or
+sharded) and the compiled untangler's (`jaxci.optim._untangle_loop`). An iteration: the two-loop L-BFGS direction
+(initial inverse Hessian ``s.y / y.y`` I of the newest pair; a pair whose curvature is not clearly positive,
+`curvature_ok`, is not stored; the memory forgotten when the direction is not one of descent), each trial capped
+at ``max_move`` in the max norm (`cap_factor`), a backtracking Armijo search (`armijo`: slope `SLOPE`, the step
+times `DECREASE` on rejection, step 1 again after an accepted one), the Cauchy stop at accepted iterates
+(`converged`: the largest change of an unknown below ``atol + rtol`` times the largest unknown, AND the change of
+the objective below ``atol + rtol |f|``), the stop at ``F <= ftol`` or max kappa/3 <= 1 + ktol, `max_rejected`
+consecutive rejections and the step limit. Every objective evaluation is a step. (optimistix's Cauchy test takes
+the ratio per unknown; jaxci's unknowns start at 0 in units of the local edge length, where that ratio would ask
+every unknown, even one that barely moves, to settle to ``atol``.) Two copies of the loop stay, for their loop
+primitive and memory: the host's runs in Python with the C two-loop recursion and an optional coarse
+preconditioner; `lbfgs_loop` is one `jax.lax.while_loop` whose recursion runs on Gram matrices (below).
 
-**What is split.** The whole loop runs inside one `jax.shard_map` over the devices of a `jax.sharding.Mesh`:
+**`lbfgs_loop`** runs the JAX engine's L-BFGS (`jaxci.optim.gradient.minimise`, ``"lbfgs"``): on one device
+(``mesh`` None) as one compiled program, or inside one `jax.shard_map` over the devices of a
+`jax.sharding.Mesh`, where:
 
-- the elements (the connectivity and weights, sharded by `jaxci.optim.sharding.place_problem`): each device
-  evaluates F, its max and its gradient over its own elements, and ONE all-reduce per trial gives every device
-  the whole mesh's (`jaxci.optim.sharding.local_terms_and_grad`);
+- the elements (the connectivity and weights, sharded by `jaxci.optim.sharding.place_problem`) are split: each
+  device evaluates F, its max and its gradient over its own elements, and ONE all-reduce per trial gives every
+  device the whole mesh's (`jaxci.optim.sharding.local_terms_and_grad`);
 - the L-BFGS memory, ``m`` pairs ``(s, y)`` stored as one ``(2m, n/D)`` block per device (its share of the free
-  coordinates). The two-loop recursion needs, at each accepted step, the dot products of the new pair and of
-  the gradient with the memory: each device takes them over its share and ONE all-reduce of ``6m + 5`` numbers
-  sums them; the recursion then runs on ``m x m`` Gram matrices kept up to date (``S^T Y``, ``Y^T Y``), the same
-  arithmetic as the two-loop recursion on vectors (each ``s_i . q`` and ``y_i . r`` expanded into those dots),
-  and each device forms its share of the direction, which one all-gather assembles.
+  coordinates), is split too. The two-loop recursion needs, at each accepted step, the dot products of the new
+  pair and of the gradient with the memory: each device takes them over its share and ONE all-reduce of ``6m +
+  5`` numbers sums them; the recursion then runs on ``m x m`` Gram matrices kept up to date (``S^T Y``, ``Y^T
+  Y``), the same arithmetic as the two-loop recursion on vectors (each ``s_i . q`` and ``y_i . r`` expanded into
+  those dots), and each device forms its share of the direction, which one all-gather assembles.
 
 The iterate, the gradient and the trial direction (``n`` numbers each) are kept whole on every device (the
 objective needs every node on every device anyway). So an accepted step has three exchanges and a rejected one
-one, and the ``4 m n`` of vector work of a two-loop recursion is divided by the device count, where optimistix's
-L-BFGS (the compiled path without devices) repeats it on every device: docs/sharding.md measured that repeated
-work at 2.3x a single device's on four forced CPU devices.
-
-One device (``devices=1``) runs the same program, its exchanges empty.
+one, and the ``4 m n`` of vector work of a two-loop recursion is divided by the device count (optimistix's
+L-BFGS repeated it on every device: docs/sharding.md measured that repeated work at 2.3x a single device's on four
+forced CPU devices). On one device the exchanges are absent and the program is the same.
 """
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
-from ..runtime._lazy import jax, jnp
-from .host import DECREASE, SLOPE
+from ..runtime._lazy import jax, jit, jnp
+from ..runtime.transfer import program
+
+#: Armijo slope and step factor on rejection (optimistix's `BacktrackingArmijo` defaults).
+SLOPE = 0.1
+DECREASE = 0.5
 
 #: Result codes of `lbfgs_loop`, as the host path names them (`jaxci.optim.host.lbfgs`).
 RESULTS = ("successful", "nonlinear_max_steps_reached", "nonfinite")
+
+
+def cap_factor(biggest, cap, xp=np):
+    """The factor that scales a trial direction whose largest entry (max norm) is `biggest` so that no unknown
+    moves more than `cap` at step size 1 (1 where it does not, or where `cap` is 0: no cap)."""
+    return xp.where((cap > 0) & (biggest > cap), cap / xp.where(biggest > 0, biggest, 1.0), 1.0)
+
+
+def armijo(v_try, value, alpha, slope):
+    """Whether a trial of objective `v_try` at step size `alpha` along a direction of slope `slope` (``g . d``)
+    from an iterate of objective `value` is accepted: finite, and a decrease of at least `SLOPE` of the linear
+    model's. (A NaN `v_try` fails the comparison.)"""
+    return v_try <= value + SLOPE * alpha * slope
+
+
+def converged(s_max, y_max, v_new, v_old, rtol, atol):
+    """The Cauchy stop at an accepted iterate: the step's largest change of an unknown `s_max` below ``atol + rtol
+    y_max`` (the largest unknown) and the objective's change below ``atol + rtol |v_new|``."""
+    return (s_max < atol + rtol * y_max) & (abs(v_new - v_old) < atol + rtol * abs(v_new))
+
+
+def curvature_ok(sy, ss, yy, xp=np):
+    """Whether a pair ``(s, y)`` enters the memory: its curvature ``s.y`` clearly positive, ``s.y > 1e-12 |s||y|``
+    (from the dots ``s.y``, ``s.s``, ``y.y``; no overflow of ``ss * yy``)."""
+    return sy > 1e-12 * xp.sqrt(ss) * xp.sqrt(yy)
 
 
 def result_name(code) -> str:
@@ -112,55 +146,70 @@ def value_and_grad(v, args, conn, weight, n_dev: int, platform: str):
     return s * f, s * gv, f, k
 
 
-@functools.partial(jax.jit, static_argnames=("objective", "mesh", "max_steps", "history", "max_rejected"))
-def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_steps: int, history: int,
-               max_rejected: int):
-    """Minimise `objective` sharded over `mesh`, from `y0`.
+@program
+@jit(static_argnames=("objective", "static", "mesh", "max_steps", "history", "max_rejected"))
+def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, static: tuple = (), mesh=None, max_steps: int,
+               history: int, max_rejected: int):
+    """Minimise `objective` from `y0` on one device (`mesh` None) or sharded over `mesh`.
 
     **Arguments:**
 
-    - `objective` (static): ``objective(v, args, conn, weight, n_dev, platform) -> (value, gradient, F, k)`` at a
-      whole vector `v` ``(n,)``, called inside `jax.shard_map` with this device's `conn` and `weight` (and any
-      exchange it needs); the loop minimises `value`, records F and k, and stops once ``F <= ftol`` or ``k <= 1 +
-      ktol``. For meshes: `value_and_grad` (value ``s F``, k the max kappa/3).
-    - `args`: a pytree of replicated arrays for `objective` (for `value_and_grad`: ``(par, s)``).
+    - `objective` (static): ``objective(v, args, conn, weight, n_dev, platform, *static) -> (value, gradient, F,
+      k)`` at a whole vector `v` ``(n,)``; sharded, it is called inside `jax.shard_map` with this device's `conn`
+      and `weight` (and makes any exchange it needs). The loop minimises `value`, records F and k, and stops once
+      ``F <= ftol`` or ``k <= 1 + ktol``. For meshes: `value_and_grad` (sharded; value ``s F``, k the max
+      kappa/3), `jaxci.optim.gradient.value_and_grad_closed` (one device).
+    - `args`: a pytree of (replicated) arrays for `objective` (for `value_and_grad`: ``(par, s)``).
     - `conn` ``(8, N)``, `weight` ``(N,)``: the hexahedra and their weights (0: padding), sharded along N over
       `mesh` (`jaxci.optim.sharding.place_problem`).
     - `y0` ``(n,)``: the start (replicated); n need not be a multiple of the device count.
     - `consts` ``(5,)``: ``ftol, 1 + ktol, rtol, atol, cap`` (cap 0: trials not capped), traced.
     - `limit`: the most steps (traced, at most `max_steps`).
-    - `mesh`, `max_steps` (the history's length), `history` (the pairs m), `max_rejected`: static.
+    - `static`: hashable values passed on to `objective`; `mesh`, `max_steps` (the history's length), `history`
+      (the pairs m), `max_rejected`: static.
 
-    **Returns:** ``(y, steps, result, hist_f, hist_k)`` as `jaxci.optim._solve.solve_loop`: the last accepted
-    iterate (the lowest F: every accepted step lowers it), the steps taken, a code of `RESULTS`, and F and max
-    kappa/3 of the accepted iterate after each step (entry 0: `y0`; NaN after the last step).
+    **Returns:** ``(y, steps, result, hist_f, hist_k)``: the last accepted iterate (the lowest F: every accepted
+    step lowers it), the steps taken, a code of `RESULTS`, and F and max kappa/3 of the accepted iterate after
+    each step (entry 0: `y0`; NaN after the last step).
     """
     from jax.sharding import PartitionSpec as P
 
     from .sharding import AXIS
 
-    n_dev = int(mesh.devices.size)
+    n_dev = 1 if mesh is None else int(mesh.devices.size)
     n = int(y0.shape[0])
     n_loc = -(-n // n_dev)
     m = int(history)
+    platform = jax.default_backend() if mesh is None else mesh.devices.flat[0].platform
+    if mesh is None:  # no exchanges
+        def psum(x):
+            return x
 
-    platform = mesh.devices.flat[0].platform
+        def share(v):
+            return v
+
+        def gather(d):
+            return d
+    else:
+        def psum(x):
+            return jax.lax.psum(x, AXIS)
+
+        def share(v):  # this device's slice of a whole vector, padded to n_loc * n_dev
+            return jax.lax.dynamic_slice(jnp.pad(v, (0, n_loc * n_dev - n)), (jax.lax.axis_index(AXIS) * n_loc,),
+                                         (n_loc,))
+
+        def gather(d):
+            return jax.lax.all_gather(d, AXIS, tiled=True)[:n]
 
     def fn(v, args, conn, weight):
-        return objective(v, args, conn, weight, n_dev, platform)
+        return objective(v, args, conn, weight, n_dev, platform, *static)
 
     def local(args, conn, weight, y0, consts, limit):
         ftol, kstop, rtol, atol, cap = (consts[i] for i in range(5))
         dtype = y0.dtype
-        me = jax.lax.axis_index(AXIS)
-
-        def share(v):  # this device's slice of a whole vector, padded to n_loc * n_dev
-            return jax.lax.dynamic_slice(jnp.pad(v, (0, n_loc * n_dev - n)), (me * n_loc,), (n_loc,))
 
         def capped(d):
-            big = _amax(d)
-            k = jnp.where((cap > 0) & (big > cap), cap / jnp.where(big > 0, big, 1.0), 1.0)
-            return d * k
+            return d * cap_factor(_amax(d), cap, jnp)
 
         def finished(f, k):  # the stops at an accepted iterate besides the Cauchy test
             return (f <= ftol) | (k <= kstop)
@@ -179,8 +228,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
         def accepted(it, y_try, v_try, g_try, f_try, k_try):
             mem = it["mem"]
             ds, dg = y_try - it["y"], g_try - it["g"]  # the new pair
-            converged = ((_amax(ds) < atol + rtol * _amax(y_try))
-                         & (jnp.abs(v_try - it["value"]) < atol + rtol * jnp.abs(v_try)))
+            done = converged(_amax(ds), _amax(y_try), v_try, it["value"], rtol, atol)
             s_l, y_l, g_l = share(ds), share(dg), share(g_try)
             W = mem["W"]
             # every dot the update and the recursion need, over this device's share, in ONE all-reduce
@@ -189,9 +237,9 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
             dots = jnp.matmul(W, jnp.stack([s_l, y_l, g_l], axis=1), precision=jax.lax.Precision.HIGHEST)
             pair = jnp.stack([jnp.dot(s_l, y_l), jnp.dot(s_l, s_l), jnp.dot(y_l, y_l), jnp.dot(s_l, g_l),
                               jnp.dot(y_l, g_l)])
-            tot = jax.lax.psum(jnp.concatenate([dots.reshape(-1), pair]), AXIS)
+            tot = psum(jnp.concatenate([dots.reshape(-1), pair]))
             dots, (sy, ss, yy, sg, yg) = tot[:6 * m].reshape(2 * m, 3), (tot[6 * m + i] for i in range(5))
-            push = sy > 1e-12 * jnp.sqrt(ss) * jnp.sqrt(yy)  # the host's test (no overflow of ss * yy)
+            push = curvature_ok(sy, ss, yy, jnp)
             j = mem["count"] % m
             SY = jnp.where(push, mem["SY"].at[j, :].set(dots[m:, 0]).at[:, j].set(dots[:m, 1]).at[j, j].set(sy),
                            mem["SY"])
@@ -203,7 +251,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
             b = jnp.where(push, dots[m:, 2].at[j].set(yg), dots[m:, 2])
             c, e, gamma = _two_loop_coefficients(SY, YY, a, b, age)
             d_l = -(gamma * g_l + jnp.matmul(jnp.concatenate([c, e]), W, precision=jax.lax.Precision.HIGHEST))
-            d = jax.lax.all_gather(d_l, AXIS, tiled=True)[:n]
+            d = gather(d_l)
             descent = jnp.dot(g_try, d) < 0  # else: the memory forgotten, the steepest descent
             d = jnp.where(descent, d, -g_try)
             age = jnp.where(descent, age, -1)
@@ -211,7 +259,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
             trial = capped(d)
             return dict(it, y=y_try, g=g_try, value=v_try, f=f_try, k=k_try, trial=trial,
                         slope=jnp.dot(g_try, trial), alpha=jnp.ones((), dtype), rejected=jnp.int32(0),
-                        stop=converged | finished(f_try, k_try),
+                        stop=done | finished(f_try, k_try),
                         mem=dict(W=W, SY=SY, YY=YY, age=age, count=count))
 
         def rejected(it, *_):
@@ -221,7 +269,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
         def body(it):
             y_try = it["y"] + it["alpha"] * it["trial"]
             v_try, g_try, f_try, k_try = fn(y_try, args, conn, weight)
-            ok = jnp.isfinite(v_try) & (v_try <= it["value"] + SLOPE * it["alpha"] * it["slope"])
+            ok = jnp.isfinite(v_try) & armijo(v_try, it["value"], it["alpha"], it["slope"])
             it = jax.lax.cond(ok, accepted, rejected, it, y_try, v_try, g_try, f_try, k_try)
             steps = it["steps"] + 1
             return dict(it, steps=steps, hf=it["hf"].at[steps].set(it["f"]), hk=it["hk"].at[steps].set(it["k"]))
@@ -230,6 +278,9 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, mesh, max_st
         code = jnp.where(~ok, 2, jnp.where(it["stop"], 0, 1)).astype(jnp.int32)
         return it["y"], it["steps"], code, it["hf"], it["hk"]
 
+    limit = jnp.minimum(jnp.asarray(limit, jnp.int32), max_steps)
+    if mesh is None:
+        return local(args, conn, weight, y0, consts, limit)
     run = jax.shard_map(local, mesh=mesh, in_specs=(P(), P(None, AXIS), P(AXIS), P(), P(), P()),
                         out_specs=(P(), P(), P(), P(), P()), check_vma=False)
-    return run(args, conn, weight, y0, consts, jnp.minimum(jnp.asarray(limit, jnp.int32), max_steps))
+    return run(args, conn, weight, y0, consts, limit)
