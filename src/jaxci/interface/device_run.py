@@ -12,13 +12,14 @@ every O(mesh) stage then runs as compiled programs on the device:
 - the presmoothing, the parametrisation and L-BFGS (`jaxci.optim.gradient.run_gradient`);
 - the unit frame's mapping both ways.
 
-What the host does is O(boundary) or O(worst elements): the boundary's classification from the boundary faces
-and the boundary nodes' coordinates (feature edges, patches, curves: graph work on the boundary), the tables of
-the constraints (triangles, segments, candidates) built from them, the exact float64 projection of the boundary
-nodes (`jaxci.geometry.device_constraints.project_boundary`: a k-d tree search per patch), the worst-element
-polish on a window of the worst cells (`jaxci.optim.polish_window`), and the figures the reports and checks
-bring down. The result's coordinates come down once, float64. `jaxci.runtime.transfer` counts every byte each way and
-the time inside compiled programs; the run passes under ``jax.transfer_guard("disallow")`` (tested).
+What the host does is O(boundary) or O(worst elements): the boundary's classification from the boundary faces and the
+boundary nodes' coordinates (feature edges, patches, curves: graph work on the boundary), the tables of the constraints
+(triangles, segments, candidates) built from them, the exact float64 projection of the boundary nodes that are not
+inside their flat regions (`jaxci.geometry.device_constraints.project_boundary`: a k-d tree search per patch; the others
+are projected onto their planes on the device), the worst-element polish on a window of the worst cells
+(`jaxci.optim.polish_window`), and the figures the reports and checks bring down. The result's coordinates come down
+once, float64. `jaxci.runtime.transfer` counts every byte each way and the time inside compiled programs; the run passes
+under ``jax.transfer_guard("disallow")`` (tested).
 
 Other runs on the JAX engine (mixed or quadratic meshes, coincident nodes, sharded runs, inverted input, other
 methods) take `jaxci.smooth`'s general path, whose host stages are numpy.
@@ -50,7 +51,7 @@ from .result import SmoothResult
 DEVICE_METHODS = ("lbfgs",)
 
 #: Hexahedra from which the run lives on the device (`applies`). Its programs are compiled for the mesh's own
-#: sizes (the boundary's, the colours', the worst window's), so a mesh of a new size compiles about 27 of them
+#: sizes (the boundary's, the colours', the worst window's), so a mesh of a new size compiles about 38 of them
 #: (7.5 s on a 2-core Xeon; 0.7 s to load them from the persistent cache at a size seen before), where the general
 #: path's compiled programs are shared by every mesh of a size class and its O(mesh) host stages take well under
 #: that on a smaller mesh.

@@ -161,8 +161,8 @@ def _avals(split: _Split) -> tuple[tuple, str]:
         elif not (_is_array(v) or type(v) in (bool, int, float, complex)):
             raise Unkeyable(f"a dynamic argument of type {qualified(type(v))}")
         aval = jax.typeof(v)
-        if hasattr(v, "dtype") and aval.dtype != v.dtype:  # jit would convert it; an executable takes it as it is
-            raise Unkeyable(f"a {v.dtype} argument narrowed to {aval.dtype} (x64 off)")
+        if isinstance(v, jax.Array) and aval.dtype != v.dtype:  # jit converts it; an executable takes it as it is
+            raise Unkeyable(f"a {v.dtype} device array narrowed to {aval.dtype} (x64 off)")
         avals.append((tuple(aval.shape), aval.dtype, bool(aval.weak_type)))
     if len(platforms) > 1:
         raise Unkeyable(f"arrays on several platforms ({', '.join(sorted(platforms))})")
