@@ -1,4 +1,6 @@
 import os
+import shutil
+import tempfile
 
 # XLA:CPU compiles the suite's thousands of distinct small programs (most of its time) with LLVM's cheaper
 # pipeline: the same programs, on arrays too small for the code's speed to matter (about a quarter less time on the
@@ -15,11 +17,28 @@ jax.config.update("jax_enable_x64", True)
 # (jaxci.runtime.compile_cache): its tests spy on and patch traced code, which a program loaded from the cache would not
 # run. tests/test_compile_cache.py, and the tests that start processes, give their own cache folders.
 os.environ["JAXCI_CACHE_DIR"] = ""
+# One XLA compile per distinct program for the whole run, not one per test module (each module's end drops the
+# in-memory programs, below) and per worker: JAX's persistent compilation cache in a folder of this run, shared by
+# the workers (the first process makes it; the workers inherit its name). Tracing and lowering still run, so the
+# spies see every call; the processes the tests start are not given it (they run with the caches they ask for).
+if "JAXCI_SUITE_XLA_CACHE" not in os.environ:
+    os.environ["JAXCI_SUITE_XLA_CACHE"] = tempfile.mkdtemp(prefix="jaxci-suite-xla-")
+_XLA_CACHE = os.environ["JAXCI_SUITE_XLA_CACHE"]
+jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
 
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "shared: reads the real meshes of ../shared/data or ../shared/peers; "
                                        "skipped (one line says why) where ../shared is not beside the repository")
+
+
+def pytest_unconfigure(config):
+    """The run's compilation cache goes with the process that made it (not a worker)."""
+    if not hasattr(config, "workerinput"):
+        shutil.rmtree(_XLA_CACHE, ignore_errors=True)
+        os.environ.pop("JAXCI_SUITE_XLA_CACHE", None)
 
 
 def pytest_collection_modifyitems(config, items):
