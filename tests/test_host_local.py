@@ -296,3 +296,30 @@ def test_host_pattern_move_stops_at_the_first_factor_where_f_rises():
     sw.pattern(D, f, k)
     assert len(calls) == 4
     np.testing.assert_allclose(sw.x, np.asarray(mesh.points) + 2 * D, atol=1e-15)
+
+
+def test_both_engines_pick_the_same_pattern_trial():
+    """`pattern_choice`, the one rule of local CI's pattern move: numpy (the host, which stops evaluating at the
+    first rise of F) and jax.numpy (the compiled sweep, all six trials at once) pick the trial that the
+    sequential rule picks (the lowest F below the current one with the worst corner within bound, among the trials
+    up to the first rise), on random F (NaN and inf among them) and max kappa/3."""
+    import jax.numpy as jnp
+
+    from jaxci.optim.ci_params import EXCESS_GROWTH, PATTERN_FACTORS, pattern_choice
+
+    rng = np.random.default_rng(0)
+    m = len(PATTERN_FACTORS)
+    for t in range(500):
+        f, k = 1.0, 1.5
+        fy, ky = rng.uniform(0.5, 1.2, m), rng.uniform(1.2, 2.5, m)
+        fy[rng.integers(m)] = (np.nan, np.inf, fy[0])[t % 3]
+        want, low, previous = -1, f, f
+        for i in range(m):  # in order, as the host evaluates them
+            if fy[i] < low and ky[i] - 1 <= EXCESS_GROWTH * (k - 1):
+                want, low = i, fy[i]
+            if not fy[i] < previous:
+                break
+            previous = fy[i]
+        got_np = int(pattern_choice(f, k, fy, ky, np))
+        got_jax = int(pattern_choice(jnp.asarray(f), jnp.asarray(k), jnp.asarray(fy), jnp.asarray(ky), jnp))
+        assert got_np == got_jax == want, (t, got_np, got_jax, want, fy, ky)

@@ -75,6 +75,7 @@ from .ci_params import (  # noqa: F401  (the parameters, re-exported: jaxci.opti
     CIParams,
     ci_params,
     excess_within_bound,
+    pattern_choice,
 )
 from .cohort import StaticParams, follow, split_params
 
@@ -130,10 +131,9 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: StaticParams, d:
 
 
 def _pattern_move(x, D, f, k, conn, cons: Constraints, extra: ExtraCells, weight=None):
-    """``(x, f, k)`` after the pattern move: the best of ``project(x + a D)`` over `PATTERN_FACTORS` where its F
-    is below `f` and its max kappa/3 within `EXCESS_GROWTH` of `k` (`_better`; an inverted corner makes F
-    infinite: never taken), else `x`, `f`, `k` unchanged. `weight`: as in
-    `jaxci.metrics.objective.objective_and_max`."""
+    """``(x, f, k)`` after the pattern move: the ``project(x + a D)`` over `PATTERN_FACTORS` that
+    `pattern_choice` picks (all six evaluated at once; an inverted corner makes F infinite: never taken), else
+    `x`, `f`, `k` unchanged. `weight`: as in `jaxci.metrics.objective.objective_and_max`."""
     from ..geometry.projection import project
 
     def trial(a):
@@ -142,8 +142,8 @@ def _pattern_move(x, D, f, k, conn, cons: Constraints, extra: ExtraCells, weight
 
     factors = jnp.asarray(PATTERN_FACTORS, x.dtype)
     fy, ky = jax.lax.map(lambda a: trial(a)[1:], factors)
-    best = jnp.argmin(jnp.where(_better(f, k, fy, ky), fy, jnp.inf))
-    return _take_if_better(x, f, k, *trial(factors[best]))
+    best = pattern_choice(f, k, fy, ky, jnp)
+    return _take_if_better(x, f, k, *trial(factors[jnp.maximum(best, 0)]))
 
 
 def _better(f, k, fy, ky):

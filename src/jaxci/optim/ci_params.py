@@ -188,3 +188,21 @@ def excess_within_bound(k, ky):
     """Whether a trial's max kappa/3 `ky` keeps the worst corner's excess within `EXCESS_GROWTH` times that of the
     current max `k` (floats or arrays: the host's `_Sweeper.best_of` and the compiled `jaxci.optim.ci._better`)."""
     return ky - 1.0 <= EXCESS_GROWTH * (k - 1.0)
+
+
+def pattern_choice(f, k, fy, ky, xp):
+    """The trial the pattern move takes, both engines: an index into `fy`, `ky` ``(m,)`` (F and max kappa/3 of
+    the projected trials ``x + a D``, a in `PATTERN_FACTORS` in order, the first m of them), or -1 for none. Along
+    the line F has one minimum, so the trials after the first whose F is not below its predecessor's (or `f`, F at
+    the current mesh, for the first) are not considered; of the others the lowest F that is finite, below `f` and
+    keeps the worst corner's excess within bound (`excess_within_bound` of the current max `k`), the first of equal
+    ones. The host (`jaxci.optim.host_local`) evaluates the trials in order and stops at that first rise (1-4
+    evaluations a sweep on the boxes and pave3 instead of 6), the compiled sweep (`jaxci.optim.ci`) evaluates all
+    six at once: the same pick. `xp`: the array module."""
+    fy, ky = xp.asarray(fy), xp.asarray(ky)
+    idx = xp.arange(fy.shape[0])
+    rise = ~(fy < xp.concatenate([xp.reshape(xp.asarray(f, fy.dtype), (1,)), fy[:-1]]))
+    last = xp.min(xp.where(rise, idx, fy.shape[0] - 1))  # the last trial considered
+    ok = (idx <= last) & xp.isfinite(fy) & (fy < f) & excess_within_bound(k, ky)
+    best = xp.argmin(xp.where(ok, fy, xp.inf))
+    return xp.where(ok[best], best, -1)

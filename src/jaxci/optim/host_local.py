@@ -39,7 +39,7 @@ from ..runtime.phases import stepper
 from ._anderson import AndersonMemory
 from ._local import edge_neighbours, gather_star, local_length, star_nodes
 from ._moves import coloured_stars, onto_plane
-from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound
+from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound, pattern_choice
 from .laplace import LaplaceParams
 
 #: Largest hexahedral mesh on which ``engine="auto"`` runs the local methods on the host (with the C kernels;
@@ -226,29 +226,38 @@ class _Sweeper:
         self.projector.hint[1][col.erow] = hints[col.b :]
 
     def pattern(self, D: np.ndarray, f: float, kmax: float) -> tuple[float, float]:
-        """The pattern move along the sweep's displacement `D` (`jaxci.optim.ci._pattern_move`): the best
-        projected ``x + a D`` if it lowers `f` (F at the current `x`) on the condition of `best_of`; returns
-        ``(F, max kappa/3)`` after it. The factors `PATTERN_FACTORS` are tried in increasing order until F stops
-        falling (`best_of` with ``line=True``): along the line F has one minimum (on the boxes and pave3 the best
-        factor came before the first rise every time: 1 to 4 evaluations a sweep instead of 6)."""
-        return self.best_of((self.x + a * D for a in PATTERN_FACTORS), f, kmax, line=True)
+        """The pattern move along the sweep's displacement `D` (`jaxci.optim.ci._pattern_move`): the mesh becomes
+        the projected ``x + a D`` that `pattern_choice` picks (`f`, `kmax`: F and max kappa/3 at the current `x`),
+        the factors `PATTERN_FACTORS` tried in order up to the first rise of F; returns ``(F, max kappa/3)`` after
+        it. Only the trial picked so far is kept (the pick over a prefix of the trials changes only to its
+        newest)."""
+        fys, kys, best = [], [], (f, kmax, None, None)
+        for a in PATTERN_FACTORS:
+            y, hint = self.projector(self.x + a * D)
+            fy, ky = self.objective(y)
+            fys.append(fy)
+            kys.append(ky)
+            if int(pattern_choice(f, kmax, fys, kys, np)) == len(fys) - 1:
+                best = (fy, ky, y, hint)
+            if not fy < (fys[-2] if len(fys) > 1 else f):  # the first rise: the trials after it are not considered
+                break
+        return self._take(best)
 
-    def best_of(self, trials, f: float, kmax: float, line: bool = False) -> tuple[float, float]:
+    def best_of(self, trials, f: float, kmax: float) -> tuple[float, float]:
         """The mesh becomes the best of `trials` (an iterable of ``(n, 3)`` points, each projected onto the
         boundary) where it lowers `f` (F at the current `x`) and its max kappa/3 - 1 is at most `EXCESS_GROWTH`
         times ``kmax - 1`` (`kmax` the current max kappa/3; `jaxci.optim.ci._better`); returns
-        ``(F, max kappa/3)`` after it. `line`: the trials are points along a line in order; stop at the first
-        whose F is not below its predecessor's (or `f` for the first)."""
+        ``(F, max kappa/3)`` after it."""
         best = (f, kmax, None, None)
-        previous = f
         for t in trials:
             y, hint = self.projector(t)
             fy, ky = self.objective(y)
             if fy < best[0] and excess_within_bound(kmax, ky):
                 best = (fy, ky, y, hint)
-            if line and not fy < previous:
-                break
-            previous = fy
+        return self._take(best)
+
+    def _take(self, best) -> tuple[float, float]:
+        """``best`` = ``(F, max kappa/3, points, projector hint)``: the mesh becomes `points` unless None."""
         if best[2] is not None:
             self.x = best[2]
             self.projector.commit(best[3])
