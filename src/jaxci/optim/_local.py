@@ -240,3 +240,24 @@ def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = 
     nbr = np.repeat(np.arange(n_nodes)[:, None], K, axis=1)
     nbr[mask] = dst
     return nbr, mask
+
+
+def laplace_trials(x, x0, nbr, nmask, basis, n_steps: int, xp):
+    """The (smart) Laplacian's trial points for the nodes of one colour, both engines (`jaxci.optim.laplace`,
+    `jaxci.optim.host_local`), before their projection onto the boundary: each node's move towards the centroid of
+    its edge neighbours `nbr` ``(M, K)`` (real where `nmask`) in `x` ``(n, 3)``, from its position `x0` ``(M, 3)``,
+    restricted to its free directions `basis` ``(M, 3, 3)`` (columns; zero for none), and the fractions 1, 1/2,
+    ... of it (`n_steps`): ``(M, n_steps, 3)``. `xp`: the array module."""
+    w = nmask[..., None].astype(x.dtype)
+    centroid = xp.sum(x[nbr] * w, axis=1) / xp.maximum(xp.sum(w, axis=1), 1.0)
+    d = xp.einsum("mij,mj->mi", basis, xp.einsum("mji,mj->mi", basis, centroid - x0))
+    fractions = xp.asarray([0.5**k for k in range(n_steps)], x.dtype)
+    return x0[:, None] + fractions[None, :, None] * d[:, None]
+
+
+def longest_step(f0, ft, xp):
+    """The smart Laplacian's choice for each node, both engines: ``(j, accept)``, the longest trial (the first
+    of `ft` ``(M, S)``, the local objective at each trial, longest first) whose local objective is finite and
+    below `f0` ``(M,)`` (the node's as it is), and whether there is one. `xp`: the array module."""
+    ok = (ft < f0[:, None]) & xp.isfinite(ft)
+    return xp.argmax(ok, axis=1), xp.any(ok, axis=1)

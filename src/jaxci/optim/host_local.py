@@ -37,7 +37,7 @@ from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
 from ..runtime.phases import stepper
 from ._anderson import AndersonMemory
-from ._local import edge_neighbours, gather_star, local_length, star_nodes
+from ._local import edge_neighbours, gather_star, laplace_trials, local_length, longest_step, star_nodes
 from ._moves import coloured_stars, onto_plane
 from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound, pattern_choice
 from .laplace import LaplaceParams
@@ -191,21 +191,14 @@ class _Sweeper:
         returns the largest move over the nodes' lengths `h` ``(M,)``."""
         x = self.x
         x0 = x[col.nodes]
-        w = nmask[..., None].astype(np.float64)
-        centroid = (x[nbr] * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)
-        d = np.einsum("mij,mj->mi", col.basis, np.einsum("mji,mj->mi", col.basis, centroid - x0))
         n_steps = self.p.backtrack if smart else 1
-        steps = 0.5 ** np.arange(n_steps)
         hints = self._hints(col)
         th = np.repeat(hints[:, None], n_steps, axis=1)
-        trials = self._project(col, x0[:, None] + steps[None, :, None] * d[:, None], th)
+        trials = self._project(col, laplace_trials(x, x0, nbr, nmask, col.basis, n_steps, np), th)
         rows = np.arange(len(x0))
         if smart:
             f0 = native.local_sums(x, self.hexes, col.inc, col.count, x0[:, None])[:, 0]
-            ft = native.local_sums(x, self.hexes, col.inc, col.count, trials)
-            ok = (ft < f0[:, None]) & np.isfinite(ft)
-            j = np.argmax(ok, axis=1)  # the longest acceptable step
-            accept = ok.any(axis=1)
+            j, accept = longest_step(f0, native.local_sums(x, self.hexes, col.inc, col.count, trials), np)
         else:
             j = np.zeros(len(x0), np.int64)
             accept = np.ones(len(x0), bool)

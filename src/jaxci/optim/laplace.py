@@ -15,7 +15,10 @@ accepted local decreases: from a valid mesh the smart Laplacian never inverts a 
 
 Both sweep the colours in turn (Gauss-Seidel by colour, as the local CI does: `ColouredStars`, one batched
 evaluation per colour, `jax.lax` loops under one `jax.jit`) until the largest move of a sweep is below
-``tol * h`` (h the local edge length of the node that moved) or after `max_sweeps` sweeps.
+``tol * h`` (h the local edge length of the node that moved) or after `max_sweeps` sweeps. A colour's trials and
+the choice among them are written once for both engines (`jaxci.optim._local.laplace_trials`, `longest_step`;
+the host engine's sweep: `jaxci.optim.host_local.laplace_np`); the projection and the local objective's kernel are
+each engine's own.
 """
 
 from __future__ import annotations
@@ -39,7 +42,14 @@ from ..runtime._lazy import jax, jit, jnp
 from ..runtime.transfer import program, to_host
 from . import _params as _p
 from ._buckets import bucket, device_dtype, to_device
-from ._local import HEX_EDGES, edge_neighbours, gather_star, star_coords  # noqa: F401  (re-exported)
+from ._local import (  # noqa: F401  (re-exported)
+    HEX_EDGES,
+    edge_neighbours,
+    gather_star,
+    laplace_trials,
+    longest_step,
+    star_coords,
+)
 from ._moves import (
     ColouredStars,
     colour_slice,
@@ -100,21 +110,12 @@ def _colour_step(x, conn, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: b
     nodes, mask = cs_i.nodes, cs_i.mask
     safe = jnp.minimum(nodes, x.shape[0] - 1)
     x0 = x[safe]  # (M, 3)
-    w = nmask_i.astype(x.dtype)
-    cnt = jnp.maximum(jnp.sum(w, axis=-1, keepdims=True), 1.0)
-    centroid = jnp.stack([jnp.sum(x[:, d][nbr_i] * w, axis=-1) for d in range(3)], axis=-1) / cnt
-    d = centroid - x0
-    dt = jnp.einsum("mij,mj->mi", cs_i.basis, jnp.einsum("mji,mj->mi", cs_i.basis, d))
-    fractions = jnp.asarray([0.5**k for k in range(n_steps)], x.dtype)
-    trials = x0[:, None] + fractions[None, :, None] * dt[:, None]  # (M, S, 3)
-    trials = project_trials(cons, cs_i, trials)
+    trials = project_trials(cons, cs_i, laplace_trials(x, x0, nbr_i, nmask_i, cs_i.basis, n_steps, jnp))
     if smart:
         E = star_coords(x, conn, cs_i.star)
         f0 = local_sum(x, cs_i, E, x0[:, None])[:, 0]
-        ft = local_sum(x, cs_i, E, trials)
-        ok = (ft < f0[:, None]) & jnp.isfinite(ft)
-        j = jnp.argmax(ok, axis=1)  # the longest acceptable step
-        accept = mask & jnp.any(ok, axis=1)
+        j, accept = longest_step(f0, local_sum(x, cs_i, E, trials), jnp)
+        accept = mask & accept
         new = jnp.take_along_axis(trials, j[:, None, None], axis=1)[:, 0]
     else:
         accept = mask
