@@ -248,8 +248,9 @@ def laplace_trials(x, x0, nbr, nmask, basis, n_steps: int, xp):
     its edge neighbours `nbr` ``(M, K)`` (real where `nmask`) in `x` ``(n, 3)``, from its position `x0` ``(M, 3)``,
     restricted to its free directions `basis` ``(M, 3, 3)`` (columns; zero for none), and the fractions 1, 1/2,
     ... of it (`n_steps`): ``(M, n_steps, 3)``. `xp`: the array module."""
-    w = nmask[..., None].astype(x.dtype)
-    centroid = xp.sum(x[nbr] * w, axis=1) / xp.maximum(xp.sum(w, axis=1), 1.0)
+    w = nmask.astype(x.dtype)
+    count = xp.maximum(xp.sum(w, axis=-1, keepdims=True), 1.0)
+    centroid = xp.stack([xp.sum(x[:, c][nbr] * w, axis=-1) for c in range(3)], axis=-1) / count  # a column each
     d = xp.einsum("mij,mj->mi", basis, xp.einsum("mji,mj->mi", basis, centroid - x0))
     fractions = xp.asarray([0.5**k for k in range(n_steps)], x.dtype)
     return x0[:, None] + fractions[None, :, None] * d[:, None]
