@@ -35,6 +35,7 @@ from ..mesh import HexMesh
 from ..mesh.frame import frame_of_bounds
 from ..mesh.sorting import sorted_unique
 from ..runtime._lazy import enable_x64, jax, jnp
+from ..runtime.sizes import bucket
 from ..runtime.transfer import program, to_device, to_host
 from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo, classify_boundary, non_hex_cells
 from .device_topology import first_true
@@ -190,7 +191,8 @@ def project_boundary(constraints: Constraints, tables: BoundaryTables, points, f
     **Arguments:** `constraints`, `tables`: `device_constraints`' results; `points`: device coordinates
     ``(n_nodes, 3)``; `flats` (optional): the flat regions of the surface nodes, ``(origin, normal, radius)``
     device float64 arrays ``(n_nodes, 3)`` (the original coordinates), ``(n_surface, 3)`` and ``(n_surface,)``
-    (`jaxci.optim.device_parametrisation.flat_regions`; radius 0: none). A surface node whose projection onto the
+    (the planar rings of `jaxci.optim.device_stars.surface_planes`, as `jaxci.interface.methods.Problem` holds
+    them; radius 0: none). A surface node whose projection onto the
     plane of its flat region stays inside it (0.999 of its radius, as the parametrisation's shortcut) is projected
     there, on the device: that is its nearest point on its patch; the others, and the edge nodes, are searched.
 
@@ -210,17 +212,20 @@ def project_boundary(constraints: Constraints, tables: BoundaryTables, points, f
             points, off = _flat_project(as_float64(points), surf, *flats)
             rows = np.flatnonzero(to_host(off))  # the surface nodes left to search: O(boundary) flags down
             sgroup = sgroup[rows]
-            # padded to a power of two (repeats of the last row: the same value written twice), so that the
+            # padded to their size class (repeats of the last row: the same value written twice), so that the
             # programs below are compiled for a few sizes only
-            pad = np.concatenate([rows, np.full((1 << int(len(rows) - 1).bit_length()) - len(rows) if len(rows)
-                                                else 0, rows[-1] if len(rows) else 0)]).astype(np.int32)
-            surf = _rows(surf, to_device(pad))
+            surf = _rows(surf, to_device(_padded(rows, bucket(len(rows))), np.int32))
         xs, xe = to_host(_take(points, surf, edge))
         ps, pe = project_on_groups(tables, xs[: len(sgroup)], sgroup, xe, tables.edge_group)
         if flats is not None:
-            ps = np.concatenate([ps, np.repeat(ps[-1:], len(xs) - len(ps), axis=0)]) if len(ps) else xs
+            ps = _padded(ps, len(xs))
         ps, pe, pc = to_device(tuple(np.asarray(a, dtype=dt) for a in (ps, pe, tables.corner_points)))
         return _put(points, surf, ps, edge, pe, constraints.corner_nodes, pc)
+
+
+def _padded(a: np.ndarray, n: int) -> np.ndarray:
+    """`a` with its last row repeated up to `n` rows (an empty `a` stays empty)."""
+    return np.pad(a, [(0, n - len(a))] + [(0, 0)] * (a.ndim - 1), mode="edge") if len(a) else a
 
 
 @program

@@ -666,10 +666,11 @@ def _polish(problem, par: Parametrisation, x, steps: int, hist: dict, p: Gradien
     n_cells = sum(len(c) for c in blocks.values())
     pp = PolishParams(budget=p.polish_budget, work=float(max(steps, 1)) * n_cells)
     if problem.tables is not None:  # the mesh on the device: the polish on a window of its worst cells
+        from ..geometry.device_constraints import as_float64
         from .polish_window import put_back, window
 
         with jax.enable_x64(True):
-            x = _as_float64(x)
+            x = as_float64(x)
             win = window(x, problem.conn, problem.cons, par, problem.tables)
             y, report = polish(None, win.cons, win.par, win.x, pp, win.blocks, win.rest)
             return put_back(x, win, y), steps + int(report["rounds"]), _polish_history(hist, report)
@@ -690,12 +691,6 @@ def _polish_history(hist: dict, report: dict) -> dict:
     hist["max_condition"] = np.concatenate([np.asarray(hist["max_condition"], np.float64),
                                             report["max_condition"]])
     return hist
-
-
-@program
-@jit
-def _as_float64(x):
-    return x.astype(jnp.float64)
 
 
 # ---------------------------------------------------------------------------------------------- mixed meshes

@@ -60,8 +60,8 @@ def cap_factor(biggest, cap, xp=np):
 
 def armijo(v_try, value, alpha, slope):
     """Whether a trial of objective `v_try` at step size `alpha` along a direction of slope `slope` (``g . d``)
-    from an iterate of objective `value` is accepted: finite, and a decrease of at least `SLOPE` of the linear
-    model's. (A NaN `v_try` fails the comparison.)"""
+    from an iterate of objective `value` passes the Armijo test: a decrease of at least `SLOPE` of the linear
+    model's (a NaN `v_try` fails it; the loops also refuse a trial whose objective or gradient is not finite)."""
     return v_try <= value + SLOPE * alpha * slope
 
 
