@@ -22,6 +22,7 @@ import pytest
 
 from jaxci.runtime import compile_cache
 from jaxci.runtime._export import _dumps, exportable
+from jaxci.optim.cohort import StaticParams
 from jaxci.runtime._keys import Keyer, Unkeyable
 from jaxci.runtime._lazy import jit, pytree_dataclass
 from jaxci.runtime.transfer import compile_totals, program
@@ -76,6 +77,10 @@ def test_keys_tell_apart_what_tracing_depends_on_and_refuse_what_they_cannot_key
     assert key(closure(1.0)) != key(closure(2.0)) and key(closure(1.0)) == key(closure(1.0))
     assert key(optx.LBFGS(rtol=1e-3, atol=1e-4)) != key(optx.LBFGS(rtol=1e-3, atol=1e-5))
     assert key(np.arange(4)) != key(np.arange(4) + 1)
+    # a named tuple of static hyperparameters (CI's StaticParams) by its values: once keyed by its empty state,
+    # a stored global CI program of 60 attempts ran when 1000 were asked for
+    assert key(StaticParams(5, 5, 60, 200, 20, True, 8)) != key(StaticParams(5, 5, 1000, 200, 20, True, 8))
+    assert key(StaticParams(5, 5, 60, 200, 20, True, 8)) != key((5, 5, 60, 200, 20, True, 8))
     for bad in (jnp.ones(3), threading.Lock(), np.zeros(1 << 17)):
         with pytest.raises(Unkeyable):
             key(bad)

@@ -121,8 +121,9 @@ class Keyer:
         t, d = type(obj), depth + 1
         if t in SIMPLE:
             return f"{t.__name__}:{obj!r}"
-        if t in (tuple, list):
-            return f"{t.__name__}({','.join(self(o, d) for o in obj)})"
+        if isinstance(obj, (tuple, list)):  # a named tuple by its type and values (it has no state of its own)
+            name = t.__name__ if t in (tuple, list) else qualified(t)
+            return f"{name}({','.join(self(o, d) for o in obj)})"
         if isinstance(obj, (set, frozenset)):
             return f"set({','.join(sorted(self(o, d) for o in obj))})"
         if isinstance(obj, Mapping):
