@@ -1429,10 +1429,36 @@ static unsigned long long splitmix(unsigned long long *x) {
 
 static inline unsigned long long rotl(unsigned long long x, int k) { return (x << k) | (x >> (64 - k)); }
 
-static inline double uniform(Rng *r) { /* [0, 1) */
+static inline double xoshiro(Rng *r) { /* [0, 1) */
     unsigned long long *s = r->s, out = rotl(s[1] * 5, 7) * 9, t = s[1] << 17;
     s[2] ^= s[0]; s[3] ^= s[1]; s[1] ^= s[2]; s[0] ^= s[3]; s[2] ^= t; s[3] = rotl(s[3], 45);
     return (double)(out >> 11) * 0x1.0p-53;
+}
+
+/* The counter stream of jaxci.optim._draws (its `mix` and float64 `uniforms`; C cannot call them): the numbers
+ * the JAX engine draws with stream="counter", checked against them in tests/test_ci_parity.py. */
+static inline unsigned int mix32(unsigned int h, unsigned int v) {
+    h ^= v * 0x9E3779B1u;
+    h ^= h >> 16; h *= 0x85EBCA6Bu; h ^= h >> 13; h *= 0xC2B2AE35u;
+    return h ^ (h >> 16);
+}
+
+static inline double counter_uniform(unsigned int h, unsigned int i) {
+    unsigned int a = mix32(h, 2u * i) >> 5, b = mix32(h, 2u * i + 1u) >> 6;
+    return ((double)a * 67108864.0 + (double)b) * (1.0 / 9007199254740992.0);
+}
+
+/* A node's uniforms in [0, 1): its own xoshiro256** stream, or (counter) the draw `what` (0 the roulette, 1 the
+ * trials) of learning attempt `a` at the node's word `h`, index i. */
+typedef struct {
+    Rng rng;
+    int counter;
+    unsigned int h;
+} Draws;
+
+static inline double uniform(Draws *r, int a, int what, int i) {
+    return r->counter ? counter_uniform(mix32(mix32(r->h, (unsigned int)a), (unsigned int)what), (unsigned int)i)
+                      : xoshiro(&r->rng);
 }
 
 /* The cell tables of one boundary kind: candidate columns (rows x K), table (nc columns), spheres. */
@@ -1453,6 +1479,7 @@ typedef struct {
     int C, t, T, n_roulette;
     double reduction, delta, init_width, min_width, tol, bump;
     unsigned long long seed;
+    int counter;
     long long moved;
     int failed;
 } CiJob;
@@ -1484,9 +1511,11 @@ static void *ci_worker(void *arg) {
     double *ys = work + 10 * C, *fs = work + 10 * C + 3 * S; /* trials (3 x S) and their local objectives */
     long long *ch = iwork, *chint = iwork + C, *follow = iwork + 2 * C, *hs = iwork + 3 * C;
     for (Py_ssize_t m = J->lo; m < J->hi; m++) {
-        Rng rng; /* each node its own stream: the same result on any number of threads */
+        Draws rng; /* each node its own stream: the same result on any number of threads */
         unsigned long long sm = J->seed ^ (0x9e3779b97f4a7c15ULL * (unsigned long long)(m + 1));
-        for (int i = 0; i < 4; i++) rng.s[i] = splitmix(&sm);
+        for (int i = 0; i < 4; i++) rng.rng.s[i] = splitmix(&sm);
+        rng.counter = J->counter;
+        rng.h = mix32((unsigned int)J->seed, (unsigned int)NODES[m]); /* the visit's word, then the node */
         double *xv = X + 3 * NODES[m], x0[3] = {xv[0], xv[1], xv[2]}, w0 = WIDTH[NODES[m]], h = 0.0;
         const double *basis = BASIS + 9 * m, *fr = FREE + 3 * m, *pl = PLANE + 7 * m;
         long long kd = KIND[m];
@@ -1519,7 +1548,7 @@ static void *ci_worker(void *arg) {
                 double total = 0.0;
                 for (int c = 0; c < C; c++) cum[c] = (total += 1.0 / (fc[c] + delta));
                 for (int c = 0; c < C; c++) {
-                    double draw = uniform(&rng) * total;
+                    double draw = uniform(&rng, a, 0, c) * total;
                     int j = 0;
                     while (j < C && draw >= cum[j]) j++;
                     follow[c] = j < C ? j : C - 1;
@@ -1541,7 +1570,7 @@ static void *ci_worker(void *arg) {
                 for (int j = 0; j < t; j++) {
                     double u[3], y[3];
                     long long hy = chint[c];
-                    for (int d = 0; d < 3; d++) u[d] = (uniform(&rng) - 0.5) * w * fr[d];
+                    for (int d = 0; d < 3; d++) u[d] = (uniform(&rng, a, 1, (c * t + j) * 3 + d) - 0.5) * w * fr[d];
                     for (int i = 0; i < 3; i++)
                         y[i] = centre[3 * c + i] + basis[3 * i] * u[0] + basis[3 * i + 1] * u[1] + basis[3 * i + 2] * u[2];
                     if (kd == 1 && pl[6] > 0.0) { /* inside its planar disk: the plane projection is exact */
@@ -1607,11 +1636,11 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
     int C, t, T, n_roulette;
     double reduction, delta, init_width, min_width, tol, bump;
     unsigned long long seed;
-    int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOOOOOiiiiddddddK|i", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+    int nthreads = 1, counter = 0;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOOOOOOOOOOiiiiddddddK|ii", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
                           &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16], &o[17],
-                          &o[18], &o[19], &C,
-                          &t, &T, &n_roulette, &reduction, &delta, &init_width, &min_width, &tol, &bump, &seed, &nthreads))
+                          &o[18], &o[19], &C, &t, &T, &n_roulette, &reduction, &delta, &init_width, &min_width, &tol,
+                          &bump, &seed, &nthreads, &counter))
         return NULL;
     static const char *names[20] = {"x", "width", "nodes", "inc", "count", "basis", "free", "plane", "row", "kind",
                                     "hint_s", "hint_e", "cand_s", "table_s", "spheres_s", "cand_e", "table_e",
@@ -1667,7 +1696,7 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
     for (int j = 0; j < nt; j++)
         jobs[j] = (CiJob){B[0].view.buf, B[1].view.buf, B[5].view.buf, B[6].view.buf, B[7].view.buf, NODES, HEX, ROT,
                           INC, CNT, ROW, KIND, cells, K, M * j / nt, M * (j + 1) / nt, C, t, T, n_roulette, reduction, delta,
-                          init_width, min_width, tol, bump, seed, 0, 0};
+                          init_width, min_width, tol, bump, seed, counter, 0, 0};
     int started = 1;
     Py_BEGIN_ALLOW_THREADS
     for (int j = 1; j < nt; j++)

@@ -252,7 +252,7 @@ def local_sums(points: np.ndarray, hexes: np.ndarray, inc: np.ndarray, count: np
 
 
 def ci_visit(x: np.ndarray, width: np.ndarray, nodes, hexes, inc, count, basis, free, plane, row, kind, hints,
-             tables, p, seed: int, tol: float, bump: float) -> int:
+             tables, p, seed: int, tol: float, bump: float, counter: bool = False) -> int:
     """One cohort run of local CI for every node of one colour, in C, in place on `x` ``(n, 3)`` and `width`
     ``(n,)`` (`jaxci.optim.host_local`; the algorithm of `jaxci.optim.ci`'s colour step): the nodes `nodes`
     ``(M,)`` with their stars as incidences `inc` ``(M, K)`` into `hexes` ``(N, 8)`` (as `local_sums`; the first
@@ -261,12 +261,14 @@ def ci_visit(x: np.ndarray, width: np.ndarray, nodes, hexes, inc, count, basis, 
     `kind` ``(M,)`` (0 interior, 1 surface, 2 edge) and row `row` in the surface or edge list; `hints` the
     remembered cell columns of the surface and edge lists (int64, updated), `tables` their ``(cand, table,
     spheres)`` (`jaxci.geometry.near.NearProjector.native_tables`); `p` the `CIParams`; `seed` the random
-    stream's. Returns the number of nodes moved."""
+    stream's; `counter`: draw from `jaxci.optim._draws`' counter stream instead, `seed` the visit's word (its path
+    at the sweep and colour). Returns the number of nodes moved."""
     (cs, ts, ss), (ce, te, se) = tables
     return _c.ci_visit(x, width, nodes, _i8(inc), count, basis, free, plane, row, kind, hints[0], hints[1], cs, ts,
                        ss, ce, te, se, _i8(hexes), _ROTATE, int(p.cohort), int(p.variations), int(p.attempts),
                        int(round(p.stage_switch * p.attempts)), float(p.reduction), float(p.delta),
-                       float(p.init_width), float(p.min_width), float(tol), float(bump), int(seed), THREADS)
+                       float(p.init_width), float(p.min_width), float(tol), float(bump), int(seed), THREADS,
+                       int(counter))
 
 
 def layout(cons) -> tuple:

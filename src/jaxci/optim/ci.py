@@ -51,6 +51,7 @@ import numpy as np
 from ..geometry.projection import Constraints
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
 from ..runtime.transfer import program
+from . import _draws
 from ._anderson import anderson_point
 from ._buckets import to_device
 from ._local import gather_star
@@ -76,13 +77,18 @@ from .ci_params import (  # noqa: F401  (the parameters, re-exported: jaxci.opti
     ci_params,
     excess_within_bound,
     pattern_choice,
+    sweep_done,
 )
 from .cohort import StaticParams, follow, split_params
 
 
 # ------------------------------------------------------------------------------------------------ local CI
-def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: StaticParams, d: dict, chunk: int):
-    """One cohort run for every node of one colour. Returns new points, new widths, number of moved nodes."""
+def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: StaticParams, d: dict, chunk: int,
+                     stream: str = "native"):
+    """One cohort run for every node of one colour. Returns new points, new widths, number of moved nodes.
+    `key`: ``"native"`` `stream`, the colour's `jax.random` key; ``"counter"``, the visit's word (the path of
+    `jaxci.optim._draws` at the sweep and the colour: each node then draws at (node, attempt, 0) for the roulette
+    and (node, attempt, 1) for its trials, as `jaxci.native.ci_visit` does)."""
     nodes, mask, star, basis, dims = (cs_i.nodes, cs_i.mask, cs_i.star, cs_i.basis, cs_i.dims)
     M = nodes.shape[0]
     C, t, T = s.cohort, s.variations, s.attempts
@@ -99,13 +105,21 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: StaticParams, d:
     fc = jnp.broadcast_to(f0[:, None], (M, C))
     n_roulette = jnp.round(d["stage_switch"] * T)
 
+    def draws(key, a):  # the attempt's uniforms in [0, 1): the roulette's (M, C), the trials' (M, C, t, 3)
+        if stream == "counter":
+            h = _draws.mix(_draws.mix(key, nodes[:, None], jnp), a, jnp)
+            return (key, _draws.uniforms(_draws.mix(h, 0, jnp), jnp.arange(C), dtype, jnp),
+                    _draws.uniforms(_draws.mix(h, 1, jnp), jnp.arange(C * t * 3), dtype, jnp).reshape(M, C, t, 3))
+        key, kf, ku = jax.random.split(key, 3)
+        return key, jax.random.uniform(kf, (M, C), dtype), jax.random.uniform(ku, (M, C, t, 3), dtype)
+
     def attempt(a, carry):
         key, cand, fc = carry
-        key, kf, ku = jax.random.split(key, 3)
-        chosen = follow(kf, fc, d["delta"], a < n_roulette)  # (M, C)
+        key, uf, ut = draws(key, a)
+        chosen = follow(fc, d["delta"], a < n_roulette, uf, jnp)  # (M, C)
         centre = jnp.take_along_axis(cand, chosen[..., None], axis=1)  # (M, C, 3)
         w = w0 * d["reduction"] ** (a + 1).astype(dtype)  # (M,)
-        u = jax.random.uniform(ku, (M, C, t, 3), dtype, -0.5, 0.5) * (w[:, None, None, None] * dim_mask[:, None, None])
+        u = (ut - 0.5) * (w[:, None, None, None] * dim_mask[:, None, None])
         step = jnp.einsum("mij,mctj->mcti", basis, u)
         trials = project_trials(cons, cs_i, (centre[:, :, None] + step).reshape(M, C * t, 3))
         ft = chunked_local_sum(x, cs_i, E, trials, chunk) / ncorner[:, None] - 1.0
@@ -169,11 +183,12 @@ def _anderson_move(x, f, k, starts, moves, valid, conn, cons: Constraints, extra
 
 
 @program
-@functools.partial(jax.jit, static_argnames=("s", "chunk"))
+@functools.partial(jax.jit, static_argnames=("s", "chunk", "stream"))
 def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: StaticParams, d: dict, chunk: int,
-                  extra: ExtraCells, weight=None, n_colours=None):
+                  extra: ExtraCells, weight=None, n_colours=None, stream: str = "native"):
     """The sweeps under one jit. `weight` ``(N,)`` and `n_colours` (traced): for a problem padded to its size
-    class, the element weights (0: padding) and the number of real colours (the padded ones are skipped)."""
+    class, the element weights (0: padding) and the number of real colours (the padded ones are skipped).
+    `stream`: the random numbers' (`local_ci`)."""
     n_colours = cs.nodes.shape[0] if n_colours is None else n_colours
     dtype = x.dtype
     # initial widths: init_width * local edge length of every node
@@ -190,13 +205,18 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: StaticP
     hist_k = jnp.full((s.max_sweeps + 1,), jnp.nan, dtype).at[0].set(k_init)
     hist_m = jnp.zeros((s.max_sweeps + 1,), jnp.int32)
 
+    if stream == "counter":  # the key's seed words (jaxci.optim._draws.seed_words of the host's seed)
+        key = jax.random.key_data(key).ravel()[:2].astype(jnp.uint32)
+
     def sweep(carry):
         key, x, width, it, f_prev, _, hf, hk, hm, starts, moves = carry
-        key, ks = jax.random.split(key)
+        if stream != "counter":
+            key, ks = jax.random.split(key)
 
         def colour(i, c):
             x, width, moved = c
-            x, width, m = _local_ci_colour(jax.random.fold_in(ks, i), x, width, colour_slice(cs, i), cons, s, d, chunk)
+            visit = _draws.path(key, (it, i), jnp) if stream == "counter" else jax.random.fold_in(ks, i)
+            x, width, m = _local_ci_colour(visit, x, width, colour_slice(cs, i), cons, s, d, chunk, stream)
             return x, width, moved + m
 
         x_start = x
@@ -211,8 +231,7 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: StaticP
         if s.anderson:
             x, f, k = _anderson_move(x, f, k, starts, moves, jnp.minimum(it, s.anderson), conn, cons, extra, weight)
         hf, hk, hm = hf.at[it].set(f), hk.at[it].set(k), hm.at[it].set(moved)
-        done = ((f <= d["ftol"]) | (f_prev - f <= d["tol"] * f_prev + d["atol"]) | (moved == 0)
-                | (k <= 1.0 + d["ktol"]))
+        done = sweep_done(f_prev, f, k, moved, d["ftol"], d["tol"], d["atol"], d["ktol"])
         return key, x, width, it, f, done, hf, hk, hm, starts, moves
 
     def cond(carry):
@@ -233,7 +252,7 @@ def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
 
 
 def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams | None = None,
-             extra: ExtraCells | None = None, *, devices=None):
+             extra: ExtraCells | None = None, *, devices=None, stream: str = "native"):
     """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity, `extra`
     the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`; default none), whose corners `cs` must hold too
     (`coloured_stars(..., table)`): F and the local objectives are then over every corner; `p` default `CIParams()`.
@@ -244,6 +263,9 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
     runs the cohorts of its share of a colour's nodes) sharded over it, the coordinates, widths and constraints
     replicated (`jaxci.optim.sharding.place_problem`). The random numbers are drawn for the padded slots, so any
     device count gives the same mesh (to float rounding), but not the unpadded run's.
+
+    `stream` (keyword only): ``"native"`` (`jax.random` from `key`) or ``"counter"`` (`jaxci.optim._draws` under
+    the key's words: the numbers `jaxci.optim.host_local.local_ci_np` draws with the same seed and stream).
 
     **Returns:** ``(points, sweeps, history)``: the smoothed coordinates ``(n, 3)``, the number of sweeps, and a
     dict of numpy arrays of length ``sweeps + 1`` (entry 0 = input): ``objective``, ``max_condition``,
@@ -259,10 +281,11 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
         xp, c, cs_p, cons_p, w, n_col = padded_sweeps(points, conn, cs, cons, int(devices.devices.size))
         run_conn, weight, (xp, cons_p, n_col), cs_p = place_problem(c, w, (xp, cons_p, n_col), devices, cs_p)
         x, it, hf, hk, hm = _local_ci_run(key, xp, run_conn, cs_p, cons_p, static, traced, _auto_chunk(cs_p, p),
-                                          extra, weight, n_col)
+                                          extra, weight, n_col, stream)
         x = to_device(np.asarray(x)[:n])  # sliced on the host: no compilation
     else:
-        x, it, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, static, traced, _auto_chunk(cs, p), extra)
+        x, it, hf, hk, hm = _local_ci_run(key, points, conn, cs, cons, static, traced, _auto_chunk(cs, p), extra,
+                                          stream=stream)
     it = int(it)
     return x, it, {"objective": np.asarray(hf[: it + 1]), "max_condition": np.asarray(hk[: it + 1]),
                    "moved": np.asarray(hm[: it + 1])}
@@ -270,7 +293,7 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
 
 # ------------------------------------------------------------------------------------------------ global CI
 def global_ci(key, par, conn, scale, p: CIParams, extra: ExtraCells | None = None, *, devices=None,
-              batch: int | None = None):
+              batch: int | None = None, stream: str = "native"):
     """Run the paper's global CI from ``par.x0`` (`jaxci.optim.global_ci`: one seed of the batched program).
 
     **Arguments:** `key` a `jax.random` key; `par` the unscaled `jaxci.optim.parametrisation.Parametrisation` of
@@ -280,7 +303,8 @@ def global_ci(key, par, conn, scale, p: CIParams, extra: ExtraCells | None = Non
     None (one device), or a `jax.sharding.Mesh`: the C t trial meshes of every learning attempt are split over
     its devices (each evaluates whole meshes: the candidates, not the elements, are sharded), everything else
     replicated; the same numbers as on one device. `batch`: trial meshes evaluated at once
-    (`jaxci.optim.global_ci.candidate_batch` by default).
+    (`jaxci.optim.global_ci.candidate_batch` by default). `stream`: the random numbers', ``"native"`` or
+    ``"counter"`` (`jaxci.optim.global_ci.global_ci_batched`).
 
     **Returns:** ``(points, attempts, history)`` with history arrays ``objective`` and ``best`` (best behaviour
     F of the cohort), ``worst`` (worst behaviour), ``max_condition`` (of the best candidate), per learning
@@ -288,4 +312,4 @@ def global_ci(key, par, conn, scale, p: CIParams, extra: ExtraCells | None = Non
     """
     from .global_ci import global_ci_batched
 
-    return global_ci_batched([key], [par], conn, [scale], p, extra, devices=devices, batch=batch)[0]
+    return global_ci_batched([key], [par], conn, [scale], p, extra, devices=devices, batch=batch, stream=stream)[0]

@@ -206,3 +206,10 @@ def pattern_choice(f, k, fy, ky, xp):
     ok = (idx <= last) & xp.isfinite(fy) & (fy < f) & excess_within_bound(k, ky)
     best = xp.argmin(xp.where(ok, fy, xp.inf))
     return xp.where(ok[best], best, -1)
+
+
+def sweep_done(f_prev, f, k, moved, ftol, tol, atol, ktol):
+    """Whether local CI stops after a sweep, both engines (floats or arrays): F at most `ftol`, or a decrease
+    from `f_prev` of at most ``tol f_prev + atol``, or no node `moved`, or the worst corner `k` (max kappa/3)
+    within `ktol` of an ideal one."""
+    return (f <= ftol) | (f_prev - f <= tol * f_prev + atol) | (moved == 0) | (k <= 1.0 + ktol)

@@ -32,7 +32,8 @@ import numpy as np
 from ..geometry.projection import params_to_points, project
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
 from ..runtime.transfer import program
-from .cohort import follow, split_params
+from . import _draws
+from .cohort import calm_after, follow, learning_attempt, split_params, trials
 from .parametrisation import Parametrisation
 
 
@@ -50,16 +51,24 @@ def _threefry(key):
     return jax.random.wrap_key_data(jax.random.key_data(key).ravel()[:2].astype(jnp.uint32), impl="threefry2x32")
 
 
-def _trials(key, rows, centre, w, t: int):
-    """The trial meshes ``(R, n_free)`` of an attempt at `rows` ``(R,)`` (row ``r = c t + j``: candidate c's
-    j-th variation): its centre ``centre[c]`` plus a uniform draw in ``[-w/2, w/2)`` per free coordinate, from
-    the attempt's `key` folded with `r`. Threefry draws of one row do not depend on the other rows drawn with it
-    (unlike "rbg" ones under `jax.vmap`): a device draws its own rows only, and a seed its own, the numbers of
-    one device and of one seed alone."""
+def _row_uniforms(key, a, rows, n: int, dtype, stream: str):
+    """The uniforms ``(R, n)`` in [0, 1) of attempt `a`'s trial rows `rows` ``(R,)`` (row ``r = c t + j``:
+    candidate c's j-th variation): ``"native"``, a threefry draw from the attempt's `key` folded with `r`;
+    ``"counter"``, `jaxci.optim._draws` at (a, 1, r) under the seed words `key` ``(2,)`` (what the host draws
+    there). Either way the numbers of one row do not depend on the other rows drawn with them (unlike "rbg" draws
+    under `jax.vmap`): a device draws its own rows only, and a seed its own, the numbers of one device and of one
+    seed alone."""
+    if stream == "counter":
+        return _draws.uniforms(_draws.path(key, (a, 1, rows[:, None]), jnp), jnp.arange(n)[None], dtype, jnp)
     key = _threefry(key)
-    u = jax.vmap(lambda r: jax.random.uniform(jax.random.fold_in(key, r), centre.shape[1:], centre.dtype, -0.5,
-                                              0.5))(rows)
-    return centre[rows // t] + u * w
+    return jax.vmap(lambda r: jax.random.uniform(jax.random.fold_in(key, r), (n,), dtype))(rows)
+
+
+def _follow_uniforms(key, a, C: int, dtype, stream: str):
+    """The uniforms ``(C,)`` of attempt `a`'s roulette (`_row_uniforms`' streams; the counter's at (a, 0))."""
+    if stream == "counter":
+        return _draws.uniforms(_draws.path(key, (a, 0), jnp), jnp.arange(C), dtype, jnp)
+    return jax.random.uniform(key, (C,), dtype)
 
 
 def _points(par: Parametrisation, U):
@@ -94,41 +103,52 @@ def _behaviours(par: Parametrisation, U, conn, extra: ExtraCells, batch: int):
     return f.reshape(-1)[: B * R].reshape(B, R), k.reshape(-1)[: B * R].reshape(B, R)
 
 
-def _attempt_behaviours(keys, centre, w, t: int, par, conn, extra, mesh, batch: int):
-    """``(F, max kappa/3)`` ``(B, C t)`` of the trial meshes of an attempt of every seed (`_trials` with each
+def _rows(keys, a, rows, centre, w, t: int, stream: str):
+    """The trial meshes ``(B, R, n_free)`` of every seed at `rows` ``(B, R)`` (`jaxci.optim.cohort.trials`, drawn
+    by `_row_uniforms` from each seed's `keys`)."""
+    nf = centre.shape[-1]
+    u = jax.vmap(lambda k, ab, r: _row_uniforms(k, ab, r, nf, centre.dtype, stream))(keys, a, rows)
+    return trials(centre, rows, u, w, t, jnp)
+
+
+def _attempt_behaviours(keys, a, centre, w, t: int, par, conn, extra, mesh, batch: int, stream: str):
+    """``(F, max kappa/3)`` ``(B, C t)`` of the trial meshes of an attempt of every seed (`_rows` with each
     seed's key); with `mesh` (a `jax.sharding.Mesh`, one seed), the rows split over its devices (`jax.shard_map`,
     padded with copies of row 0 to a multiple of the device count), each device drawing and evaluating its own
     rows as one device would: the same numbers."""
-    def rows_of(rows, keys, centre, w, par, conn, extra):
-        U = jax.vmap(lambda k, c, wb: _trials(k, rows, c, wb, t))(keys, centre, w)
+    def rows_of(rows, keys, a, centre, w, par, conn, extra):
+        U = _rows(keys, a, jnp.broadcast_to(rows, (keys.shape[0], rows.shape[0])), centre, w, t, stream)
         return _behaviours(par, U, conn, extra, batch)
 
     S = centre.shape[1] * t
     if mesh is None:
-        return rows_of(jnp.arange(S), keys, centre, w, par, conn, extra)
+        return rows_of(jnp.arange(S), keys, a, centre, w, par, conn, extra)
     from jax.sharding import PartitionSpec as P
 
     from .sharding import AXIS
 
     rows = jnp.arange(S + (-S % mesh.devices.size)) % S
-    f, k = jax.shard_map(rows_of, mesh=mesh, in_specs=(P(AXIS),) + (P(),) * 6,
-                         out_specs=(P(None, AXIS), P(None, AXIS)))(rows, keys, centre, w, par, conn, extra)
+    f, k = jax.shard_map(rows_of, mesh=mesh, in_specs=(P(AXIS),) + (P(),) * 7,
+                         out_specs=(P(None, AXIS), P(None, AXIS)))(rows, keys, a, centre, w, par, conn, extra)
     return f[:, :S], k[:, :S]
 
 
 @program
-@functools.partial(jax.jit, static_argnames=("s", "mesh", "batch"))
+@functools.partial(jax.jit, static_argnames=("s", "mesh", "batch", "stream"))
 def _global_ci_run(keys, par: Parametrisation, conn, scale, s, d: dict, extra: ExtraCells, mesh=None,
-                   batch: int = 1):
+                   batch: int = 1, stream: str = "native"):
     """Global CI of B seeds at once: `keys` ``(B,)``, `par` stacked parametrisations (leading axis B, unscaled:
     ``u`` in coordinates), `scale` ``(B, n_free)`` the local edge length per free coordinate; `s` the static
-    hyperparameters (`jaxci.optim.cohort.StaticParams`), `d` the traced ones. Returns the points ``(B, n, 3)``, the
-    attempts ``(B,)`` and the histories ``(B, attempts + 1, 3)`` (best F, worst F, max kappa/3 of the best;
-    NaN after a seed stopped)."""
+    hyperparameters (`jaxci.optim.cohort.StaticParams`), `d` the traced ones; `stream` the random numbers'
+    (`_row_uniforms`). Returns the points ``(B, n, 3)``, the attempts ``(B,)`` and the histories
+    ``(B, attempts + 1, 3)`` (best F, worst F, max kappa/3 of the best; NaN after a seed stopped)."""
     C, t, T = s.cohort, s.variations, s.attempts
     B, nf = scale.shape
     dtype = par.x0.dtype
-    keys = jax.vmap(_threefry)(keys)  # draws that do not depend on the other seeds drawn with them
+    if stream == "counter":  # the seed words of each key, as the host's seed_words
+        keys = jax.vmap(lambda k: jax.random.key_data(k).ravel()[:2].astype(jnp.uint32))(keys)
+    else:
+        keys = jax.vmap(_threefry)(keys)  # draws that do not depend on the other seeds drawn with them
     f0, k0 = _behaviours(par, jnp.zeros((B, 1, nf), dtype), conn, extra, 1)
     f0, k0 = f0[:, 0], k0[:, 0]
     cand = jnp.zeros((B, C, nf), dtype)
@@ -139,28 +159,23 @@ def _global_ci_run(keys, par: Parametrisation, conn, scale, s, d: dict, extra: E
 
     def attempt(carry):
         keys, cand, fc, kc, a, hist, calm, done = carry
-        best_before = jnp.min(fc, axis=-1)
-        split = jax.vmap(lambda k: jax.random.split(k, 3))(keys)
-        keys, kf, ku = split[:, 0], split[:, 1], split[:, 2]
-        chosen = jax.vmap(lambda k, g, r: follow(k, g, d["delta"], r))(kf, fc, a < n_roulette)  # (B, C)
-        centre = jnp.take_along_axis(cand, chosen[..., None], axis=1)  # (B, C, nf)
+        if stream == "counter":
+            kf = ku = keys
+        else:
+            split = jax.vmap(lambda k: jax.random.split(k, 3))(keys)
+            keys, kf, ku = split[:, 0], split[:, 1], split[:, 2]
+        u = jax.vmap(lambda k, ab: _follow_uniforms(k, ab, C, dtype, stream))(kf, a)
+        chosen = follow(fc, d["delta"], (a < n_roulette)[:, None], u, jnp)  # (B, C)
         w = d["init_width"] * scale * (d["reduction"] ** (a + 1).astype(dtype))[:, None]  # (B, nf)
-        ft, kt = _attempt_behaviours(ku, centre, w, t, par, conn, extra, mesh, batch)
-        ft, kt = ft.reshape(B, C, t), kt.reshape(B, C, t)
-        j = jnp.argmin(ft, axis=-1)  # (B, C)
-        fb = jnp.take_along_axis(ft, j[..., None], axis=-1)[..., 0]
-        better = fb < fc
-        won = jax.vmap(lambda k, jb, c, wb: _trials(k, jnp.arange(C) * t + jb, c, wb, t))(ku, j, centre, w)
-        new_cand = jnp.where(better[..., None], won, cand)
-        new_fc = jnp.where(better, fb, fc)
-        new_kc = jnp.where(better, jnp.take_along_axis(kt, j[..., None], axis=-1)[..., 0], kc)
+        new_cand, new_fc, new_kc = learning_attempt(
+            cand, fc, kc, chosen,
+            lambda centre: _attempt_behaviours(ku, a, centre, w, t, par, conn, extra, mesh, batch, stream),
+            lambda centre, rows: _rows(ku, a, rows, centre, w, t, stream), t, jnp)
         new_a = a + 1
         best = jnp.min(new_fc, axis=-1)
         row = jnp.stack([best, jnp.max(new_fc, axis=-1), jnp.take_along_axis(
             new_kc, jnp.argmin(new_fc, axis=-1)[:, None], axis=-1)[:, 0]], axis=-1)
-        scale_f = d["tol"] * jnp.maximum(best, d["ftol"])
-        still = (jnp.max(new_fc, axis=-1) - best <= scale_f) & (best_before - best <= scale_f)
-        new_calm = jnp.where(still, calm + 1, 0)
+        new_calm = calm_after(new_fc, jnp.min(fc, axis=-1), calm, d["tol"], d["ftol"], jnp)
         stop = (new_calm >= s.patience) | (best <= d["ftol"]) | (new_a >= T)
         live = ~done  # a seed that stopped keeps its state
         keep = lambda new, old: jnp.where(live.reshape(-1, *([1] * (new.ndim - 1))), new, old)  # noqa: E731
@@ -193,7 +208,7 @@ def stackable(trees) -> bool:
 
 
 def global_ci_batched(keys, pars, conn, scales, p, extra: ExtraCells | None = None, *, devices=None,
-                      batch: int | None = None):
+                      batch: int | None = None, stream: str = "native"):
     """Run the paper's global CI for B seeds as one program (see the module docstring).
 
     **Arguments:**
@@ -207,6 +222,8 @@ def global_ci_batched(keys, pars, conn, scales, p, extra: ExtraCells | None = No
     - `devices` (keyword only): None, or a `jax.sharding.Mesh` (one seed only): the ``C t`` trial meshes of
       every attempt split over its devices.
     - `batch` (keyword only): trial meshes evaluated at once; default `candidate_batch` for the platform.
+    - `stream` (keyword only): ``"native"`` (`jax.random` from each key) or ``"counter"`` (`jaxci.optim._draws`
+      under each key's words: the numbers `jaxci.optim.host_global.global_ci_np` draws for the same seed).
 
     **Returns:** a list of B ``(points, attempts, history)`` as `jaxci.optim.ci.global_ci` returns.
     """
@@ -221,7 +238,8 @@ def global_ci_batched(keys, pars, conn, scales, p, extra: ExtraCells | None = No
         par = jax.tree.map(lambda v: jnp.asarray(v)[None], par)
     static, traced = split_params(p, pars[0].x0.dtype)
     scale = jnp.stack([jnp.asarray(sc, pars[0].x0.dtype) for sc in scales])
-    x, a, hist = _global_ci_run(jnp.stack(list(keys)), par, conn, scale, static, traced, extra, devices, int(batch))
+    x, a, hist = _global_ci_run(jnp.stack(list(keys)), par, conn, scale, static, traced, extra, devices, int(batch),
+                                 stream)
     a = np.asarray(a)
     hist = np.asarray(hist)
     out = []

@@ -19,10 +19,13 @@ move, halved otherwise, within ``[min_width, init_width] h``); after each sweep 
 and Anderson acceleration over the last ``anderson`` sweeps (`jaxci.optim._anderson`), and the same stops
 (``F <= ftol``, a decrease below ``tol F + atol``, no node moved, max kappa/3 <= 1 + ktol, ``max_sweeps``).
 Random numbers: each visit draws a seed from numpy's PCG64 (seeded by the run's seed), each node its own
-xoshiro256** stream from it: same seed, same result on any number of threads, but not the compiled path's stream.
-Everything is float64. `laplace_np` sweeps the colours the same way with the Laplacian's one move per node
-(the centroid of its edge neighbours, in its free directions, projected; the smart one tries the steps 1, 1/2,
-... at once and takes the longest that lowers the node's local sum).
+xoshiro256** stream from it: same seed, same result on any number of threads, but not the compiled path's stream;
+with ``stream="counter"`` every node draws from `jaxci.optim._draws`' counter stream instead, the compiled path's
+numbers with the same stream (`tests/test_ci_parity.py`: the same mesh). The cohort's loop is C, not this module's
+numpy over the compiled sweep's functions: a node's cohort is a few numbers, where numpy's per-call overhead would
+cost more than the arithmetic. Everything is float64. `laplace_np` sweeps the colours the same way with the
+Laplacian's one move per node (the centroid of its edge neighbours, in its free directions, projected; the smart
+one tries the steps 1, 1/2, ... at once and takes the longest that lowers the node's local sum).
 """
 
 from __future__ import annotations
@@ -36,10 +39,11 @@ from .. import native
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
 from ..runtime.phases import stepper
+from . import _draws
 from ._anderson import AndersonMemory
 from ._local import edge_neighbours, gather_star, laplace_trials, local_length, longest_step, star_nodes
 from ._moves import coloured_stars, onto_plane
-from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound, pattern_choice
+from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound, pattern_choice, sweep_done
 from .laplace import LaplaceParams
 
 #: Largest hexahedral mesh on which ``engine="auto"`` runs the local methods on the host (with the C kernels;
@@ -70,6 +74,7 @@ class _Colour:
     b: int
     srow: np.ndarray
     erow: np.ndarray
+    index: int = 0  # the colour's row in the coloured stars (the compiled sweep's colour index)
 
     @functools.cached_property
     def kind(self) -> np.ndarray:
@@ -102,7 +107,7 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
             basis=np.asarray(cs.basis[i][keep], np.float64),
             free=(np.arange(3)[None] < np.asarray(cs.dims[i][keep])[:, None]).astype(np.float64),
             plane=np.asarray(cs.plane[i][keep], np.float64), a=int(a), b=int(b),
-            srow=rows[0][nodes[a:b]], erow=rows[1][nodes[b:]]))
+            srow=rows[0][nodes[a:b]], erow=rows[1][nodes[b:]], index=i))
     return out
 
 
@@ -120,27 +125,16 @@ def _local_length(x: np.ndarray, hexes: np.ndarray, col: _Colour) -> np.ndarray:
     return out
 
 
-def follow_candidates(rng: np.random.Generator, g: np.ndarray, delta: float, roulette: bool) -> np.ndarray:
-    """The candidate each candidate of a cohort follows, for behaviours `g` ``(..., C)`` (>= 0, inf for an
-    inverted candidate): by roulette on 1/(g + delta) (an inverted one has probability 0), or the best; shape
-    ``(..., C)`` (`jaxci.optim.cohort.follow`)."""
-    C = g.shape[-1]
-    if not roulette:
-        return np.broadcast_to(np.argmin(g, axis=-1)[..., None], g.shape)
-    cum = np.cumsum(1.0 / (g + delta), axis=-1)
-    draw = rng.random(g.shape + (1,)) * cum[..., None, -1:]
-    return np.minimum((draw >= cum[..., None, :]).sum(axis=-1), C - 1)
-
-
 class _Sweeper:
     """One local run's state: coordinates, the colours, the projector (and its remembered cells); for CI the
     widths and the RNG."""
 
-    def __init__(self, points, hexes, cons: Constraints, colour, faces, p, seed: int = 0):
+    def __init__(self, points, hexes, cons: Constraints, colour, faces, p, seed: int = 0, stream: str = "native"):
         self.x = np.array(points, dtype=np.float64)
         self.hexes = np.ascontiguousarray(hexes, dtype=np.int64)
         self.p = p
         self.rng = np.random.default_rng(seed)
+        self.stream, self.words = stream, _draws.seed_words(seed)
         self.colours = _colours(hexes, cons, colour, faces)
         self.projector = NearProjector(cons)
         self.projector.commit(self.projector(self.x)[1])  # every boundary node's cell at the start
@@ -179,12 +173,16 @@ class _Sweeper:
             out[b:], hint[b:] = pts.reshape(-1, S, 3), h.reshape(-1, S)
         return out
 
-    def visit(self, col: _Colour) -> int:
-        """One cohort run for every node of `col` (`jaxci.native.ci_visit`); returns the number of nodes moved."""
+    def visit(self, col: _Colour, sweep: int) -> int:
+        """One cohort run for every node of `col` in sweep `sweep` (`jaxci.native.ci_visit`); returns the number of
+        nodes moved. Its random numbers: a seed drawn from the run's PCG64, or (``stream="counter"``) the visit's
+        word of `jaxci.optim._draws` at ``(sweep, colour)``, as the compiled sweep's."""
         pr = self.projector
+        counter = self.stream == "counter"
+        seed = int(_draws.path(self.words, (sweep, col.index), np)) if counter else int(self.rng.integers(2**63))
         return native.ci_visit(self.x, self.width, col.nodes, self.hexes, col.inc, col.count, col.basis, col.free,
-                               col.plane, col.row, col.kind, pr.hint, pr.native_tables, self.p,
-                               int(self.rng.integers(2**63)), *pr.tolerances)
+                               col.plane, col.row, col.kind, pr.hint, pr.native_tables, self.p, seed,
+                               *pr.tolerances, counter=counter)
 
     def laplace_visit(self, col: _Colour, nbr: np.ndarray, nmask: np.ndarray, h: np.ndarray, smart: bool) -> float:
         """Every node of `col` towards the centroid of its edge neighbours `nbr` ``(M, K)`` (real where `nmask`);
@@ -257,14 +255,16 @@ class _Sweeper:
         return best[0], best[1]
 
 
-def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | None = None, seed: int = 0):
+def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | None = None, seed: int = 0,
+                stream: str = "native"):
     """Local CI on the host from `points` ``(n, 3)`` of the hexahedra `hexes` ``(N, 8)``, `cons` the numpy
-    float64 constraints, `colour` the node colouring, `faces` the boundary faces (for the planar shortcut).
+    float64 constraints, `colour` the node colouring, `faces` the boundary faces (for the planar shortcut);
+    `stream` the random numbers' (``"native"``, or ``"counter"``: `jaxci.optim.ci.local_ci`'s with the same).
 
     **Returns:** ``(points, sweeps, history)`` as `jaxci.optim.ci.local_ci` (float64 points).
     """
     p = CIParams() if p is None else p
-    sw = _Sweeper(points, hexes, cons, colour, faces, p, seed)
+    sw = _Sweeper(points, hexes, cons, colour, faces, p, seed, stream)
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax], [0]
     done = f <= p.ftol or kmax <= 1.0 + p.ktol
@@ -272,7 +272,7 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
     tick = stepper("local CI", "sweep")
     while not done and len(hist_f) <= p.max_sweeps:
         start = sw.x.copy()
-        moved = sum(sw.visit(col) for col in sw.colours)
+        moved = sum(sw.visit(col, len(hist_f) - 1) for col in sw.colours)
         f_new, k_new = sw.objective(sw.x)
         D = sw.x - start  # the sweep's displacement
         if memory is not None:
@@ -287,7 +287,7 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
         hist_m.append(moved)
         if tick is not None:
             tick(len(hist_f) - 1, f_new, k_new)
-        done = f_new <= p.ftol or f - f_new <= p.tol * f + p.atol or moved == 0 or k_new <= 1.0 + p.ktol
+        done = sweep_done(f, f_new, k_new, moved, p.ftol, p.tol, p.atol, p.ktol)
         f = f_new
     n = len(hist_f) - 1
     return sw.x, n, {"objective": np.asarray(hist_f), "max_condition": np.asarray(hist_k),
