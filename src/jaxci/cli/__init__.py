@@ -41,7 +41,7 @@ INTERRUPTED = (130, 143)
 CLOSED_OUTPUT = 141
 
 
-def _setup_jax() -> None:
+def setup_jax() -> None:
     """float64 for reports, and the compilation cache (`jaxci.runtime.compile_cache`) so a second CLI call skips
     compiling.
 
@@ -76,7 +76,23 @@ class _Version(argparse.Action):
 
 class _Parser(argparse.ArgumentParser):
     """argparse with its usage errors as ONE line on stderr (``jaxci: error: ...``, exit 2), like every other
-    error of the command; the usage is one ``--help`` away."""
+    error of the command; the usage is one ``--help`` away.
+
+    A subcommand whose parser has ``intermixed = True`` (``smooth``, whose one positional takes one or more paths)
+    reads options and positionals in any order (`argparse.ArgumentParser.parse_known_intermixed_args`): ``jaxci
+    smooth IN --method M OUT`` gives IN and OUT as two separate positionals did."""
+
+    intermixed = False
+    _inside = False
+
+    def parse_known_args(self, args=None, namespace=None):
+        if not self.intermixed or self._inside:
+            return super().parse_known_args(args, namespace)
+        self._inside = True  # parse_known_intermixed_args calls this method twice
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._inside = False
 
     def error(self, message: str):
         self.exit(2, f"jaxci: error: {self.prog}: {message} (see {self.prog} --help)\n")
@@ -136,7 +152,7 @@ def _main(argv) -> int:
             sys.stdout.flush()
             return int(e.code or 0)
         apply_cpu_device_flags()  # more forced CPU devices than cores: no per-fusion partitions (docs/sharding.md)
-        _setup_jax()
+        setup_jax()
         return _dispatch(args)
     except _streams.OutputClosed:  # `| head`: the reader has all it wanted
         return CLOSED_OUTPUT

@@ -84,14 +84,27 @@ def _refuse_inputs(output: Path, targets, inputs, source=None) -> None:
                                      f"with --force; choose another output path")
 
 
+def targets_of(output: str | os.PathLike) -> tuple[Path, ...]:
+    """The files written for `output`: the path and its companions (`jaxci.io.companion_files`)."""
+    from ..io import companion_files
+
+    output = Path(output)
+    return (output, *companion_files(output))
+
+
+def refuse_inputs(output: str | os.PathLike, inputs) -> None:
+    """The first check of `check_output` alone: a `MeshWriteError` if `output` or a companion is one of `inputs`
+    (``jaxci smooth IN... --out-dir DIR`` runs it over every output and every input before any other check)."""
+    _refuse_inputs(Path(output), targets_of(output), [Path(p) for p in inputs])
+
+
 def check_output(output: str | os.PathLike, inputs=(), *, force: bool) -> Output:
     """Check that the command may write `output` (see the module docstring); returns the checked `Output`."""
     from ..errors import MeshWriteError
-    from ..io import companion_files
     from ..io._place import identity
 
     output = Path(output)
-    targets = (output, *companion_files(output))
+    targets = targets_of(output)
     _refuse_inputs(output, targets, [Path(p) for p in inputs])
     allowed = {}
     for target in targets:

@@ -1,5 +1,11 @@
 """`jaxci smooth IN OUT [--method M] [--engine E] [--device D] [--seed S] [--devices N|all] [--json] [--verbose]
-[--quiet] [--report FILE] [--force]`: smooth a mesh, write it as OUT.
+[--quiet] [--report FILE] [--force]`: smooth a mesh, write it as OUT. ``jaxci smooth IN... --out-dir DIR [--jobs N]
+[options]`` smooths many (`_batch`: each IN a mesh file or a folder of them, each written to DIR under its own
+name, over a pool of worker processes; exit status 0 if every file succeeded, else the largest per-file status).
+
+The per-file work (read, check the files read against the output, smooth, write) is `_smooth_file.smooth_file`,
+with `_smooth_file.smooth_options` (the options as `jaxci.smooth`'s arguments), `_smooth_file.summary` (the
+``--json`` object) and `_smooth_file.exit_status`: both forms call them.
 
 ``--engine auto|host|jax`` and ``--device auto|cpu|gpu`` are `jaxci.smooth`'s ``engine`` and ``device``: one
 decision (`jaxci.interface.engine.resolve_plan`), printed with the result (``engine:`` line; ``--json``: the ``engine``
@@ -30,8 +36,20 @@ import sys
 def add_args(p) -> None:
     from ..interface.smooth import METHODS
 
-    p.add_argument("input", help="input mesh file (never modified)")
-    p.add_argument("output", help="output mesh file; its extension picks the format")
+    p.intermixed = True  # IN --method M OUT, IN1 IN2 --out-dir D IN3: options anywhere (`jaxci.cli._Parser`)
+    p.usage = ("jaxci smooth [options] IN OUT\n       jaxci smooth [options] IN [IN ...] --out-dir DIR "
+               "[--jobs N]")
+    p.add_argument("paths", nargs="+", metavar="PATH",
+                   help="IN OUT: the input mesh file (never modified) and the output file, whose extension picks "
+                        "the format; with --out-dir, every PATH is an input: a mesh file or a folder (each mesh "
+                        "file in it jaxci reads and writes, by extension; not its subfolders)")
+    p.add_argument("--out-dir", metavar="DIR", default=None,
+                   help="smooth every input and write each as DIR/<its file name>, in its own format (DIR is made "
+                        "if missing); the options apply to each file. Exit status 0 if every file succeeded, else "
+                        "the largest of the files' statuses (each as the one-file form would return it)")
+    p.add_argument("--jobs", "-j", type=int, default=None, metavar="N",
+                   help="with --out-dir: worker processes, each smoothing one file after another (default: the "
+                        "cores this process may use, at most the number of files); 1 runs them in this process")
     p.add_argument("--method", default="auto", choices=METHODS,
                    help="smoothing method (default auto: untangle if needed, then L-BFGS, with smart-Laplace sweeps "
                         "first on large meshes; the output says which)")
@@ -86,44 +104,29 @@ def add_args(p) -> None:
                         "positions), the surface coloured by element condition. Checked like OUTPUT")
     p.add_argument("--force", action="store_true", help="overwrite OUTPUT if it is an existing file (never the "
                    "input)")
-
-
-def _parse_params(items: list[str]) -> dict:
-    from ..errors import ConfigError
-
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--param expects KEY=VALUE, got {item!r}")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
-
-
-def _devices(text: str | None):
-    """``--devices`` as `jaxci.smooth`'s ``devices``: None, ``"all"`` or a positive int (`ConfigError` else)."""
-    if text is None or text == "all":
-        return text
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        from ..errors import ConfigError
-
-        raise ConfigError(f"--devices expects a positive number of devices or 'all', got {text!r}")
-    return n
+    p.epilog = ("exit status: 0 success; 2 an error the user can fix (bad file, option or mesh; an output that exists "
+                "without --force or is an input: nothing written); 3 elements left inverted (--untangle partial); 1 "
+                "an internal error; 130 on SIGINT, 143 on SIGTERM (no partial output left). With --out-dir: 0 if "
+                "every file succeeded, else the largest status of its files (each reported with its error line); "
+                "two inputs with the same file name, or an output that is an input, refuse the whole command (2)")
 
 
 def run(args) -> int:
     import time
 
+    from ..errors import ConfigError
     from ..runtime.phases import process_age
     from ._progress import Display, wanted
 
+    if args.out_dir is not None:
+        from ._batch import run_batch
+
+        return run_batch(args)
+    if len(args.paths) != 2 or args.jobs is not None:
+        got = "--jobs" if len(args.paths) == 2 else f"{len(args.paths)} path{'s' if len(args.paths) != 1 else ''}"
+        raise ConfigError(f"jaxci smooth: expects IN OUT (one mesh), or IN... --out-dir DIR [--jobs N] (many); "
+                          f"got {got} without --out-dir (see jaxci smooth --help)")
+    args.input, args.output = args.paths
     age = process_age()
     display = Display(live=wanted(args.quiet), verbose=args.verbose, started=time.perf_counter() - (age or 0.0))
     try:
@@ -140,48 +143,18 @@ def _smooth(args, display, age) -> int:
         clock.add("startup", age)
         if clock.on_event is not None:
             clock.on_event("end", "startup", clock.as_dict()["startup"])
-    from ..interface.smooth import smooth
-    from ..io import read_mesh
     from ._files import check_output
     from ._quality import format_table
+    from ._smooth_file import smooth_file, smooth_options, summary
 
-    params = _parse_params(args.param)
-    devices = _devices(args.devices)
-    if args.untangle_budget is not None:
-        params["untangle_time_budget"] = args.untangle_budget
-    if args.objective is not None:
-        if params.get("objective", args.objective) != args.objective:
-            from ..errors import ConfigError
-
-            raise ConfigError(f"--objective {args.objective} and --param objective={params['objective']} disagree")
-        params["objective"] = args.objective
+    settings = smooth_options(args)
     out = check_output(args.output, [args.input], force=args.force)
     report = None
     if args.report is not None:
         from ._report import check_report
 
         report = check_report(args.report, [args.input], out, force=args.force)
-    with clock.phase("read"):
-        mesh = read_mesh(args.input)
-    out.check_inputs(mesh)  # the files read through it too (includes, XDMF data), before the smoothing
-    if report is not None:
-        report.check_inputs(mesh)
-    res = smooth(mesh, args.method, seed=args.seed, dtype=args.dtype, feature_angle=args.feature_angle,
-                 fix_boundary=args.fix_boundary, fixed_sets=args.fixed_set, untangle=args.untangle,
-                 untangle_boundary=args.untangle_boundary,
-                 merge_coincident=args.merge_coincident, keep_worst=not args.allow_worse_worst, clock=clock,
-                 devices=devices, engine=args.engine, device=args.device, **params)
-    picture = None
-    if report is not None:
-        from ..experiments.smooth_report import render
-        from ._report import report_format, write_report
-
-        with clock.phase("draw"):
-            picture = render(mesh, res, report_format(report.path), f"jaxci smooth {args.input} -> {args.output}")
-    with clock.phase("write"):
-        out.write(res.mesh)  # replaces only what check_output saw (nothing, without --force)
-        if picture is not None:
-            write_report(report, picture, mesh)
+    mesh, res = smooth_file(args.input, out, settings, clock, report, f"jaxci smooth {args.input} -> {args.output}")
     display.close()  # the progress line erased before the result is printed
     phases = clock.as_dict()
     if args.verbose:
@@ -189,8 +162,7 @@ def _smooth(args, display, age) -> int:
         print(f"jaxci: total     {t['seconds']:8.2f} s (compilation {t['compile_seconds']:.2f} s, {t['compiled']} "
               f"compiled, {t['cache_hits']} from the compilation cache)", file=sys.stderr)
     if args.json:
-        print(json.dumps({**res.summary(), "phases": phases, "input": args.input, "output": args.output,
-                          **({"report": args.report} if report is not None else {})}))
+        print(json.dumps(summary(res, phases, args.input, args.output, args.report if report is not None else None)))
         return _status(res)
     for note in (*mesh.notes, *res.notes):
         print(f"note: {note}")
@@ -208,13 +180,10 @@ def _smooth(args, display, age) -> int:
     return _status(res)
 
 
-#: Exit status of ``--untangle partial`` when elements stayed inverted (the mesh was written with them).
-INVERTED_LEFT = 3
-
-
 def _status(res) -> int:
-    if res.after.inverted_elements or res.after.inverted_corners:
-        print(f"jaxci: {res.after.inverted_elements} elements are still inverted in the output (--untangle "
-              f"partial); exit status {INVERTED_LEFT}", file=sys.stderr)
-        return INVERTED_LEFT
-    return 0
+    from ._smooth_file import exit_status
+
+    code, line = exit_status(res)
+    if line is not None:
+        print(f"jaxci: {line}", file=sys.stderr)
+    return code
