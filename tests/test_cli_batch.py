@@ -169,3 +169,20 @@ def test_an_interrupt_stops_the_workers_and_leaves_no_partial_file(tmp_path):
     for name in left:
         read_mesh(out_dir / name)  # every output there is complete
     assert len(left) < len(src)
+
+
+def test_bench_batch_times_the_batch_against_msqshape(tmp_path):
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = tmp_path / "bench.json"
+    p = subprocess.run([sys.executable, os.path.join(root, "scripts", "bench_batch.py"), "--count", "3",
+                        "--min-hexes", "100", "--max-hexes", "400", "--no-fixed", "--out", str(out), "--md",
+                        str(tmp_path / "bench.md")], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    doc = json.loads(out.read_text())
+    assert doc["corpus"]["count"] == 3 and {"date", "commit", "command", "machine"} <= set(doc)
+    batch = doc["results"]["batch"]
+    assert batch["files_ok"] == 3 and batch["median_wall_s"] > 0 and batch["cmd"].startswith("jaxci smooth DIR")
+    assert all(row["batch"]["exit_code"] == 0 and row["batch"]["max_condition"] >= 1 for row in doc["meshes"])
+    if "msqshape" in doc["results"]:  # where ../shared/peers has it
+        assert doc["results"]["msqshape"]["files"] == 3
+    assert "| batch |" in (tmp_path / "bench.md").read_text()
