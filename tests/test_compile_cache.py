@@ -20,9 +20,9 @@ import numpy as np
 import optimistix as optx
 import pytest
 
+from jaxci.optim.cohort import StaticParams
 from jaxci.runtime import compile_cache
 from jaxci.runtime._export import _dumps, exportable
-from jaxci.optim.cohort import StaticParams
 from jaxci.runtime._keys import Keyer, Unkeyable
 from jaxci.runtime._lazy import jit, pytree_dataclass
 from jaxci.runtime.transfer import compile_totals, program
