@@ -3,6 +3,7 @@ nothing compiled or imported from JAX, the boundary kept."""
 
 from __future__ import annotations
 
+import functools
 import os
 import subprocess
 import sys
@@ -211,14 +212,23 @@ def test_host_local_length_is_the_mean_edge_length_at_the_node(monkeypatch):
         np.testing.assert_array_equal(_local_length(np.asarray(mesh.points), mesh.hexes, col), ref)
 
 
+_BOX6 = perturb_box(6, amplitude=0.3, seed=4)
+
+
+@functools.cache
+def _box6_without_stops(backend: str):
+    """Local CI on `_BOX6` without the atol and ktol stops (80 sweeps at most): the reference of the two tests
+    below, run once per backend."""
+    return smooth(_BOX6, "ci", seed=0, max_sweeps=80, backend=backend, ktol=0.0, atol=0.0)
+
+
 def test_local_ci_stops_once_a_sweep_gains_less_than_atol():
     """A perturbed box approaches the ideal grid geometrically: with `tol` (relative) alone local CI swept on
     while F fell towards 0; `atol` stops it once a sweep lowers F by less than ``tol F + atol``, at max kappa/3
     <= 1.0001, in fewer sweeps than with ``atol=0``, on the host and compiled."""
-    mesh = perturb_box(6, amplitude=0.3, seed=4)
     for backend in ("numpy", "jax"):
-        stop = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, ktol=0.0)
-        on = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, atol=0.0, ktol=0.0)
+        stop = smooth(_BOX6, "ci", seed=0, max_sweeps=80, backend=backend, ktol=0.0)
+        on = _box6_without_stops(backend)
         hist = np.asarray(stop.history["objective"])
         assert stop.params["atol"] == 1e-7
         assert stop.after.max_condition <= 1.0001 and stop.iterations < on.iterations, backend
@@ -229,13 +239,12 @@ def test_local_ci_stops_once_a_sweep_gains_less_than_atol():
 def test_local_ci_stops_once_every_corner_is_ideal_within_ktol(backend):
     """max kappa/3 <= 1 + ktol (the global minimum within ktol) stops local CI after the first sweep that reaches
     it, on the host and compiled; the same sweeps as a run without it up to there."""
-    mesh = perturb_box(6, amplitude=0.3, seed=4)
-    full = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, ktol=0.0, atol=0.0)
+    full = _box6_without_stops(backend)
     k_full = np.asarray(full.history["max_condition"])
     ktol = 1e-3
     first = int(np.argmax(k_full <= 1 + ktol))
     assert 0 < first < full.iterations
-    res = smooth(mesh, "ci", seed=0, max_sweeps=80, backend=backend, ktol=ktol, atol=0.0)
+    res = smooth(_BOX6, "ci", seed=0, max_sweeps=80, backend=backend, ktol=ktol, atol=0.0)
     assert res.iterations == first and res.after.max_condition <= 1 + ktol
     np.testing.assert_allclose(np.asarray(res.history["max_condition"]), k_full[: first + 1], rtol=1e-12)
 
