@@ -71,10 +71,11 @@ class CIParams:
       on the same condition (`EXCESS_GROWTH`).
       Measured on pave3 after untangling (30 sweeps, 8 seeds, the C = t = 4 cohorts): F 0.6-1.3% above L-BFGS's
       final F without it, 0.1-0.4% below it with 8; perturbed boxes stop after as many sweeps either way.
-    - `backend`: local CI on a hexahedral mesh: ``"auto"`` (default: on the host, numpy and C, nothing to
-      compile, up to `jaxci.optim.host_local.HOST_LOCAL_MAX` hexahedra where the C kernels are built; compiled
-      otherwise), ``"numpy"`` (always on the host) or ``"jax"`` (always compiled). Same algorithm, different
-      random streams. Global CI always runs compiled.
+    - `backend`: CI on a hexahedral mesh: ``"auto"`` (default: the engine `jaxci.interface.engine.resolve_plan`
+      picks; for local CI on a CPU the host, numpy and C, nothing to compile, up to
+      `jaxci.optim.host_local.HOST_LOCAL_MAX` hexahedra where the C kernels are built; for global CI the host
+      too, unless several seeds run as one batched program), ``"numpy"`` (always on the host) or ``"jax"``
+      (always compiled). Same algorithm (`tests/test_ci_parity.py`), different random streams.
     """
 
     cohort: int = 3
