@@ -207,3 +207,25 @@ def test_worst_first_keeps_a_higher_F_only_where_the_worst_element_fell():
             y, notes = enforce(mesh, cons, start, x, untangled=untangled, projected=True, worst_first=order)
             assert np.array_equal(y, start) and notes == [f"the objective rose from {fs:.6g} to {fx:.6g}; {what} is "
                                                           f"returned"]
+
+
+@pytest.mark.skipif(not native.AVAILABLE, reason="the fused penalty is a C kernel")
+def test_the_fused_penalty_is_the_two_pass_one():
+    """On hexahedra the polish's penalised objective is one C pass (`jaxci.native.hex_penalty`): the same value,
+    worst corner and gradient as the terms, then the weighted gradient, of the general path; inf where a corner is
+    inverted."""
+    m = perturb_box(6, 5, 4, amplitude=0.35, seed=3)
+    h, x = np.asarray(m.hexes), np.asarray(m.points, np.float64)
+    level, mu, n_norm = 0.3, 1000.0, 1000
+    t, bad = native.hex_corner_terms(x, h)
+    e = t - 1.0
+    over = np.maximum(e - level, 0.0)
+    assert bad == 0 and over.any() and (over == 0).any()  # the penalty is active on some corners only
+    g = np.zeros_like(x)
+    native.hex_weighted_grad(x, h, 1.0 + 2.0 * mu * over, 1.0 / n_norm, g)
+    value, kmax, grad = weighted.penalty_kernel({"hexahedron": h}, n_norm, level, mu)(x)
+    assert value == pytest.approx((e.sum() + mu * np.sum(over * over)) / n_norm, rel=1e-13)
+    assert kmax == np.sqrt(t.max()) and np.abs(grad - g).max() <= 1e-13 * np.abs(g).max()
+    flipped = x.copy()
+    flipped[h[0, 6]] = x[h[0, 0]] - 0.5 * (x[h[0, 6]] - x[h[0, 0]])  # through its own element: inverted
+    assert weighted.penalty_kernel({"hexahedron": h}, n_norm, level, mu)(flipped)[0] == np.inf

@@ -195,6 +195,7 @@ typedef struct {
     Py_ssize_t N, lo, hi;
     double weight;
     double *S; /* the corners' scaled Jacobians det / (|a| |b| |c|) (8, N), or NULL */
+    double level, mu; /* mu > 0: the polish's penalty (hex_condition's docstring) */
 } HexJob;
 
 /* x86-64 with GCC: AVX-512 and AVX2 clones of the loops below beside the baseline one, picked at load time (the
@@ -214,7 +215,8 @@ static void *hex_worker(void *arg) {
     HexJob *j = arg;
     const double *P = j->P, *CW = j->CW;
     const long long *H = j->H;
-    double *T = j->T, *G = j->G, *S = j->S, weight = j->weight, sum = 0.0, tmax = 0.0;
+    double *T = j->T, *G = j->G, *S = j->S, weight = j->weight, sum = 0.0, tmax = 0.0, level = j->level,
+           mu = j->mu;
     Py_ssize_t N = j->N;
     long long invalid = 0;
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
@@ -249,7 +251,8 @@ static void *hex_worker(void *arg) {
             int ok = det[i] > 0.0;
             double idet = 1.0 / (ok ? det[i] : 1.0), idet2 = idet * idet;
             term[i] = ok ? fro2[i] * adj2[i] * idet2 * (1.0 / 9.0) : INFINITY;
-            w2[i] = ok && G ? (CW ? weight * CW[i * N + e] : weight) : 0.0;
+            double over = mu > 0.0 && ok && term[i] - 1.0 > level ? term[i] - 1.0 - level : 0.0;
+            w2[i] = ok && G ? (CW ? weight * CW[i * N + e] : weight * (1.0 + 2.0 * mu * over)) : 0.0;
             p[i] = w2[i] * adj2[i] * idet2;
             q[i] = w2[i] * fro2[i] * idet2;
             r[i] = p[i] * fro2[i] * idet;
@@ -269,7 +272,8 @@ static void *hex_worker(void *arg) {
                 invalid++;
                 continue;
             }
-            sum += term[i] - 1.0;
+            double over = mu > 0.0 && term[i] - 1.0 > level ? term[i] - 1.0 - level : 0.0;
+            sum += term[i] - 1.0 + mu * over * over;
             if (term[i] > tmax) tmax = term[i];
         }
         if (!G) continue;
@@ -310,8 +314,11 @@ static void *hex_worker(void *arg) {
 }
 
 /* hex_condition(points (n, 3) f8, hexes (N, 8) i8, weight, grad (n, 3) f8 or None, corner_weight (8, N) f8 or
- * None, terms (8, N) f8 or None[, nthreads[, sj (8, N) f8 or None]]) -> (sum of (term - 1), max term, inverted
- * corners). With `sj`, each corner's scaled Jacobian det / (|a| |b| |c|) (0 where an edge has length 0).
+ * None, terms (8, N) f8 or None[, nthreads[, sj (8, N) f8 or None[, level, mu]]]) -> (sum of (term - 1), max term,
+ * inverted corners). With `sj`, each corner's scaled Jacobian det / (|a| |b| |c|) (0 where an edge has length 0).
+ * With mu > 0 (the worst-element polish's penalty, jaxci.optim.weighted.penalty_kernel, in one pass): the sum is
+ * of e + mu max(0, e - level)^2 (e = term - 1) and, without corner_weight, each corner's gradient is weighted by
+ * 1 + 2 mu max(0, e - level).
  *
  * term = |A|^2 |adj A|^2 / (9 det^2) = (kappa/3)^2 per corner (inf where det <= 0, in `terms`). With `grad`, adds
  * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
@@ -357,9 +364,10 @@ done:
 
 static PyObject *hex_condition(PyObject *self, PyObject *args) {
     PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms, *o_sj = Py_None, *ret = NULL;
-    double weight;
+    double weight, level = 0.0, mu = 0.0;
     int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOdOOO|iO", &o_pts, &o_hex, &weight, &o_grad, &o_cw, &o_terms, &nthreads, &o_sj))
+    if (!PyArg_ParseTuple(args, "OOdOOO|iOdd", &o_pts, &o_hex, &weight, &o_grad, &o_cw, &o_terms, &nthreads, &o_sj,
+                          &level, &mu))
         return NULL;
     Buf B[6] = {{{0}}};
     if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
@@ -379,7 +387,7 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
     int nt = threads_for(N, nthreads);
     for (int t = 0; t < nt; t++)
         jobs[t] = (HexJob){{0.0, 0.0, 0}, B[0].view.buf, B[3].view.buf, B[1].view.buf, B[4].view.buf, NULL, N,
-                           N * t / nt, N * (t + 1) / nt, weight, B[5].view.buf};
+                           N * t / nt, N * (t + 1) / nt, weight, B[5].view.buf, level, mu};
     if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[2].view.buf, 3 * n, offsetof(HexJob, G)) < 0) goto done;
     ret = total_sums(jobs, sizeof(HexJob), nt);
 done:

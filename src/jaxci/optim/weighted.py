@@ -178,9 +178,19 @@ def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float):
     """``kernel(x) -> (value, max kappa/3, gradient)`` of ``(sum_i e_i + weight * sum_i max(0, e_i - level)^2) /
     n_norm`` over the corners of the cells `blocks` (``e_i = t_i - 1``): F's share of these corners (`n_norm`: the
     corners of the whole mesh) with a quadratic penalty on every corner excess above `level` (the worst-element
-    polish, `jaxci.optim.polish`); ``inf`` if a corner is inverted."""
+    polish, `jaxci.optim.polish`); ``inf`` if a corner is inverted. On hexahedra alone with the C kernels: terms and
+    gradient in one pass (`jaxci.native.hex_penalty`), where the general path makes two (a third of the polish's time
+    on a 25,000-hexahedron tet-to-hex bracket)."""
     cells = CellCorners(blocks)
     inv = 1.0 / max(int(n_norm), 1)
+    if cells.hexes is not None and not cells.tables and not cells.barrier.shape[1]:  # hexahedra: one C pass
+        hexes = cells.hexes
+
+        def fused(x):
+            total, tmax, bad, g = native.hex_penalty(x, hexes, level, weight, inv)
+            return (np.inf, np.inf, np.zeros_like(x)) if bad else (total * inv, float(np.sqrt(tmax)), g)
+
+        return fused
 
     def kernel(x):
         parts = cells.terms(x)
