@@ -146,6 +146,11 @@ def test_the_single_form_and_its_usage_errors(capsys, tmp_path, three):
     assert not (tmp_path / "d").exists()
 
 
+def _written(folder) -> list[str]:
+    """The outputs in place in `folder` (not the hidden temporary folders of writes under way)."""
+    return [n for n in os.listdir(folder) if not n.startswith(".")] if folder.is_dir() else []
+
+
 def test_an_interrupt_stops_the_workers_and_leaves_no_partial_file(tmp_path):
     src = _meshes(tmp_path / "in", [(f"m{i}.vtk", (6, 6, 5), i) for i in range(4)])
     out_dir = tmp_path / "out"
@@ -154,8 +159,7 @@ def test_an_interrupt_stops_the_workers_and_leaves_no_partial_file(tmp_path):
                           "--jobs", "2", "--engine", "host", "-q", "--method", "ci-global", *SLOW],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, start_new_session=True)
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and not (out_dir.is_dir() and len(os.listdir(out_dir)) > 0) \
-            and p.poll() is None:
+    while time.monotonic() < deadline and not _written(out_dir) and p.poll() is None:
         time.sleep(0.05)
     time.sleep(0.3)
     os.killpg(p.pid, signal.SIGINT)  # a Ctrl-C reaches the whole process group
@@ -169,6 +173,42 @@ def test_an_interrupt_stops_the_workers_and_leaves_no_partial_file(tmp_path):
     for name in left:
         read_mesh(out_dir / name)  # every output there is complete
     assert len(left) < len(src)
+
+
+def _workers(pid: int) -> list[int]:
+    """The pool's worker processes of process `pid` (Linux /proc): its children started by multiprocessing's
+    spawn, not its resource tracker."""
+    out = []
+    for entry in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                cmd = f.read()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == pid and b"spawn_main" in cmd:
+            out.append(int(entry))
+    return out
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="reads /proc")
+def test_a_worker_that_dies_fails_its_own_file_only(tmp_path):
+    src = _meshes(tmp_path / "in", [(f"m{i}.vtk", (6, 6, 5), i) for i in range(5)])
+    out_dir = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, "-m", "jaxci", "smooth", *map(str, src), "--out-dir", str(out_dir),
+                          "--jobs", "2", "--engine", "host", "-q", "--json", "--method", "ci-global", *SLOW],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=dict(os.environ, JAXCI_CACHE_DIR=""))
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not _written(out_dir) and p.poll() is None:
+        time.sleep(0.05)
+    time.sleep(0.2)  # one file done: both workers inside another (3 of the 5 to go at least)
+    os.kill(_workers(p.pid)[0], signal.SIGKILL)
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 1, err
+    codes = sorted(r["exit_code"] for r in json.loads(out)["files"])
+    assert codes == [0, 0, 0, 0, 1] and "ended abruptly" in err.decode()
+    assert len(os.listdir(out_dir)) == 4  # no temporary file of the killed worker
 
 
 def test_bench_batch_times_the_batch_against_msqshape(tmp_path):

@@ -18,7 +18,9 @@ then differ from the single form's in the last bits, as the single form run with
 
 A file that fails (unreadable, inverted and not untangled, an output that exists without ``--force``, ...) does
 not stop the others: its error line goes to stderr and its status to the table. Exit status: 0 if every file
-succeeded, else the largest per-file status (2 a user error, 3 elements left inverted, 1 an internal error).
+succeeded, else the largest per-file status (2 a user error, 3 elements left inverted, 1 an internal error). A
+worker process that dies (killed, a crash in native code) fails the file it was smoothing (status 1, a line
+saying so); the files no worker had begun run on a new pool.
 
 The output is one table (a row per file: hexahedra, worst element max kappa/3 and mean kappa/3 before -> after,
 seconds, status) and a total line; ``--json`` prints one object instead: ``files`` (per file, the single form's
@@ -43,6 +45,8 @@ POLL = 0.5
 #: Seconds the workers get to stop after SIGTERM before they are killed (their own guard ends them within about
 #: `_interrupt.GRACE`); within the `_interrupt.FINISH` the command's own guard gives it.
 STOP_WAIT = 1.5
+#: New pools after a worker died, for the files it had not begun.
+RESTARTS = 3
 
 
 def _extensions() -> frozenset[str]:
@@ -150,7 +154,11 @@ def _leave(signum, frame) -> None:  # pragma: no cover - runs in a worker
     os._exit(128 + signum)
 
 
-def _start_worker() -> None:  # pragma: no cover - runs in a worker
+#: Where a worker says which file it begins (`_start_worker`).
+_BEGUN = None
+
+
+def _start_worker(begun) -> None:  # pragma: no cover - runs in a worker
     """A worker's set-up: SIGINT ignored (a Ctrl-C reaches the whole process group; the command stops its workers
     itself, with one SIGTERM each); between two files SIGTERM ends it at once and quietly (nothing of its own is
     open), during a file `_work`'s guard handles it; JAX set up as the command sets it up; the smoothing path
@@ -158,6 +166,8 @@ def _start_worker() -> None:  # pragma: no cover - runs in a worker
     from ..runtime.process import apply_cpu_device_flags
     from . import setup_jax
 
+    global _BEGUN
+    _BEGUN = begun
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _leave)
     apply_cpu_device_flags()
@@ -165,11 +175,13 @@ def _start_worker() -> None:  # pragma: no cover - runs in a worker
     from .. import interface, io  # noqa: F401
 
 
-def _work(src: str, out, settings, debug: bool) -> dict:  # pragma: no cover - runs in a worker
-    """A file in a worker, under the command's signal guard (`_interrupt.guard`): an interrupt removes the write's
-    temporary files and ends the worker (the command is stopping it)."""
+def _work(index: int, src: str, out, settings, debug: bool) -> dict:  # pragma: no cover - runs in a worker
+    """File `index` in a worker (said first: `_run_pool` fails it if the worker dies), under the command's signal
+    guard (`_interrupt.guard`): an interrupt removes the write's temporary files and ends the worker (the command
+    is stopping it)."""
     from . import _interrupt
 
+    _BEGUN.put((index, os.getpid()))
     with _interrupt.guard() as guard:
         try:
             return smooth_one(src, out, settings, debug)
@@ -255,37 +267,42 @@ def _stop(pool, folder: Path) -> None:
 
 def _run_pool(items, settings, jobs: int, folder: Path, debug: bool, done) -> None:
     """Run `items` (``[(index, input, Output)]``, largest first) on `jobs` spawned workers; `done(index, record)`
-    as each ends."""
+    as each ends. A worker that dies breaks the pool: the file it had begun (each worker says which file it
+    begins, `_work`) fails with status 1, the others not done run on a new pool (at most `RESTARTS` times)."""
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
 
+    from ..io._place import remove_stale
     from ._interrupt import on_interrupt
 
-    pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker)
-    futures = {}
+    context = multiprocessing.get_context("spawn")
+    begun_queue, begun, procs = context.SimpleQueue(), {}, {}  # index -> pid of its worker; pid -> process
+    pools = []
 
     def emergency():
-        _stop(pool, folder)
+        if pools:
+            _stop(pools[-1], folder)
         return None
 
-    try:
-        with on_interrupt(emergency):
+    with on_interrupt(emergency):
+        for attempt in range(RESTARTS + 1):
+            pools.append(ProcessPoolExecutor(min(jobs, len(items)), mp_context=context, initializer=_start_worker,
+                                             initargs=(begun_queue,)))
+            pool, futures, lost = pools[-1], {}, []
             try:
-                with _Environment(worker_environment(jobs)):  # the workers start with the first `jobs` files
+                with _Environment(worker_environment(jobs)):  # the workers start with the first files submitted
                     for index, src, out in items:
-                        futures[pool.submit(_work, str(src), out, settings, debug)] = (index, src, out)
+                        futures[pool.submit(_work, index, str(src), out, settings, debug)] = (index, src, out)
                 pending = set(futures)
                 while pending:
+                    procs.update(getattr(pool, "_processes", None) or {})
                     finished, pending = wait(pending, timeout=POLL, return_when=FIRST_COMPLETED)
                     for f in finished:
-                        index, src, out = futures[f]
                         try:
-                            rec = f.result()
-                        except BrokenProcessPool as e:
-                            rec = _failed(src, out.path, 1, f"{src}: the worker process ended before the file "
-                                          f"was done ({e})")
-                        done(index, rec)
+                            done(futures[f][0], f.result())
+                        except BrokenProcessPool:
+                            lost.append(futures[f])
                     if not finished:
                         done(None, None)
             except KeyboardInterrupt:
@@ -293,11 +310,27 @@ def _run_pool(items, settings, jobs: int, folder: Path, debug: bool, done) -> No
                 pool.shutdown(wait=True)
                 _release_queues()
                 raise
-    finally:
-        from ..io._place import remove_stale
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
+                remove_stale(folder)  # what a worker that died left (a live process's files are not touched)
+            while not begun_queue.empty():
+                index, pid = begun_queue.get()
+                begun[index] = pid
+            died = [item for item in lost if _died(procs.get(begun.get(item[0])))]
+            items = [item for item in lost if item not in died]
+            for index, src, out in (died + items if attempt == RESTARTS else died):
+                done(index, _failed(src, out.path, 1, f"{src}: the worker process smoothing it ended abruptly "
+                                    f"(killed, or a crash in native code)"))
+            if not items or attempt == RESTARTS:
+                return
 
-        pool.shutdown(wait=True, cancel_futures=True)
-        remove_stale(folder)  # what a worker that died left, if anything (a live process's files are not touched)
+
+def _died(proc) -> bool:
+    """Whether a worker that had begun a file ended of itself (killed, a crash), not stopped by its pool (SIGTERM,
+    as the pool stops every worker once one has died)."""
+    if proc is None:
+        return False
+    return proc.exitcode not in (None, -signal.SIGTERM, 128 + signal.SIGTERM)
 
 
 def _release_queues() -> None:
@@ -421,6 +454,8 @@ def _cells(rec: dict) -> tuple[str, str, str, str, str, str]:
 
 def _row_line(rec: dict) -> str:
     name, hexes, worst, mean, seconds, status = _cells(rec)
+    if rec.get("before") is None:
+        return f"{name}: {seconds} s, {status}"
     return f"{name}: {hexes} hexahedra, max k/3 {worst}, mean k/3 {mean}, {seconds} s, {status}"
 
 
@@ -433,6 +468,6 @@ def format_table(records: list[dict], totals: dict) -> str:
                        for k, (c, w) in enumerate(zip(r, width, strict=True))).rstrip() for r in rows]
     failed = f", {totals['failed']} failed (exit status {totals['exit_code']})" if totals["failed"] else ""
     lines.append(f"total: {totals['ok']} of {totals['files']} files ok{failed}; {totals['jobs']} "
-                 f"job{'s' * (totals['jobs'] > 1)}, {totals['wall_seconds']:.2f} s wall; written to "
+                 f"job{'s' * (totals['jobs'] > 1)}, {totals['wall_seconds']:.2f} s wall; outputs in "
                  f"{totals['out_dir']}")
     return "\n".join(lines)
