@@ -206,9 +206,17 @@ def test_a_worker_that_dies_fails_its_own_file_only(tmp_path):
     os.kill(_workers(p.pid)[0], signal.SIGKILL)
     out, err = p.communicate(timeout=120)
     assert p.returncode == 1, err
-    codes = sorted(r["exit_code"] for r in json.loads(out)["files"])
+    files = json.loads(out)["files"]
+    codes = sorted(r["exit_code"] for r in files)
+    codes_by_name = {os.path.basename(r["input"]): r["exit_code"] for r in files}
     assert codes == [0, 0, 0, 0, 1] and "ended abruptly" in err.decode()
-    assert len(os.listdir(out_dir)) == 4  # no temporary file of the killed worker
+    # no temporary file of the killed worker; its file's output absent, or complete where the worker had written
+    # it before it was killed (under load that happens: the result was on its way back)
+    names = set(os.listdir(out_dir))
+    assert {f"m{i}.vtk" for i in range(5) if codes_by_name[f"m{i}.vtk"] == 0} <= names <= {f"m{i}.vtk" for i in
+                                                                                         range(5)}
+    for name in names:
+        read_mesh(out_dir / name)
 
 
 def test_bench_batch_times_the_batch_against_msqshape(tmp_path):

@@ -272,8 +272,8 @@ print(json.dumps({"points": hashlib.sha256(np.ascontiguousarray(res.mesh.points)
 def test_a_second_process_compiles_nothing_and_the_results_agree(tmp_path):
     """`jaxci.smooth` on the JAX engine in fresh processes with one cache folder: the first traces, exports and
     compiles; the second loads every program (nothing traced or compiled anew, under a second of compilation);
-    after its entries are spoilt a third rewrites them; with ``JAXCI_CACHE_DIR=`` a fourth uses no cache at all
-    (not the default folder either). All four give the same mesh, bit for bit."""
+    after its entries are spoilt a third rewrites them and a fourth loads those; with ``JAXCI_CACHE_DIR=`` a fifth
+    uses no cache at all (not the default folder either). All five give the same mesh, bit for bit."""
     cache = tmp_path / "cache"
     cold = _child(_SMOOTH, {"JAXCI_CACHE_DIR": str(cache)})
     warm = _child(_SMOOTH, {"JAXCI_CACHE_DIR": str(cache)})
@@ -292,6 +292,11 @@ def test_a_second_process_compiles_nothing_and_the_results_agree(tmp_path):
     spoilt = _child(_SMOOTH, {"JAXCI_CACHE_DIR": str(cache)})
     assert spoilt["stats"]["discarded"] == len(entries) and spoilt["stats"]["exported"] == len(entries)
     assert spoilt["points"] == cold["points"]
+    # the programs it rewrote were compiled while JAX's own cache held them (an executable loaded from there and
+    # stored failed when a later process ran it: "Function wrapped_iota not found"): they load and run
+    again = _child(_SMOOTH, {"JAXCI_CACHE_DIR": str(cache)})
+    assert again["stats"]["loaded"] == len(entries) and again["stats"]["discarded"] == 0, again["stats"]
+    assert again["points"] == cold["points"]
 
     home = tmp_path / "home"
     off = _child(_SMOOTH, {"JAXCI_CACHE_DIR": "", "HOME": str(home), "XDG_CACHE_HOME": str(home / "xdg")})

@@ -194,13 +194,9 @@ def _work(index: int, src: str, out, settings, debug: bool) -> dict:  # pragma: 
 def worker_environment(jobs: int) -> dict[str, str]:
     """What the environment of `jobs` workers adds, where the user set none of it: no OpenBLAS threads; and where
     ``cores // jobs`` is fewer than the C kernels' threads of this process (`jaxci.native.THREADS`), that many
-    for each worker's C kernel calls (``JAXCI_THREADS``) and XLA's pool (``NPROC``), with the JAX engine's programs
-    in a folder of their own inside the compilation cache (``batch-threads-N``). A ``JAXCI_*`` variable is part of
-    the keys of the exported programs but not of JAX's executables, and processes that differ in it and share
-    one folder were seen to leave executables that later runs fail to load ("NOT_FOUND: Function ... not
-    found"): the single form's folder is never shared with them."""
+    for each worker's C kernel calls (``JAXCI_THREADS``) and XLA's pool (``NPROC``). (``JAXCI_THREADS`` is part of
+    the keys of the stored programs: the workers store their own, beside the single form's, in the same cache.)"""
     from .. import native
-    from ..runtime import compile_cache
     from ..runtime.process import schedulable_cpus
 
     env = {} if "OPENBLAS_NUM_THREADS" in os.environ else {"OPENBLAS_NUM_THREADS": "1"}
@@ -210,9 +206,6 @@ def worker_environment(jobs: int) -> dict[str, str]:
     env["JAXCI_THREADS"] = str(threads)
     if "NPROC" not in os.environ:
         env["NPROC"] = str(threads)
-    folder = compile_cache.directory()
-    if folder is not None:
-        env[compile_cache.ENV] = str(folder / f"batch-threads-{threads}")
     return env
 
 

@@ -291,6 +291,22 @@ def _load(file: str, key: str) -> _Program | None:
     return _Program(compiled, tree, mask, static, file)
 
 
+def _compiled_here(lowered):
+    """`lowered` compiled by XLA in this process, not loaded from JAX's persistent compilation cache: XLA:CPU
+    serializes an executable it loaded from there without the code of some of its functions, and a later process
+    that loads the stored program fails when it runs it ("Function wrapped_iota not found"; it happened whenever
+    jaxci's key of a program changed while JAX's did not: another ``JAXCI_*`` variable, an upgrade, a spoilt
+    entry rewritten). The cost: a compilation where JAX's cache would have served one, once per stored program."""
+    try:
+        from jax._src.config import enable_compilation_cache
+
+        off = enable_compilation_cache(False)
+    except Exception as e:  # noqa: BLE001 - another jax: no stored programs rather than broken ones
+        raise Unkeyable(f"JAX's compilation cache cannot be turned off for one compilation ({e})") from e
+    with off:
+        return lowered.compile()
+
+
 def _export(t: _Target, split: _Split, avals: tuple, platform: str, file: str, key: str) -> _Program:
     """Trace, lower and compile the program of this call (its flat dynamic leaves in, its array leaves out), store
     its executable, and return it (what a later process runs)."""
@@ -311,7 +327,7 @@ def _export(t: _Target, split: _Split, avals: tuple, platform: str, file: str, k
         text = lowered.as_text()
         if "lapack" in text:  # its kernels are set up by lowering (scipy's LAPACK), which a later load skips
             raise Unkeyable("it calls LAPACK")
-        compiled = lowered.compile()
+        compiled = _compiled_here(lowered)
     except Unkeyable:
         raise
     except Exception as e:  # noqa: BLE001 - a genuine error: the plain call repeats it
@@ -417,7 +433,7 @@ def exportable(fn: Callable) -> Callable:
         if not prog.fresh:
             return prog(split.dyn())
         try:  # its first call compiles it (from the persistent cache): a program that fails is not used again
-            out = prog(split.dyn())
+            out = jax.block_until_ready(prog(split.dyn()))  # (an error of the run itself comes when it ends)
         except Exception as e:  # noqa: BLE001 - the plain call repeats a genuine error
             compile_cache.discard(prog.entry, f"{type(e).__name__}: {str(e)[:200]}")
             compile_cache.count("plain", "an exported program failed")
