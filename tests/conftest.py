@@ -41,19 +41,9 @@ def pytest_unconfigure(config):
         os.environ.pop("JAXCI_SUITE_XLA_CACHE", None)
 
 
-#: The test files that take longest (a minute or more each on 2 cores from an empty cache, 2026-11-29): they run
-#: first, so that ``--dist loadfile`` ends on short files instead of one worker waiting while the other runs a long
-#: file it took last (the order within a file, and of the other files, is kept).
-LONG_FILES = ("test_scripts.py", "test_mixed_smoothing.py", "test_device_prep.py", "test_sharded_smooth.py",
-              "test_lbfgs.py", "test_device_run.py", "test_compile_buckets.py", "test_engine.py", "test_host_local.py",
-              "test_compile_cache.py", "test_cdb.py", "test_sharding.py")
-
-
 def pytest_collection_modifyitems(config, items):
-    """The `LONG_FILES` first. Tests marked ``shared`` are skipped, with `helpers.SHARED_REASON`, where ../shared is
-    missing; with ../shared present nothing is skipped for that reason."""
-    rank = {name: i for i, name in enumerate(LONG_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))  # stable: each file's order kept
+    """Tests marked ``shared`` are skipped, with `helpers.SHARED_REASON`, where ../shared is missing; with
+    ../shared present nothing is skipped for that reason."""
     if not shared_missing():
         return
     skip = pytest.mark.skip(reason=SHARED_REASON)
