@@ -47,6 +47,14 @@ def seed_words(seed: int) -> np.ndarray:
     return np.array([seed >> 32, seed & 0xFFFFFFFF], np.uint32)
 
 
+def key_words(key):
+    """The two uint32 words of a `jax.random` key's data that `seed_words` gives for its seed (the first two: a
+    threefry or "rbg" key made from a seed below 2^32); JAX arrays, under `jax.jit` too."""
+    from ..runtime._lazy import jax, jnp
+
+    return jax.random.key_data(key).ravel()[:2].astype(jnp.uint32)
+
+
 def path(words, counters, xp):
     """The hash word of the stream at `counters` (a sequence of counters, each a uint32 array or scalar,
     broadcast) under the seed `words` ``(2,)``."""
@@ -54,6 +62,13 @@ def path(words, counters, xp):
     for c in counters:
         h = mix(h, c, xp)
     return h
+
+
+def visit_word(words, sweep, colour, xp):
+    """Local CI's word of one colour's visit in sweep `sweep`: each node of it draws under
+    ``mix(mix(word, node), attempt)`` (then 0 for its roulette, 1 for its trials), in the compiled sweep
+    (`jaxci.optim.ci`) and in the C cohort (`jaxci.native.ci_visit`)."""
+    return path(words, (sweep, colour), xp)
 
 
 def uniforms(h, index, dtype, xp):

@@ -206,7 +206,7 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: StaticP
     hist_m = jnp.zeros((s.max_sweeps + 1,), jnp.int32)
 
     if stream == "counter":  # the key's seed words (jaxci.optim._draws.seed_words of the host's seed)
-        key = jax.random.key_data(key).ravel()[:2].astype(jnp.uint32)
+        key = _draws.key_words(key)
 
     def sweep(carry):
         key, x, width, it, f_prev, _, hf, hk, hm, starts, moves = carry
@@ -215,7 +215,7 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: StaticP
 
         def colour(i, c):
             x, width, moved = c
-            visit = _draws.path(key, (it, i), jnp) if stream == "counter" else jax.random.fold_in(ks, i)
+            visit = _draws.visit_word(key, it, i, jnp) if stream == "counter" else jax.random.fold_in(ks, i)
             x, width, m = _local_ci_colour(visit, x, width, colour_slice(cs, i), cons, s, d, chunk, stream)
             return x, width, moved + m
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import typing
 
 from ..runtime._lazy import jnp
+from . import _draws
 from .ci_params import CIParams
 
 
@@ -55,6 +56,18 @@ def trials(centre, rows, u, w, t: int, xp):
     followed candidates `centre` ``(..., C, n_free)``: ``centre[c] + (u - 0.5) w``, `u` ``(..., R, n_free)`` the
     rows' uniforms in [0, 1), `w` ``(..., n_free)`` the attempt's interval widths. `xp`: the array module."""
     return xp.take_along_axis(centre, (rows // t)[..., None], axis=-2) + (u - 0.5) * w[..., None, :]
+
+
+def counter_follow(words, a, C: int, dtype, xp):
+    """Global CI's roulette uniforms ``(C,)`` of attempt `a` in the counter stream (`jaxci.optim._draws`, at
+    ``(a, 0)`` under the seed `words`): what both engines draw with ``stream="counter"``. `xp`: the array module."""
+    return _draws.uniforms(_draws.path(words, (a, 0), xp), xp.arange(C), dtype, xp)
+
+
+def counter_rows(words, a, rows, n: int, dtype, xp):
+    """Global CI's uniforms ``(R, n)`` of attempt `a`'s trial rows `rows` ``(R,)`` in the counter stream (at
+    ``(a, 1, r)`` per row r): what both engines draw with ``stream="counter"``. `xp`: the array module."""
+    return _draws.uniforms(_draws.path(words, (a, 1, rows[:, None]), xp), xp.arange(n)[None], dtype, xp)
 
 
 def learning_attempt(cand, fc, kc, chosen, evaluate, winners, t: int, xp):

@@ -33,7 +33,7 @@ from ..geometry.projection import params_to_points, project
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
 from ..runtime.transfer import program
 from . import _draws
-from .cohort import calm_after, follow, learning_attempt, split_params, trials
+from .cohort import calm_after, counter_follow, counter_rows, follow, learning_attempt, split_params, trials
 from .parametrisation import Parametrisation
 
 
@@ -48,26 +48,27 @@ def candidate_batch(platform: str, n_trials: int) -> int:
 def _threefry(key):
     """`key` (any implementation) as a threefry key made from its first two words: threefry splits and draws
     are the same for one key alone and for a batch of keys under `jax.vmap` ("rbg" ones are not)."""
-    return jax.random.wrap_key_data(jax.random.key_data(key).ravel()[:2].astype(jnp.uint32), impl="threefry2x32")
+    return jax.random.wrap_key_data(_draws.key_words(key), impl="threefry2x32")
 
 
 def _row_uniforms(key, a, rows, n: int, dtype, stream: str):
     """The uniforms ``(R, n)`` in [0, 1) of attempt `a`'s trial rows `rows` ``(R,)`` (row ``r = c t + j``:
     candidate c's j-th variation): ``"native"``, a threefry draw from the attempt's `key` folded with `r`;
-    ``"counter"``, `jaxci.optim._draws` at (a, 1, r) under the seed words `key` ``(2,)`` (what the host draws
+    ``"counter"``, `jaxci.optim.cohort.counter_rows` under the seed words `key` ``(2,)`` (what the host draws
     there). Either way the numbers of one row do not depend on the other rows drawn with them (unlike "rbg" draws
     under `jax.vmap`): a device draws its own rows only, and a seed its own, the numbers of one device and of one
     seed alone."""
     if stream == "counter":
-        return _draws.uniforms(_draws.path(key, (a, 1, rows[:, None]), jnp), jnp.arange(n)[None], dtype, jnp)
+        return counter_rows(key, a, rows, n, dtype, jnp)
     key = _threefry(key)
     return jax.vmap(lambda r: jax.random.uniform(jax.random.fold_in(key, r), (n,), dtype))(rows)
 
 
 def _follow_uniforms(key, a, C: int, dtype, stream: str):
-    """The uniforms ``(C,)`` of attempt `a`'s roulette (`_row_uniforms`' streams; the counter's at (a, 0))."""
+    """The uniforms ``(C,)`` of attempt `a`'s roulette (`_row_uniforms`' streams; the counter's:
+    `jaxci.optim.cohort.counter_follow`)."""
     if stream == "counter":
-        return _draws.uniforms(_draws.path(key, (a, 0), jnp), jnp.arange(C), dtype, jnp)
+        return counter_follow(key, a, C, dtype, jnp)
     return jax.random.uniform(key, (C,), dtype)
 
 
@@ -146,7 +147,7 @@ def _global_ci_run(keys, par: Parametrisation, conn, scale, s, d: dict, extra: E
     B, nf = scale.shape
     dtype = par.x0.dtype
     if stream == "counter":  # the seed words of each key, as the host's seed_words
-        keys = jax.vmap(lambda k: jax.random.key_data(k).ravel()[:2].astype(jnp.uint32))(keys)
+        keys = jax.vmap(_draws.key_words)(keys)
     else:
         keys = jax.vmap(_threefry)(keys)  # draws that do not depend on the other seeds drawn with them
     f0, k0 = _behaviours(par, jnp.zeros((B, 1, nf), dtype), conn, extra, 1)

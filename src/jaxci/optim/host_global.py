@@ -25,7 +25,7 @@ from ..runtime.phases import stepper
 from . import _draws
 from ._moves import onto_plane, planar_rings
 from .ci_params import CIParams
-from .cohort import calm_after, follow, learning_attempt, trials
+from .cohort import calm_after, counter_follow, counter_rows, follow, learning_attempt, trials
 
 
 def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int = 0, faces=None,
@@ -72,9 +72,9 @@ def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int
     words = _draws.seed_words(seed)
 
     def draw(a, rows):  # attempt a's uniforms in [0, 1): the roulette's (1, C), or the trials' (1, C t, n_free)
-        if stream == "counter":  # the paths of jaxci.optim.global_ci._follow_uniforms and _row_uniforms
-            counters, n = ((a, 0), C) if not rows else ((a, 1, np.arange(C * t)[:, None]), nf)
-            return _draws.uniforms(_draws.path(words, counters, np), np.arange(n), np.float64, np)[None]
+        if stream == "counter":
+            return (counter_rows(words, a, np.arange(C * t), nf, np.float64, np) if rows
+                    else counter_follow(words, a, C, np.float64, np))[None]
         return rng.random((1, C * t, nf) if rows else (1, C))
 
     f0, k0 = behaviours(np.zeros((1, nf)))[:, 0]

@@ -179,7 +179,7 @@ class _Sweeper:
         word of `jaxci.optim._draws` at ``(sweep, colour)``, as the compiled sweep's."""
         pr = self.projector
         counter = self.stream == "counter"
-        seed = int(_draws.path(self.words, (sweep, col.index), np)) if counter else int(self.rng.integers(2**63))
+        seed = int(_draws.visit_word(self.words, sweep, col.index, np)) if counter else int(self.rng.integers(2**63))
         return native.ci_visit(self.x, self.width, col.nodes, self.hexes, col.inc, col.count, col.basis, col.free,
                                col.plane, col.row, col.kind, pr.hint, pr.native_tables, self.p, seed,
                                *pr.tolerances, counter=counter)
