@@ -256,12 +256,15 @@ TERMS_SCRIPT = textwrap.dedent(
     import jax.numpy as jnp
     from jaxci.mesh.generate import perturb_box
     from jaxci.metrics.hexahedron import objective_terms_and_grad
-    from jaxci.optim.sharding import device_mesh, shard_elements, sharded_terms_and_grad
+    from jaxci.optim.sharding import device_mesh, place_problem, sharded_terms_and_grad
 
     jax.config.update("jax_enable_x64", True)
     m = perturb_box(5, 4, 3, amplitude=0.3, seed=2)  # 60 hexes: 4 padding elements on 4 devices
     mesh = device_mesh()
-    x, conn, weight = shard_elements(jnp.asarray(m.points), np.asarray(m.hexes), mesh)
+    hexes = np.asarray(m.hexes)  # padded to 64 elements: copies of element 0, weight 0
+    conn = np.concatenate([hexes, np.repeat(hexes[:1], 4, axis=0)]).T.copy()
+    weight = np.concatenate([np.ones(60), np.zeros(4)])
+    conn, weight, x = place_problem(jnp.asarray(conn), jnp.asarray(weight), jnp.asarray(m.points), mesh)
     f, k, g = jax.jit(lambda x, c, w: sharded_terms_and_grad(x, c, w, mesh))(x, conn, weight)
     f1, k1, g1 = objective_terms_and_grad(jnp.asarray(m.points), jnp.asarray(np.asarray(m.hexes).T))
     # (on CPU each device's share comes from the C kernel, jaxci.metrics.native_grad: other roundings)

@@ -21,8 +21,6 @@ from ._paths import open_text, os_reason
 
 #: Largest id jaxci holds (numpy int64). Ids are positive: 1 .. MAX_ID.
 MAX_ID = 2**63 - 1
-#: Field data holding the text of the deck a mesh was read from, per format.
-DECK_KEYS = {"abaqus": "abaqus:deck", "apdl": "ansys:deck"}
 
 
 def parse_id(token: str, where: str, what: str) -> int:

@@ -140,11 +140,6 @@ def local_terms(E, smask, y):
     return jnp.sum(total, axis=-1)
 
 
-def chunked_local_terms(E, smask, y, chunk: int):
-    """`local_terms` over S trials in chunks of `chunk` trials (bounded memory on large meshes)."""
-    return chunked(lambda t: local_terms(E, smask, t), y, chunk)
-
-
 def chunked(fn, y, chunk: int):
     """``fn(y)`` for trials `y` ``(M, S, 3)`` -> ``(M, S)``, evaluated `chunk` trials at a time (`jax.lax.map`)."""
     M, S, _ = y.shape

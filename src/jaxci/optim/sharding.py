@@ -37,15 +37,10 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from .. import native
-from ..cells import corner_invariants
 from ..errors import ConfigError
 from ..metrics import native_grad
 from ..metrics.hexahedron import (
-    corner_columns,
-    gather_corners,
-    objective_t,
     objective_terms_and_grad,
-    squared_condition_from_invariants,
 )
 
 AXIS = "d"
@@ -226,41 +221,6 @@ def place_problem(conn, weight, replicated, mesh: Mesh, slots=None):
     return (*placed, put(slots, NamedSharding(mesh, P(None, AXIS) if split else P())))
 
 
-def shard_elements(points, hexes, mesh: Mesh | None = None):
-    """Place a problem on `mesh`: points replicated, connectivity sharded by element.
-
-    **Arguments:** `points` of shape ``(n, 3)``; `hexes` of shape ``(N, 8)``; `mesh` (default `device_mesh()`).
-
-    **Returns:** ``(points, conn, weight)``: replicated points; transposed connectivity ``(8, N_pad)`` sharded
-    along its second axis; element weights ``(N_pad,)`` (1 for real, 0 for padding elements), sharded alike.
-    """
-    mesh = device_mesh() if mesh is None else mesh
-    n_dev = mesh.devices.size
-    hexes = np.asarray(hexes)
-    n = len(hexes)
-    n_pad = -(-n // n_dev) * n_dev
-    conn = np.concatenate([hexes, np.repeat(hexes[:1], n_pad - n, axis=0)]).T.copy()
-    weight = np.concatenate([np.ones(n), np.zeros(n_pad - n)])
-    along = NamedSharding(mesh, P(None, AXIS))
-    return (
-        jax.device_put(jnp.asarray(points), NamedSharding(mesh, P())),
-        jax.device_put(jnp.asarray(conn), along),
-        jax.device_put(jnp.asarray(weight, dtype=jnp.asarray(points).dtype), NamedSharding(mesh, P(AXIS))),
-    )
-
-
-@jax.jit
-def weighted_objective(points, conn, weight):
-    """F (Eq. 3.1) over the elements with weight 1 (padding elements, weight 0, are left out). Any sharding.
-
-    **Arguments:** `points` ``(n, 3)``; `conn` ``(8, N)``; `weight` ``(N,)``. **Returns:** a scalar.
-    """
-    det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(points, conn)))
-    term = squared_condition_from_invariants(det, fro2, adj2)  # (8, N)
-    total = jnp.sum(jnp.where(weight > 0, term, 0.0))
-    return total / (8.0 * jnp.sum(weight)) - 1.0
-
-
 def local_terms_and_grad(points, conn, weight, n_dev: int, platform: str):
     """Inside `jax.shard_map` over axis `AXIS` of `n_dev` devices of `platform`: F, max kappa/3 and dF/dx of the
     WHOLE mesh from this device's hexahedra `conn` ``(8, N/D)`` with weights `weight` ``(N/D,)`` (0: padding) at
@@ -289,19 +249,3 @@ def sharded_terms_and_grad(points, conn, weight, mesh: Mesh):
     local = functools.partial(local_terms_and_grad, n_dev=mesh.devices.size, platform=mesh.devices.flat[0].platform)
     return jax.shard_map(local, mesh=mesh,
                          in_specs=(P(), P(None, AXIS), P(AXIS)), out_specs=(P(), P(), P()))(points, conn, weight)
-
-
-def sharded_candidates_objective(candidates, conn, mesh: Mesh | None = None):
-    """F of every candidate of a cohort, candidates split over the devices of `mesh`.
-
-    **Arguments:** `candidates` of shape ``(C, n, 3)`` with C a multiple of the device count; `conn` ``(8, N)``.
-
-    **Returns:** shape ``(C,)``, equal to `jaxci.metrics.hexahedron.objective_t` per candidate.
-    """
-    mesh = device_mesh() if mesh is None else mesh
-
-    @functools.partial(jax.shard_map, mesh=mesh, in_specs=(P(AXIS), P()), out_specs=P(AXIS))
-    def per_device(local, conn):
-        return jax.lax.map(lambda x: objective_t(x, conn), local)
-
-    return jax.jit(per_device)(candidates, conn)
