@@ -83,8 +83,13 @@ def _host_sweep_args(mesh, pr):
     return L._padded(pr.x0, pr.conn, cs, nbr, nmask, pr.cons)
 
 
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
-@pytest.mark.parametrize("name", ["box5", "1000hex-block-internal-bias.vtk", "large_box_hex_1000.vtk"])
+#: float64 on every mesh, float32 (the same build, another dtype: the shapes do not depend on it) on one box and
+#: one real mesh: each case compiles its own sweeps.
+DTYPE_CASES = [("box5", np.float32), ("pave3.e.vtk", np.float32)]
+
+
+@pytest.mark.parametrize("name, dtype", [(n, np.float64) for n in ["box5", "1000hex-block-internal-bias.vtk",
+                                                                   "large_box_hex_1000.vtk"]] + DTYPE_CASES[:1])
 def test_sweep_data_is_the_host_build(name, dtype):
     """With the host's colouring, the device's slots, stars (incidences relabelled), bases, planes and
     neighbours are those of `coloured_stars` + `pad_stars` + `coloured_neighbours`, and 3 smart-Laplace sweeps
@@ -182,8 +187,7 @@ def test_node_lengths_on_the_device(name):
     np.testing.assert_allclose(np.asarray(h), node_lengths(mesh.hexes, mesh.points), rtol=1e-13, atol=0)
 
 
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
-@pytest.mark.parametrize("name", MESHES)
+@pytest.mark.parametrize("name, dtype", [(n, np.float64) for n in MESHES] + DTYPE_CASES)
 def test_parametrisation_on_the_device(name, dtype):
     """`make_parametrisation_device` gives `make_parametrisation`'s fields (the scale to rounding), also from a
     base off the original points (a smoothed start: boundary nodes moved along their planes)."""
