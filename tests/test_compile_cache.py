@@ -174,6 +174,53 @@ def test_an_unreadable_entry_is_rewritten_not_an_error(tmp_path):
         assert compile_cache.stats()["loaded"] == s0["loaded"] + 1
 
 
+def test_a_loaded_program_whose_first_run_fails_is_dropped_for_the_function(tmp_path, monkeypatch):
+    """A stored program that loads but fails when it first runs (XLA:CPU's "Function wrapped_iota not found" of an
+    executable serialized without some of its code came only then, from the asynchronous run) gives way to the
+    function itself: the caller gets the function's result, the entry is removed (the next process stores it again)
+    and the program is not run again in this process."""
+    from jaxci.runtime import _export
+
+    x = jnp.arange(3.0)
+    want = _toy(x, 1.0)
+    with compile_cache.exporting_to(tmp_path):
+        exportable(_toy)(x, 1.0)  # stored
+        (entry,) = (tmp_path / "exported").glob("*.jxp")
+        runs, failing = [], set()
+
+        def failing_run(compiled):  # the loaded executable, whose outputs fail when awaited (as an XLA run's error)
+            def run(*dyn):
+                out = compiled(*dyn)
+                runs.append(1)
+                failing.update(id(v) for v in out)
+                return out
+            return run
+
+        def loaded(*args):
+            prog = load(*args)
+            prog.compiled = failing_run(prog.compiled)
+            return prog
+
+        def await_(tree, real=jax.block_until_ready):
+            if any(id(v) in failing for v in jax.tree_util.tree_leaves(tree)):
+                raise RuntimeError("INTERNAL: NOT_FOUND: Function wrapped_iota not found")
+            return real(tree)
+
+        load = _export._load
+        monkeypatch.setattr(_export, "_load", loaded)
+        monkeypatch.setattr(_export.jax, "block_until_ready", await_)
+        run = exportable(_toy)  # a new wrapper: as a new process, it loads the entry
+        s0 = compile_cache.stats()
+        got = run(x, 1.0)
+        s1 = compile_cache.stats()
+        _same(got, want)
+        assert runs == [1] and not entry.exists()
+        assert s1["loaded"] == s0["loaded"] + 1 and s1["discarded"] == s0["discarded"] + 1
+        assert "an exported program failed" in s1["reasons"]
+        _same(run(x, 1.0), want)  # the function again: the program is not run a second time
+        assert runs == [1] and compile_cache.stats()["loaded"] == s1["loaded"]
+
+
 def test_what_cannot_be_keyed_runs_as_the_function(tmp_path):
     @jax.jit
     def closes_over_an_array(x):
