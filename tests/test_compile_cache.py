@@ -174,6 +174,26 @@ def test_an_unreadable_entry_is_rewritten_not_an_error(tmp_path):
         assert compile_cache.stats()["loaded"] == s0["loaded"] + 1
 
 
+def test_a_program_stored_twice_in_one_process_loads_and_runs(tmp_path):
+    """With JAX's persistent cache on (as in the suite, and in the jaxci command), a program stored a second time
+    in one process (after its entry was spoilt, or in another cache folder) is compiled anew, not taken from JAX's
+    cache: an executable served from there is serialized without some of its code, and loading it failed
+    ("Function broadcast_multiply_fusion not found"). JAX's cache is on again afterwards."""
+    from jax._src import compilation_cache as jcc
+
+    assert jax.config.jax_compilation_cache_dir  # the suite's (conftest)
+    x = jnp.arange(3.0)
+    for folder in (tmp_path / "a", tmp_path / "b"):
+        with compile_cache.exporting_to(folder):
+            s0 = compile_cache.stats()
+            _same(exportable(_toy)(x, 1.0), _toy(x, 1.0))  # stored
+            _same(exportable(_toy)(x, 1.0), _toy(x, 1.0))  # loaded, run
+            s1 = compile_cache.stats()
+        assert (s1["exported"], s1["loaded"]) == (s0["exported"] + 1, s0["loaded"] + 1), (folder, s0, s1)
+        assert (s1["discarded"], s1["plain"]) == (s0["discarded"], s0["plain"]), (folder, s1["reasons"])
+    assert jcc.is_cache_used(jax.devices()[0].client)
+
+
 def test_a_loaded_program_whose_first_run_fails_is_dropped_for_the_function(tmp_path, monkeypatch):
     """A stored program that loads but fails when it first runs (XLA:CPU's "Function wrapped_iota not found" of an
     executable serialized without some of its code came only then, from the asynchronous run) gives way to the

@@ -70,6 +70,9 @@ EVENT = "/jaxci/compile/exported_duration"
 #: The jax.monitoring duration event of the host seconds spent keying a call and importing what lowering needs
 #: (not compilation, not device time: `jaxci.runtime.transfer.program` counts them as host time).
 HOST_EVENT = "/jaxci/compile/exported_host_duration"
+#: Held while JAX's compilation cache is off for one compilation (`_compiled_here`).
+_CACHE_SWITCH = threading.Lock()
+
 #: Programs kept in memory per entry point (the least recently used dropped first).
 MEMORY = 16
 
@@ -296,15 +299,24 @@ def _compiled_here(lowered):
     serializes an executable it loaded from there without the code of some of its functions, and a later process
     that loads the stored program fails when it runs it ("Function wrapped_iota not found"; it happened whenever
     jaxci's key of a program changed while JAX's did not: another ``JAXCI_*`` variable, an upgrade, a spoilt
-    entry rewritten). The cost: a compilation where JAX's cache would have served one, once per stored program."""
+    entry rewritten, or the same program stored twice in one process). JAX decides once per process whether its
+    cache is used, so turning the cache off is not enough: its state is reset, around this compilation, to be
+    checked again (off inside, on after). The cost: a compilation where JAX's cache would have served one, once
+    per stored program."""
     try:
         from jax._src.config import enable_compilation_cache
+        from jax.experimental.compilation_cache.compilation_cache import reset_cache
 
         off = enable_compilation_cache(False)
     except Exception as e:  # noqa: BLE001 - another jax: no stored programs rather than broken ones
         raise Unkeyable(f"JAX's compilation cache cannot be turned off for one compilation ({e})") from e
-    with off:
-        return lowered.compile()
+    with _CACHE_SWITCH:
+        try:
+            with off:
+                reset_cache()  # checked again at this compilation: off
+                return lowered.compile()
+        finally:
+            reset_cache()  # and at the next one: as configured
 
 
 def _export(t: _Target, split: _Split, avals: tuple, platform: str, file: str, key: str) -> _Program:
