@@ -79,8 +79,8 @@ def test_keys_tell_apart_what_tracing_depends_on_and_refuse_what_they_cannot_key
     assert key(np.arange(4)) != key(np.arange(4) + 1)
     # a named tuple of static hyperparameters (CI's StaticParams) by its values: once keyed by its empty state,
     # a stored global CI program of 60 attempts ran when 1000 were asked for
-    assert key(StaticParams(5, 5, 60, 200, 20, True, 8)) != key(StaticParams(5, 5, 1000, 200, 20, True, 8))
-    assert key(StaticParams(5, 5, 60, 200, 20, True, 8)) != key((5, 5, 60, 200, 20, True, 8))
+    assert key(StaticParams(5, 5, 64, 256, True, 8)) != key(StaticParams(5, 5, 1024, 256, True, 8))
+    assert key(StaticParams(5, 5, 64, 256, True, 8)) != key((5, 5, 64, 256, True, 8))
     for bad in (jnp.ones(3), threading.Lock(), np.zeros(1 << 17)):
         with pytest.raises(Unkeyable):
             key(bad)

@@ -91,7 +91,7 @@ def _local_ci_colour(key, x, width, cs_i, cons: Constraints, s: StaticParams, d:
     and (node, attempt, 1) for its trials, as `jaxci.native.ci_visit` does)."""
     nodes, mask, star, basis, dims = (cs_i.nodes, cs_i.mask, cs_i.star, cs_i.basis, cs_i.dims)
     M = nodes.shape[0]
-    C, t, T = s.cohort, s.variations, s.attempts
+    C, t, T = s.cohort, s.variations, d["attempts"]
     dtype = x.dtype
     E = gather_star(x, star)
     ncorner = jnp.maximum(local_count(cs_i), 1).astype(dtype)  # (M,)
@@ -236,7 +236,7 @@ def _local_ci_run(key, x, conn, cs: ColouredStars, cons: Constraints, s: StaticP
 
     def cond(carry):
         it, done = carry[3], carry[5]
-        return (it < s.max_sweeps) & ~done
+        return (it < d["max_sweeps"]) & ~done
 
     history = jnp.zeros((s.anderson, x.size), dtype)  # (0, 3 n) without Anderson acceleration
     init = (key, x, width, jnp.int32(0), f_init, (f_init <= d["ftol"]) | (k_init <= 1.0 + d["ktol"]), hist_f,

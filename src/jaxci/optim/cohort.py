@@ -18,23 +18,31 @@ from .ci_params import CIParams
 
 
 class StaticParams(typing.NamedTuple):
-    """The hyperparameters that fix array shapes or loop bounds: static under jit (one compile each)."""
+    """The hyperparameters that fix array shapes: static under jit (one compile each). `attempts` and `max_sweeps`
+    are the capacities of the histories (`capacity`); the counts themselves are traced (``d["attempts"]``,
+    ``d["max_sweeps"]``), so that runs of other counts within one capacity share a program."""
 
     cohort: int
     variations: int
     attempts: int
     max_sweeps: int
-    patience: int
     pattern: bool
     anderson: int
 
 
+def capacity(n: int) -> int:
+    """A history's length for `n` steps: the power of two at least `n`, at least 16 (a program for each)."""
+    return max(16, 1 << (int(n) - 1).bit_length())
+
+
 def split_params(p: CIParams, dtype) -> tuple[StaticParams, dict]:
-    """Static part and traced part of `p`: changing reduction, widths or tolerances does not recompile."""
-    s = StaticParams(int(p.cohort), int(p.variations), int(p.attempts), int(p.max_sweeps), int(p.patience),
-                bool(p.pattern), int(p.anderson))
+    """Static part and traced part of `p`: changing the counts within their capacity, the reduction, widths or
+    tolerances does not recompile."""
+    s = StaticParams(int(p.cohort), int(p.variations), capacity(p.attempts), capacity(p.max_sweeps),
+                     bool(p.pattern), int(p.anderson))
     d = {k: jnp.asarray(getattr(p, k), dtype) for k in
          ("reduction", "delta", "stage_switch", "init_width", "min_width", "tol", "atol", "ftol", "ktol")}
+    d.update({k: jnp.asarray(int(getattr(p, k)), jnp.int32) for k in ("attempts", "max_sweeps", "patience")})
     return s, d
 
 

@@ -143,7 +143,7 @@ def _global_ci_run(keys, par: Parametrisation, conn, scale, s, d: dict, extra: E
     hyperparameters (`jaxci.optim.cohort.StaticParams`), `d` the traced ones; `stream` the random numbers'
     (`_row_uniforms`). Returns the points ``(B, n, 3)``, the attempts ``(B,)`` and the histories
     ``(B, attempts + 1, 3)`` (best F, worst F, max kappa/3 of the best; NaN after a seed stopped)."""
-    C, t, T = s.cohort, s.variations, s.attempts
+    C, t, T = s.cohort, s.variations, d["attempts"]
     B, nf = scale.shape
     dtype = par.x0.dtype
     if stream == "counter":  # the seed words of each key, as the host's seed_words
@@ -154,7 +154,7 @@ def _global_ci_run(keys, par: Parametrisation, conn, scale, s, d: dict, extra: E
     f0, k0 = f0[:, 0], k0[:, 0]
     cand = jnp.zeros((B, C, nf), dtype)
     fc, kc = jnp.broadcast_to(f0[:, None], (B, C)), jnp.broadcast_to(k0[:, None], (B, C))
-    hist = jnp.full((B, T + 1, 3), jnp.nan, dtype).at[:, 0].set(jnp.stack([f0, f0, k0], axis=-1))
+    hist = jnp.full((B, s.attempts + 1, 3), jnp.nan, dtype).at[:, 0].set(jnp.stack([f0, f0, k0], axis=-1))
     n_roulette = jnp.round(d["stage_switch"] * T)
     seeds = jnp.arange(B)
 
@@ -177,7 +177,7 @@ def _global_ci_run(keys, par: Parametrisation, conn, scale, s, d: dict, extra: E
         row = jnp.stack([best, jnp.max(new_fc, axis=-1), jnp.take_along_axis(
             new_kc, jnp.argmin(new_fc, axis=-1)[:, None], axis=-1)[:, 0]], axis=-1)
         new_calm = calm_after(new_fc, jnp.min(fc, axis=-1), calm, d["tol"], d["ftol"], jnp)
-        stop = (new_calm >= s.patience) | (best <= d["ftol"]) | (new_a >= T)
+        stop = (new_calm >= d["patience"]) | (best <= d["ftol"]) | (new_a >= T)
         live = ~done  # a seed that stopped keeps its state
         keep = lambda new, old: jnp.where(live.reshape(-1, *([1] * (new.ndim - 1))), new, old)  # noqa: E731
         hist = hist.at[seeds, jnp.where(live, new_a, 0)].set(jnp.where(live[:, None], row, hist[seeds, 0]))
