@@ -163,13 +163,45 @@ class HostObjective:
             f, kmax, gx = self.kernel(x)
         if not np.isfinite(f):
             return np.inf, None, f, kmax
+        gx_raw = gx
         if hint is not None:
             gx = self._project.pullback(gx, *hint)
         gv = (native.lift_t(gx, self._scale, self._layout) if self._layout is not None
               else lift_transpose_np(self._scale, self._cons, gx))
         out = self.s * f, self.s * gv, f, kmax
-        self._last = (np.array(v), x, out, hint)
+        self._last = (np.array(v), x, out, hint, gx_raw)
         return out
+
+    def hvp(self, p: np.ndarray, step: float) -> np.ndarray | None:
+        """``H p`` at the accepted iterate (`best`) by a forward difference of the kernel's gradient, one
+        evaluation: ``J^T (g_x(x + h J p) - g_x(x)) / h`` with ``J = P B S`` the lift followed by the linearised
+        projection of the iterate (each projected node on its triangle's plane or its segment's line), ``h`` =
+        `step` over ``max |p|``. The Hessian of the objective with every boundary node held to its current
+        triangle or segment: F's curvature without the kinks of the piecewise-flat boundary, which a difference
+        of `__call__`'s gradient would pick up wherever a node sits on a triangle's edge (an original boundary node
+        sits on a vertex). None where the step inverts an element."""
+        _, x, _, hint, gx = self.best
+        size = _amax(p)
+        if size == 0:
+            return np.zeros_like(p)
+        h = step / size
+        zero = np.zeros_like(self._x0)
+        dx = (native.lift(zero, self._scale, p, self._layout) if self._layout is not None
+              else lift_points(np, zero, self._scale, self._cons, p))
+        if hint is not None:
+            dx = self._project.pullback(dx, *hint)
+        dx *= h
+        dx += x
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            f, _, gh = self.kernel(dx)
+        if not np.isfinite(f):
+            return None
+        gh = gh - gx
+        gh *= self.s / h
+        if hint is not None:
+            gh = self._project.pullback(gh, *hint)
+        return (native.lift_t(gh, self._scale, self._layout) if self._layout is not None
+                else lift_transpose_np(self._scale, self._cons, gh))
 
 
 def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callable:
