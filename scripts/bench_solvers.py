@@ -83,7 +83,8 @@ def run(mesh, method: str, params: dict, repeat: int = 1) -> dict:
     q = bench_realmesh.quality(res.mesh)
     return dict(outer=outer, grad_evals=int(res.iterations), smooth_s=min(solves), wall_s=min(walls),
                 F=float(res.after.objective), worst=q["worst_element"], mean=q["element_mean"],
-                max_kappa=float(res.after.max_condition), result=hist.get("solver_result"), notes=list(res.notes))
+                max_kappa=float(res.after.max_condition), result=hist.get("solver_result"), notes=list(res.notes),
+                polish_stopped=(hist.get("polish") or {}).get("stopped"))
 
 
 def main(argv=None) -> int:
