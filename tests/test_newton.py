@@ -149,3 +149,18 @@ def test_newton_is_refused_off_the_host_engine():
         GradientParams(solver="trust-region")
     with pytest.raises(ConfigError, match="solver='newton'"):
         smooth(perturb_box(3), method="cg", solver="newton")
+
+
+def test_newton_after_runs_lbfgs_first():
+    """``newton_after=N``: a run that L-BFGS ends within N steps is L-BFGS's to the last bit (no Newton iteration);
+    one that goes on switches to Newton at step N (a start in ``restarts``) and ends no worse than Newton alone."""
+    box = perturb_box(4, amplitude=0.2, seed=1)
+    ref = smooth(box, method="lbfgs", dtype="float64", keep_worst=False)
+    run = smooth(box, method="lbfgs", dtype="float64", keep_worst=False, solver="newton", newton_after=10_000)
+    np.testing.assert_array_equal(run.mesh.points, ref.mesh.points)
+    assert run.history["newton_iterations"] == 0 and run.iterations == ref.iterations
+    mesh = _wavy()
+    run = smooth(mesh, method="lbfgs", dtype="float64", keep_worst=False, solver="newton", newton_after=20)
+    assert 20 in list(run.history["restarts"]) and run.history["newton_iterations"] > 0
+    f = np.asarray(run.history["objective"])
+    assert np.all(np.diff(f) <= 0) and run.after.inverted_elements == 0

@@ -486,9 +486,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
 
                 n_cells = n_hex + sum(int(c.shape[1]) for c in extra.conns)
                 if p.precondition == "coarse" or n_cells <= coarse.AUTO_MAX_CELLS:
-                    after = 0 if p.precondition == "coarse" or p.solver == "newton" else coarse.AUTO_AFTER
+                    after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
                     precond = functools.cache(lambda: coarse.build_coarse(run_par, _cells_by_type(conn, extra)))
-        if on_host and p.solver == "newton":
+        lbfgs_first = on_host and p.solver == "newton" and steps < p.newton_after  # L-BFGS's steps, then Newton
+        if on_host and p.solver == "newton" and not lbfgs_first:
             from .newton import newton_cg
 
             y, k, result, hf, hk, n_outer = newton_cg(
@@ -497,7 +498,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                 cg_max=int(p.cg_max))
             outer += n_outer
         elif on_host:
-            y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
+            y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=min(p.max_steps, p.newton_after if lbfgs_first
+                                                                    else p.max_steps) - steps,
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
                                               done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
@@ -545,6 +547,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         gain = float(seg_f[0] - finite.min()) if len(finite) else 0.0
         if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol or np.min(seg_k) <= 1.0 + p.ktol:
             break
+        if lbfgs_first and steps >= p.newton_after and result == "nonlinear_max_steps_reached":
+            max_runs += 1  # L-BFGS's share ran out: Newton from here, not a restart
+            continue
         if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
             break
         if strict and par.reach(real(y)) > FLAT_REACH:

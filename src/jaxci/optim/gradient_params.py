@@ -95,6 +95,9 @@ class GradientParams:
       products by differences of the gradient, with the same line search and stops; its preconditioner the
       two-level M of `precondition`, from the first step with ``"auto"``; refused off the host engine).
       Measured on the real-mesh corpus: docs/results/bench_solvers.md.
+    - `newton_after`: ``solver="newton"``: L-BFGS (as ``solver="lbfgs"``) for this many steps, then Newton from its
+      iterate (default 0: Newton from the start; its start is in the history's ``restarts``); a run that L-BFGS
+      ends sooner is L-BFGS's.
     - `cg_max`: ``solver="newton"``: the most CG products (gradient evaluations) per Newton iteration (default 20).
     - `polish`: with ``objective="mean"``: after the solve, the worst-element polish of
       `jaxci.optim.polish` (the worst element lowered level by level, moving only the nodes of the elements
@@ -127,6 +130,7 @@ class GradientParams:
     precondition: str = "auto"
     solver: str = "lbfgs"
     cg_max: int = 20
+    newton_after: int = 0
     polish: bool = False
     polish_budget: float = 0.01
 
@@ -157,6 +161,7 @@ class GradientParams:
             precondition=_p.choice(L, "precondition", self.precondition, PRECONDITIONERS),
             solver=_p.choice(L, "solver", self.solver, SOLVERS),
             cg_max=_p.integer(L, "cg_max", self.cg_max, 1, MAX_CG),
+            newton_after=_p.integer(L, "newton_after", self.newton_after, 0, MAX_STEPS),
             polish=_p.boolean(L, "polish", self.polish),
             polish_budget=_p.real(L, "polish_budget", self.polish_budget, 0.0, 1.0),
         )
