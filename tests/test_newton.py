@@ -164,3 +164,28 @@ def test_newton_after_runs_lbfgs_first():
     assert 20 in list(run.history["restarts"]) and run.history["newton_iterations"] > 0
     f = np.asarray(run.history["objective"])
     assert np.all(np.diff(f) <= 0) and run.after.inverted_elements == 0
+
+
+def test_bench_solvers_script_writes_its_table_and_json(tmp_path):
+    """scripts/bench_solvers.py on a small box: a row per solver (plain and in the default pipeline) with its
+    iterations, gradient evaluations and element quality, in the table and the JSON."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from jaxci import write_mesh
+
+    root = Path(__file__).resolve().parents[1]
+    mesh = tmp_path / "box.vtk"
+    write_mesh(perturb_box(3, amplitude=0.2, seed=0), mesh)
+    out = tmp_path / "out.json"
+    env = {**os.environ, "PYTHONPATH": str(root / "src")}
+    p = subprocess.run([sys.executable, str(root / "scripts" / "bench_solvers.py"), "--meshes", str(mesh),
+                        "--solvers", "lbfgs", "auto/newton:cg_max=5", "--out", str(out)], capture_output=True,
+                       text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["solver"] for r in rows] == ["lbfgs", "auto/newton:cg_max=5"] and "auto/newton:cg_max=5" in p.stdout
+    assert all(r["grad_evals"] >= r["outer"] > 0 and r["worst"] >= 1.0 for r in rows)
