@@ -421,6 +421,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                       "solver_result": "no free coordinates"}, params
     n_hex = int(conn.shape[1])
     on_host = devices is None and use_host(method, p, n_hex, extra)
+    if p.solver == "newton" and not (method == "lbfgs" and on_host):
+        raise ConfigError(f"gradient-method parameter solver='newton' is for method 'lbfgs' on the host (numpy) "
+                          f"path, not {method!r} with backend={p.backend!r}"
+                          f"{' sharded over devices' if devices is not None else ''}; use solver='lbfgs'")
     if p.precondition == "coarse" and not on_host:
         raise ConfigError(f"gradient-method parameter precondition={p.precondition!r} is for L-BFGS on the host "
                           f"(numpy) path, not {method!r} with backend={p.backend!r}"
@@ -470,7 +474,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         _zeros(nf, np.dtype(par.x0.dtype)) if project is not None else np.zeros(nf)) < FLAT_REACH
     runs, max_runs = 0, 1 + int(p.restarts)
     host_fn = precond = None
-    after = 0
+    after = outer = 0
     while runs < max_runs:
         cur = dataclasses.replace(run_par, strict=True) if strict else run_par
         if on_host:  # one objective for every run: its projector remembers each node's triangle
@@ -484,7 +488,18 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                 if p.precondition == "coarse" or n_cells <= coarse.AUTO_MAX_CELLS:
                     after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
                     precond = functools.cache(lambda: coarse.build_coarse(run_par, _cells_by_type(conn, extra)))
-            y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=p.max_steps - steps,
+        lbfgs_first = on_host and p.solver == "newton" and steps < p.newton_after  # L-BFGS's steps, then Newton
+        if on_host and p.solver == "newton" and not lbfgs_first:
+            from .newton import newton_cg
+
+            y, k, result, hf, hk, n_outer = newton_cg(
+                host_fn, y, limit=p.max_steps - steps, max_rejected=_max_rejected(method, p), rtol=p.rtol,
+                atol=p.atol, cap=p.max_move, ftol=p.ftol, done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
+                cg_max=int(p.cg_max))
+            outer += n_outer
+        elif on_host:
+            y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=min(p.max_steps, p.newton_after if lbfgs_first
+                                                                    else p.max_steps) - steps,
                                               max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
                                               history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
                                               done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
@@ -532,6 +547,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         gain = float(seg_f[0] - finite.min()) if len(finite) else 0.0
         if steps >= p.max_steps or finite.min(initial=np.inf) <= p.ftol or np.min(seg_k) <= 1.0 + p.ktol:
             break
+        if lbfgs_first and steps >= p.newton_after and result == "nonlinear_max_steps_reached":
+            max_runs += 1  # L-BFGS's share ran out: Newton from here, not a restart
+            continue
         if finite.min(initial=np.inf) <= p.restart_tol * abs(f0):  # converged relative to the input
             break
         if strict and par.reach(real(y)) > FLAT_REACH:
@@ -545,6 +563,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         x = par.final_points(real(y), project)
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
+    if p.solver == "newton":
+        hist["newton_iterations"] = outer
     return x, steps, hist, params
 
 

@@ -22,6 +22,11 @@ MAX_POWER = 64.0
 #: Initial inverse Hessians of the host L-BFGS (`GradientParams.precondition`).
 PRECONDITIONERS = ("auto", "none", "coarse")
 
+#: Solvers of ``"lbfgs"`` on the host engine (`GradientParams.solver`).
+SOLVERS = ("lbfgs", "newton")
+#: Most CG products per Newton iteration (`GradientParams.cg_max`).
+MAX_CG = 10_000
+
 #: Nonlinear CG beta formulas (`optx.NonlinearCG(method=...)`).
 CG_METHODS = ("polak_ribiere", "fletcher_reeves", "hestenes_stiefel", "dai_yuan")
 
@@ -85,6 +90,15 @@ class GradientParams:
       preconditioner of `jaxci.optim.coarse`: a run that is still going there is one whose boundary nodes creep
       along curved walls), ``"coarse"`` (``gamma M`` from the start; refused elsewhere than on the host
       L-BFGS) or ``"none"`` (``gamma I`` throughout). See `jaxci.optim.coarse` for the figures.
+    - `solver`: ``method="lbfgs"`` on the host engine: ``"lbfgs"`` (default, `jaxci.optim.host.lbfgs`) or
+      ``"newton"`` (truncated Newton, `jaxci.optim.newton.newton_cg`: preconditioned CG on Hessian-vector
+      products by differences of the gradient, with the same line search and stops; its preconditioner the
+      two-level M of `precondition`, from the first step with ``"auto"``; refused off the host engine).
+      Measured on the real-mesh corpus: docs/results/bench_solvers.md.
+    - `newton_after`: ``solver="newton"``: L-BFGS (as ``solver="lbfgs"``) for this many steps, then Newton from its
+      iterate (default 0: Newton from the start; its start is in the history's ``restarts``); a run that L-BFGS
+      ends sooner is L-BFGS's.
+    - `cg_max`: ``solver="newton"``: the most CG products (gradient evaluations) per Newton iteration (default 20).
     - `polish`: with ``objective="mean"``: after the solve, the worst-element polish of
       `jaxci.optim.polish` (the worst element lowered level by level, moving only the nodes of the elements
       above the level, F kept as low as the level allows; on the host whatever the engine). Default False:
@@ -114,6 +128,9 @@ class GradientParams:
     objective: str = "mean"
     p: float = 2.0
     precondition: str = "auto"
+    solver: str = "lbfgs"
+    cg_max: int = 20
+    newton_after: int = 0
     polish: bool = False
     polish_budget: float = 0.01
 
@@ -142,6 +159,9 @@ class GradientParams:
             objective=_p.choice(L, "objective", self.objective, OBJECTIVES),
             p=_p.real(L, "p", self.p, 1.0, MAX_POWER),
             precondition=_p.choice(L, "precondition", self.precondition, PRECONDITIONERS),
+            solver=_p.choice(L, "solver", self.solver, SOLVERS),
+            cg_max=_p.integer(L, "cg_max", self.cg_max, 1, MAX_CG),
+            newton_after=_p.integer(L, "newton_after", self.newton_after, 0, MAX_STEPS),
             polish=_p.boolean(L, "polish", self.polish),
             polish_budget=_p.real(L, "polish_budget", self.polish_budget, 0.0, 1.0),
         )

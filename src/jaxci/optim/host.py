@@ -163,13 +163,45 @@ class HostObjective:
             f, kmax, gx = self.kernel(x)
         if not np.isfinite(f):
             return np.inf, None, f, kmax
+        gx_raw = gx
         if hint is not None:
             gx = self._project.pullback(gx, *hint)
         gv = (native.lift_t(gx, self._scale, self._layout) if self._layout is not None
               else lift_transpose_np(self._scale, self._cons, gx))
         out = self.s * f, self.s * gv, f, kmax
-        self._last = (np.array(v), x, out, hint)
+        self._last = (np.array(v), x, out, hint, gx_raw)
         return out
+
+    def hvp(self, p: np.ndarray, step: float) -> np.ndarray | None:
+        """``H p`` at the accepted iterate (`best`) by a forward difference of the kernel's gradient, one
+        evaluation: ``J^T (g_x(x + h J p) - g_x(x)) / h`` with ``J = P B S`` the lift followed by the linearised
+        projection of the iterate (each projected node on its triangle's plane or its segment's line), ``h`` =
+        `step` over ``max |p|``. The Hessian of the objective with every boundary node held to its current
+        triangle or segment: F's curvature without the kinks of the piecewise-flat boundary, which a difference
+        of `__call__`'s gradient would pick up wherever a node sits on a triangle's edge (an original boundary node
+        sits on a vertex). None where the step inverts an element."""
+        _, x, _, hint, gx = self.best
+        size = amax(p)
+        if size == 0:
+            return np.zeros_like(p)
+        h = step / size
+        zero = np.zeros_like(self._x0)
+        dx = (native.lift(zero, self._scale, p, self._layout) if self._layout is not None
+              else lift_points(np, zero, self._scale, self._cons, p))
+        if hint is not None:
+            dx = self._project.pullback(dx, *hint)
+        dx *= h
+        dx += x
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            f, _, gh = self.kernel(dx)
+        if not np.isfinite(f):
+            return None
+        gh = gh - gx
+        gh *= self.s / h
+        if hint is not None:
+            gh = self._project.pullback(gh, *hint)
+        return (native.lift_t(gh, self._scale, self._layout) if self._layout is not None
+                else lift_transpose_np(self._scale, self._cons, gh))
 
 
 def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callable:
@@ -182,7 +214,7 @@ def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callab
     return lambda x: objective_terms_and_grad_np(x, conn, power)
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
+def dot(a: np.ndarray, b: np.ndarray) -> float:
     """``a . b`` of two vectors without BLAS, summed in float64 (also for float32 vectors): OpenBLAS's
     multi-threaded ``ddot`` took 8 ms for 80,000 entries on this 2-core machine under load (its threads spin
     against the other processes) against 0.04 ms here."""
@@ -191,7 +223,7 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.einsum("i,i->", a, b, dtype=np.float64))
 
 
-def _amax(a: np.ndarray) -> float:
+def amax(a: np.ndarray) -> float:
     """``max |a|`` (0 for an empty `a`) without a temporary array."""
     return max(float(a.max(initial=0.0)), -float(a.min(initial=0.0)))
 
@@ -218,8 +250,8 @@ class _Memory:
         place of the oldest once full."""
         if self.S.dtype != np.float64:  # the curvature of the rounded pair: rho then matches what the loop reads
             s, y = s.astype(self.S.dtype), y.astype(self.S.dtype)
-        sy = _dot(s, y)
-        if not curvature_ok(sy, _dot(s, s), _dot(y, y)):
+        sy = dot(s, y)
+        if not curvature_ok(sy, dot(s, s), dot(y, y)):
             return
         slot = self.order.pop(0) if len(self.order) == self.history else len(self.order)
         self.S[slot], self.Y[slot], self.rho[slot] = s, y, 1.0 / sy
@@ -237,7 +269,7 @@ class _Memory:
         """``gamma = s.y / y.M y`` of the newest pair (as stored)."""
         k = self.order[-1]
         y = self.Y[k].astype(np.float64)
-        self.gamma = 1.0 / (self.rho[k] * _dot(y, self.precond(y)))
+        self.gamma = 1.0 / (self.rho[k] * dot(y, self.precond(y)))
 
     def clear(self) -> None:
         self.order.clear()
@@ -255,16 +287,16 @@ class _Memory:
         q = g.copy()
         alphas = []
         for k in reversed(self.order):
-            a = self.rho[k] * _dot(S[k], q)
+            a = self.rho[k] * dot(S[k], q)
             alphas.append(a)
             q -= a * Y[k]
         if pc is not None:
             q = self.gamma * pc(q)
         elif self.order:
             s, y = S[self.order[-1]], Y[self.order[-1]]
-            q *= _dot(s, y) / _dot(y, y)
+            q *= dot(s, y) / dot(y, y)
         for k, a in zip(self.order, reversed(alphas), strict=True):
-            b = self.rho[k] * _dot(Y[k], q)
+            b = self.rho[k] * dot(Y[k], q)
             q += (a - b) * S[k]
         return -q
 
@@ -304,13 +336,13 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
     mem = _Memory(len(y), history)
 
     def capped(d):  # the trial move at step size 1: `d` scaled in place so that no unknown moves more than `cap`
-        k = float(cap_factor(_amax(d), cap or 0.0))
+        k = float(cap_factor(amax(d), cap or 0.0))
         if k != 1.0:
             d *= k
         return d
 
     trial = capped(-g)
-    slope = _dot(g, trial)
+    slope = dot(g, trial)
     alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
     stop = finished(f, k)
     tick = None if stage is None else stepper(stage)
@@ -325,7 +357,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
         if g_try is not None and armijo(v_try, value, alpha, slope):
             s = y_try - y
             mem.push(s, g_try - g)
-            done_here = bool(converged(_amax(s), _amax(y_try), v_try, value, rtol, atol))
+            done_here = bool(converged(amax(s), amax(y_try), v_try, value, rtol, atol))
             del s
             y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
             accept()
@@ -334,11 +366,11 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             if precond is not None and mem.precond is None and steps >= precond_after:
                 mem.use(precond())
             d = mem.direction(g)
-            if not _dot(g, d) < 0:  # not a descent direction: forget the curvature pairs
+            if not dot(g, d) < 0:  # not a descent direction: forget the curvature pairs
                 mem.clear()
                 d = -g
             trial = capped(d)
-            slope = _dot(g, trial)
+            slope = dot(g, trial)
             if done_here:
                 result, stop = "successful", True
             stop = stop or finished(f, k)

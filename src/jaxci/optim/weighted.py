@@ -200,7 +200,7 @@ def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float):
         for t in parts:
             e = t - 1.0
             over = np.maximum(e - level, 0.0)
-            # einsum, not np.dot: BLAS's threads spin against other processes (`jaxci.optim.host._dot`)
+            # einsum, not np.dot: BLAS's threads spin against other processes (`jaxci.optim.host.dot`)
             total += float(e.sum()) + weight * float(np.einsum("i,i->", over.ravel(), over.ravel()))
             weights.append(1.0 + 2.0 * weight * over)
             tmax = max(tmax, float(t.max(initial=1.0)))
