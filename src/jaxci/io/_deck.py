@@ -104,6 +104,33 @@ def refuse_duplicates(ids, lines, where, what: str, more=None) -> None:
                             f"{extra}")
 
 
+def checked_ids(deck, node: str, no_nodes: str, no_elements: str):
+    """The node ids of a parsed card deck (LS-DYNA, Nastran: `deck` has ``node_ids``, ``node_line``, ``where``
+    and ``blocks`` of element ``ids`` and ``lines``), checked: a `MeshReadError` `no_nodes` where it has no node,
+    `no_elements` (``{n}``: the node count) where it has no element, and at a node id (`node`: the format's word)
+    or an element id defined twice. Returns ``(ids, find)``: the ids ``(n,)`` and ``find(raw, blank)``, the
+    positions of the node ids `raw` and where they are undefined (an id 0 is no node, not undefined, with
+    `blank`)."""
+    if not deck.node_ids:
+        raise MeshReadError(no_nodes)
+    ids = np.array(deck.node_ids, np.int64)
+    refuse_duplicates(ids, deck.node_line, deck.where, node)
+    if not deck.blocks:
+        raise MeshReadError(no_elements.format(n=len(ids)))
+    blocks = deck.blocks.values()
+    refuse_duplicates(np.concatenate([np.array(b["ids"], np.int64) for b in blocks]),
+                      [i for b in blocks for i in b["lines"]], deck.where, "element")
+    order = np.argsort(ids)
+    srt = ids[order]
+
+    def find(raw, blank: bool = False):
+        pos = np.minimum(np.searchsorted(srt, raw), len(srt) - 1)
+        missing = srt[pos] != raw
+        return order[pos], missing & (raw != 0) if blank else missing
+
+    return ids, find
+
+
 def _same_array(a, b) -> bool:
     if a is None or b is None:
         return a is None and b is None

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
-from ._deck import parse_id, refuse_duplicates
+from ._deck import checked_ids, parse_id
 from ._fields import parse_real
 from ._includes import flatten
 
@@ -200,27 +200,17 @@ class Deck:
 
     def mesh_parts(self) -> dict:
         """Keyword arguments of the deck's `HexMesh` (without source, notes and field data)."""
-        if not self.node_ids:
-            raise MeshReadError(f"{self.path}: no *NODE data found; not an LS-DYNA keyword deck (or an empty one)")
-        ids = np.array(self.node_ids, np.int64)
-        refuse_duplicates(ids, self.node_line, self.where, "node")
-        if not self.blocks:
-            raise MeshReadError(f"{self.path}: {len(ids)} nodes but no *ELEMENT_SOLID elements")
-        eids = np.concatenate([np.array(b["ids"], np.int64) for b in self.blocks.values()])
-        elines = [i for b in self.blocks.values() for i in b["lines"]]
-        refuse_duplicates(eids, elines, self.where, "element")
-        order = np.argsort(ids)
-        srt = ids[order]
+        ids, find = checked_ids(self, "node", f"{self.path}: no *NODE data found; not an LS-DYNA keyword deck (or an "
+                                f"empty one)", f"{self.path}: {{n}} nodes but no *ELEMENT_SOLID elements")
         cells, pids = [], []
         for cell, b in self.blocks.items():
             raw = np.array(b["nodes"], np.int64)
-            pos = np.minimum(np.searchsorted(srt, raw), len(srt) - 1)
-            missing = srt[pos] != raw
+            pos, missing = find(raw)
             if missing.any():
                 r, c = (int(v) for v in np.argwhere(missing)[0])
                 raise MeshReadError(f"{self.where(b['lines'][r])}: element {b['ids'][r]} references node {raw[r, c]}, "
                                     f"which no *NODE defines ({int(missing.any(axis=1).sum())} such elements)")
-            cells.append(CellBlock(cell, order[pos], np.array(b["ids"], np.int64)))
+            cells.append(CellBlock(cell, pos, np.array(b["ids"], np.int64)))
             pids.append(np.array(b["pids"], np.int64))
         return {"points": np.array(self.xyz, np.float64).reshape(-1, 3), "cells": tuple(cells), "node_ids": ids,
                 "cell_data": {"lsdyna:pid": pids}}

@@ -35,7 +35,7 @@ import numpy as np
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
 from ._ansys_apdl import read_apdl
-from ._deck import parse_id, refuse_duplicates
+from ._deck import checked_ids, parse_id
 from ._fields import parse_real
 from ._includes import flatten
 from ._patran import split_solid
@@ -193,28 +193,19 @@ class Deck:
 
     def mesh_parts(self) -> dict:
         """Keyword arguments of the deck's `HexMesh` (without source, notes and field data)."""
-        if not self.node_ids:
-            raise MeshReadError(f"{self.path}: no GRID cards found; not a Nastran bulk data deck (or an empty one)")
-        ids = np.array(self.node_ids, np.int64)
-        refuse_duplicates(ids, self.node_line, self.where, "GRID")
-        if not self.blocks:
-            raise MeshReadError(f"{self.path}: {len(ids)} GRIDs but no CHEXA, CPENTA, CTETRA or CPYRAM elements")
-        eids = np.concatenate([np.array(b["ids"], np.int64) for b in self.blocks.values()])
-        elines = [i for b in self.blocks.values() for i in b["lines"]]
-        refuse_duplicates(eids, elines, self.where, "element")
-        order = np.argsort(ids)
-        srt = ids[order]
+        ids, find = checked_ids(self, "GRID", f"{self.path}: no GRID cards found; not a Nastran bulk data deck (or "
+                                f"an empty one)", f"{self.path}: {{n}} GRIDs but no CHEXA, CPENTA, CTETRA or CPYRAM "
+                                f"elements")
         cells, pids = [], []
         for (name, _), b in self.blocks.items():
             cell, corners, _ = ELEMENT_CARDS[name]
             raw = np.array(b["nodes"], np.int64)
-            pos = np.minimum(np.searchsorted(srt, raw), len(srt) - 1)
-            missing = (srt[pos] != raw) & (raw != 0)
+            pos, missing = find(raw, blank=True)
             if missing.any():
                 r, c = (int(v) for v in np.argwhere(missing)[0])
                 raise MeshReadError(f"{self.where(b['lines'][r])}: {name} {b['ids'][r]} references GRID {raw[r, c]}, "
                                     f"which the deck does not define ({int(missing.any(axis=1).sum())} such elements)")
-            conn = np.where(raw == 0, -1, order[pos])
+            conn = np.where(raw == 0, -1, pos)
             data, mid = split_solid(conn, cell) if raw.shape[1] > corners else (conn, None)
             cells.append(CellBlock(cell, data, np.array(b["ids"], np.int64), mid))
             pids.append(np.array(b["pids"], np.int64))
