@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from jaxci import native
-from jaxci.errors import ConfigError
 from jaxci.cells import element_blocks
+from jaxci.errors import ConfigError
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints
 from jaxci.geometry.topology import HEX_FACES
