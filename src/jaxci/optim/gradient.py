@@ -677,8 +677,8 @@ def _polish(problem, par: Parametrisation, x, steps: int, hist: dict, p: Gradien
     on the device, of a window of its worst cells, `jaxci.optim.polish_window`): ``(x, steps, hist)``
     with one step and one history entry per polish round, and ``polish`` (the polish's report) in the history.
     Its work is bounded by `GradientParams.polish_work` kernel passes a cell (whatever the solver and its steps);
-    F may end above the method's input's
-    where the worst element fell (`jaxci.metrics.guard.worst_first`: the run's final check)."""
+    F may end above the method's input's where the worst element fell (`jaxci.metrics.guard.worst_first`: the
+    run's final check)."""
     from ..cells import element_blocks
     from .polish import PolishParams, polish
 
