@@ -8,6 +8,7 @@ import pytest
 
 from jaxci import native
 from jaxci.cells import element_blocks
+from jaxci.errors import ConfigError
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints
 from jaxci.geometry.topology import HEX_FACES
@@ -17,6 +18,7 @@ from jaxci.mesh.generate import perturb_box
 from jaxci.metrics.elements import checked_objective, mixed_objective
 from jaxci.metrics.guard import cell_worst
 from jaxci.optim import weighted
+from jaxci.optim.gradient_params import GradientParams
 from jaxci.optim.parametrisation import make_parametrisation
 from jaxci.optim.polish import PolishParams, polish
 
@@ -131,6 +133,22 @@ def test_default_polishes_the_worst_element_within_its_budget():
     # no mean budget: a round that raises the mean element quality is not kept
     none = smooth(mesh, fix_boundary=True, polish_budget=0.0)
     assert element_stats(mesh, none.mesh.points)[1] <= m0 * (1 + 1e-12)
+
+
+def test_the_default_polish_work_bound_is_passes_a_cell_whatever_the_solver():
+    """`polish_work`: kernel passes over the mesh's cells (1000 by default), not the solve's steps: a bound below one
+    round's work stops either solver's polish after its first round; a negative one is refused."""
+    mesh = perturb_box(4, amplitude=0.3, seed=1)
+    auto = smooth(mesh, fix_boundary=True)
+    assert auto.params["polish_work"] == 1000.0
+    rep = auto.history["polish"]
+    assert len(rep["work"]) == len(rep["element_mean"]) == rep["rounds"] and rep["work"][-1] < 1000.0 * 64
+    assert rep["element_mean"][-1] == pytest.approx(rep["mean"][1], rel=1e-12)
+    for solver in ("lbfgs", "newton"):
+        tiny = smooth(mesh, fix_boundary=True, solver=solver, polish_work=1e-9)
+        assert tiny.history["polish"]["rounds"] == 1 and "work bound" in tiny.history["polish"]["stopped"]
+    with pytest.raises(ConfigError, match="polish_work"):
+        GradientParams(polish_work=-1.0)
 
 
 def polish_setup(mesh, x, fixed=None):

@@ -676,15 +676,16 @@ def _polish(problem, par: Parametrisation, x, steps: int, hist: dict, p: Gradien
     (numpy float64 constraints and parametrisation are made where the run's are JAX arrays; where the mesh lives
     on the device, of a window of its worst cells, `jaxci.optim.polish_window`): ``(x, steps, hist)``
     with one step and one history entry per polish round, and ``polish`` (the polish's report) in the history.
-    Its work is bounded by the solve's (`steps` times the cells); F may end above the method's input's
-    where the worst element fell (`jaxci.metrics.guard.worst_first`: the run's final check)."""
+    Its work is bounded by `GradientParams.polish_work` kernel passes a cell (whatever the solver and its steps);
+    F may end above the method's input's where the worst element fell (`jaxci.metrics.guard.worst_first`: the
+    run's final check)."""
     from ..cells import element_blocks
     from .polish import PolishParams, polish
 
     mesh = problem.mesh
     blocks = element_blocks(mesh)
     n_cells = sum(len(c) for c in blocks.values())
-    pp = PolishParams(budget=p.polish_budget, work=float(max(steps, 1)) * n_cells)
+    pp = PolishParams(budget=p.polish_budget, work=p.polish_work * n_cells if p.polish_work > 0 else None)
     if problem.tables is not None:  # the mesh on the device: the polish on a window of its worst cells
         from ..geometry.device_constraints import as_float64
         from .polish_window import put_back, window

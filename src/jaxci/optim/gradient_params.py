@@ -27,6 +27,10 @@ SOLVERS = ("lbfgs", "newton")
 #: Most CG products per Newton iteration (`GradientParams.cg_max`).
 MAX_CG = 10_000
 
+#: The worst-element polish's work bound, kernel passes over the mesh's cells (`GradientParams.polish_work`; 0:
+#: none; chosen by measurement, `jaxci.optim.polish`), and its upper bound.
+POLISH_WORK, MAX_POLISH_WORK = 1000.0, 1e6
+
 #: Nonlinear CG beta formulas (`optx.NonlinearCG(method=...)`).
 CG_METHODS = ("polak_ribiere", "fletcher_reeves", "hestenes_stiefel", "dai_yuan")
 
@@ -105,6 +109,9 @@ class GradientParams:
       ``method="lbfgs"`` is plain L-BFGS; the default pipeline (``method="auto"``) turns it on.
     - `polish_budget`: the most the polish may raise the mean element quality (the mean over the cells of each
       cell's worst corner kappa/3), as a fraction of it (default 0.01; 0 to 1).
+    - `polish_work`: the polish's work bound, in kernel passes over the mesh's cells (a gradient evaluation of
+      the solve is one pass over every cell; a step of a polish sub-problem two over its cells): default 1000
+      (`POLISH_WORK`), the same whatever the solver; 0: no bound. Measured: docs/results/bench_solvers.md.
     """
 
     max_steps: int = 2000
@@ -133,6 +140,7 @@ class GradientParams:
     newton_after: int = 0
     polish: bool = False
     polish_budget: float = 0.01
+    polish_work: float = POLISH_WORK
 
     def __post_init__(self):
         L = "gradient-method"
@@ -164,6 +172,7 @@ class GradientParams:
             newton_after=_p.integer(L, "newton_after", self.newton_after, 0, MAX_STEPS),
             polish=_p.boolean(L, "polish", self.polish),
             polish_budget=_p.real(L, "polish_budget", self.polish_budget, 0.0, 1.0),
+            polish_work=_p.real(L, "polish_work", self.polish_work, 0.0, MAX_POLISH_WORK),
         )
         if self.polish and self.objective != "mean":
             raise ConfigError("gradient-method parameter polish=True is for objective='mean' (the p-mean already "

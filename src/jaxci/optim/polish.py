@@ -21,6 +21,12 @@ step). The polish ends when the steps become negligible (``gamma > GAMMA_END``),
 `MIN_EXCESS` of an ideal one, no node of it can move, or its work (kernel passes over cells) reaches
 `PolishParams.work`.
 
+Its work bound in the default pipeline is a fixed number of passes a cell (`GradientParams.polish_work`, 1000),
+not the solve's steps: a solver that needs fewer steps (truncated Newton) would otherwise get a smaller polish.
+Chosen by measurement (2026-11-29, docs/results/bench_solvers.md): unbounded, the polish ended by itself within
+1000 passes a cell on every mesh of the real-mesh corpus and pave3 (160 to 1000, 0.2 to 5 s), after L-BFGS or
+Newton; a bound of 500 would have left the 25k bracket after L-BFGS at 2.213 where it ends at 2.190.
+
 Chosen by measurement (2026-11-27, in process on the real-mesh corpus of scripts/bench_realmesh.py; worst / mean
 element): the descent run to its end reaches pave3 1.786 / 1.2420 from L-BFGS's 2.790 / 1.2159 (p-mean p = 4:
 2.026 / 1.3151): the mean's cost is small for the first levels and steep near the best reachable worst element,
@@ -82,8 +88,8 @@ class Rest:
 class PolishParams:
     """`budget`: the most the mean element quality (the mean over the cells of each cell's worst corner kappa/3)
     may rise above the start's, as a fraction (default 0.01); `work`: the most kernel passes over cells, two per
-    sub-problem step (None: no bound; `jaxci.optim.gradient.run_gradient` passes the L-BFGS solve's steps times
-    the mesh's cells, one pass a step: the polish costs about as much as the solve did at most); `f_limit`: F
+    sub-problem step, checked before each round (None: no bound; `jaxci.optim.gradient.run_gradient` passes
+    `GradientParams.polish_work` times the mesh's cells, 1000 by default, whatever the solver); `f_limit`: F
     (over every corner) must stay at or below this (default: no limit)."""
 
     budget: float = 0.01
@@ -104,9 +110,10 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
     mesh's.
 
     **Returns:** ``(x, report)``: the polished coordinates (a new array; `x` itself when nothing was kept) and a
-    dict: ``rounds``, ``steps``, ``kept`` (rounds kept), ``worst`` and ``mean`` (before, after), ``objective``
-    and ``max_condition`` (F and max kappa/3 after each round), ``stopped`` (why it ended) and ``limited``
-    (True where the worst element's nodes cannot move at all).
+    dict: ``rounds``, ``steps``, ``kept`` (rounds kept), ``worst`` and ``mean`` (before, after), ``objective``,
+    ``max_condition``, ``element_mean`` and ``work`` (F, max kappa/3, the mean element and the kernel passes over
+    cells so far, after each round), ``stopped`` (why it ended) and ``limited`` (True where the worst element's
+    nodes cannot move at all).
     """
     blocks = element_blocks(mesh) if blocks is None else blocks
     blocks = {t: np.asarray(c, np.int64) for t, c in blocks.items() if len(c)}
@@ -126,7 +133,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
 
     w0, mean0 = figures(k)
     report = {"rounds": 0, "steps": 0, "kept": 0, "worst": [w0, w0], "mean": [mean0, mean0], "objective": [],
-              "max_condition": [], "stopped": "", "limited": False}
+              "max_condition": [], "element_mean": [], "work": [], "stopped": "", "limited": False}
     if not np.isfinite(w0) or w0 <= 1.0 + MIN_EXCESS:
         report["stopped"] = "inverted cells" if not np.isfinite(w0) else "worst element within 1e-3 of ideal"
         return x, report
@@ -144,7 +151,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
             report["stopped"] = "the worst element stopped improving"
             break
         if p.work is not None and work >= p.work:
-            report["stopped"] = "its work bound (the L-BFGS solve's steps times cells)"
+            report["stopped"] = "its work bound (kernel passes over cells)"
             break
         level = 1.0 + gamma * (w - 1.0)
         region = np.zeros(len(x), bool)
@@ -170,8 +177,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
         y_pts = fun.best[1] if fun.best is not None else None
         if y_pts is None:  # no valid evaluation (cannot happen from a valid start): a smaller step
             gamma = gamma ** 0.5
-            report["objective"].append(e_sum / n_corners)
-            report["max_condition"].append(w)
+            _record(report, e_sum / n_corners, w, figures(k)[1], work)
             continue
         new_terms = CellCorners(sub.blocks).terms_all(y_pts)
         new_worst = CellCorners(sub.blocks).cell_worst(y_pts, new_terms)
@@ -190,12 +196,17 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
             report["kept"] += 1
         else:  # no better, or too dear: a smaller step
             gamma = gamma ** 0.5
-        report["objective"].append(e_sum / n_corners)
-        report["max_condition"].append(w)
+        _record(report, e_sum / n_corners, w, figures(k)[1], work)
         if tick is not None:
             tick(report["rounds"], e_sum / n_corners, w)
     report["worst"][1], report["mean"][1] = figures(k)
     return x, report
+
+
+def _record(report: dict, f: float, w: float, mean: float, work: float):
+    """A round's figures in the polish's report: F, the worst and the mean element, the work so far."""
+    for key, v in (("objective", f), ("max_condition", w), ("element_mean", mean), ("work", work)):
+        report[key].append(v)
 
 
 def _neighbours(blocks: dict, nodes: np.ndarray) -> np.ndarray:
