@@ -158,6 +158,9 @@ class HostObjective:
         if best is not None and np.array_equal(best[0], v):  # a restart from the accepted iterate: the same answer
             self._last = best
             return best[2]
+        # a rejected trial's arrays (v, points, gradient: 16 MB at 216,000 hexahedra) go before this one's are made;
+        # `accept` only ever takes the evaluation just made
+        self._last = None
         x, hint = self._points(v)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             f, kmax, gx = self.kernel(x)
