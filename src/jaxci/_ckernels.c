@@ -30,7 +30,8 @@ static int get_buffer(PyObject *obj, Py_buffer *view, const char *name, const ch
     if (view->itemsize != itemsize || view->format == NULL || strchr(fmt, view->format[0]) == NULL ||
         view->format[1] != '\0') {
         PyErr_Format(PyExc_TypeError, "%s: expected a contiguous array of %s, got format '%s'", name,
-                     fmt[0] == '?' ? "bool" : (fmt[0] == 'd' ? "float64" : "int64"), view->format ? view->format : "?");
+                     fmt[0] == '?' ? "bool" : (fmt[0] == 'd' ? "float64" : (fmt[0] == 'i' ? "int32" : "int64")),
+                     view->format ? view->format : "?");
         PyBuffer_Release(view);
         return -1;
     }
@@ -46,7 +47,7 @@ typedef struct {
 
 static int acquire(Buf *b, PyObject *obj, const char *name, const char *fmt, int writable, int optional) {
     if (obj == Py_None && optional) return 0;
-    if (get_buffer(obj, &b->view, name, fmt, fmt[0] == '?' ? 1 : 8, writable) < 0) return -1;
+    if (get_buffer(obj, &b->view, name, fmt, fmt[0] == '?' ? 1 : (fmt[0] == 'i' ? 4 : 8), writable) < 0) return -1;
     b->held = 1;
     return 0;
 }
@@ -56,14 +57,21 @@ static void release(Buf *b, int n) {
         if (b[i].held) PyBuffer_Release(&b[i].view);
 }
 
-/* 0 if every one of the `count` indices I is in [0, n), else -1 with IndexError naming the function. */
-static int check_indices(const long long *I, Py_ssize_t count, Py_ssize_t n, const char *fn) {
-    for (Py_ssize_t k = 0; k < count; k++)
-        if (I[k] < 0 || I[k] >= n) {
-            PyErr_Format(PyExc_IndexError, "%s: node index %lld out of range [0, %zd)", fn, I[k], n);
+/* 0 if every one of the `count` indices I (int64, or int32 where `width` is 4) is in [0, n), else -1 with
+ * IndexError naming the function. */
+static int check_indices_of(const void *I, int width, Py_ssize_t count, Py_ssize_t n, const char *fn) {
+    for (Py_ssize_t k = 0; k < count; k++) {
+        long long i = width == 4 ? ((const int *)I)[k] : ((const long long *)I)[k];
+        if (i < 0 || i >= n) {
+            PyErr_Format(PyExc_IndexError, "%s: node index %lld out of range [0, %zd)", fn, i, n);
             return -1;
         }
+    }
     return 0;
+}
+
+static int check_indices(const long long *I, Py_ssize_t count, Py_ssize_t n, const char *fn) {
+    return check_indices_of(I, 8, count, n, fn);
 }
 
 /* What the condition workers add up: sum of (term - 1), max term, inverted corners (first in their jobs). */
@@ -811,7 +819,7 @@ static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns
 #undef R
 }
 
-/* near_project(x (n, 3) f8, nodes (m,) i8, active (a,) i8, hint (m,) i8, cand (rows, K) i8, table (R, nt) f8,
+/* near_project(x (n, 3) f8, nodes (m,) i8, active (a,) i8, hint (m,) i8, cand (rows, K) i4, table (R, nt) f8,
  * spheres (nt, 4) f8 (each cell's bounding sphere: centre, radius), kind (0 triangles, 1 segments), tol, bump) -> None: moves x[nodes[i]] for every i of `active` to its nearest
  * point among its K candidates (hint[i] := its column): where the orthogonal projection onto its hint's cell
  * falls inside, that unless a candidate whose bounding sphere comes nearer holds a nearer point, else the best
@@ -823,7 +831,7 @@ static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns
  * triangle rows, then nc / 4 face rows, each holding its four triangles' spheres); -1 where there are none. */
 static Py_ssize_t face_spheres(Py_ssize_t nc, int kind) { return kind == 0 && nc % 4 == 0 ? nc + nc / 4 : -1; }
 
-static void project_one(double *xi, const long long *CA, Py_ssize_t K, long long *H, const double *T, Py_ssize_t nc,
+static void project_one(double *xi, const int *CA, Py_ssize_t K, long long *H, const double *T, Py_ssize_t nc,
                         const double *S, const double *Q, int kind, double tol, double bump) {
     double p[3], h, w[3], d1;
     int inside = 0;
@@ -907,20 +915,21 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
     Buf B[7] = {{{0}}};
     if (acquire(&B[0], o_x, "x", "d", 1, 0) < 0 || acquire(&B[1], o_nodes, "nodes", "qlq", 0, 0) < 0 ||
         acquire(&B[2], o_active, "active", "qlq", 0, 0) < 0 || acquire(&B[3], o_hint, "hint", "qlq", 1, 0) < 0 ||
-        acquire(&B[4], o_cand, "cand", "qlq", 0, 0) < 0 || acquire(&B[5], o_tab, "table", "d", 0, 0) < 0 ||
+        acquire(&B[4], o_cand, "cand", "i", 0, 0) < 0 || acquire(&B[5], o_tab, "table", "d", 0, 0) < 0 ||
         acquire(&B[6], o_sph, "spheres", "d", 0, 0) < 0)
         goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8, na = B[2].view.len / 8, rows = kind == 0 ? 19 : 8;
     Py_ssize_t nc = B[5].view.len / 8 / rows, K = B[4].view.ndim == 2 ? B[4].view.shape[1] : 0;
-    const long long *N = B[1].view.buf, *A = B[2].view.buf, *CA = B[4].view.buf;
+    const long long *N = B[1].view.buf, *A = B[2].view.buf;
+    const int *CA = B[4].view.buf;
     long long *H = B[3].view.buf;
     if ((kind != 0 && kind != 1) || B[3].view.len != B[1].view.len || B[5].view.len != nc * rows * 8 || K < 1 ||
-        B[4].view.len < m * K * 8 || (B[6].view.len != nc * 32 && B[6].view.len != face_spheres(nc, kind) * 32)) {
+        B[4].view.len < m * K * 4 || (B[6].view.len != nc * 32 && B[6].view.len != face_spheres(nc, kind) * 32)) {
         PyErr_SetString(PyExc_ValueError, "near_project: shapes disagree");
         goto done;
     }
     if (check_indices(A, na, m, "near_project") < 0 || check_indices(N, m, n, "near_project") < 0 ||
-        check_indices(CA, m * K, nc, "near_project") < 0)
+        check_indices_of(CA, 4, m * K, nc, "near_project") < 0)
         goto done;
     for (Py_ssize_t k = 0; k < na; k++)
         if (H[A[k]] >= K) {
@@ -1471,7 +1480,7 @@ static inline double uniform(Draws *r, int a, int what, int i) {
 
 /* The cell tables of one boundary kind: candidate columns (rows x K), table (nc columns), spheres. */
 typedef struct {
-    const long long *cand;
+    const int *cand;
     Py_ssize_t rows, K, nc;
     const double *table, *spheres, *faces; /* faces: the face spheres after the triangles' (kind 0), or NULL */
     long long *hint;
@@ -1528,7 +1537,7 @@ static void *ci_worker(void *arg) {
         const double *basis = BASIS + 9 * m, *fr = FREE + 3 * m, *pl = PLANE + 7 * m;
         long long kd = KIND[m];
         Cells *cl = kd ? &cells[kd - 1] : NULL;
-        const long long *crow = cl ? cl->cand + ROW[m] * cl->K : NULL;
+        const int *crow = cl ? cl->cand + ROW[m] * cl->K : NULL;
         Py_ssize_t cnt = CNT[m];
         for (Py_ssize_t k = 0; k < cnt; k++) {
             elem_setup(X, HEX, ROT, INC[m * K + k], &E[k]);
@@ -1657,7 +1666,8 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
     static const int integer[20] = {0, 0, 1, 1, 1, 0, 0, 0, 1, 1, 1, 1, 1, 0, 0, 1, 0, 0, 1, 1};
     Buf B[20] = {{{0}}};
     for (int i = 0; i < 20; i++)
-        if (acquire(&B[i], o[i], names[i], integer[i] ? "qlq" : "d", writable[i], 0) < 0) goto done;
+        if (acquire(&B[i], o[i], names[i], i == 12 || i == 15 ? "i" : (integer[i] ? "qlq" : "d"), writable[i], 0) < 0)
+            goto done;
     Py_ssize_t n = B[0].view.len / 24, M = B[2].view.len / 8, K = M ? B[3].view.len / 8 / M : 0,
                N = B[18].view.len / 64;
     Cells cells[2];
@@ -1671,9 +1681,9 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
         cells[k].spheres = B[14 + 3 * k].view.buf;
         cells[k].faces = B[14 + 3 * k].view.len == cells[k].nc * 32 ? NULL : cells[k].spheres + 4 * cells[k].nc;
         cells[k].hint = B[10 + k].view.buf;
-        if (c->view.len != cells[k].rows * cells[k].K * 8 || B[10 + k].view.len / 8 > cells[k].rows ||
+        if (c->view.len != cells[k].rows * cells[k].K * 4 || B[10 + k].view.len / 8 > cells[k].rows ||
             (B[14 + 3 * k].view.len != cells[k].nc * 32 && B[14 + 3 * k].view.len != face_spheres(cells[k].nc, k) * 32) ||
-            check_indices(cells[k].cand, cells[k].rows * cells[k].K, cells[k].nc, "ci_visit") < 0) {
+            check_indices_of(cells[k].cand, 4, cells[k].rows * cells[k].K, cells[k].nc, "ci_visit") < 0) {
             if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "ci_visit: the cell tables disagree");
             goto done;
         }
@@ -1883,7 +1893,7 @@ done:
     return ret;
 }
 
-/* pullback(g (n,3) f8 in place, nodes (m,) i8, hint (m,) i8, keep (n,) bool or None, cand (m,K) i8, table f8,
+/* pullback(g (n,3) f8 in place, nodes (m,) i8, hint (m,) i8, keep (n,) bool or None, cand (m,K) i4, table f8,
  * kind) -> None: at node nodes[i] with hint[i] >= 0 and not kept, g minus its component along its triangle's unit
  * normal (kind 0; table rows 9-11) or g's component along its segment (kind 1; rows 3-5): the derivative of the
  * projection onto a plane or a line (jaxci.geometry.near.NearProjector.pullback). */
@@ -1894,16 +1904,17 @@ static PyObject *pullback(PyObject *self, PyObject *args) {
     Buf B[6] = {{{0}}};
     if (acquire(&B[0], o[0], "g", "d", 1, 0) < 0 || acquire(&B[1], o[1], "nodes", "qlq", 0, 0) < 0 ||
         acquire(&B[2], o[2], "hint", "qlq", 0, 0) < 0 || acquire(&B[3], o[3], "keep", "?", 0, 1) < 0 ||
-        acquire(&B[4], o[4], "cand", "qlq", 0, 0) < 0 || acquire(&B[5], o[5], "table", "d", 0, 0) < 0)
+        acquire(&B[4], o[4], "cand", "i", 0, 0) < 0 || acquire(&B[5], o[5], "table", "d", 0, 0) < 0)
         goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8, rows = kind == 0 ? 19 : 8;
     Py_ssize_t nc = B[5].view.len / 8 / rows, K = B[4].view.ndim == 2 ? B[4].view.shape[1] : 0;
     if ((kind != 0 && kind != 1) || B[2].view.len != B[1].view.len || (B[3].held && B[3].view.len != n) ||
-        B[5].view.len != nc * rows * 8 || (m && (K < 1 || B[4].view.len < m * K * 8))) {
+        B[5].view.len != nc * rows * 8 || (m && (K < 1 || B[4].view.len < m * K * 4))) {
         PyErr_SetString(PyExc_ValueError, "pullback: shapes disagree");
         goto done;
     }
-    const long long *N = B[1].view.buf, *H = B[2].view.buf, *CA = B[4].view.buf;
+    const long long *N = B[1].view.buf, *H = B[2].view.buf;
+    const int *CA = B[4].view.buf;
     if (check_indices(N, m, n, "pullback") < 0) goto done;
     const char *keep = B[3].held ? B[3].view.buf : NULL;
     const double *T = B[5].view.buf;

@@ -214,7 +214,7 @@ def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.
     the nearest point of its candidates (``hint[i]`` := the column); a candidate whose bounding sphere (`spheres`
     ``(nt, 4)``: centre, radius) comes nearer than the hint's projection is searched too. `kind` 0: triangles
     (`table` of 19 rows), 1: segments (8 rows); `tol`, `bump` as `jaxci.geometry._closest`. `x` float64
-    ``(n, 3)``, index arrays int64."""
+    ``(n, 3)``, `cand` int32, the other index arrays int64."""
     _c.near_project(x, nodes, _i8(active), hint, cand, table, spheres, int(kind), float(tol), float(bump))
 
 
@@ -318,7 +318,7 @@ def pullback(g: np.ndarray, nodes: np.ndarray, hint: np.ndarray, keep: np.ndarra
              table: np.ndarray, kind: int) -> None:
     """`jaxci.geometry.near.NearProjector.pullback` for one kind (0 surface nodes and their triangles, 1 edge
     nodes and their segments), in place on `g` float64 ``(n, 3)``: the arrays of the C search
-    (`NearProjector`'s), `keep` boolean ``(n,)`` or None."""
+    (`NearProjector`'s: `cand` int32), `keep` boolean ``(n,)`` or None."""
     _c.pullback(g, nodes, hint, keep, cand, table, int(kind))
 
 

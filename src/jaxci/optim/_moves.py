@@ -228,14 +228,21 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
         xnodes, xwinv, xweight, xmask = table.nodes[rows], table.winv[rows], table.weight[rows], rmask
     # to_device: no compilation per shape (jnp.asarray of a numpy array compiles a small program for each)
     put = (to_device if place else device_dtype) if device else _host_array
+    # one table at a time, each per-node table dropped once gathered into the slots: at 216,000 hexahedra the
+    # bases and planes are 16 and 13 MB a copy, and all of them at once were the untangling's peak
+    basis = put(B[safe], dtype)
+    del B
+    plane = planar_rings(np.asarray(cons.x_orig, np.float64), faces, cons)[safe]
+    plane *= mask[..., None]
+    plane = put(plane, dtype)
     return ColouredStars(
         nodes=put(nodes, np.int32),
         mask=put(mask),
         star=put(star, np.int32),
         smask=put(nmask & mask[..., None]),
-        basis=put(B[safe], dtype),
+        basis=basis,
         dims=put(np.where(mask, dims[safe], 0), np.int32),
-        plane=put(planar_rings(np.asarray(cons.x_orig, np.float64), faces, cons)[safe] * mask[..., None], dtype),
+        plane=plane,
         xnodes=put(xnodes, np.int32),
         xwinv=put(xwinv, dtype),
         xweight=put(xweight, dtype),
@@ -249,7 +256,7 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
 def _host_array(a, dtype=None) -> np.ndarray:
     """`a` as numpy for the host sweep: floats in `dtype`, indices int64."""
     a = np.asarray(a)
-    return a if dtype is None or np.issubdtype(np.dtype(dtype), np.integer) else a.astype(dtype)
+    return a if dtype is None or np.issubdtype(np.dtype(dtype), np.integer) else a.astype(dtype, copy=False)
 
 
 def slot_sizes(cs: ColouredStars) -> tuple[int, int, int]:

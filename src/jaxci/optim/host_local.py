@@ -86,33 +86,42 @@ class _Colour:
 
 
 def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
-    """The colours of `jaxci.optim._moves.coloured_stars`, padding slots dropped."""
+    """The colours of `jaxci.optim._moves.coloured_stars`, padding slots dropped. Its padded tables are taken
+    apart one at a time, each dropped once its colours are copied out (all of them and their copies at once were
+    a fifth of cube60_pert's untangling peak)."""
     cs = coloured_stars(hexes, cons, colour, faces, device=False)
     n = len(np.asarray(cons.node_class))
     rows = [np.full(n + 1, -1, np.int64) for _ in range(2)]
     for r, nodes in zip(rows, (cons.surface_nodes, cons.edge_nodes), strict=True):
         nodes = np.asarray(nodes)
         r[nodes] = np.arange(len(nodes))
-    out = []
     bounds = np.cumsum([0, cs.n_interior, cs.n_surface, cs.n_edge])
-    for i in range(cs.nodes.shape[0]):
-        keep = np.flatnonzero(cs.mask[i])
-        if not len(keep):
-            continue
-        nodes = np.asarray(cs.nodes[i][keep], np.int64)
+    keeps = [(i, keep) for i, keep in enumerate(map(np.flatnonzero, np.asarray(cs.mask))) if len(keep)]
+    tables = {k: getattr(cs, k) for k in ("nodes", "star", "smask", "basis", "dims", "plane")}
+    del cs
+
+    def per_colour(name, fn):  # `fn` of each colour's real rows of table `name`; the table is dropped after
+        table = tables.pop(name)
+        return [fn(table[i][keep]) for i, keep in keeps]
+
+    nodes = per_colour("nodes", lambda a: np.asarray(a, np.int64))
+    inc = per_colour("star", lambda a: np.ascontiguousarray(a, np.int64))
+    count = per_colour("smask", lambda a: np.asarray(a.sum(axis=1), np.int64))
+    basis = per_colour("basis", lambda a: np.asarray(a, np.float64))
+    free = per_colour("dims", lambda a: (np.arange(3)[None] < np.asarray(a)[:, None]).astype(np.float64))
+    plane = per_colour("plane", lambda a: np.asarray(a, np.float64))
+    out = []
+    for j, (i, keep) in enumerate(keeps):
         a, b = np.searchsorted(keep, bounds[1:3])
         out.append(_Colour(
-            nodes=nodes, inc=np.ascontiguousarray(cs.star[i][keep], np.int64),
-            count=np.asarray(cs.smask[i][keep].sum(axis=1), np.int64),
-            basis=np.asarray(cs.basis[i][keep], np.float64),
-            free=(np.arange(3)[None] < np.asarray(cs.dims[i][keep])[:, None]).astype(np.float64),
-            plane=np.asarray(cs.plane[i][keep], np.float64), a=int(a), b=int(b),
-            srow=rows[0][nodes[a:b]], erow=rows[1][nodes[b:]], index=i))
+            nodes=nodes[j], inc=inc[j], count=count[j], basis=basis[j], free=free[j], plane=plane[j], a=int(a),
+            b=int(b), srow=rows[0][nodes[j][a:b]], erow=rows[1][nodes[j][b:]], index=i))
     return out
 
 
-#: Nodes per block of `_local_length` (its gathered star coordinates: 200 MB a colour at once at 10^6 hexahedra).
-LENGTH_CHUNK = 16_384
+#: Nodes per block of `_local_length` (its gathered star coordinates: 200 MB a colour at once at 10^6 hexahedra;
+#: 34 MB a block of 16,384 nodes, cube60_pert's untangling peak: 4096 keeps them at 8 MB).
+LENGTH_CHUNK = 4096
 
 
 def _local_length(x: np.ndarray, hexes: np.ndarray, col: _Colour) -> np.ndarray:
@@ -308,9 +317,11 @@ def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams
     nbr, nmask = edge_neighbours(hexes, len(points))
     sw = _Sweeper(points, hexes, cons, colour, faces, p)
     per_colour = []
+    it = np.int32 if len(points) < 2**31 else np.int64  # the colours' neighbour rows: half the bytes while they fit
     for col in sw.colours:
         h = _local_length(sw.x, sw.hexes, col)
-        per_colour.append((nbr[col.nodes], nmask[col.nodes], np.where(h > 0, h, 1.0)))
+        per_colour.append((nbr[col.nodes].astype(it), nmask[col.nodes], np.where(h > 0, h, 1.0)))
+    del nbr, nmask  # every movable node's rows are in `per_colour` now
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax if np.isfinite(f) else np.inf], [0.0]
     tick = stepper("smart Laplace" if smart else "Laplace", "sweep")

@@ -292,10 +292,10 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
     from ..geometry.projection import build_constraints
 
     where = f"{mesh.source}: " if mesh.source else ""
-    det0 = corner_determinants(mesh.points, mesh.hexes)
+    # only the count of inverted corners is kept: the determinants (64 B a hexahedron) are not held through the stage
+    n_corners0 = int((corner_determinants(mesh.points, mesh.hexes) <= 0).sum()) + sum(
+        int((E.corner_determinant(mesh.points, c, t) <= 0).sum()) for t, c in extra_blocks(mesh).items())
     inv0 = np.concatenate(list(inverted_cells(mesh, mesh.points).values()))
-    n_corners0 = int((det0 <= 0).sum()) + sum(int((E.corner_determinant(mesh.points, c, t) <= 0).sum())
-                                               for t, c in extra_blocks(mesh).items())
     host = on_host(mesh, p)
     with enable_x64(not host):
         cons = build_constraints(mesh, info, dtype=np.float64, device=not host)
