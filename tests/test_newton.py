@@ -33,7 +33,7 @@ def _wavy(n_theta: int = 24, n_r: int = 3, n_z: int = 3, seed: int = 0):
 def _objective(mesh, **kw):
     pr = build_problem(mesh, dtype=np.float64, **kw)
     par = make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0, dtype=np.float64)
-    return pr, par, HostObjective(par, np.ascontiguousarray(mesh.hexes.T), 1.0)
+    return pr, par, HostObjective(par, np.ascontiguousarray(mesh.hexes.T), 1.0, keep_raw=True)
 
 
 def test_pcg_solves_an_spd_system_and_stops_at_negative_curvature():

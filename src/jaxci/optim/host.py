@@ -101,6 +101,9 @@ class HostObjective:
     projector: NearProjector | None = None
     #: the default kernel's p-mean power (None: F)
     power: float | None = None
+    #: keep each evaluation's node gradient before the projection's pullback (`hvp` needs it at the accepted
+    #: iterate; `jaxci.optim.newton` sets it): a vector more, kept only where asked for
+    keep_raw: bool = False
 
     def __post_init__(self):
         par = self.par
@@ -155,7 +158,8 @@ class HostObjective:
 
     def __call__(self, v: np.ndarray):
         best = self.best
-        if best is not None and np.array_equal(best[0], v):  # a restart from the accepted iterate: the same answer
+        if best is not None and np.array_equal(best[0], v) and (best[4] is not None or not self.keep_raw):
+            # a restart from the accepted iterate: the same answer
             self._last = best
             return best[2]
         # a rejected trial's arrays (v, points, gradient: 16 MB at 216,000 hexahedra) go before this one's are made;
@@ -176,7 +180,7 @@ class HostObjective:
         out = self.s * f, gv, f, kmax
         # `v` itself, not a copy (one vector less at every evaluation: 5 MB at 216,000 hexahedra): `lbfgs` and
         # `jaxci.optim.newton` never write into an array they have passed here, and a caller of its own must not either
-        self._last = (v, x, out, hint, gx_raw)
+        self._last = (v, x, out, hint, gx_raw if self.keep_raw else None)
         return out
 
     def hvp(self, p: np.ndarray, step: float) -> np.ndarray | None:

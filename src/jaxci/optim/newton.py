@@ -122,6 +122,8 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
     def finished(f, k):
         return f <= ftol or (done is not None and bool(done(f, k)))
 
+    if hasattr(fun, "keep_raw"):  # `jaxci.optim.host.HostObjective`: its `hvp` needs the raw node gradient
+        fun.keep_raw = True
     y = np.array(y0, dtype=np.float64)
     value, g, f, k = fun(y)
     accept = getattr(fun, "accept", lambda: None)
