@@ -407,3 +407,22 @@ def test_compiled_lbfgs_with_the_ffi_kernel_gives_the_xla_kernels_mesh(monkeypat
     assert a.iterations == b.iterations
     np.testing.assert_allclose(a.mesh.points, b.mesh.points, rtol=0, atol=1e-9)
     assert a.after.max_condition == pytest.approx(b.after.max_condition, rel=1e-9)
+
+
+def test_a_c_extension_built_from_other_sources_is_not_used(monkeypatch):
+    """A stale build (its interface version other than this jaxci's: after sources changed and before a rebuild)
+    is refused with a warning that says how to rebuild, and numpy runs instead; the build of these sources is
+    taken."""
+    import sys
+    import types
+
+    from jaxci import cells
+
+    stale = types.ModuleType("jaxci._ckernels")
+    stale.__file__ = "stale.so"
+    monkeypatch.setitem(sys.modules, "jaxci._ckernels", stale)
+    monkeypatch.setattr(sys.modules["jaxci"], "_ckernels", stale, raising=False)
+    with pytest.warns(RuntimeWarning, match="built from other sources.*Rebuild it"):
+        assert cells.load_c_kernels.__wrapped__() is None
+    stale.ABI = cells.KERNELS_ABI
+    assert cells.load_c_kernels.__wrapped__() is stale

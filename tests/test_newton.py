@@ -189,3 +189,14 @@ def test_bench_solvers_script_writes_its_table_and_json(tmp_path):
     rows = json.loads(out.read_text())["rows"]
     assert [r["solver"] for r in rows] == ["lbfgs", "auto/newton:cg_max=5"] and "auto/newton:cg_max=5" in p.stdout
     assert all(r["grad_evals"] >= r["outer"] > 0 and r["worst"] >= 1.0 for r in rows)
+
+
+def test_the_cli_names_the_solver(tmp_path, capsys):
+    """``jaxci smooth --param solver=newton`` says in its summary that truncated Newton ran."""
+    from jaxci.cli import main
+    from jaxci.io import write_mesh
+
+    src, out = tmp_path / "box.vtk", tmp_path / "out.vtk"
+    write_mesh(perturb_box(3, amplitude=0.3, seed=1), str(src))
+    assert main(["smooth", str(src), str(out), "--method", "lbfgs", "--param", "solver=newton"]) == 0
+    assert "after (lbfgs, truncated Newton," in capsys.readouterr().out

@@ -24,6 +24,7 @@ import dataclasses
 import functools
 import math
 import os
+import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -160,6 +161,10 @@ def corner_invariants(ax, ay, az, bx, by, bz, cx, cy, cz):
     return det, fro2, adj2
 
 
+#: The C extension's interface version (its ``ABI``), raised whenever an argument of a kernel changes.
+KERNELS_ABI = 2
+
+
 @functools.cache
 def load_c_kernels():
     """The C extension `jaxci._ckernels`, or None (not built, or ``JAXCI_NATIVE=0``): loaded here, the lowest
@@ -169,6 +174,12 @@ def load_c_kernels():
     try:
         from . import _ckernels
     except ImportError:  # pragma: no cover - no compiler at install time
+        return None
+    if getattr(_ckernels, "ABI", None) != KERNELS_ABI:  # built from other sources: its arguments may differ
+        warnings.warn(f"jaxci's C extension ({_ckernels.__file__}) was built from other sources than this jaxci "
+                      f"(interface {getattr(_ckernels, 'ABI', 1)}, this jaxci's {KERNELS_ABI}); it is not used "
+                      f"(numpy runs instead). Rebuild it: python3 -m pip install -e . (or python3 setup.py "
+                      f"build_ext --inplace)", RuntimeWarning, stacklevel=2)
         return None
     return _ckernels
 

@@ -169,6 +169,8 @@ def _smooth(args, display, age) -> int:
     b, a = res.before.to_dict(), res.after.to_dict()
     print(format_table(b, f"before: {args.input}"))
     label = res.params.get("pipeline", res.method) if res.method == "auto" else res.method
+    if res.params.get("solver") == "newton":  # the gradient methods' solver (GradientParams.solver)
+        label += ", truncated Newton"
     print(format_table(a, f"after ({label}, {res.iterations} iterations, {res.wall_time:.2f} s): {args.output}"))
     from ..metrics.report import limited_note
 
