@@ -197,3 +197,20 @@ def no_implicit_transfers():
         array_type._value = value
         for name, fn in originals.items():
             setattr(np, name, fn)
+
+
+def wavy_annulus(n_theta: int = 32, n_r: int = 4, n_z: int = 4, seed: int = 0):
+    """An annulus whose nodes are moved along its walls (and inside; none inverted): the boundary stays the two
+    cylinders and the end planes, so its nodes slide on curved (faceted) walls."""
+    import numpy as np
+
+    from jaxci.mesh.shapes import annulus
+
+    m = annulus(n_theta, n_r, n_z)
+    p = np.array(m.points)
+    rng = np.random.default_rng(seed)
+    r, th, z = np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p[:, 2]
+    r = np.where((r > 0.5 + 1e-9) & (r < 1 - 1e-9), r + rng.uniform(-0.15, 0.15, len(r)) / n_r, r)
+    th = th + rng.uniform(-0.3, 0.3, len(r)) * 2 * np.pi / n_theta
+    z = np.where((z > 1e-9) & (z < 1 - 1e-9), z + rng.uniform(-0.3, 0.3, len(z)) / n_z, z)
+    return m.with_points(np.stack([r * np.cos(th), r * np.sin(th), z], axis=1))

@@ -2,28 +2,15 @@
 
 import numpy as np
 import pytest
+from helpers import wavy_annulus
 
 from jaxci import native, smooth
 from jaxci.errors import ConfigError
 from jaxci.interface.engine import host_plan
 from jaxci.interface.smooth import build_problem
 from jaxci.mesh.generate import perturb_box
-from jaxci.mesh.shapes import annulus
 from jaxci.optim import coarse, host
 from jaxci.optim.parametrisation import make_parametrisation
-
-
-def _wavy(n_theta: int = 32, n_r: int = 4, n_z: int = 4, seed: int = 0):
-    """An annulus whose nodes are moved along its walls (and inside): the boundary stays the two cylinders and
-    the end planes, so its nodes slide on curved walls."""
-    m = annulus(n_theta, n_r, n_z)
-    p = np.array(m.points)
-    rng = np.random.default_rng(seed)
-    r, th, z = np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p[:, 2]
-    r = np.where((r > 0.5 + 1e-9) & (r < 1 - 1e-9), r + rng.uniform(-0.15, 0.15, len(r)) / n_r, r)
-    th = th + rng.uniform(-0.3, 0.3, len(r)) * 2 * np.pi / n_theta
-    z = np.where((z > 1e-9) & (z < 1 - 1e-9), z + rng.uniform(-0.3, 0.3, len(z)) / n_z, z)
-    return m.with_points(np.stack([r * np.cos(th), r * np.sin(th), z], axis=1))
 
 
 def _space(mesh, **kw):
@@ -39,7 +26,8 @@ def _dense(pc: coarse.CoarseSpace) -> np.ndarray:
     return z @ pc.coarse_inv @ z.T + np.diag(pc.inv_diag)
 
 
-@pytest.mark.parametrize("mesh", [_wavy(16, 2, 2), perturb_box(4, amplitude=0.2, seed=3)], ids=["annulus", "box"])
+@pytest.mark.parametrize("mesh", [wavy_annulus(16, 2, 2), perturb_box(4, amplitude=0.2, seed=3)],
+                         ids=["annulus", "box"])
 @pytest.mark.parametrize("use_c", [True, False])
 def test_the_preconditioner_is_symmetric_positive_definite(mesh, use_c, monkeypatch):
     """M = Z P_c^-1 Z^T + D^-1 as applied (C and numpy) is the dense matrix, symmetric, with positive
@@ -61,7 +49,7 @@ def test_the_coarse_matrix_and_diagonal_are_those_of_the_edge_laplacian():
     """Built independently here (dense): P = S B^T (L x I_3) B S over the free coordinates, L the Laplacian of the
     hexahedra's edges with weights 1 / length^2. The module's P_c (without its delta) is Z^T P Z, also though it
     leaves out the edges inside one aggregate between interior nodes, and its diagonal is diag(P)."""
-    mesh = _wavy(16, 2, 2)
+    mesh = wavy_annulus(16, 2, 2)
     par, pc = _space(mesh, delta=1e-12)
     node, direction = coarse.free_directions(par)
     scale = np.asarray(par.scale)
@@ -100,7 +88,7 @@ def test_aggregates_cover_every_node_within_the_budget():
 def test_the_c_two_loop_recursion_with_the_preconditioner_is_the_numpy_one(dtype, monkeypatch):
     if not native.AVAILABLE:
         pytest.skip("the C kernels are not built")
-    par, pc = _space(_wavy(16, 2, 2))
+    par, pc = _space(wavy_annulus(16, 2, 2))
     n, rng = par.n_free, np.random.default_rng(2)
     mem = host._Memory(n, 5)
     mem.use(pc)
@@ -122,7 +110,7 @@ def test_the_c_two_loop_recursion_with_the_preconditioner_is_the_numpy_one(dtype
 def test_preconditioned_lbfgs_on_sliding_curved_walls():
     """The same optimum as plain L-BFGS (F to 1e-4), every node where it may be: no inverted element, the wall
     nodes on their cylinders and end planes."""
-    mesh = _wavy()
+    mesh = wavy_annulus()
     plain = smooth(mesh, "lbfgs", precondition="none")
     pre = smooth(mesh, "lbfgs", precondition="coarse")
     assert pre.params["precondition"] == "coarse"
@@ -172,7 +160,7 @@ def test_auto_leaves_a_short_run_alone_and_preconditions_a_long_one(monkeypatch)
     assert auto.params["precondition"] == "auto" and not built
     np.testing.assert_array_equal(auto.mesh.points, short.mesh.points)
 
-    mesh = _wavy()
+    mesh = wavy_annulus()
     plain = smooth(mesh, "lbfgs", precondition="none")
     monkeypatch.setattr(coarse, "AUTO_AFTER", 20)
     late = smooth(mesh, "lbfgs")
@@ -188,7 +176,7 @@ def test_auto_builds_nothing_on_a_mesh_above_its_size_limit(monkeypatch):
     monkeypatch.setattr(coarse, "build_coarse", lambda *a, **kw: built.append(1))
     monkeypatch.setattr(coarse, "AUTO_AFTER", 20)
     monkeypatch.setattr(coarse, "AUTO_MAX_CELLS", 100)
-    mesh = _wavy()
+    mesh = wavy_annulus()
     assert mesh.n_hexes > 100
     run = smooth(mesh, "lbfgs")
     assert not built and run.iterations > 20

@@ -3,31 +3,18 @@ Hessian-vector products, and the solver's guarantees (F lowered, no inverted ele
 
 import numpy as np
 import pytest
+from helpers import wavy_annulus
 
 from jaxci import smooth
 from jaxci.errors import ConfigError
 from jaxci.geometry.projection import project_np
 from jaxci.interface.smooth import build_problem
 from jaxci.mesh.generate import perturb_box
-from jaxci.mesh.shapes import annulus
 from jaxci.metrics.report import quality_report
 from jaxci.optim.gradient import GradientParams
 from jaxci.optim.host import HostObjective
 from jaxci.optim.newton import hvp, newton_cg, pcg
 from jaxci.optim.parametrisation import make_parametrisation
-
-
-def _wavy(n_theta: int = 24, n_r: int = 3, n_z: int = 3, seed: int = 0):
-    """An annulus with its nodes moved along its walls (none inverted): boundary nodes slide on curved (faceted)
-    walls."""
-    m = annulus(n_theta, n_r, n_z)
-    p = np.array(m.points)
-    rng = np.random.default_rng(seed)
-    r, th, z = np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p[:, 2]
-    r = np.where((r > 0.5 + 1e-9) & (r < 1 - 1e-9), r + rng.uniform(-0.15, 0.15, len(r)) / n_r, r)
-    th = th + rng.uniform(-0.3, 0.3, len(r)) * 2 * np.pi / n_theta
-    z = np.where((z > 1e-9) & (z < 1 - 1e-9), z + rng.uniform(-0.3, 0.3, len(z)) / n_z, z)
-    return m.with_points(np.stack([r * np.cos(th), r * np.sin(th), z], axis=1))
 
 
 def _objective(mesh, **kw):
@@ -53,7 +40,8 @@ def test_pcg_solves_an_spd_system_and_stops_at_negative_curvature():
     assert (why, n) == ("max_iter", 3) and g @ d < 0
 
 
-@pytest.mark.parametrize("mesh", [perturb_box(4, amplitude=0.2, seed=1), _wavy()], ids=["box", "annulus"])
+@pytest.mark.parametrize("mesh", [perturb_box(4, amplitude=0.2, seed=1), wavy_annulus(24, 3, 3)],
+                         ids=["box", "annulus"])
 def test_hessian_vector_product_matches_central_differences_of_the_gradient(mesh):
     """`HostObjective.hvp` (a forward difference of the kernel's gradient, the projection linearised) against a
     central difference of the objective's own gradient, with a step small enough that no boundary node changes
@@ -90,7 +78,7 @@ def test_newton_lowers_f_keeps_the_mesh_valid_and_the_boundary_on_its_walls():
     """On a wavy annulus (nodes sliding on curved walls): F falls at every accepted step, no element inverts, every
     boundary node lies on the original boundary and the corner nodes stay put; far fewer Newton iterations than
     L-BFGS takes steps."""
-    mesh = _wavy()
+    mesh = wavy_annulus(24, 3, 3)
     ref = smooth(mesh, method="lbfgs", dtype="float64", keep_worst=False)
     res = smooth(mesh, method="lbfgs", dtype="float64", keep_worst=False, solver="newton")
     f = np.asarray(res.history["objective"])
@@ -159,7 +147,7 @@ def test_newton_after_runs_lbfgs_first():
     run = smooth(box, method="lbfgs", dtype="float64", keep_worst=False, solver="newton", newton_after=10_000)
     np.testing.assert_array_equal(run.mesh.points, ref.mesh.points)
     assert run.history["newton_iterations"] == 0 and run.iterations == ref.iterations
-    mesh = _wavy()
+    mesh = wavy_annulus(24, 3, 3)
     run = smooth(mesh, method="lbfgs", dtype="float64", keep_worst=False, solver="newton", newton_after=20)
     assert 20 in list(run.history["restarts"]) and run.history["newton_iterations"] > 0
     f = np.asarray(run.history["objective"])
