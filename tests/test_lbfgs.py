@@ -167,7 +167,7 @@ SCRIPT = textwrap.dedent(
     from jaxci.interface.smooth import smooth
 
     sys.path.insert(0, TESTS)
-    from test_coarse import _wavy
+    from helpers import wavy_annulus as _wavy
 
     hlo = []
     loop = lbfgs.lbfgs_loop
