@@ -1,12 +1,13 @@
 """Peak resident memory of `jaxci smooth` on the host, beside Mesquite's msqshape: one fresh process each.
 
-Runs ``jaxci smooth IN OUT --force -q --json`` (the host engine on a CPU: numpy and C, no JAX import) under
-``/usr/bin/time -v`` and records its "Maximum resident set size", wall and CPU seconds, and the peak bytes per
-hexahedron; with ``--msqshape``, also ``msqshape -s IN OUT`` (every skin vertex fixed; ``shared/peers/msqshape``)
-the same way. The default input is ``cube60_pert`` (`scripts/realmesh_corpus.py`: the unit cube of 60^3
-hexahedra, interior perturbed by 0.3 h, 1838 inverted: made once, about 3 s, into ``~/.cache/jaxci/realmesh``).
-jaxci alone takes about 10-25 s on a 2-core machine; msqshape about 5-8 minutes on cube60_pert (so it is opt-in).
-The figures are printed and written as JSON (``--out``). The peak of jaxci includes its imports (about 40 MB).
+Runs ``jaxci smooth IN OUT --force -q --json`` (the host engine on a CPU: numpy and C, no JAX import) as a child
+of `bench_realmesh.run_child` (GNU time's maximum resident set size, else the child's ``ru_maxrss``) and records
+its peak memory, wall and CPU seconds, and the peak bytes per hexahedron; with ``--msqshape``, also ``msqshape -s
+IN OUT`` (every skin vertex fixed; ``shared/peers/msqshape``) the same way. The default input is ``cube60_pert``
+(`scripts/realmesh_corpus.py`: the unit cube of 60^3 hexahedra, interior perturbed by 0.3 h, 1838 inverted: made
+once, about 3 s, into ``~/.cache/jaxci/realmesh``). jaxci alone takes about 10-25 s on a 2-core machine; msqshape
+about 5-8 minutes on cube60_pert (so it is opt-in). The figures are printed and written as JSON (``--out``). The
+peak of jaxci includes its imports (about 40 MB).
 
     python scripts/bench_memory.py                                  # jaxci on cube60_pert
     python scripts/bench_memory.py --msqshape --out memory.json     # and msqshape -s beside it
@@ -20,7 +21,6 @@ import datetime
 import json
 import os
 import platform
-import re
 import shlex
 import subprocess
 import sys
@@ -30,41 +30,24 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
 
+import bench_realmesh as realmesh  # noqa: E402
 import realmesh_corpus as corpus  # noqa: E402
 
-TIME = "/usr/bin/time"
 MSQSHAPE = corpus.PEERS / "msqshape"
-#: What ``/usr/bin/time -v`` prints that is kept, by key.
-_FIELDS = {"peak_kb": r"Maximum resident set size \(kbytes\): (\d+)",
-           "user_s": r"User time \(seconds\): ([\d.]+)",
-           "system_s": r"System time \(seconds\): ([\d.]+)",
-           "wall": r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([\d:.]+)"}
 
 
-def _seconds(text: str) -> float:
-    """``h:mm:ss`` or ``m:ss.ss`` as seconds."""
-    out = 0.0
-    for part in text.split(":"):
-        out = out * 60 + float(part)
-    return out
-
-
-def timed(cmd: list[str], env: dict | None = None, timeout: float | None = None) -> dict:
-    """Run `cmd` under ``/usr/bin/time -v``: ``peak_mb`` (MiB: kB / 1024, as msqshape's 133 MB was quoted),
-    ``peak_kb``, ``wall_s``, ``cpu_s`` (user + system), ``status``, the command's stdout, and its stderr's tail
-    where it failed."""
-    with tempfile.NamedTemporaryFile("r", suffix=".time") as rep:
-        p = subprocess.run([TIME, "-v", "-o", rep.name, *cmd], capture_output=True, text=True, env=env,
-                           timeout=timeout)
-        text = Path(rep.name).read_text()
-    got = {k: m.group(1) for k, rx in _FIELDS.items() if (m := re.search(rx, text))}
-    if "peak_kb" not in got:
-        raise SystemExit(f"{TIME} -v gave no peak for {shlex.join(cmd)}:\n{text}{p.stderr[-2000:]}")
-    row = {"command": shlex.join(cmd), "status": p.returncode, "peak_kb": int(got["peak_kb"]),
-           "peak_mb": round(int(got["peak_kb"]) / 1024, 1), "wall_s": round(_seconds(got["wall"]), 2),
-           "cpu_s": round(float(got["user_s"]) + float(got["system_s"]), 2), "stdout": p.stdout}
-    if p.returncode:
-        row["stderr_tail"] = p.stderr[-2000:]
+def timed(cmd: list[str], env: dict | None = None, timeout: float = 3600.0) -> dict:
+    """Run `cmd` in a fresh process (`bench_realmesh.run_child`): ``peak_mb`` (MiB: kB / 1024, as msqshape's
+    133 MB was quoted), ``peak_kb``, ``wall_s``, ``cpu_s`` (user + system), ``status``, the command's stdout, and
+    its stderr's tail where it failed."""
+    r = realmesh.run_child(cmd, env=env, timeout=timeout)
+    if r["peak_rss_mb"] is None:
+        raise SystemExit(f"no peak memory for {shlex.join(cmd)}: {r.get('error') or r['stderr_tail'][-2000:]}")
+    row = {"command": shlex.join(cmd), "status": r["rc"], "peak_kb": round(r["peak_rss_mb"] * 1024),
+           "peak_mb": round(r["peak_rss_mb"], 1), "wall_s": round(r["wall_s"], 2), "cpu_s": round(r["cpu_s"], 2),
+           "stdout": r["stdout"]}
+    if r["rc"]:
+        row["stderr_tail"] = r["stderr_tail"][-2000:]
     return row
 
 
@@ -104,8 +87,6 @@ def main(argv=None) -> int:
     ap.add_argument("--msq-timeout", type=float, default=900.0, help="seconds (default 900)")
     ap.add_argument("--out", type=Path, help="write the JSON here")
     args = ap.parse_args(argv)
-    if not Path(TIME).exists():
-        raise SystemExit(f"{TIME} not found (GNU time: apt-get install time)")
     if args.mesh is None:
         entry = next(e for e in corpus.entries() if e.name == "cube60_pert")
         mesh, name = entry.ensure(), entry.name

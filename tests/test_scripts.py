@@ -99,6 +99,26 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     assert "F + gradient" in p.stdout and "targets" in p.stdout
 
 
+def test_bench_memory_measures_the_peak_of_a_fresh_jaxci_process(tmp_path):
+    """scripts/bench_memory.py on a small box: `jaxci smooth` in a fresh process, its peak memory (more than the
+    interpreter's own), seconds and bytes per hexahedron, the engine and the result, in its table and JSON."""
+    from jaxci.io import write_mesh
+    from jaxci.mesh.generate import perturb_box
+
+    box, out = tmp_path / "box.vtk", tmp_path / "mem.json"
+    write_mesh(perturb_box(6, amplitude=0.3, seed=1), str(box))
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_memory.py"), "--mesh", str(box), "--out",
+                        str(out)], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    d = json.loads(out.read_text())
+    row = d["rows"]["jaxci"]
+    assert d["hexahedra"] == 216 and row["status"] == 0 and "jaxci smooth" in p.stdout + row["command"]
+    assert 20 < row["peak_mb"] < 2000 and row["peak_kb"] == pytest.approx(row["peak_mb"] * 1024, abs=60)
+    assert row["bytes_per_hex"] == round(row["peak_kb"] * 1024 / 216) and row["wall_s"] > 0 and row["cpu_s"] > 0
+    assert row["engine"]["name"] == "host" and row["after"]["inverted_elements"] == 0
+    assert "peak MB" in p.stdout and "msqshape" not in d["rows"]
+
+
 def test_bench_host_prep_times_the_phases_and_the_host_functions(tmp_path):
     out = tmp_path / "prep.json"
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_host_prep.py"), "--hexes", "1000", "--engine",
