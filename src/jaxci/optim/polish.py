@@ -141,7 +141,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
     for nodes in (cons.interior_nodes, cons.surface_nodes, cons.edge_nodes):
         free[np.asarray(nodes)] = True
     layout = _Layout(cons, par, free)
-    gamma, w, work = GAMMA_START, w0, 0.0
+    gamma, w, mean, work = GAMMA_START, w0, mean0, 0.0
     tick = stepper("worst-element polish", "round")
     while True:
         if report["rounds"] >= MAX_ROUNDS:
@@ -177,7 +177,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
         y_pts = fun.best[1] if fun.best is not None else None
         if y_pts is None:  # no valid evaluation (cannot happen from a valid start): a smaller step
             gamma = gamma ** 0.5
-            _record(report, e_sum / n_corners, w, figures(k)[1], work)
+            _record(report, e_sum / n_corners, w, mean, work)
             continue
         new_terms = CellCorners(sub.blocks).terms_all(y_pts)
         new_worst = CellCorners(sub.blocks).cell_worst(y_pts, new_terms)
@@ -190,16 +190,16 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
         if (w_new < w * (1.0 - 1e-4) and mean_new <= mean0 * (1.0 + p.budget)
                 and e_new <= p.f_limit * n_corners * (1.0 - 1e-9)):
             x[sub.nodes] = y_pts
-            k, w, e_sum = k_new, w_new, e_new
+            k, w, mean, e_sum = k_new, w_new, mean_new, e_new
             for t, idx in sub.cell_index.items():
                 worst[t][idx] = new_worst[t]
             report["kept"] += 1
         else:  # no better, or too dear: a smaller step
             gamma = gamma ** 0.5
-        _record(report, e_sum / n_corners, w, figures(k)[1], work)
+        _record(report, e_sum / n_corners, w, mean, work)
         if tick is not None:
             tick(report["rounds"], e_sum / n_corners, w)
-    report["worst"][1], report["mean"][1] = figures(k)
+    report["worst"][1], report["mean"][1] = w, mean
     return x, report
 
 
