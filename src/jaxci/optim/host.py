@@ -133,13 +133,12 @@ class HostObjective:
         """``(x, (hint, keep))``: the coordinates, the projector's triangles and the nodes it left alone
         (None: nothing projected). A moving boundary node inside its flat region is its own projection: only
         the others are projected (on a bracket with 79% of its boundary nodes on planes, 4/5 of the work)."""
+        x = self._lift(self._x0, v)
         if self._layout is not None:
-            x = native.lift(self._x0, self._scale, v, self._layout)
             keep = np.zeros(x.shape[0], bool)
             if native.flat_keep(x, self._flat, self._origin, self._r2, keep) == 0 and self.par.shortcut:
                 return x, None
         else:
-            x = lift_points(np, self._x0, self._scale, self._cons, v)
             d = x[self._flat] - self._origin
             inside = np.sum(d * d, axis=-1) < self._r2
             if self.par.shortcut and inside.all():
@@ -173,8 +172,7 @@ class HostObjective:
         gx_raw = gx
         if hint is not None:
             gx = self._project.pullback(gx, *hint)
-        gv = (native.lift_t(gx, self._scale, self._layout) if self._layout is not None
-              else lift_transpose_np(self._scale, self._cons, gx))
+        gv = self._lift_t(gx)
         del gx  # the lift's transpose makes a new vector: the projected node gradient goes first (`hvp` keeps the raw)
         gv *= self.s  # in place: the same product as ``self.s * gv``, without a second vector
         out = self.s * f, gv, f, kmax
@@ -196,9 +194,7 @@ class HostObjective:
         if size == 0:
             return np.zeros_like(p)
         h = step / size
-        zero = np.zeros_like(self._x0)
-        dx = (native.lift(zero, self._scale, p, self._layout) if self._layout is not None
-              else lift_points(np, zero, self._scale, self._cons, p))
+        dx = self._lift(np.zeros_like(self._x0), p)
         if hint is not None:
             dx = self._project.pullback(dx, *hint)
         dx *= h
@@ -211,8 +207,19 @@ class HostObjective:
         gh *= self.s / h
         if hint is not None:
             gh = self._project.pullback(gh, *hint)
-        return (native.lift_t(gh, self._scale, self._layout) if self._layout is not None
-                else lift_transpose_np(self._scale, self._cons, gh))
+        return self._lift_t(gh)
+
+    def _lift(self, x0: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``x0 + B (scale v)``: the nodes ``(n, 3)`` of the free coordinates `v` (the C loop where built)."""
+        if self._layout is not None:
+            return native.lift(x0, self._scale, v, self._layout)
+        return lift_points(np, x0, self._scale, self._cons, v)
+
+    def _lift_t(self, gx: np.ndarray) -> np.ndarray:
+        """The transpose of `_lift`'s linear part: a node gradient ``(n, 3)`` as one of the free coordinates."""
+        if self._layout is not None:
+            return native.lift_t(gx, self._scale, self._layout)
+        return lift_transpose_np(self._scale, self._cons, gx)
 
 
 def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callable:
