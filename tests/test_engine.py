@@ -302,6 +302,7 @@ def test_without_the_c_extension_the_host_engines_default_pipeline_runs_or_is_re
 
 
 # ------------------------------------------------------------------------------------------ batched seeds
+@pytest.mark.codegen
 def test_seeds_of_global_ci_run_as_one_program_with_the_meshes_of_one_by_one():
     """Every seed's mesh, history and attempts are those it gets alone, also where the seeds stop at different
     attempts (saturation: `tol`, `patience`), so that the ones that stopped must stay frozen while the others go on;
@@ -362,6 +363,7 @@ def test_an_error_in_one_seeds_method_is_that_seeds_result(monkeypatch):
     assert [type(r).__name__ for r in res] == ["SmoothResult", "MeshError", "SmoothResult"]
 
 
+@pytest.mark.codegen
 def test_a_seed_batched_with_one_whose_trials_leave_their_flat_regions_gets_its_own_numbers():
     import jax
     from scipy.spatial.transform import Rotation

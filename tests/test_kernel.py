@@ -89,7 +89,9 @@ def test_blocks_give_the_whole_mesh_gradient(form, block):
     inc = node_incidence(conn, x.shape[0], form=form)
     f0, k0, g0 = _KERNEL(x, conn, block=0)
     f1, k1, g1 = _KERNEL(x, conn, block=block, incidence=inc)
-    assert float(f1) == pytest.approx(float(f0), rel=1e-12) and float(k1) == float(k0)
+    # max kappa/3 to the last bits: an element's arithmetic is the compiler's in either program (XLA:CPU's older
+    # code generation, the suite's, puts one ulp between them where its default one does not)
+    assert float(f1) == pytest.approx(float(f0), rel=1e-12) and float(k1) == pytest.approx(float(k0), rel=4e-16)
     _close(g1, g0)
 
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import pytest
+from helpers import cpu_env
 
 from jaxci.runtime.process import TUNABLE, _glibc_version, hugepage_environment, is_jaxci_command
 
@@ -133,7 +134,7 @@ def test_more_forced_devices_than_cores_compile_without_per_fusion_partitions():
     from jaxci.runtime.process import schedulable_cpus
 
     n = schedulable_cpus() + 1
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}", JAX_PLATFORMS="cpu")
+    env = cpu_env(n)
     env.pop("JAXCI_XLA_PARTITIONS", None)
     got = {}
     for mode in ("apply", "leave"):
@@ -148,7 +149,7 @@ def test_the_jaxci_command_applies_the_cpu_device_flags(tmp_path):
     from jaxci.runtime.process import PARTITION_PASS, schedulable_cpus
 
     n = schedulable_cpus() + 1
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}", JAX_PLATFORMS="cpu")
+    env = cpu_env(n)
     env.pop("JAXCI_XLA_PARTITIONS", None)
     code = ("import os, sys; from jaxci.cli import main; code = main(['quality', sys.argv[1]]); "
             "print('FLAGS', os.environ['XLA_FLAGS'])")

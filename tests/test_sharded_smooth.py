@@ -14,6 +14,7 @@ import sys
 import textwrap
 
 import pytest
+from helpers import cpu_env
 
 import jaxci
 from jaxci.errors import ConfigError
@@ -43,8 +44,7 @@ def _run_on_4_devices(script: str, marker: str, cwd=None) -> None:
     """Run `PREAMBLE` + `script` in a fresh process with 4 forced CPU devices (the flag is read when JAX starts)
     and the jaxci under test on its path, whatever the working directory; it must print `marker`."""
     src = os.path.dirname(os.path.dirname(jaxci.__file__))
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+    env = dict(cpu_env(4), PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
     r = subprocess.run([sys.executable, "-c", PREAMBLE + script], env=env, capture_output=True, text=True,
                        timeout=300, cwd=cwd)
     assert r.returncode == 0 and marker in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
@@ -223,8 +223,7 @@ def test_two_processes_on_localhost_give_the_single_device_mesh(tmp_path):
         s.bind(("localhost", 0))
         port = str(s.getsockname()[1])
     src = os.path.dirname(os.path.dirname(jaxci.__file__))
-    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="",
-               PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+    env = dict(cpu_env(), PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
     procs = [subprocess.Popen([sys.executable, "-c", PROCESS, port, str(i), str(tmp_path)], env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
     outs = []

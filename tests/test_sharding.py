@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
 import pytest
+from helpers import cpu_env
 
 
 def _pool_threads(devices: int, nproc: str) -> int:
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu",
-               NPROC=nproc)
+    env = dict(cpu_env(devices), NPROC=nproc)
     env.pop("PJRT_NPROC", None)
     code = "from jaxci.optim.sharding import xla_cpu_threads; print('THREADS', xla_cpu_threads())"
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
