@@ -1197,8 +1197,8 @@ done:
  * relabels the element so that the node is its local node 0 (8x less memory than the relabelled node lists; the
  * nodes are read through it as each element is set up).
  * local_sums(points (n,3) f8, hexes (N,8) i8, rot (8,8) i8, inc (M,K) i8, count (M,) i8, trials (M,S,3) f8,
- * out (M,S) f8) -> None: for node slot m with its first count[m] star elements and the node at trials[m, s],
- * out[m, s] = the sum of (kappa/3)^2 over the four corners of each element whose matrix holds slot 0
+ * out (M,S) f8[, nthreads]) -> None: for node slot m with its first count[m] star elements and the node at
+ * trials[m, s], out[m, s] = the sum of (kappa/3)^2 over the four corners of each element whose matrix holds slot 0
  * (AFFECTED_CORNERS of jaxci.optim._local), inf if one has det <= 0: jaxci.optim._local.local_terms, one pass.
  * Per node, every such corner's term is set up once as a polynomial of the node's displacement (poly_setup), which
  * each trial then evaluates (poly_sums). */
@@ -1374,9 +1374,51 @@ static void poly_sums(const double *restrict P, Py_ssize_t NP, const double *res
     }
 }
 
+/* One thread's node slots [lo, hi) of local_sums, with its own work buffers (failed: none could be had). */
+typedef struct {
+    const double *X, *TR;
+    const long long *HEX, *ROT, *INC, *CNT;
+    double *OUT;
+    Py_ssize_t K, S, lo, hi;
+    int failed;
+} SumsJob;
+
+static void *local_sums_worker(void *arg) {
+    SumsJob *J = arg;
+    const Py_ssize_t K = J->K, S = J->S;
+    Elem *E = malloc(sizeof(Elem) * (K ? K : 1));
+    double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(K ? poly_width(K) : POLY_LANES));
+    double *Y = malloc(sizeof(double) * 3 * (size_t)(S ? S : 1));
+    if (!E || !P || !Y) {
+        J->failed = 1;
+        free(E); free(P); free(Y);
+        return NULL;
+    }
+    for (Py_ssize_t m = J->lo; m < J->hi; m++) {
+        double *o = J->OUT + m * S;
+        const double *tr = J->TR + 3 * m * S;
+        Py_ssize_t cnt = J->CNT[m], NP = poly_width(cnt);
+        if (cnt == 0) {
+            for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
+            continue;
+        }
+        long long e[8];
+        star_nodes(J->HEX, J->ROT, J->INC[m * K], e);
+        for (Py_ssize_t k = 0; k < cnt; k++) elem_setup(J->X, J->HEX, J->ROT, J->INC[m * K + k], &E[k]);
+        poly_setup(E, cnt, J->X + 3 * e[0], P, NP);
+        for (Py_ssize_t s = 0; s < S; s++)
+            for (int d = 0; d < 3; d++) Y[d * S + s] = tr[3 * s + d];
+        poly_sums(P, NP, J->X + 3 * e[0], Y, (int)S, o);
+    }
+    free(E); free(P); free(Y);
+    return NULL;
+}
+
 static PyObject *local_sums(PyObject *self, PyObject *args) {
     PyObject *o_pts, *o_hex, *o_rot, *o_inc, *o_cnt, *o_tr, *o_out, *ret = NULL;
-    if (!PyArg_ParseTuple(args, "OOOOOOO", &o_pts, &o_hex, &o_rot, &o_inc, &o_cnt, &o_tr, &o_out)) return NULL;
+    int nthreads = 1;
+    if (!PyArg_ParseTuple(args, "OOOOOOO|i", &o_pts, &o_hex, &o_rot, &o_inc, &o_cnt, &o_tr, &o_out, &nthreads))
+        return NULL;
     Buf B[7] = {{{0}}};
     if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
         acquire(&B[2], o_rot, "rot", "qlq", 0, 0) < 0 || acquire(&B[3], o_inc, "inc", "qlq", 0, 0) < 0 ||
@@ -1393,36 +1435,21 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
     }
     const long long *HEX = B[1].view.buf, *ROT = B[2].view.buf, *INC = B[3].view.buf, *CNT = B[4].view.buf;
     if (check_stars(HEX, N, n, ROT, INC, CNT, M, K, "local_sums") < 0) goto done;
-    const double *X = B[0].view.buf, *TR = B[5].view.buf;
-    double *OUT = B[6].view.buf;
-    Py_ssize_t NPmax = poly_width(K);
-    Elem *E = malloc(sizeof(Elem) * (K ? K : 1));
-    double *P = malloc(sizeof(double) * POLY_ROWS * (size_t)(NPmax ? NPmax : POLY_LANES));
-    double *Y = malloc(sizeof(double) * 3 * (size_t)(S ? S : 1));
-    if (!E || !P || !Y) {
-        PyErr_NoMemory();
-        goto done_local;
-    }
-    for (Py_ssize_t m = 0; m < M; m++) {
-        double *o = OUT + m * S;
-        const double *tr = TR + 3 * m * S;
-        Py_ssize_t cnt = CNT[m], NP = poly_width(cnt);
-        if (cnt == 0) {
-            for (Py_ssize_t s = 0; s < S; s++) o[s] = 0.0;
-            continue;
+    /* the node slots split into fixed ranges, each slot's sums computed alone: the same numbers on any count */
+    int nt = nthreads < 1 ? 1 : (nthreads > MAX_THREADS ? MAX_THREADS : nthreads);
+    while (nt > 1 && M / nt < 256) nt--;
+    SumsJob jobs[MAX_THREADS];
+    for (int j = 0; j < nt; j++)
+        jobs[j] = (SumsJob){B[0].view.buf, B[5].view.buf, HEX, ROT, INC, CNT, B[6].view.buf, K, S, M * j / nt,
+                            M * (j + 1) / nt, 0};
+    if (run_jobs(jobs, sizeof(SumsJob), nt, local_sums_worker, NULL, 0, 0) < 0) goto done;
+    for (int j = 0; j < nt; j++)
+        if (jobs[j].failed) {
+            PyErr_NoMemory();
+            goto done;
         }
-        long long e[8];
-        star_nodes(HEX, ROT, INC[m * K], e);
-        for (Py_ssize_t k = 0; k < cnt; k++) elem_setup(X, HEX, ROT, INC[m * K + k], &E[k]);
-        poly_setup(E, cnt, X + 3 * e[0], P, NP);
-        for (Py_ssize_t s = 0; s < S; s++)
-            for (int d = 0; d < 3; d++) Y[d * S + s] = tr[3 * s + d];
-        poly_sums(P, NP, X + 3 * e[0], Y, (int)S, o);
-    }
     Py_INCREF(Py_None);
     ret = Py_None;
-done_local:
-    free(E); free(P); free(Y);
 done:
     release(B, 7);
     return ret;
@@ -2020,7 +2047,7 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_ckernels", "jaxci's
 PyMODINIT_FUNC PyInit__ckernels(void) {
     PyObject *m = PyModule_Create(&module);
     /* the interface's version (jaxci.cells.KERNELS_ABI): a build of older sources is refused, not run */
-    if (m != NULL && PyModule_AddIntConstant(m, "ABI", 2) < 0) {
+    if (m != NULL && PyModule_AddIntConstant(m, "ABI", 3) < 0) {
         Py_DECREF(m);
         return NULL;
     }

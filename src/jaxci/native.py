@@ -257,10 +257,10 @@ def local_sums(points: np.ndarray, hexes: np.ndarray, inc: np.ndarray, count: np
     """`jaxci.optim._local.local_terms` in C: ``(M, S)`` sums of (kappa/3)^2 over the corners each node slot
     moves, its first ``count[m]`` star elements, the incidences ``inc[m]`` ``(M, K)`` into `hexes` ``(N, 8)``
     (``8 e + s``: `jaxci.optim._local.node_stars`), with the node at ``trials[m, s]`` ``(M, S, 3)``; inf where a
-    corner has det <= 0."""
+    corner has det <= 0. `THREADS` threads, each over its own node slots (the same numbers on any count)."""
     trials = _f8(trials)
     out = np.empty(trials.shape[:2])
-    _c.local_sums(_f8(points), _i8(hexes), _ROTATE, _i8(inc), _i8(count), trials, out)
+    _c.local_sums(_f8(points), _i8(hexes), _ROTATE, _i8(inc), _i8(count), trials, out, THREADS)
     return out
 
 
