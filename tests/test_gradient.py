@@ -23,14 +23,13 @@ from jaxci.geometry.boundary import INTERIOR
 from jaxci.geometry.projection import params_to_points
 from jaxci.interface.smooth import build_problem, smooth
 from jaxci.mesh.generate import box, perturb_box
-from jaxci.metrics.hexahedron import objective_t, objective_terms_and_grad, transposed
+from jaxci.metrics.hexahedron import objective_and_grad, objective_t, objective_terms_and_grad, transposed
 from jaxci.optim._solve import make_solver as _solver
 from jaxci.optim._solve import solve_loop
 from jaxci.optim.gradient import (
     GradientParams,
     make_parametrisation,
     minimise,
-    objective_and_grad,
     solver_args,
 )
 

@@ -308,7 +308,8 @@ def pad_slots(v: np.ndarray, cs: ColouredStars, fill, width: int | None = None, 
     """An array laid out like `cs.nodes` ``(n_colours, M, ...)`` padded to the size class of `cs`: the
     interior, surface and edge slot blocks of every colour (`slot_sizes`) and the colours rounded up to the
     ladder (`jaxci.optim._buckets.bucket`), new entries `fill`. `width`: the third axis of the real slots is
-    also padded to `width`, as `pad_width` pads it with `width_fill` (in the same single copy)."""
+    also padded to `width`: its new entries copies of entry 0 (`width_fill` None) or `width_fill` (in the same
+    single copy)."""
     v = np.asarray(v)
     sizes, padded = (cs.n_interior, cs.n_surface, cs.n_edge), slot_sizes(cs)
     C = v.shape[0]
@@ -323,17 +324,9 @@ def pad_slots(v: np.ndarray, cs: ColouredStars, fill, width: int | None = None, 
     return out
 
 
-def pad_width(v: np.ndarray, width: int, fill=None) -> np.ndarray:
-    """`v` ``(C, M, K, ...)`` with its third axis padded to `width`: copies of entry 0 (`fill` None) or `fill`."""
-    v = np.asarray(v)
-    out = np.empty(v.shape[:2] + (width,) + v.shape[3:], v.dtype)
-    _copy_width(out, v, fill)
-    return out
-
-
 def _copy_width(out: np.ndarray, v: np.ndarray, fill) -> None:
     """Copy `v` ``(C, M, K, ...)`` into `out` ``(C, M, width, ...)``, the entries past K copies of entry 0 of
-    the third axis (`fill` None) or `fill` (`pad_width`); `out` of `v`'s shape: a plain copy."""
+    the third axis (`fill` None) or `fill`; `out` of `v`'s shape: a plain copy."""
     if out.ndim < 3 or out.shape[2] == v.shape[2]:
         out[...] = v
         return

@@ -86,7 +86,6 @@ from ..metrics import native_grad
 from ..metrics.hexahedron import (
     corner_columns,
     gather_corners,
-    objective_and_grad,  # noqa: F401  (re-exported: the closed-form gradient the solvers use)
     objective_terms_and_grad,
     squared_condition_from_invariants,
 )

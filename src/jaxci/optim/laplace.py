@@ -242,11 +242,11 @@ def padded(p: LaplaceParams, devices=None, extra: ExtraCells | None = None) -> b
 
 def _padded(points, conn, cs: ColouredStars, nbr, nmask, cons: Constraints, multiple: int = 1):
     """The arguments of `_laplace_run` padded to their size class (`jaxci.optim._moves.padded_sweeps`, and the
-    neighbour lists' slots and width: `pad_slots`, `pad_width`). Returns them with the element weights and the
+    neighbour lists' slots and width: `pad_slots`). Returns them with the element weights and the
     real colour count; the elements a multiple of `multiple`."""
     x, c, cs_p, cons_p, w, n_col = padded_sweeps(points, conn, cs, cons, multiple)
     k_pad = bucket(np.asarray(nmask).shape[2], 4)
-    nbr_p = pad_slots(nbr, cs, 0, k_pad)  # the width padded with copies of entry 0 (`pad_width`), in one copy
+    nbr_p = pad_slots(nbr, cs, 0, k_pad)  # the width padded with copies of entry 0, in one copy
     nmask_p = pad_slots(nmask, cs, False, k_pad, False)
     return x, c, cs_p, to_device(nbr_p, np.int32), to_device(nmask_p), cons_p, w, n_col
 

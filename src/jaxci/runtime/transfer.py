@@ -165,11 +165,6 @@ def explicit() -> bool:
     return getattr(_explicit, "on", False)
 
 
-def scalar(a) -> float:
-    """A device scalar as a Python float (its bytes counted)."""
-    return float(to_host(a))
-
-
 def program(fn):
     """`fn` (a compiled entry point: a `jax.jit` or `equinox.filter_jit` function, or `jaxci.runtime._lazy`'s) compiled
     once per machine and timed. Its calls go through exported programs in the compilation cache
