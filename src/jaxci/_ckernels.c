@@ -143,9 +143,11 @@ static inline int corner_term(const double *a, const double *b, const double *c,
 #define MAX_THREADS 16
 #define MIN_PER_THREAD 4096
 
-static int threads_for(Py_ssize_t n_elements, int nthreads) {
+/* Threads for a call over n items: nthreads within [1, MAX_THREADS], fewer where a thread would get fewer than
+ * min_per items (MIN_PER_THREAD elements for the element kernels; the node kernels set their own). */
+static int threads_for(Py_ssize_t n, int nthreads, Py_ssize_t min_per) {
     int nt = nthreads < 1 ? 1 : (nthreads > MAX_THREADS ? MAX_THREADS : nthreads);
-    while (nt > 1 && n_elements / nt < MIN_PER_THREAD) nt--;
+    while (nt > 1 && n / nt < min_per) nt--;
     return nt;
 }
 
@@ -392,7 +394,7 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
     }
     if (check_indices(B[1].view.buf, 8 * N, n, "hex_condition") < 0) goto done;
     HexJob jobs[MAX_THREADS];
-    int nt = threads_for(N, nthreads);
+    int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
         jobs[t] = (HexJob){{0.0, 0.0, 0}, B[0].view.buf, B[3].view.buf, B[1].view.buf, B[4].view.buf, NULL, N,
                            N * t / nt, N * (t + 1) / nt, weight, B[5].view.buf, level, mu};
@@ -514,7 +516,7 @@ static XLA_FFI_Error *ffi_hex_terms_and_grad(XLA_FFI_CallFrame *cf) {
     memset(grad, 0, (size_t)(3 * n) * sizeof(double));
     double weight = count > 0.0 ? 2.0 / (9.0 * count) : 0.0;
     FfiJob jobs[MAX_THREADS];
-    int nt = threads_for(N, (int)ffi_get(Q, 1));
+    int nt = threads_for(N, (int)ffi_get(Q, 1), MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
         jobs[t] = (FfiJob){{0.0, 0.0, 0}, C, W, P, NULL, N * t / nt, N * (t + 1) / nt, weight};
     int rc = run_jobs_nogil(jobs, sizeof(FfiJob), nt, ffi_worker, grad, 3 * n, offsetof(FfiJob, G));
@@ -613,7 +615,7 @@ static PyObject *corner_condition(PyObject *self, PyObject *args) {
     }
     if (check_indices(B[1].view.buf, 4 * C, n, "corner_condition") < 0) goto done;
     CornerJob jobs[MAX_THREADS];
-    int nt = threads_for(C / 8, nthreads);
+    int nt = threads_for(C / 8, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
         jobs[t] = (CornerJob){{0.0, 0.0, 0}, B[0].view.buf, B[2].view.buf, B[1].view.buf, B[4].view.buf, NULL, C,
                               C * t / nt, C * (t + 1) / nt, weight};
@@ -721,7 +723,7 @@ static PyObject *untangle_energy(PyObject *self, PyObject *args) {
     }
     if (check_indices(B[1].view.buf, 8 * N, n, "untangle_energy") < 0) goto done;
     UntangleJob jobs[MAX_THREADS];
-    int nt = threads_for(N, nthreads);
+    int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
         jobs[t] = (UntangleJob){B[0].view.buf, B[2].view.buf, B[1].view.buf, NULL, N * t / nt, N * (t + 1) / nt,
                                 eps, theta, 0.0, INFINITY};
@@ -1436,8 +1438,7 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
     const long long *HEX = B[1].view.buf, *ROT = B[2].view.buf, *INC = B[3].view.buf, *CNT = B[4].view.buf;
     if (check_stars(HEX, N, n, ROT, INC, CNT, M, K, "local_sums") < 0) goto done;
     /* the node slots split into fixed ranges, each slot's sums computed alone: the same numbers on any count */
-    int nt = nthreads < 1 ? 1 : (nthreads > MAX_THREADS ? MAX_THREADS : nthreads);
-    while (nt > 1 && M / nt < 256) nt--;
+    int nt = threads_for(M, nthreads, 256);
     SumsJob jobs[MAX_THREADS];
     for (int j = 0; j < nt; j++)
         jobs[j] = (SumsJob){B[0].view.buf, B[5].view.buf, HEX, ROT, INC, CNT, B[6].view.buf, K, S, M * j / nt,
@@ -1734,22 +1735,13 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
             goto done;
         }
     }
-    int nt = nthreads < 1 ? 1 : (nthreads > MAX_THREADS ? MAX_THREADS : nthreads);
-    while (nt > 1 && M / nt < 32) nt--; /* a thread per 32 nodes at least (creating one costs ~50 us) */
+    int nt = threads_for(M, nthreads, 32); /* a thread per 32 nodes at least */
     CiJob jobs[MAX_THREADS];
-    pthread_t tid[MAX_THREADS];
     for (int j = 0; j < nt; j++)
         jobs[j] = (CiJob){B[0].view.buf, B[1].view.buf, B[5].view.buf, B[6].view.buf, B[7].view.buf, NODES, HEX, ROT,
                           INC, CNT, ROW, KIND, cells, K, M * j / nt, M * (j + 1) / nt, C, t, T, n_roulette, reduction, delta,
                           init_width, min_width, tol, bump, seed, counter, 0, 0};
-    int started = 1;
-    Py_BEGIN_ALLOW_THREADS
-    for (int j = 1; j < nt; j++)
-        if (pthread_create(&tid[j], NULL, ci_worker, &jobs[j]) != 0) break; else started++;
-    for (int j = started; j < nt; j++) ci_worker(&jobs[j]); /* threads that could not start: run here */
-    ci_worker(&jobs[0]);
-    for (int j = 1; j < started; j++) pthread_join(tid[j], NULL);
-    Py_END_ALLOW_THREADS
+    if (run_jobs(jobs, sizeof(CiJob), nt, ci_worker, NULL, 0, 0) < 0) goto done;
     long long moved = 0;
     for (int j = 0; j < nt; j++) {
         if (jobs[j].failed) {
