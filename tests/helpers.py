@@ -21,7 +21,8 @@ SHARED_FILES = (MESQUITE / "pave3.e.vtk", EXODUS / "cube.g", PEERS / "cube9_pert
 def cpu_env(devices: int | None = None) -> dict[str, str]:
     """``os.environ`` for a subprocess on the CPU: the suite's own XLA flags (conftest: LLVM's cheaper pipeline and
     XLA's older code generation; the 4-device tests 20-24 s with them against 40-48 s) without any forced device
-    count, plus ``--xla_force_host_platform_device_count=devices`` where `devices` is given (read when JAX starts there)."""
+    count, plus ``--xla_force_host_platform_device_count=devices`` where `devices` is given (read when JAX starts
+    there)."""
     flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith("--xla_force_host_platform")]
     if devices is not None:
         flags.append(f"--xla_force_host_platform_device_count={devices}")

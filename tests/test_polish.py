@@ -20,7 +20,7 @@ from jaxci.metrics.guard import cell_worst
 from jaxci.optim import weighted
 from jaxci.optim.gradient_params import GradientParams
 from jaxci.optim.parametrisation import make_parametrisation
-from jaxci.optim.polish import PolishParams, polish
+from jaxci.optim.polish import PolishParams, _RoundObjective, polish
 
 
 def all_types_box(seed: int = 1) -> HexMesh:
@@ -171,6 +171,26 @@ def test_polish_bounds_and_limits():
     cons, par = polish_setup(mesh, x, fixed=mesh.hexes[worst])
     y, rep = polish(mesh, cons, par, x)
     assert rep["limited"] and rep["rounds"] == 0 and np.array_equal(y, x)
+
+
+def test_a_round_offers_its_lowest_worst_iterate_after_its_last():
+    """A polish round's result candidates: the last accepted iterate, then, where another, the accepted one whose
+    worst corner is the lowest (tried where the last is not kept)."""
+    mesh = perturb_box(3, amplitude=0.0)
+    cons, par = polish_setup(mesh, np.array(mesh.points))
+    fun = _RoundObjective(par, None, 1.0, kernel=weighted.penalty_kernel(element_blocks(mesh), 216, 0.01, 1000.0))
+    v0 = np.zeros(par.n_free)
+    fun(v0)
+    fun.accept()
+    [only] = fun.candidates()
+    np.testing.assert_allclose(only, mesh.points, atol=1e-12)  # the ideal box: its own lowest
+    v1 = 0.05 * np.random.default_rng(0).standard_normal(par.n_free)
+    _, _, _, k1 = fun(v1)
+    fun.accept()
+    last, lowest = fun.candidates()
+    assert k1 > 1.01
+    np.testing.assert_allclose(last, fun.points(v1), atol=1e-12)
+    np.testing.assert_allclose(lowest, mesh.points, atol=1e-12)
 
 
 def test_default_trades_F_for_the_worst_element_at_an_optimum_of_F():

@@ -17,7 +17,13 @@ cell's worst corner kappa/3, what VTK's per-element condition averages to) stays
 of the start's (and F at or below `PolishParams.f_limit` where one is given: `jaxci.smooth` gives none, its
 final check keeps a result whose F rose above the input's only where the worst element fell,
 `jaxci.metrics.guard.worst_first`); after a round that is not kept ``gamma`` moves towards 1 (a smaller
-step). The polish ends when the steps become negligible (``gamma > GAMMA_END``), the worst element is within
+step). Where a round's last iterate is not kept (its worst element rose: the penalty traded it for many corners
+above the level, or the mean went over the budget), the accepted iterate of the round's lowest worst corner is
+tried in its place, and kept on the same terms, with the smaller step: measured on 13 meshes of the real-mesh
+corpus (2026-11-29, in process), the worst element equal or lower on every one (the 25k cylinder 1.2110 ->
+1.2103, the small sphere 1.9898 -> 1.9874, the small bracket 2.1567 -> 2.1508), the work within 3% or less.
+
+The polish ends when the steps become negligible (``gamma > GAMMA_END``), the worst element is within
 `MIN_EXCESS` of an ideal one, no node of it can move, or its work (kernel passes over cells) reaches
 `PolishParams.work`.
 
@@ -167,34 +173,38 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
             region |= _neighbours(blocks, region)
             region &= free
         sub = _SubProblem(blocks, cons, layout, region, x)
-        fun = HostObjective(sub.par, None, n_corners / 32.0,
-                            kernel=penalty_kernel(sub.blocks, n_corners, level * level - 1.0, MU))
+        fun = _RoundObjective(sub.par, None, n_corners / 32.0,
+                              kernel=penalty_kernel(sub.blocks, n_corners, level * level - 1.0, MU))
         y, steps, _, _, _ = lbfgs(fun, np.zeros(sub.par.n_free), limit=ROUND_STEPS, max_rejected=20, rtol=1e-6,
                                   atol=1e-6, history=10, cap=0.5, ftol=0.0)
         report["rounds"] += 1
         report["steps"] += int(steps)
         work += 2.0 * float(steps) * sub.n_cells  # two passes a step (the terms, then the weighted gradient)
-        y_pts = fun.best[1] if fun.best is not None else None
-        if y_pts is None:  # no valid evaluation (cannot happen from a valid start): a smaller step
+        candidates = fun.candidates()
+        if not candidates:  # no valid evaluation (cannot happen from a valid start): a smaller step
             gamma = gamma ** 0.5
             _record(report, e_sum / n_corners, w, mean, work)
             continue
-        new_terms = CellCorners(sub.blocks).terms_all(y_pts)
-        new_worst = CellCorners(sub.blocks).cell_worst(y_pts, new_terms)
-        old_terms = CellCorners(sub.blocks).terms_all(x[sub.nodes])
-        k_new = k.copy()
-        for t, idx in sub.cell_index.items():
-            k_new[offsets[t] + idx] = new_worst[t]
-        w_new, mean_new = figures(k_new)
-        e_new = e_sum + float(sum(np.sum(a - 1.0) for a in new_terms) - sum(np.sum(a - 1.0) for a in old_terms))
-        if (w_new < w * (1.0 - 1e-4) and mean_new <= mean0 * (1.0 + p.budget)
-                and e_new <= p.f_limit * n_corners * (1.0 - 1e-9)):
-            x[sub.nodes] = y_pts
-            k, w, mean, e_sum = k_new, w_new, mean_new, e_new
+        old_e = sum(np.sum(a - 1.0) for a in CellCorners(sub.blocks).terms_all(x[sub.nodes]))
+        took = None
+        for i, y_pts in enumerate(candidates):
+            new_terms = CellCorners(sub.blocks).terms_all(y_pts)
+            new_worst = CellCorners(sub.blocks).cell_worst(y_pts, new_terms)
+            k_new = k.copy()
             for t, idx in sub.cell_index.items():
-                worst[t][idx] = new_worst[t]
-            report["kept"] += 1
-        else:  # no better, or too dear: a smaller step
+                k_new[offsets[t] + idx] = new_worst[t]
+            w_new, mean_new = figures(k_new)
+            e_new = e_sum + float(sum(np.sum(a - 1.0) for a in new_terms) - old_e)
+            if (w_new < w * (1.0 - 1e-4) and mean_new <= mean0 * (1.0 + p.budget)
+                    and e_new <= p.f_limit * n_corners * (1.0 - 1e-9)):
+                x[sub.nodes] = y_pts
+                k, w, mean, e_sum = k_new, w_new, mean_new, e_new
+                for t, idx in sub.cell_index.items():
+                    worst[t][idx] = new_worst[t]
+                report["kept"] += 1
+                took = i
+                break
+        if took != 0:  # the last iterate no better, or too dear: a smaller step (after the lowest, or nothing, kept)
             gamma = gamma ** 0.5
         _record(report, e_sum / n_corners, w, mean, work)
         if tick is not None:
@@ -215,6 +225,25 @@ def _neighbours(blocks: dict, nodes: np.ndarray) -> np.ndarray:
     for c in blocks.values():
         out[c[nodes[c].any(axis=1)].ravel()] = True
     return out
+
+
+class _RoundObjective(HostObjective):
+    """A round's `HostObjective` that also remembers, of the iterates the solver accepted, the one whose cells'
+    worst corner is the lowest (the kernel's second figure): the candidates of the round's result."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        self._lowest = (np.inf, None)
+
+    def accept(self) -> None:
+        super().accept()
+        if self._last[2][3] < self._lowest[0]:
+            self._lowest = (self._last[2][3], self._last[1])
+
+    def candidates(self) -> list[np.ndarray]:
+        """The points of the last accepted iterate, then (where another) those of the lowest worst corner."""
+        last, lowest = (None if self.best is None else self.best[1]), self._lowest[1]
+        return [y for y in (last, None if lowest is last else lowest) if y is not None]
 
 
 class _Layout:
