@@ -23,7 +23,8 @@ from jax import monitoring
 from jaxci.interface.smooth import build_problem, smooth
 from jaxci.mesh.generate import perturb_box
 from jaxci.optim import _buckets as B
-from jaxci.optim.gradient import GradientParams, _objective, make_parametrisation, minimise, pad_parametrisation
+from jaxci.optim.gradient import GradientParams, make_parametrisation, minimise, pad_parametrisation
+from jaxci.optim.solver_objective import solver_objective
 
 _COUNTS: collections.Counter = collections.Counter()
 _LISTENING = False
@@ -78,7 +79,7 @@ def test_padding_changes_neither_objective_nor_gradient():
     vp_noise[pad_slots] = rng.standard_normal(len(pad_slots))  # padded coordinates move nothing
     for closed in (True, False):
         def f(v, par=par, conn=pr.conn, weight=None, closed=closed):
-            return _objective(par.points(v), conn, closed, None, weight)[0]
+            return solver_objective(par.points(v), conn, closed, None, weight)[0]
 
         f0, g0 = jax.value_and_grad(f)(jnp.asarray(v))
         for vv in (vp, vp_noise):
@@ -86,8 +87,8 @@ def test_padding_changes_neither_objective_nor_gradient():
             assert float(fp) == pytest.approx(float(f0), rel=1e-13)
             np.testing.assert_allclose(np.asarray(gp)[index], np.asarray(g0), rtol=1e-11, atol=1e-14)
             assert not np.asarray(gp)[pad_slots].any()  # exactly zero
-        kp = _objective(padded.points(jnp.asarray(vp)), conn_p, closed, None, w)[1]
-        k0 = _objective(par.points(jnp.asarray(v)), pr.conn, closed, None, None)[1]
+        kp = solver_objective(padded.points(jnp.asarray(vp)), conn_p, closed, None, w)[1]
+        k0 = solver_objective(par.points(jnp.asarray(v)), pr.conn, closed, None, None)[1]
         assert float(kp) == pytest.approx(float(k0), rel=1e-14)
     x = np.asarray(padded.points(jnp.asarray(vp_noise)))
     np.testing.assert_array_equal(x[mesh.n_nodes:], np.asarray(padded.x0)[mesh.n_nodes:])  # padding nodes stay

@@ -88,7 +88,7 @@ def test_keys_tell_apart_what_tracing_depends_on_and_refuse_what_they_cannot_key
 
 def test_a_key_is_the_same_in_another_process():
     code = ("import inspect, json, optimistix as optx; from jaxci.runtime._keys import Keyer;"
-            "from jaxci.optim._solve import solve_loop; from jaxci.optim.gradient import _min_fn_closed as f;"
+            "from jaxci.optim._solve import solve_loop; from jaxci.optim.solver_objective import min_fn_closed as f;"
             "print(json.dumps([Keyer()(optx.LBFGS(rtol=1e-3, atol=1e-4)), Keyer()(f),"
             "Keyer()(inspect.unwrap(solve_loop))]))")
     first, second = _child(code, {}), _child(code, {})

@@ -26,12 +26,8 @@ from jaxci.mesh.generate import box, perturb_box
 from jaxci.metrics.hexahedron import objective_and_grad, objective_t, objective_terms_and_grad, transposed
 from jaxci.optim._solve import make_solver as _solver
 from jaxci.optim._solve import solve_loop
-from jaxci.optim.gradient import (
-    GradientParams,
-    make_parametrisation,
-    minimise,
-    solver_args,
-)
+from jaxci.optim.gradient import GradientParams, make_parametrisation, minimise
+from jaxci.optim.solver_objective import solver_args
 
 
 def grid_error(mesh_out, n: int) -> float:

@@ -141,6 +141,7 @@ def test_the_solver_builds_the_incidences_once_and_follows_the_scatter_form(monk
     from jaxci.interface.smooth import build_problem
     from jaxci.metrics import native_grad
     from jaxci.optim import gradient as G
+    from jaxci.optim import solver_objective as O
 
     monkeypatch.setattr(native_grad, "available", lambda platform: False)
     built = []
@@ -149,7 +150,7 @@ def test_the_solver_builds_the_incidences_once_and_follows_the_scatter_form(monk
         built.append((conn.shape, weight is not None))
         return I.node_incidence(conn, n_nodes, weight, form)
 
-    monkeypatch.setattr(G, "node_incidence", spy)
+    monkeypatch.setattr(O, "node_incidence", spy)
     mesh = perturb_box(3, amplitude=0.3, seed=4, which="interior")
     pr = build_problem(mesh, dtype=np.float64, fix_boundary=True)
     par = G.make_parametrisation(pr.mesh, pr.info, pr.cons, pr.x0)

@@ -158,10 +158,10 @@ def test_hex_objective_unchanged_and_mixed_objective_matches_elements():
         extra = mixed.extra_cells(mesh)
         f = float(mixed.mixed_objective_t(x, transposed(mesh.hexes), extra))
         assert f == pytest.approx(float(E.mixed_objective(x, mesh)), rel=1e-12)
-        from jaxci.optim.gradient import _objective
+        from jaxci.optim.solver_objective import solver_objective
 
         for closed in (False, True):
-            assert float(_objective(x, transposed(mesh.hexes), closed, extra)[0]) == pytest.approx(f, rel=1e-12)
+            assert float(solver_objective(x, transposed(mesh.hexes), closed, extra)[0]) == pytest.approx(f, rel=1e-12)
 
 
 def test_local_sums_are_the_change_of_the_mixed_objective():

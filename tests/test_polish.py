@@ -84,7 +84,7 @@ def test_mixed_pmean_of_the_jax_engine_matches_the_host_kernel():
     import jax
 
     from jaxci.metrics.objective import extra_cells
-    from jaxci.optim.gradient import _mixed_pmean
+    from jaxci.optim.solver_objective import mixed_pmean
 
     m = perturb_box(3, amplitude=0.2, seed=0)  # hexahedra and wedges: a small program to compile
     h, col = m.hexes, [4, 13, 22]
@@ -96,7 +96,7 @@ def test_mixed_pmean_of_the_jax_engine_matches_the_host_kernel():
     with jax.enable_x64(True):
         extra = extra_cells(mesh)
         conn = jax.numpy.asarray(np.ascontiguousarray(mesh.hexes.T))
-        fn = jax.jit(jax.value_and_grad(lambda y: _mixed_pmean(y, conn, extra, 3.0)[0]))
+        fn = jax.jit(jax.value_and_grad(lambda y: mixed_pmean(y, conn, extra, 3.0)[0]))
         vj, gj = fn(jax.numpy.asarray(x))
     assert float(vj) == pytest.approx(v, rel=1e-10)
     np.testing.assert_allclose(np.asarray(gj), g, rtol=1e-7, atol=1e-9 * np.abs(g).max())

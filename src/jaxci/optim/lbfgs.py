@@ -135,8 +135,8 @@ def value_and_grad(v, args, conn, weight, n_dev: int, platform: str):
     in v, F, max kappa/3)`` at the free coordinates `v` ``(n,)`` (whole on every device), from this device's
     elements `conn`, `weight` and one exchange (`jaxci.optim.sharding.local_terms_and_grad`); the chain rule
     through ``par.points`` (lift and projection) on every device. `args`: ``(par, s)``, the
-    `jaxci.optim.parametrisation.Parametrisation` and the objective's scale (`jaxci.optim.gradient.solver_args`);
-    `n_dev`, `platform`: the devices'."""
+    `jaxci.optim.parametrisation.Parametrisation` and the objective's scale
+    (`jaxci.optim.solver_objective.solver_args`); `n_dev`, `platform`: the devices'."""
     from .sharding import local_terms_and_grad
 
     par, s = args
@@ -158,7 +158,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, static: tupl
       k)`` at a whole vector `v` ``(n,)``; sharded, it is called inside `jax.shard_map` with this device's `conn`
       and `weight` (and makes any exchange it needs). The loop minimises `value`, records F and k, and stops once
       ``F <= ftol`` or ``k <= 1 + ktol``. For meshes: `value_and_grad` (sharded; value ``s F``, k the max
-      kappa/3), `jaxci.optim.gradient.value_and_grad_closed` (one device).
+      kappa/3), `jaxci.optim.solver_objective.value_and_grad_closed` (one device).
     - `args`: a pytree of (replicated) arrays for `objective` (for `value_and_grad`: ``(par, s)``).
     - `conn` ``(8, N)``, `weight` ``(N,)``: the hexahedra and their weights (0: padding), sharded along N over
       `mesh` (`jaxci.optim.sharding.place_problem`).
