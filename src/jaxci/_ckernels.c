@@ -47,8 +47,23 @@ typedef struct {
 
 static int acquire(Buf *b, PyObject *obj, const char *name, const char *fmt, int writable, int optional) {
     if (obj == Py_None && optional) return 0;
-    if (get_buffer(obj, &b->view, name, fmt, fmt[0] == '?' ? 1 : (fmt[0] == 'i' ? 4 : 8), writable) < 0) return -1;
+    Py_ssize_t itemsize = fmt[0] == '?' ? 1 : (fmt[0] == 'i' || fmt[0] == 'f' ? 4 : 8);
+    if (get_buffer(obj, &b->view, name, fmt, itemsize, writable) < 0) return -1;
     b->held = 1;
+    return 0;
+}
+
+/* One array argument of an entry point: its name in messages, its formats (as acquire's fmt), whether the kernel
+ * writes it and whether None may stand for it. */
+typedef struct {
+    const char *name, *fmt;
+    int writable, optional;
+} Arg;
+
+/* acquire o[i] into B[i] as spec[i] says, for i < n, one after the other (-1 at the first that fails). */
+static int acquire_args(Buf *B, PyObject *const *o, const Arg *spec, int n) {
+    for (int i = 0; i < n; i++)
+        if (acquire(&B[i], o[i], spec[i].name, spec[i].fmt, spec[i].writable, spec[i].optional) < 0) return -1;
     return 0;
 }
 
@@ -337,12 +352,11 @@ static void *hex_worker(void *arg) {
  * hexahedron, with the arithmetic of jaxci.cells.corner_determinants' numpy loop (the same numbers, bit for bit:
  * the same differences, products and sums in the same order; C99 does not contract them into FMAs). */
 static PyObject *hex_determinants(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_hex, *o_out, *ret = NULL;
-    if (!PyArg_ParseTuple(args, "OOO", &o_pts, &o_hex, &o_out)) return NULL;
+    static const Arg spec[3] = {{"points", "d"}, {"hexes", "qlq"}, {"out", "d", 1}};
+    PyObject *o[3], *ret = NULL;
+    if (!PyArg_ParseTuple(args, "OOO", &o[0], &o[1], &o[2])) return NULL;
     Buf B[3] = {{{0}}};
-    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o_out, "out", "d", 1, 0) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 3) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64;
     if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || B[2].view.len != N * 64) {
         PyErr_SetString(PyExc_ValueError, "hex_determinants: shapes disagree (points (n, 3), hexes (N, 8), out (N, 8))");
@@ -365,25 +379,23 @@ static PyObject *hex_determinants(PyObject *self, PyObject *args) {
         }
     }
     Py_END_ALLOW_THREADS
-    ret = Py_None;
-    Py_INCREF(ret);
+    ret = Py_NewRef(Py_None);
 done:
     release(B, 3);
     return ret;
 }
 
 static PyObject *hex_condition(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_hex, *o_grad, *o_cw, *o_terms, *o_sj = Py_None, *ret = NULL;
+    static const Arg spec[6] = {{"points", "d"}, {"hexes", "qlq"}, {"grad", "d", 1, 1}, {"corner_weight", "d", 0, 1},
+                                {"terms", "d", 1, 1}, {"sj", "d", 1, 1}};
+    PyObject *o[6] = {NULL, NULL, NULL, NULL, NULL, Py_None}, *ret = NULL;
     double weight, level = 0.0, mu = 0.0;
     int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOdOOO|iOdd", &o_pts, &o_hex, &weight, &o_grad, &o_cw, &o_terms, &nthreads, &o_sj,
-                          &level, &mu))
+    if (!PyArg_ParseTuple(args, "OOdOOO|iOdd", &o[0], &o[1], &weight, &o[2], &o[3], &o[4], &nthreads, &o[5], &level,
+                          &mu))
         return NULL;
     Buf B[6] = {{{0}}};
-    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o_grad, "grad", "d", 1, 1) < 0 || acquire(&B[3], o_cw, "corner_weight", "d", 0, 1) < 0 ||
-        acquire(&B[4], o_terms, "terms", "d", 1, 1) < 0 || acquire(&B[5], o_sj, "sj", "d", 1, 1) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 6) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64;
     if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || (B[2].held && B[2].view.len != B[0].view.len) ||
         (B[3].held && B[3].view.len != N * 64) || (B[4].held && B[4].view.len != N * 64) ||
@@ -596,16 +608,14 @@ static void *corner_worker(void *arg) {
  * corners (row 0 the corner's node, rows 1-3 the far ends of its columns) of any cell type, each corner matrix
  * taken relative to the type's ideal one, T = A W^-1 (jaxci.metrics.elements: wedges, pyramids, tetrahedra). */
 static PyObject *corner_condition(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_tab, *o_wi, *o_grad, *o_terms, *ret = NULL;
+    static const Arg spec[5] = {{"points", "d"}, {"table", "qlq"}, {"winv", "d"}, {"grad", "d", 1, 1},
+                                {"terms", "d", 1, 1}};
+    PyObject *o[5], *ret = NULL;
     double weight;
     int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOOdOO|i", &o_pts, &o_tab, &o_wi, &weight, &o_grad, &o_terms, &nthreads))
-        return NULL;
+    if (!PyArg_ParseTuple(args, "OOOdOO|i", &o[0], &o[1], &o[2], &weight, &o[3], &o[4], &nthreads)) return NULL;
     Buf B[5] = {{{0}}};
-    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_tab, "table", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o_wi, "winv", "d", 0, 0) < 0 || acquire(&B[3], o_grad, "grad", "d", 1, 1) < 0 ||
-        acquire(&B[4], o_terms, "terms", "d", 1, 1) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 5) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, C = B[1].view.len / 32;
     if (B[0].view.len != n * 24 || B[1].view.len != C * 32 || B[2].view.len != 72 ||
         (B[3].held && B[3].view.len != B[0].view.len) || (B[4].held && B[4].view.len != C * 8)) {
@@ -707,14 +717,13 @@ static void *untangle_worker(void *arg) {
  * jaxci.optim._untangle_loop.hex_kernel over the hexahedra's corners, each element's columns scaled by its
  * inv_len (before the division by 32); with `grad`, d(sum)/dx is ADDED to it. */
 static PyObject *untangle_energy(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_hex, *o_il, *o_grad, *ret = NULL;
+    static const Arg spec[4] = {{"points", "d"}, {"hexes", "qlq"}, {"inv_len", "d"}, {"grad", "d", 1, 1}};
+    PyObject *o[4], *ret = NULL;
     double eps, theta;
     int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOOddO|i", &o_pts, &o_hex, &o_il, &eps, &theta, &o_grad, &nthreads)) return NULL;
+    if (!PyArg_ParseTuple(args, "OOOddO|i", &o[0], &o[1], &o[2], &eps, &theta, &o[3], &nthreads)) return NULL;
     Buf B[4] = {{{0}}};
-    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o_il, "inv_len", "d", 0, 0) < 0 || acquire(&B[3], o_grad, "grad", "d", 1, 1) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 4) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, N = B[2].view.len / 8;
     if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || (B[3].held && B[3].view.len != B[0].view.len)) {
         PyErr_SetString(PyExc_ValueError, "untangle_energy: shapes disagree (points (n, 3), hexes (N, 8), inv_len "
@@ -908,18 +917,15 @@ static void project_one(double *xi, const int *CA, Py_ssize_t K, long long *H, c
 }
 
 static PyObject *near_project(PyObject *self, PyObject *args) {
-    PyObject *o_x, *o_nodes, *o_active, *o_hint, *o_cand, *o_tab, *o_sph, *ret = NULL;
+    static const Arg spec[7] = {{"x", "d", 1}, {"nodes", "qlq"}, {"active", "qlq"}, {"hint", "qlq", 1}, {"cand", "i"},
+                                {"table", "d"}, {"spheres", "d"}};
+    PyObject *o[7], *ret = NULL;
     int kind;
     double tol, bump;
-    if (!PyArg_ParseTuple(args, "OOOOOOOidd", &o_x, &o_nodes, &o_active, &o_hint, &o_cand, &o_tab, &o_sph, &kind,
-                          &tol, &bump))
+    if (!PyArg_ParseTuple(args, "OOOOOOOidd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &kind, &tol, &bump))
         return NULL;
     Buf B[7] = {{{0}}};
-    if (acquire(&B[0], o_x, "x", "d", 1, 0) < 0 || acquire(&B[1], o_nodes, "nodes", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o_active, "active", "qlq", 0, 0) < 0 || acquire(&B[3], o_hint, "hint", "qlq", 1, 0) < 0 ||
-        acquire(&B[4], o_cand, "cand", "i", 0, 0) < 0 || acquire(&B[5], o_tab, "table", "d", 0, 0) < 0 ||
-        acquire(&B[6], o_sph, "spheres", "d", 0, 0) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 7) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8, na = B[2].view.len / 8, rows = kind == 0 ? 19 : 8;
     Py_ssize_t nc = B[5].view.len / 8 / rows, K = B[4].view.ndim == 2 ? B[4].view.shape[1] : 0;
     const long long *N = B[1].view.buf, *A = B[2].view.buf;
@@ -944,8 +950,7 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
         Py_ssize_t i = A[k];
         project_one(X + 3 * N[i], CA + i * K, K, H + i, T, nc, S, Q, kind, tol, bump);
     }
-    Py_INCREF(Py_None);
-    ret = Py_None;
+    ret = Py_NewRef(Py_None);
 done:
     release(B, 7);
     return ret;
@@ -977,14 +982,12 @@ static void coarse_apply(const Coarse *P, double *q, Py_ssize_t n) {
     }
 }
 
-/* Acquire the preconditioner's arrays (block (n,) i8, z (n, 3) f8, coarse_inv (mc, mc) f8, inv_diag (n,) f8) into
- * B[0..3], check them against n free coordinates and fill *pc, its work buffer allocated (the caller frees
+/* Acquire the preconditioner's arrays o[0..3] (block (n,) i8, z (n, 3) f8, coarse_inv (mc, mc) f8, inv_diag (n,)
+ * f8) into B[0..3], check them against n free coordinates and fill *pc, its work buffer allocated (the caller frees
  * pc->work and releases B, also on failure); -1 with the Python error set. `fn` names the caller in messages. */
-static int coarse_acquire(Coarse *pc, Buf *B, PyObject *o_block, PyObject *o_z, PyObject *o_cinv, PyObject *o_idiag,
-                          Py_ssize_t n, const char *fn) {
-    if (acquire(&B[0], o_block, "block", "qlq", 0, 0) < 0 || acquire(&B[1], o_z, "z", "d", 0, 0) < 0 ||
-        acquire(&B[2], o_cinv, "coarse_inv", "d", 0, 0) < 0 || acquire(&B[3], o_idiag, "inv_diag", "d", 0, 0) < 0)
-        return -1;
+static int coarse_acquire(Coarse *pc, Buf *B, PyObject *const *o, Py_ssize_t n, const char *fn) {
+    static const Arg spec[4] = {{"block", "qlq"}, {"z", "d"}, {"coarse_inv", "d"}, {"inv_diag", "d"}};
+    if (acquire_args(B, o, spec, 4) < 0) return -1;
     Py_ssize_t mc = (Py_ssize_t)(sqrt((double)(B[2].view.len / 8)) + 0.5);
     if (B[0].view.len != 8 * n || B[1].view.len != 24 * n || B[3].view.len != 8 * n || mc % 3 ||
         B[2].view.len != 8 * mc * mc) {
@@ -1106,35 +1109,27 @@ TWO_LOOP(two_loop_f4, float)
  * or, given the preconditioner's arrays, gamma M (jaxci.optim.coarse; gamma from the caller).
  * float32 pairs: the memory of a large problem (jaxci.optim.host.HISTORY_F32_FROM), the arithmetic in double. */
 static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
-    PyObject *o_g, *o_s, *o_y, *o_rho, *o_order, *o_out, *ret = NULL;
-    PyObject *o_block = Py_None, *o_z = Py_None, *o_cinv = Py_None, *o_idiag = Py_None;
+    static const Arg spec[6] = {{"g", "d"}, {"S", "d"}, {"Y", "d"}, {"rho", "d"}, {"order", "qlq"}, {"out", "d", 1}},
+                     spec_f4[2] = {{"S", "f"}, {"Y", "f"}};
+    PyObject *o[10] = {NULL, NULL, NULL, NULL, NULL, NULL, Py_None, Py_None, Py_None, Py_None}, *ret = NULL;
     double gamma = 1.0;
-    if (!PyArg_ParseTuple(args, "OOOOOO|dOOOO", &o_g, &o_s, &o_y, &o_rho, &o_order, &o_out, &gamma, &o_block, &o_z,
-                          &o_cinv, &o_idiag))
+    if (!PyArg_ParseTuple(args, "OOOOOO|dOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &gamma, &o[6], &o[7], &o[8],
+                          &o[9]))
         return NULL;
     Buf B[10] = {{{0}}};
     Coarse pc = {0}, *PC = NULL;
     int f4 = 0;
-    if (PyObject_CheckBuffer(o_s)) { /* float32 pairs? (the format decides which loop runs) */
+    if (PyObject_CheckBuffer(o[1])) { /* float32 pairs? (the format decides which loop runs) */
         Py_buffer v;
-        if (PyObject_GetBuffer(o_s, &v, PyBUF_FORMAT) == 0) {
+        if (PyObject_GetBuffer(o[1], &v, PyBUF_FORMAT) == 0) {
             f4 = v.itemsize == 4 && v.format && v.format[0] == 'f' && v.format[1] == '\0';
             PyBuffer_Release(&v);
         } else {
             PyErr_Clear();
         }
     }
-    if (acquire(&B[0], o_g, "g", "d", 0, 0) < 0) goto done;
-    if (f4) {
-        if (get_buffer(o_s, &B[1].view, "S", "f", 4, 0) < 0) goto done;
-        B[1].held = 1;
-        if (get_buffer(o_y, &B[2].view, "Y", "f", 4, 0) < 0) goto done;
-        B[2].held = 1;
-    } else if (acquire(&B[1], o_s, "S", "d", 0, 0) < 0 || acquire(&B[2], o_y, "Y", "d", 0, 0) < 0) {
-        goto done;
-    }
-    if (acquire(&B[3], o_rho, "rho", "d", 0, 0) < 0 || acquire(&B[4], o_order, "order", "qlq", 0, 0) < 0 ||
-        acquire(&B[5], o_out, "out", "d", 1, 0) < 0)
+    if (acquire_args(B, o, spec, 1) < 0 || acquire_args(B + 1, o + 1, f4 ? spec_f4 : spec + 1, 2) < 0 ||
+        acquire_args(B + 3, o + 3, spec + 3, 3) < 0)
         goto done;
     Py_ssize_t n = B[0].view.len / 8, m = B[3].view.len / 8, k = B[4].view.len / 8, w = f4 ? 4 : 8;
     const long long *O = B[4].view.buf;
@@ -1144,8 +1139,8 @@ static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
         goto done;
     }
     if (check_indices(O, k, m, "lbfgs_direction") < 0) goto done;
-    if (o_block != Py_None) { /* the two-level preconditioner (jaxci.optim.coarse.CoarseSpace) */
-        if (coarse_acquire(&pc, B + 6, o_block, o_z, o_cinv, o_idiag, n, "lbfgs_direction (block)") < 0) goto done;
+    if (o[6] != Py_None) { /* the two-level preconditioner (jaxci.optim.coarse.CoarseSpace) */
+        if (coarse_acquire(&pc, B + 6, o + 6, n, "lbfgs_direction (block)") < 0) goto done;
         pc.gamma = gamma;
         PC = &pc;
     }
@@ -1157,8 +1152,7 @@ static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
     else
         two_loop_f8(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q, PC);
     Py_END_ALLOW_THREADS
-    Py_INCREF(Py_None);
-    ret = Py_None;
+    ret = Py_NewRef(Py_None);
 done:
     PyMem_Free(pc.work);
     release(B, 10);
@@ -1172,21 +1166,21 @@ static PyObject *py_coarse_apply(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5])) return NULL;
     Buf B[6] = {{{0}}};
     Coarse pc = {0};
-    if (acquire(&B[0], o[0], "q", "d", 0, 0) < 0 || acquire(&B[1], o[1], "out", "d", 1, 0) < 0) goto done;
+    static const Arg spec[2] = {{"q", "d"}, {"out", "d", 1}};
+    if (acquire_args(B, o, spec, 2) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 8;
     if (B[1].view.len != 8 * n) {
         PyErr_SetString(PyExc_ValueError, "coarse_apply: q and out differ in length");
         goto done;
     }
-    if (coarse_acquire(&pc, B + 2, o[2], o[3], o[4], o[5], n, "coarse_apply (block)") < 0) goto done;
+    if (coarse_acquire(&pc, B + 2, o + 2, n, "coarse_apply (block)") < 0) goto done;
     double *out = B[1].view.buf;
     const double *q = B[0].view.buf;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t i = 0; i < n; i++) out[i] = q[i];
     coarse_apply(&pc, out, n);
     Py_END_ALLOW_THREADS
-    Py_INCREF(Py_None);
-    ret = Py_None;
+    ret = Py_NewRef(Py_None);
 done:
     PyMem_Free(pc.work);
     release(B, 6);
@@ -1417,16 +1411,13 @@ static void *local_sums_worker(void *arg) {
 }
 
 static PyObject *local_sums(PyObject *self, PyObject *args) {
-    PyObject *o_pts, *o_hex, *o_rot, *o_inc, *o_cnt, *o_tr, *o_out, *ret = NULL;
+    static const Arg spec[7] = {{"points", "d"}, {"hexes", "qlq"}, {"rot", "qlq"}, {"inc", "qlq"}, {"count", "qlq"},
+                                {"trials", "d"}, {"out", "d", 1}};
+    PyObject *o[7], *ret = NULL;
     int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOOOOOO|i", &o_pts, &o_hex, &o_rot, &o_inc, &o_cnt, &o_tr, &o_out, &nthreads))
-        return NULL;
+    if (!PyArg_ParseTuple(args, "OOOOOOO|i", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &nthreads)) return NULL;
     Buf B[7] = {{{0}}};
-    if (acquire(&B[0], o_pts, "points", "d", 0, 0) < 0 || acquire(&B[1], o_hex, "hexes", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o_rot, "rot", "qlq", 0, 0) < 0 || acquire(&B[3], o_inc, "inc", "qlq", 0, 0) < 0 ||
-        acquire(&B[4], o_cnt, "count", "qlq", 0, 0) < 0 || acquire(&B[5], o_tr, "trials", "d", 0, 0) < 0 ||
-        acquire(&B[6], o_out, "out", "d", 1, 0) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 7) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64, M = B[4].view.len / 8,
                S = M ? B[6].view.len / 8 / M : 0, K = M ? B[3].view.len / 8 / M : 0;
     if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || B[2].view.len != 512 || B[3].view.len != M * K * 8 ||
@@ -1449,8 +1440,7 @@ static PyObject *local_sums(PyObject *self, PyObject *args) {
             PyErr_NoMemory();
             goto done;
         }
-    Py_INCREF(Py_None);
-    ret = Py_None;
+    ret = Py_NewRef(Py_None);
 done:
     release(B, 7);
     return ret;
@@ -1687,15 +1677,13 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
                           &o[18], &o[19], &C, &t, &T, &n_roulette, &reduction, &delta, &init_width, &min_width, &tol,
                           &bump, &seed, &nthreads, &counter))
         return NULL;
-    static const char *names[20] = {"x", "width", "nodes", "inc", "count", "basis", "free", "plane", "row", "kind",
-                                    "hint_s", "hint_e", "cand_s", "table_s", "spheres_s", "cand_e", "table_e",
-                                    "spheres_e", "hexes", "rot"};
-    static const int writable[20] = {1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0};
-    static const int integer[20] = {0, 0, 1, 1, 1, 0, 0, 0, 1, 1, 1, 1, 1, 0, 0, 1, 0, 0, 1, 1};
+    static const Arg spec[20] = {{"x", "d", 1}, {"width", "d", 1}, {"nodes", "qlq"}, {"inc", "qlq"}, {"count", "qlq"},
+                                 {"basis", "d"}, {"free", "d"}, {"plane", "d"}, {"row", "qlq"}, {"kind", "qlq"},
+                                 {"hint_s", "qlq", 1}, {"hint_e", "qlq", 1}, {"cand_s", "i"}, {"table_s", "d"},
+                                 {"spheres_s", "d"}, {"cand_e", "i"}, {"table_e", "d"}, {"spheres_e", "d"},
+                                 {"hexes", "qlq"}, {"rot", "qlq"}};
     Buf B[20] = {{{0}}};
-    for (int i = 0; i < 20; i++)
-        if (acquire(&B[i], o[i], names[i], i == 12 || i == 15 ? "i" : (integer[i] ? "qlq" : "d"), writable[i], 0) < 0)
-            goto done;
+    if (acquire_args(B, o, spec, 20) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, M = B[2].view.len / 8, K = M ? B[3].view.len / 8 / M : 0,
                N = B[18].view.len / 64;
     Cells cells[2];
@@ -1788,13 +1776,8 @@ static int get_layout(Buf *B, Py_ssize_t n, Layout *L, const char *fn) {
     return 0;
 }
 
-static int acquire_layout(Buf *B, PyObject **o) {
-    return acquire(&B[0], o[0], "interior", "qlq", 0, 0) < 0 || acquire(&B[1], o[1], "surface", "qlq", 0, 0) < 0 ||
-                   acquire(&B[2], o[2], "basis", "d", 0, 0) < 0 || acquire(&B[3], o[3], "edge", "qlq", 0, 0) < 0 ||
-                   acquire(&B[4], o[4], "tangent", "d", 0, 0) < 0
-               ? -1
-               : 0;
-}
+/* The layout's arguments in an Arg table (get_layout's B[0..4]). */
+#define LAYOUT_ARGS {"interior", "qlq"}, {"surface", "qlq"}, {"basis", "d"}, {"edge", "qlq"}, {"tangent", "d"}
 
 /* lift(x0 (n,3) f8, scale (m,) f8, v (m,) f8, interior, surface, basis, edge, tangent, x (n,3) f8 out) -> None:
  * x = x0 + B (scale * v). */
@@ -1802,12 +1785,10 @@ static PyObject *lift(PyObject *self, PyObject *args) {
     PyObject *o[9], *ret = NULL;
     if (!PyArg_ParseTuple(args, "OOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8]))
         return NULL;
+    static const Arg spec[9] = {{"x0", "d"}, {"scale", "d"}, {"v", "d"}, LAYOUT_ARGS, {"x", "d", 1}};
     Buf B[9] = {{{0}}};
     Layout L;
-    if (acquire(&B[0], o[0], "x0", "d", 0, 0) < 0 || acquire(&B[1], o[1], "scale", "d", 0, 0) < 0 ||
-        acquire(&B[2], o[2], "v", "d", 0, 0) < 0 || acquire_layout(B + 3, o + 3) < 0 ||
-        acquire(&B[8], o[8], "x", "d", 1, 0) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 9) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8;
     if (get_layout(B + 3, n, &L, "lift") < 0) goto done;
     if (B[8].view.len != B[0].view.len || B[2].view.len != B[1].view.len || m != 3 * L.ni + 2 * L.ns + L.ne) {
@@ -1830,8 +1811,7 @@ static PyObject *lift(PyObject *self, PyObject *args) {
         double u = SCe[k] * Ve[k];
         for (int d = 0; d < 3; d++) X[3 * L.E[k] + d] += u * L.ET[3 * k + d];
     }
-    Py_INCREF(Py_None);
-    ret = Py_None;
+    ret = Py_NewRef(Py_None);
 done:
     release(B, 9);
     return ret;
@@ -1842,11 +1822,10 @@ done:
 static PyObject *lift_t(PyObject *self, PyObject *args) {
     PyObject *o[8], *ret = NULL;
     if (!PyArg_ParseTuple(args, "OOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7])) return NULL;
+    static const Arg spec[8] = {{"g", "d"}, {"scale", "d"}, LAYOUT_ARGS, {"out", "d", 1}};
     Buf B[8] = {{{0}}};
     Layout L;
-    if (acquire(&B[0], o[0], "g", "d", 0, 0) < 0 || acquire(&B[1], o[1], "scale", "d", 0, 0) < 0 ||
-        acquire_layout(B + 2, o + 2) < 0 || acquire(&B[7], o[7], "out", "d", 1, 0) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 8) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8;
     if (get_layout(B + 2, n, &L, "lift_t") < 0) goto done;
     if (B[7].view.len != B[1].view.len || m != 3 * L.ni + 2 * L.ns + L.ne) {
@@ -1871,8 +1850,7 @@ static PyObject *lift_t(PyObject *self, PyObject *args) {
         const double *g = G + 3 * L.E[k], *t = L.ET + 3 * k;
         oe[k] = SCe[k] * (g[0] * t[0] + g[1] * t[1] + g[2] * t[2]);
     }
-    Py_INCREF(Py_None);
-    ret = Py_None;
+    ret = Py_NewRef(Py_None);
 done:
     release(B, 8);
     return ret;
@@ -1884,11 +1862,9 @@ done:
 static PyObject *flat_keep(PyObject *self, PyObject *args) {
     PyObject *o[5], *ret = NULL;
     if (!PyArg_ParseTuple(args, "OOOOO", &o[0], &o[1], &o[2], &o[3], &o[4])) return NULL;
+    static const Arg spec[5] = {{"x", "d"}, {"nodes", "qlq"}, {"origin", "d"}, {"r2", "d"}, {"keep", "?", 1}};
     Buf B[5] = {{{0}}};
-    if (acquire(&B[0], o[0], "x", "d", 0, 0) < 0 || acquire(&B[1], o[1], "nodes", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o[2], "origin", "d", 0, 0) < 0 || acquire(&B[3], o[3], "r2", "d", 0, 0) < 0 ||
-        acquire(&B[4], o[4], "keep", "?", 1, 0) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 5) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8;
     if (B[2].view.len != 3 * B[1].view.len || B[3].view.len != B[1].view.len || B[4].view.len != n) {
         PyErr_SetString(PyExc_ValueError, "flat_keep: shapes disagree");
@@ -1920,11 +1896,10 @@ static PyObject *pullback(PyObject *self, PyObject *args) {
     PyObject *o[6], *ret = NULL;
     int kind;
     if (!PyArg_ParseTuple(args, "OOOOOOi", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &kind)) return NULL;
+    static const Arg spec[6] = {{"g", "d", 1}, {"nodes", "qlq"}, {"hint", "qlq"}, {"keep", "?", 0, 1}, {"cand", "i"},
+                                {"table", "d"}};
     Buf B[6] = {{{0}}};
-    if (acquire(&B[0], o[0], "g", "d", 1, 0) < 0 || acquire(&B[1], o[1], "nodes", "qlq", 0, 0) < 0 ||
-        acquire(&B[2], o[2], "hint", "qlq", 0, 0) < 0 || acquire(&B[3], o[3], "keep", "?", 0, 1) < 0 ||
-        acquire(&B[4], o[4], "cand", "i", 0, 0) < 0 || acquire(&B[5], o[5], "table", "d", 0, 0) < 0)
-        goto done;
+    if (acquire_args(B, o, spec, 6) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8, rows = kind == 0 ? 19 : 8;
     Py_ssize_t nc = B[5].view.len / 8 / rows, K = B[4].view.ndim == 2 ? B[4].view.shape[1] : 0;
     if ((kind != 0 && kind != 1) || B[2].view.len != B[1].view.len || (B[3].held && B[3].view.len != n) ||
@@ -1953,8 +1928,7 @@ static PyObject *pullback(PyObject *self, PyObject *args) {
         double *g = G + 3 * N[i], a = g[0] * d[0] + g[1] * d[1] + g[2] * d[2];
         for (int k = 0; k < 3; k++) g[k] = kind == 0 ? g[k] - a * d[k] : a * d[k];
     }
-    Py_INCREF(Py_None);
-    ret = Py_None;
+    ret = Py_NewRef(Py_None);
 done:
     release(B, 6);
     return ret;
@@ -1965,12 +1939,13 @@ done:
  * (jaxci.geometry.topology.colour_nodes): node v takes the smallest colour that no lower-numbered node sharing a
  * cell with it has. The same colours as the numpy rounds (Jones-Plassmann with the index as priority), one pass. */
 static PyObject *greedy_colour(PyObject *self, PyObject *args) {
-    PyObject *o_cells, *o_out, *ret = NULL;
+    static const Arg spec[2] = {{"cells", "qlq"}, {"colour", "qlq", 1}};
+    PyObject *o[2], *ret = NULL;
     Py_ssize_t n, k;
-    if (!PyArg_ParseTuple(args, "OnnO", &o_cells, &n, &k, &o_out)) return NULL;
+    if (!PyArg_ParseTuple(args, "OnnO", &o[0], &n, &k, &o[1])) return NULL;
     Buf B[2] = {{{0}}};
     long long *start = NULL, *inc = NULL, *mark = NULL;
-    if (acquire(&B[0], o_cells, "cells", "qlq", 0, 0) < 0 || acquire(&B[1], o_out, "colour", "qlq", 1, 0) < 0) goto done;
+    if (acquire_args(B, o, spec, 2) < 0) goto done;
     Py_ssize_t N = k > 0 ? B[0].view.len / 8 / k : 0;
     if (k < 1 || n < 0 || B[0].view.len != N * k * 8 || B[1].view.len != n * 8) {
         PyErr_SetString(PyExc_ValueError, "greedy_colour: shapes disagree (cells (N, k), colour (n,))");
@@ -2004,8 +1979,7 @@ static PyObject *greedy_colour(PyObject *self, PyObject *args) {
         COL[v] = c;
     }
     Py_END_ALLOW_THREADS
-    Py_INCREF(Py_None);
-    ret = Py_None;
+    ret = Py_NewRef(Py_None);
 done:
     free(start); free(inc); free(mark);
     release(B, 2);
