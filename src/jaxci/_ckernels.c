@@ -232,6 +232,29 @@ typedef struct {
 #define VECTOR_CLONES
 #endif
 
+/* The columns a, b, c of the eight corners of the hexahedron of nodes h (into the points P), times s: the corners
+ * side by side (structure of arrays: a[d][i] is coordinate d of corner i's column a), as the loops below take them. */
+static inline __attribute__((always_inline)) void hex_columns(const double *P, const long long *h, double s,
+                                                              double a[3][8], double b[3][8], double c[3][8]) {
+    double X[3][8];
+    for (int k = 0; k < 8; k++)
+        for (int d = 0; d < 3; d++) X[d][k] = P[3 * h[k] + d];
+    for (int d = 0; d < 3; d++)
+        for (int i = 0; i < 8; i++) {
+            a[d][i] = (X[d][NB[i][0]] - X[d][i]) * s;
+            b[d][i] = (X[d][NB[i][1]] - X[d][i]) * s;
+            c[d][i] = (X[d][NB[i][2]] - X[d][i]) * s;
+        }
+}
+
+/* x cross y of corner i (hex_columns' layout): its coordinate d into out[d * stride]. */
+static inline __attribute__((always_inline)) void cross_at(double x[3][8], double y[3][8], int i, double *out,
+                                                           int stride) {
+    out[0] = x[1][i] * y[2][i] - x[2][i] * y[1][i];
+    out[stride] = x[2][i] * y[0][i] - x[0][i] * y[2][i];
+    out[2 * stride] = x[0][i] * y[1][i] - x[1][i] * y[0][i];
+}
+
 /* Elements [lo, hi) of hex_condition; the gradient into the job's own G (NULL: none). The eight corners of an
  * element are computed side by side (structure of arrays over the corners, so that the compiler vectorises
  * them); the sums run over the corners in order, as corner_term one corner at a time would. */
@@ -246,26 +269,11 @@ static void *hex_worker(void *arg) {
     long long invalid = 0;
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
         const long long *h = H + 8 * e;
-        double X[3][8], a[3][8], b[3][8], c[3][8], u[3][8], v[3][8], w[3][8];
+        double a[3][8], b[3][8], c[3][8], u[3][8], v[3][8], w[3][8];
         double det[8], fro2[8], adj2[8], term[8], w2[8], p[8], q[8], r[8];
-        for (int k = 0; k < 8; k++)
-            for (int d = 0; d < 3; d++) X[d][k] = P[3 * h[k] + d];
-        for (int d = 0; d < 3; d++)
-            for (int i = 0; i < 8; i++) {
-                a[d][i] = X[d][NB[i][0]] - X[d][i];
-                b[d][i] = X[d][NB[i][1]] - X[d][i];
-                c[d][i] = X[d][NB[i][2]] - X[d][i];
-            }
+        hex_columns(P, h, 1.0, a, b, c);
         for (int i = 0; i < 8; i++) {
-            u[0][i] = b[1][i] * c[2][i] - b[2][i] * c[1][i];
-            u[1][i] = b[2][i] * c[0][i] - b[0][i] * c[2][i];
-            u[2][i] = b[0][i] * c[1][i] - b[1][i] * c[0][i];
-            v[0][i] = c[1][i] * a[2][i] - c[2][i] * a[1][i];
-            v[1][i] = c[2][i] * a[0][i] - c[0][i] * a[2][i];
-            v[2][i] = c[0][i] * a[1][i] - c[1][i] * a[0][i];
-            w[0][i] = a[1][i] * b[2][i] - a[2][i] * b[1][i];
-            w[1][i] = a[2][i] * b[0][i] - a[0][i] * b[2][i];
-            w[2][i] = a[0][i] * b[1][i] - a[1][i] * b[0][i];
+            cross_at(b, c, i, &u[0][i], 8); cross_at(c, a, i, &v[0][i], 8); cross_at(a, b, i, &w[0][i], 8);
             det[i] = a[0][i] * u[0][i] + a[1][i] * u[1][i] + a[2][i] * u[2][i];
             fro2[i] = 0.0;
             adj2[i] = 0.0;
@@ -305,18 +313,9 @@ static void *hex_worker(void *arg) {
         double ga[3][8], gb[3][8], gc[3][8];
         for (int i = 0; i < 8; i++) {
             /* v x c + b x w, c x u + w x a, u x b + a x v (corner_term's) */
-            double vxc[3] = {v[1][i] * c[2][i] - v[2][i] * c[1][i], v[2][i] * c[0][i] - v[0][i] * c[2][i],
-                             v[0][i] * c[1][i] - v[1][i] * c[0][i]};
-            double bxw[3] = {b[1][i] * w[2][i] - b[2][i] * w[1][i], b[2][i] * w[0][i] - b[0][i] * w[2][i],
-                             b[0][i] * w[1][i] - b[1][i] * w[0][i]};
-            double cxu[3] = {c[1][i] * u[2][i] - c[2][i] * u[1][i], c[2][i] * u[0][i] - c[0][i] * u[2][i],
-                             c[0][i] * u[1][i] - c[1][i] * u[0][i]};
-            double wxa[3] = {w[1][i] * a[2][i] - w[2][i] * a[1][i], w[2][i] * a[0][i] - w[0][i] * a[2][i],
-                             w[0][i] * a[1][i] - w[1][i] * a[0][i]};
-            double uxb[3] = {u[1][i] * b[2][i] - u[2][i] * b[1][i], u[2][i] * b[0][i] - u[0][i] * b[2][i],
-                             u[0][i] * b[1][i] - u[1][i] * b[0][i]};
-            double axv[3] = {a[1][i] * v[2][i] - a[2][i] * v[1][i], a[2][i] * v[0][i] - a[0][i] * v[2][i],
-                             a[0][i] * v[1][i] - a[1][i] * v[0][i]};
+            double vxc[3], bxw[3], cxu[3], wxa[3], uxb[3], axv[3];
+            cross_at(v, c, i, vxc, 1); cross_at(b, w, i, bxw, 1); cross_at(c, u, i, cxu, 1);
+            cross_at(w, a, i, wxa, 1); cross_at(u, b, i, uxb, 1); cross_at(a, v, i, axv, 1);
             for (int d = 0; d < 3; d++) {
                 ga[d][i] = p[i] * a[d][i] + q[i] * (vxc[d] + bxw[d]) - r[i] * u[d][i];
                 gb[d][i] = p[i] * b[d][i] + q[i] * (cxu[d] + wxa[d]) - r[i] * v[d][i];
@@ -367,15 +366,12 @@ static PyObject *hex_determinants(PyObject *self, PyObject *args) {
     const double *P = B[0].view.buf;
     double *D = B[2].view.buf;
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t e = 0; e < N; e++) {
-        const long long *h = H + 8 * e;
+    for (Py_ssize_t e = 0; e < N; e++) { /* a . (b x c), numpy's order */
+        double a[3][8], b[3][8], c[3][8], u[3][8];
+        hex_columns(P, H + 8 * e, 1.0, a, b, c);
         for (int i = 0; i < 8; i++) {
-            const double *o = P + 3 * h[i], *pa = P + 3 * h[NB[i][0]], *pb = P + 3 * h[NB[i][1]],
-                         *pc = P + 3 * h[NB[i][2]];
-            double ax = pa[0] - o[0], ay = pa[1] - o[1], az = pa[2] - o[2];
-            double bx = pb[0] - o[0], by = pb[1] - o[1], bz = pb[2] - o[2];
-            double cx = pc[0] - o[0], cy = pc[1] - o[1], cz = pc[2] - o[2];
-            D[8 * e + i] = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx);
+            cross_at(b, c, i, &u[0][i], 8);
+            D[8 * e + i] = a[0][i] * u[0][i] + a[1][i] * u[1][i] + a[2][i] * u[2][i];
         }
     }
     Py_END_ALLOW_THREADS
@@ -655,20 +651,11 @@ static void *untangle_worker(void *arg) {
     double *G = j->G, theta = j->theta, eps2 = j->eps * j->eps, energy = 0.0, dmin = INFINITY;
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
         const long long *h = H + 8 * e;
-        double s_ = IL[e], X[3][8], a[3][8], b[3][8], c[3][8], u[3][8];
+        double s_ = IL[e], a[3][8], b[3][8], c[3][8], u[3][8];
         double det[8], fro2[8], sq[8], ich[8], c23[8], shape[8], volume[8];
-        for (int k = 0; k < 8; k++)
-            for (int d = 0; d < 3; d++) X[d][k] = P[3 * h[k] + d];
-        for (int d = 0; d < 3; d++)
-            for (int i = 0; i < 8; i++) {
-                a[d][i] = (X[d][NB[i][0]] - X[d][i]) * s_;
-                b[d][i] = (X[d][NB[i][1]] - X[d][i]) * s_;
-                c[d][i] = (X[d][NB[i][2]] - X[d][i]) * s_;
-            }
+        hex_columns(P, h, s_, a, b, c);
         for (int i = 0; i < 8; i++) {
-            u[0][i] = b[1][i] * c[2][i] - b[2][i] * c[1][i];
-            u[1][i] = b[2][i] * c[0][i] - b[0][i] * c[2][i];
-            u[2][i] = b[0][i] * c[1][i] - b[1][i] * c[0][i];
+            cross_at(b, c, i, &u[0][i], 8);
             det[i] = a[0][i] * u[0][i] + a[1][i] * u[1][i] + a[2][i] * u[2][i];
             fro2[i] = 0.0;
             for (int d = 0; d < 3; d++) fro2[i] += a[d][i] * a[d][i] + b[d][i] * b[d][i] + c[d][i] * c[d][i];
@@ -692,10 +679,8 @@ static void *untangle_worker(void *arg) {
         for (int i = 0; i < 8; i++) {
             double p = (2.0 / 3.0) * (1.0 - theta) * c23[i] * s_;
             double q = ((-(2.0 / 3.0) * shape[i] - volume[i]) / sq[i] + 2.0 * theta * det[i] * ich[i]) * s_;
-            double v[3] = {c[1][i] * a[2][i] - c[2][i] * a[1][i], c[2][i] * a[0][i] - c[0][i] * a[2][i],
-                           c[0][i] * a[1][i] - c[1][i] * a[0][i]};
-            double w[3] = {a[1][i] * b[2][i] - a[2][i] * b[1][i], a[2][i] * b[0][i] - a[0][i] * b[2][i],
-                           a[0][i] * b[1][i] - a[1][i] * b[0][i]};
+            double v[3], w[3];
+            cross_at(c, a, i, v, 1); cross_at(a, b, i, w, 1);
             for (int d = 0; d < 3; d++) {
                 double ga = p * a[d][i] + q * u[d][i], gb = p * b[d][i] + q * v[d], gc = p * c[d][i] + q * w[d];
                 g[i][d] -= ga + gb + gc;
