@@ -999,28 +999,17 @@ static int coarse_acquire(Coarse *pc, Buf *B, PyObject *const *o, Py_ssize_t n, 
  * 0.05 ms; the same sums in another order, so the last bits of a direction differ from a single sum's). */
 #define TWO_LOOP(NAME, T)                                                                                        \
     static void NAME(const double *G, const T *SS, const T *YY, const double *R, const long long *O,             \
-                     Py_ssize_t k, Py_ssize_t n, double *q, const Coarse *PC) {                                   \
-        double alpha[64], gamma = 1.0;                                                                           \
+                     Py_ssize_t k, Py_ssize_t n, double *q, const Coarse *PC) {                                  \
+        double alpha[64], gamma = 1.0, c;                                                                        \
         Py_ssize_t n4 = n - n % 4;                                                                               \
-        /* dot: v . q of the q already written; AXPY_DOT: q += c x, then dot += v . q (v may be NULL) */         \
-        double d[4], dot;                                                                                        \
-        const T *v = k ? SS + O[k - 1] * n : NULL;                                                               \
-        d[0] = d[1] = d[2] = d[3] = 0.0;                                                                         \
-        for (Py_ssize_t i = 0; i < n4; i += 4)                                                                   \
-            for (int j = 0; j < 4; j++) {                                                                        \
-                q[i + j] = G[i + j];                                                                             \
-                if (v) d[j] += (double)v[i + j] * q[i + j];                                                      \
-            }                                                                                                    \
-        for (Py_ssize_t i = n4; i < n; i++) {                                                                    \
-            q[i] = G[i];                                                                                         \
-            if (v) d[0] += (double)v[i] * q[i];                                                                  \
-        }                                                                                                        \
-        dot = (d[0] + d[1]) + (d[2] + d[3]);                                                                     \
+        double d[4], dot; /* dot: v . q of the q already written (UPDATE_DOT) */                                 \
+        const T *v = k ? SS + O[k - 1] * n : NULL, *x;                                                           \
+        UPDATE_DOT(q[i] = G[i])                                                                                  \
         for (Py_ssize_t t = k - 1; t >= 0; t--) {                                                                \
-            const T *x = YY + O[t] * n;                                                                          \
-            double c = -(alpha[t] = R[O[t]] * dot);                                                              \
+            x = YY + O[t] * n;                                                                                   \
+            c = -(alpha[t] = R[O[t]] * dot);                                                                     \
             v = t ? SS + O[t - 1] * n : NULL;                                                                    \
-            AXPY_DOT(T)                                                                                          \
+            UPDATE_DOT(q[i] += c * (double)x[i])                                                                 \
         }                                                                                                        \
         if (PC) { /* H0 = gamma M, the two-level preconditioner; then the first forward dot */                   \
             coarse_apply(PC, q, n);                                                                              \
@@ -1044,48 +1033,40 @@ static int coarse_acquire(Coarse *pc, Buf *B, PyObject *const *o, Py_ssize_t n, 
                 yy[0] += (double)y[i] * (double)y[i];                                                            \
             }                                                                                                    \
             gamma = ((sy[0] + sy[1]) + (sy[2] + sy[3])) / ((yy[0] + yy[1]) + (yy[2] + yy[3]));                   \
-            const T *y0 = YY + O[0] * n;                                                                         \
-            d[0] = d[1] = d[2] = d[3] = 0.0;                                                                     \
-            for (Py_ssize_t i = 0; i < n4; i += 4)                                                               \
-                for (int j = 0; j < 4; j++) {                                                                    \
-                    q[i + j] *= gamma;                                                                           \
-                    d[j] += (double)y0[i + j] * q[i + j];                                                        \
-                }                                                                                                \
-            for (Py_ssize_t i = n4; i < n; i++) {                                                                \
-                q[i] *= gamma;                                                                                   \
-                d[0] += (double)y0[i] * q[i];                                                                    \
-            }                                                                                                    \
-            dot = (d[0] + d[1]) + (d[2] + d[3]);                                                                 \
+            v = YY + O[0] * n;                                                                                   \
+            UPDATE_DOT(q[i] *= gamma)                                                                            \
         }                                                                                                        \
         for (Py_ssize_t t = 0; t < k; t++) {                                                                     \
-            const T *x = SS + O[t] * n;                                                                          \
-            double c = alpha[t] - R[O[t]] * dot;                                                                 \
+            x = SS + O[t] * n;                                                                                   \
+            c = alpha[t] - R[O[t]] * dot;                                                                        \
             v = t + 1 < k ? YY + O[t + 1] * n : NULL;                                                            \
-            AXPY_DOT(T)                                                                                          \
+            UPDATE_DOT(q[i] += c * (double)x[i])                                                                 \
         }                                                                                                        \
         for (Py_ssize_t i = 0; i < n; i++) q[i] = -q[i];                                                         \
     }
-/* q += c x over the n entries, and dot = v . q (the updated q) in four partial sums, if v is not NULL. */
-#define AXPY_DOT(T)                                                                                              \
+/* STEP (q[i]'s update) for every i < n, then dot = v . q (the updated q) in four partial sums, 0 where v is
+ * NULL. */
+#define UPDATE_DOT(STEP)                                                                                         \
     d[0] = d[1] = d[2] = d[3] = 0.0;                                                                             \
     if (v) {                                                                                                     \
-        for (Py_ssize_t i = 0; i < n4; i += 4)                                                                   \
+        for (Py_ssize_t i4 = 0; i4 < n4; i4 += 4)                                                                \
             for (int j = 0; j < 4; j++) {                                                                        \
-                q[i + j] += c * (double)x[i + j];                                                                \
-                d[j] += (double)v[i + j] * q[i + j];                                                             \
+                Py_ssize_t i = i4 + j;                                                                           \
+                STEP;                                                                                            \
+                d[j] += (double)v[i] * q[i];                                                                     \
             }                                                                                                    \
         for (Py_ssize_t i = n4; i < n; i++) {                                                                    \
-            q[i] += c * (double)x[i];                                                                            \
+            STEP;                                                                                                \
             d[0] += (double)v[i] * q[i];                                                                         \
         }                                                                                                        \
     } else {                                                                                                     \
-        for (Py_ssize_t i = 0; i < n; i++) q[i] += c * (double)x[i];                                             \
+        for (Py_ssize_t i = 0; i < n; i++) STEP;                                                                 \
     }                                                                                                            \
     dot = (d[0] + d[1]) + (d[2] + d[3]);
 TWO_LOOP(two_loop_f8, double)
 TWO_LOOP(two_loop_f4, float)
 #undef TWO_LOOP
-#undef AXPY_DOT
+#undef UPDATE_DOT
 
 /* lbfgs_direction(g (n,) f8, S (m, n) f8 or f4, Y (m, n) as S, rho (m,) f8, order (k,) i8, out (n,) f8
  *                 [, gamma, block (n,) i8, z (n, 3) f8, coarse_inv (mc, mc) f8, inv_diag (n,) f8]) -> None:
