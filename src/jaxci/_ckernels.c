@@ -95,15 +95,17 @@ typedef struct {
     long long invalid;
 } Sums;
 
+/* out += s: the sums and counts added, the larger max kept. */
+static void add_sum(Sums *out, const Sums *s) {
+    out->sum += s->sum;
+    if (s->tmax > out->tmax) out->tmax = s->tmax;
+    out->invalid += s->invalid;
+}
+
 /* The jobs' Sums (each `size` bytes, its Sums first) added up. */
 static Sums add_sums(const void *jobs, size_t size, int nt) {
     Sums out = {0.0, 0.0, 0};
-    for (int t = 0; t < nt; t++) {
-        const Sums *s = (const Sums *)((const char *)jobs + t * size);
-        out.sum += s->sum;
-        if (s->tmax > out.tmax) out.tmax = s->tmax;
-        out.invalid += s->invalid;
-    }
+    for (int t = 0; t < nt; t++) add_sum(&out, (const Sums *)((const char *)jobs + t * size));
     return out;
 }
 
@@ -471,9 +473,7 @@ static void *ffi_worker(void *arg) {
         }
         HexJob h = {{0.0, 0.0, 0}, j->P, NULL, H, NULL, j->G, real, 0, real, j->weight, NULL};
         hex_worker(&h);
-        s.sum += h.s.sum;
-        if (h.s.tmax > s.tmax) s.tmax = h.s.tmax;
-        s.invalid += h.s.invalid;
+        add_sum(&s, &h.s);
     }
     j->s = s;
     return NULL;
@@ -761,38 +761,36 @@ static int plane_point(const double *x, const double *T, Py_ssize_t nt, Py_ssize
 #undef R
 }
 
+/* The point q = o + t dir into p and its score (squared distance from x, plus penalty) into *best if that is below
+ * *best. */
+static inline void nearer_on_line(const double *x, const double *o, const double *dir, double t, double penalty,
+                                  double *best, double *p) {
+    double q[3], score = penalty;
+    for (int d = 0; d < 3; d++) {
+        q[d] = o[d] + t * dir[d];
+        score += (x[d] - q[d]) * (x[d] - q[d]);
+    }
+    if (score < *best) {
+        *best = score;
+        for (int d = 0; d < 3; d++) p[d] = q[d];
+    }
+}
+
 /* Nearest point of x on triangle j (jaxci.geometry._closest.closest_on_triangles): its score (squared distance, plus
  * a rounding-level penalty for points on the spoke or the side) and the point in p. */
 static double closest_on_triangle(const double *x, const double *T, Py_ssize_t nt, Py_ssize_t j, double tol,
                                   double bump, double *p) {
 #define R(r, k) T[((r) + (k)) * nt + j]
-    double w[3], h, d1, q[3], best;
+    double w[3], h, d1, best;
     int inside = plane_point(x, T, nt, j, tol, p, &h, w, &d1);
     best = inside ? h * h : INFINITY;
     double penalty = bump * R(TL2, 0);
     double e1[3] = {R(TE1, 0), R(TE1, 1), R(TE1, 2)}, e2[3] = {R(TE2, 0), R(TE2, 1), R(TE2, 2)};
     double c[3] = {R(TC, 0), R(TC, 1), R(TC, 2)};
-    double t = clip01(d1 * R(TIS, 0)), score = penalty;
-    for (int d = 0; d < 3; d++) {
-        q[d] = c[d] + t * e1[d];
-        score += (x[d] - q[d]) * (x[d] - q[d]);
-    }
-    if (score < best) {
-        best = score;
-        for (int d = 0; d < 3; d++) p[d] = q[d];
-    }
-    double side[3], we[3];
-    for (int d = 0; d < 3; d++) { side[d] = e2[d] - e1[d]; we[d] = w[d] - e1[d]; }
-    t = clip01(dot3(we, side) * R(TID, 0));
-    score = penalty;
-    for (int d = 0; d < 3; d++) {
-        q[d] = c[d] + e1[d] + t * side[d];
-        score += (x[d] - q[d]) * (x[d] - q[d]);
-    }
-    if (score < best) {
-        best = score;
-        for (int d = 0; d < 3; d++) p[d] = q[d];
-    }
+    nearer_on_line(x, c, e1, clip01(d1 * R(TIS, 0)), penalty, &best, p); /* the spoke */
+    double side[3], we[3], ce[3];
+    for (int d = 0; d < 3; d++) { side[d] = e2[d] - e1[d]; we[d] = w[d] - e1[d]; ce[d] = c[d] + e1[d]; }
+    nearer_on_line(x, ce, side, clip01(dot3(we, side) * R(TID, 0)), penalty, &best, p); /* the side */
     return best;
 #undef R
 }
@@ -1574,6 +1572,7 @@ static void *ci_worker(void *arg) {
                     for (int d = 0; d < 3; d++) u[d] = (uniform(&rng, a, 1, (c * t + j) * 3 + d) - 0.5) * w * fr[d];
                     for (int i = 0; i < 3; i++)
                         y[i] = centre[3 * c + i] + basis[3 * i] * u[0] + basis[3 * i + 1] * u[1] + basis[3 * i + 2] * u[2];
+                    int flat = 0;
                     if (kd == 1 && pl[6] > 0.0) { /* inside its planar disk: the plane projection is exact */
                         double q = (y[0] - pl[0]) * pl[3] + (y[1] - pl[1]) * pl[4] + (y[2] - pl[2]) * pl[5], r2 = 0.0,
                                f[3];
@@ -1581,13 +1580,11 @@ static void *ci_worker(void *arg) {
                             f[d] = y[d] - q * pl[3 + d];
                             r2 += (f[d] - pl[d]) * (f[d] - pl[d]);
                         }
-                        if (r2 < (0.999 * pl[6]) * (0.999 * pl[6]))
+                        if ((flat = r2 < (0.999 * pl[6]) * (0.999 * pl[6])))
                             for (int d = 0; d < 3; d++) y[d] = f[d];
-                        else
-                            project_one(y, crow, cl->K, &hy, cl->table, cl->nc, cl->spheres, cl->faces, 0, tol, bump);
-                    } else if (kd) {
-                        project_one(y, crow, cl->K, &hy, cl->table, cl->nc, cl->spheres, cl->faces, (int)kd - 1, tol, bump);
                     }
+                    if (kd && !flat)
+                        project_one(y, crow, cl->K, &hy, cl->table, cl->nc, cl->spheres, cl->faces, (int)kd - 1, tol, bump);
                     int s = c * t + j;
                     for (int d = 0; d < 3; d++) ys[d * S + s] = y[d];
                     hs[s] = hy;
