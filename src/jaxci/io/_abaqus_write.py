@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import os
 import re
-import warnings
 
 import numpy as np
 
@@ -45,7 +44,7 @@ from ..mesh import HexMesh, mirrored_block
 from ._abaqus import DEFAULT_NAMES, element_family, parse_deck, split_line
 from ._deck import first_duplicate, model_difference, reread_deck
 from ._losses import SOURCE_FIELDS, deck_losses
-from ._meshio import LossyWriteWarning
+from ._meshio import write_text
 
 #: Set names written as they are; others are written in double quotes (Abaqus's form for labels with spaces).
 _PLAIN_LABEL = re.compile(r"[A-Za-z][A-Za-z0-9_.\-]{0,79}")
@@ -221,7 +220,4 @@ def write_abaqus(mesh: HexMesh, path: str | os.PathLike) -> None:
         lost += more
         lost += [what for fmt, what in deck_losses(mesh, "abaqus") if fmt != "abaqus"]
     lost += _dropped_data(mesh)
-    if lost:
-        warnings.warn(f"{os.path.basename(path)}: abaqus drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
-    with open(path, "w", encoding="utf-8", errors="surrogateescape", newline="") as f:
-        f.write(text)
+    write_text(path, text, "abaqus", lost, "surrogateescape")

@@ -74,7 +74,7 @@ from ._ansys import (
 from ._ansys_apdl import CMBLOCK_FORMAT, COMPONENT_NAME, EBLOCK_FORMAT, NBLOCK_FORMAT, DeckReader
 from ._deck import model_difference
 from ._losses import SOURCE_FIELDS, deck_losses
-from ._meshio import LossyWriteWarning
+from ._meshio import write_text
 
 
 def _e21(x: float) -> str:
@@ -189,10 +189,7 @@ def write_apdl(mesh: HexMesh, path: str | os.PathLike) -> None:
     if text is None:
         fresh, more = _fresh(mesh, path)
         lost = more + lost + [what for fmt, what in deck_losses(mesh, "apdl") if fmt != "apdl"]
-    if lost:
-        warnings.warn(f"{os.path.basename(path)}: APDL drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
-    with open(path, "w", encoding="utf-8", newline="") as f:
-        f.write(fresh if text is None else text)
+    write_text(path, fresh if text is None else text, "APDL", lost)
 
 
 def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:

@@ -31,7 +31,7 @@ from ..mesh import HexMesh
 from ._deck import first_duplicate, model_difference
 from ._exodus import ExodusFile, read_exodus
 from ._losses import SOURCE_FIELDS, deck_losses
-from ._meshio import LossyWriteWarning
+from ._meshio import LossyWriteWarning, warn_lost
 from ._patran import file_block, join_solid, serendipity_shift
 
 #: (cell type, with midside nodes) -> the Exodus element type written afresh.
@@ -225,6 +225,5 @@ def write_exodus(mesh: HexMesh, path: str | os.PathLike) -> None:
                     f"{os.path.basename(src)} ({reason}, so it cannot be rewritten in place)")
     plan, more = _plan(mesh, path)
     lost += more + [what for fmt, what in deck_losses(mesh, "exodus") if fmt != "exodus"]
-    if lost:
-        warnings.warn(f"{os.path.basename(path)}: exodus drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
+    warn_lost(path, "exodus", lost)
     _write_fresh(mesh, plan, path)

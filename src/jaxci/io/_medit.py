@@ -16,14 +16,13 @@ number that is not one, a vertex number out of range, ``Dimension`` other than 3
 from __future__ import annotations
 
 import os
-import warnings
 
 import numpy as np
 
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
 from ._deck import read_text
-from ._meshio import LossyWriteWarning, file_cells
+from ._meshio import file_cells, write_text
 
 #: Medit section -> (cell type, nodes per row).
 SECTIONS = {"Hexahedra": ("hexahedron", 8), "Prisms": ("wedge", 6), "Pyramids": ("pyramid", 5),
@@ -198,7 +197,4 @@ def write_medit(mesh: HexMesh, path: str | os.PathLike) -> None:
                     ("cell data", {k for k in mesh.cell_data if k != "medit:ref"}), ("field data", mesh.field_data)):
         if d:
             lost.append(f"{what} {sorted(d)}")
-    if lost:
-        warnings.warn(f"{os.path.basename(path)}: medit drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
-    with open(path, "w", encoding="utf-8", newline="") as f:
-        f.write("\n".join(out) + "\n")
+    write_text(path, "\n".join(out) + "\n", "medit", lost)

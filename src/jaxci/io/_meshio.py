@@ -38,6 +38,7 @@ import binascii
 import contextlib
 import importlib.util
 import io
+import os
 import warnings
 import zlib
 from pathlib import Path
@@ -56,6 +57,22 @@ from ._paths import check_regular
 
 class LossyWriteWarning(UserWarning):
     """`write_mesh` wrote a format that cannot hold part of the mesh (see the table in `jaxci.io.write_mesh`)."""
+
+
+def warn_lost(path, fmt: str, lost: list[str], stacklevel: int = 3) -> None:
+    """A writer's `LossyWriteWarning`: what the file `path` of format `fmt` leaves out (`lost`), if anything;
+    `stacklevel` as ``warnings.warn`` would count it from the writer."""
+    if lost:
+        warnings.warn(f"{os.path.basename(path)}: {fmt} drops {'; '.join(lost)}", LossyWriteWarning,
+                      stacklevel=stacklevel + 1)
+
+
+def write_text(path, text: str, fmt: str, lost: list[str], errors: str = "strict") -> None:
+    """A text writer's last step: its `LossyWriteWarning` (`warn_lost`), then `text` written to `path` (UTF-8,
+    line endings as they are; `errors` the encoding error handler: ``"surrogateescape"`` for a deck's own bytes)."""
+    warn_lost(path, fmt, lost, stacklevel=4)
+    with open(path, "w", encoding="utf-8", errors=errors, newline="") as f:
+        f.write(text)
 
 
 #: meshio's own reader of each format (never ``meshio.read``: it calls ``sys.exit`` on a corrupt file); VTU's with
@@ -249,8 +266,7 @@ def write_meshio(mesh: HexMesh, path: Path, fmt: str) -> None:
         if isinstance(exc, JaxciError):
             raise
         raise MeshWriteError(f"{path}: meshio cannot write this mesh as {_TITLES[fmt]} ({_describe(exc)})") from exc
-    if lost:
-        warnings.warn(f"{path.name}: {fmt} drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=4)
+    warn_lost(path, fmt, lost, stacklevel=4)
     try:
         with _meshio_output_as_warnings(LossyWriteWarning):
             _WRITERS[fmt](path, m)
