@@ -199,3 +199,30 @@ def numbered_blocks(blocks: list, node_ids: np.ndarray, path: str, deck: str, no
             raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{maximum} of {fields}")
     return numbered, all_ids
 
+
+
+def block_pids(mesh: HexMesh, key: str, k: int, n: int) -> np.ndarray:
+    """The property (part) ids of the `n` cells of block `k` of a deck written afresh: the cell data `key` where
+    it fits the blocks, else the block number ``k + 1``."""
+    data = mesh.cell_data.get(key)
+    if data is not None and len(data) == len(mesh.cells) and len(data[k]) == n:
+        return np.asarray(data[k], np.int64)
+    return np.full(n, k + 1)
+
+
+def fresh_coordinates(mesh: HexMesh, node_ids: np.ndarray, path: str, node: str, nastran: bool) -> list[list[str]]:
+    """The x, y, z texts (16 characters at most, `format_real` with `nastran`) of each node of a deck written
+    afresh; a `MeshWriteError` naming the node (`node` the format's word, its id from `node_ids`) where 16
+    characters cannot hold a coordinate to `REL_TOLERANCE` of its `node_scale`."""
+    scale = node_scale(mesh.points, mesh.cells)
+    out = []
+    for k, (nid, xyz) in enumerate(zip(node_ids.tolist(), mesh.points.tolist(), strict=True)):
+        texts = []
+        for c, v in enumerate(xyz):
+            text, err = format_real(v, 16, nastran=nastran)
+            if err > REL_TOLERANCE * scale[k]:
+                raise MeshWriteError(f"{path}: {node} {nid}: its {'xyz'[c]} coordinate {v!r} cannot be written in 16 "
+                                     f"characters closer than {err:.3g}")
+            texts.append(text)
+        out.append(texts)
+    return out

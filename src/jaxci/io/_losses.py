@@ -9,6 +9,7 @@ from __future__ import annotations
 from ..mesh import HexMesh
 from ._abaqus import deck_extras
 from ._ansys_apdl import other_commands
+from ._fields import rewrite_deck
 
 #: Field data that carry a source file (its text, or its path for a format written back from the file itself),
 #: not data of the mesh: never reported as lost field data; `deck_losses` says what each means.
@@ -65,19 +66,21 @@ def dropped_data(mesh: HexMesh, fmt: str, own_cell_data: tuple = ()) -> list[str
     return lost + [what for f, what in deck_losses(mesh, fmt) if f != fmt]
 
 
-def deck_text(mesh: HexMesh, path: str, fmt: str, in_place, fresh, own_cell_data: tuple = ()
+def deck_text(mesh: HexMesh, path: str, fmt: str, fresh, parse_deck, node: str, nastran: bool
               ) -> tuple[str, list[str]]:
     """The text of a deck of format `fmt` (``"nastran"``, ``"lsdyna"``) for `mesh`, and what it leaves out: the
-    mesh's source deck (field data ``FMT:deck``) with new coordinates where ``in_place(mesh, deck, path)`` gives
-    it (``(reason, None)`` where it cannot), else ``fresh(mesh, path)`` (``(text, lost)``)."""
+    mesh's source deck (field data ``FMT:deck``) with new coordinates where `jaxci.io._fields.rewrite_deck` can
+    write it in place (``parse_deck``, `node` and `nastran` as it takes them; the property ids in cell data
+    ``FMT:pid``), else ``fresh(mesh, path)`` (``(text, lost)``; the mesh's sets are left out)."""
     deck = mesh.field_data.get(f"{fmt}:deck")
     lost, text = [], None
     if isinstance(deck, str):
-        reason, text = in_place(mesh, deck, path)
+        reason, text = rewrite_deck(mesh, deck, path, parse_deck, f"{fmt}:pid", node, nastran)
         if text is None:
             lost.append(f"{_SOURCES[f'{fmt}:deck'][1]} ({reason}, so the deck cannot be rewritten in place)")
     if text is None:
         text, more = fresh(mesh, path)
-        lost += more
-    return text, lost + dropped_data(mesh, fmt, own_cell_data)
+        lost += more + [f"{what} {sorted(d)}" for what, d in (("point sets", mesh.point_sets),
+                                                             ("cell sets", mesh.cell_sets)) if d]
+    return text, lost + dropped_data(mesh, fmt, (f"{fmt}:pid",))
 

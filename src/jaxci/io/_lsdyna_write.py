@@ -19,25 +19,17 @@ before the file is written.
 from __future__ import annotations
 
 import os
-import warnings
 
 import numpy as np
 
-from ..errors import MeshWriteError
 from ..mesh import HexMesh
-from ._fields import REL_TOLERANCE, format_real, node_scale, numbered_blocks, rewrite_deck
+from ._fields import block_pids, fresh_coordinates, numbered_blocks
 from ._losses import deck_text
 from ._lsdyna import DEGENERATE, parse_deck
-from ._meshio import LossyWriteWarning
+from ._meshio import write_text
 from ._patran import file_block
 
 _MAX_ID = 99_999_999  # 8-character integer fields
-
-
-def _in_place(mesh: HexMesh, text: str, path: str) -> tuple[str | None, str | None]:
-    """(None, the deck with the mesh's coordinates) when `mesh` is the deck's mesh with moved nodes, else (what
-    differs, None): `jaxci.io._fields.rewrite_deck`."""
-    return rewrite_deck(mesh, text, path, parse_deck, "lsdyna:pid", "node", nastran=False)
 
 
 def _eight(cell: str, row: list[int]) -> list[int]:
@@ -59,13 +51,11 @@ def _eight(cell: str, row: list[int]) -> list[int]:
 def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
     lost = []
     node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
-    pid_data = mesh.cell_data.get("lsdyna:pid")
     solids, shells = [], []
     for k, blk in enumerate(mesh.cells):
         cell, data, _, more = file_block(blk, k, mesh.hex_mirrored)  # midside nodes: write_mesh warns
         lost += more
-        pids = np.asarray(pid_data[k], np.int64) if pid_data is not None and len(pid_data) == len(mesh.cells) \
-            and len(pid_data[k]) == len(data) else np.full(len(data), k + 1)
+        pids = block_pids(mesh, "lsdyna:pid", k, len(data))
         ids = None if blk.ids is None else np.asarray(blk.ids, np.int64)
         if cell in ("hexahedron", "wedge", "pyramid", "tetra"):
             solids.append((cell, ids, data, pids))
@@ -75,17 +65,10 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
             lost.append(f"{len(data)} {blk.type} cells (not a solid or shell)")
     numbered, all_ids = numbered_blocks(solids + shells, node_ids, path, "LS-DYNA", "node", _MAX_ID,
                                         "the 8-character fields")
-    scale = node_scale(mesh.points, mesh.cells)
+    xyz = fresh_coordinates(mesh, node_ids, path, "node", nastran=False)
     out = ["*KEYWORD", f"$ jaxci mesh: {mesh.n_nodes} nodes, {len(all_ids)} elements", "*NODE"]
-    for k, (nid, xyz) in enumerate(zip(node_ids.tolist(), mesh.points.tolist(), strict=True)):
-        texts = []
-        for c, v in enumerate(xyz):
-            text, err = format_real(v, 16)
-            if err > REL_TOLERANCE * scale[k]:
-                raise MeshWriteError(f"{path}: node {nid}: its {'xyz'[c]} coordinate {v!r} cannot be written in 16 "
-                                     f"characters closer than {err:.3g}")
-            texts.append(text)
-        out.append(f"{nid:>8}" + "".join(f"{t:>16}" for t in texts))
+    out += [f"{nid:>8}" + "".join(f"{t:>16}" for t in texts) for nid, texts in zip(node_ids.tolist(), xyz,
+                                                                                     strict=True)]
     for keyword, kinds in (("*ELEMENT_SOLID", ("hexahedron", "wedge", "pyramid", "tetra")),
                            ("*ELEMENT_SHELL", ("quad", "triangle"))):
         blocks = [b for b in numbered if b[0] in kinds]
@@ -97,9 +80,6 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
                 nodes = _eight(cell, row) if keyword == "*ELEMENT_SOLID" else row + row[-1:] * (4 - len(row))
                 out.append(f"{eid:>8}{pid:>8}" + "".join(f"{v:>8}" for v in nodes))
     out.append("*END")
-    for what, d in (("point sets", mesh.point_sets), ("cell sets", mesh.cell_sets)):
-        if d:
-            lost.append(f"{what} {sorted(d)}")
     return "\n".join(out) + "\n", lost
 
 
@@ -113,8 +93,5 @@ def write_lsdyna(mesh: HexMesh, path: str | os.PathLike) -> None:
     `MeshWriteError` for ids the deck cannot hold or a coordinate its field cannot hold. `OSError` propagates.
     """
     path = os.fspath(path)
-    text, lost = deck_text(mesh, path, "lsdyna", _in_place, _fresh, ("lsdyna:pid",))
-    if lost:
-        warnings.warn(f"{os.path.basename(path)}: lsdyna drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
-    with open(path, "w", encoding="utf-8", errors="surrogateescape", newline="") as f:
-        f.write(text)
+    text, lost = deck_text(mesh, path, "lsdyna", _fresh, parse_deck, "node", nastran=False)
+    write_text(path, text, "lsdyna", lost, "surrogateescape")

@@ -30,16 +30,14 @@ APDL (`jaxci.io._ansys_apdl_write`).
 from __future__ import annotations
 
 import os
-import warnings
 
 import numpy as np
 
-from ..errors import MeshWriteError
 from ..mesh import HexMesh
 from ._ansys_apdl_write import write_apdl
-from ._fields import REL_TOLERANCE, format_real, node_scale, numbered_blocks, rewrite_deck
+from ._fields import block_pids, fresh_coordinates, numbered_blocks
 from ._losses import deck_text
-from ._meshio import LossyWriteWarning
+from ._meshio import write_text
 from ._nastran import parse_deck
 from ._patran import file_block, join_solid
 
@@ -51,12 +49,6 @@ CARD_NAMES = {("hexahedron", False): "CHEXA", ("hexahedron", True): "CHEXA", ("w
 _MAX_ID = 99_999_999  # 8-character integer fields
 
 
-def _in_place(mesh: HexMesh, text: str, path: str) -> tuple[str | None, str | None]:
-    """(None, the deck with the mesh's coordinates) when `mesh` is the deck's mesh with moved nodes, else (what
-    differs, None): `jaxci.io._fields.rewrite_deck`."""
-    return rewrite_deck(mesh, text, path, parse_deck, "nastran:pid", "GRID", nastran=True)
-
-
 def _small(name: str, fields: list[str]) -> list[str]:
     """A small-field card: 8 data fields on the first line, 8 on each continuation line (marked ``+``)."""
     rows = [fields[i : i + 8] for i in range(0, len(fields), 8)] or [[]]
@@ -66,7 +58,6 @@ def _small(name: str, fields: list[str]) -> list[str]:
 def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
     lost = []
     node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
-    pid_data = mesh.cell_data.get("nastran:pid")
     blocks = []  # (card, element ids or None, rows of node indices (-1 blank), pids)
     for k, blk in enumerate(mesh.cells):
         cell, data, mid, more = file_block(blk, k, mesh.hex_mirrored)
@@ -76,23 +67,14 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
             lost.append(f"{len(data)} {blk.type} cells (no element card)")
             continue
         rows = data if mid is None else join_solid(data, mid, cell)
-        pids = np.asarray(pid_data[k], np.int64) if pid_data is not None and len(pid_data) == len(mesh.cells) \
-            and len(pid_data[k]) == len(data) else np.full(len(data), k + 1)
-        blocks.append((card, None if blk.ids is None else np.asarray(blk.ids, np.int64), rows, pids))
+        blocks.append((card, None if blk.ids is None else np.asarray(blk.ids, np.int64), rows,
+                       block_pids(mesh, "nastran:pid", k, len(data))))
     numbered, all_ids = numbered_blocks(blocks, node_ids, path, "Nastran", "GRID", _MAX_ID,
                                         "Nastran's 8-character fields")
-    scale = node_scale(mesh.points, mesh.cells)
     out = [f"$ jaxci mesh: {mesh.n_nodes} GRIDs, {len(all_ids)} elements"]
-    for k, (nid, xyz) in enumerate(zip(node_ids.tolist(), mesh.points.tolist(), strict=True)):
-        texts = []
-        for c, v in enumerate(xyz):
-            text, err = format_real(v, 16, nastran=True)
-            if err > REL_TOLERANCE * scale[k]:
-                raise MeshWriteError(f"{path}: GRID {nid}: its {'xyz'[c]} coordinate {v!r} cannot be written in 16 "
-                                     f"characters closer than {err:.3g}")
-            texts.append(text)
-        out.append(f"GRID*   {nid:>16}{'':>16}{texts[0]:>16}{texts[1]:>16}")
-        out.append(f"*       {texts[2]:>16}")
+    for nid, (x, y, z) in zip(node_ids.tolist(), fresh_coordinates(mesh, node_ids, path, "GRID", nastran=True),
+                              strict=True):
+        out += [f"GRID*   {nid:>16}{'':>16}{x:>16}{y:>16}", f"*       {z:>16}"]
     for card, ids, rows, pids in numbered:
         for eid, row, pid in zip(ids.tolist(), rows.tolist(), pids.tolist(), strict=True):
             nodes = ["" if n < 0 else str(node_ids[n]) for n in row]
@@ -100,9 +82,6 @@ def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
                 nodes.pop()
             out += _small(card, [str(eid), str(pid), *nodes])
     out.append("ENDDATA")
-    for what, d in (("point sets", mesh.point_sets), ("cell sets", mesh.cell_sets)):
-        if d:
-            lost.append(f"{what} {sorted(d)}")
     return "\n".join(out) + "\n", lost
 
 
@@ -120,8 +99,5 @@ def write_nastran(mesh: HexMesh, path: str | os.PathLike) -> None:
     if path.lower().endswith(".dat") and not isinstance(deck, str) and "ansys:deck" in mesh.field_data:
         write_apdl(mesh, path)  # an ANSYS .dat input file goes back as one
         return
-    text, lost = deck_text(mesh, path, "nastran", _in_place, _fresh, ("nastran:pid",))
-    if lost:
-        warnings.warn(f"{os.path.basename(path)}: nastran drops {'; '.join(lost)}", LossyWriteWarning, stacklevel=3)
-    with open(path, "w", encoding="utf-8", errors="surrogateescape", newline="") as f:
-        f.write(text)
+    text, lost = deck_text(mesh, path, "nastran", _fresh, parse_deck, "GRID", nastran=True)
+    write_text(path, text, "nastran", lost, "surrogateescape")
