@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
-from ._deck import parse_coordinate, parse_id, read_text, refuse_duplicates
+from ._deck import node_finder, parse_coordinate, parse_id, read_text, refuse_duplicates
 from ._paths import check_regular, resolve_beside
 
 #: Abaqus shell, membrane, surface, truss and beam elements jaxci keeps as cells (not smoothed), with their cell type.
@@ -369,16 +369,10 @@ class Deck:
         refuse_duplicates(elem_ids, elem_line, self.where, "element")
         order = np.argsort(node_ids)
         sorted_ids = node_ids[order]
+        find = node_finder(order, sorted_ids, self.where, "node", "which no *NODE defines")
         cells = []
         for b in self.blocks:
-            raw = np.array(b.nodes, dtype=np.int64)
-            pos = np.minimum(np.searchsorted(sorted_ids, raw), len(sorted_ids) - 1)
-            missing = sorted_ids[pos] != raw
-            if missing.any():
-                k, c = (int(v) for v in np.argwhere(missing)[0])
-                raise MeshReadError(f"{self.where(b.line[k])}: element {b.ids[k]} references node {raw[k, c]}, "
-                                    f"which no *NODE defines ({int(missing.any(axis=1).sum())} such elements)")
-            conn = order[pos]
+            conn = find(np.array(b.nodes, dtype=np.int64), b.line, b.ids, "element")
             if b.cell in ("hexahedron", "wedge", "tetra", "pyramid"):
                 data, mid = conn[:, : b.corners], (conn[:, b.corners :] if b.n_nodes > b.corners else None)
             else:

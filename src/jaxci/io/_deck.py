@@ -104,13 +104,30 @@ def refuse_duplicates(ids, lines, where, what: str, more=None) -> None:
                             f"{extra}")
 
 
-def checked_ids(deck, node: str, no_nodes: str, no_elements: str):
+def node_finder(order: np.ndarray, srt: np.ndarray, where, node: str, undefined: str):
+    """``find(raw, lines, eids, label)``: the positions among the node ids (unique; `order` sorts them into `srt`)
+    of the node ids `raw` of an element block (rows; an id 0, a blank field, is no node: -1), or a `MeshReadError`
+    at the first element that references an undefined one: ``where(lines[r])``, ``{label} {eids[r]} references
+    {node} ID, {undefined}`` and how many elements do."""
+
+    def find(raw: np.ndarray, lines, eids, label: str) -> np.ndarray:
+        pos = np.minimum(np.searchsorted(srt, raw), len(srt) - 1)
+        missing = (srt[pos] != raw) & (raw != 0)
+        if missing.any():
+            r, c = (int(v) for v in np.argwhere(missing)[0])
+            raise MeshReadError(f"{where(lines[r])}: {label} {eids[r]} references {node} {raw[r, c]}, {undefined} "
+                                f"({int(missing.any(axis=1).sum())} such elements)")
+        return np.where(raw == 0, -1, order[pos])
+
+    return find
+
+
+def checked_ids(deck, node: str, no_nodes: str, no_elements: str, undefined: str):
     """The node ids of a parsed card deck (LS-DYNA, Nastran: `deck` has ``node_ids``, ``node_line``, ``where``
     and ``blocks`` of element ``ids`` and ``lines``), checked: a `MeshReadError` `no_nodes` where it has no node,
     `no_elements` (``{n}``: the node count) where it has no element, and at a node id (`node`: the format's word)
-    or an element id defined twice. Returns ``(ids, find)``: the ids ``(n,)`` and ``find(raw, blank)``, the
-    positions of the node ids `raw` and where they are undefined (an id 0 is no node, not undefined, with
-    `blank`)."""
+    or an element id defined twice. Returns ``(ids, find)``: the ids ``(n,)`` and ``find(block, label)``, the
+    positions of the node ids of a block (`node_finder`, with `undefined`)."""
     if not deck.node_ids:
         raise MeshReadError(no_nodes)
     ids = np.array(deck.node_ids, np.int64)
@@ -121,14 +138,8 @@ def checked_ids(deck, node: str, no_nodes: str, no_elements: str):
     refuse_duplicates(np.concatenate([np.array(b["ids"], np.int64) for b in blocks]),
                       [i for b in blocks for i in b["lines"]], deck.where, "element")
     order = np.argsort(ids)
-    srt = ids[order]
-
-    def find(raw, blank: bool = False):
-        pos = np.minimum(np.searchsorted(srt, raw), len(srt) - 1)
-        missing = srt[pos] != raw
-        return order[pos], missing & (raw != 0) if blank else missing
-
-    return ids, find
+    find = node_finder(order, ids[order], deck.where, node, undefined)
+    return ids, lambda b, label: find(np.array(b["nodes"], np.int64), b["lines"], b["ids"], label)
 
 
 def _same_array(a, b) -> bool:

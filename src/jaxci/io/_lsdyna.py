@@ -201,19 +201,12 @@ class Deck:
     def mesh_parts(self) -> dict:
         """Keyword arguments of the deck's `HexMesh` (without source, notes and field data)."""
         ids, find = checked_ids(self, "node", f"{self.path}: no *NODE data found; not an LS-DYNA keyword deck (or an "
-                                f"empty one)", f"{self.path}: {{n}} nodes but no *ELEMENT_SOLID elements")
-        cells, pids = [], []
-        for cell, b in self.blocks.items():
-            raw = np.array(b["nodes"], np.int64)
-            pos, missing = find(raw)
-            if missing.any():
-                r, c = (int(v) for v in np.argwhere(missing)[0])
-                raise MeshReadError(f"{self.where(b['lines'][r])}: element {b['ids'][r]} references node {raw[r, c]}, "
-                                    f"which no *NODE defines ({int(missing.any(axis=1).sum())} such elements)")
-            cells.append(CellBlock(cell, pos, np.array(b["ids"], np.int64)))
-            pids.append(np.array(b["pids"], np.int64))
-        return {"points": np.array(self.xyz, np.float64).reshape(-1, 3), "cells": tuple(cells), "node_ids": ids,
-                "cell_data": {"lsdyna:pid": pids}}
+                                f"empty one)", f"{self.path}: {{n}} nodes but no *ELEMENT_SOLID elements",
+                                "which no *NODE defines")
+        cells = tuple(CellBlock(cell, find(b, "element"), np.array(b["ids"], np.int64)) for cell, b in
+                      self.blocks.items())
+        return {"points": np.array(self.xyz, np.float64).reshape(-1, 3), "cells": cells, "node_ids": ids,
+                "cell_data": {"lsdyna:pid": [np.array(b["pids"], np.int64) for b in self.blocks.values()]}}
 
 
 def parse_deck(lines: list[str], origin: list[tuple[str, int]], path: str) -> tuple[Deck, dict]:

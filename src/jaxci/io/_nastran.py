@@ -195,18 +195,12 @@ class Deck:
         """Keyword arguments of the deck's `HexMesh` (without source, notes and field data)."""
         ids, find = checked_ids(self, "GRID", f"{self.path}: no GRID cards found; not a Nastran bulk data deck (or "
                                 f"an empty one)", f"{self.path}: {{n}} GRIDs but no CHEXA, CPENTA, CTETRA or CPYRAM "
-                                f"elements")
+                                f"elements", "which the deck does not define")
         cells, pids = [], []
         for (name, _), b in self.blocks.items():
             cell, corners, _ = ELEMENT_CARDS[name]
-            raw = np.array(b["nodes"], np.int64)
-            pos, missing = find(raw, blank=True)
-            if missing.any():
-                r, c = (int(v) for v in np.argwhere(missing)[0])
-                raise MeshReadError(f"{self.where(b['lines'][r])}: {name} {b['ids'][r]} references GRID {raw[r, c]}, "
-                                    f"which the deck does not define ({int(missing.any(axis=1).sum())} such elements)")
-            conn = np.where(raw == 0, -1, pos)
-            data, mid = split_solid(conn, cell) if raw.shape[1] > corners else (conn, None)
+            conn = find(b, name)
+            data, mid = split_solid(conn, cell) if conn.shape[1] > corners else (conn, None)
             cells.append(CellBlock(cell, data, np.array(b["ids"], np.int64), mid))
             pids.append(np.array(b["pids"], np.int64))
         return {"points": np.array(self.xyz, np.float64).reshape(-1, 3), "cells": tuple(cells), "node_ids": ids,
