@@ -35,7 +35,8 @@ import numpy as np
 
 from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
-from ._deck import node_finder, parse_coordinate, parse_id, read_text, refuse_duplicates
+from ._deck import node_finder, parse_id, read_text, refuse_duplicates
+from ._fields import parse_real
 from ._paths import check_regular, resolve_beside
 
 #: Abaqus shell, membrane, surface, truss and beam elements jaxci keeps as cells (not smoothed), with their cell type.
@@ -262,7 +263,7 @@ class Deck:
             if len(toks) > 7:
                 raise MeshReadError(f"{where}: node {nid} has {len(toks)} fields; expected the id and at most 3 "
                                     f"coordinates and 3 normal components")
-            xyz = [parse_coordinate(t, where, f"coordinate {'xyz'[k]} of node {nid}") for k, t in
+            xyz = [parse_real(t, where, f"coordinate {'xyz'[k]} of node {nid}") for k, t in
                    enumerate(toks[1:4])]
             self.node_ids.append(nid)
             self.xyz.append(tuple(xyz + [0.0] * (3 - len(xyz))))

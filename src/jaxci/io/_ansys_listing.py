@@ -37,7 +37,8 @@ import numpy as np
 from ..errors import MeshReadError
 from ..mesh import HexMesh
 from ._ansys import Bricks, to_hexmesh
-from ._deck import MAX_ID, is_number, parse_coordinate, parse_id, read_text
+from ._deck import MAX_ID, is_number, parse_id, read_text
+from ._fields import parse_real
 
 _NODE_HEADER = ("NODE", "X", "Y", "Z")
 _ELEM_HEADER = ("ELEM", "MAT", "TYP", "REL", "ESY", "SEC")
@@ -107,7 +108,7 @@ class _Rows:
                     )
                 where = f"{path}, line {lineno}"
                 nid = parse_id(toks[0], where, "node number")
-                xyz = [parse_coordinate(t, where, f"coordinate {c} of node {nid}") for c, t in
+                xyz = [parse_real(t, where, f"coordinate {c} of node {nid}") for c, t in
                        zip("XYZ", toks[1:4], strict=True)]
                 self.nodes.append((nid, *xyz))
                 self.node_src.append((fi, lineno))

@@ -43,20 +43,6 @@ def parse_id(token: str, where: str, what: str) -> int:
     return value
 
 
-def parse_coordinate(token: str, where: str, what: str) -> float:
-    """A finite float from a text field (Fortran ``D`` exponents accepted; empty is 0), or a `MeshReadError`."""
-    tok = token.strip()
-    if not tok:
-        return 0.0
-    try:
-        value = float(tok.replace("D", "E").replace("d", "e"))
-    except ValueError:
-        raise MeshReadError(f"{where}: {what} {tok!r} is not a number") from None
-    if not np.isfinite(value):
-        raise MeshReadError(f"{where}: {what} is {tok!r}; coordinates must be finite numbers")
-    return value
-
-
 def read_text(path: str | os.PathLike, what: str, errors: str = "strict") -> str:
     """The text of a file with its line endings, or a `MeshReadError` naming the file.
 

@@ -1,5 +1,6 @@
-"""Numbers in the fields of card-image decks (Nastran bulk data, LS-DYNA keyword files): parsing them, writing a
-coordinate back into the field it came from, and checking that the field is wide enough.
+"""Numbers in the fields of card-image decks (Nastran bulk data, LS-DYNA keyword files): parsing them (`parse_real`,
+which the Abaqus and ANSYS listing readers use too), writing a coordinate back into the field it came from, and
+checking that the field is wide enough.
 
 Both formats hold a node's coordinates either in fixed columns (8, 10, 16 or 20 characters) or in free format
 (fields separated by commas). A deck written back in place (`rewrite_coordinates`) keeps every line byte for byte
