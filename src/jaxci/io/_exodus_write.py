@@ -32,7 +32,7 @@ from ._deck import first_duplicate, model_difference
 from ._exodus import ExodusFile, read_exodus
 from ._losses import SOURCE_FIELDS, deck_losses
 from ._meshio import LossyWriteWarning, warn_lost
-from ._patran import file_block, join_solid, serendipity_shift
+from ._patran import named_blocks, serendipity_shift
 
 #: (cell type, with midside nodes) -> the Exodus element type written afresh.
 EXODUS_NAMES = {
@@ -94,25 +94,9 @@ def _chars(names: list[str], width: int) -> np.ndarray:
     return out
 
 
-def _blocks(mesh: HexMesh) -> tuple[list, list[str]]:
-    """(Exodus type name, 0-based file-ordered connectivity, ids or None, cell block index) per block written, and
-    what is left out."""
-    out, lost = [], []
-    for k, blk in enumerate(mesh.cells):
-        cell, data, mid, more = file_block(blk, k, mesh.hex_mirrored)
-        lost += more
-        name = EXODUS_NAMES.get((cell, mid is not None))
-        if name is None:
-            lost.append(f"{len(data)} {blk.type} cells (no Exodus element type)")
-            continue
-        conn = data if mid is None else join_solid(data, mid, cell)
-        out.append((name, conn, None if blk.ids is None else np.asarray(blk.ids, np.int64), k))
-    return out, lost
-
-
 def _plan(mesh: HexMesh, path: str) -> tuple[dict, list[str]]:
     """Everything a fresh file holds, and what it leaves out (checked before anything is written)."""
-    blocks, lost = _blocks(mesh)
+    blocks, lost = named_blocks(mesh, EXODUS_NAMES, "Exodus element type")
     ids = [b[2] for b in blocks]
     next_id = int(max((i.max() for i in ids if i is not None and len(i)), default=0)) + 1
     elem_ids = []

@@ -39,7 +39,7 @@ from ._fields import block_pids, fresh_coordinates, numbered_blocks
 from ._losses import deck_text
 from ._meshio import write_text
 from ._nastran import parse_deck
-from ._patran import file_block, join_solid
+from ._patran import named_blocks
 
 #: (cell type, with midside nodes) -> element card written afresh.
 CARD_NAMES = {("hexahedron", False): "CHEXA", ("hexahedron", True): "CHEXA", ("wedge", False): "CPENTA",
@@ -56,19 +56,9 @@ def _small(name: str, fields: list[str]) -> list[str]:
 
 
 def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
-    lost = []
     node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
-    blocks = []  # (card, element ids or None, rows of node indices (-1 blank), pids)
-    for k, blk in enumerate(mesh.cells):
-        cell, data, mid, more = file_block(blk, k, mesh.hex_mirrored)
-        lost += more
-        card = CARD_NAMES.get((cell, mid is not None))
-        if card is None:
-            lost.append(f"{len(data)} {blk.type} cells (no element card)")
-            continue
-        rows = data if mid is None else join_solid(data, mid, cell)
-        blocks.append((card, None if blk.ids is None else np.asarray(blk.ids, np.int64), rows,
-                       block_pids(mesh, "nastran:pid", k, len(data))))
+    named, lost = named_blocks(mesh, CARD_NAMES, "element card")
+    blocks = [(card, ids, rows, block_pids(mesh, "nastran:pid", k, len(rows))) for card, rows, ids, k in named]
     numbered, all_ids = numbered_blocks(blocks, node_ids, path, "Nastran", "GRID", _MAX_ID,
                                         "Nastran's 8-character fields")
     out = [f"$ jaxci mesh: {mesh.n_nodes} GRIDs, {len(all_ids)} elements"]

@@ -92,3 +92,21 @@ def file_block(blk: CellBlock, k: int, hex_mirrored: bool) -> tuple[str, np.ndar
                     f"some edges (written as linear cells)")
         mid = None
     return cell, data, None if mid is None else np.asarray(mid, np.int64), lost
+
+
+def named_blocks(mesh, names: dict, what: str) -> tuple[list, list[str]]:
+    """``(name, rows, ids or None, block index)`` of each cell block of `mesh` that a format names (`names`: (cell
+    type, with midside nodes) -> element name), rows as `file_block` gives them with the midside nodes joined
+    (`join_solid`), and what is left out: `file_block`'s losses, and the blocks without a name (`what`: the
+    format's word for one)."""
+    out, lost = [], []
+    for k, blk in enumerate(mesh.cells):
+        cell, data, mid, more = file_block(blk, k, mesh.hex_mirrored)
+        lost += more
+        name = names.get((cell, mid is not None))
+        if name is None:
+            lost.append(f"{len(data)} {blk.type} cells (no {what})")
+            continue
+        rows = data if mid is None else join_solid(data, mid, cell)
+        out.append((name, rows, None if blk.ids is None else np.asarray(blk.ids, np.int64), k))
+    return out, lost
