@@ -15,7 +15,7 @@ import warnings
 
 import numpy as np
 
-from ..errors import MeshReadError
+from ..errors import MeshReadError, MeshWriteError
 from ..mesh import HexMesh
 from ._paths import open_text, os_reason
 
@@ -77,6 +77,31 @@ def first_duplicate(ids: np.ndarray) -> tuple[int, int] | None:
         return None
     pairs = np.stack([order[same], order[same + 1]], axis=1)
     return tuple(int(p) for p in pairs[np.argmin(pairs[:, 1])])
+
+
+def element_ids(ids: list, counts: list[int]) -> list[np.ndarray]:
+    """The element ids of each block written: its own (``ids[k]``), or for a block without (None) its ``counts[k]``
+    numbers after the largest id given, continuing from block to block."""
+    next_id = int(max((i.max() for i in ids if i is not None and len(i)), default=0)) + 1
+    out = []
+    for i, n in zip(ids, counts, strict=True):
+        if i is None:
+            i = np.arange(next_id, next_id + n)
+            next_id += n
+        out.append(i)
+    return out
+
+
+def refuse_bad_ids(path: str, arrays, fmt: str, maximum: int, held: str) -> None:
+    """`MeshWriteError` at the first id of ``(ids, what)`` in `arrays` (``what``: ``"node"``, ``"element"``, ...)
+    that is used twice (`fmt` names the format) or lies outside ``1..maximum`` (`held`: what cannot hold it, e.g.
+    ``"of the 8-character fields"``)."""
+    for ids, what in arrays:
+        if (dup := first_duplicate(ids)) is not None:
+            raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; {fmt} ids must be unique")
+        if len(ids) and (ids.min() < 1 or ids.max() > maximum):
+            bad = ids.min() if ids.min() < 1 else ids.max()
+            raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{maximum} {held}")
 
 
 def refuse_duplicates(ids, lines, where, what: str, more=None) -> None:

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import JaxciError, MeshWriteError
 from ..mesh import HexMesh
-from ._deck import first_duplicate, model_difference
+from ._deck import element_ids, model_difference, refuse_bad_ids
 from ._exodus import ExodusFile, read_exodus
 from ._losses import SOURCE_FIELDS, deck_losses
 from ._meshio import LossyWriteWarning, warn_lost
@@ -98,24 +98,12 @@ def _plan(mesh: HexMesh, path: str) -> tuple[dict, list[str]]:
     """Everything a fresh file holds, and what it leaves out (checked before anything is written)."""
     blocks, lost = named_blocks(mesh, EXODUS_NAMES, "Exodus element type")
     ids = [b[2] for b in blocks]
-    next_id = int(max((i.max() for i in ids if i is not None and len(i)), default=0)) + 1
-    elem_ids = []
-    for (_, conn, i, _) in blocks:
-        if i is None:
-            i = np.arange(next_id, next_id + len(conn))
-            next_id += len(conn)
-        elem_ids.append(i)
+    elem_ids = element_ids(ids, [len(b[1]) for b in blocks])
     elem_ids = np.concatenate(elem_ids) if elem_ids else np.zeros(0, np.int64)
     node_ids = None if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
     keep_elem_map = any(i is not None for i in ids)
-    for what, arr in (("node", node_ids), ("element", elem_ids if keep_elem_map else None)):
-        if arr is None or not len(arr):
-            continue
-        if (dup := first_duplicate(arr)) is not None:
-            raise MeshWriteError(f"{path}: {what} id {arr[dup[1]]} is used twice; Exodus ids must be unique")
-        if arr.min() < 1 or arr.max() > _INT32:
-            bad = arr.min() if arr.min() < 1 else arr.max()
-            raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{_INT32} this writer stores")
+    refuse_bad_ids(path, [(a, w) for a, w in ((node_ids, "node"), (elem_ids if keep_elem_map else None, "element"))
+                          if a is not None], "Exodus", _INT32, "this writer stores")
     written = {k for *_, k in blocks}
     names, named = [""] * len(blocks), set()
     for set_name, per_block in mesh.cell_sets.items():

@@ -19,7 +19,7 @@ import numpy as np
 from ..cells import EDGES
 from ..errors import MeshReadError, MeshWriteError
 from ..mesh import HexMesh
-from ._deck import first_duplicate, model_difference, reread_deck
+from ._deck import element_ids, model_difference, refuse_bad_ids, reread_deck
 
 #: A rewritten coordinate may differ from the smoothed one by at most this fraction of the shortest edge at its node.
 REL_TOLERANCE = 1e-3
@@ -184,20 +184,10 @@ def numbered_blocks(blocks: list, node_ids: np.ndarray, path: str, deck: str, no
     (blocks without ids continue from the largest id given) and all element ids; `MeshWriteError` where a node or
     element id is used twice (`deck` names the format, `node` its nodes) or lies outside ``1..maximum`` (`fields`
     names the fields that cannot hold it)."""
-    next_id = int(max((b[1].max() for b in blocks if b[1] is not None and len(b[1])), default=0)) + 1
-    numbered = []
-    for cell, ids, rows, pids in blocks:
-        if ids is None:
-            ids = np.arange(next_id, next_id + len(rows))
-            next_id += len(rows)
-        numbered.append((cell, ids, rows, pids))
+    numbered = [(cell, ids, rows, pids) for (cell, _, rows, pids), ids in
+                zip(blocks, element_ids([b[1] for b in blocks], [len(b[2]) for b in blocks]), strict=True)]
     all_ids = np.concatenate([b[1] for b in numbered]) if numbered else np.zeros(0, np.int64)
-    for ids, what in ((node_ids, node), (all_ids, "element")):
-        if (dup := first_duplicate(ids)) is not None:
-            raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; {deck} ids must be unique")
-        if len(ids) and (ids.min() < 1 or ids.max() > maximum):
-            bad = ids.min() if ids.min() < 1 else ids.max()
-            raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{maximum} of {fields}")
+    refuse_bad_ids(path, ((node_ids, node), (all_ids, "element")), deck, maximum, f"of {fields}")
     return numbered, all_ids
 
 
