@@ -62,9 +62,7 @@ def write_report(out, data: bytes, mesh) -> None:
             place_files([(tmp, path)], {path: out.allowed[os.path.abspath(path)]})
             sync_folder(path.parent)
         except Taken as exc:
-            why = "was replaced by another file" if exc.changed else "appeared"
-            raise MeshWriteError(f"{exc.path}: {why} while the report was being written; left as it is (the "
-                                 f"report was not written)") from None
+            raise MeshWriteError(exc.message("the report", "the report was not written")) from None
         except OSError as exc:
             raise MeshWriteError(f"{path}: cannot write the report ({os_reason(exc)})") from None
         finally:

@@ -324,9 +324,7 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
         place_files([(p, folder / p.name) for p in produced], allowed)
         sync_folder(folder)
     except Taken as exc:
-        why = "was replaced by another file" if exc.changed else "appeared"
-        raise MeshWriteError(f"{exc.path}: {why} while the mesh was being written; left as it is (nothing was "
-                             f"written)") from None
+        raise MeshWriteError(exc.message("the mesh", "nothing was written")) from None
     except MeshWriteError as exc:  # name the output, never the hidden temporary file
         raise MeshWriteError(str(exc).replace(str(tmp / path.name), str(path)).replace(str(tmp), str(folder))) \
             from exc

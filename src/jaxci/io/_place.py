@@ -48,6 +48,12 @@ class Taken(FileExistsError):
         super().__init__(errno.EEXIST, "taken", str(path))
         self.path, self.changed = Path(path), changed
 
+    def message(self, what: str, kept: str) -> str:
+        """A writer's line for it: `path` appeared (or was replaced) while `what` was being written; `kept` says what
+        the writer left."""
+        why = "was replaced by another file" if self.changed else "appeared"
+        return f"{self.path}: {why} while {what} was being written; left as it is ({kept})"
+
 
 def identity(path: str | os.PathLike) -> tuple[int, int, int] | None:
     """(device, inode, change time in ns) of what `path` names itself (a link is not followed), or None when
