@@ -43,7 +43,7 @@ from ..errors import MeshWriteError
 from ..mesh import HexMesh, mirrored_block
 from ._abaqus import DEFAULT_NAMES, element_family, parse_deck, split_line
 from ._deck import first_duplicate, model_difference, reread_deck
-from ._losses import SOURCE_FIELDS, deck_losses
+from ._losses import data_losses, deck_losses
 from ._meshio import write_text
 
 #: Set names written as they are; others are written in double quotes (Abaqus's form for labels with spaces).
@@ -187,14 +187,6 @@ def _fresh(mesh: HexMesh, path: str, id_types: dict[int, str]) -> tuple[str, lis
     return "\n".join(out) + "\n", lost
 
 
-def _dropped_data(mesh: HexMesh) -> list[str]:
-    lost = [f"{what} data {sorted(d)}" for what, d in (("point", mesh.point_data), ("cell", mesh.cell_data)) if d]
-    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
-    if field:
-        lost.append(f"field data {field}")
-    return lost
-
-
 def write_abaqus(mesh: HexMesh, path: str | os.PathLike) -> None:
     """Write `mesh` as an Abaqus deck: its source deck with new coordinates when it has one, else afresh.
 
@@ -219,5 +211,5 @@ def write_abaqus(mesh: HexMesh, path: str | os.PathLike) -> None:
         text, more = _fresh(mesh, path, id_types)
         lost += more
         lost += [what for fmt, what in deck_losses(mesh, "abaqus") if fmt != "abaqus"]
-    lost += _dropped_data(mesh)
+    lost += data_losses(mesh)
     write_text(path, text, "abaqus", lost, "surrogateescape")

@@ -30,7 +30,7 @@ from ..errors import JaxciError, MeshWriteError
 from ..mesh import HexMesh
 from ._deck import element_ids, model_difference, refuse_bad_ids
 from ._exodus import ExodusFile, read_exodus
-from ._losses import SOURCE_FIELDS, deck_losses
+from ._losses import data_losses, deck_losses
 from ._meshio import LossyWriteWarning, warn_lost
 from ._patran import named_blocks, serendipity_shift
 
@@ -117,10 +117,7 @@ def _plan(mesh: HexMesh, path: str) -> tuple[dict, list[str]]:
     others = sorted(set(mesh.cell_sets) - named)
     if others:
         lost.append(f"cell sets {others} (only a set that is exactly one element block is kept, as its name)")
-    lost += [f"{what} data {sorted(d)}" for what, d in (("point", mesh.point_data), ("cell", mesh.cell_data)) if d]
-    field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
-    if field:
-        lost.append(f"field data {field}")
+    lost += data_losses(mesh)
     plan = {"blocks": blocks, "names": names, "node_ids": node_ids,
             "elem_ids": elem_ids if keep_elem_map else None}
     return plan, lost

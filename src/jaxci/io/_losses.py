@@ -52,10 +52,9 @@ def _listed(names: list[str], most: int = 8) -> str:
     return ", ".join(names[:most]) + (f", ... ({len(names)} in all)" if len(names) > most else "")
 
 
-def dropped_data(mesh: HexMesh, fmt: str, own_cell_data: tuple = ()) -> list[str]:
-    """What a deck of format `fmt` written from `mesh` leaves out of it: point data, cell data but
-    `own_cell_data` (the deck's own, e.g. ``nastran:pid``), field data but the sources', and what other sources'
-    decks hold (`deck_losses`; the deck's own source is the writer's to report)."""
+def data_losses(mesh: HexMesh, own_cell_data: tuple = ()) -> list[str]:
+    """The data of `mesh` a file that keeps none leaves out: point data, cell data but `own_cell_data` (a deck's
+    own, e.g. ``nastran:pid``), field data but the sources' (`SOURCE_FIELDS`)."""
     lost = [f"point data {sorted(mesh.point_data)}"] if mesh.point_data else []
     cell = sorted(k for k in mesh.cell_data if k not in own_cell_data)
     if cell:
@@ -63,7 +62,13 @@ def dropped_data(mesh: HexMesh, fmt: str, own_cell_data: tuple = ()) -> list[str
     field = sorted(k for k in mesh.field_data if k not in SOURCE_FIELDS)
     if field:
         lost.append(f"field data {field}")
-    return lost + [what for f, what in deck_losses(mesh, fmt) if f != fmt]
+    return lost
+
+
+def dropped_data(mesh: HexMesh, fmt: str, own_cell_data: tuple = ()) -> list[str]:
+    """What a deck of format `fmt` written from `mesh` leaves out of it: its `data_losses`, and what other sources'
+    decks hold (`deck_losses`; the deck's own source is the writer's to report)."""
+    return data_losses(mesh, own_cell_data) + [what for f, what in deck_losses(mesh, fmt) if f != fmt]
 
 
 def deck_text(mesh: HexMesh, path: str, fmt: str, fresh, parse_deck, node: str, nastran: bool
