@@ -423,23 +423,17 @@ class Deck:
         point_sets, cell_sets = {}, {}
         for (kind, _), s in self.sets.items():
             ids = members[(kind, s.name.upper())]
+            srt = sorted_ids if kind == "node" else esorted  # never empty: mesh_parts has checked
+            pos = np.minimum(np.searchsorted(srt, ids), len(srt) - 1)
+            missing = srt[pos] != ids
+            if missing.any() and (kind == "node" or not other):
+                line = next((i for i, e in s.entries if i is not None), None)
+                at = self.where(line) if line is not None else self.path
+                raise MeshReadError(f"{at}: {kind} set {s.name} lists {kind} {ids[missing][0]}, which no "
+                                    f"{'*NODE' if kind == 'node' else '*ELEMENT'} defines")
             if kind == "node":
-                pos = np.minimum(np.searchsorted(sorted_ids, ids), max(len(sorted_ids) - 1, 0))
-                missing = sorted_ids[pos] != ids
-                if missing.any():
-                    line = next((i for i, e in s.entries if i is not None), None)
-                    at = self.where(line) if line is not None else self.path
-                    raise MeshReadError(f"{at}: node set {s.name} lists node {ids[missing][0]}, which no *NODE "
-                                        f"defines")
                 point_sets[s.name] = np.sort(order[pos])
             else:
-                pos = np.minimum(np.searchsorted(esorted, ids), len(esorted) - 1)
-                missing = esorted[pos] != ids
-                if missing.any() and not other:
-                    line = next((i for i, e in s.entries if i is not None), None)
-                    at = self.where(line) if line is not None else self.path
-                    raise MeshReadError(f"{at}: element set {s.name} lists element {ids[missing][0]}, which no "
-                                        f"*ELEMENT defines")
                 rows = eorder[pos[~missing]]
                 cell_sets[s.name] = [np.sort(row_of[rows[block_of[rows] == k]]) for k in range(len(self.blocks))]
         return point_sets, cell_sets
