@@ -52,18 +52,15 @@ def pad_rows(a, n: int, fill):
     return xp.concatenate([a, pad])
 
 
-def pad_cols(a, n: int, *, repeat_first: bool = True, fill=0):
-    """`a` ``(r, c)`` with columns appended up to `n`: copies of its first column, or `fill` (numpy, or
-    jax.numpy for a JAX array)."""
+def pad_cols(a, n: int):
+    """`a` ``(r, c)`` with columns appended up to `n`: copies of its first column (zeros where it has none;
+    numpy, or jax.numpy for a JAX array)."""
     xp = _xp(a)
     a = a if xp is jnp else np.asarray(a)
     extra = n - a.shape[1]
     if extra <= 0:
         return a
-    if repeat_first and a.shape[1]:
-        pad = xp.broadcast_to(a[:, :1], (a.shape[0], extra))
-    else:
-        pad = xp.full((a.shape[0], extra), fill, a.dtype)
+    pad = xp.broadcast_to(a[:, :1], (a.shape[0], extra)) if a.shape[1] else xp.zeros((a.shape[0], extra), a.dtype)
     return xp.concatenate([a, pad], axis=1)
 
 
