@@ -15,7 +15,7 @@ from jaxci.optim import _moves as M
 from jaxci.optim import laplace as L
 from jaxci.optim._buckets import free_layout
 from jaxci.optim._local import node_stars, relabel
-from jaxci.optim.device_parametrisation import make_parametrisation_device, node_lengths_device
+from jaxci.optim.device_parametrisation import make_parametrisation_device, node_lengths_traced
 from jaxci.optim.device_stars import sweep_data
 from jaxci.optim.parametrisation import (
     flat_intervals,
@@ -183,7 +183,7 @@ def test_node_lengths_on_the_device(name):
     with jax.transfer_guard("disallow"):
         conn = to_device(np.asarray(mesh.hexes).T, np.int32)
         pts = to_device(np.asarray(mesh.points, np.float64))
-        h = node_lengths_device(conn, pts, incidences(conn, mesh.n_nodes))
+        h = jax.jit(node_lengths_traced)(conn, pts, incidences(conn, mesh.n_nodes))
     np.testing.assert_allclose(np.asarray(h), node_lengths(mesh.hexes, mesh.points), rtol=1e-13, atol=0)
 
 

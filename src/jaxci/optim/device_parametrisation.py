@@ -1,7 +1,7 @@
 """`make_parametrisation` on the device (the JAX engine; hexahedral meshes): the same `Parametrisation` from the
 device's mesh, with no O(mesh) work or transfer on the host.
 
-- the scale of every free coordinate: the mean hexahedron edge length at its node (`node_lengths_device`, a sum
+- the scale of every free coordinate: the mean hexahedron edge length at its node (`node_lengths_traced`, a sum
   over each node's incidences: no scatter, so the sums are the same from run to run on any device);
 - the flat regions: the planar rings of the surface nodes and the straight intervals of the edge nodes are
   O(boundary) and stay on the host (`jaxci.optim._moves.surface_rings`,
@@ -33,23 +33,12 @@ _CORNER_EDGES = np.array([[_EDGES.index((min(i, int(j)), max(i, int(j)))) for j 
                           for i in range(8)], np.int32)
 
 
-def node_lengths_device(conn, points, inc: Incidences):
-    """`jaxci.optim.parametrisation.node_lengths` on the device: the mean length of the hexahedron edges at each
-    node ``(n,)`` (the three edges at the node of each of its hexahedra; 0 for a node of none), in the dtype of
-    `points`; `conn` ``(8, N)``, `inc` the `Incidences`. The same values to rounding (the sums run in another
-    order)."""
-    return _node_lengths(conn, points, inc)
-
-
-@program
-@jit
-def _node_lengths(conn, points, inc: Incidences):
-    return node_lengths_traced(conn, points, inc)
-
-
 def node_lengths_traced(conn, points, inc: Incidences):
-    """`node_lengths_device`'s sums (traceable): the 12 edge lengths of every hexahedron, then each node's sum
-    over the 3 edges at it of each of its incidences (a gather, no scatter)."""
+    """`jaxci.optim.parametrisation.node_lengths` on the device (traceable): the mean length of the hexahedron edges
+    at each node ``(n,)`` (the three edges at the node of each of its hexahedra; 0 for a node of none), in the dtype
+    of `points`; `conn` ``(8, N)``, `inc` the `Incidences`. The same values to rounding (the sums run in another
+    order): the 12 edge lengths of every hexahedron, then each node's sum over the 3 edges at it of each of its
+    incidences (a gather, no scatter)."""
     n_hex = conn.shape[1]
     at = [points[:, d][conn.astype(jnp.int32)] for d in range(3)]  # (8, N) each
     length = jnp.stack([jnp.sqrt(sum((c[j] - c[i]) ** 2 for c in at)) for i, j in _EDGES])  # (12, N)
