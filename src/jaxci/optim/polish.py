@@ -289,35 +289,8 @@ def _sub_parametrisation(cons: Constraints, layout: _Layout, nodes: np.ndarray, 
                          x: np.ndarray) -> Parametrisation:
     """The `Parametrisation` of the compact sub-problem on `nodes`: the nodes of `region` keep their class, free
     coordinates, scales and flat regions; the others are fixed at `x` (corners)."""
-    cls = np.asarray(cons.node_class)[nodes]
-    moving = region[nodes]
-    sub_cls = np.where(moving, cls, CORNER).astype(np.int32)
-    groups = {c: np.flatnonzero(sub_cls == c) for c in (INTERIOR, SURFACE, EDGE, CORNER)}
-    row_full = np.asarray(cons.row)
-    s_rows, e_rows = row_full[nodes[groups[SURFACE]]], row_full[nodes[groups[EDGE]]]
-    row = np.zeros(len(nodes), np.int32)
-    row[groups[SURFACE]] = np.arange(len(groups[SURFACE]))
-    row[groups[EDGE]] = np.arange(len(groups[EDGE]))
-    group = np.where((sub_cls == SURFACE) | (sub_cls == EDGE), np.asarray(cons.group)[nodes], -1).astype(np.int32)
-    s_cand, e_cand = np.asarray(cons.surface_cand), np.asarray(cons.edge_cand)
-    sub = Constraints(
-        x_orig=np.ascontiguousarray(x[nodes], np.float64),
-        node_class=sub_cls,
-        group=group,
-        row=row,
-        interior_nodes=groups[INTERIOR].astype(np.int32),
-        surface_nodes=groups[SURFACE].astype(np.int32),
-        edge_nodes=groups[EDGE].astype(np.int32),
-        corner_nodes=groups[CORNER].astype(np.int32),
-        surface_basis=np.asarray(cons.surface_basis)[s_rows],
-        edge_tangent=np.asarray(cons.edge_tangent)[e_rows],
-        surface_cand=s_cand[s_rows] if len(s_rows) else s_cand[:1],
-        edge_cand=e_cand[e_rows] if len(e_rows) else e_cand[:1],
-        triangles=cons.triangles,
-        triangle_patch=cons.triangle_patch,
-        segments=cons.segments,
-        segment_curve=cons.segment_curve,
-    )
+    sub, groups = sub_constraints(x[nodes], np.asarray(cons.node_class)[nodes], region[nodes],
+                                  np.asarray(cons.group)[nodes], np.asarray(cons.row)[nodes], cons)
     # free coordinates in the same layout: interior (3 each), surface (2), edge (1)
     idx = [layout.start[nodes[groups[INTERIOR]]][:, None] + np.arange(3),
            layout.start[nodes[groups[SURFACE]]][:, None] + np.arange(2),
@@ -336,3 +309,39 @@ def _sub_parametrisation(cons: Constraints, layout: _Layout, nodes: np.ndarray, 
         flat_radius=np.ascontiguousarray(radius, np.float64),
         shortcut=bool(len(flat_nodes)) and bool(np.all(radius > 0)),
     )
+
+
+def sub_constraints(xs: np.ndarray, cls: np.ndarray, moving: np.ndarray, group: np.ndarray, row: np.ndarray,
+                    tables) -> tuple[Constraints, dict]:
+    """The `Constraints` of a compact sub-problem on k nodes and its nodes by class (class -> indices, ``0 .. k-1``).
+
+    `xs` ``(k, 3)`` the nodes' coordinates; `cls`, `group`, `row` ``(k,)`` their class, group and row in `tables`
+    (numpy float64 `Constraints`, or `jaxci.geometry.tables.BoundaryTables`: the surface and edge rows, triangles
+    and segments the sub-problem takes); the nodes not `moving` become corners, fixed at `xs`."""
+    sub_cls = np.where(moving, cls, CORNER).astype(np.int32)
+    groups = {c: np.flatnonzero(sub_cls == c) for c in (INTERIOR, SURFACE, EDGE, CORNER)}
+    s_rows, e_rows = row[groups[SURFACE]], row[groups[EDGE]]
+    row_new = np.zeros(len(sub_cls), np.int32)
+    row_new[groups[SURFACE]] = np.arange(len(s_rows))
+    row_new[groups[EDGE]] = np.arange(len(e_rows))
+    f64 = np.float64
+    s_cand, e_cand = np.asarray(tables.surface_cand), np.asarray(tables.edge_cand)
+    sub = Constraints(
+        x_orig=np.ascontiguousarray(xs, f64),
+        node_class=sub_cls,
+        group=np.where((sub_cls == SURFACE) | (sub_cls == EDGE), group, -1).astype(np.int32),
+        row=row_new,
+        interior_nodes=groups[INTERIOR].astype(np.int32),
+        surface_nodes=groups[SURFACE].astype(np.int32),
+        edge_nodes=groups[EDGE].astype(np.int32),
+        corner_nodes=groups[CORNER].astype(np.int32),
+        surface_basis=np.asarray(tables.surface_basis, f64)[s_rows],
+        edge_tangent=np.asarray(tables.edge_tangent, f64)[e_rows],
+        surface_cand=s_cand[s_rows] if len(s_rows) else s_cand[:1],
+        edge_cand=e_cand[e_rows] if len(e_rows) else e_cand[:1],
+        triangles=np.asarray(tables.triangles, f64),
+        triangle_patch=np.asarray(tables.triangle_patch),
+        segments=np.asarray(tables.segments, f64),
+        segment_curve=np.asarray(tables.segment_curve),
+    )
+    return sub, groups

@@ -25,14 +25,14 @@ import dataclasses
 import numpy as np
 
 from ..cells import corner_invariants
-from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
+from ..geometry.boundary import EDGE, INTERIOR, SURFACE
 from ..geometry.projection import Constraints
 from ..metrics.hexahedron import corner_columns, gather_corners, squared_condition_from_invariants
 from ..runtime._lazy import jax, jit, jnp
 from ..runtime.transfer import program, to_device, to_host
 from ._buckets import bucket
 from .parametrisation import Parametrisation
-from .polish import Rest
+from .polish import Rest, sub_constraints
 
 #: Cells of the window at least (a mesh this small is its own window), and as a fraction of the mesh's cells.
 WINDOW_MIN = 8192
@@ -140,9 +140,7 @@ def window(x, conn, cons: Constraints, par: Parametrisation, tables: Constraints
     padded = np.concatenate([nodes, np.full(kb - len(nodes), nodes[-1])]).astype(np.int32)
     xs, cls, group, row, start, flat = (a[: len(nodes)] for a in to_host(
         _node_rows(x, cons, par, to_device(padded))))
-    sub_cls = np.where(moving, cls, CORNER).astype(np.int32)
-    groups = {c: np.flatnonzero(sub_cls == c) for c in (INTERIOR, SURFACE, EDGE, CORNER)}
-    s_rows, e_rows = row[groups[SURFACE]], row[groups[EDGE]]
+    sub, groups = sub_constraints(xs, cls, moving, group, row, tables)
     coords = np.concatenate([(start[groups[INTERIOR]][:, None] + np.arange(3)).ravel(),
                              (start[groups[SURFACE]][:, None] + np.arange(2)).ravel(), start[groups[EDGE]]])
     flat_nodes = np.concatenate([groups[SURFACE], groups[EDGE]])
@@ -154,28 +152,6 @@ def window(x, conn, cons: Constraints, par: Parametrisation, tables: Constraints
 
     scale, origin, radius = to_host(_gather_rows(par, to_device(pad(coords)), to_device(pad(np.maximum(f_rows, 0)))))
     f64 = np.float64
-    s_cand, e_cand = np.asarray(tables.surface_cand), np.asarray(tables.edge_cand)
-    row_new = np.zeros(len(nodes), np.int32)
-    row_new[groups[SURFACE]] = np.arange(len(s_rows))
-    row_new[groups[EDGE]] = np.arange(len(e_rows))
-    sub = Constraints(
-        x_orig=np.ascontiguousarray(xs, f64),
-        node_class=sub_cls,
-        group=np.where((sub_cls == SURFACE) | (sub_cls == EDGE), group, -1).astype(np.int32),
-        row=row_new,
-        interior_nodes=groups[INTERIOR].astype(np.int32),
-        surface_nodes=groups[SURFACE].astype(np.int32),
-        edge_nodes=groups[EDGE].astype(np.int32),
-        corner_nodes=groups[CORNER].astype(np.int32),
-        surface_basis=np.asarray(tables.surface_basis, f64)[s_rows],
-        edge_tangent=np.asarray(tables.edge_tangent, f64)[e_rows],
-        surface_cand=s_cand[s_rows] if len(s_rows) else s_cand[:1],
-        edge_cand=e_cand[e_rows] if len(e_rows) else e_cand[:1],
-        triangles=np.asarray(tables.triangles, f64),
-        triangle_patch=np.asarray(tables.triangle_patch),
-        segments=np.asarray(tables.segments, f64),
-        segment_curve=np.asarray(tables.segment_curve),
-    )
     radius = np.where(f_rows >= 0, radius[: len(f_rows)], 0.0).astype(f64)
     spar = Parametrisation(
         cons=sub,
