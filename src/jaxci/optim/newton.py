@@ -28,8 +28,7 @@ nodes on the triangles of the iterate's projection, whose kinks a plain differen
   gradient evaluation is a step (a product as much as a trial), so the limit and the histories count the real
   cost.
 
-`pcg` is written once over the array module ``xp`` (numpy here; jax.numpy runs it eagerly). Measured against
-L-BFGS on the real-mesh corpus, alone and in the default pipeline: docs/results/bench_solvers.md.
+Measured against L-BFGS on the real-mesh corpus, alone and in the default pipeline: docs/results/bench_solvers.md.
 """
 
 from __future__ import annotations
@@ -54,7 +53,7 @@ MU_MIN, MU_FACTOR = 1e-2, 4.0
 FD_STEP = 1e-6
 
 
-def pcg(hvp: Callable, precond: Callable | None, g, tol: float, max_iter: int, xp=np):
+def pcg(hvp: Callable, precond: Callable | None, g, tol: float, max_iter: int):
     """Approximately solve ``H d = -g`` by preconditioned CG from ``d = 0``: ``(d, products, reason)``.
 
     `hvp(p)` returns ``H p`` or None (not computable: treated as negative curvature); `precond(r)` ``M r`` (None:
@@ -62,7 +61,7 @@ def pcg(hvp: Callable, precond: Callable | None, g, tol: float, max_iter: int, x
     when ``p.Hp <= 0`` (``"curvature"``; at the first product ``d = -M g``, a descent direction).
     """
     def vdot(a, b):
-        return float(xp.einsum("i,i->", a, b))
+        return float(np.einsum("i,i->", a, b))
 
     def m(r):
         return r if precond is None else precond(r)
@@ -71,7 +70,7 @@ def pcg(hvp: Callable, precond: Callable | None, g, tol: float, max_iter: int, x
     z = m(r)
     p = -z
     rz = vdot(r, z)
-    d = xp.zeros_like(g)
+    d = np.zeros_like(g)
     for j in range(max_iter):
         hp = hvp(p)
         php = None if hp is None else vdot(p, hp)
@@ -80,7 +79,7 @@ def pcg(hvp: Callable, precond: Callable | None, g, tol: float, max_iter: int, x
         a = rz / php
         d = d + a * p
         r = r + a * hp
-        if float(xp.sqrt(vdot(r, r))) <= tol:
+        if float(np.sqrt(vdot(r, r))) <= tol:
             return d, j + 1, "converged"
         z = m(r)
         rz_new = vdot(r, z)
