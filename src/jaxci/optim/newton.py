@@ -33,7 +33,6 @@ Measured against L-BFGS on the real-mesh corpus, alone and in the default pipeli
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -108,11 +107,12 @@ def hvp(fun: Callable, y: np.ndarray, g: np.ndarray, p: np.ndarray, step: float 
 
 
 def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
-              cap: float, ftol: float, done: Callable | None = None, deadline: float | None = None,
-              precond: Callable | None = None, cg_max: int = CG_MAX, stage: str | None = "Newton-CG"):
+              cap: float, ftol: float, done: Callable | None = None, precond: Callable | None = None,
+              cg_max: int = CG_MAX):
     """Minimise `fun` (``value, grad, F, k = fun(y)``, a `jaxci.optim.host.HostObjective`) from `y0` by truncated
-    Newton (the module docstring). Arguments as `jaxci.optim.host.lbfgs` (`precond`: a function returning the fixed
-    preconditioner ``M``, called once at the start; None: the identity), plus `cg_max` products per outer iteration.
+    Newton (the module docstring). Arguments as `jaxci.optim.host.lbfgs` (no deadline; its steps reported as stage
+    ``"Newton-CG"``; `precond`: a function returning the fixed preconditioner ``M``, called once at the start; None:
+    the identity), plus `cg_max` products per outer iteration.
 
     **Returns:** ``(y_best, steps, result, hist_f, hist_k, outer)``: as `jaxci.optim.host.lbfgs` (steps: gradient
     evaluations, products and trials alike; histories one entry per step, F and max kappa/3 of the accepted
@@ -134,7 +134,7 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
     steps, outer, result = 0, 0, "nonlinear_max_steps_reached"
     stop = finished(f, k)
     g0 = float(np.sqrt(dot(g, g))) or 1.0
-    tick = None if stage is None else stepper(stage)
+    tick = stepper("Newton-CG")
 
     def small(change, v):  # below the Cauchy test's tolerance on the objective
         return abs(change) < atol + rtol * abs(v)
@@ -166,9 +166,6 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
         return out
 
     while not stop and steps < limit:
-        if deadline is not None and time.perf_counter() > deadline:
-            result = "time budget"
-            break
         gn = float(np.sqrt(dot(g, g)))
         eta = min(ETA_MAX, float(np.sqrt(gn / g0)))
         c = None
