@@ -45,7 +45,7 @@ from ..runtime._lazy import enable_x64, jax, jit, jnp
 from ..runtime.transfer import program, to_device, to_host
 from .invariants import enforce_device
 from .methods import OPTIMAL_F, MethodRun, Problem, cap_note, standard_history
-from .result import SmoothResult
+from .result import SmoothResult, unchanged_result
 
 #: The methods whose run lives on the device (`applies`).
 DEVICE_METHODS = ("lbfgs",)
@@ -132,11 +132,7 @@ def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angl
         before = quality_report_device(mesh, dm.x, dm.conn)
     f_before = before.objective
     if f_before is not None and f_before <= OPTIMAL_F:
-        notes.append(f"the mesh is already optimal (F = {f_before:.3g}, every corner an ideal cube corner): "
-                     f"nothing to do")
-        return np.array(mesh.points), SmoothResult(
-            mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]}, iterations=0,
-            wall_time=0.0, method=method, params={}, before=before, after=before, boundary={})
+        return unchanged_result(mesh, method, before, f_before, notes)
     with jax.enable_x64(plan.dtype == "float64"), plan.context():
         with clock.phase("setup"):
             topology, unused = device_mesh_topology(dm.conn, mesh.n_nodes)
@@ -148,13 +144,7 @@ def smooth_unit_device(mesh: HexMesh, method: str, seed: int, plan, feature_angl
                 x0 = _as_dtype(dm.x, cons.x_orig)
             problem = Problem(mesh, info, cons, dm.conn, x0, np_dtype, plan=plan, tables=tables, points64=dm.x)
         if n_free(cons) == 0:
-            notes.extend(info.notes)
-            notes.append(f"no node can move (all {mesh.n_nodes} nodes are fixed: boundary corners, fixed sets or "
-                         f"--fix-boundary): the mesh is returned as it is")
-            return np.array(mesh.points), SmoothResult(
-                mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]},
-                iterations=0, wall_time=0.0, method=method, params={}, before=before, after=before,
-                boundary=info.counts, node_class=info.node_class)
+            return unchanged_result(mesh, method, before, f_before, notes, info)
     x, iterations, history, resolved = yield MethodRun(problem, method, seed, params, clock)
     notes.extend(info.notes)
     cap = cap_note(method, resolved, iterations, history)

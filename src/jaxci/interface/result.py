@@ -59,3 +59,21 @@ class SmoothResult:
             "notes": list(self.notes),
             "phases": self.phases,
         }
+
+
+def unchanged_result(mesh: HexMesh, method: str, before: QualityReport, f_before, notes: list, info=None,
+                     points=None, after: QualityReport | None = None):
+    """``(points, result)`` where no method runs, noted in `notes`: the mesh is already optimal (`info` None), or
+    every node is fixed (`info`: its `BoundaryInfo`, whose notes come first). `points`: the coordinates returned
+    (default a copy of the mesh's), `after` their report (default `before`)."""
+    if info is None:
+        notes.append(f"the mesh is already optimal (F = {f_before:.3g}, every corner an ideal cube corner): "
+                     f"nothing to do")
+    else:
+        notes.extend(info.notes)
+        notes.append(f"no node can move (all {mesh.n_nodes} nodes are fixed: boundary corners, fixed sets or "
+                     f"--fix-boundary): the mesh is returned as it is")
+    return np.array(mesh.points) if points is None else points, SmoothResult(
+        mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]}, iterations=0,
+        wall_time=0.0, method=method, params={}, before=before, after=before if after is None else after,
+        boundary={} if info is None else info.counts, node_class=None if info is None else np.asarray(info.node_class))

@@ -52,7 +52,7 @@ from .methods import (  # noqa: F401  (Problem, build_problem, method_params ...
     run_method,
     standard_history,
 )
-from .result import SmoothResult
+from .result import SmoothResult, unchanged_result
 
 #: The plan's note where the worst-element polish (`jaxci.optim.polish`) runs on the host beside the JAX engine.
 POLISH_ON_HOST = ("the worst-element polish runs on the host engine (numpy and C kernels) after the JAX engine's "
@@ -372,11 +372,7 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
     tangled = bool(before.inverted_corners) or bool(before.overall and before.overall["inverted"])
     f_before = before.overall["objective"] if before.overall else before.objective
     if not tangled and untangle != "always" and f_before is not None and f_before <= OPTIMAL_F:
-        notes.append(f"the mesh is already optimal (F = {f_before:.3g}, every corner an ideal cube corner): "
-                     f"nothing to do")
-        return np.array(mesh.points), SmoothResult(
-            mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]}, iterations=0,
-            wall_time=0.0, method=method, params={}, before=before, after=before, boundary={})
+        return unchanged_result(mesh, method, before, f_before, notes)
     if tangled and untangle == "never":
         where = f"{mesh.source}: " if mesh.source else ""
         bad = {t: np.flatnonzero(b) for t, b in mixed.inverted_cells(mesh, mesh.points).items() if b.any()}
@@ -442,15 +438,9 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
                 start = np.asarray(untangled, np_dtype)
                 problem = dataclasses.replace(problem, x0=start if host else jax.device_put(start))
         if n_free(problem.cons) == 0:  # every node fixed: no method can change anything
-            notes.extend(problem.info.notes)
-            notes.append(f"no node can move (all {mesh.n_nodes} nodes are fixed: boundary corners, fixed sets or "
-                         f"--fix-boundary): the mesh is returned as it is")
             x = np.asarray(mesh.points if untangled is None else untangled, dtype=np.float64)
-            return x, SmoothResult(
-                mesh=mesh, history={"objective": [f_before], "max_condition": [before.max_condition]},
-                iterations=0, wall_time=0.0, method=method, params={}, before=before,
-                after=before if untangled is None else quality_report(mesh, x), boundary=problem.info.counts,
-                node_class=np.asarray(problem.info.node_class))
+            return unchanged_result(mesh, method, before, f_before, notes, problem.info, x,
+                                    None if untangled is None else quality_report(mesh, x))
     x, iterations, history, resolved = yield MethodRun(problem, method, seed, params, clock)
     x = np.asarray(x, dtype=np.float64)
     if resolved.get("batched_seeds"):
