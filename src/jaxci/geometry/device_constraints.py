@@ -241,12 +241,6 @@ def _flat_project(points, surf, origin, normal, radius):
 
 @program
 @jax.jit
-def _rows(nodes, rows):
-    return nodes[rows]
-
-
-@program
-@jax.jit
 def as_float64(points):
     """`points` in float64, on the device (call inside ``enable_x64``)."""
     return points.astype(jnp.float64)
