@@ -192,16 +192,12 @@ def project(constraints: Constraints, points: Float[Array, "*batch n 3"]) -> Flo
     """
     c = constraints
     x = jnp.asarray(points)
-    ns, ne = c.surface_nodes.shape[0], c.edge_nodes.shape[0]
-    if ns:
-        tab, cand = c.triangles.astype(x.dtype), c.surface_cand[:ns]
-        p = nearest_candidates(jnp, x[..., c.surface_nodes, :], tab, cand, closest_on_triangles,
-                               inside_tolerance(x.dtype))
-        x = x.at[..., c.surface_nodes, :].set(p)
-    if ne:
-        tab, cand = c.segments.astype(x.dtype), c.edge_cand[:ne]
-        p = nearest_candidates(jnp, x[..., c.edge_nodes, :], tab, cand, closest_on_segments, inside_tolerance(x.dtype))
-        x = x.at[..., c.edge_nodes, :].set(p)
+    for nodes, tab, cand, closest in ((c.surface_nodes, c.triangles, c.surface_cand, closest_on_triangles),
+                                      (c.edge_nodes, c.segments, c.edge_cand, closest_on_segments)):
+        if nodes.shape[0]:
+            p = nearest_candidates(jnp, x[..., nodes, :], tab.astype(x.dtype), cand[: nodes.shape[0]], closest,
+                                   inside_tolerance(x.dtype))
+            x = x.at[..., nodes, :].set(p)
     return x.at[..., c.corner_nodes, :].set(c.x_orig[c.corner_nodes].astype(x.dtype))
 
 
