@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from helpers import box_or_mesquite
 
-from jaxci.geometry.device_colouring import colour_nodes_device, incidences, valid_colouring
+from jaxci.geometry.device_colouring import colour_nodes_device, incidences
 from jaxci.interface.methods import build_problem
 from jaxci.optim import _moves as M
 from jaxci.optim import laplace as L
@@ -62,6 +62,12 @@ def test_incidences_and_colouring(name):
     assert np.array_equal(colour, np.asarray(again))
     assert not valid_colouring(hexes, np.zeros_like(colour))  # the check can fail
 
+
+
+def valid_colouring(hexes: np.ndarray, colour: np.ndarray) -> bool:
+    """Whether no hexahedron of `hexes` ``(N, 8)`` holds two nodes of one colour."""
+    c = np.sort(np.asarray(colour)[np.asarray(hexes)], axis=1)
+    return not bool((c[:, 1:] == c[:, :-1]).any())
 
 def test_colouring_takes_more_words_for_more_than_32_colours():
     """40 nodes that share hexahedra pairwise (one hexahedron per pair, 6 nodes of its own each) need 40

@@ -23,8 +23,6 @@ Hexahedral meshes only; a mixed mesh keeps the host's colouring (`jaxci.interfac
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..runtime._lazy import jax, jit, jnp, pytree_dataclass
 from ..runtime.transfer import program, to_host
 
@@ -216,9 +214,3 @@ def colour_nodes_device(conn, inc: Incidences, n_words: int = 1, palette: int = 
         if count <= WORD * n_words:
             return colour, count
         n_words *= 2
-
-
-def valid_colouring(hexes: np.ndarray, colour: np.ndarray) -> bool:
-    """Whether no hexahedron of `hexes` ``(N, 8)`` holds two nodes of one colour (numpy, for checks)."""
-    c = np.sort(np.asarray(colour)[np.asarray(hexes)], axis=1)
-    return not bool((c[:, 1:] == c[:, :-1]).any())

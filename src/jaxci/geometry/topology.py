@@ -91,11 +91,6 @@ class BoundaryTopology:
     face_cell: np.ndarray | None = None
 
     @property
-    def is_triangle(self) -> np.ndarray:
-        """Which boundary faces are triangles (last node repeated), bool ``(n_faces,)``."""
-        return self.faces[:, 3] == self.faces[:, 2]
-
-    @property
     def nonmanifold_nodes(self) -> np.ndarray:
         """Sorted nodes of `nonmanifold_faces` (without the -1 padding of triangles)."""
         v = sorted_unique(self.nonmanifold_faces)
