@@ -32,8 +32,11 @@ def pyplot():
     return plt
 
 
-def _save(fig, path: Path) -> None:
-    """Save a PNG atomically (temporary file in the same folder, then `os.replace`)."""
+def _save(fig, path: Path, tight: bool = True) -> None:
+    """Save `fig` as a PNG atomically (temporary file in the same folder, then `os.replace`), laid out tight
+    first (`tight`), then close it."""
+    if tight:
+        fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
     os.close(fd)
@@ -43,6 +46,7 @@ def _save(fig, path: Path) -> None:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+    pyplot().close(fig)
 
 
 def convergence_figure(path: Path, title: str, series: list[tuple[str, list[dict]]]) -> None:
@@ -73,9 +77,7 @@ def convergence_figure(path: Path, title: str, series: list[tuple[str, list[dict
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)
 
 
 def histogram_figure(path: Path, title: str, bars: list[tuple[str, list[int]]], paper=None) -> None:
@@ -98,9 +100,7 @@ def histogram_figure(path: Path, title: str, bars: list[tuple[str, list[int]]], 
     ax.set_yscale("symlog", linthresh=10)
     ax.legend(fontsize=7, ncol=2)
     ax.set_title(title)
-    fig.tight_layout()
     _save(fig, path)
-    plt.close(fig)
 
 
 def surface_figure(path: Path, title: str, hexes, points_before, points_after, labels=("before", "after")) -> bool:
@@ -138,8 +138,7 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
     fig.colorbar(sm, ax=fig.axes, shrink=0.7, label="element condition (max corner kappa/3)")
     fig.suptitle(title)
-    _save(fig, path)
-    plt.close(fig)
+    _save(fig, path, tight=False)
     return True
 
 
