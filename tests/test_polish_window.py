@@ -18,8 +18,8 @@ from jaxci.optim.polish_window import put_back, window
 from jaxci.runtime.transfer import to_device, to_host, totals
 
 
-def _setup(mesh, x):
-    info = classify_boundary(mesh)
+def _setup(mesh, x, fix_boundary=False):
+    info = classify_boundary(mesh, fix_boundary=fix_boundary)
     host = build_constraints(mesh, info, dtype=np.float64, device=False)
     hpar = make_parametrisation(mesh, info, host, x, dtype=np.float64)
     with jax.enable_x64(True):
@@ -80,3 +80,20 @@ def test_a_small_window_moves_only_its_worst_cells_nodes(smoothed):
     from jaxci.geometry.projection import project_np
 
     np.testing.assert_allclose(project_np(host, out), out, atol=1e-12)
+
+
+def test_a_window_of_a_mesh_without_flat_regions_polishes_as_the_host():
+    """The boundary held fixed: the run has no flat region (nothing to gather its rows from), and the window's
+    polish is the host's (it failed to compile a gather from no rows)."""
+    mesh = bevelled_box(6)
+    x = np.array(smooth(mesh, "lbfgs", engine="host", fix_boundary=True).mesh.points)
+    host, hpar, cons, par = _setup(mesh, x, fix_boundary=True)
+    assert par.flat_origin.shape[0] == 0
+    y_host, rep_host = polish(mesh, host, hpar, x)
+    with jax.enable_x64(True), jax.transfer_guard("disallow"):
+        xd, conn = to_device(x), to_device(np.ascontiguousarray(mesh.hexes.T, np.int32))
+        win = window(xd, conn, cons, par, host, k=mesh.n_hexes)
+        y, rep = polish(None, win.cons, win.par, win.x, PolishParams(), win.blocks, win.rest)
+        out = to_host(put_back(xd, win, y))
+    assert rep["worst"] == rep_host["worst"] and rep["kept"] == rep_host["kept"]
+    np.testing.assert_allclose(out, y_host, rtol=0, atol=1e-12)

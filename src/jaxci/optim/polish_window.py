@@ -110,7 +110,11 @@ def _node_rows(x, cons: Constraints, par: Parametrisation, nodes):
 @program
 @jit
 def _gather_rows(par: Parametrisation, coords, flat):
-    """The scales of the free coordinates `coords` and the flat regions of rows `flat`."""
+    """The scales of the free coordinates `coords` and the flat regions of rows `flat` (zeros where the run has no
+    flat region: a boundary held fixed has none, and a gather from no rows is no program)."""
+    if not par.flat_origin.shape[0]:
+        return par.scale[coords], jnp.zeros((flat.shape[0], 3), par.flat_origin.dtype), jnp.zeros(
+            flat.shape, par.flat_radius.dtype)
     return par.scale[coords], par.flat_origin[flat], par.flat_radius[flat]
 
 
