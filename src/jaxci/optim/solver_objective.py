@@ -3,11 +3,12 @@ scaled to a per-node sum, with its max kappa/3 and the solvers' own stop, for op
 (`solver_args`), jaxci's compiled L-BFGS (`value_and_grad_closed`) and the least-squares solvers (one residual per
 corner); over hexahedra, or every corner of a mixed mesh.
 
-**Closed-form gradient.** `jaxci.metrics.hexahedron.objective_and_grad` is d F / d x in closed form (per corner
-d kappa^2 / d columns, accumulated per element node and scattered into the nodes). It agrees with `jax.grad` to
-rounding and is what the solvers use by default (``GradientParams(gradient="closed")``, through a
-`jax.custom_jvp`, `solver_objective`); ``"autodiff"`` is `jax.grad` through the forward kernel (same values to
-rounding; 1.3-1.5x slower from 27k elements up, see `objective_and_grad`).
+**Closed-form gradient.** `jaxci.metrics.hexahedron.objective_terms_and_grad` is F, its max and d F / d x in
+closed form (per corner d kappa^2 / d columns, accumulated per element node and scattered into the nodes; on a
+CPU with the C extension, its kernel `jaxci.metrics.native_grad`). It agrees with `jax.grad` to rounding and is
+what the solvers use by default (``GradientParams(gradient="closed")``, through a `jax.custom_jvp`,
+`solver_objective`); ``"autodiff"`` is `jax.grad` through the forward kernel (same values to rounding; 1.3-1.5x
+slower from 27k elements up, see `jaxci.metrics.hexahedron.objective_and_grad`).
 """
 
 from __future__ import annotations
