@@ -185,11 +185,12 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
             gamma = gamma ** 0.5
             _record(report, e_sum / n_corners, w, mean, work)
             continue
-        old_e = sum(np.sum(a - 1.0) for a in CellCorners(sub.blocks).terms_all(x[sub.nodes]))
+        sub_cells = CellCorners(sub.blocks)  # the round's cells, for its start and each candidate
+        old_e = sum(np.sum(a - 1.0) for a in sub_cells.terms_all(x[sub.nodes]))
         took = None
         for i, y_pts in enumerate(candidates):
-            new_terms = CellCorners(sub.blocks).terms_all(y_pts)
-            new_worst = CellCorners(sub.blocks).cell_worst(y_pts, new_terms)
+            new_terms = sub_cells.terms_all(y_pts)
+            new_worst = sub_cells.cell_worst(y_pts, new_terms)
             k_new = k.copy()
             for t, idx in sub.cell_index.items():
                 k_new[offsets[t] + idx] = new_worst[t]
