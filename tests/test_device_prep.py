@@ -63,11 +63,11 @@ def test_incidences_and_colouring(name):
     assert not valid_colouring(hexes, np.zeros_like(colour))  # the check can fail
 
 
-
 def valid_colouring(hexes: np.ndarray, colour: np.ndarray) -> bool:
     """Whether no hexahedron of `hexes` ``(N, 8)`` holds two nodes of one colour."""
     c = np.sort(np.asarray(colour)[np.asarray(hexes)], axis=1)
     return not bool((c[:, 1:] == c[:, :-1]).any())
+
 
 def test_colouring_takes_more_words_for_more_than_32_colours():
     """40 nodes that share hexahedra pairwise (one hexahedron per pair, 6 nodes of its own each) need 40

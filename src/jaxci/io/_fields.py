@@ -191,7 +191,6 @@ def numbered_blocks(blocks: list, node_ids: np.ndarray, path: str, deck: str, no
     return numbered, all_ids
 
 
-
 def block_pids(mesh: HexMesh, key: str, k: int, n: int) -> np.ndarray:
     """The property (part) ids of the `n` cells of block `k` of a deck written afresh: the cell data `key` where
     it fits the blocks, else the block number ``k + 1``."""

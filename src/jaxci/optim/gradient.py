@@ -411,7 +411,6 @@ levenberg_marquardt = _method("lm")
 gauss_newton = _method("gauss-newton")
 
 
-
 def run_gradient(problem, method: str, params: dict):
     """`jaxci.smooth`'s entry: build `GradientParams` from `params` and the parametrisation of `problem`.
 
