@@ -73,6 +73,20 @@ def test_the_same_mesh_as_the_general_path():
     np.testing.assert_allclose(res.mesh.points, ref.mesh.points, rtol=0, atol=1e-9)
 
 
+def test_truncated_newton_runs_on_the_device():
+    """``solver="newton"`` in the run on the device (`jaxci.optim.newton.newton_loop`): no implicit transfer, the
+    same mesh as the general path's Newton."""
+    mesh = perturb_box(5, amplitude=0.35, seed=3)
+    kw = dict(engine="jax", dtype="float64", presmooth=0, method="lbfgs", solver="newton")
+    jaxci.smooth(mesh, **kw)
+    with no_implicit_transfers():
+        res = jaxci.smooth(mesh, **kw)
+    ref = _general(mesh, **{k: v for k, v in kw.items() if k != "engine"})
+    assert "upload" in res.phases and res.history["newton_iterations"] > 0
+    assert res.iterations == ref.iterations and res.after.inverted_elements == 0
+    np.testing.assert_allclose(res.mesh.points, ref.mesh.points, rtol=0, atol=1e-9)
+
+
 @pytest.mark.shared
 def test_a_real_mesh_with_a_sliding_boundary_is_smoothed_on_the_device():
     mesh = jaxci.read_mesh(MESQUITE / "1000hex-block-internal-bias.vtk")

@@ -108,6 +108,7 @@ from .parametrisation import (  # noqa: F401  (node_lengths re-exported)
 )
 from .solver_objective import (
     closed_incidence,
+    hessian_closed,
     objective_scale,
     solver_args,
     solver_objective,
@@ -234,10 +235,10 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                       "solver_result": "no free coordinates"}, params
     n_hex = int(conn.shape[1])
     on_host = devices is None and use_host(method, p, n_hex, extra)
-    if p.solver == "newton" and not (method == "lbfgs" and on_host):
-        raise ConfigError(f"gradient-method parameter solver='newton' is for method 'lbfgs' on the host (numpy) "
-                          f"path, not {method!r} with backend={p.backend!r}"
-                          f"{' sharded over devices' if devices is not None else ''}; use solver='lbfgs'")
+    if p.solver == "newton" and not (method == "lbfgs" and devices is None):
+        raise ConfigError(f"gradient-method parameter solver='newton' is for method 'lbfgs' on one device or the "
+                          f"host, not {method!r}{' sharded over devices' if devices is not None else ''}; use "
+                          f"solver='lbfgs'")
     if p.precondition == "coarse" and not on_host:
         raise ConfigError(f"gradient-method parameter precondition={p.precondition!r} is for L-BFGS on the host "
                           f"(numpy) path, not {method!r} with backend={p.backend!r}"
@@ -301,7 +302,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                 if p.precondition == "coarse" or n_cells <= coarse.AUTO_MAX_CELLS:
                     after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
                     precond = functools.cache(lambda: coarse.build_coarse(run_par, _cells_by_type(conn, extra)))
-        lbfgs_first = on_host and p.solver == "newton" and steps < p.newton_after  # L-BFGS's steps, then Newton
+        lbfgs_first = p.solver == "newton" and steps < p.newton_after  # L-BFGS's steps, then Newton
+        lbfgs_limit = min(p.max_steps, p.newton_after if lbfgs_first else p.max_steps) - steps
         if on_host and p.solver == "newton" and not lbfgs_first:
             from .newton import newton_cg
 
@@ -311,10 +313,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                 cg_max=int(p.cg_max))
             outer += n_outer
         elif on_host:
-            y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=min(p.max_steps, p.newton_after if lbfgs_first
-                                                                    else p.max_steps) - steps,
-                                              max_rejected=_max_rejected(method, p), rtol=p.rtol, atol=p.atol,
-                                              history=int(p.history_length), cap=p.max_move, ftol=p.ftol,
+            y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=lbfgs_limit, max_rejected=_max_rejected(method, p),
+                                              rtol=p.rtol, atol=p.atol, history=int(p.history_length),
+                                              cap=p.max_move, ftol=p.ftol,
                                               done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
                                               precond_after=max(after - steps, 0) if precond else 0)
         elif own_loop:
@@ -323,17 +324,25 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             dtype = par.x0.dtype
             consts = np.asarray([p.ftol, 1.0 + p.ktol, p.rtol, p.atol, p.max_move or 0.0], dtype)
             scale = np.asarray(objective_scale(n_hex, extra), dtype)
+            static = (float(p.p) if p.objective == "pmean" else None, p.gradient == "closed")
             loop = functools.partial(lbfgs_loop, max_steps=int(p.max_steps), history=int(p.history_length),
                                      max_rejected=_max_rejected(method, p))
-            if n_dev:  # (numpy arrays placed straight from the host: `replicate`)
+            if p.solver == "newton" and not lbfgs_first:
+                from .newton import newton_loop
+
+                y, k, code, hf, hk, n_outer = newton_loop(
+                    value_and_grad_closed, hessian_closed, (cur, to_device(scale), extra, incidence), run_conn,
+                    weight, y, to_device(consts), to_device(np.int32(p.max_steps - steps)), static=static,
+                    max_steps=int(p.max_steps), max_rejected=_max_rejected(method, p), cg_max=int(p.cg_max))
+                outer += int(to_host(n_outer))
+            elif n_dev:  # (numpy arrays placed straight from the host: `replicate`)
                 y, k, code, hf, hk = loop(value_and_grad, (cur, replicate(scale, devices)), run_conn, weight,
                                           replicate(y, devices), replicate(consts, devices),
                                           replicate(np.int32(p.max_steps - steps), devices), mesh=devices)
             else:
                 y, k, code, hf, hk = loop(
                     value_and_grad_closed, (cur, to_device(scale), extra, incidence), run_conn, weight, y,
-                    to_device(consts), to_device(np.int32(p.max_steps - steps)),
-                    static=(float(p.p) if p.objective == "pmean" else None, p.gradient == "closed"))
+                    to_device(consts), to_device(np.int32(lbfgs_limit)), static=static)
             result = result_name(to_host(code))
         else:
             fn, args = solver_args(method, cur, run_conn, p, extra, weight, n_hex, 0 if n_dev else None,

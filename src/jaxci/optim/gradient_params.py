@@ -22,7 +22,7 @@ MAX_POWER = 64.0
 #: Initial inverse Hessians of the host L-BFGS (`GradientParams.precondition`).
 PRECONDITIONERS = ("auto", "none", "coarse")
 
-#: Solvers of ``"lbfgs"`` on the host engine (`GradientParams.solver`).
+#: Solvers of ``"lbfgs"`` (`GradientParams.solver`).
 SOLVERS = ("lbfgs", "newton")
 #: Most CG products per Newton iteration (`GradientParams.cg_max`).
 MAX_CG = 10_000
@@ -94,11 +94,12 @@ class GradientParams:
       preconditioner of `jaxci.optim.coarse`: a run that is still going there is one whose boundary nodes creep
       along curved walls), ``"coarse"`` (``gamma M`` from the start; refused elsewhere than on the host
       L-BFGS) or ``"none"`` (``gamma I`` throughout). See `jaxci.optim.coarse` for the figures.
-    - `solver`: ``method="lbfgs"`` on the host engine: ``"lbfgs"`` (default, `jaxci.optim.host.lbfgs`) or
-      ``"newton"`` (truncated Newton, `jaxci.optim.newton.newton_cg`: preconditioned CG on Hessian-vector
-      products by differences of the gradient, with the same line search and stops; its preconditioner the
-      two-level M of `precondition`, from the first step with ``"auto"``; refused off the host engine).
-      Measured on the real-mesh corpus: docs/results/bench_solvers.md.
+    - `solver`: ``method="lbfgs"``: ``"lbfgs"`` (default, `jaxci.optim.host.lbfgs`, `jaxci.optim.lbfgs.lbfgs_loop`)
+      or ``"newton"`` (truncated Newton: CG on Hessian-vector products by differences of the gradient, with the
+      same line search and stops; on the host `jaxci.optim.newton.newton_cg`, its preconditioner the two-level M
+      of `precondition`, from the first step with ``"auto"``; on the JAX engine `jaxci.optim.newton.newton_loop`,
+      one compiled program, no preconditioner; refused sharded over devices). Measured on the real-mesh corpus:
+      docs/results/bench_solvers.md.
     - `newton_after`: ``solver="newton"``: L-BFGS (as ``solver="lbfgs"``) for this many steps, then Newton from its
       iterate (default 0: Newton from the start; its start is in the history's ``restarts``); a run that L-BFGS
       ends sooner is L-BFGS's.

@@ -1,4 +1,9 @@
-"""Truncated Newton (line-search Newton-CG) on the host: fewer iterations than L-BFGS, each dearer.
+"""Truncated Newton (line-search Newton-CG): fewer iterations than L-BFGS, each dearer. `newton_cg` runs it on the
+host (numpy and the C kernels), `newton_loop` on the JAX engine (one compiled program, one device); their rules
+are written once (`forcing`, `positive_curvature`, `curvature_scale`, `damping`, with `jaxci.optim.lbfgs`'s
+search and stops) and their Hessian-vector products are the same difference (`newton_loop`'s docstring says
+what differs). Two loops stay, for their loop primitive: a Python loop with early exits around the C kernel and
+the host projector's remembered triangles, and `jax.lax.while_loop`s.
 
 An outer iteration at the iterate ``v`` (gradient ``g`` of the scaled objective ``s F``) solves the Newton system
 ``H d = -g`` approximately by preconditioned conjugate gradients (`pcg`) and searches along ``d`` as the host
@@ -37,7 +42,9 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..runtime._lazy import jax, jit, jnp
 from ..runtime.phases import stepper
+from ..runtime.transfer import program
 from .host import amax, dot
 from .lbfgs import DECREASE, armijo, cap_factor, converged
 
@@ -50,6 +57,29 @@ MU_MIN, MU_FACTOR = 1e-2, 4.0
 #: The forward-difference step of a Hessian-vector product, in the unknowns' units (local edge lengths), for the
 #: largest entry of the direction.
 FD_STEP = 1e-6
+
+
+def forcing(gn, g0, xp=np):
+    """The forcing term ``eta = min(ETA_MAX, sqrt(|g| / |g_0|))`` of the gradient norm `gn` against the first's
+    `g0`: CG stops at ``|r| <= eta |g|``."""
+    return xp.minimum(ETA_MAX, xp.sqrt(gn / g0))
+
+
+def positive_curvature(php, pp):
+    """Whether a CG direction ``p`` has clearly positive curvature, ``p.Hp > 1e-14 p.p`` (a NaN fails)."""
+    return php > 1e-14 * pp
+
+
+def curvature_scale(php, pdp, xp=np):
+    """The damping's scale ``c = p.Hp / p.Dp`` of an iteration's first product (0 where either is not positive)."""
+    return xp.where((php > 0) & (pdp > 0), php / xp.where(pdp > 0, pdp, 1.0), 0.0)
+
+
+def damping(mu, rejected, xp=np):
+    """``mu`` after a line search that halved the step `rejected` times: divided by `MU_FACTOR` after a full step,
+    else at least `MU_MIN` times `MU_FACTOR` per halving (at most three); 0 once below ``MU_MIN / MU_FACTOR``."""
+    mu = xp.where(rejected == 0, mu / MU_FACTOR, xp.maximum(mu, MU_MIN) * MU_FACTOR ** xp.minimum(rejected, 3))
+    return xp.where(mu < MU_MIN / MU_FACTOR, 0.0, mu)
 
 
 def pcg(hvp: Callable, precond: Callable | None, g, tol: float, max_iter: int):
@@ -73,7 +103,7 @@ def pcg(hvp: Callable, precond: Callable | None, g, tol: float, max_iter: int):
     for j in range(max_iter):
         hp = hvp(p)
         php = None if hp is None else vdot(p, hp)
-        if php is None or not php > 1e-14 * vdot(p, p):
+        if php is None or not positive_curvature(php, vdot(p, p)):
             return (p if j == 0 else d), j + 1, "curvature"
         a = rz / php
         d = d + a * p
@@ -159,15 +189,14 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
         record()
         if out is not None:
             if c is None:
-                php, pdp = dot(p, out), dot(p, diag * p)
-                c = php / pdp if php > 0 and pdp > 0 else 0.0
+                c = float(curvature_scale(dot(p, out), dot(p, diag * p)))
             if mu > 0 and c > 0:
                 out = out + (mu * c) * (diag * p)
         return out
 
     while not stop and steps < limit:
         gn = float(np.sqrt(dot(g, g)))
-        eta = min(ETA_MAX, float(np.sqrt(gn / g0)))
+        eta = float(forcing(gn, g0))
         c = None
         d, _, _ = pcg(product, m, g, eta * gn, cg_max)
         if not dot(g, d) < 0:  # rounding, or a product past the limit at the first one: steepest descent
@@ -187,8 +216,7 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
                 y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
                 accept()
                 record()
-                mu = mu / MU_FACTOR if rejected == 0 else max(mu, MU_MIN) * MU_FACTOR ** min(rejected, 3)
-                mu = 0.0 if mu < MU_MIN / MU_FACTOR else mu
+                mu = float(damping(mu, rejected))
                 if done_here:
                     result, stop = "successful", True
                 stop = stop or finished(f, k)
@@ -202,3 +230,119 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
     if stop and result == "nonlinear_max_steps_reached":
         result = "successful"
     return y, steps, result, np.asarray(hf, np.float64), np.asarray(hk, np.float64), outer
+
+
+@program
+@jit(static_argnames=("objective", "hessian", "static", "max_steps", "max_rejected", "cg_max"))
+def newton_loop(objective, hessian, args, conn, weight, y0, consts, limit, *, static: tuple = (), max_steps: int,
+                max_rejected: int, cg_max: int = CG_MAX):
+    """Truncated Newton on the JAX engine, one device: `newton_cg`'s iteration as one compiled program.
+
+    The same forcing term, damping, line search and stops as `newton_cg` (`forcing`, `positive_curvature`,
+    `curvature_scale`, `damping`; `jaxci.optim.lbfgs`'s `armijo`, `cap_factor`, `converged`) and the same
+    Hessian-vector product (`hessian`: a forward difference of the node gradient, the projection linearised at
+    the iterate). Two things differ, for the engine: CG has no preconditioner (the two-level M of
+    `jaxci.optim.coarse` is built on the host), so ``D = I`` in the damping; and the node gradient at the iterate,
+    which the host keeps from its evaluation, is evaluated again once a Newton iteration (a step of its own). Each
+    product and each trial is a step, as in `newton_cg`.
+
+    **Arguments:** as `jaxci.optim.lbfgs.lbfgs_loop` on one device: `objective` (static) ``objective(v, args,
+    conn, weight, 1, platform, *static) -> (value, gradient, F, k)``
+    (`jaxci.optim.solver_objective.value_and_grad_closed`); `hessian` (static) ``hessian(v, args, conn, weight,
+    *static, step=h) -> (p -> H p)`` (`jaxci.optim.solver_objective.hessian_closed`); `args`, `conn` ``(8, N)``,
+    `weight` ``(N,)``, `y0` ``(n,)``, `consts` ``(5,)`` (``ftol, 1 + ktol, rtol, atol, cap``), `limit` (traced,
+    at most `max_steps`); `max_rejected` and `cg_max` (static) as `newton_cg`'s. The difference's step is
+    `FD_STEP` in float64 and ``sqrt(eps)`` in float32.
+
+    **Returns:** ``(y, steps, result, hist_f, hist_k, outer)``: those of `lbfgs_loop` and the Newton iterations.
+    """
+    platform = jax.default_backend()
+
+    def fn(v):
+        return objective(v, args, conn, weight, 1, platform, *static)
+
+    ftol, kstop, rtol, atol, cap = (consts[i] for i in range(5))
+    dtype = y0.dtype
+    limit = jnp.minimum(jnp.asarray(limit, jnp.int32), max_steps)
+
+    def norm(a):
+        return jnp.sqrt(jnp.dot(a, a))
+
+    def finished(f, k):
+        return (f <= ftol) | (k <= kstop)
+
+    def record(it, steps):  # F and k of the accepted iterate after step `steps`
+        return dict(it, steps=steps, hf=it["hf"].at[steps].set(it["f"]), hk=it["hk"].at[steps].set(it["k"]))
+
+    value, g, f, k = fn(y0)
+    ok = jnp.isfinite(value)
+    g0 = norm(g)
+    g0 = jnp.where(g0 > 0, g0, 1.0)
+    nan = jnp.full((max_steps + 1,), jnp.nan, dtype)
+    it = dict(y=y0, g=g, value=value, f=f, k=k, mu=jnp.zeros((), dtype), steps=jnp.int32(0), outer=jnp.int32(0),
+              stop=~ok | finished(f, k), hf=nan.at[0].set(f), hk=nan.at[0].set(k))
+
+    def cg(it):
+        """``(H + mu c I) d = -g`` by CG from ``d = 0`` (`pcg` without M): the direction and the loop state."""
+        y, g = it["y"], it["g"]
+        gn = norm(g)
+        tol = forcing(gn, g0, jnp) * gn
+        step = max(FD_STEP, float(np.sqrt(np.finfo(dtype).eps)))
+        hvp = hessian(y, args, conn, weight, *static, step=step)
+        it = record(it, it["steps"] + 1)  # the node gradient at y
+
+        def body(c):
+            p = c["p"]
+            hp = hvp(p)
+            pp = jnp.dot(p, p)
+            scale = jnp.where(c["j"] == 0, curvature_scale(jnp.dot(p, hp), pp, jnp), c["scale"])
+            hp = jnp.where((it["mu"] > 0) & (scale > 0), hp + (it["mu"] * scale) * p, hp)
+            php = jnp.dot(p, hp)
+            bad = ~positive_curvature(php, pp)
+            a = c["rz"] / jnp.where(bad, 1.0, php)
+            d = jnp.where(bad, jnp.where(c["j"] == 0, p, c["d"]), c["d"] + a * p)
+            r = c["r"] + a * hp
+            rz = jnp.dot(r, r)
+            j = c["j"] + 1
+            done = bad | (jnp.sqrt(rz) <= tol) | (j >= cg_max) | (c["it"]["steps"] + 1 >= limit)
+            return dict(c, d=d, r=r, p=-r + (rz / c["rz"]) * p, rz=rz, j=j, scale=scale, done=done,
+                        it=record(c["it"], c["it"]["steps"] + 1))
+
+        c = dict(d=jnp.zeros_like(g), r=g, p=-g, rz=jnp.dot(g, g), j=jnp.int32(0), scale=jnp.zeros((), dtype),
+                 done=it["steps"] >= limit, it=it)
+        c = jax.lax.while_loop(lambda c: ~c["done"], body, c)
+        return c["d"], c["it"]
+
+    def search(it, d):
+        """The capped backtracking Armijo search along `d` (`newton_cg`'s), then the damping's update."""
+        d = jnp.where(jnp.dot(it["g"], d) < 0, d, -it["g"])  # rounding, or no product: steepest descent
+        d = d * cap_factor(jnp.max(jnp.abs(d)), cap, jnp)
+        slope = jnp.dot(it["g"], d)
+
+        def body(s):
+            it, alpha, rejected = s["it"], s["alpha"], s["rejected"]
+            y_try = it["y"] + alpha * d
+            v_try, g_try, f_try, k_try = fn(y_try)
+            good = jnp.isfinite(v_try) & armijo(v_try, it["value"], alpha, slope)
+            done_here = converged(jnp.max(jnp.abs(y_try - it["y"])), jnp.max(jnp.abs(y_try)), v_try, it["value"],
+                                  rtol, atol) | (jnp.abs(it["value"] - v_try) < atol + rtol * jnp.abs(v_try))
+            new = dict(it, y=y_try, g=g_try, value=v_try, f=f_try, k=k_try, mu=damping(it["mu"], rejected, jnp),
+                       stop=done_here | finished(f_try, k_try))
+            it = jax.tree.map(lambda a, b: jnp.where(good, a, b), new, it)
+            rejected = jnp.where(good, rejected, rejected + 1)
+            it = dict(it, stop=it["stop"] | (rejected >= max_rejected))
+            return dict(it=record(it, it["steps"] + 1), alpha=jnp.where(good, alpha, alpha * DECREASE),
+                        rejected=rejected, done=good)
+
+        s = dict(it=it, alpha=jnp.ones((), dtype), rejected=jnp.int32(0), done=jnp.bool_(False))
+        s = jax.lax.while_loop(lambda s: ~s["done"] & ~s["it"]["stop"] & (s["it"]["steps"] < limit), body, s)
+        return s["it"]
+
+    def outer(it):
+        d, it = cg(it)
+        it = search(dict(it, outer=it["outer"] + 1), d)
+        return it
+
+    it = jax.lax.while_loop(lambda it: ~it["stop"] & (it["steps"] < limit), outer, it)
+    code = jnp.where(~ok, 2, jnp.where(it["stop"], 0, 1)).astype(jnp.int32)
+    return it["y"], it["steps"], code, it["hf"], it["hk"], it["outer"]

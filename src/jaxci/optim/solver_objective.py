@@ -140,6 +140,32 @@ def value_and_grad_closed(v, args, conn, weight, n_dev: int, platform: str, powe
     return val, gv, f, k
 
 
+def hessian_closed(v, args, conn, weight, power=None, closed: bool = True, step: float = 1e-6):
+    """The Hessian of `value_and_grad_closed`'s value at `v` ``(n,)``, as a function ``p -> H p`` ``(n,)``, for
+    `jaxci.optim.newton.newton_loop`: `jaxci.optim.newton.newton_cg`'s product, ``J^T (g_x(x + h J p) - g_x(x)) /
+    h`` with ``J`` the lift and the boundary's projection linearised at `v` (each node held to its triangle or
+    segment), ``g_x`` the node gradient of ``s F``, ``h`` = `step` over ``max |p|``. Costs one node gradient here
+    and one a product (the closed form's kernel is not differentiable twice: a C call on CPUs). `args`, `power`,
+    `closed`: as `value_and_grad_closed`'s."""
+    par, s, extra, incidence = args
+
+    def node_grad(x):
+        return jax.grad(lambda x: s * solver_objective(x, conn, closed, extra, weight, power, None, None,
+                                                       incidence)[0])(x)
+
+    x, lift = jax.linearize(par.points, v)
+    _, pull = jax.vjp(par.points, v)
+    gx = node_grad(x)
+
+    def product(p):
+        size = jnp.max(jnp.abs(p), initial=0.0)
+        h = step / jnp.where(size > 0, size, 1.0)
+        (hp,) = pull((node_grad(x + h * lift(p)) - gx) / h)
+        return jnp.where(size > 0, hp, 0.0)
+
+    return product
+
+
 def _lsq_fn(v, args):
     """Residuals kappa/3 per corner, times sqrt(2 s / n_corners): 0.5 |r|^2 = s (F + 1)."""
     par, conn, s, stops, extra, _ = args
