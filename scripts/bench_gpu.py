@@ -26,7 +26,9 @@ each):
 Further sections (``--sections``): ``host_prep`` and ``device_memory`` (`scripts/bench_host_prep.py`,
 `scripts/bench_device_memory.py` at 10^6: the host's work by function, the programs' device bytes),
 ``global_ci`` (30 seeds of cube729 batched against one by one and the host engine), ``cube60_pert`` (the tangled
-216,000-hex cube, both engines).
+216,000-hex cube, both engines), ``solvers`` (``jaxci smooth --method lbfgs`` on the JAX engine with
+``--param solver=lbfgs`` and ``solver=newton``, cold, on an annulus of 98,304 and 786,432 hexahedra whose nodes
+were moved along its curved walls: steps and time of each solver).
 
 The targets of one H100/H200-class GPU are printed beside the figures (F + gradient >= 40 G corners/s float32;
 10^7 hexahedra in <= 10 s warm and <= 20 s cold, file I/O aside; <= 1 kB per hexahedron on the device; the JAX
@@ -48,12 +50,12 @@ ROOT = Path(__file__).resolve().parents[1]
 TARGETS = {"corners_per_s_float32": 40e9, "smooth_1e7_warm_s": 10.0, "smooth_1e7_cold_s": 20.0,
            "bytes_per_hex": 1000.0, "jax_wins_from_hexes": 100_000}
 SECTIONS = ("kernels", "smooth", "engines", "largest")
-MORE = ("host_prep", "device_memory", "global_ci", "cube60_pert")
+MORE = ("host_prep", "device_memory", "global_ci", "cube60_pert", "solvers")
 FULL = {"kernels": [1_000_000, 10_000_000], "smooth": [100, 215], "engines": [22, 46, 100], "largest": 464,
         "host_prep": [100], "cube": 60, "gci_seeds": 30, "gci_host_seeds": 4, "gci_attempts": None,
-        "gci_case": "cube729"}
+        "gci_case": "cube729", "annulus": [(256, 16, 24), (512, 32, 48)]}
 SMALL = {"kernels": [1000], "smooth": [8], "engines": [6, 10], "largest": 12, "host_prep": [8], "cube": 9,
-         "gci_seeds": 3, "gci_host_seeds": 2, "gci_attempts": 20, "gci_case": "cube27"}
+         "gci_seeds": 3, "gci_host_seeds": 2, "gci_attempts": 20, "gci_case": "cube27", "annulus": [(24, 3, 3)]}
 
 
 # ------------------------------------------------------------------------------------------------ children
@@ -202,7 +204,7 @@ class Bench:
             out = _run_json([sys.executable, "-m", "jaxci", *args, "--json", "--force"], timeout, env)
             out["process_wall_s"] = time.perf_counter() - t0
         return {k: out[k] for k in ("process_wall_s", "engine", "iterations", "phases", "error", "skipped")
-                if k in out} | {"max_condition": (out.get("after") or {}).get("max_condition")}
+                if k in out} | {key: (out.get("after") or {}).get(key) for key in ("max_condition", "objective")}
 
     def _env(self) -> dict:
         # each child may take most of the device's memory (one runs at a time; the parent never imports JAX)
@@ -227,6 +229,27 @@ def _run_json(cmd, timeout, env) -> dict:
     if p.returncode not in (0, 3) or not lines:
         return {"error": f"exit {p.returncode}: {(p.stderr or p.stdout)[-1500:]}"}
     return json.loads(lines[-1])
+
+
+def _annulus(tmp: Path, n_theta: int, n_r: int, n_z: int) -> Path:
+    """An annulus of ``n_theta x n_r x n_z`` hexahedra with its nodes moved along its walls and inside (none
+    inverted): the boundary stays the two cylinders and the end planes, so its nodes slide on curved walls."""
+    import numpy as np
+
+    from jaxci.io import write_mesh
+    from jaxci.mesh.shapes import annulus
+
+    path = tmp / f"annulus{n_theta}x{n_r}x{n_z}.vtu"
+    if not path.exists():
+        m = annulus(n_theta, n_r, n_z)
+        p = np.asarray(m.points)
+        rng = np.random.default_rng(0)
+        r, th, z = np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p[:, 2]
+        r = np.where((r > 0.5 + 1e-9) & (r < 1 - 1e-9), r + rng.uniform(-0.15, 0.15, len(r)) / n_r, r)
+        th = th + rng.uniform(-0.3, 0.3, len(r)) * 2 * np.pi / n_theta
+        z = np.where((z > 1e-9) & (z < 1 - 1e-9), z + rng.uniform(-0.3, 0.3, len(z)) / n_z, z)
+        write_mesh(m.with_points(np.stack([r * np.cos(th), r * np.sin(th), z], axis=1)), path)
+    return path
 
 
 def _box(tmp: Path, n: int) -> Path:
@@ -329,6 +352,15 @@ def _sections(b: Bench, args, size: dict, tmp: Path, ktol: float, gpu: bool) -> 
                                    **b.cli(["smooth", str(path), str(tmp / f"c{e}.vtk"), "--engine", e], timeout=240)}
                                   for e in ("jax", "host")))
 
+    def solvers():
+        def row(dims, solver):
+            path = _annulus(tmp, *dims)
+            return {"annulus": list(dims), "hexes": dims[0] * dims[1] * dims[2], "solver": solver, "process": "cold",
+                    **b.cli(["smooth", str(path), str(tmp / f"a{solver}.vtu"), "--engine", "jax", "--method", "lbfgs",
+                             "--param", f"solver={solver}"], timeout=300)}
+
+        b.section("solvers", (row(dims, solver) for dims in size["annulus"] for solver in ("lbfgs", "newton")))
+
     def host_prep():
         b.section("host_prep", (b.child("host_prep", "host_prep", n, "jax", timeout=300) for n in size["host_prep"]))
 
@@ -337,7 +369,7 @@ def _sections(b: Bench, args, size: dict, tmp: Path, ktol: float, gpu: bool) -> 
                                     for n in size["host_prep"]))
 
     return {"kernels": kernels, "smooth": smooth, "engines": engines, "largest": largest, "global_ci": global_ci,
-            "cube60_pert": cube, "host_prep": host_prep, "device_memory": device_memory}
+            "cube60_pert": cube, "host_prep": host_prep, "device_memory": device_memory, "solvers": solvers}
 
 
 def child_environment() -> dict:

@@ -1,5 +1,6 @@
-"""The host engine's solvers side by side: plain L-BFGS (``method="lbfgs"``) against truncated Newton
-(``solver="newton"``, `jaxci.optim.newton`) on real meshes, in one process, one run after the other.
+"""The solvers side by side: plain L-BFGS (``method="lbfgs"``) against truncated Newton (``solver="newton"``,
+`jaxci.optim.newton`) on real meshes, in one process, one run after the other (the host engine; the JAX engine
+with ``engine="jax"`` in a solver's parameters).
 
 Per mesh and solver it records the outer iterations (L-BFGS: its accepted steps; Newton: its Newton iterations),
 the gradient evaluations (every solver step is one: the real cost unit), the seconds of the ``smooth`` phase (the
@@ -12,7 +13,8 @@ measures. Prints a table and writes JSON (`--out`).
         [--out docs/results/bench_solvers.json]
 
 `--meshes` takes corpus names (``python scripts/realmesh_corpus.py --list``; default: the ~25k gmsh meshes) or
-mesh file paths. A solver is ``lbfgs``, ``newton``, or ``newton:KEY=VALUE,...`` (extra `GradientParams`), run as
+mesh file paths. A solver is ``lbfgs``, ``newton``, or ``newton:KEY=VALUE,...`` (extra `jaxci.smooth` keywords,
+JSON values: `GradientParams`, ``engine="jax"``), run as
 ``method="lbfgs"``; ``auto/`` before it runs the default pipeline with that solver (then the worst-element polish:
 its evaluations are in the count; "outer" is still the solver's: Newton iterations, or accepted steps).
 Timings on a shared machine are noisy: run it alone.

@@ -99,6 +99,19 @@ def test_bench_gpu_runs_every_section_at_small_sizes_on_a_cpu(tmp_path):
     assert "F + gradient" in p.stdout and "targets" in p.stdout
 
 
+def test_bench_gpu_compares_the_jax_engines_solvers(tmp_path):
+    """scripts/bench_gpu.py --sections solvers: ``jaxci smooth --engine jax --method lbfgs`` with each solver in a
+    fresh process on a curved annulus: its steps, the objective and the worst corner after."""
+    out = tmp_path / "gpu.json"
+    p = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_gpu.py"), "--small", "--sections", "solvers",
+                        "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    rows = json.loads(out.read_text())["solvers"]
+    assert [r["solver"] for r in rows] == ["lbfgs", "newton"] and not any("error" in r for r in rows), rows
+    assert all(r["engine"]["name"] == "jax" and r["iterations"] > 0 and r["process_wall_s"] > 0 for r in rows)
+    assert rows[1]["objective"] <= rows[0]["objective"] * 1.01 and rows[1]["max_condition"] < 2
+
+
 def test_bench_memory_measures_the_peak_of_a_fresh_jaxci_process(tmp_path):
     """scripts/bench_memory.py on a small box: `jaxci smooth` in a fresh process, its peak memory (more than the
     interpreter's own), seconds and bytes per hexahedron, the engine and the result, in its table and JSON."""
