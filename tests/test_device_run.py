@@ -75,13 +75,16 @@ def test_the_same_mesh_as_the_general_path():
 
 def test_truncated_newton_runs_on_the_device():
     """``solver="newton"`` in the run on the device (`jaxci.optim.newton.newton_loop`): no implicit transfer, the
-    same mesh as the general path's Newton."""
+    same mesh as the general path's Newton without the two-level preconditioner (built on the host from the mesh
+    there: not in the run on the device, which refuses ``precondition="coarse"``)."""
     mesh = perturb_box(5, amplitude=0.35, seed=3)
     kw = dict(engine="jax", dtype="float64", presmooth=0, method="lbfgs", solver="newton")
     jaxci.smooth(mesh, **kw)
     with no_implicit_transfers():
         res = jaxci.smooth(mesh, **kw)
-    ref = _general(mesh, **{k: v for k, v in kw.items() if k != "engine"})
+    with pytest.raises(jaxci.ConfigError, match="in a run on the device"):
+        jaxci.smooth(mesh, precondition="coarse", **kw)
+    ref = _general(mesh, precondition="none", **{k: v for k, v in kw.items() if k != "engine"})
     assert "upload" in res.phases and res.history["newton_iterations"] > 0
     assert res.iterations == ref.iterations and res.after.inverted_elements == 0
     np.testing.assert_allclose(res.mesh.points, ref.mesh.points, rtol=0, atol=1e-9)

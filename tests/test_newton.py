@@ -187,7 +187,7 @@ def test_the_jax_engines_product_is_the_hosts(mesh, kw):
 def test_newton_on_the_jax_engine():
     """``engine="jax"``, ``solver="newton"`` (`newton_loop`): on a wavy annulus F falls at every accepted step to
     within 0.1% of the host Newton's, no element inverts, every boundary node lies on the original boundary, in a
-    tenth of L-BFGS's steps in Newton iterations; the step limit counts every gradient evaluation; `newton_after`
+    quarter of L-BFGS's steps in Newton iterations; the step limit counts every gradient evaluation; `newton_after`
     runs the JAX L-BFGS first and leaves its result alone where it ends sooner."""
     mesh = wavy_annulus(24, 3, 3)
     kw = dict(method="lbfgs", dtype="float64", keep_worst=False)
@@ -198,7 +198,7 @@ def test_newton_on_the_jax_engine():
     assert np.all(np.isfinite(f)) and np.all(np.diff(f) <= 0) and len(f) == res.iterations + 1
     assert res.after.inverted_elements == 0 and res.history["solver_result"] == "successful"
     assert res.after.objective <= host.after.objective * (1 + 1e-3)
-    assert res.history["newton_iterations"] < lbfgs.iterations / 5
+    assert res.history["newton_iterations"] < lbfgs.iterations / 4
     pr = build_problem(mesh, dtype=np.float64)
     x = np.asarray(res.mesh.points)
     np.testing.assert_allclose(project_np(pr.cons, x), x, atol=1e-9)

@@ -84,11 +84,34 @@ class CoarseSpace:
         """``M q`` for a vector `q` ``(n,)`` (a new float64 array; in C where `jaxci.native` is built)."""
         if native.AVAILABLE:
             return native.coarse_apply(q, self)
-        q = np.asarray(q, np.float64)
-        index = 3 * self.block[:, None] + np.arange(3)
-        coarse = np.bincount(index.ravel(), weights=(self.z * q[:, None]).ravel(), minlength=self.n_coarse)
-        c = self.coarse_inv @ coarse
-        return self.inv_diag * q + np.einsum("kd,kd->k", self.z, c[index])
+        return coarse_apply(self.arrays(), np.asarray(q, np.float64))
+
+    def arrays(self) -> tuple:
+        """``(block, z, coarse_inv, inv_diag)``, for `coarse_apply`."""
+        return self.block, self.z, self.coarse_inv, self.inv_diag
+
+    def padded(self, index: np.ndarray | None, n: int) -> CoarseSpace:
+        """``M`` over a padded vector of `n` free coordinates whose real ones are at `index`
+        (`jaxci.optim._buckets.pad_parametrisation`; None: as is): a padding coordinate has no coarse move and a
+        unit diagonal, so ``M`` leaves it as it is."""
+        if index is None:
+            return self
+        block, z, inv_diag = np.zeros(n, np.int64), np.zeros((n, 3)), np.ones(n)
+        block[index], z[index], inv_diag[index] = self.block, self.z, self.inv_diag
+        return CoarseSpace(block=block, z=z, coarse_inv=self.coarse_inv, inv_diag=inv_diag)
+
+
+def coarse_apply(arrays: tuple, q, xp=np):
+    """``M q`` of the `CoarseSpace` arrays ``(block, z, coarse_inv, inv_diag)`` (`CoarseSpace.arrays`) for a vector
+    `q` ``(n,)``, over the array module `xp` (numpy: the host without the C kernels; jax.numpy: the JAX engine's
+    truncated Newton, `jaxci.optim.newton.newton_loop`)."""
+    block, z, coarse_inv, inv_diag = arrays
+    m = coarse_inv.shape[0]
+    index = 3 * block[:, None] + xp.arange(3)
+    w = (z * q[:, None]).ravel()
+    coarse = np.bincount(index.ravel(), w, m) if xp is np else xp.bincount(index.ravel(), w, length=m)
+    c = coarse_inv @ coarse
+    return inv_diag * q + xp.einsum("kd,kd->k", z, c[index])
 
 
 def free_directions(par: Parametrisation) -> tuple[np.ndarray, np.ndarray]:

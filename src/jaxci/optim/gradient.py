@@ -239,10 +239,14 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         raise ConfigError(f"gradient-method parameter solver='newton' is for method 'lbfgs' on one device or the "
                           f"host, not {method!r}{' sharded over devices' if devices is not None else ''}; use "
                           f"solver='lbfgs'")
-    if p.precondition == "coarse" and not on_host:
+    # the two-level preconditioner (`jaxci.optim.coarse`) is built on the host from the mesh there: for the host's
+    # solvers, and for the JAX engine's truncated Newton where the mesh is on the host (not in a run on the device)
+    coarse_ok = on_host or (method == "lbfgs" and p.solver == "newton" and devices is None and project is None)
+    if p.precondition == "coarse" and not coarse_ok:
         raise ConfigError(f"gradient-method parameter precondition={p.precondition!r} is for L-BFGS on the host "
-                          f"(numpy) path, not {method!r} with backend={p.backend!r}"
-                          f"{' sharded over devices' if devices is not None else ''}; use precondition='none'")
+                          f"(numpy) path and for solver='newton', not {method!r} with backend={p.backend!r}"
+                          f"{' sharded over devices' if devices is not None else ''}"
+                          f"{' in a run on the device' if project is not None else ''}; use precondition='none'")
     n_dev = 0 if devices is None else int(devices.devices.size)
     # L-BFGS: jaxci's own loop (`jaxci.optim.lbfgs`), on one device or sharded (F over hexahedra); the other
     # methods: optimistix's
@@ -295,13 +299,13 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             power = p.p if p.objective == "pmean" else None
             host_fn = host_fn or HostObjective(run_par, np.asarray(conn), objective_scale(n_hex, extra),
                                                kernel=_host_mixed_kernel(conn, extra, power), power=power)
-            if p.precondition != "none" and precond is None:
-                from . import coarse
+        if coarse_ok and p.precondition != "none" and precond is None:
+            from . import coarse
 
-                n_cells = n_hex + sum(int(c.shape[1]) for c in extra.conns)
-                if p.precondition == "coarse" or n_cells <= coarse.AUTO_MAX_CELLS:
-                    after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
-                    precond = functools.cache(lambda: coarse.build_coarse(run_par, _cells_by_type(conn, extra)))
+            n_cells = n_hex + sum(int(c.shape[1]) for c in extra.conns)
+            if p.precondition == "coarse" or n_cells <= coarse.AUTO_MAX_CELLS:
+                after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
+                precond = functools.cache(lambda: coarse.build_coarse(par, _cells_by_type(conn, extra)))
         lbfgs_first = p.solver == "newton" and steps < p.newton_after  # L-BFGS's steps, then Newton
         lbfgs_limit = min(p.max_steps, p.newton_after if lbfgs_first else p.max_steps) - steps
         if on_host and p.solver == "newton" and not lbfgs_first:
@@ -330,9 +334,12 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             if p.solver == "newton" and not lbfgs_first:
                 from .newton import newton_loop
 
+                m = None if precond is None else tuple(
+                    to_device(a, np.int32 if a.dtype.kind == "i" else dtype)
+                    for a in precond().padded(index, run_par.n_free).arrays())
                 y, k, code, hf, hk, n_outer = newton_loop(
                     value_and_grad_closed, hessian_closed, (cur, to_device(scale), extra, incidence), run_conn,
-                    weight, y, to_device(consts), to_device(np.int32(p.max_steps - steps)), static=static,
+                    weight, y, to_device(consts), to_device(np.int32(p.max_steps - steps)), m, static=static,
                     max_steps=int(p.max_steps), max_rejected=_max_rejected(method, p), cg_max=int(p.cg_max))
                 outer += int(to_host(n_outer))
             elif n_dev:  # (numpy arrays placed straight from the host: `replicate`)

@@ -19,7 +19,7 @@ LEAST_SQUARES = ("lm", "gauss-newton")
 OBJECTIVES = ("mean", "pmean")
 MAX_POWER = 64.0
 
-#: Initial inverse Hessians of the host L-BFGS (`GradientParams.precondition`).
+#: Initial inverse Hessians of the host L-BFGS, preconditioners of truncated Newton (`GradientParams.precondition`).
 PRECONDITIONERS = ("auto", "none", "coarse")
 
 #: Solvers of ``"lbfgs"`` (`GradientParams.solver`).
@@ -93,13 +93,15 @@ class GradientParams:
       ``gamma I``, and ``gamma M`` from step `jaxci.optim.coarse.AUTO_AFTER` on, M the two-level Laplacian
       preconditioner of `jaxci.optim.coarse`: a run that is still going there is one whose boundary nodes creep
       along curved walls), ``"coarse"`` (``gamma M`` from the start; refused elsewhere than on the host
-      L-BFGS) or ``"none"`` (``gamma I`` throughout). See `jaxci.optim.coarse` for the figures.
+      L-BFGS and truncated Newton) or ``"none"`` (``gamma I`` throughout); for ``solver="newton"``, CG's
+      preconditioner (M from the first step with ``"auto"`` or ``"coarse"``). See `jaxci.optim.coarse` for the
+      figures.
     - `solver`: ``method="lbfgs"``: ``"lbfgs"`` (default, `jaxci.optim.host.lbfgs`, `jaxci.optim.lbfgs.lbfgs_loop`)
       or ``"newton"`` (truncated Newton: CG on Hessian-vector products by differences of the gradient, with the
-      same line search and stops; on the host `jaxci.optim.newton.newton_cg`, its preconditioner the two-level M
-      of `precondition`, from the first step with ``"auto"``; on the JAX engine `jaxci.optim.newton.newton_loop`,
-      one compiled program, no preconditioner; refused sharded over devices). Measured on the real-mesh corpus:
-      docs/results/bench_solvers.md.
+      same line search and stops, its preconditioner the two-level M of `precondition`, from the first step with
+      ``"auto"``; on the host `jaxci.optim.newton.newton_cg`, on the JAX engine `jaxci.optim.newton.newton_loop`,
+      one compiled program, without M in a run whose mesh is on the device; refused sharded over devices).
+      Measured on the real-mesh corpus: docs/results/bench_solvers.md.
     - `newton_after`: ``solver="newton"``: L-BFGS (as ``solver="lbfgs"``) for this many steps, then Newton from its
       iterate (default 0: Newton from the start; its start is in the history's ``restarts``); a run that L-BFGS
       ends sooner is L-BFGS's.

@@ -45,6 +45,7 @@ import numpy as np
 from ..runtime._lazy import jax, jit, jnp
 from ..runtime.phases import stepper
 from ..runtime.transfer import program
+from .coarse import coarse_apply
 from .host import amax, dot
 from .lbfgs import DECREASE, armijo, cap_factor, converged
 
@@ -234,25 +235,26 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
 
 @program
 @jit(static_argnames=("objective", "hessian", "static", "max_steps", "max_rejected", "cg_max"))
-def newton_loop(objective, hessian, args, conn, weight, y0, consts, limit, *, static: tuple = (), max_steps: int,
-                max_rejected: int, cg_max: int = CG_MAX):
+def newton_loop(objective, hessian, args, conn, weight, y0, consts, limit, precond=None, *, static: tuple = (),
+                max_steps: int, max_rejected: int, cg_max: int = CG_MAX):
     """Truncated Newton on the JAX engine, one device: `newton_cg`'s iteration as one compiled program.
 
     The same forcing term, damping, line search and stops as `newton_cg` (`forcing`, `positive_curvature`,
     `curvature_scale`, `damping`; `jaxci.optim.lbfgs`'s `armijo`, `cap_factor`, `converged`) and the same
     Hessian-vector product (`hessian`: a forward difference of the node gradient, the projection linearised at
-    the iterate). Two things differ, for the engine: CG has no preconditioner (the two-level M of
-    `jaxci.optim.coarse` is built on the host), so ``D = I`` in the damping; and the node gradient at the iterate,
-    which the host keeps from its evaluation, is evaluated again once a Newton iteration (a step of its own). Each
-    product and each trial is a step, as in `newton_cg`.
+    the iterate) and preconditioner (`precond`: the two-level M of `jaxci.optim.coarse`, built on the host, applied
+    by `jaxci.optim.coarse.coarse_apply`; None: the identity, ``D = I`` in the damping). One thing differs, for the
+    engine: the node gradient at the iterate, which the host keeps from its evaluation, is evaluated again once a
+    Newton iteration (a step of its own). Each product and each trial is a step, as in `newton_cg`.
 
     **Arguments:** as `jaxci.optim.lbfgs.lbfgs_loop` on one device: `objective` (static) ``objective(v, args,
     conn, weight, 1, platform, *static) -> (value, gradient, F, k)``
     (`jaxci.optim.solver_objective.value_and_grad_closed`); `hessian` (static) ``hessian(v, args, conn, weight,
     *static, step=h) -> (p -> H p)`` (`jaxci.optim.solver_objective.hessian_closed`); `args`, `conn` ``(8, N)``,
     `weight` ``(N,)``, `y0` ``(n,)``, `consts` ``(5,)`` (``ftol, 1 + ktol, rtol, atol, cap``), `limit` (traced,
-    at most `max_steps`); `max_rejected` and `cg_max` (static) as `newton_cg`'s. The difference's step is
-    `FD_STEP` in float64 and ``sqrt(eps)`` in float32.
+    at most `max_steps`); `precond`: None or `jaxci.optim.coarse.CoarseSpace.arrays` (device arrays over the
+    vector `y0` is); `max_rejected` and `cg_max` (static) as `newton_cg`'s. The difference's step is `FD_STEP` in
+    float64 and ``sqrt(eps)`` in float32.
 
     **Returns:** ``(y, steps, result, hist_f, hist_k, outer)``: those of `lbfgs_loop` and the Newton iterations.
     """
@@ -267,6 +269,11 @@ def newton_loop(objective, hessian, args, conn, weight, y0, consts, limit, *, st
 
     def norm(a):
         return jnp.sqrt(jnp.dot(a, a))
+
+    def m(r):  # the preconditioner M
+        return r if precond is None else coarse_apply(precond, r, jnp)
+
+    diag = 1.0 if precond is None else 1.0 / precond[3]  # D: the Laplacian's diagonal that M inverts, else I
 
     def finished(f, k):
         return (f <= ftol) | (k <= kstop)
@@ -283,7 +290,8 @@ def newton_loop(objective, hessian, args, conn, weight, y0, consts, limit, *, st
               stop=~ok | finished(f, k), hf=nan.at[0].set(f), hk=nan.at[0].set(k))
 
     def cg(it):
-        """``(H + mu c I) d = -g`` by CG from ``d = 0`` (`pcg` without M): the direction and the loop state."""
+        """``(H + mu c D) d = -g`` by preconditioned CG from ``d = 0`` (`pcg`): the direction and the loop
+        state."""
         y, g = it["y"], it["g"]
         gn = norm(g)
         tol = forcing(gn, g0, jnp) * gn
@@ -294,28 +302,29 @@ def newton_loop(objective, hessian, args, conn, weight, y0, consts, limit, *, st
         def body(c):
             p = c["p"]
             hp = hvp(p)
-            pp = jnp.dot(p, p)
-            scale = jnp.where(c["j"] == 0, curvature_scale(jnp.dot(p, hp), pp, jnp), c["scale"])
-            hp = jnp.where((it["mu"] > 0) & (scale > 0), hp + (it["mu"] * scale) * p, hp)
+            scale = jnp.where(c["j"] == 0, curvature_scale(jnp.dot(p, hp), jnp.dot(p, diag * p), jnp), c["scale"])
+            hp = jnp.where((it["mu"] > 0) & (scale > 0), hp + (it["mu"] * scale) * (diag * p), hp)
             php = jnp.dot(p, hp)
-            bad = ~positive_curvature(php, pp)
+            bad = ~positive_curvature(php, jnp.dot(p, p))
             a = c["rz"] / jnp.where(bad, 1.0, php)
             d = jnp.where(bad, jnp.where(c["j"] == 0, p, c["d"]), c["d"] + a * p)
             r = c["r"] + a * hp
-            rz = jnp.dot(r, r)
+            z = m(r)
+            rz = jnp.dot(r, z)
             j = c["j"] + 1
-            done = bad | (jnp.sqrt(rz) <= tol) | (j >= cg_max) | (c["it"]["steps"] + 1 >= limit)
-            return dict(c, d=d, r=r, p=-r + (rz / c["rz"]) * p, rz=rz, j=j, scale=scale, done=done,
+            done = bad | (norm(r) <= tol) | (j >= cg_max) | (c["it"]["steps"] + 1 >= limit)
+            return dict(c, d=d, r=r, p=-z + (rz / c["rz"]) * p, rz=rz, j=j, scale=scale, done=done,
                         it=record(c["it"], c["it"]["steps"] + 1))
 
-        c = dict(d=jnp.zeros_like(g), r=g, p=-g, rz=jnp.dot(g, g), j=jnp.int32(0), scale=jnp.zeros((), dtype),
+        z = m(g)
+        c = dict(d=jnp.zeros_like(g), r=g, p=-z, rz=jnp.dot(g, z), j=jnp.int32(0), scale=jnp.zeros((), dtype),
                  done=it["steps"] >= limit, it=it)
         c = jax.lax.while_loop(lambda c: ~c["done"], body, c)
         return c["d"], c["it"]
 
     def search(it, d):
         """The capped backtracking Armijo search along `d` (`newton_cg`'s), then the damping's update."""
-        d = jnp.where(jnp.dot(it["g"], d) < 0, d, -it["g"])  # rounding, or no product: steepest descent
+        d = jnp.where(jnp.dot(it["g"], d) < 0, d, -m(it["g"]))  # rounding, or no product: steepest descent
         d = d * cap_factor(jnp.max(jnp.abs(d)), cap, jnp)
         slope = jnp.dot(it["g"], d)
 
