@@ -63,10 +63,13 @@ def test_a_box_is_smoothed_on_the_device_without_implicit_transfers(dtype):
 
 def test_the_same_mesh_as_the_general_path():
     """Without the presmoothing (whose colouring differs: greedy on the host, parallel on the device) the run on
-    the device is the general path's run: the same L-BFGS iterates, the same polish, the same checks."""
+    the device is the general path's run: the same L-BFGS iterates, the same polish, the same checks. (The default
+    pipeline's solver differs: the general path's is truncated Newton with the two-level preconditioner, built on
+    the host, the device's L-BFGS.)"""
     mesh = perturb_box(5, amplitude=0.35, seed=3)
     res = jaxci.smooth(mesh, engine="jax", dtype="float64", presmooth=0)
-    ref = _general(mesh, dtype="float64", presmooth=0)
+    assert res.params["solver"] == "lbfgs" and _general(mesh, dtype="float64", presmooth=0).params["solver"] == "newton"
+    ref = _general(mesh, dtype="float64", presmooth=0, solver="lbfgs")
     assert "upload" in res.phases and "upload" not in ref.phases
     assert res.iterations == ref.iterations
     assert res.after.objective == pytest.approx(ref.after.objective, rel=1e-9)

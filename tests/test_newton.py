@@ -260,3 +260,18 @@ def test_the_cli_names_the_solver(tmp_path, capsys):
     write_mesh(perturb_box(3, amplitude=0.3, seed=1), str(src))
     assert main(["smooth", str(src), str(out), "--method", "lbfgs", "--param", "solver=newton"]) == 0
     assert "after (lbfgs, truncated Newton," in capsys.readouterr().out
+
+
+def test_the_auto_solver_is_newton_where_its_preconditioner_is_built():
+    """``solver="auto"``: truncated Newton on the JAX engine with M (the mesh on the host, one device), L-BFGS on the
+    host engine and without M (``precondition="none"``); the result names the solver that ran. The default pipeline
+    asks for it on the JAX engine only: its note says which."""
+    box = perturb_box(4, amplitude=0.3, seed=5)
+    kw = dict(method="lbfgs", dtype="float64", solver="auto")
+    assert smooth(box, engine="jax", **kw).params["solver"] == "newton"
+    assert smooth(box, engine="jax", precondition="none", **kw).params["solver"] == "lbfgs"
+    assert smooth(box, engine="host", **kw).params["solver"] == "lbfgs"
+    jax_auto, host_auto = smooth(box, engine="jax"), smooth(box, engine="host")
+    assert jax_auto.params["solver"] == "newton" and "truncated Newton" in jax_auto.notes[0]
+    assert host_auto.params["solver"] == "lbfgs" and "default method (auto): L-BFGS on F" in host_auto.notes[0]
+    assert jax_auto.after.inverted_elements == 0 and jax_auto.after.max_condition < quality_report(box).max_condition

@@ -152,7 +152,9 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
     ``(method, params, description)``.
 
     Chosen by measurement on real and generated meshes (docs/results): L-BFGS on F after the untangling stage
-    (when the input has inverted elements); on the JAX engine, and on the host engine from `AUTO_PRESMOOTH_FROM`
+    (when the input has inverted elements), on the JAX engine (one device, hexahedra) truncated Newton with the
+    two-level preconditioner where that is built (``solver="auto"``: docs/results/bench_solvers.md); on the JAX
+    engine, and on the host engine from `AUTO_PRESMOOTH_FROM`
     hexahedra on (hexahedral meshes: the host's sweeps are for hexahedra), 3 smart-Laplace sweeps first (they fix
     the worst corners node by node; at 10^6 elements L-BFGS alone needed 1152 steps, 13 after them; the host's
     sweeps are the C kernels: without them none on the host). Then the
@@ -170,8 +172,12 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
         params["presmooth"] = 3
     if "polish" not in params and params.get("objective", "mean") == "mean":
         params["polish"] = True
+    newton = not host and plan.devices <= 1 and "solver" not in params and not mixed.has_extra(mesh)
+    if newton:  # truncated Newton where its preconditioner is built (`GradientParams.solver`)
+        params["solver"] = "auto"
     pre = int(params.get("presmooth", 0))
-    desc = "L-BFGS on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")
+    desc = ("truncated Newton (L-BFGS where its preconditioner is not built: the mesh on the device)" if newton
+            else "L-BFGS") + " on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")
     if params.get("polish"):
         desc += (", then the worst-element polish" + ("" if host else " (on the host: numpy and C; its sub-problems "
                  "are too small and too many to compile)"))

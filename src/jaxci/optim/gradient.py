@@ -228,13 +228,20 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     if p.objective == "pmean" and method not in BUCKETED:
         raise ConfigError(f"objective 'pmean' is for bfgs, lbfgs and cg, not {method!r}")
     params = {"method": method, **dataclasses.asdict(p)}
+    n_hex = int(conn.shape[1])
+    on_host = devices is None and use_host(method, p, n_hex, extra)
+    if p.solver == "auto":  # truncated Newton where its preconditioner is built, on the JAX engine
+        from .coarse import AUTO_MAX_CELLS
+
+        newton = (method == "lbfgs" and not on_host and devices is None and project is None and not extra.types
+                  and (p.precondition == "coarse" or (p.precondition == "auto" and n_hex <= AUTO_MAX_CELLS)))
+        p = dataclasses.replace(p, solver="newton" if newton else "lbfgs")
+        params["solver"] = p.solver
     if nf == 0:
         x = par.points(jnp.zeros((0,), par.x0.dtype))
         f, k = solver_objective(x, conn, False, extra)
         return x, 0, {"objective": np.asarray([f]), "max_condition": np.asarray([k]),
                       "solver_result": "no free coordinates"}, params
-    n_hex = int(conn.shape[1])
-    on_host = devices is None and use_host(method, p, n_hex, extra)
     if p.solver == "newton" and not (method == "lbfgs" and devices is None):
         raise ConfigError(f"gradient-method parameter solver='newton' is for method 'lbfgs' on one device or the "
                           f"host, not {method!r}{' sharded over devices' if devices is not None else ''}; use "

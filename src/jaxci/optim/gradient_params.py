@@ -23,7 +23,7 @@ MAX_POWER = 64.0
 PRECONDITIONERS = ("auto", "none", "coarse")
 
 #: Solvers of ``"lbfgs"`` (`GradientParams.solver`).
-SOLVERS = ("lbfgs", "newton")
+SOLVERS = ("lbfgs", "newton", "auto")
 #: Most CG products per Newton iteration (`GradientParams.cg_max`).
 MAX_CG = 10_000
 
@@ -100,7 +100,11 @@ class GradientParams:
       or ``"newton"`` (truncated Newton: CG on Hessian-vector products by differences of the gradient, with the
       same line search and stops, its preconditioner the two-level M of `precondition`, from the first step with
       ``"auto"``; on the host `jaxci.optim.newton.newton_cg`, on the JAX engine `jaxci.optim.newton.newton_loop`,
-      one compiled program, without M in a run whose mesh is on the device; refused sharded over devices).
+      one compiled program, without M in a run whose mesh is on the device; refused sharded over devices), or
+      ``"auto"`` (the default pipeline's on the JAX engine): ``"newton"`` where its M is built (the JAX engine on
+      one device with the mesh on the host, a hexahedral mesh, `precondition` not ``"none"``, at most
+      `jaxci.optim.coarse.AUTO_MAX_CELLS` cells or ``"coarse"``), else ``"lbfgs"`` (the host engine: its Newton
+      left the 25k cylinder O-grid in a worse minimum). The result's ``params["solver"]`` is the one that ran.
       Measured on the real-mesh corpus: docs/results/bench_solvers.md.
     - `newton_after`: ``solver="newton"``: L-BFGS (as ``solver="lbfgs"``) for this many steps, then Newton from its
       iterate (default 0: Newton from the start; its start is in the history's ``restarts``); a run that L-BFGS
