@@ -1,7 +1,9 @@
 """What the JAX engine's compiled programs hold on the device, per hexahedron, on any platform (a CPU too).
 
-The default pipeline on the JAX engine runs two large compiled programs: the smart-Laplace presmoothing sweeps
-(`jaxci.optim.laplace`) and the L-BFGS loop (`jaxci.optim.lbfgs.lbfgs_loop`). For each, at its call, this
+The default pipeline on the JAX engine, where the mesh lives on the device (from 100,000 hexahedra), runs two
+large compiled programs: the smart-Laplace presmoothing sweeps (`jaxci.optim.laplace`) and the L-BFGS loop
+(`jaxci.optim.lbfgs.lbfgs_loop`; asked for by name, ``solver="lbfgs"``, so that a smaller mesh, whose default
+solver is truncated Newton, runs the same two). For each, at its call, this
 prints and writes (JSON) the bytes per hexahedron of the arrays alive on the device (`jax.live_arrays`) and
 XLA's memory analysis of the compiled program (arguments, outputs, temporaries): the device's peak is about the
 largest of live + temporaries. A GPU's own peak is `scripts/bench_gpu.py`'s ``device_bytes_per_hex``; this is the
@@ -57,7 +59,7 @@ def run(hexes: int, max_steps: int = 3) -> dict:
 
     solve.lbfgs_loop, laplace._laplace_run = lbfgs_loop, sweeps
     try:
-        res = smooth(mesh, engine="jax", max_steps=max_steps)
+        res = smooth(mesh, engine="jax", max_steps=max_steps, solver="lbfgs")
     finally:
         solve.lbfgs_loop, laplace._laplace_run = real_solve, real_sweeps
     return {"hexes": mesh.n_hexes, "engine": res.plan.to_dict(), "bytes_per_hex": rows}

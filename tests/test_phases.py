@@ -54,7 +54,7 @@ def test_auto_presmooths_large_meshes_on_the_host_and_every_mesh_on_jax(monkeypa
     compiled = dataclasses.replace(host, engine="jax", kernel="XLA")
     assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True}
     # float32 L-BFGS alone stalls
-    assert methods.auto_pipeline(mesh, {}, compiled)[1] == {"presmooth": 3, "polish": True}
+    assert methods.auto_pipeline(mesh, {}, compiled)[1] == {"presmooth": 3, "polish": True, "solver": "auto"}
     monkeypatch.setattr(methods, "AUTO_PRESMOOTH_FROM", 64)  # the host's sweeps are the C kernels: none without
     want = {"presmooth": 3, "polish": True} if methods.native.AVAILABLE else {"polish": True}
     assert methods.auto_pipeline(mesh, {}, host)[1] == want
