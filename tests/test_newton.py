@@ -23,6 +23,15 @@ def _objective(mesh, **kw):
     return pr, par, HostObjective(par, np.ascontiguousarray(mesh.hexes.T), 1.0, keep_raw=True)
 
 
+def _on_the_boundary(mesh, res) -> None:
+    """Every boundary node of `res`'s mesh on the original boundary of `mesh`, its corner nodes where they were."""
+    pr = build_problem(mesh, dtype=np.float64)
+    x = np.asarray(res.mesh.points)
+    np.testing.assert_allclose(project_np(pr.cons, x), x, atol=1e-9)
+    corners = np.asarray(pr.cons.corner_nodes)
+    np.testing.assert_array_equal(x[corners], np.asarray(mesh.points)[corners])
+
+
 def test_pcg_solves_an_spd_system_and_stops_at_negative_curvature():
     """On ``H d = -g`` with H SPD, CG with a Jacobi preconditioner reaches the tolerance in at most n products;
     with an indefinite H whose first direction has negative curvature it returns ``-M g`` (a descent direction)."""
@@ -86,11 +95,7 @@ def test_newton_lowers_f_keeps_the_mesh_valid_and_the_boundary_on_its_walls():
     assert res.after.inverted_elements == 0 and res.after.objective < res.before.objective
     assert res.after.objective <= ref.after.objective * (1 + 1e-2)  # a minimum as low, to 1%: 0.5011 / 0.5001
     assert res.history["newton_iterations"] < ref.iterations / 5
-    pr = build_problem(mesh, dtype=np.float64)
-    x = np.asarray(res.mesh.points)
-    np.testing.assert_allclose(project_np(pr.cons, x), x, atol=1e-9)
-    corners = np.asarray(pr.cons.corner_nodes)
-    np.testing.assert_array_equal(x[corners], np.asarray(mesh.points)[corners])
+    _on_the_boundary(mesh, res)
 
 
 def test_an_inverting_newton_step_is_rejected():
@@ -199,11 +204,7 @@ def test_newton_on_the_jax_engine():
     assert res.after.inverted_elements == 0 and res.history["solver_result"] == "successful"
     assert res.after.objective <= host.after.objective * (1 + 1e-3)
     assert res.history["newton_iterations"] < lbfgs.iterations / 4
-    pr = build_problem(mesh, dtype=np.float64)
-    x = np.asarray(res.mesh.points)
-    np.testing.assert_allclose(project_np(pr.cons, x), x, atol=1e-9)
-    corners = np.asarray(pr.cons.corner_nodes)
-    np.testing.assert_array_equal(x[corners], np.asarray(mesh.points)[corners])
+    _on_the_boundary(mesh, res)
     capped = smooth(mesh, engine="jax", solver="newton", max_steps=7, **kw)
     assert capped.iterations == 7 and len(capped.history["objective"]) == 8
     first = smooth(mesh, engine="jax", solver="newton", newton_after=10_000, **kw)
