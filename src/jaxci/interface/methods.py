@@ -172,7 +172,8 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
         params["presmooth"] = 3
     if "polish" not in params and params.get("objective", "mean") == "mean":
         params["polish"] = True
-    newton = not host and plan.devices <= 1 and "solver" not in params and not mixed.has_extra(mesh)
+    newton = (not host and plan.devices <= 1 and "solver" not in params and not mixed.has_extra(mesh)
+              and params.get("objective", "mean") == "mean")
     if newton:  # truncated Newton where its preconditioner is built (`GradientParams.solver`)
         params["solver"] = "auto"
     pre = int(params.get("presmooth", 0))
