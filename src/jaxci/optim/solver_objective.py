@@ -154,7 +154,7 @@ def hessian_closed(v, args, conn, weight, power=None, closed: bool = True, step:
                                                        incidence)[0])(x)
 
     x, lift = jax.linearize(par.points, v)
-    _, pull = jax.vjp(par.points, v)
+    pull = jax.linear_transpose(lift, v)  # J^T: the lift's transpose, without evaluating the points again
     gx = node_grad(x)
 
     def product(p):
