@@ -230,11 +230,16 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     params = {"method": method, **dataclasses.asdict(p)}
     n_hex = int(conn.shape[1])
     on_host = devices is None and use_host(method, p, n_hex, extra)
-    if p.solver == "auto":  # truncated Newton where its preconditioner is built, on the JAX engine
-        from .coarse import AUTO_MAX_CELLS
+    # the two-level preconditioner (`jaxci.optim.coarse`) is built on the host from the mesh there: for the host's
+    # solvers, and for the JAX engine's truncated Newton where the mesh is on the host (not in a run on the device),
+    # if `precondition` asks for it at this size
+    from . import coarse  # (numpy; imported on use, as the other solvers' modules)
 
-        newton = (method == "lbfgs" and not on_host and devices is None and project is None and not extra.types
-                  and (p.precondition == "coarse" or (p.precondition == "auto" and n_hex <= AUTO_MAX_CELLS)))
+    n_cells = n_hex + sum(int(c.shape[1]) for c in extra.conns)
+    newton_m = method == "lbfgs" and devices is None and project is None
+    wants_m = p.precondition == "coarse" or (p.precondition == "auto" and n_cells <= coarse.AUTO_MAX_CELLS)
+    if p.solver == "auto":  # truncated Newton where its preconditioner is built, on the JAX engine
+        newton = not on_host and newton_m and not extra.types and wants_m
         p = dataclasses.replace(p, solver="newton" if newton else "lbfgs")
         params["solver"] = p.solver
     if nf == 0:
@@ -246,9 +251,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         raise ConfigError(f"gradient-method parameter solver='newton' is for method 'lbfgs' on one device or the "
                           f"host, not {method!r}{' sharded over devices' if devices is not None else ''}; use "
                           f"solver='lbfgs'")
-    # the two-level preconditioner (`jaxci.optim.coarse`) is built on the host from the mesh there: for the host's
-    # solvers, and for the JAX engine's truncated Newton where the mesh is on the host (not in a run on the device)
-    coarse_ok = on_host or (method == "lbfgs" and p.solver == "newton" and devices is None and project is None)
+    coarse_ok = on_host or (newton_m and p.solver == "newton")
     if p.precondition == "coarse" and not coarse_ok:
         raise ConfigError(f"gradient-method parameter precondition={p.precondition!r} is for L-BFGS on the host "
                           f"(numpy) path and for solver='newton', not {method!r} with backend={p.backend!r}"
@@ -306,13 +309,9 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             power = p.p if p.objective == "pmean" else None
             host_fn = host_fn or HostObjective(run_par, np.asarray(conn), objective_scale(n_hex, extra),
                                                kernel=_host_mixed_kernel(conn, extra, power), power=power)
-        if coarse_ok and p.precondition != "none" and precond is None:
-            from . import coarse
-
-            n_cells = n_hex + sum(int(c.shape[1]) for c in extra.conns)
-            if p.precondition == "coarse" or n_cells <= coarse.AUTO_MAX_CELLS:
-                after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
-                precond = functools.cache(lambda: coarse.build_coarse(par, _cells_by_type(conn, extra)))
+        if coarse_ok and wants_m and precond is None:
+            after = 0 if p.precondition == "coarse" else coarse.AUTO_AFTER
+            precond = functools.cache(lambda: coarse.build_coarse(par, _cells_by_type(conn, extra)))
         lbfgs_first = p.solver == "newton" and steps < p.newton_after  # L-BFGS's steps, then Newton
         lbfgs_limit = min(p.max_steps, p.newton_after if lbfgs_first else p.max_steps) - steps
         if on_host and p.solver == "newton" and not lbfgs_first:
