@@ -67,8 +67,14 @@ def armijo(v_try, value, alpha, slope):
 
 def converged(s_max, y_max, v_new, v_old, rtol, atol):
     """The Cauchy stop at an accepted iterate: the step's largest change of an unknown `s_max` below ``atol + rtol
-    y_max`` (the largest unknown) and the objective's change below ``atol + rtol |v_new|``."""
-    return (s_max < atol + rtol * y_max) & (abs(v_new - v_old) < atol + rtol * abs(v_new))
+    y_max`` (the largest unknown) and the objective's change below ``atol + rtol |v_new|`` (`settled`)."""
+    return (s_max < atol + rtol * y_max) & settled(v_new, v_old, rtol, atol)
+
+
+def settled(v_new, v_old, rtol, atol):
+    """The Cauchy test's objective half: the change from `v_old` to `v_new` below ``atol + rtol |v_new|``
+    (truncated Newton also stops on it alone, `jaxci.optim.newton`)."""
+    return abs(v_new - v_old) < atol + rtol * abs(v_new)
 
 
 def curvature_ok(sy, ss, yy, xp=np):

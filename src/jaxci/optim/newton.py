@@ -47,7 +47,7 @@ from ..runtime.phases import stepper
 from ..runtime.transfer import program
 from .coarse import coarse_apply
 from .host import amax, dot
-from .lbfgs import DECREASE, armijo, cap_factor, converged
+from .lbfgs import DECREASE, armijo, cap_factor, converged, settled
 
 #: CG products per outer iteration at most, and the largest forcing term.
 CG_MAX = 20
@@ -167,9 +167,6 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
     g0 = float(np.sqrt(dot(g, g))) or 1.0
     tick = stepper("Newton-CG")
 
-    def small(change, v):  # below the Cauchy test's tolerance on the objective
-        return abs(change) < atol + rtol * abs(v)
-
     def record():
         hf.append(f)
         hk.append(k)
@@ -212,8 +209,8 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
             steps += 1
             if g_try is not None and armijo(v_try, value, alpha, slope):
                 # the Cauchy test, or its objective half alone: a Newton iteration that gains less is the last
-                done_here = bool(converged(amax(y_try - y), amax(y_try), v_try, value, rtol, atol)) or small(
-                    value - v_try, v_try)
+                done_here = bool(converged(amax(y_try - y), amax(y_try), v_try, value, rtol, atol)) or bool(
+                    settled(v_try, value, rtol, atol))
                 y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
                 accept()
                 record()
@@ -334,7 +331,7 @@ def newton_loop(objective, hessian, args, conn, weight, y0, consts, limit, preco
             v_try, g_try, f_try, k_try = fn(y_try)
             good = jnp.isfinite(v_try) & armijo(v_try, it["value"], alpha, slope)
             done_here = converged(jnp.max(jnp.abs(y_try - it["y"])), jnp.max(jnp.abs(y_try)), v_try, it["value"],
-                                  rtol, atol) | (jnp.abs(it["value"] - v_try) < atol + rtol * jnp.abs(v_try))
+                                  rtol, atol) | settled(v_try, it["value"], rtol, atol)
             new = dict(it, y=y_try, g=g_try, value=v_try, f=f_try, k=k_try, mu=damping(it["mu"], rejected, jnp),
                        stop=done_here | finished(f_try, k_try))
             it = jax.tree.map(lambda a, b: jnp.where(good, a, b), new, it)
