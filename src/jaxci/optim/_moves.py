@@ -190,16 +190,14 @@ def surface_rings(points, faces, surf, ring, xp=np):
 
 
 def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, faces: np.ndarray,
-                   table: CornerTable | None = None, device: bool = True, place: bool = True) -> ColouredStars:
+                   table: CornerTable | None = None, place: bool = True) -> ColouredStars:
     """Group the movable nodes (class != CORNER) by `colour`, by class within a colour, with stars and bases.
 
     `faces` are the boundary faces (``BoundaryInfo.topology.faces``), for the planar-ring shortcut; `table` the
     non-hexahedral corners (`jaxci.metrics.objective.corner_table`; default none). The colouring must not give one
-    colour to two nodes of any cell (hexahedron or not). `device` False: numpy arrays for the host sweep of
-    `jaxci.optim.host_local` (indices int64; `star` the incidences ``(n_colours, M, K)`` of
-    `jaxci.optim._local.node_stars`, 8x less than the node lists), else device arrays; with `place` False the
-    device's layout and dtypes in numpy (`jaxci.optim._buckets.device_dtype`), for stars padded (`pad_stars`)
-    before they go to the device.
+    colour to two nodes of any cell (hexahedron or not). Device arrays; with `place` False the device's layout and
+    dtypes in numpy (`jaxci.optim._buckets.device_dtype`), for stars padded (`pad_stars`) before they go to the
+    device. (The host sweep makes its colours of its own, one at a time: `jaxci.optim.host_local`.)
     """
     cls = np.asarray(cons.node_class)
     n = len(cls)
@@ -214,8 +212,8 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     mask = np.concatenate([p.mask for p in parts], axis=1)
     safe = np.minimum(nodes, n - 1)
     star, nmask = stars.star[safe], stars.mask[safe]
-    if device:  # the node lists of the slots' stars alone (padding: the node itself), int32 as they go
-        star = star_nodes(np.asarray(hexes).astype(np.int32, copy=False), star, nmask, safe)
+    # the node lists of the slots' stars alone (padding: the node itself), int32 as they go
+    star = star_nodes(np.asarray(hexes).astype(np.int32, copy=False), star, nmask, safe)
     B = np.asarray(node_bases(cons))
     dims = free_dims(cons)
     dtype = cons.x_orig.dtype
@@ -227,7 +225,7 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
         rows, rmask = rows[safe], rmask[safe] & mask[..., None]
         xnodes, xwinv, xweight, xmask = table.nodes[rows], table.winv[rows], table.weight[rows], rmask
     # to_device: no compilation per shape (jnp.asarray of a numpy array compiles a small program for each)
-    put = (to_device if place else device_dtype) if device else _host_array
+    put = to_device if place else device_dtype
     # one table at a time, each per-node table dropped once gathered into the slots: at 216,000 hexahedra the
     # bases and planes are 16 and 13 MB a copy, and all of them at once were the untangling's peak
     basis = put(B[safe], dtype)
@@ -251,12 +249,6 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
         n_surface=parts[1].nodes.shape[1],
         n_edge=parts[2].nodes.shape[1],
     )
-
-
-def _host_array(a, dtype=None) -> np.ndarray:
-    """`a` as numpy for the host sweep: floats in `dtype`, indices int64."""
-    a = np.asarray(a)
-    return a if dtype is None or np.issubdtype(np.dtype(dtype), np.integer) else a.astype(dtype, copy=False)
 
 
 def slot_sizes(cs: ColouredStars) -> tuple[int, int, int]:

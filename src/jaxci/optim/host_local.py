@@ -36,13 +36,14 @@ import functools
 import numpy as np
 
 from .. import native
+from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..geometry.near import NearProjector
 from ..geometry.projection import Constraints
 from ..runtime.phases import stepper
 from . import _draws
 from ._anderson import AndersonMemory
-from ._local import edge_neighbours, gather_star, laplace_trials, local_length, longest_step, star_nodes
-from ._moves import coloured_stars, onto_plane
+from ._local import edge_neighbours, gather_star, laplace_trials, local_length, longest_step, node_stars, star_nodes
+from ._moves import onto_plane, surface_rings
 from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound, pattern_choice, sweep_done
 from .laplace import LaplaceParams
 
@@ -86,36 +87,48 @@ class _Colour:
 
 
 def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
-    """The colours of `jaxci.optim._moves.coloured_stars`, padding slots dropped. Its padded tables are taken
-    apart one at a time, each dropped once its colours are copied out (all of them and their copies at once were
-    a fifth of cube60_pert's untangling peak)."""
-    cs = coloured_stars(hexes, cons, colour, faces, device=False)
-    n = len(np.asarray(cons.node_class))
+    """The colours of `jaxci.optim._moves.coloured_stars` (the same nodes in the same order: by class, interior,
+    surface, edge, each by number; the same values), made one colour at a time without its padded tables: those
+    tables, and the per-node bases and planes they were gathered from, were cube60_pert's untangling peak."""
+    cls = np.asarray(cons.node_class)
+    n = len(cls)
+    colour = np.asarray(colour)
+    stars = node_stars(hexes, n, incidences=True)
+    movable = cls != CORNER
+    colours = np.unique(colour[movable]) if movable.any() else np.zeros(1, np.int64)
     rows = [np.full(n + 1, -1, np.int64) for _ in range(2)]
     for r, nodes in zip(rows, (cons.surface_nodes, cons.edge_nodes), strict=True):
         nodes = np.asarray(nodes)
         r[nodes] = np.arange(len(nodes))
-    bounds = np.cumsum([0, cs.n_interior, cs.n_surface, cs.n_edge])
-    keeps = [(i, keep) for i, keep in enumerate(map(np.flatnonzero, np.asarray(cs.mask))) if len(keep)]
-    tables = {k: getattr(cs, k) for k in ("nodes", "star", "smask", "basis", "dims", "plane")}
-    del cs
+    dtype = cons.x_orig.dtype
 
-    def per_colour(name, fn):  # `fn` of each colour's real rows of table `name`; the table is dropped after
-        table = tables.pop(name)
-        return [fn(table[i][keep]) for i, keep in keeps]
+    def rounded(a):  # the working dtype's rounding, in float64, as the compiled sweep's tables hold them
+        return np.asarray(np.asarray(a, np.float64).astype(dtype), np.float64)
 
-    nodes = per_colour("nodes", lambda a: np.asarray(a, np.int64))
-    inc = per_colour("star", lambda a: np.ascontiguousarray(a, np.int64))
-    count = per_colour("smask", lambda a: np.asarray(a.sum(axis=1), np.int64))
-    basis = per_colour("basis", lambda a: np.asarray(a, np.float64))
-    free = per_colour("dims", lambda a: (np.arange(3)[None] < np.asarray(a)[:, None]).astype(np.float64))
-    plane = per_colour("plane", lambda a: np.asarray(a, np.float64))
+    surface_basis, edge_tangent = rounded(cons.surface_basis), rounded(cons.edge_tangent)
+    surf = np.asarray(cons.surface_nodes)
+    rings = rounded(surface_rings(np.asarray(cons.x_orig, np.float64), faces, surf,
+                                  np.asarray(cons.surface_cand)[: len(surf)] // 4))
+    by_class = [(c, np.flatnonzero(cls == c)) for c in (INTERIOR, SURFACE, EDGE)]
     out = []
-    for j, (i, keep) in enumerate(keeps):
-        a, b = np.searchsorted(keep, bounds[1:3])
+    for i, c in enumerate(colours):
+        parts = [ids[colour[ids] == c] for _, ids in by_class]
+        nodes = np.concatenate(parts).astype(np.int64)
+        if not len(nodes):
+            continue
+        a, b = len(parts[0]), len(parts[0]) + len(parts[1])
+        srow, erow = rows[0][nodes[a:b]], rows[1][nodes[b:]]
+        basis = np.zeros((len(nodes), 3, 3))
+        basis[:a] = np.eye(3)
+        basis[a:b, :, :2] = surface_basis[srow].transpose(0, 2, 1)
+        basis[b:, :, 0] = edge_tangent[erow]
+        free = (np.arange(3)[None] < np.repeat([3, 2, 1], [a, b - a, len(nodes) - b])[:, None]).astype(np.float64)
+        plane = np.zeros((len(nodes), 7))
+        plane[a:b] = rings[srow]
         out.append(_Colour(
-            nodes=nodes[j], inc=inc[j], count=count[j], basis=basis[j], free=free[j], plane=plane[j], a=int(a),
-            b=int(b), srow=rows[0][nodes[j][a:b]], erow=rows[1][nodes[j][b:]], index=i))
+            nodes=nodes, inc=np.ascontiguousarray(stars.star[nodes], np.int64),
+            count=stars.mask[nodes].sum(axis=1).astype(np.int64), basis=basis, free=free, plane=plane, a=a, b=b,
+            srow=srow, erow=erow, index=i))
     return out
 
 
