@@ -84,20 +84,21 @@ def test_aggregates_cover_every_node_within_the_budget():
         assert k <= most and np.array_equal(np.unique(agg), np.arange(k))  # numbered 0..k-1, none empty
 
 
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("dtype", [np.float64, np.float16])
 def test_the_c_two_loop_recursion_with_the_preconditioner_is_the_numpy_one(dtype, monkeypatch):
     if not native.AVAILABLE:
         pytest.skip("the C kernels are not built")
     par, pc = _space(wavy_annulus(16, 2, 2))
     n, rng = par.n_free, np.random.default_rng(2)
+    monkeypatch.setattr(host, "HISTORY_F16_FROM", n if dtype == np.float16 else n + 1)
     mem = host._Memory(n, 5)
+    assert mem.S.dtype == dtype
     mem.use(pc)
-    mem.S, mem.Y = mem.S.astype(dtype), mem.Y.astype(dtype)
     g = rng.standard_normal(n)
     np.testing.assert_allclose(mem.direction(g), -pc(g), rtol=1e-12, atol=1e-12 * np.abs(pc(g)).max())  # no pairs
     for _ in range(7):  # more pairs than the memory holds: the ring buffer wraps
         s = rng.standard_normal(n)
-        mem.push(s, s + 0.2 * rng.standard_normal(n))
+        mem.push(mem.stored(s + 0.0), mem.stored(s + 0.2 * rng.standard_normal(n)))
     assert len(mem.order) == 5 and mem.gamma > 0
     g = rng.standard_normal(n)
     d_c = mem.direction(g)

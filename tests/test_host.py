@@ -102,9 +102,9 @@ def test_numpy_lbfgs_reaches_the_compiled_result(shape):
 
 
 @pytest.mark.skipif(not native.AVAILABLE, reason="needs the C kernels (jaxci.native)")
-def test_float32_lbfgs_memory_of_a_large_problem_reaches_the_same_mesh(monkeypatch):
-    """From `HISTORY_F32_FROM` free coordinates the host L-BFGS keeps its pairs in float32 (half the memory,
-    its largest part at 10^6 hexahedra): forced here on a small box, the run reaches the ideal grid as the
+def test_float16_lbfgs_memory_of_a_large_problem_reaches_the_same_mesh(monkeypatch):
+    """From `HISTORY_F16_FROM` free coordinates the host L-BFGS keeps its pairs in float16 (a quarter of the
+    memory, its largest part at 10^6 hexahedra): forced here on a small box, the run reaches the ideal grid as the
     float64 memory does, in about as many steps."""
     from jaxci.optim import host
 
@@ -118,9 +118,9 @@ def test_float32_lbfgs_memory_of_a_large_problem_reaches_the_same_mesh(monkeypat
         made.append(self.S.dtype)
 
     monkeypatch.setattr(host._Memory, "__init__", spy)
-    monkeypatch.setattr(host, "HISTORY_F32_FROM", 1)
+    monkeypatch.setattr(host, "HISTORY_F16_FROM", 1)
     run = smooth(mesh, "lbfgs", backend="numpy")
-    assert made and all(d == np.float32 for d in made)
+    assert made and all(d == np.float16 for d in made)
     assert run.after.max_condition <= 1.0 + 1e-5 and ref.after.max_condition <= 1.0 + 1e-5
     assert run.after.inverted_elements == 0
     assert abs(run.iterations - ref.iterations) <= max(5, ref.iterations // 5)

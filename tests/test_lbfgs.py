@@ -44,7 +44,7 @@ def test_the_recursion_on_gram_matrices_is_the_two_loop_recursion(pushes, m, sta
     mem = host._Memory(n, m)
     for p in range(pushes):  # the loop's ring buffer: push p in slot p % m
         slots_s[p % m], slots_y[p % m], age[p % m] = s[p], y[p], p
-        mem.push(s[p], y[p])
+        mem.push(mem.stored(s[p]), mem.stored(y[p]))  # float64 pairs: stored as they are
     newest = int(np.argmax(age))
     gamma = float(slots_s[newest] @ slots_y[newest] / (slots_y[newest] @ slots_y[newest])) if pushes else 1.0
     sy, yy, a, b = slots_s @ slots_y.T, slots_y @ slots_y.T, slots_s @ g, slots_y @ g

@@ -266,31 +266,36 @@ def test_face_spheres_change_nothing_in_the_search():
         plain.commit(hp)
 
 
-@pytest.mark.parametrize("f32", [False, True])
+@pytest.mark.parametrize("f16", [False, True])
 @pytest.mark.parametrize("history", [1, 3, 10])
-def test_lbfgs_direction_in_c_is_the_two_loop_recursion(history, f32, monkeypatch):
+def test_lbfgs_direction_in_c_is_the_two_loop_recursion(history, f16, monkeypatch):
     """The L-BFGS memory of `jaxci.optim.host` (ring buffers, oldest slot reused): the C two-loop recursion and
-    the numpy one agree, before and after the ring wraps, with float64 pairs and with the float32 pairs of a
-    large problem (`HISTORY_F32_FROM`; rho then from the rounded pair); an empty memory gives -g; a pair of
-    non-positive curvature is not stored."""
+    the numpy one agree, before and after the ring wraps, with float64 pairs and with the float16 pairs of a
+    large problem (`HISTORY_F16_FROM`: each vector times a power of two, rho then from the stored pair); an empty
+    memory gives -g; a pair of non-positive curvature is not stored."""
     from jaxci.optim import host
 
     rng = np.random.default_rng(history)
     n = 500
-    monkeypatch.setattr(host, "HISTORY_F32_FROM", n if f32 else 10 * n)
+    monkeypatch.setattr(host, "HISTORY_F16_FROM", n if f16 else 10 * n)
     mem = host._Memory(n, history)
-    assert mem.S.dtype == (np.float32 if f32 else np.float64)
+    assert mem.S.dtype == (np.float16 if f16 else np.float64)
     g = rng.normal(size=n)
     np.testing.assert_array_equal(mem.direction(g), -g)
     s = rng.normal(size=n)
-    mem.push(s, -s)
+    mem.push(mem.stored(s.copy()), mem.stored(-s))
     assert mem.order == []
     for _ in range(history + 3):
-        s = rng.normal(size=n)
-        y = s + 0.1 * rng.normal(size=n)
-        mem.push(s, y)
+        s = rng.normal(size=n) * 10.0 ** rng.uniform(-9, 3)  # any magnitude: the row's power of two follows it
+        y = s + 0.1 * rng.normal(size=n) * np.abs(s).max()
+        mem.push(mem.stored(s.copy()), mem.stored(y.copy()))
         k = mem.order[-1]
-        s_, y_ = (s.astype(np.float32).astype(float), y.astype(np.float32).astype(float)) if f32 else (s, y)
+        s_, y_ = mem.S[k] * mem.inv_scale[0, k], mem.Y[k] * mem.inv_scale[1, k]  # the pair as stored, float64
+        if f16:
+            assert 2.0 ** 14 <= np.abs(mem.S[k]).max() <= 2.0 ** 15
+            np.testing.assert_allclose(s_, s, rtol=2.0 ** -11, atol=2.0 ** -25 * np.abs(s).max())
+        else:
+            np.testing.assert_array_equal(s_, s)
         assert mem.rho[k] == pytest.approx(1.0 / float(s_ @ y_), rel=1e-13)
         fast = mem.direction(g)
         monkeypatch.setattr(native, "AVAILABLE", False)

@@ -30,7 +30,8 @@ static int get_buffer(PyObject *obj, Py_buffer *view, const char *name, const ch
     if (view->itemsize != itemsize || view->format == NULL || strchr(fmt, view->format[0]) == NULL ||
         view->format[1] != '\0') {
         PyErr_Format(PyExc_TypeError, "%s: expected a contiguous array of %s, got format '%s'", name,
-                     fmt[0] == '?' ? "bool" : (fmt[0] == 'd' ? "float64" : (fmt[0] == 'i' ? "int32" : "int64")),
+                     fmt[0] == '?' ? "bool" : fmt[0] == 'd' ? "float64" : fmt[0] == 'e' ? "float16" :
+                     fmt[0] == 'i' ? "int32" : "int64",
                      view->format ? view->format : "?");
         PyBuffer_Release(view);
         return -1;
@@ -47,7 +48,7 @@ typedef struct {
 
 static int acquire(Buf *b, PyObject *obj, const char *name, const char *fmt, int writable, int optional) {
     if (obj == Py_None && optional) return 0;
-    Py_ssize_t itemsize = fmt[0] == '?' ? 1 : (fmt[0] == 'i' || fmt[0] == 'f' ? 4 : 8);
+    Py_ssize_t itemsize = fmt[0] == '?' ? 1 : fmt[0] == 'e' ? 2 : (fmt[0] == 'i' || fmt[0] == 'f' ? 4 : 8);
     if (get_buffer(obj, &b->view, name, fmt, itemsize, writable) < 0) return -1;
     b->held = 1;
     return 0;
@@ -990,14 +991,35 @@ static int coarse_acquire(Coarse *pc, Buf *B, PyObject *const *o, Py_ssize_t n, 
     return 0;
 }
 
-/* The two-loop recursion of lbfgs_direction over pairs stored as T (double, or float for a large memory):
- * q = -H g, the sums in double. Each pass over the vectors updates q and takes the next pair's dot product with
+/* The value of a float16 (IEEE binary16) `h`, exactly: its magnitude's bits moved into a float's and scaled by
+ * 2^112 (the difference of the exponent biases; a subnormal half lands on a subnormal float first), then its
+ * sign. */
+static float half_value(uint16_t h) {
+    uint32_t u = (uint32_t)(h & 0x7fffu) << 13;
+    float f;
+    memcpy(&f, &u, 4);
+    f *= 0x1p112f;
+    memcpy(&u, &f, 4);
+    u |= (uint32_t)(h & 0x8000u) << 16;
+    memcpy(&f, &u, 4);
+    return f;
+}
+
+/* Every float16's value (filled at import, 256 kB): the two-loop recursion reads its pairs through it, 2.5x as
+ * fast as converting each value in the loop (which the compiler does not vectorise). */
+static float HALF[65536];
+
+/* The two-loop recursion of lbfgs_direction over pairs stored as T (double, or float16 for a large memory, read
+ * by PAIR_VALUE): q = -H g, the sums in double. A float16 row holds its pair's vector times a power of two; IS[slot] and
+ * IY[slot] (NULL: 1) are their inverses, folded into each pass's scalar (c) and dot product, so that the passes
+ * read the stored values alone. Each pass over the vectors updates q and takes the next pair's dot product with
  * the updated entries (one pass per pair instead of two), and every dot product is summed in four interleaved
  * partial sums: the dependent chain of one sum's additions bounded the loop (5,572 unknowns, 10 pairs: 0.18 ->
  * 0.05 ms; the same sums in another order, so the last bits of a direction differ from a single sum's). */
 #define TWO_LOOP(NAME, T)                                                                                        \
     static void NAME(const double *G, const T *SS, const T *YY, const double *R, const long long *O,             \
-                     Py_ssize_t k, Py_ssize_t n, double *q, const Coarse *PC) {                                  \
+                     const double *IS, const double *IY, Py_ssize_t k, Py_ssize_t n, double *q,                  \
+                     const Coarse *PC) {                                                                         \
         double alpha[64], gamma = 1.0, c;                                                                        \
         Py_ssize_t n4 = n - n % 4;                                                                               \
         double d[4], dot; /* dot: v . q of the q already written (UPDATE_DOT) */                                 \
@@ -1005,9 +1027,9 @@ static int coarse_acquire(Coarse *pc, Buf *B, PyObject *const *o, Py_ssize_t n, 
         UPDATE_DOT(q[i] = G[i])                                                                                  \
         for (Py_ssize_t t = k - 1; t >= 0; t--) {                                                                \
             x = YY + O[t] * n;                                                                                   \
-            c = -(alpha[t] = R[O[t]] * dot);                                                                     \
+            c = -(alpha[t] = R[O[t]] * dot * (IS ? IS[O[t]] : 1.0)) * (IY ? IY[O[t]] : 1.0);                     \
             v = t ? SS + O[t - 1] * n : NULL;                                                                    \
-            UPDATE_DOT(q[i] += c * (double)x[i])                                                                 \
+            UPDATE_DOT(q[i] += c * PAIR_VALUE(x, i))                                                             \
         }                                                                                                        \
         if (PC) { /* H0 = gamma M, the two-level preconditioner; then the first forward dot */                   \
             coarse_apply(PC, q, n);                                                                              \
@@ -1015,7 +1037,7 @@ static int coarse_acquire(Coarse *pc, Buf *B, PyObject *const *o, Py_ssize_t n, 
             d[0] = d[1] = d[2] = d[3] = 0.0;                                                                     \
             for (Py_ssize_t i = 0; i < n; i++) {                                                                 \
                 q[i] *= PC->gamma;                                                                               \
-                if (y0) d[i & 3] += (double)y0[i] * q[i];                                                        \
+                if (y0) d[i & 3] += PAIR_VALUE(y0, i) * q[i];                                                    \
             }                                                                                                    \
             dot = (d[0] + d[1]) + (d[2] + d[3]);                                                                 \
         } else if (k) {                                                                                          \
@@ -1023,22 +1045,23 @@ static int coarse_acquire(Coarse *pc, Buf *B, PyObject *const *o, Py_ssize_t n, 
             double sy[4] = {0.0, 0.0, 0.0, 0.0}, yy[4] = {0.0, 0.0, 0.0, 0.0};                                   \
             for (Py_ssize_t i = 0; i < n4; i += 4)                                                               \
                 for (int j = 0; j < 4; j++) {                                                                    \
-                    sy[j] += (double)s[i + j] * (double)y[i + j];                                                \
-                    yy[j] += (double)y[i + j] * (double)y[i + j];                                                \
+                    sy[j] += PAIR_VALUE(s, i + j) * PAIR_VALUE(y, i + j);                                        \
+                    yy[j] += PAIR_VALUE(y, i + j) * PAIR_VALUE(y, i + j);                                        \
                 }                                                                                                \
             for (Py_ssize_t i = n4; i < n; i++) {                                                                \
-                sy[0] += (double)s[i] * (double)y[i];                                                            \
-                yy[0] += (double)y[i] * (double)y[i];                                                            \
+                sy[0] += PAIR_VALUE(s, i) * PAIR_VALUE(y, i);                                                    \
+                yy[0] += PAIR_VALUE(y, i) * PAIR_VALUE(y, i);                                                    \
             }                                                                                                    \
             gamma = ((sy[0] + sy[1]) + (sy[2] + sy[3])) / ((yy[0] + yy[1]) + (yy[2] + yy[3]));                   \
+            if (IS) gamma *= IS[O[k - 1]] / IY[O[k - 1]];                                                        \
             v = YY + O[0] * n;                                                                                   \
             UPDATE_DOT(q[i] *= gamma)                                                                            \
         }                                                                                                        \
         for (Py_ssize_t t = 0; t < k; t++) {                                                                     \
             x = SS + O[t] * n;                                                                                   \
-            c = alpha[t] - R[O[t]] * dot;                                                                        \
+            c = (alpha[t] - R[O[t]] * dot * (IY ? IY[O[t]] : 1.0)) * (IS ? IS[O[t]] : 1.0);                      \
             v = t + 1 < k ? YY + O[t + 1] * n : NULL;                                                            \
-            UPDATE_DOT(q[i] += c * (double)x[i])                                                                 \
+            UPDATE_DOT(q[i] += c * PAIR_VALUE(x, i))                                                             \
         }                                                                                                        \
         for (Py_ssize_t i = 0; i < n; i++) q[i] = -q[i];                                                         \
     }
@@ -1051,54 +1074,62 @@ static int coarse_acquire(Coarse *pc, Buf *B, PyObject *const *o, Py_ssize_t n, 
             for (int j = 0; j < 4; j++) {                                                                        \
                 Py_ssize_t i = i4 + j;                                                                           \
                 STEP;                                                                                            \
-                d[j] += (double)v[i] * q[i];                                                                     \
+                d[j] += PAIR_VALUE(v, i) * q[i];                                                                 \
             }                                                                                                    \
         for (Py_ssize_t i = n4; i < n; i++) {                                                                    \
             STEP;                                                                                                \
-            d[0] += (double)v[i] * q[i];                                                                         \
+            d[0] += PAIR_VALUE(v, i) * q[i];                                                                     \
         }                                                                                                        \
     } else {                                                                                                     \
         for (Py_ssize_t i = 0; i < n; i++) STEP;                                                                 \
     }                                                                                                            \
     dot = (d[0] + d[1]) + (d[2] + d[3]);
+#define PAIR_VALUE(p, i) ((p)[i])
 TWO_LOOP(two_loop_f8, double)
-TWO_LOOP(two_loop_f4, float)
+#undef PAIR_VALUE
+#define PAIR_VALUE(p, i) ((double)HALF[(p)[i]])
+TWO_LOOP(two_loop_f2, uint16_t)
+#undef PAIR_VALUE
 #undef TWO_LOOP
 #undef UPDATE_DOT
 
-/* lbfgs_direction(g (n,) f8, S (m, n) f8 or f4, Y (m, n) as S, rho (m,) f8, order (k,) i8, out (n,) f8
- *                 [, gamma, block (n,) i8, z (n, 3) f8, coarse_inv (mc, mc) f8, inv_diag (n,) f8]) -> None:
+/* lbfgs_direction(g (n,) f8, S (m, n) f8 or f2, Y (m, n) as S, rho (m,) f8, order (k,) i8, out (n,) f8
+ *                 [, gamma, block (n,) i8, z (n, 3) f8, coarse_inv (mc, mc) f8, inv_diag (n,) f8, inv_scale (2, m) f8])
+ *                 -> None:
  * out = -H g by the L-BFGS two-loop recursion over the pairs (S[i], Y[i], rho[i] = 1 / S[i].Y[i]) for i in
  * `order` (oldest first), the initial matrix scaled by s.y / y.y of the newest pair (jaxci.optim.host._direction),
  * or, given the preconditioner's arrays, gamma M (jaxci.optim.coarse; gamma from the caller).
- * float32 pairs: the memory of a large problem (jaxci.optim.host.HISTORY_F32_FROM), the arithmetic in double. */
+ * float16 pairs: the memory of a large problem (jaxci.optim.host.HISTORY_F16_FROM), each row its vector times a
+ * power of two whose inverses `inv_scale` gives (row 0: S's, row 1: Y's; required with float16 pairs); the
+ * arithmetic in double. */
 static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
     static const Arg spec[6] = {{"g", "d"}, {"S", "d"}, {"Y", "d"}, {"rho", "d"}, {"order", "qlq"}, {"out", "d", 1}},
-                     spec_f4[2] = {{"S", "f"}, {"Y", "f"}};
-    PyObject *o[10] = {NULL, NULL, NULL, NULL, NULL, NULL, Py_None, Py_None, Py_None, Py_None}, *ret = NULL;
+                     spec_f2[2] = {{"S", "e"}, {"Y", "e"}}, spec_scale = {"inv_scale", "d"};
+    PyObject *o[11] = {NULL, NULL, NULL, NULL, NULL, NULL, Py_None, Py_None, Py_None, Py_None, Py_None};
+    PyObject *ret = NULL;
     double gamma = 1.0;
-    if (!PyArg_ParseTuple(args, "OOOOOO|dOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &gamma, &o[6], &o[7], &o[8],
-                          &o[9]))
+    if (!PyArg_ParseTuple(args, "OOOOOO|dOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &gamma, &o[6], &o[7],
+                          &o[8], &o[9], &o[10]))
         return NULL;
-    Buf B[10] = {{{0}}};
+    Buf B[11] = {{{0}}};
     Coarse pc = {0}, *PC = NULL;
-    int f4 = 0;
-    if (PyObject_CheckBuffer(o[1])) { /* float32 pairs? (the format decides which loop runs) */
+    int f2 = 0;
+    if (PyObject_CheckBuffer(o[1])) { /* float16 pairs? (the format decides which loop runs) */
         Py_buffer v;
         if (PyObject_GetBuffer(o[1], &v, PyBUF_FORMAT) == 0) {
-            f4 = v.itemsize == 4 && v.format && v.format[0] == 'f' && v.format[1] == '\0';
+            f2 = v.itemsize == 2 && v.format && v.format[0] == 'e' && v.format[1] == '\0';
             PyBuffer_Release(&v);
         } else {
             PyErr_Clear();
         }
     }
-    if (acquire_args(B, o, spec, 1) < 0 || acquire_args(B + 1, o + 1, f4 ? spec_f4 : spec + 1, 2) < 0 ||
-        acquire_args(B + 3, o + 3, spec + 3, 3) < 0)
+    if (acquire_args(B, o, spec, 1) < 0 || acquire_args(B + 1, o + 1, f2 ? spec_f2 : spec + 1, 2) < 0 ||
+        acquire_args(B + 3, o + 3, spec + 3, 3) < 0 || (f2 && acquire_args(B + 10, o + 10, &spec_scale, 1) < 0))
         goto done;
-    Py_ssize_t n = B[0].view.len / 8, m = B[3].view.len / 8, k = B[4].view.len / 8, w = f4 ? 4 : 8;
+    Py_ssize_t n = B[0].view.len / 8, m = B[3].view.len / 8, k = B[4].view.len / 8, w = f2 ? 2 : 8;
     const long long *O = B[4].view.buf;
     if (B[5].view.len != B[0].view.len || B[1].view.len != m * n * w || B[2].view.len != B[1].view.len || k > m ||
-        k > 64) {
+        k > 64 || (f2 && B[10].view.len != 2 * m * 8)) {
         PyErr_SetString(PyExc_ValueError, "lbfgs_direction: shapes disagree (or more than 64 pairs)");
         goto done;
     }
@@ -1108,18 +1139,49 @@ static PyObject *lbfgs_direction(PyObject *self, PyObject *args) {
         pc.gamma = gamma;
         PC = &pc;
     }
-    const double *G = B[0].view.buf, *R = B[3].view.buf;
+    const double *G = B[0].view.buf, *R = B[3].view.buf, *IS = f2 ? B[10].view.buf : NULL, *IY = IS ? IS + m : NULL;
     double *q = B[5].view.buf;
     Py_BEGIN_ALLOW_THREADS
-    if (f4)
-        two_loop_f4(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q, PC);
+    if (f2)
+        two_loop_f2(G, B[1].view.buf, B[2].view.buf, R, O, IS, IY, k, n, q, PC);
     else
-        two_loop_f8(G, B[1].view.buf, B[2].view.buf, R, O, k, n, q, PC);
+        two_loop_f8(G, B[1].view.buf, B[2].view.buf, R, O, NULL, NULL, k, n, q, PC);
     Py_END_ALLOW_THREADS
     ret = Py_NewRef(Py_None);
 done:
     PyMem_Free(pc.work);
-    release(B, 10);
+    release(B, 11);
+    return ret;
+}
+
+/* half_dots(a (n,) f2, b (n,) f2) -> (a.b, a.a, b.b): the curvature sums of a float16 pair as stored (its
+ * values' products exact in double, summed in double), one pass (numpy's einsum over float16 took 3 ms a sum at
+ * 680,000 unknowns). */
+static PyObject *half_dots(PyObject *self, PyObject *args) {
+    static const Arg spec[2] = {{"a", "e"}, {"b", "e"}};
+    PyObject *o[2];
+    if (!PyArg_ParseTuple(args, "OO", &o[0], &o[1])) return NULL;
+    Buf B[2] = {{{0}}};
+    PyObject *ret = NULL;
+    if (acquire_args(B, o, spec, 2) < 0) goto done;
+    if (B[0].view.len != B[1].view.len) {
+        PyErr_SetString(PyExc_ValueError, "half_dots: shapes disagree");
+        goto done;
+    }
+    const uint16_t *a = B[0].view.buf, *b = B[1].view.buf;
+    Py_ssize_t n = B[0].view.len / 2;
+    double ab = 0.0, aa = 0.0, bb = 0.0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double x = HALF[a[i]], y = HALF[b[i]];
+        ab += x * y;
+        aa += x * x;
+        bb += y * y;
+    }
+    Py_END_ALLOW_THREADS
+    ret = Py_BuildValue("(ddd)", ab, aa, bb);
+done:
+    release(B, 2);
     return ret;
 }
 
@@ -1959,6 +2021,7 @@ static PyMethodDef methods[] = {
     {"corner_condition", corner_condition, METH_VARARGS, "terms of a corner table of any cell type and their gradient"},
     {"near_project", near_project, METH_VARARGS, "boundary nodes to their nearest candidate triangle or segment"},
     {"lbfgs_direction", lbfgs_direction, METH_VARARGS, "the L-BFGS two-loop recursion"},
+    {"half_dots", half_dots, METH_VARARGS, "the curvature sums of a float16 L-BFGS pair"},
     {"coarse_apply", py_coarse_apply, METH_VARARGS, "the two-level preconditioner of jaxci.optim.coarse"},
     {"untangle_energy", untangle_energy, METH_VARARGS, "the untangling energy of hexahedra and its gradient"},
     {"local_sums", local_sums, METH_VARARGS, "local objective sums of trial positions of nodes in their stars"},
@@ -1974,9 +2037,10 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_ckernels", "jaxci's fused C kernels", -1, methods};
 
 PyMODINIT_FUNC PyInit__ckernels(void) {
+    for (int h = 0; h < 65536; h++) HALF[h] = half_value((uint16_t)h);
     PyObject *m = PyModule_Create(&module);
     /* the interface's version (jaxci.cells.KERNELS_ABI): a build of older sources is refused, not run */
-    if (m != NULL && PyModule_AddIntConstant(m, "ABI", 3) < 0) {
+    if (m != NULL && PyModule_AddIntConstant(m, "ABI", 4) < 0) {
         Py_DECREF(m);
         return NULL;
     }

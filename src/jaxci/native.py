@@ -219,16 +219,19 @@ def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.
 
 
 def lbfgs_direction(g: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,
-                    out: np.ndarray, gamma: float = 1.0, precond=None) -> None:
+                    out: np.ndarray, gamma: float = 1.0, precond=None, inv_scale: np.ndarray | None = None) -> None:
     """``out = -H g``: the L-BFGS two-loop recursion over the pairs ``(S[i], Y[i], rho[i])`` for ``i`` in `order`
-    (oldest first; at most 64), in C (`jaxci.optim.host`'s memory). Float64 arrays (`S` and `Y` float64 or both
-    float32), `order` int64. The initial inverse Hessian is ``s.y / y.y`` I of the newest pair, or with `precond`
-    (a `jaxci.optim.coarse.CoarseSpace`) ``gamma M``."""
-    if precond is None:
-        _c.lbfgs_direction(g, S, Y, rho, order, out)
-    else:
-        _c.lbfgs_direction(g, S, Y, rho, order, out, float(gamma), precond.block, precond.z, precond.coarse_inv,
-                           precond.inv_diag)
+    (oldest first; at most 64), in C (`jaxci.optim.host`'s memory). Float64 arrays (`S` and `Y` float64, or both
+    float16 with `inv_scale` ``(2, m)``: the pair's vectors are ``S[i] * inv_scale[0, i]`` and ``Y[i] *
+    inv_scale[1, i]``), `order` int64. The initial inverse Hessian is ``s.y / y.y`` I of the newest pair, or with
+    `precond` (a `jaxci.optim.coarse.CoarseSpace`) ``gamma M``."""
+    pc = (None,) * 4 if precond is None else (precond.block, precond.z, precond.coarse_inv, precond.inv_diag)
+    _c.lbfgs_direction(g, S, Y, rho, order, out, float(gamma), *pc, inv_scale)
+
+
+def half_dots(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
+    """``(a.b, a.a, b.b)`` of two float16 vectors, summed in float64 (a pair of the host L-BFGS memory)."""
+    return _c.half_dots(a, b)
 
 
 def coarse_apply(q: np.ndarray, precond) -> np.ndarray:

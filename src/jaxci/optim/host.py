@@ -22,6 +22,7 @@ construction.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 
@@ -61,13 +62,21 @@ HOST_MAX = 20_000_000 if native.AVAILABLE else 30_000
 #: kernels (machine loaded; 2026-11-24, 66d2f51): cube60_pert 8.4 s against 12.3 s cold.
 UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 
-#: From this many free coordinates (about 80,000 hexahedra) the host L-BFGS memory holds its pairs in float32 (the
-#: C two-loop recursion reads them, the sums in float64; each pair's curvature is that of the rounded pair): 240 MB
-#: instead of 480 MB at 10^6 hexahedra (10 pairs of 3 M unknowns), the largest part of the run's peak; and the
-#: recursion, which streams the pairs from memory twice a step, takes half as long (cube60_pert, 680,000 unknowns:
-#: 30 ms a step in float64; the smooth phase 3.9 -> 3.1-3.5 s, the same 37 iterations, max kappa/3 equal to 1e-12).
-#: Below it every result is as before, bit for bit. (10^6 from 55d02f9 on, 250,000 from c2dff04 on.)
-HISTORY_F32_FROM = 250_000
+#: From this many free coordinates (about 80,000 hexahedra) the host L-BFGS memory holds its pairs in float16, each
+#: vector times a power of two that puts its largest entry in [2^14, 2^15) (relative rounding 2^-11; entries down to
+#: 2^-29 of the largest still normal); the C two-loop recursion reads them through a table of every float16's value
+#: and folds the powers of two into its scalars, the sums in float64, and each pair's curvature is that of the
+#: stored pair. 120 MB instead of 240 (float32) or 480 MB (float64) at 10^6 hexahedra (10 pairs of 3 M unknowns), the
+#: largest part of the run's peak; a step's memory work 24 ms instead of 35 ms (float64) at 680,000 unknowns.
+#: Below it every result is as before, bit for bit. Measured against float32 pairs (2026-11-29, 2-core VM, the
+#: default pipeline, `jaxci smooth`): a curved annulus of 98,304 hexahedra (its nodes moved along its walls: 294,000
+#: unknowns) max kappa/3 1.26052 against 1.26031, the mean element +0.007%, 473 steps against 865, 33 s against 47 s;
+#: a perturbed 48^3 box the same 35 steps to max kappa/3 1.0. With the bound lowered so that 7 meshes of the
+#: real-mesh corpus (14,000 to 75,000 unknowns) reach it, the worst element moved by -0.30% to +0.56% in two runs
+#: (the last bits of the curvature sums, summed in another order, moved it by as much: L-BFGS's path on these
+#: meshes is that sensitive; float32 against float64 pairs moved it by -0.85% to +0.16%), the mean element within
+#: 0.07%.
+HISTORY_F16_FROM = 250_000
 
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
@@ -248,14 +257,16 @@ def amax(a: np.ndarray) -> float:
 
 class _Memory:
     """The L-BFGS memory: up to `history` pairs ``(s, y, 1 / s.y)`` in ring buffers ``(history, n)``, float64, or
-    float32 from `HISTORY_F32_FROM` unknowns (with the C kernels). The initial inverse Hessian is ``s.y / y.y`` I
-    of the newest pair, or after `use` ``gamma M`` with ``gamma = s.y / y.M y``."""
+    float16 from `HISTORY_F16_FROM` unknowns (with the C kernels; `inv_scale` ``(2, history)``: the inverse of each
+    row's power of two, S's then Y's). The initial inverse Hessian is ``s.y / y.y`` I of the newest pair, or after
+    `use` ``gamma M`` with ``gamma = s.y / y.M y``."""
 
     def __init__(self, n: int, history: int):
         self.history = history
         self.precond = None  # M (`use`): a fixed symmetric positive definite `jaxci.optim.coarse.CoarseSpace`
         self.gamma = 1.0
-        dtype = np.float32 if n >= HISTORY_F32_FROM and native.AVAILABLE else np.float64
+        dtype = np.float16 if n >= HISTORY_F16_FROM and native.AVAILABLE else np.float64
+        self.inv_scale = np.ones((2, history))
         # all `history` rows at once, never grown: a large np.empty is mapped, not touched, so a row costs memory
         # only once a pair is written to it (growing by concatenation held the old and the new buffers at once:
         # 480 MB more at 10^6 hexahedra, the peak of the run)
@@ -263,16 +274,29 @@ class _Memory:
         self.rho = np.zeros(history)
         self.order: list[int] = []  # slots, oldest first
 
-    def push(self, s: np.ndarray, y: np.ndarray) -> None:
-        """Store the pair ``(s, y)`` if its curvature ``s.y`` (of the pair as stored) is clearly positive, in
-        place of the oldest once full."""
-        if self.S.dtype != np.float64:  # the curvature of the rounded pair: rho then matches what the loop reads
-            s, y = s.astype(self.S.dtype), y.astype(self.S.dtype)
-        sy = dot(s, y)
-        if not curvature_ok(sy, dot(s, s), dot(y, y)):
+    def stored(self, v: np.ndarray) -> tuple[np.ndarray, float]:
+        """A vector of a pair as the memory stores it, ``(row, inverse scale)``: `v` itself (float64 memory), or
+        float16 of `v` times the power of two that puts ``max |v|`` in [2^14, 2^15) (`v`, a temporary of the
+        caller's, is scaled in place; it may go as soon as this returns)."""
+        if self.S.dtype == np.float64:
+            return v, 1.0
+        top = amax(v)
+        k = math.ldexp(1.0, 15 - math.frexp(top)[1]) if top > 0 else 1.0
+        v *= k
+        return v.astype(np.float16), 1.0 / k
+
+    def push(self, s: tuple[np.ndarray, float], y: tuple[np.ndarray, float]) -> None:
+        """Store the pair ``(s, y)`` (each from `stored`) if its curvature ``s.y`` (of the pair as stored) is
+        clearly positive, in place of the oldest once full."""
+        (s, i_s), (y, i_y) = s, y
+        # the curvature of the stored pair: rho then matches what the loop reads
+        sy, ss, yy = native.half_dots(s, y) if s.dtype == np.float16 else (dot(s, y), dot(s, s), dot(y, y))
+        sy, ss, yy = sy * (i_s * i_y), ss * (i_s * i_s), yy * (i_y * i_y)
+        if not curvature_ok(sy, ss, yy):
             return
         slot = self.order.pop(0) if len(self.order) == self.history else len(self.order)
         self.S[slot], self.Y[slot], self.rho[slot] = s, y, 1.0 / sy
+        self.inv_scale[:, slot] = i_s, i_y
         self.order.append(slot)
         if self.precond is not None:
             self._scale_newest()
@@ -286,7 +310,7 @@ class _Memory:
     def _scale_newest(self) -> None:
         """``gamma = s.y / y.M y`` of the newest pair (as stored)."""
         k = self.order[-1]
-        y = self.Y[k].astype(np.float64)
+        y = self.Y[k].astype(np.float64) * self.inv_scale[1, k]
         self.gamma = 1.0 / (self.rho[k] * dot(y, self.precond(y)))
 
     def clear(self) -> None:
@@ -299,9 +323,12 @@ class _Memory:
         pc = self.precond
         if native.AVAILABLE and len(self.order) <= 64:
             out = np.empty_like(g)
-            native.lbfgs_direction(g, self.S, self.Y, self.rho, np.asarray(self.order, np.int64), out, self.gamma, pc)
+            native.lbfgs_direction(g, self.S, self.Y, self.rho, np.asarray(self.order, np.int64), out, self.gamma, pc,
+                                   None if self.S.dtype == np.float64 else self.inv_scale)
             return out
-        S, Y = self.S.astype(np.float64, copy=False), self.Y.astype(np.float64, copy=False)  # float32 pairs: in float64
+        S, Y = self.S, self.Y
+        if S.dtype != np.float64:  # float16 pairs (more than 64 of them): in float64, their scales undone
+            S, Y = ({k: A[k] * self.inv_scale[i, k] for k in self.order} for i, A in enumerate((S, Y)))
         q = g.copy()
         alphas = []
         for k in reversed(self.order):
@@ -344,7 +371,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
         return f <= ftol or (done is not None and bool(done(f, k)))
 
     release_free_memory()  # the set-up's freed temporaries (presmoothing, parametrisation) before the memory fills
-    y = np.array(y0, dtype=np.float64)
+    y = np.asarray(y0, dtype=np.float64)  # never written into (each step makes a new iterate): no copy
     value, g, f, k = fun(y)
     accept = getattr(fun, "accept", lambda: None)
     hf, hk = [f], [k]
@@ -376,7 +403,8 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             trial = None  # dead once a trial is accepted: its memory goes before the pair's temporaries come
             s = y_try - y
             done_here = bool(converged(amax(s), amax(y_try), v_try, value, rtol, atol))
-            mem.push(s, g_try - g)
+            s = mem.stored(s)  # a float16 memory's pair: its float64 temporaries one at a time
+            mem.push(s, mem.stored(g_try - g))
             del s
             y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
             accept()

@@ -132,7 +132,6 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
     k = np.concatenate([worst[t] for t in order])
     offsets = dict(zip(order, np.cumsum([0] + [len(worst[t]) for t in order])[:-1].tolist(), strict=True))
     n_corners = cells.n_corners + rest.n_corners
-    e_sum = float(sum(np.sum(t - 1.0) for t in terms)) + rest.e_sum
 
     def figures(k):  # the worst cell and the mean cell of the whole mesh, the rest included
         return max(float(k.max()), rest.k_max), (float(k.sum()) + rest.k_sum) / (len(k) + rest.n_cells)
@@ -143,6 +142,8 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
     if not np.isfinite(w0) or w0 <= 1.0 + MIN_EXCESS:
         report["stopped"] = "inverted cells" if not np.isfinite(w0) else "worst element within 1e-3 of ideal"
         return x, report
+    e_sum = float(sum(np.sum(t - 1.0) for t in terms)) + rest.e_sum  # (not before: a temporary of every corner)
+    del terms
     free = np.zeros(len(x), bool)
     for nodes in (cons.interior_nodes, cons.surface_nodes, cons.edge_nodes):
         free[np.asarray(nodes)] = True
