@@ -353,26 +353,16 @@ def csr_gather(indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray) -> tup
 class Colouring:
     """A colouring of the nodes such that no two nodes of one colour share a hexahedron.
 
-    Nodes of one colour can be moved simultaneously: no element sees two of them move.
-
-    **Arguments:**
-
-    - `colour`: colour of every node, int32 array of shape ``(n_nodes,)`` (unreferenced nodes get colour 0).
-    - `groups`: one sorted int64 array of node indices per colour.
-    - `padded`: the groups padded to a fixed width, int32 array of shape ``(n_colours, max_group_size)``;
-      padding entries hold ``n_nodes`` (one past the last node), so that ``x.at[idx].set(v, mode="drop")``
-      ignores them and gathers need ``mode="fill"`` or the `mask`.
-    - `mask`: True where `padded` holds a real node, bool array of the same shape.
+    Nodes of one colour can be moved simultaneously: no element sees two of them move. `colour`: the colour of
+    every node, int32 array of shape ``(n_nodes,)`` (unreferenced nodes get colour 0). (The sweeps group the nodes
+    of a colour themselves, by class: `jaxci.optim._moves.coloured_stars`, `jaxci.optim.host_local`.)
     """
 
     colour: np.ndarray
-    groups: tuple[np.ndarray, ...]
-    padded: np.ndarray
-    mask: np.ndarray
 
     @property
     def n_colours(self) -> int:
-        return len(self.groups)
+        return int(self.colour.max()) + 1 if len(self.colour) else 0
 
 
 def _lowest_free_colour(used: np.ndarray) -> np.ndarray:
@@ -433,8 +423,8 @@ def _colour_nodes(hexes, n: int, adjacency) -> Colouring:
     from .. import native
 
     if adjacency is None and native.AVAILABLE and isinstance(hexes, np.ndarray) and hexes.ndim == 2:
-        return _colouring(native.greedy_colour(hexes, n), n)
-    return _colouring(_first_fit_rounds(hexes, n, adjacency), n)
+        return Colouring(native.greedy_colour(hexes, n))
+    return Colouring(_first_fit_rounds(hexes, n, adjacency))
 
 
 def _first_fit_rounds(hexes, n: int, adjacency) -> np.ndarray:
@@ -466,21 +456,6 @@ def _first_fit_rounds(hexes, n: int, adjacency) -> np.ndarray:
         np.subtract.at(pending, higher, 1)
         ready = np.unique(higher[pending[higher] == 0])
     return np.maximum(colour, 0).astype(np.int32)
-
-
-def _colouring(colour: np.ndarray, n: int) -> Colouring:
-    """The `Colouring` of the node colours `colour` ``(n,)``."""
-    n_colours = int(colour.max()) + 1 if n else 0
-    order = np.argsort(colour, kind="stable")
-    sizes = np.bincount(colour, minlength=n_colours)
-    groups = tuple(np.split(order.astype(np.int64), np.cumsum(sizes)[:-1])) if n else ()
-    width = int(sizes.max()) if n else 0
-    padded = np.full((n_colours, width), n, dtype=np.int32)
-    mask = np.zeros((n_colours, width), dtype=bool)
-    slot = np.arange(n) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-    padded[colour[order], slot] = order
-    mask[colour[order], slot] = True
-    return Colouring(colour=colour, groups=groups, padded=padded, mask=mask)
 
 
 def components(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
