@@ -281,7 +281,7 @@ class _Memory:
         if self.S.dtype == np.float64:
             return v, 1.0
         top = amax(v)
-        k = math.ldexp(1.0, 15 - math.frexp(top)[1]) if top > 0 else 1.0
+        k = math.ldexp(1.0, min(15 - math.frexp(top)[1], 1000)) if top > 0 else 1.0  # (finite for any top)
         v *= k
         return v.astype(np.float16), 1.0 / k
 
