@@ -342,3 +342,37 @@ def test_both_engines_pick_the_same_pattern_trial():
         got_np = int(pattern_choice(f, k, fy, ky, np))
         got_jax = int(pattern_choice(jnp.asarray(f), jnp.asarray(k), jnp.asarray(fy), jnp.asarray(ky), jnp))
         assert got_np == got_jax == want, (t, got_np, got_jax, want, fy, ky)
+
+
+@pytest.mark.parametrize("which", ["box", "annulus"])
+def test_host_colours_are_the_compiled_sweeps_slots(which):
+    """The host sweep's colours (`host_local._colours`, made one at a time) hold what the compiled sweep's padded
+    tables (`coloured_stars`) hold in their real slots, in the same order: the nodes by class, their incidences,
+    bases, free directions and planar rings; on a box with sliding flat walls and on an annulus with curved ones."""
+    from helpers import wavy_annulus
+
+    from jaxci.interface.methods import build_problem
+    from jaxci.optim import host_local
+    from jaxci.optim._local import node_stars
+    from jaxci.optim._moves import coloured_stars
+
+    mesh = perturb_box(6, amplitude=0.3, seed=1) if which == "box" else wavy_annulus(16, 3, 3)
+    pb = build_problem(mesh, dtype=np.float64)
+    faces = pb.info.topology.faces
+    got = host_local._colours(mesh.hexes, pb.cons, pb.colour, faces)
+    cs = coloured_stars(mesh.hexes, pb.cons, pb.colour, faces, place=False)
+    inc = node_stars(mesh.hexes, mesh.n_nodes, incidences=True).star
+    mask = np.asarray(cs.mask)
+    kept = [i for i in range(len(mask)) if mask[i].any()]
+    assert [c.index for c in got] == kept and sum(len(c.nodes) for c in got) == int(mask.sum())
+    assert any(c.b > c.a for c in got) and any(len(c.nodes) > c.b for c in got)  # surface and edge slots
+    for c in got:
+        real = mask[c.index]
+        np.testing.assert_array_equal(c.nodes, np.asarray(cs.nodes)[c.index][real])
+        np.testing.assert_array_equal(c.inc, inc[c.nodes])
+        np.testing.assert_array_equal(c.count, np.asarray(cs.smask)[c.index][real].sum(axis=1))
+        np.testing.assert_array_equal(c.basis, np.asarray(cs.basis, np.float64)[c.index][real])
+        np.testing.assert_array_equal(c.plane, np.asarray(cs.plane, np.float64)[c.index][real])
+        dims = np.asarray(cs.dims)[c.index][real]
+        np.testing.assert_array_equal(c.free, (np.arange(3)[None] < dims[:, None]).astype(np.float64))
+        assert (c.kind[: c.a] == 0).all() and (c.kind[c.a : c.b] == 1).all() and (c.kind[c.b :] == 2).all()
