@@ -114,14 +114,20 @@ def test_corner_measures_in_c_are_numpys(monkeypatch):
     np.testing.assert_allclose(k_c, k_np, rtol=1e-14)
 
 
+@pytest.mark.parametrize("shuffled", [False, True])
 @pytest.mark.parametrize("threads", [2, 3])
-def test_threads_give_the_single_threaded_result(threads):
-    """Each thread has its own range of elements and its own gradient buffer: the same numbers to rounding."""
+def test_threads_give_the_single_threaded_result(threads, shuffled):
+    """Each thread has its own range of elements and its own gradient buffer over the nodes of its elements (a
+    slice of the nodes where they are numbered along the elements, nearly all of them where the elements are
+    shuffled): the same numbers to rounding, also for the corner table's kernel."""
     from jaxci import _ckernels as c
+    from jaxci.cells import CORNERS
 
     m = perturb_box(24, amplitude=0.2, seed=0)  # 13,824 hexahedra: 3 threads of >= 4096 elements
     x = np.ascontiguousarray(m.points, np.float64)
     h = np.ascontiguousarray(m.hexes, np.int64)
+    if shuffled:
+        h = np.ascontiguousarray(h[np.random.default_rng(1).permutation(len(h))])
     g1, g2 = np.zeros_like(x), np.zeros_like(x)
     s1, t1, bad1 = c.hex_condition(x, h, 1.0, g1, None, None, 1)
     s2, t2, bad2 = c.hex_condition(x, h, 1.0, g2, None, None, threads)
@@ -133,6 +139,13 @@ def test_threads_give_the_single_threaded_result(threads):
     e2, d2 = c.untangle_energy(x, h, inv_len, 0.1, 0.3, u2, threads)
     assert e2 == pytest.approx(e1, rel=1e-13) and d2 == d1
     np.testing.assert_allclose(u2, u1, rtol=1e-12, atol=1e-14 * np.abs(u1).max())
+    table = np.ascontiguousarray(h[:, CORNERS["hexahedron"]].reshape(-1, 4).T)  # (4, 8 N): 3 threads of corners
+    c1, c2 = np.ones_like(x), np.ones_like(x)  # added into what is there
+    r1 = c.corner_condition(x, table, np.eye(3), 1.0, c1, None, 1)
+    r2 = c.corner_condition(x, table, np.eye(3), 1.0, c2, None, threads)
+    assert r2[0] == pytest.approx(r1[0], rel=1e-13) and r2[1:] == r1[1:]
+    np.testing.assert_allclose(c2, c1, rtol=1e-12, atol=1e-14 * np.abs(c1).max())
+    np.testing.assert_allclose(c1 - 1.0, g1, rtol=1e-9, atol=1e-12 * np.abs(g1).max())  # the hexahedra's gradient
 
 
 def test_mixed_kernel_is_the_gradient_of_the_mixed_objective():
