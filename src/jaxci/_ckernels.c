@@ -195,7 +195,7 @@ static void node_span(const Nodes *nd, Py_ssize_t a, Py_ssize_t b, Py_ssize_t *l
  * this thread; no Python call (the XLA FFI handler below runs it on XLA's threads, without the GIL). `G` (length
  * `len` = 3 x nodes, or NULL): job 0 adds into it directly, the others into zeroed buffers added to it afterwards,
  * each over the range of the nodes of its items where `nd` gives them (else every node): a mesh numbered along
- * its elements gives each thread about 1/nt of the nodes (cube60_pert on 16 threads: 277 -> 214 MB resident), the
+ * its elements gives each thread about 1/nt of the nodes (cube60_pert on 16 threads: 277 -> 206 MB resident), the
  * same sums in the same order. -1 if a buffer cannot be had (nothing run). */
 static int run_jobs_nogil(void *jobs, size_t size, int nt, void *(*worker)(void *), double *G, Py_ssize_t len,
                           size_t goff, const Nodes *nd) {
