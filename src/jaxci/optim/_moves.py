@@ -25,18 +25,29 @@ from ._buckets import bucket, device_dtype, pad_constraints, pad_rows, padded_co
 from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars, star_nodes
 
 
-def node_bases(cons: Constraints) -> np.ndarray:
-    """Per-node move basis, numpy ``(n_nodes, 3, 3)`` (columns = free directions; zeros for fixed ones)."""
+def node_rows(cons: Constraints) -> np.ndarray:
+    """Each node's row in the constraints' surface list and in their edge list, int64 ``(2, n_nodes + 1)`` (-1: not
+    in it; the last column stands for a padding node)."""
+    rows = np.full((2, len(np.asarray(cons.node_class)) + 1), -1, np.int64)
+    for r, nodes in zip(rows, (cons.surface_nodes, cons.edge_nodes), strict=True):
+        r[np.asarray(nodes)] = np.arange(len(nodes))
+    return rows
+
+
+def node_bases(cons: Constraints, nodes: np.ndarray | None = None, rows: np.ndarray | None = None) -> np.ndarray:
+    """Per-node move basis in the constraints' dtype (columns = free directions; zeros for fixed ones), numpy
+    ``(n_nodes, 3, 3)``, or of `nodes` alone ``(len(nodes), 3, 3)`` (`rows`: `node_rows`, made where not given)."""
     cls = np.asarray(cons.node_class)
-    n = len(cls)
-    B = np.zeros((n, 3, 3))
-    B[cls == INTERIOR] = np.eye(3)
-    surf, edge = np.asarray(cons.surface_nodes), np.asarray(cons.edge_nodes)
-    if len(surf):
-        B[surf, :, 0] = np.asarray(cons.surface_basis)[:, 0]
-        B[surf, :, 1] = np.asarray(cons.surface_basis)[:, 1]
-    if len(edge):
-        B[edge, :, 0] = np.asarray(cons.edge_tangent)
+    nodes = np.arange(len(cls)) if nodes is None else np.asarray(nodes)
+    rows = node_rows(cons) if rows is None else rows
+    B = np.zeros((len(nodes), 3, 3))
+    B[cls[nodes] == INTERIOR] = np.eye(3)
+    srow, erow = rows[0][nodes], rows[1][nodes]
+    on_surface, on_edge = srow >= 0, erow >= 0
+    if on_surface.any():
+        B[on_surface, :, :2] = np.asarray(cons.surface_basis, np.float64)[srow[on_surface]].transpose(0, 2, 1)
+    if on_edge.any():
+        B[on_edge, :, 0] = np.asarray(cons.edge_tangent, np.float64)[erow[on_edge]]
     return B.astype(np.asarray(cons.x_orig).dtype)
 
 

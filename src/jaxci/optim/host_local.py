@@ -43,7 +43,7 @@ from ..runtime.phases import stepper
 from . import _draws
 from ._anderson import AndersonMemory
 from ._local import edge_neighbours, gather_star, laplace_trials, local_length, longest_step, node_stars, star_nodes
-from ._moves import onto_plane, surface_rings
+from ._moves import free_dims, node_bases, node_rows, onto_plane, surface_rings
 from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound, pattern_choice, sweep_done
 from .laplace import LaplaceParams
 
@@ -96,19 +96,13 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
     stars = node_stars(hexes, n, incidences=True)
     movable = cls != CORNER
     colours = np.unique(colour[movable]) if movable.any() else np.zeros(1, np.int64)
-    rows = [np.full(n + 1, -1, np.int64) for _ in range(2)]
-    for r, nodes in zip(rows, (cons.surface_nodes, cons.edge_nodes), strict=True):
-        nodes = np.asarray(nodes)
-        r[nodes] = np.arange(len(nodes))
-    dtype = cons.x_orig.dtype
-
-    def rounded(a):  # the working dtype's rounding, in float64, as the compiled sweep's tables hold them
-        return np.asarray(np.asarray(a, np.float64).astype(dtype), np.float64)
-
-    surface_basis, edge_tangent = rounded(cons.surface_basis), rounded(cons.edge_tangent)
+    rows = node_rows(cons)
+    dims = free_dims(cons)
     surf = np.asarray(cons.surface_nodes)
-    rings = rounded(surface_rings(np.asarray(cons.x_orig, np.float64), faces, surf,
-                                  np.asarray(cons.surface_cand)[: len(surf)] // 4))
+    # the planar rings of the surface nodes alone, in the working dtype's rounding, as the compiled sweep's tables
+    rings = surface_rings(np.asarray(cons.x_orig, np.float64), faces, surf,
+                          np.asarray(cons.surface_cand)[: len(surf)] // 4)
+    rings = np.asarray(rings.astype(cons.x_orig.dtype), np.float64)
     by_class = [(c, np.flatnonzero(cls == c)) for c in (INTERIOR, SURFACE, EDGE)]
     out = []
     for i, c in enumerate(colours):
@@ -118,11 +112,8 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
             continue
         a, b = len(parts[0]), len(parts[0]) + len(parts[1])
         srow, erow = rows[0][nodes[a:b]], rows[1][nodes[b:]]
-        basis = np.zeros((len(nodes), 3, 3))
-        basis[:a] = np.eye(3)
-        basis[a:b, :, :2] = surface_basis[srow].transpose(0, 2, 1)
-        basis[b:, :, 0] = edge_tangent[erow]
-        free = (np.arange(3)[None] < np.repeat([3, 2, 1], [a, b - a, len(nodes) - b])[:, None]).astype(np.float64)
+        basis = np.asarray(node_bases(cons, nodes, rows), np.float64)
+        free = (np.arange(3)[None] < dims[nodes][:, None]).astype(np.float64)
         plane = np.zeros((len(nodes), 7))
         plane[a:b] = rings[srow]
         out.append(_Colour(
