@@ -59,23 +59,47 @@ HOST_LOCAL_MAX = 250_000
 @dataclasses.dataclass(frozen=True)
 class _Colour:
     """The movable nodes of one colour (numpy): `nodes` ``(M,)``; `inc` ``(M, K)`` their stars as incidences
-    (``8 e + s``: `jaxci.optim._local.node_stars`), the first ``count[m]`` real; `basis` ``(M, 3, 3)``; `free`
-    ``(M, 3)`` 1 for a free direction;
-    `plane` ``(M, 7)`` (`jaxci.optim._moves.planar_rings`); the slots ``[a, b)`` are surface nodes, ``[b, M)``
-    edge nodes (rows `srow`, `erow` of the projector's surface and edge lists); `kind` ``(M,)`` 0 / 1 / 2 for an
-    interior / surface / edge slot and `row` its row in its list (-1 interior), for `jaxci.native.ci_visit`."""
+    (``8 e + s``: `jaxci.optim._local.node_stars`; int32 where they fit), the first ``count[m]`` real; the slots
+    ``[0, a)`` are interior nodes, ``[a, b)`` surface nodes, ``[b, M)`` edge nodes (rows `srow`, `erow` of the
+    projector's surface and edge lists); `kind` ``(M,)`` 0 / 1 / 2 for an interior / surface / edge slot and `row`
+    its row in its list (-1 interior), for `jaxci.native.ci_visit`.
+
+    The move bases `basis` ``(M, 3, 3)``, free directions `free` ``(M, 3)`` (1 for a free one) and planar disks
+    `plane` ``(M, 7)`` (`jaxci.optim._moves.planar_rings`) are made on each use from those of the boundary slots
+    (`bound_basis` ``(M - a, 3, 3)``, `bound_free` ``(M - a, 3)``, `surface_plane` ``(b - a, 7)``): an interior
+    slot's are the identity, all free and none, and stored for every node they were 150 bytes a node (30 MB on
+    cube60_pert, its untangling's peak)."""
 
     nodes: np.ndarray
     inc: np.ndarray
     count: np.ndarray
-    basis: np.ndarray
-    free: np.ndarray
-    plane: np.ndarray
+    bound_basis: np.ndarray
+    bound_free: np.ndarray
+    surface_plane: np.ndarray
     a: int
     b: int
     srow: np.ndarray
     erow: np.ndarray
     index: int = 0  # the colour's row in the coloured stars (the compiled sweep's colour index)
+
+    @property
+    def basis(self) -> np.ndarray:
+        out = np.empty((len(self.nodes), 3, 3))
+        out[: self.a] = np.eye(3)
+        out[self.a :] = self.bound_basis
+        return out
+
+    @property
+    def free(self) -> np.ndarray:
+        out = np.ones((len(self.nodes), 3))
+        out[self.a :] = self.bound_free
+        return out
+
+    @property
+    def plane(self) -> np.ndarray:
+        out = np.zeros((len(self.nodes), 7))
+        out[self.a : self.b] = self.surface_plane
+        return out
 
     @functools.cached_property
     def kind(self) -> np.ndarray:
@@ -104,6 +128,7 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
                           np.asarray(cons.surface_cand)[: len(surf)] // 4)
     rings = np.asarray(rings.astype(cons.x_orig.dtype), np.float64)
     by_class = [(c, np.flatnonzero(cls == c)) for c in (INTERIOR, SURFACE, EDGE)]
+    inc_type = np.int32 if 8 * len(hexes) < 2**31 else np.int64  # the incidences: half the bytes while they fit
     out = []
     for i, c in enumerate(colours):
         parts = [ids[colour[ids] == c] for _, ids in by_class]
@@ -112,14 +137,12 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
             continue
         a, b = len(parts[0]), len(parts[0]) + len(parts[1])
         srow, erow = rows[0][nodes[a:b]], rows[1][nodes[b:]]
-        basis = np.asarray(node_bases(cons, nodes, rows), np.float64)
-        free = (np.arange(3)[None] < dims[nodes][:, None]).astype(np.float64)
-        plane = np.zeros((len(nodes), 7))
-        plane[a:b] = rings[srow]
+        bound = nodes[a:]
         out.append(_Colour(
-            nodes=nodes, inc=np.ascontiguousarray(stars.star[nodes], np.int64),
-            count=stars.mask[nodes].sum(axis=1).astype(np.int64), basis=basis, free=free, plane=plane, a=a, b=b,
-            srow=srow, erow=erow, index=i))
+            nodes=nodes, inc=stars.star[nodes].astype(inc_type), count=stars.mask[nodes].sum(axis=1).astype(np.int64),
+            bound_basis=np.asarray(node_bases(cons, bound, rows), np.float64),
+            bound_free=(np.arange(3)[None] < dims[bound][:, None]).astype(np.float64), surface_plane=rings[srow],
+            a=a, b=b, srow=srow, erow=erow, index=i))
     return out
 
 
@@ -170,7 +193,7 @@ class _Sweeper:
         out = trials.copy()
         if b > a:
             t = out[a:b]
-            flat, inside = onto_plane(np, t, col.plane[a:b, None])
+            flat, inside = onto_plane(np, t, col.surface_plane[:, None])
             t[inside] = flat[inside]
             m, s = np.nonzero(~inside)
             if len(m):
