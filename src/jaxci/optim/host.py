@@ -386,7 +386,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
             d *= k
         return d
 
-    trial = capped(-g)
+    trial = d = capped(-g)
     slope = dot(g, trial)
     alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
     stop = finished(f, k)
@@ -400,7 +400,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
         v_try, g_try, f_try, k_try = fun(y_try)
         steps += 1
         if g_try is not None and armijo(v_try, value, alpha, slope):
-            trial = None  # dead once a trial is accepted: its memory goes before the pair's temporaries come
+            trial = d = None  # dead once a trial is accepted: its memory goes before the pair's temporaries come
             s = y_try - y
             done_here = bool(converged(amax(s), amax(y_try), v_try, value, rtol, atol))
             s = mem.stored(s)  # a float16 memory's pair: its float64 temporaries one at a time
