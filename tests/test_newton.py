@@ -220,9 +220,11 @@ def test_newton_after_runs_lbfgs_first():
     run = smooth(box, method="lbfgs", dtype="float64", keep_worst=False, solver="newton", newton_after=10_000)
     np.testing.assert_array_equal(run.mesh.points, ref.mesh.points)
     assert run.history["newton_iterations"] == 0 and run.iterations == ref.iterations
+    assert run.params["solver"] == "lbfgs"  # the solver that ran
     mesh = wavy_annulus(24, 3, 3)
     run = smooth(mesh, method="lbfgs", dtype="float64", keep_worst=False, solver="newton", newton_after=20)
     assert 20 in list(run.history["restarts"]) and run.history["newton_iterations"] > 0
+    assert run.params["solver"] == "newton"
     f = np.asarray(run.history["objective"])
     assert np.all(np.diff(f) <= 0) and run.after.inverted_elements == 0
 
@@ -266,7 +268,10 @@ def test_the_cli_names_the_solver(tmp_path, capsys):
 def test_the_auto_solver_is_newton_where_its_preconditioner_is_built():
     """``solver="auto"``: truncated Newton on the JAX engine with M (the mesh on the host, one device), L-BFGS on the
     host engine and without M (``precondition="none"``); the result names the solver that ran. The default pipeline
-    asks for it on the JAX engine only: its note says which."""
+    asks for it on the JAX engine; on the host it asks for Newton after `AUTO_NEWTON_AFTER` L-BFGS steps, which
+    this box does not reach: its note says which, the result that L-BFGS ran."""
+    from jaxci.interface.methods import AUTO_NEWTON_AFTER
+
     box = perturb_box(4, amplitude=0.3, seed=5)
     kw = dict(method="lbfgs", dtype="float64", solver="auto")
     assert smooth(box, engine="jax", **kw).params["solver"] == "newton"
@@ -274,5 +279,6 @@ def test_the_auto_solver_is_newton_where_its_preconditioner_is_built():
     assert smooth(box, engine="host", **kw).params["solver"] == "lbfgs"
     jax_auto, host_auto = smooth(box, engine="jax"), smooth(box, engine="host")
     assert jax_auto.params["solver"] == "newton" and "truncated Newton" in jax_auto.notes[0]
-    assert host_auto.params["solver"] == "lbfgs" and "default method (auto): L-BFGS on F" in host_auto.notes[0]
+    assert host_auto.params["solver"] == "lbfgs"
+    assert f"(auto): L-BFGS on F (truncated Newton from its step {AUTO_NEWTON_AFTER})" in host_auto.notes[0]
     assert jax_auto.after.inverted_elements == 0 and jax_auto.after.max_condition < quality_report(box).max_condition

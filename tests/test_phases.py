@@ -52,18 +52,21 @@ def test_auto_presmooths_large_meshes_on_the_host_and_every_mesh_on_jax(monkeypa
     mesh = box(4, 4, 4)  # 64 hexahedra
     host = host_plan()
     compiled = dataclasses.replace(host, engine="jax", kernel="XLA")
-    assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True}
+    newton = {"solver": "newton", "newton_after": methods.AUTO_NEWTON_AFTER}
+    assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True, **newton}
     # float32 L-BFGS alone stalls
     assert methods.auto_pipeline(mesh, {}, compiled)[1] == {"presmooth": 3, "polish": True, "solver": "auto"}
     monkeypatch.setattr(methods, "AUTO_PRESMOOTH_FROM", 64)  # the host's sweeps are the C kernels: none without
     want = {"presmooth": 3, "polish": True} if methods.native.AVAILABLE else {"polish": True}
-    assert methods.auto_pipeline(mesh, {}, host)[1] == want
+    assert methods.auto_pipeline(mesh, {}, host)[1] == want | newton
     monkeypatch.setattr(methods.native, "AVAILABLE", False)
-    assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True}
-    # the user's values win; the p-mean has no polish
+    assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True, **newton}
+    # the user's values win; the p-mean has no polish and no Newton
     assert methods.auto_pipeline(mesh, {"presmooth": 0, "polish": False}, host)[1] == {"presmooth": 0,
-                                                                                      "polish": False}
-    assert "polish" not in methods.auto_pipeline(mesh, {"objective": "pmean"}, host)[1]
+                                                                                      "polish": False, **newton}
+    assert methods.auto_pipeline(mesh, {"newton_after": 50}, host)[1]["newton_after"] == 50
+    assert methods.auto_pipeline(mesh, {"solver": "lbfgs"}, host)[1] == {"solver": "lbfgs", "polish": True}
+    assert methods.auto_pipeline(mesh, {"objective": "pmean"}, host)[1] == {"objective": "pmean"}
 
 
 def test_optimal_mesh_returns_at_once():

@@ -35,6 +35,14 @@ METHODS = ("auto", "ci", "ci-global", "bfgs", "lbfgs", "cg", "lm", "gauss-newton
 #: untangling (216,000 hexes, max kappa/3 25.8) reached max kappa/3 1.0001 in about 100 host L-BFGS steps alone,
 #: in 3 sweeps and about 20 steps after them.
 AUTO_PRESMOOTH_FROM = 100_001
+#: L-BFGS steps after which the default pipeline's host solve goes on with truncated Newton (`jaxci.optim.newton`;
+#: ``solver="newton"``, ``newton_after``): a run L-BFGS ends sooner is L-BFGS's (a structured or presmoothed mesh,
+#: and the 25k cylinder O-grid, where Newton from the start reaches a worse minimum), the long ones on curved
+#: and unstructured meshes end in Newton's fewer evaluations. Measured on the real-mesh corpus, the default
+#: pipeline (polish included) against L-BFGS alone on 19 meshes (2026-11-30, docs/results/bench_solvers.md): 22.7
+#: against 29.5 s in all (the 27k tet-to-hex sphere 6.4 against 11.2 s), the worst element lower on 7 meshes, the
+#: same on 8 and at most 0.27% higher on 4; 100 steps left pave3's worst element 0.75% higher.
+AUTO_NEWTON_AFTER = 200
 
 #: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
 OPTIMAL_F = 1e-14
@@ -152,7 +160,8 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
     ``(method, params, description)``.
 
     Chosen by measurement on real and generated meshes (docs/results): L-BFGS on F after the untangling stage
-    (when the input has inverted elements), on the JAX engine (one device, hexahedra) truncated Newton with the
+    (when the input has inverted elements), on the host engine going on with truncated Newton after
+    `AUTO_NEWTON_AFTER` steps, on the JAX engine (one device, hexahedra) truncated Newton with the
     two-level preconditioner where that is built (``solver="auto"``: docs/results/bench_solvers.md); on the JAX
     engine, and on the host engine from `AUTO_PRESMOOTH_FROM`
     hexahedra on (hexahedral meshes: the host's sweeps are for hexahedra), 3 smart-Laplace sweeps first (they fix
@@ -172,13 +181,22 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
         params["presmooth"] = 3
     if "polish" not in params and params.get("objective", "mean") == "mean":
         params["polish"] = True
-    newton = (not host and plan.devices <= 1 and "solver" not in params and not mixed.has_extra(mesh)
-              and params.get("objective", "mean") == "mean")
+    mean = "solver" not in params and params.get("objective", "mean") == "mean"
+    newton = not host and plan.devices <= 1 and mean and not mixed.has_extra(mesh)
     if newton:  # truncated Newton where its preconditioner is built (`GradientParams.solver`)
         params["solver"] = "auto"
+    elif host and mean:  # L-BFGS, then truncated Newton on a long run
+        params["solver"] = "newton"
+        params.setdefault("newton_after", AUTO_NEWTON_AFTER)
     pre = int(params.get("presmooth", 0))
-    desc = ("truncated Newton (L-BFGS where its preconditioner is not built: the mesh on the device)" if newton
-            else "L-BFGS") + " on F" + (f" after {pre} smart-Laplace sweeps" if pre else "")
+    after = int(params.get("newton_after", 0)) if params.get("solver") == "newton" else None
+    if newton:
+        desc = "truncated Newton (L-BFGS where its preconditioner is not built: the mesh on the device) on F"
+    elif after == 0:
+        desc = "truncated Newton on F"
+    else:
+        desc = "L-BFGS on F" + (f" (truncated Newton from its step {after})" if after else "")
+    desc += f" after {pre} smart-Laplace sweeps" if pre else ""
     if params.get("polish"):
         desc += (", then the worst-element polish" + ("" if host else " (on the host: numpy and C; its sub-problems "
                  "are too small and too many to compile)"))

@@ -303,6 +303,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
     runs, max_runs = 0, 1 + int(p.restarts)
     host_fn = precond = None
     after = outer = 0
+    newton_ran = False  # (``solver="newton"`` with `newton_after`: a run that L-BFGS ends sooner is L-BFGS's)
     while runs < max_runs:
         cur = dataclasses.replace(run_par, strict=True) if strict else run_par
         if on_host:  # one objective for every run: its projector remembers each node's triangle
@@ -321,7 +322,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                 host_fn, y, limit=p.max_steps - steps, max_rejected=_max_rejected(method, p), rtol=p.rtol,
                 atol=p.atol, cap=p.max_move, ftol=p.ftol, done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
                 cg_max=int(p.cg_max))
-            outer += n_outer
+            outer, newton_ran = outer + n_outer, True
         elif on_host:
             y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=lbfgs_limit, max_rejected=_max_rejected(method, p),
                                               rtol=p.rtol, atol=p.atol, history=int(p.history_length),
@@ -347,7 +348,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
                     value_and_grad_closed, hessian_closed, (cur, to_device(scale), extra, incidence), run_conn,
                     weight, y, to_device(consts), to_device(np.int32(p.max_steps - steps)), m, static=static,
                     max_steps=int(p.max_steps), max_rejected=_max_rejected(method, p), cg_max=int(p.cg_max))
-                outer += int(to_host(n_outer))
+                outer, newton_ran = outer + int(to_host(n_outer)), True
             elif n_dev:  # (numpy arrays placed straight from the host: `replicate`)
                 y, k, code, hf, hk = loop(value_and_grad, (cur, replicate(scale, devices)), run_conn, weight,
                                           replicate(y, devices), replicate(consts, devices),
@@ -400,6 +401,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             "restarts": np.asarray(starts, dtype=np.int64), "solver_result": _result_message(result)}
     if p.solver == "newton":
         hist["newton_iterations"] = outer
+        params["solver"] = "newton" if newton_ran else "lbfgs"  # the solver that ran
     return x, steps, hist, params
 
 

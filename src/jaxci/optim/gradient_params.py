@@ -108,7 +108,8 @@ class GradientParams:
       Measured on the real-mesh corpus: docs/results/bench_solvers.md.
     - `newton_after`: ``solver="newton"``: L-BFGS (as ``solver="lbfgs"``) for this many steps, then Newton from its
       iterate (default 0: Newton from the start; its start is in the history's ``restarts``); a run that L-BFGS
-      ends sooner is L-BFGS's.
+      ends sooner is L-BFGS's (its ``params["solver"]`` ``"lbfgs"``). The default pipeline on the host engine
+      asks for ``solver="newton"`` with `jaxci.interface.methods.AUTO_NEWTON_AFTER` (200).
     - `cg_max`: ``solver="newton"``: the most CG products (gradient evaluations) per Newton iteration (default 20).
     - `polish`: with ``objective="mean"``: after the solve, the worst-element polish of
       `jaxci.optim.polish` (the worst element lowered level by level, moving only the nodes of the elements
