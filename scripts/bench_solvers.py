@@ -9,7 +9,7 @@ cell's worst corner kappa/3: its max, the worst element, and its mean), measured
 measures. Prints a table and writes JSON (`--out`).
 
     PYTHONPATH=src python3 scripts/bench_solvers.py [--meshes sphere_tet2hex-large ... PATH]
-        [--solvers lbfgs newton newton:cg_max=50 auto/lbfgs auto/newton] [--repeat 2]
+        [--solvers lbfgs newton newton:cg_max=50 auto/lbfgs auto/newton default] [--repeat 2]
         [--out docs/results/bench_solvers.json]
 
 `--meshes` takes corpus names (``python scripts/realmesh_corpus.py --list``; default: the ~25k gmsh meshes) or
@@ -44,7 +44,10 @@ LARGE = ("sphere_tet2hex-large", "bracket_tet2hex-large", "cylinder_ogrid-large"
 
 def solver_params(spec: str) -> tuple[str, dict]:
     """``(method, params)`` of a solver spec: ``lbfgs``, ``newton``, ``newton:cg_max=50`` (``method="lbfgs"``),
-    ``auto/lbfgs``, ``auto/newton`` (the default pipeline, its L-BFGS stage with that solver: the polish after it)."""
+    ``auto/lbfgs``, ``auto/newton`` (the default pipeline, its L-BFGS stage with that solver: the polish after it),
+    ``default`` (the default pipeline as it is: ``method="auto"``, no parameter)."""
+    if spec == "default":
+        return "auto", {}
     method, _, spec = spec.rpartition("/")
     name, _, extra = spec.partition(":")
     params = {"solver": name}

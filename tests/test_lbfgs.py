@@ -251,3 +251,25 @@ def test_both_engines_take_the_same_lbfgs_steps(name, steps):
     assert np.allclose(got.history["objective"], ref.history["objective"], rtol=1e-9, atol=0)
     assert np.abs(got.mesh.points - ref.mesh.points).max() < 1e-9
     assert got.after.max_condition < got.before.max_condition
+
+
+def test_a_step_cut_eight_times_that_changes_nothing_ends_the_run(monkeypatch):
+    """`converged`: the objective's change within the tolerance and either the step's within it or a step size
+    cut to `STUCK_STEP`. On a curved annulus (boundary nodes sliding over the triangles of its wall: F kinked
+    where they cross a triangle's edge) L-BFGS then stops where the old test (the step's change alone) went on
+    cutting its steps, at F as low (to 1e-5)."""
+    from helpers import wavy_annulus
+
+    from jaxci import smooth
+    from jaxci.optim import lbfgs as rules
+
+    assert rules.converged(1.0, 1.0, 1.0, 1.0, 1e-6, 1e-6, rules.STUCK_STEP)
+    assert not rules.converged(1.0, 1.0, 1.0, 1.0, 1e-6, 1e-6, 2 * rules.STUCK_STEP)
+    assert not rules.converged(1.0, 1.0, 1.0, 2.0, 1e-6, 1e-6, rules.STUCK_STEP)  # F still changing
+    assert rules.converged(0.0, 1.0, 1.0, 1.0, 1e-6, 1e-6)  # the Cauchy test as before
+    mesh = wavy_annulus(16, 3, 3)
+    new = smooth(mesh, method="lbfgs", dtype="float64", keep_worst=False)
+    monkeypatch.setattr(rules, "STUCK_STEP", 0.0)
+    old = smooth(mesh, method="lbfgs", dtype="float64", keep_worst=False)
+    assert new.iterations < 0.8 * old.iterations, (new.iterations, old.iterations)
+    assert new.after.objective <= old.after.objective * (1 + 1e-5) and new.after.inverted_elements == 0

@@ -303,7 +303,7 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
             rho = c["rho"].at[slot].set(jnp.where(upd, 1.0 / jnp.where(upd, inner, 1.0), c["rho"][slot]))
             head, n_mem = c["head"] + upd, jnp.minimum(c["n_mem"] + upd, history)
             stop = converged(jnp.max(jnp.abs(s), initial=0.0), jnp.max(jnp.abs(c["y_eval"]), initial=0.0), f_e,
-                             c["f"], rtol, atol)
+                             c["f"], rtol, atol, c["alpha"])
             return {**c, "v": c["y_eval"], "f": f_e, "g": g_e, "d_acc": d_e, "alpha": jnp.ones((), dtype),
                     "d": _direction(g_e, S, Y, rho, head, n_mem), "S": S, "Y": Y, "rho": rho, "head": head,
                     "n_mem": n_mem}, ~first & stop

@@ -47,7 +47,9 @@ class GradientParams:
 
     - `max_steps`: most solver steps (objective evaluations), default 2000 (1 to 10^6).
     - `rtol`, `atol`: optimistix's Cauchy termination (change of the scaled unknowns AND of the scaled objective
-      between accepted steps), default 1e-6 each (see the module docstring for the evidence).
+      between accepted steps), default 1e-6 each (see the module docstring for the evidence); jaxci's L-BFGS
+      also stops where the objective's change is within them after a step the line search had to cut 8 times
+      (`jaxci.optim.lbfgs.converged`: a kink of the objective along the direction).
     - `ftol`: also stop as soon as F <= ftol (default 0: only at a perfect mesh).
     - `ktol`: also stop as soon as max kappa/3 <= 1 + ktol (default 1e-6): every corner is then within ktol of an
       ideal one, the global minimum of F and of the max (kappa/3 >= 1), and further steps change no printed

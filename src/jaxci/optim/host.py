@@ -402,7 +402,7 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
         if g_try is not None and armijo(v_try, value, alpha, slope):
             trial = d = None  # dead once a trial is accepted: its memory goes before the pair's temporaries come
             s = y_try - y
-            done_here = bool(converged(amax(s), amax(y_try), v_try, value, rtol, atol))
+            done_here = bool(converged(amax(s), amax(y_try), v_try, value, rtol, atol, alpha))
             s = mem.stored(s)  # a float16 memory's pair: its float64 temporaries one at a time
             mem.push(s, mem.stored(g_try - g))
             del s

@@ -47,6 +47,9 @@ from ..runtime.transfer import program
 #: Armijo slope and step factor on rejection (optimistix's `BacktrackingArmijo` defaults).
 SLOPE = 0.1
 DECREASE = 0.5
+#: An accepted step size at or below this (8 cuts of `DECREASE`) whose objective change is within the Cauchy
+#: test's stops the loop (`converged`).
+STUCK_STEP = DECREASE ** 8
 
 #: Result codes of `lbfgs_loop`, as the host path names them (`jaxci.optim.host.lbfgs`).
 RESULTS = ("successful", "nonlinear_max_steps_reached", "nonfinite")
@@ -65,10 +68,13 @@ def armijo(v_try, value, alpha, slope):
     return v_try <= value + SLOPE * alpha * slope
 
 
-def converged(s_max, y_max, v_new, v_old, rtol, atol):
-    """The Cauchy stop at an accepted iterate: the step's largest change of an unknown `s_max` below ``atol + rtol
-    y_max`` (the largest unknown) and the objective's change below ``atol + rtol |v_new|`` (`settled`)."""
-    return (s_max < atol + rtol * y_max) & settled(v_new, v_old, rtol, atol)
+def converged(s_max, y_max, v_new, v_old, rtol, atol, alpha=1.0):
+    """The Cauchy stop at an accepted iterate: the objective's change below ``atol + rtol |v_new|`` (`settled`),
+    and the step's largest change of an unknown `s_max` below ``atol + rtol y_max`` (the largest unknown) or the
+    step accepted at a size `alpha` of at most `STUCK_STEP` (the line search had to cut the model's step 8 times:
+    the objective has a kink along it, as where boundary nodes cross the edges of the boundary's triangles, and
+    further steps would only be shorter)."""
+    return ((s_max < atol + rtol * y_max) | (alpha <= STUCK_STEP)) & settled(v_new, v_old, rtol, atol)
 
 
 def settled(v_new, v_old, rtol, atol):
@@ -234,7 +240,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, static: tupl
         def accepted(it, y_try, v_try, g_try, f_try, k_try):
             mem = it["mem"]
             ds, dg = y_try - it["y"], g_try - it["g"]  # the new pair
-            done = converged(_amax(ds), _amax(y_try), v_try, it["value"], rtol, atol)
+            done = converged(_amax(ds), _amax(y_try), v_try, it["value"], rtol, atol, it["alpha"])
             s_l, y_l, g_l = share(ds), share(dg), share(g_try)
             W = mem["W"]
             # every dot the update and the recursion need, over this device's share, in ONE all-reduce
