@@ -158,9 +158,11 @@ static inline int corner_term(const double *a, const double *b, const double *c,
  * (summed into the caller's at the end: no two threads write one node). A call over fewer than
  * MIN_PER_THREAD elements per thread uses fewer threads (creating a thread costs ~50 us). 1024 was tried (2026-11-26, e3b18b6):
  * a 2070-hex mesh's gradient alone took 0.35 ms on two threads against 0.45 on one, but its whole L-BFGS run
- * 1.2-1.3 against 0.9-1.1 ms a step (three alternated runs), so 4096 stays. */
+ * 1.2-1.3 against 0.9-1.1 ms a step (three alternated runs). 2048 against 4096 (2026-11-30, 2 threads): the
+ * polish's penalty pass over 8,000 cells 0.88 against 1.57 ms; the 24k cylinder O-grid's default run (its
+ * polish rounds hold 1,200-9,000 cells) 2.05-2.13 against 2.36-2.43 s cold, three alternated runs each. */
 #define MAX_THREADS 16
-#define MIN_PER_THREAD 4096
+#define MIN_PER_THREAD 2048
 
 /* Threads for a call over n items: nthreads within [1, MAX_THREADS], fewer where a thread would get fewer than
  * min_per items (MIN_PER_THREAD elements for the element kernels; the node kernels set their own). */
