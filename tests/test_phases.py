@@ -53,12 +53,13 @@ def test_auto_presmooths_large_meshes_on_the_host_and_every_mesh_on_jax(monkeypa
     host = host_plan()
     compiled = dataclasses.replace(host, engine="jax", kernel="XLA")
     newton = {"solver": "newton", "newton_after": methods.AUTO_NEWTON_AFTER}
-    assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True, **newton}
+    escape = {"escape": methods.AUTO_ESCAPE} if methods.native.AVAILABLE else {}  # (the host's C sweeps)
+    assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True, **newton, **escape}
     # float32 L-BFGS alone stalls
     assert methods.auto_pipeline(mesh, {}, compiled)[1] == {"presmooth": 3, "polish": True, "solver": "auto"}
     monkeypatch.setattr(methods, "AUTO_PRESMOOTH_FROM", 64)  # the host's sweeps are the C kernels: none without
     want = {"presmooth": 3, "polish": True} if methods.native.AVAILABLE else {"polish": True}
-    assert methods.auto_pipeline(mesh, {}, host)[1] == want | newton
+    assert methods.auto_pipeline(mesh, {}, host)[1] == want | newton | escape
     monkeypatch.setattr(methods.native, "AVAILABLE", False)
     assert methods.auto_pipeline(mesh, {}, host)[1] == {"polish": True, **newton}
     # the user's values win; the p-mean has no polish and no Newton

@@ -494,6 +494,10 @@ def run_gradient(problem, method: str, params: dict):
         if not use_host(method, p, problem.mesh.n_hexes, extra):
             extra = extra_cells(problem.mesh)
     x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra, problem.devices, project)
+    if p.escape and problem.host and extra is None and native.AVAILABLE and method == "lbfgs":
+        from .escape import after_solve
+
+        x, steps, hist, par = after_solve(problem, method, par, x, steps, hist, p, minimise)
     if p.polish:
         x, steps, hist = _polish(problem, par, x, steps, hist, p)
     if pre is None:

@@ -30,6 +30,8 @@ MAX_CG = 10_000
 #: The worst-element polish's work bound, kernel passes over the mesh's cells (`GradientParams.polish_work`; 0:
 #: none; chosen by measurement, `jaxci.optim.polish`), and its upper bound.
 POLISH_WORK, MAX_POLISH_WORK = 1000.0, 1e6
+#: Most escape rounds (`GradientParams.escape`).
+MAX_ESCAPE = 100
 
 #: Nonlinear CG beta formulas (`optx.NonlinearCG(method=...)`).
 CG_METHODS = ("polak_ribiere", "fletcher_reeves", "hestenes_stiefel", "dai_yuan")
@@ -113,6 +115,10 @@ class GradientParams:
       ends sooner is L-BFGS's (its ``params["solver"]`` ``"lbfgs"``). The default pipeline on the host engine
       asks for ``solver="newton"`` with `jaxci.interface.methods.AUTO_NEWTON_AFTER` (200).
     - `cg_max`: ``solver="newton"``: the most CG products (gradient evaluations) per Newton iteration (default 20).
+    - `escape`: the host engine on hexahedral meshes: after the solve, up to this many rounds of smart-Laplace
+      sweeps and the solver again where one sweep lowers F by 2% or more: the solver's minimum was one for small
+      moves only (`jaxci.optim.escape`; default 0: none; the default pipeline asks for `jaxci.interface.methods.
+      AUTO_ESCAPE`).
     - `polish`: with ``objective="mean"``: after the solve, the worst-element polish of
       `jaxci.optim.polish` (the worst element lowered level by level, moving only the nodes of the elements
       above the level, F kept as low as the level allows; on the host whatever the engine). Default False:
@@ -148,6 +154,7 @@ class GradientParams:
     solver: str = "lbfgs"
     cg_max: int = 20
     newton_after: int = 0
+    escape: int = 0
     polish: bool = False
     polish_budget: float = 0.01
     polish_work: float = POLISH_WORK
@@ -180,6 +187,7 @@ class GradientParams:
             solver=_p.choice(L, "solver", self.solver, SOLVERS),
             cg_max=_p.integer(L, "cg_max", self.cg_max, 1, MAX_CG),
             newton_after=_p.integer(L, "newton_after", self.newton_after, 0, MAX_STEPS),
+            escape=_p.integer(L, "escape", self.escape, 0, MAX_ESCAPE),
             polish=_p.boolean(L, "polish", self.polish),
             polish_budget=_p.real(L, "polish_budget", self.polish_budget, 0.0, 1.0),
             polish_work=_p.real(L, "polish_work", self.polish_work, 0.0, MAX_POLISH_WORK),
