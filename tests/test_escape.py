@@ -39,6 +39,10 @@ def test_rounds_lower_f_and_count_their_sweeps_and_steps(monkeypatch):
     assert run.after.objective < ref.after.objective and run.after.inverted_elements == 0
     assert len(run.history["objective"]) == run.iterations + 1
     assert run.history["objective"][-1] == pytest.approx(run.after.objective, rel=1e-9)
+    assert report["objective"][1] == pytest.approx(run.after.objective, rel=1e-9)
+    assert report["objective"][1] < report["objective"][0]
+    assert any(n.startswith(f"escape: the solver had stopped at a minimum for small moves only; {report['rounds']} "
+                            "rounds") for n in run.notes)
 
 
 def test_the_default_pipeline_escapes_on_the_host_only_where_asked():

@@ -447,6 +447,11 @@ def _smooth_unit(mesh: HexMesh, method, seed, plan: Plan, feature_angle, fix_bou
         notes.append(f"global CI of {resolved['batched_seeds']} seeds ran as one batched program on the JAX engine "
                      "(jaxci.interface.seeds.smooth_seeds); this run's smooth phase is its equal share of the batch's "
                      "time")
+    escaped = history.get("escape") or {}
+    if escaped.get("rounds"):
+        notes.append(f"escape: the solver had stopped at a minimum for small moves only; {escaped['rounds']} rounds of "
+                     f"local CI sweeps and the solver again lowered F from {escaped['objective'][0]:.6g} to "
+                     f"{escaped['objective'][1]:.6g} (--param escape=0: none)")
     notes.extend(problem.info.notes)
     cap = cap_note(method, resolved, iterations, history)
     if cap:

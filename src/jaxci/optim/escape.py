@@ -45,13 +45,14 @@ def escape(problem, x: np.ndarray, f: float, rounds: int, solve: Callable):
     **Returns:** ``(x, f, steps, hist, par, report)``: the points and F of the last round's solve (`x` and `f`
     where none ran), the sweeps and solver steps of the rounds run, their history (F and max kappa/3 after each
     sweep and step, concatenated; empty arrays where none ran), the last solve's parametrisation (None where none
-    ran) and a report: ``rounds`` (solves run) and ``sweeps`` (F before and after each round's first sweep).
+    ran) and a report: ``rounds`` (solves run), ``sweeps`` (F before and after each round's first sweep) and
+    ``objective`` (F before the first round and after the last).
     """
     mesh = problem.mesh
     cp = _p.make_params(CIParams, {"max_sweeps": SWEEPS, "tol": GAIN}, "ci")
     steps, par = 0, None
     hist = {"objective": np.zeros(0), "max_condition": np.zeros(0)}
-    report = {"rounds": 0, "sweeps": []}
+    report = {"rounds": 0, "sweeps": [], "objective": [f, f]}
     for r in range(rounds):
         xs, k, h = local_ci_np(x, mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, cp, seed=r)
         fs = np.asarray(h["objective"], np.float64)
@@ -68,6 +69,7 @@ def escape(problem, x: np.ndarray, f: float, rounds: int, solve: Callable):
         if not fn < f:
             break
         x, f, par = np.asarray(xn, np.float64), fn, par_n
+        report["objective"][1] = f
     return x, f, steps, hist, par, report
 
 
