@@ -115,8 +115,8 @@ class GradientParams:
       ends sooner is L-BFGS's (its ``params["solver"]`` ``"lbfgs"``). The default pipeline on the host engine
       asks for ``solver="newton"`` with `jaxci.interface.methods.AUTO_NEWTON_AFTER` (200).
     - `cg_max`: ``solver="newton"``: the most CG products (gradient evaluations) per Newton iteration (default 20).
-    - `escape`: the host engine on hexahedral meshes: after the solve, up to this many rounds of smart-Laplace
-      sweeps and the solver again where one sweep lowers F by 2% or more: the solver's minimum was one for small
+    - `escape`: L-BFGS on the host engine, hexahedral meshes: after the solve, up to this many rounds of local CI
+      sweeps and the solver again where one sweep lowers F by 1% or more: the solver's minimum was one for small
       moves only (`jaxci.optim.escape`; default 0: none; the default pipeline asks for `jaxci.interface.methods.
       AUTO_ESCAPE`).
     - `polish`: with ``objective="mean"``: after the solve, the worst-element polish of

@@ -147,7 +147,8 @@ def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
     return out
 
 
-#: Nodes per block of `_local_length` (its gathered edge ends: 200 MB a colour at once at 10^6 hexahedra).
+#: Nodes per block of `_local_length` (its gathered edge ends and their coordinates, about 0.6 kB a node: a colour
+#: at once would be 80 MB at 10^6 hexahedra, a block of 4096 nodes is 2.5 MB).
 LENGTH_CHUNK = 4096
 #: The local nodes of slot s's three edge neighbours in its hexahedron (slots 1, 3 and 4 of `star_nodes`' lists).
 _EDGE_ENDS = ROTATE_TO_SLOT[:, [1, 3, 4]].astype(np.intp)
@@ -160,7 +161,7 @@ def _local_length(x: np.ndarray, hexes: np.ndarray, col: _Colour) -> np.ndarray:
     real = np.arange(col.inc.shape[1])[None] < col.count[:, None]
     flat = np.asarray(hexes).ravel()
     out = np.empty(len(col.inc))
-    for lo in range(0, len(out), LENGTH_CHUNK):  # in blocks: the gathered ends are ~0.6 kB a node
+    for lo in range(0, len(out), LENGTH_CHUNK):
         sl = slice(lo, lo + LENGTH_CHUNK)
         inc = col.inc[sl].astype(np.intp)
         ends = np.take(flat, (inc & ~7)[..., None] + _EDGE_ENDS[inc & 7], mode="clip")  # (m, K, 3); padding clipped
