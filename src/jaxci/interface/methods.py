@@ -44,8 +44,8 @@ AUTO_PRESMOOTH_FROM = 100_001
 #: same on 8 and at most 0.27% higher on 4; 100 steps left pave3's worst element 0.75% higher.
 AUTO_NEWTON_AFTER = 200
 #: Escape rounds of the default pipeline on the host engine (hexahedral meshes: `jaxci.optim.escape`): Mesquite's
-#: graded cub_fru takes four (F 34.96 -> 4.08); on every other mesh of the real-mesh corpus the first sweep gains
-#: under 0.5% and none runs.
+#: graded cub_fru takes four (F 34.96 -> 5.70); on every other mesh of the real-mesh corpus the first sweep gains
+#: under 0.4% and none runs.
 AUTO_ESCAPE = 8
 
 #: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
@@ -185,11 +185,11 @@ def auto_pipeline(mesh: HexMesh, params: dict, plan) -> tuple[str, dict, str]:
         params["presmooth"] = 3
     if "polish" not in params and params.get("objective", "mean") == "mean":
         params["polish"] = True
-    mean = "solver" not in params and params.get("objective", "mean") == "mean"
-    newton = not host and plan.devices <= 1 and mean and not mixed.has_extra(mesh)
+    pick_solver = "solver" not in params and params.get("objective", "mean") == "mean"
+    newton = not host and plan.devices <= 1 and pick_solver and not mixed.has_extra(mesh)
     if newton:  # truncated Newton where its preconditioner is built (`GradientParams.solver`)
         params["solver"] = "auto"
-    elif host and mean:  # L-BFGS, then truncated Newton on a long run
+    elif host and pick_solver:  # L-BFGS, then truncated Newton on a long run
         params["solver"] = "newton"
         params.setdefault("newton_after", AUTO_NEWTON_AFTER)
     if host and params.get("objective", "mean") == "mean" and native.AVAILABLE and not mixed.has_extra(mesh):
