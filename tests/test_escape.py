@@ -56,3 +56,18 @@ def test_the_default_pipeline_escapes_on_the_host_only_where_asked():
     assert "escape" not in smooth(mesh, escape=0).history
     box = smooth(perturb_box(4, amplitude=0.2, seed=1), escape=8)
     assert "escape" not in box.history and box.after.max_condition <= 1.0 + 1e-6
+
+
+def test_an_escape_that_cannot_run_is_refused():
+    """``escape`` asked for where its sweeps cannot run (another method, the JAX engine, a mixed mesh) or with the
+    p-mean (its sweeps lower F): one `ConfigError` naming the parameter, not a silent no-op."""
+    from jaxci.errors import ConfigError
+    from jaxci.mesh.generate import perturb_box
+
+    box = perturb_box(3, amplitude=0.2, seed=1)
+    with pytest.raises(ConfigError, match="escape=2 is for method 'lbfgs'.*not 'bfgs'"):
+        smooth(box, method="bfgs", escape=2)
+    with pytest.raises(ConfigError, match="escape=2 is for method 'lbfgs'.*not 'lbfgs' on the JAX engine"):
+        smooth(box, method="lbfgs", engine="jax", escape=2)
+    with pytest.raises(ConfigError, match="escape=2 is for objective='mean'"):
+        smooth(box, method="lbfgs", objective="pmean", escape=2)

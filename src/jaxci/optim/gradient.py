@@ -493,8 +493,13 @@ def run_gradient(problem, method: str, params: dict):
         extra = extra_cells(problem.mesh, device=False)
         if not use_host(method, p, problem.mesh.n_hexes, extra):
             extra = extra_cells(problem.mesh)
+    if p.escape and not (problem.host and extra is None and native.AVAILABLE and method == "lbfgs"):
+        where = (f"{method!r} on the {'host' if problem.host else 'JAX'} engine"
+                 + (" on a mixed mesh" if extra is not None else "") + ("" if native.AVAILABLE else " without them"))
+        raise ConfigError(f"gradient-method parameter escape={p.escape} is for method 'lbfgs' on the host engine on a "
+                          f"hexahedral mesh with the C kernels (its sweeps are theirs), not {where}; use escape=0")
     x, steps, hist, resolved = minimise(method, par, problem.conn, p, extra, problem.devices, project)
-    if p.escape and problem.host and extra is None and native.AVAILABLE and method == "lbfgs":
+    if p.escape:  # (the host's sweeps, then the solver again: `jaxci.optim.escape`)
         from .escape import after_solve
 
         x, steps, hist, par = after_solve(problem, method, par, x, steps, hist, p, minimise)

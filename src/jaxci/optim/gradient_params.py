@@ -195,6 +195,9 @@ class GradientParams:
         if self.polish and self.objective != "mean":
             raise ConfigError("gradient-method parameter polish=True is for objective='mean' (the p-mean already "
                               "weighs the worst corners); drop one of them")
+        if self.escape and self.objective != "mean":
+            raise ConfigError(f"gradient-method parameter escape={self.escape} is for objective='mean' (its sweeps "
+                              "lower F); drop one of them")
         if self.objective == "pmean" and self.gradient != "closed":
             raise ConfigError("gradient-method parameter objective='pmean' needs gradient='closed' (the p-mean has "
                               "only the closed-form gradient)")
