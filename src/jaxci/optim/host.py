@@ -22,6 +22,7 @@ construction.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -124,7 +125,6 @@ class HostObjective:
         self._flat = np.ascontiguousarray(par.flat_nodes)
         self._origin = np.ascontiguousarray(par.flat_origin, np.float64)
         self._r2 = (0.999 * np.ascontiguousarray(par.flat_radius, np.float64)) ** 2
-        self._project = self.projector or NearProjector(par.cons)
         #: the C form of the lift and its transpose (`jaxci.native.layout`), or None (numpy)
         self._layout = native.layout(self._cons) if native.AVAILABLE else None
         if self._layout is not None:
@@ -133,6 +133,13 @@ class HostObjective:
         #: triangle, so the same `v` may land a node on a neighbouring triangle after other trials; a restart
         #: from the accepted iterate and the returned points are this evaluation's
         self.best = self._last = None
+
+    @functools.cached_property
+    def _project(self) -> NearProjector:
+        """The boundary projection (`projector`, else a new `NearProjector`), made on first use: a solve whose
+        moving boundary nodes all stay inside their flat regions never projects (a box: its tables are 6 MB at
+        216,000 hexahedra), nor does most of the worst-element polish's rounds on a part of planar faces."""
+        return self.projector or NearProjector(self.par.cons)
 
     def points(self, v: np.ndarray) -> np.ndarray:
         """Node coordinates ``(n, 3)`` of `v` (float64)."""
