@@ -207,15 +207,15 @@ def test_host_local_length_is_the_mean_edge_length_at_the_node(monkeypatch):
     from jaxci.interface.methods import build_problem
     from jaxci.mesh.generate import box
     from jaxci.optim import host_local
-    from jaxci.optim.host_local import _colours, _local_length
+    from jaxci.optim.host_local import _local_length, sweep_colours
 
     mesh = box(4, 4, 4)
     pb = build_problem(mesh, dtype=np.float64, plan=host_plan())
-    for col in _colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces):
+    for col in sweep_colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces):
         np.testing.assert_allclose(_local_length(np.asarray(mesh.points), mesh.hexes, col), 0.25, rtol=1e-12)
     mesh = perturb_box(5, amplitude=0.3, seed=1)
     pb = build_problem(mesh, dtype=np.float64, plan=host_plan())
-    cols = _colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces)
+    cols = sweep_colours(mesh.hexes, pb.cons, pb.colour, pb.info.topology.faces)
     whole = [_local_length(np.asarray(mesh.points), mesh.hexes, col) for col in cols]
     monkeypatch.setattr(host_local, "LENGTH_CHUNK", 3)
     for col, ref in zip(cols, whole, strict=True):
@@ -346,7 +346,7 @@ def test_both_engines_pick_the_same_pattern_trial():
 
 @pytest.mark.parametrize("which", ["box", "annulus"])
 def test_host_colours_are_the_compiled_sweeps_slots(which):
-    """The host sweep's colours (`host_local._colours`, made one at a time) hold what the compiled sweep's padded
+    """The host sweep's colours (`host_local.sweep_colours`, made one at a time) hold what the compiled sweep's padded
     tables (`coloured_stars`) hold in their real slots, in the same order: the nodes by class, their incidences,
     bases, free directions and planar rings; on a box with sliding flat walls and on an annulus with curved ones."""
     from helpers import wavy_annulus
@@ -359,7 +359,7 @@ def test_host_colours_are_the_compiled_sweeps_slots(which):
     mesh = perturb_box(6, amplitude=0.3, seed=1) if which == "box" else wavy_annulus(16, 3, 3)
     pb = build_problem(mesh, dtype=np.float64)
     faces = pb.info.topology.faces
-    got = host_local._colours(mesh.hexes, pb.cons, pb.colour, faces)
+    got = host_local.sweep_colours(mesh.hexes, pb.cons, pb.colour, faces)
     cs = coloured_stars(mesh.hexes, pb.cons, pb.colour, faces, place=False)
     inc = node_stars(mesh.hexes, mesh.n_nodes, incidences=True).star
     mask = np.asarray(cs.mask)

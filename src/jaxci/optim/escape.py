@@ -31,7 +31,7 @@ import numpy as np
 
 from . import _params as _p
 from .ci_params import CIParams
-from .host_local import local_ci_np
+from .host_local import local_ci_np, sweep_colours
 from .parametrisation import make_parametrisation
 
 #: The least relative decrease of F by a sweep that goes on sweeping (by the first: that starts a round).
@@ -57,8 +57,10 @@ def escape(problem, x: np.ndarray, f: float, rounds: int, solve: Callable):
     steps, par = 0, None
     hist = {"objective": np.zeros(0), "max_condition": np.zeros(0)}
     report = {"rounds": 0, "sweeps": [], "objective": [f, f]}
+    faces = problem.info.topology.faces
+    colours = sweep_colours(mesh.hexes, problem.cons, problem.colour, faces) if rounds else None  # for every round
     for r in range(rounds):
-        xs, k, h = local_ci_np(x, mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, cp, seed=r)
+        xs, k, h = local_ci_np(x, mesh.hexes, problem.cons, problem.colour, faces, cp, seed=r, colours=colours)
         fs = np.asarray(h["objective"], np.float64)
         report["sweeps"].append((f, float(fs[min(k, 1)])))
         if not (k and fs[1] < (1.0 - GAIN) * f):

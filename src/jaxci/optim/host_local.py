@@ -111,7 +111,7 @@ class _Colour:
         return np.concatenate([np.full(self.a, -1, np.int64), self.srow, self.erow])
 
 
-def _colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
+def sweep_colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
     """The colours of `jaxci.optim._moves.coloured_stars` (the same nodes in the same order: by class, interior,
     surface, edge, each by number; the same values), made one colour at a time without its padded tables: those
     tables, and the per-node bases and planes they were gathered from, were cube60_pert's untangling peak."""
@@ -179,13 +179,14 @@ class _Sweeper:
     """One local run's state: coordinates, the colours, the projector (and its remembered cells); for CI the
     widths and the RNG."""
 
-    def __init__(self, points, hexes, cons: Constraints, colour, faces, p, seed: int = 0, stream: str = "native"):
+    def __init__(self, points, hexes, cons: Constraints, colour, faces, p, seed: int = 0, stream: str = "native",
+                 colours: list[_Colour] | None = None):
         self.x = np.array(points, dtype=np.float64)
         self.hexes = np.ascontiguousarray(hexes, dtype=np.int64)
         self.p = p
         self.rng = np.random.default_rng(seed)
         self.stream, self.words = stream, _draws.seed_words(seed)
-        self.colours = _colours(hexes, cons, colour, faces)
+        self.colours = sweep_colours(hexes, cons, colour, faces) if colours is None else colours
         self.projector = NearProjector(cons)
         self.projector.commit(self.projector(self.x)[1])  # every boundary node's cell at the start
         self.width = np.zeros(len(self.x))
@@ -306,15 +307,17 @@ class _Sweeper:
 
 
 def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | None = None, seed: int = 0,
-                stream: str = "native"):
+                stream: str = "native", colours: list | None = None):
     """Local CI on the host from `points` ``(n, 3)`` of the hexahedra `hexes` ``(N, 8)``, `cons` the numpy
     float64 constraints, `colour` the node colouring, `faces` the boundary faces (for the planar shortcut);
-    `stream` the random numbers' (``"native"``, or ``"counter"``: `jaxci.optim.ci.local_ci`'s with the same).
+    `stream` the random numbers' (``"native"``, or ``"counter"``: `jaxci.optim.ci.local_ci`'s with the same);
+    `colours` (optional): `sweep_colours` of these, made once for several runs on one mesh (they do not depend on
+    the points).
 
     **Returns:** ``(points, sweeps, history)`` as `jaxci.optim.ci.local_ci` (float64 points).
     """
     p = CIParams() if p is None else p
-    sw = _Sweeper(points, hexes, cons, colour, faces, p, seed, stream)
+    sw = _Sweeper(points, hexes, cons, colour, faces, p, seed, stream, colours)
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax], [0]
     done = f <= p.ftol or kmax <= 1.0 + p.ktol
