@@ -936,13 +936,39 @@ static void project_one(double *xi, const int *CA, Py_ssize_t K, long long *H, c
     for (int d = 0; d < 3; d++) xi[d] = p[d];
 }
 
+/* One thread's share of near_project: the active nodes [lo, hi) (each node's point and hint its own). */
+typedef struct {
+    double *X;
+    const long long *N, *A;
+    const int *CA;
+    long long *H;
+    const double *T, *S, *Q;
+    Py_ssize_t K, nc, lo, hi;
+    int kind;
+    double tol, bump;
+} ProjJob;
+
+static void *project_worker(void *arg) {
+    ProjJob *J = arg;
+    for (Py_ssize_t k = J->lo; k < J->hi; k++) {
+        Py_ssize_t i = J->A[k];
+        project_one(J->X + 3 * J->N[i], J->CA + i * J->K, J->K, J->H + i, J->T, J->nc, J->S, J->Q, J->kind, J->tol,
+                    J->bump);
+    }
+    return NULL;
+}
+
+/* Active nodes a thread of near_project gets at least (a node's search is ~0.1-0.5 us: a thread costs ~50 us). */
+#define PROJECT_PER_THREAD 512
+
 static PyObject *near_project(PyObject *self, PyObject *args) {
     static const Arg spec[7] = {{"x", "d", 1}, {"nodes", "qlq"}, {"active", "qlq"}, {"hint", "qlq", 1}, {"cand", "i"},
                                 {"table", "d"}, {"spheres", "d"}};
     PyObject *o[7], *ret = NULL;
-    int kind;
+    int kind, nthreads = 1;
     double tol, bump;
-    if (!PyArg_ParseTuple(args, "OOOOOOOidd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &kind, &tol, &bump))
+    if (!PyArg_ParseTuple(args, "OOOOOOOidd|i", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &kind, &tol, &bump,
+                          &nthreads))
         return NULL;
     Buf B[7] = {{{0}}};
     if (acquire_args(B, o, spec, 7) < 0) goto done;
@@ -966,10 +992,13 @@ static PyObject *near_project(PyObject *self, PyObject *args) {
         }
     double *X = B[0].view.buf;
     const double *T = B[5].view.buf, *S = B[6].view.buf, *Q = B[6].view.len == nc * 32 ? NULL : S + 4 * nc;
-    for (Py_ssize_t k = 0; k < na; k++) {
-        Py_ssize_t i = A[k];
-        project_one(X + 3 * N[i], CA + i * K, K, H + i, T, nc, S, Q, kind, tol, bump);
-    }
+    /* each active node's point and hint are its own (distinct nodes: `active` indexes distinct rows of `nodes`),
+     * so the threads' shares are independent: the same result on any count */
+    int nt = threads_for(na, nthreads, PROJECT_PER_THREAD);
+    ProjJob jobs[MAX_THREADS];
+    for (int t = 0; t < nt; t++)
+        jobs[t] = (ProjJob){X, N, A, CA, H, T, S, Q, K, nc, na * t / nt, na * (t + 1) / nt, kind, tol, bump};
+    if (run_jobs(jobs, sizeof(ProjJob), nt, project_worker, NULL, 0, 0, NULL) < 0) goto done;
     ret = Py_NewRef(Py_None);
 done:
     release(B, 7);
@@ -2076,7 +2105,7 @@ PyMODINIT_FUNC PyInit__ckernels(void) {
     for (int h = 0; h < 65536; h++) HALF[h] = half_value((uint16_t)h);
     PyObject *m = PyModule_Create(&module);
     /* the interface's version (jaxci.cells.KERNELS_ABI): a build of older sources is refused, not run */
-    if (m != NULL && PyModule_AddIntConstant(m, "ABI", 4) < 0) {
+    if (m != NULL && PyModule_AddIntConstant(m, "ABI", 5) < 0) {
         Py_DECREF(m);
         return NULL;
     }
