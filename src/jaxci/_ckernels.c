@@ -851,10 +851,11 @@ static double closest_on_segment(const double *x, const double *T, Py_ssize_t ns
 }
 
 /* near_project(x (n, 3) f8, nodes (m,) i8, active (a,) i8, hint (m,) i8, cand (rows, K) i4, table (R, nt) f8,
- * spheres (nt, 4) f8 (each cell's bounding sphere: centre, radius), kind (0 triangles, 1 segments), tol, bump) -> None: moves x[nodes[i]] for every i of `active` to its nearest
- * point among its K candidates (hint[i] := its column): where the orthogonal projection onto its hint's cell
- * falls inside, that unless a candidate whose bounding sphere comes nearer holds a nearer point, else the best
- * of them all. */
+ * spheres (nt, 4) f8 (each cell's bounding sphere: centre, radius), kind (0 triangles, 1 segments), tol, bump[,
+ * nthreads]) -> None: moves x[nodes[i]] for every i of `active` to its nearest point among its K candidates
+ * (hint[i] := its column): where the orthogonal projection onto its hint's cell falls inside, that unless a
+ * candidate whose bounding sphere comes nearer holds a nearer point, else the best of them all. Up to nthreads
+ * threads (default 1), each over its own active nodes. */
 /* One point `xi` (in place) to the nearest point of its candidate cells CA[0..K) (columns of the table T of nc
  * cells; S their bounding spheres), starting from the remembered column *H (-1: none; updated): the search of
  * near_project for one node, shared with the local moves (ci_visit). */
