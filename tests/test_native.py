@@ -206,7 +206,6 @@ def test_near_projector_in_c_is_the_numpy_one():
     assert "rows" not in vars(fast) and "rows" in vars(ref)
 
 
-
 @pytest.mark.parametrize("curved", [False, pytest.param(True, marks=pytest.mark.shared)])
 def test_near_projection_is_the_same_on_any_thread_count(curved, monkeypatch):
     """The C search's threads each take their own active nodes: 1 and 3 threads give the same points and
