@@ -32,7 +32,7 @@ import numpy as np
 from . import _params as _p
 from .ci_params import CIParams
 from .host_local import local_ci_np, sweep_colours
-from .parametrisation import make_parametrisation
+from .parametrisation import flat_surface_rings, make_parametrisation
 
 #: The least relative decrease of F by a sweep that goes on sweeping (by the first: that starts a round).
 GAIN = 0.01
@@ -58,7 +58,10 @@ def escape(problem, x: np.ndarray, f: float, rounds: int, solve: Callable):
     hist = {"objective": np.zeros(0), "max_condition": np.zeros(0)}
     report = {"rounds": 0, "sweeps": [], "objective": [f, f]}
     faces = problem.info.topology.faces
-    colours = sweep_colours(mesh.hexes, problem.cons, problem.colour, faces) if rounds else None  # for every round
+    colours = None
+    if rounds:  # for every round; the planar rings are the solve's parametrisation's (kept on `info`)
+        rings = flat_surface_rings(np.asarray(problem.cons.x_orig, np.float64), problem.info, problem.cons)
+        colours = sweep_colours(mesh.hexes, problem.cons, problem.colour, faces, rings)
     for r in range(rounds):
         xs, k, h = local_ci_np(x, mesh.hexes, problem.cons, problem.colour, faces, cp, seed=r, colours=colours)
         fs = np.asarray(h["objective"], np.float64)

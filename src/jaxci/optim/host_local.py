@@ -111,10 +111,12 @@ class _Colour:
         return np.concatenate([np.full(self.a, -1, np.int64), self.srow, self.erow])
 
 
-def sweep_colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
+def sweep_colours(hexes, cons: Constraints, colour, faces, rings: np.ndarray | None = None) -> list[_Colour]:
     """The colours of `jaxci.optim._moves.coloured_stars` (the same nodes in the same order: by class, interior,
     surface, edge, each by number; the same values), made one colour at a time without its padded tables: those
-    tables, and the per-node bases and planes they were gathered from, were cube60_pert's untangling peak."""
+    tables, and the per-node bases and planes they were gathered from, were cube60_pert's untangling peak.
+    `rings` (optional): the surface nodes' planar rings of ``cons.x_orig`` in float64 where they are made already
+    (`jaxci.optim.parametrisation.flat_surface_rings`), else they are made here."""
     cls = np.asarray(cons.node_class)
     n = len(cls)
     colour = np.asarray(colour)
@@ -125,9 +127,10 @@ def sweep_colours(hexes, cons: Constraints, colour, faces) -> list[_Colour]:
     dims = free_dims(cons)
     surf = np.asarray(cons.surface_nodes)
     # the planar rings of the surface nodes alone, in the working dtype's rounding, as the compiled sweep's tables
-    rings = surface_rings(np.asarray(cons.x_orig, np.float64), faces, surf,
-                          np.asarray(cons.surface_cand)[: len(surf)] // 4)
-    rings = np.asarray(rings.astype(cons.x_orig.dtype), np.float64)
+    if rings is None:
+        rings = surface_rings(np.asarray(cons.x_orig, np.float64), faces, surf,
+                              np.asarray(cons.surface_cand)[: len(surf)] // 4)
+    rings = np.asarray(np.asarray(rings).astype(cons.x_orig.dtype), np.float64)
     by_class = [(c, np.flatnonzero(cls == c)) for c in (INTERIOR, SURFACE, EDGE)]
     inc_type = np.int32 if 8 * len(hexes) < 2**31 else np.int64  # the incidences: half the bytes while they fit
     out = []

@@ -250,11 +250,11 @@ def lift_transpose_np(scale: np.ndarray, c: Constraints, g: np.ndarray) -> np.nd
     return scale * np.concatenate([gi, gs, ge])
 
 
-def _flat_surface(points: np.ndarray, info: BoundaryInfo, cons: Constraints) -> np.ndarray:
+def flat_surface_rings(points: np.ndarray, info: BoundaryInfo, cons: Constraints) -> np.ndarray:
     """Per SURFACE node (``cons.surface_nodes`` order, shape ``(ns, 7)``) the origin (3), normal (3) and radius of
     its planar ring of boundary faces (radius 0: none; `jaxci.optim._moves.planar_rings`). Kept on
-    `info` for these `points` (the untangling stage and the smoothing of one run share it: 0.1 s at 27,000
-    hexahedra)."""
+    `info` for these `points` (the untangling stage, the smoothing of one run and its escape's sweeps share it:
+    0.1 s at 27,000 hexahedra)."""
     from ._moves import planar_rings
 
     cached = getattr(info, "_flat_rings", None)
@@ -372,7 +372,7 @@ def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *
         scale = np.where(scale > 0, scale, 1.0)
     else:
         scale = np.ones(n_free(c))
-    rings = _flat_surface(pts, info, c)
+    rings = flat_surface_rings(pts, info, c)
     tangent = np.asarray(c.edge_tangent, dtype=np.float64)
     r_edge = _flat_edge(pts, info, edge)
     nodes = np.concatenate([surf, edge]).astype(np.int64)
