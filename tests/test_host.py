@@ -307,6 +307,50 @@ def test_near_projector_leaves_kept_nodes_alone():
     np.testing.assert_allclose(pulled[surf[1::2]], proj.pullback(g, h_full)[surf[1::2]], atol=1e-12)
 
 
+
+@pytest.mark.parametrize("use_c", [True, False])
+def test_lifted_points_skip_the_corner_reset_only_where_it_changes_nothing(use_c, monkeypatch):
+    """A solver's lifted points keep their CORNER nodes at the base's positions, so the projection need not put
+    them back (`HostObjective` says so where the base holds them at their original ones): the same points and
+    gradient as with the reset, on a box (8 corners), in a polish round on a curved annulus (its fixed nodes are
+    corners) and from a base whose corner moved (then the reset runs)."""
+    from jaxci.optim.host import HostObjective
+    from jaxci.optim.polish import _Layout, _SubProblem
+
+    if not use_c:
+        monkeypatch.setattr(native, "AVAILABLE", False)
+    cases = []
+    box = perturb_box(5, amplitude=0.3, seed=2)
+    pb = build_problem(box, dtype=np.float64)
+    conn = np.ascontiguousarray(pb.mesh.hexes.T)
+    corners = np.asarray(pb.cons.corner_nodes)
+    assert len(corners) == 8
+    cases.append((make_parametrisation(pb.mesh, pb.info, pb.cons, scaled=True), conn, True))
+    moved = np.array(pb.mesh.points, np.float64)
+    moved[corners[0]] += 1e-3
+    cases.append((make_parametrisation(pb.mesh, pb.info, pb.cons, moved, scaled=True), conn, False))
+    mesh = _wavy_annulus(3)
+    pa = build_problem(mesh, dtype=np.float64)
+    par = make_parametrisation(pa.mesh, pa.info, pa.cons, scaled=True)
+    free = np.zeros(mesh.n_nodes, bool)
+    for nodes in (pa.cons.interior_nodes, pa.cons.surface_nodes, pa.cons.edge_nodes):
+        free[np.asarray(nodes)] = True
+    region = free & (np.arange(mesh.n_nodes) % 3 == 0)
+    sub = _SubProblem({"hexahedron": np.asarray(mesh.hexes)}, pa.cons, _Layout(pa.cons, par, free), region,
+                      np.asarray(pa.mesh.points, np.float64))
+    assert len(np.asarray(sub.par.cons.corner_nodes)) > 100
+    cases.append((sub.par, np.ascontiguousarray(sub.blocks["hexahedron"].T), True))
+    rng = np.random.default_rng(7)
+    for case_par, case_conn, placed in cases:
+        fast = HostObjective(case_par, case_conn, 1.0)
+        assert fast._corners_placed is placed
+        ref = HostObjective(case_par, case_conn, 1.0)
+        ref._corners_placed = False
+        for _ in range(3):
+            v = 0.3 * rng.normal(size=case_par.n_free)
+            np.testing.assert_array_equal(fast.points(v), ref.points(v))
+            np.testing.assert_array_equal(fast(v)[1], ref(v)[1])
+
 def test_pytrees_are_registered_when_jax_comes_after_jaxci():
     """A process that imports jaxci first (no JAX) and JAX later: Constraints, Parametrisation, ExtraCells and
     ColouredStars (registered by `_moves`) are JAX pytrees once JAX is imported (`jaxci.runtime._lazy`), and a jitted

@@ -134,13 +134,18 @@ class NearProjector:
         native.near_project(points, idx, idx, hint, np.ascontiguousarray(cand[rows]), table, spheres, kind,
                             inside_tolerance(np.float64), segment_bump(np.float64))
 
-    def __call__(self, points: np.ndarray, keep: np.ndarray | None = None):
-        """``(x, hint)``: the projected coordinates (a new float64 ``(n, 3)`` array) and the candidate column
-        each boundary node ended on (for `commit` and `pullback`; -1 where unknown). `keep` (optional, boolean
-        ``(n,)``): nodes left where they are, e.g. those inside a flat part of the boundary, where the point
-        is its own projection (their hint stays as it was)."""
+    def __call__(self, points: np.ndarray, keep: np.ndarray | None = None, *, inplace: bool = False,
+                 corners_placed: bool = False):
+        """``(x, hint)``: the projected coordinates (a new float64 ``(n, 3)`` array; with `inplace`, `points`
+        itself, projected in place: a caller's own float64 C-ordered array) and the candidate column each boundary
+        node ended on (for `commit` and `pullback`; -1 where unknown). `keep` (optional, boolean ``(n,)``): nodes
+        left where they are, e.g. those inside a flat part of the boundary, where the point is its own projection
+        (their hint stays as it was). CORNER nodes go to their original positions, unless the caller says they are
+        there already (`corners_placed`: a solver's lift, whose base holds them; a polish round's fixed nodes are
+        thousands, and copying them was 5% of a run)."""
         c = self.c
-        x = np.array(points, dtype=np.float64)
+        inplace = inplace and points.dtype == np.float64 and points.flags.c_contiguous and points.flags.writeable
+        x = points if inplace else np.array(points, dtype=np.float64)
         tol = inside_tolerance(np.float64)
         if self._native is not None:
             from .. import native
@@ -153,7 +158,8 @@ class NearProjector:
                     native.near_project(x, nodes, active, hint, cand, table, spheres, kind, tol,
                                         segment_bump(np.float64))
                 out.append(hint)
-            x[c.corner_nodes] = c.x_orig[c.corner_nodes]
+            if not corners_placed:
+                x[c.corner_nodes] = c.x_orig[c.corner_nodes]
             return x, tuple(out)
         kinds = ((c.surface_nodes, c.triangles, c.surface_cand, closest_on_triangles, plane_point),
                  (c.edge_nodes, c.segments, c.edge_cand, closest_on_segments, line_point))
@@ -189,7 +195,8 @@ class NearProjector:
                 x[nodes[rows]] = np.stack([pj[pick, k] for pj in p], axis=-1)
                 hint[rows] = k
             out.append(hint)
-        x[c.corner_nodes] = c.x_orig[c.corner_nodes]
+        if not corners_placed:
+            x[c.corner_nodes] = c.x_orig[c.corner_nodes]
         return x, tuple(out)
 
     def pullback(self, g: np.ndarray, hint, keep: np.ndarray | None = None) -> np.ndarray:

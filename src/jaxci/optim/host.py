@@ -125,6 +125,10 @@ class HostObjective:
         self._flat = np.ascontiguousarray(par.flat_nodes)
         self._origin = np.ascontiguousarray(par.flat_origin, np.float64)
         self._r2 = (0.999 * np.ascontiguousarray(par.flat_radius, np.float64)) ** 2
+        corners = np.asarray(self._cons.corner_nodes)
+        #: the base holds every CORNER node at its original position: a lifted point's corners need no projection
+        self._corners_placed = bool(np.array_equal(self._x0[corners],
+                                                   np.asarray(self._cons.x_orig, np.float64)[corners]))
         #: the C form of the lift and its transpose (`jaxci.native.layout`), or None (numpy)
         self._layout = native.layout(self._cons) if native.AVAILABLE else None
         if self._layout is not None:
@@ -161,7 +165,8 @@ class HostObjective:
                 return x, None
             keep = np.zeros(x.shape[0], bool)
             keep[self._flat[inside]] = True
-        x, hint = self._project(x, keep)
+        # `x` is the lift's new array, its corners the base's (no free coordinate moves them)
+        x, hint = self._project(x, keep, inplace=True, corners_placed=self._corners_placed)
         return x, (hint, keep)
 
     def accept(self) -> None:
