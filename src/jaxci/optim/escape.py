@@ -12,7 +12,7 @@ of moves in its free directions and keeps the best where its own elements get be
 minimum stands: on every other mesh of the real-mesh corpus the first sweep gains at most 0.4% (2026-11-30), and
 that sweep is the escape's whole cost (0.05 s at 2,000 hexahedra, 0.2-0.5 s at 25,000). Otherwise the solver
 again from the sweeps' end, its result kept where F is lower, up to `GradientParams.escape` rounds. On cub_fru,
-the default pipeline with the polish after it: F 5.70, max kappa/3 11.96 in 3.7 s cold (four rounds), where it ends
+the default pipeline with the polish after it: F 5.70, max kappa/3 11.96 in about 4 s cold (four rounds), where it ends
 at max kappa/3 29.7 without them (``escape=0``; 2% and 3 sweeps: F 6.01, max kappa/3 14.4; 1% and 3 sweeps: 5.76
 and 12.9).
 
