@@ -351,6 +351,26 @@ def test_lifted_points_skip_the_corner_reset_only_where_it_changes_nothing(use_c
             np.testing.assert_array_equal(fast.points(v), ref.points(v))
             np.testing.assert_array_equal(fast(v)[1], ref(v)[1])
 
+
+def test_a_solve_inside_the_flat_regions_never_builds_the_projector():
+    """`HostObjective` makes its boundary projector on first use: a box's moving boundary nodes stay inside their
+    flat regions, so a short step never builds it (its search tables were 6 MB at 216,000 hexahedra); a step that
+    carries the boundary nodes out of their regions does, and projects them back onto the box."""
+    from jaxci.optim.host import HostObjective
+
+    mesh = perturb_box(5, amplitude=0.3, seed=3)
+    pb = build_problem(mesh, dtype=np.float64)
+    par = make_parametrisation(pb.mesh, pb.info, pb.cons, scaled=True)
+    fun = HostObjective(par, np.ascontiguousarray(pb.mesh.hexes.T), 1.0)
+    v = 1e-3 * np.random.default_rng(8).normal(size=par.n_free)
+    assert fun(v)[1] is not None
+    assert "_project" not in vars(fun)
+    far = fun.points(100.0 * np.ones(par.n_free))
+    assert "_project" in vars(fun)
+    bound = np.concatenate([np.asarray(pb.cons.surface_nodes), np.asarray(pb.cons.edge_nodes)])
+    lo, hi = np.asarray(pb.mesh.points).min(axis=0), np.asarray(pb.mesh.points).max(axis=0)
+    assert np.all(far[bound] >= lo - 1e-12) and np.all(far[bound] <= hi + 1e-12)
+
 def test_pytrees_are_registered_when_jax_comes_after_jaxci():
     """A process that imports jaxci first (no JAX) and JAX later: Constraints, Parametrisation, ExtraCells and
     ColouredStars (registered by `_moves`) are JAX pytrees once JAX is imported (`jaxci.runtime._lazy`), and a jitted

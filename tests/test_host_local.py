@@ -222,6 +222,35 @@ def test_host_local_length_is_the_mean_edge_length_at_the_node(monkeypatch):
         np.testing.assert_array_equal(_local_length(np.asarray(mesh.points), mesh.hexes, col), ref)
 
 
+
+@pytest.mark.parametrize("which", ["box", pytest.param("pave3", marks=pytest.mark.shared)])
+def test_host_sweep_set_up_equals_its_reference(which):
+    """The host sweeps' local lengths (measured on the real slots of the stars alone) are bit for bit the
+    compiled path's formula over the gathered, padded stars (`_local.local_length`); the colours made with the
+    planar rings the solve's parametrisation keeps (`flat_surface_rings`, as the escape passes them) equal those
+    that make their own: on a perturbed box and on pave3 (paved: irregular stars, curved walls)."""
+    from jaxci.interface.methods import build_problem
+    from jaxci.io import read_mesh
+    from jaxci.optim._local import gather_star, local_length, star_nodes
+    from jaxci.optim.host_local import _local_length, sweep_colours
+    from jaxci.optim.parametrisation import flat_surface_rings
+
+    mesh = perturb_box(5, amplitude=0.3, seed=2) if which == "box" else read_mesh(str(MESQUITE / "pave3.e.vtk"))
+    pb = build_problem(mesh, dtype=np.float64, plan=host_plan())
+    faces = pb.info.topology.faces
+    x = np.asarray(pb.mesh.points, np.float64)
+    cols = sweep_colours(pb.mesh.hexes, pb.cons, pb.colour, faces)
+    for col in cols:
+        real = np.arange(col.inc.shape[1])[None] < col.count[:, None]
+        ref = local_length(gather_star(x, star_nodes(pb.mesh.hexes, col.inc)), real, np)
+        np.testing.assert_array_equal(_local_length(x, pb.mesh.hexes, col), ref)
+    rings = flat_surface_rings(np.asarray(pb.cons.x_orig, np.float64), pb.info, pb.cons)
+    given = sweep_colours(pb.mesh.hexes, pb.cons, pb.colour, faces, rings)
+    assert any(len(c.surface_plane) for c in cols)
+    for a, b in zip(cols, given, strict=True):
+        np.testing.assert_array_equal(a.nodes, b.nodes)
+        np.testing.assert_array_equal(a.surface_plane, b.surface_plane)
+
 _BOX6 = perturb_box(6, amplitude=0.3, seed=4)
 
 
