@@ -371,6 +371,37 @@ def test_a_solve_inside_the_flat_regions_never_builds_the_projector():
     lo, hi = np.asarray(pb.mesh.points).min(axis=0), np.asarray(pb.mesh.points).max(axis=0)
     assert np.all(far[bound] >= lo - 1e-12) and np.all(far[bound] <= hi + 1e-12)
 
+
+@pytest.mark.parametrize("shape", ["box", "annulus"])
+def test_an_iterate_keeps_its_points_only_where_it_projected(shape):
+    """`HostObjective` keeps an evaluation's points where it projected a node (the annulus) or for Newton's
+    `hvp`; elsewhere (the box: every node inside its flat region) `points_of` lifts its `v` again, to the same
+    numbers. L-BFGS from None starts at zeros: the same iterates, points and histories as from zeros."""
+    from jaxci.optim.host import HostObjective
+
+    mesh = perturb_box(5, amplitude=0.3, seed=3) if shape == "box" else annulus(n_r=3, n_theta=16, n_z=2)
+    pb = build_problem(mesh, dtype=np.float64)
+    par = make_parametrisation(pb.mesh, pb.info, pb.cons, scaled=True)
+    conn = np.ascontiguousarray(pb.mesh.hexes.T)
+    v = 1e-3 * np.random.default_rng(8).normal(size=par.n_free)
+    fun, kept = HostObjective(par, conn, 1.0), HostObjective(par, conn, 1.0, keep_raw=True)
+    assert fun(v)[1] is not None
+    fun.accept()
+    kept(v)
+    kept.accept()
+    assert (fun.best[1] is None) == (shape == "box") and kept.best[1] is not None
+    np.testing.assert_array_equal(fun.points_of(fun.best), kept.points_of(kept.best))
+    kw = dict(limit=15, max_rejected=20, rtol=1e-9, atol=1e-9, history=10, cap=0.5, ftol=0.0, stage=None)
+    runs = [(f, lbfgs(f, y0, **kw)) for f, y0 in ((HostObjective(par, conn, 1.0), None),
+                                                   (HostObjective(par, conn, 1.0, keep_raw=True),
+                                                    np.zeros(par.n_free)))]
+    (f1, r1), (f2, r2) = runs
+    assert r1[1] == r2[1] == 15
+    for a, b in zip((r1[0], r1[3], r1[4], f1.points_of(f1.best)), (r2[0], r2[3], r2[4], f2.points_of(f2.best)),
+                    strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_pytrees_are_registered_when_jax_comes_after_jaxci():
     """A process that imports jaxci first (no JAX) and JAX later: Constraints, Parametrisation, ExtraCells and
     ColouredStars (registered by `_moves`) are JAX pytrees once JAX is imported (`jaxci.runtime._lazy`), and a jitted

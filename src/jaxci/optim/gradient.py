@@ -285,7 +285,8 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         def real(y):
             return y if layouts is None else _unpad(y, *layouts)
 
-    y = np.zeros(run_par.n_free) if on_host else _zeros(run_par.n_free, np.dtype(par.x0.dtype))
+    # on the host the solvers make the zero start themselves (None): no reference here keeps it once they move on
+    y = None if on_host else _zeros(run_par.n_free, np.dtype(par.x0.dtype))
     incidence = None  # the closed-form gradient's node incidences: once for every run
     if not (on_host or n_dev or method in LEAST_SQUARES or p.gradient != "closed"):
         incidence = closed_incidence(run_conn, run_par.x0.shape[0], weight,
@@ -394,7 +395,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
         if runs >= 2 and not gain > p.restart_tol * abs(f0):
             break
     if on_host and host_fn.best is not None and np.array_equal(host_fn.best[0], y):
-        x = np.asarray(host_fn.best[1], par.x0.dtype)  # the points of the best iterate as evaluated (on the boundary)
+        x = np.asarray(host_fn.points_of(host_fn.best), par.x0.dtype)  # as evaluated (on the boundary)
     else:  # exactly projected where a node left its flat region (by `project` where the mesh is on the device)
         x = par.final_points(real(y), project)
     hist = {"objective": np.concatenate(hist_f), "max_condition": np.concatenate(hist_k),

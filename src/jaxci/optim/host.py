@@ -133,9 +133,9 @@ class HostObjective:
         self._layout = native.layout(self._cons) if native.AVAILABLE else None
         if self._layout is not None:
             self._flat = np.ascontiguousarray(self._flat, np.int64)
-        #: ``(v, points, output, hint)`` of the accepted iterate (`accept`): the projector remembers each node's last
-        #: triangle, so the same `v` may land a node on a neighbouring triangle after other trials; a restart
-        #: from the accepted iterate and the returned points are this evaluation's
+        #: ``(v, points, output, hint, raw gradient)`` of the accepted iterate (`accept`): the projector remembers
+        #: each node's last triangle, so the same `v` may land a node on a neighbouring triangle after other
+        #: trials; a restart from the accepted iterate and the returned points (`points_of`) are this evaluation's
         self.best = self._last = None
 
     @functools.cached_property
@@ -148,6 +148,11 @@ class HostObjective:
     def points(self, v: np.ndarray) -> np.ndarray:
         """Node coordinates ``(n, 3)`` of `v` (float64)."""
         return self._points(v)[0]
+
+    def points_of(self, entry: tuple) -> np.ndarray:
+        """The node coordinates ``(n, 3)`` of an evaluation (`best`, or the last one) as it was made: kept where
+        it projected a node, else its lift made again (the same numbers: nothing else touched them)."""
+        return entry[1] if entry[1] is not None else self._lift(self._x0, entry[0])
 
     def _points(self, v):
         """``(x, (hint, keep))``: the coordinates, the projector's triangles and the nodes it left alone
@@ -198,8 +203,11 @@ class HostObjective:
         gv *= self.s  # in place: the same product as ``self.s * gv``, without a second vector
         out = self.s * f, gv, f, kmax
         # `v` itself, not a copy (one vector less at every evaluation: 5 MB at 216,000 hexahedra): `lbfgs` and
-        # `jaxci.optim.newton` never write into an array they have passed here, and a caller of its own must not either
-        self._last = (v, x, out, hint, gx_raw if self.keep_raw else None)
+        # `jaxci.optim.newton` never write into an array they have passed here, and a caller of its own must not
+        # either; the points only where projected (or for `hvp`), else `points_of` lifts `v` again: the accepted
+        # iterate's points are another vector during every line search, and only its end reads them
+        keep = hint is not None or self.keep_raw
+        self._last = (v, x if keep else None, out, hint, gx_raw if self.keep_raw else None)
         return out
 
     def hvp(self, p: np.ndarray, step: float) -> np.ndarray | None:
@@ -210,7 +218,8 @@ class HostObjective:
         triangle or segment: F's curvature without the kinks of the piecewise-flat boundary, which a difference
         of `__call__`'s gradient would pick up wherever a node sits on a triangle's edge (an original boundary node
         sits on a vertex). None where the step inverts an element."""
-        _, x, _, hint, gx = self.best
+        _, _, _, hint, gx = self.best
+        x = self.points_of(self.best)
         size = amax(p)
         if size == 0:
             return np.zeros_like(p)
@@ -362,7 +371,8 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
           history: int, cap: float, ftol: float, done: Callable | None = None, deadline: float | None = None,
           precond: Callable | None = None, precond_after: int = 0, stage: str | None = "L-BFGS"):
     """Minimise `fun` (a `HostObjective`: ``value, grad, F, max kappa/3 = fun(y)``; its ``accept()``, if any,
-    is called once an evaluation becomes the iterate) from `y0` (float64, ``(n_free,)``).
+    is called once an evaluation becomes the iterate) from `y0` (float64, ``(n_free,)``; None: zeros of
+    ``fun.par.n_free``, made here so that nothing holds them once the iterate moves on: 5 MB at 216,000 hexahedra).
 
     **Arguments:** `limit` the most objective evaluations (steps); `max_rejected` consecutive rejected trials
     that stop the run; `rtol`, `atol` the Cauchy termination; `history` the L-BFGS memory; `cap` the largest
@@ -383,7 +393,9 @@ def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol:
         return f <= ftol or (done is not None and bool(done(f, k)))
 
     release_free_memory()  # the set-up's freed temporaries (presmoothing, parametrisation) before the memory fills
-    y = np.asarray(y0, dtype=np.float64)  # never written into (each step makes a new iterate): no copy
+    # never written into (each step makes a new iterate): no copy
+    y = np.zeros(fun.par.n_free) if y0 is None else np.asarray(y0, dtype=np.float64)
+    del y0
     value, g, f, k = fun(y)
     accept = getattr(fun, "accept", lambda: None)
     hf, hk = [f], [k]
@@ -483,7 +495,7 @@ def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndar
     v = np.zeros(par.n_free)
     fun = objective(1.0)
     _, _, _, dmin0 = fun(v)  # the energy is finite (chi > 0): the evaluation is kept as `_last`
-    points = fun._last[1]
+    points = fun.points_of(fun._last)
     eps = float(np.sqrt(1e-12 + 0.04 * min(dmin0, 0.0) ** 2))
     rounds = steps = 0
     h_eps, h_dmin, h_e = [], [], []
@@ -498,7 +510,7 @@ def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndar
         steps += k + 1  # as the compiled loop counts: the round's first evaluation is a step
         rounds += 1
         e_start, e, dmin = float(hf[0]), float(hf[-1]), float(hk[-1])
-        points = fun.best[1] if fun.best is not None else fun.points(v)
+        points = fun.points_of(fun.best) if fun.best is not None else fun.points(v)
         h_eps.append(eps)
         h_dmin.append(dmin)
         h_e.append(e)

@@ -141,9 +141,9 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
               cap: float, ftol: float, done: Callable | None = None, precond: Callable | None = None,
               cg_max: int = CG_MAX):
     """Minimise `fun` (``value, grad, F, k = fun(y)``, a `jaxci.optim.host.HostObjective`) from `y0` by truncated
-    Newton (the module docstring). Arguments as `jaxci.optim.host.lbfgs` (no deadline; its steps reported as stage
-    ``"Newton-CG"``; `precond`: a function returning the fixed preconditioner ``M``, called once at the start; None:
-    the identity), plus `cg_max` products per outer iteration.
+    Newton (the module docstring). Arguments as `jaxci.optim.host.lbfgs` (`y0` None: zeros; no deadline; its steps
+    reported as stage ``"Newton-CG"``; `precond`: a function returning the fixed preconditioner ``M``, called once at
+    the start; None: the identity), plus `cg_max` products per outer iteration.
 
     **Returns:** ``(y_best, steps, result, hist_f, hist_k, outer)``: as `jaxci.optim.host.lbfgs` (steps: gradient
     evaluations, products and trials alike; histories one entry per step, F and max kappa/3 of the accepted
@@ -154,7 +154,7 @@ def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, r
 
     if hasattr(fun, "keep_raw"):  # `jaxci.optim.host.HostObjective`: its `hvp` needs the raw node gradient
         fun.keep_raw = True
-    y = np.array(y0, dtype=np.float64)
+    y = np.zeros(fun.par.n_free) if y0 is None else np.array(y0, dtype=np.float64)
     value, g, f, k = fun(y)
     accept = getattr(fun, "accept", lambda: None)
     hf, hk = [f], [k]

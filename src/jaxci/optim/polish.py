@@ -240,12 +240,12 @@ class _RoundObjective(HostObjective):
     def accept(self) -> None:
         super().accept()
         if self._last[2][3] < self._lowest[0]:
-            self._lowest = (self._last[2][3], self._last[1])
+            self._lowest = (self._last[2][3], self._last)
 
     def candidates(self) -> list[np.ndarray]:
         """The points of the last accepted iterate, then (where another) those of the lowest worst corner."""
-        last, lowest = (None if self.best is None else self.best[1]), self._lowest[1]
-        return [y for y in (last, None if lowest is last else lowest) if y is not None]
+        last, lowest = self.best, self._lowest[1]
+        return [self.points_of(e) for e in (last, None if lowest is last else lowest) if e is not None]
 
 
 class _Layout:
