@@ -298,8 +298,8 @@ def test_face_spheres_change_nothing_in_the_search():
     mesh, cons = _pave3_constraints()
     fast, plain = NearProjector(cons), NearProjector(cons)
     nodes, cand, table, spheres = plain._native[0]
-    assert len(spheres) == table.shape[1] * 5 // 4
-    plain._native = ((nodes, cand, table, spheres[: table.shape[1]]),) + plain._native[1:]
+    assert table.shape[1] == 19 and len(spheres) == len(table) * 5 // 4  # (the C search's tables are cell-major)
+    plain._native = ((nodes, cand, table, spheres[: len(table)]),) + plain._native[1:]
     rng = np.random.default_rng(1)
     h = np.median(np.linalg.norm(mesh.points[mesh.hexes[:, 1]] - mesh.points[mesh.hexes[:, 0]], axis=1))
     for it in range(6):

@@ -162,7 +162,7 @@ def corner_invariants(ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 #: The C extension's interface version (its ``ABI``), raised whenever an argument of a kernel changes.
-KERNELS_ABI = 5
+KERNELS_ABI = 6
 
 
 @functools.cache

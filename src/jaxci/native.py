@@ -213,7 +213,8 @@ def near_project(x: np.ndarray, nodes: np.ndarray, active: np.ndarray, hint: np.
     to the orthogonal projection onto its hint's cell (``cand[i, hint[i]]``) where that falls inside, else to
     the nearest point of its candidates (``hint[i]`` := the column); a candidate whose bounding sphere (`spheres`
     ``(nt, 4)``: centre, radius) comes nearer than the hint's projection is searched too. `kind` 0: triangles
-    (`table` of 19 rows), 1: segments (8 rows); `tol`, `bump` as `jaxci.geometry._closest`. `x` float64
+    (`table` ``(nt, 19)``, C order: the transpose of `jaxci.geometry._closest`'s), 1: segments (``(nt, 8)``);
+    `tol`, `bump` as `jaxci.geometry._closest`. `x` float64
     ``(n, 3)``, `cand` int32, the other index arrays int64. `THREADS` threads over the active nodes (each node's
     point and hint its own: `active` must not repeat a row, nor `nodes` a node; the same result on any count)."""
     _c.near_project(x, nodes, _i8(active), hint, cand, table, spheres, int(kind), float(tol), float(bump), THREADS)

@@ -67,10 +67,11 @@ class NearProjector:
         self.spheres = (_sphere(self.c.triangles, triangle_centres), _sphere(self.c.segments, segment_centres))
         #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
         self._tiled = {}  # `project_many`'s index arrays per (kind, number of meshes)
-        # the candidate columns int32, as the constraints hold them (no copy: 11 MB at 216,000 hexahedra in int64)
+        # the candidate columns int32, as the constraints hold them (no copy: 11 MB at 216,000 hexahedra in int64);
+        # each table cell-major, the transpose of the constraints' (no copy of a table in `CELL_ORDER`)
         self._native = None if not native.AVAILABLE else tuple(
             (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int32),
-             np.ascontiguousarray(table, np.float64), np.ascontiguousarray(sphere, np.float64))
+             np.ascontiguousarray(np.asarray(table, np.float64).T), np.ascontiguousarray(sphere, np.float64))
             for nodes, cand, table, sphere in ((self.c.surface_nodes, self.c.surface_cand, self.c.triangles,
                                                 _with_faces(self.c.triangles, self.spheres[0])),
                                                (self.c.edge_nodes, self.c.edge_cand, self.c.segments,
