@@ -367,7 +367,7 @@ class _Memory:
         return -q
 
 
-def lbfgs(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
+def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int, rtol: float, atol: float,
           history: int, cap: float, ftol: float, done: Callable | None = None, deadline: float | None = None,
           precond: Callable | None = None, precond_after: int = 0, stage: str | None = "L-BFGS"):
     """Minimise `fun` (a `HostObjective`: ``value, grad, F, max kappa/3 = fun(y)``; its ``accept()``, if any,

@@ -137,7 +137,7 @@ def hvp(fun: Callable, y: np.ndarray, g: np.ndarray, p: np.ndarray, step: float 
     return g_h
 
 
-def newton_cg(fun: Callable, y0: np.ndarray, *, limit: int, max_rejected: int, rtol: float, atol: float,
+def newton_cg(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int, rtol: float, atol: float,
               cap: float, ftol: float, done: Callable | None = None, precond: Callable | None = None,
               cg_max: int = CG_MAX):
     """Minimise `fun` (``value, grad, F, k = fun(y)``, a `jaxci.optim.host.HostObjective`) from `y0` by truncated

@@ -240,12 +240,14 @@ class _RoundObjective(HostObjective):
     def accept(self) -> None:
         super().accept()
         if self._last[2][3] < self._lowest[0]:
-            self._lowest = (self._last[2][3], self._last)
+            self._lowest = (self._last[2][3], self._last[:2])  # (v, points): `points_of` reads no more
 
     def candidates(self) -> list[np.ndarray]:
         """The points of the last accepted iterate, then (where another) those of the lowest worst corner."""
         last, lowest = self.best, self._lowest[1]
-        return [self.points_of(e) for e in (last, None if lowest is last else lowest) if e is not None]
+        if last is not None and lowest is not None and lowest[0] is last[0]:  # one evaluation (each has its own v)
+            lowest = None
+        return [self.points_of(e) for e in (last, lowest) if e is not None]
 
 
 class _Layout:
