@@ -312,39 +312,6 @@ def test_face_spheres_change_nothing_in_the_search():
         plain.commit(hp)
 
 
-def test_projectors_over_one_table_share_its_spheres():
-    """The bounding spheres of a boundary table are made once per table array and shared by every projector over
-    it (the polish's rounds each make one over the mesh's tables): the same numbers as made afresh; another array
-    gets its own, and an entry goes with its table."""
-    import dataclasses
-    import gc
-
-    from jaxci.geometry import near
-    from jaxci.geometry._closest import triangle_centres
-    from jaxci.geometry.boundary import classify_boundary
-    from jaxci.geometry.projection import build_constraints
-    from jaxci.mesh.shapes import annulus
-
-    mesh = annulus(n_r=2, n_theta=12, n_z=2)
-    cons = build_constraints(mesh, classify_boundary(mesh), dtype=np.float64, device=False)
-    a, b = near.NearProjector(cons), near.NearProjector(cons)
-    assert a.spheres[0][0] is b.spheres[0][0] and a.spheres[1][1] is b.spheres[1][1]
-    fresh = near._sphere(cons.triangles, triangle_centres)
-    np.testing.assert_array_equal(a.spheres[0][0], fresh[0])
-    if native.AVAILABLE:
-        assert a._native[0][3] is b._native[0][3]
-        np.testing.assert_array_equal(a._native[0][3], near._with_faces(cons.triangles, fresh))
-    table = np.array(cons.triangles, order="F")
-    c = near.NearProjector(dataclasses.replace(cons, triangles=table))
-    assert c.spheres[0][0] is not a.spheres[0][0]
-    np.testing.assert_array_equal(c.spheres[0][0], a.spheres[0][0])
-    key = id(table)
-    assert key in near._SPHERES
-    del c, table
-    gc.collect()
-    assert key not in near._SPHERES
-
-
 @pytest.mark.parametrize("f16", [False, True])
 @pytest.mark.parametrize("history", [1, 3, 10])
 def test_lbfgs_direction_in_c_is_the_two_loop_recursion(history, f16, monkeypatch):

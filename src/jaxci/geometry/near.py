@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import weakref
 
 import numpy as np
 
@@ -64,9 +63,8 @@ class NearProjector:
         self.c = host_constraints(constraints)
         # candidate column per surface node, per edge node; -1: not known (search all its candidates)
         self.hint = tuple(np.full(int(n.shape[0]), -1, np.int64) for n in (self.c.surface_nodes, self.c.edge_nodes))
-        spheres = (_cell_spheres(self.c.triangles, 0), _cell_spheres(self.c.segments, 1))
         #: per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search
-        self.spheres = tuple(s[0] for s in spheres)
+        self.spheres = (_sphere(self.c.triangles, triangle_centres), _sphere(self.c.segments, segment_centres))
         #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
         self._tiled = {}  # `project_many`'s index arrays per (kind, number of meshes)
         # the candidate columns int32, as the constraints hold them (no copy: 11 MB at 216,000 hexahedra in int64);
@@ -75,9 +73,9 @@ class NearProjector:
             (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int32),
              np.ascontiguousarray(np.asarray(table, np.float64).T), np.ascontiguousarray(sphere, np.float64))
             for nodes, cand, table, sphere in ((self.c.surface_nodes, self.c.surface_cand, self.c.triangles,
-                                                spheres[0][1]),
+                                                _with_faces(self.c.triangles, self.spheres[0])),
                                                (self.c.edge_nodes, self.c.edge_cand, self.c.segments,
-                                                spheres[1][1])))
+                                                np.column_stack(self.spheres[1]))))
 
     @functools.cached_property
     def rows(self) -> tuple:
@@ -248,28 +246,6 @@ def _with_faces(triangles: np.ndarray, spheres) -> np.ndarray:
 def _sphere(table, centre_radius):
     centre, radius = centre_radius(np.asarray(table, dtype=np.float64))
     return centre, radius * (1 + 1e-12)  # rounding must not prune a cell that holds the nearest point
-
-
-#: `_cell_spheres` of each table: id -> (a weak reference to the table, the result); an entry goes with its table
-_SPHERES: dict[int, tuple] = {}
-
-
-def _cell_spheres(table: np.ndarray, kind: int) -> tuple:
-    """``((centres (nc, 3), radii (nc,)), spheres of the C search)`` of a triangle (kind 0: `_with_faces`) or
-    segment (1) table, made once per table array and shared, never written: the worst-element polish makes a
-    projector for each round's sub-problem over the mesh's own tables (on the 24k cylinder 21 rounds, 0.1 s)."""
-    hit = _SPHERES.get(id(table))
-    if hit is not None and hit[0]() is table:
-        return hit[1]
-    sphere = _sphere(table, triangle_centres if kind == 0 else segment_centres)
-    out = (sphere, _with_faces(table, sphere) if kind == 0 else np.column_stack(sphere))
-    key = id(table)
-    try:
-        ref = weakref.ref(table, lambda _: _SPHERES.pop(key, None))
-    except TypeError:  # (not weakly referenceable: made each time)
-        return out
-    _SPHERES[key] = (ref, out)
-    return out
 
 
 def host_constraints(c: Constraints) -> Constraints:

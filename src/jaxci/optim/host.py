@@ -78,10 +78,6 @@ UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 #: meshes is that sensitive; float32 against float64 pairs moved it by -0.85% to +0.16%), the mean element within
 #: 0.07%.
 HISTORY_F16_FROM = 250_000
-#: From this many free coordinates `lbfgs` first gives the heap's free pages back (`release_free_memory`): below it
-#: there is little to give, and the polish's rounds (up to 20,000 unknowns on the 24k cylinder, 21 of them) paid
-#: about a millisecond a round for it.
-TRIM_FROM = 100_000
 
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
@@ -396,8 +392,7 @@ def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int
     def finished(f, k):
         return f <= ftol or (done is not None and bool(done(f, k)))
 
-    if (fun.par.n_free if y0 is None else len(y0)) >= TRIM_FROM:
-        release_free_memory()  # the set-up's freed temporaries (presmoothing, parametrisation) before the memory fills
+    release_free_memory()  # the set-up's freed temporaries (presmoothing, parametrisation) before the memory fills
     # never written into (each step makes a new iterate): no copy
     y = np.zeros(fun.par.n_free) if y0 is None else np.asarray(y0, dtype=np.float64)
     del y0

@@ -150,9 +150,9 @@ def release_free_memory() -> bool:
     """Give the C heap's free pages back to the operating system (glibc's ``malloc_trim(0)``; a no-op elsewhere),
     so that the temporaries of one phase do not stay resident under the next one's arrays: numpy arrays below
     glibc's mmap threshold (up to 32 MB) come from the heap and stay mapped after they are freed. Called at every
-    phase of `jaxci.smooth` (`jaxci.runtime.phases.Clock.phase`) and at the start of the host L-BFGS loop on a large
-    problem (`jaxci.optim.host.lbfgs`, `TRIM_FROM`): at 10^6 hexahedra it returned 85 MB there (517 -> 432 MB
-    resident), in milliseconds. Returns whether it ran."""
+    phase of `jaxci.smooth` (`jaxci.runtime.phases.Clock.phase`) and at the start of the host L-BFGS loop
+    (`jaxci.optim.host.lbfgs`): at 10^6 hexahedra it returned 85 MB there (517 -> 432 MB resident), in
+    milliseconds. Returns whether it ran."""
     trim = _malloc_trim()
     if trim is None:
         return False
