@@ -7,7 +7,10 @@ IN OUT`` (every skin vertex fixed; ``shared/peers/msqshape``) the same way. The 
 (`scripts/realmesh_corpus.py`: the unit cube of 60^3 hexahedra, interior perturbed by 0.3 h, 1838 inverted: made
 once, about 3 s, into ``~/.cache/jaxci/realmesh``). jaxci alone takes about 10-25 s on a 2-core machine; msqshape
 about 5-8 minutes on cube60_pert (so it is opt-in). The figures are printed and written as JSON (``--out``). The
-peak of jaxci includes its imports (about 40 MB).
+peak of jaxci includes its imports (about 40 MB). As `bench_realmesh` does, it first writes the bytecode of the
+jaxci package (`bench_realmesh.ensure_bytecode`; ``--no-bytecode``: as found): a process that compiles its modules
+at every start, as where ``PYTHONDONTWRITEBYTECODE`` is set and the sources were never compiled, needs about 0.15 s
+and a few MB more.
 
     python scripts/bench_memory.py                                  # jaxci on cube60_pert
     python scripts/bench_memory.py --msqshape --out memory.json     # and msqshape -s beside it
@@ -86,7 +89,11 @@ def main(argv=None) -> int:
     ap.add_argument("--msqshape", action="store_true", help=f"also run msqshape -s ({MSQSHAPE}; minutes)")
     ap.add_argument("--msq-timeout", type=float, default=900.0, help="seconds (default 900)")
     ap.add_argument("--out", type=Path, help="write the JSON here")
+    ap.add_argument("--no-bytecode", action="store_true", help="do not write jaxci's bytecode first")
     args = ap.parse_args(argv)
+    import jaxci
+
+    bytecode = "as found" if args.no_bytecode else realmesh.ensure_bytecode(Path(jaxci.__file__).parent)
     if args.mesh is None:
         entry = next(e for e in corpus.entries() if e.name == "cube60_pert")
         mesh, name = entry.ensure(), entry.name
@@ -109,7 +116,7 @@ def main(argv=None) -> int:
     result = {"mesh": name, "path": str(mesh), "hexahedra": hexes, "rows": rows,
               "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
               "commit": commit, "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.node()}",
-              "load_avg": [round(x, 2) for x in os.getloadavg()]}
+              "load_avg": [round(x, 2) for x in os.getloadavg()], "bytecode": bytecode}
     print(f"{name}: {hexes} hexahedra (commit {commit}, load {result['load_avg'][0]})")
     print(f"  {'':10} {'peak MB':>8} {'wall s':>7} {'cpu s':>7} {'B/hex':>7}  status")
     for who, row in rows.items():

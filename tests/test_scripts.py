@@ -129,7 +129,7 @@ def test_bench_memory_measures_the_peak_of_a_fresh_jaxci_process(tmp_path):
     assert 20 < row["peak_mb"] < 2000 and row["peak_kb"] == pytest.approx(row["peak_mb"] * 1024, abs=60)
     assert row["bytes_per_hex"] == round(row["peak_kb"] * 1024 / 216) and row["wall_s"] > 0 and row["cpu_s"] > 0
     assert row["engine"]["name"] == "host" and row["after"]["inverted_elements"] == 0
-    assert "peak MB" in p.stdout and "msqshape" not in d["rows"]
+    assert "peak MB" in p.stdout and "msqshape" not in d["rows"] and d["bytecode"] == "compiled (compileall)"
 
 
 def test_bench_host_prep_times_the_phases_and_the_host_functions(tmp_path):
