@@ -206,8 +206,8 @@ class HostObjective:
         # `jaxci.optim.newton` never write into an array they have passed here, and a caller of its own must not
         # either; the points only where projected (or for `hvp`), else `points_of` lifts `v` again: the accepted
         # iterate's points are another vector during every line search, and only its end reads them
-        keep = hint is not None or self.keep_raw
-        self._last = (v, x if keep else None, out, hint, gx_raw if self.keep_raw else None)
+        hold_points = hint is not None or self.keep_raw
+        self._last = (v, x if hold_points else None, out, hint, gx_raw if self.keep_raw else None)
         return out
 
     def hvp(self, p: np.ndarray, step: float) -> np.ndarray | None:
