@@ -157,6 +157,17 @@ def triangle_table(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
+def cell_corners(table: np.ndarray, cells: np.ndarray, kind: int) -> tuple:
+    """``(a, b, size2)`` of the columns `cells` (any shape) of a packed table: each cell's two corners ``(3,
+    *cells.shape)`` and its squared size: a triangle's (c, a, b) of a face and the face's `_TL2` (kind 0), a
+    segment's ends and its squared length (kind 1)."""
+    if kind == 0:
+        c = table[TC : TC + 3][:, cells]
+        return c + table[_TE1 : _TE1 + 3][:, cells], c + table[_TE2 : _TE2 + 3][:, cells], table[_TL2][cells]
+    a = table[_SA : _SA + 3][:, cells]
+    return a, a + table[SD : SD + 3][:, cells], table[_SL2][cells]
+
+
 def segment_table(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """The packed segment table of `edges` (S, 2): shape (8, S), float64, in `CELL_ORDER`."""
     a, d = points[edges[:, 0]], points[edges[:, 1]] - points[edges[:, 0]]

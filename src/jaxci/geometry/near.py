@@ -26,16 +26,33 @@ from ._closest import (
     segment_centres,
     triangle_centres,
 )
+from .anchors import anchor_tables, moves
 from .projection import Constraints
+
+#: Most anchor moves of a node with no remembered cell at its first projection (`NearProjector.__call__`): a ring
+#: or more each, towards its point.
+WALK = 64
 
 
 def project_near_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
     """`project` in numpy (the candidate triangles and segments of each node, as under `jax.jit`; float64): a
-    `NearProjector` that remembers nothing, so every node searches all its candidates.
-
-    For displacements within a node's ring of boundary faces (a solver's iterates); `project_np` searches whole
-    patches and handles any displacement. **Returns** a new float64 array of shape ``(n_nodes, 3)``."""
+    new `NearProjector`, so every node searches all its candidates, and a node beyond its own ring of boundary
+    faces walks its anchor there first (`jaxci.geometry.anchors`; `project` holds it on its ring's rim).
+    `project_np` searches whole patches. **Returns** a new float64 array of shape ``(n_nodes, 3)``."""
     return NearProjector(constraints)(points)[0]
+
+
+def anchored(constraints: Constraints, points: np.ndarray) -> Constraints:
+    """`constraints` (numpy float64, `host_constraints`) with each boundary node's candidates those of its anchor
+    at `points` ``(n, 3)`` (`jaxci.geometry.anchors`: found by `NearProjector`'s first projection): for a
+    problem made from points the solver left, whose nodes may lie beyond their own rings (the worst-element
+    polish's sub-problems). `constraints` itself where every node's anchor is the node."""
+    pr = NearProjector(constraints)
+    pr(points)
+    c = pr.c
+    if pr._cand[0] is c.surface_cand and pr._cand[1] is c.edge_cand:
+        return constraints
+    return dataclasses.replace(c, surface_cand=pr._cand[0], edge_cand=pr._cand[1])
 
 
 class NearProjector:
@@ -67,6 +84,12 @@ class NearProjector:
         self.spheres = (_sphere(self.c.triangles, triangle_centres), _sphere(self.c.segments, segment_centres))
         #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
         self._tiled = {}  # `project_many`'s index arrays per (kind, number of meshes)
+        #: per kind, the candidate columns each node projects with: its anchor's (`commit`); the constraints' own
+        #: until an anchor moves
+        self._cand = [self.c.surface_cand, self.c.edge_cand]
+        #: per kind, ``(anchor rows, inner, ends, the constraints' columns)`` (`jaxci.geometry.anchors`), made at
+        #: the first commit
+        self._anchors = [None, None]
         # the candidate columns int32, as the constraints hold them (no copy: 11 MB at 216,000 hexahedra in int64);
         # each table cell-major, the transpose of the constraints' (no copy of a table in `CELL_ORDER`)
         self._native = None if not native.AVAILABLE else tuple(
@@ -82,11 +105,47 @@ class NearProjector:
         """Per kind, the candidate rows the numpy search reads (`candidate_rows`): every float64 row of every
         candidate of every boundary node, about 10 kB a node (203 MB on cube60_pert, a third of its run's peak),
         so they are built on first use, never where the C search runs."""
-        return _candidate_table_rows(self.c)
+        rows = _candidate_table_rows(self.c)
+        own = (self.c.surface_cand, self.c.edge_cand)
+        return tuple(r if r is None or self._cand[k] is own[k] else candidate_rows(
+            (self.c.triangles, self.c.segments)[k], self._cand[k][: len(r[0])]) for k, r in enumerate(rows))
 
     def commit(self, hint) -> None:
-        """Remember `hint` (from `__call__`) for the next projections."""
+        """Remember `hint` (from `__call__`) for the next projections, and move the anchor of each node whose cell
+        left its anchor's 1-ring (`jaxci.geometry.anchors`): `hint`'s columns of those nodes change, in place,
+        to the same cells in their new rows."""
         self.hint = hint
+        for kind in range(2):
+            self._follow(kind, hint[kind])
+
+    def _follow(self, kind: int, hint: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Move the anchors of the nodes of `kind` (of `rows`, default all) whose cell (`hint`, columns) left their
+        anchor's 1-ring (`jaxci.geometry.anchors.moves`); their columns in `hint` become those of the same cells in
+        the new rows, in place. **Returns** the rows moved."""
+        nodes = (self.c.surface_nodes, self.c.edge_nodes)[kind]
+        if not len(nodes) or not (hint >= 0).any():
+            return np.zeros(0, np.int64)
+        if self._anchors[kind] is None:
+            base = np.asarray(self._cand[kind])
+            inner, ends = anchor_tables(np.asarray(self.c.x_orig, np.float64)[nodes], base,
+                                        np.asarray((self.c.triangles, self.c.segments)[kind]), kind)
+            self._anchors[kind] = (np.arange(len(nodes)), inner, ends, base)
+        anchor, inner, ends, base = self._anchors[kind]
+        rows, new, cells = moves(hint, anchor, self._cand[kind], inner, ends, kind, rows)
+        if not len(rows):
+            return rows
+        if self._cand[kind] is base:  # the constraints' own columns until the first anchor moves
+            self._cand[kind] = np.array(base, np.int32)
+        self._cand[kind][rows] = base[new]
+        anchor[rows] = new
+        hint[rows] = np.argmax(base[new] == cells[:, None], axis=1)
+        if self._native is not None:  # the C search's arrays and `project_many`'s tiles follow
+            tables = list(self._native)
+            tables[kind] = (tables[kind][0], self._cand[kind], *tables[kind][2:])
+            self._native = tuple(tables)
+            self._tiled.clear()
+        self.__dict__.pop("rows", None)  # (the numpy search's gathered rows: made again on use)
+        return rows
 
     @property
     def tolerances(self) -> tuple[float, float]:
@@ -147,58 +206,64 @@ class NearProjector:
         c = self.c
         inplace = inplace and points.dtype == np.float64 and points.flags.c_contiguous and points.flags.writeable
         x = points if inplace else np.array(points, dtype=np.float64)
-        tol = inside_tolerance(np.float64)
-        if self._native is not None:
-            from .. import native
-
-            out = []
-            for kind, (nodes, cand, table, spheres) in enumerate(self._native):
-                hint = self.hint[kind].copy()
-                active = np.arange(len(nodes)) if keep is None else np.flatnonzero(~keep[nodes])
-                if len(active):
-                    native.near_project(x, nodes, active, hint, cand, table, spheres, kind, tol,
-                                        segment_bump(np.float64))
-                out.append(hint)
-            if not corners_placed:
-                x[c.corner_nodes] = c.x_orig[c.corner_nodes]
-            return x, tuple(out)
-        kinds = ((c.surface_nodes, c.triangles, c.surface_cand, closest_on_triangles, plane_point),
-                 (c.edge_nodes, c.segments, c.edge_cand, closest_on_segments, line_point))
         out = []
-        for kind, (nodes, table, cand, closest, orthogonal) in enumerate(kinds):
+        for kind, nodes in enumerate((c.surface_nodes, c.edge_nodes)):
             hint = self.hint[kind].copy()
             active = np.arange(len(nodes)) if keep is None else np.flatnonzero(~keep[nodes])
-            if not len(active):
-                out.append(hint)
-                continue
-            xs = x[nodes[active]]
-            todo = hint[active] < 0
-            known = np.flatnonzero(~todo)
-            if len(known):
-                rows = active[known]
-                cell = cand[rows, hint[rows]]
-                found = orthogonal(tuple(xs[known].T), table[:, cell], tol)
-                p, inside = np.stack(found[0], axis=-1), found[2 if kind == 0 else 1]
-                # inside, but a candidate whose bounding sphere comes nearer may hold a nearer point: search all
-                centre, radius = self.spheres[kind]
-                gap = np.linalg.norm(xs[known][:, None] - centre[cand[rows]], axis=-1) - radius[cand[rows]]
-                near2 = np.sum((xs[known] - p) ** 2, axis=1)
-                other = ((gap <= 0) | (gap * gap < near2[:, None])).sum(axis=1) > 1  # the hint's own passes
-                inside &= ~other
-                x[nodes[rows[inside]]] = p[inside]
-                todo[known[~inside]] = True
-            if todo.any():
-                rows = active[todo]
-                gathered = [r[rows] for r in self.rows[kind]]
-                p, score = closest(np, tuple(xs[todo].T[:, :, None]), gathered, tol)
-                k = np.argmin(score, axis=-1)
-                pick = np.arange(len(k))
-                x[nodes[rows]] = np.stack([pj[pick, k] for pj in p], axis=-1)
-                hint[rows] = k
+            # a node with no remembered cell finds its anchor: from its own ring towards its point, one ring a step
+            fresh = active[hint[active] < 0]
+            start = x[nodes[fresh]] if len(fresh) else None
+            self._search(kind, x, active, hint)
+            for _ in range(WALK if len(fresh) else 0):
+                moved = self._follow(kind, hint, fresh)
+                if not len(moved):
+                    break
+                x[nodes[moved]] = start[np.searchsorted(fresh, moved)]
+                self._search(kind, x, moved, hint)
             out.append(hint)
         if not corners_placed:
             x[c.corner_nodes] = c.x_orig[c.corner_nodes]
         return x, tuple(out)
+
+    def _search(self, kind: int, x: np.ndarray, active: np.ndarray, hint: np.ndarray) -> None:
+        """The nodes `active` (rows) of `kind` in `x` to their nearest candidate point, in place, each from its
+        cell `hint` (columns, -1: search all; updated in place)."""
+        if not len(active):
+            return
+        tol = inside_tolerance(np.float64)
+        if self._native is not None:
+            from .. import native
+
+            nodes, cand, table, spheres = self._native[kind]
+            native.near_project(x, nodes, active, hint, cand, table, spheres, kind, tol, segment_bump(np.float64))
+            return
+        c, cand = self.c, self._cand[kind]
+        nodes, table = (c.surface_nodes, c.triangles) if kind == 0 else (c.edge_nodes, c.segments)
+        closest, orthogonal = (closest_on_triangles, plane_point) if kind == 0 else (closest_on_segments, line_point)
+        xs = x[nodes[active]]
+        todo = hint[active] < 0
+        known = np.flatnonzero(~todo)
+        if len(known):
+            rows = active[known]
+            cell = cand[rows, hint[rows]]
+            found = orthogonal(tuple(xs[known].T), table[:, cell], tol)
+            p, inside = np.stack(found[0], axis=-1), found[2 if kind == 0 else 1]
+            # inside, but a candidate whose bounding sphere comes nearer may hold a nearer point: search all
+            centre, radius = self.spheres[kind]
+            gap = np.linalg.norm(xs[known][:, None] - centre[cand[rows]], axis=-1) - radius[cand[rows]]
+            near2 = np.sum((xs[known] - p) ** 2, axis=1)
+            other = ((gap <= 0) | (gap * gap < near2[:, None])).sum(axis=1) > 1  # the hint's own passes
+            inside &= ~other
+            x[nodes[rows[inside]]] = p[inside]
+            todo[known[~inside]] = True
+        if todo.any():
+            rows = active[todo]
+            gathered = [r[rows] for r in self.rows[kind]]
+            p, score = closest(np, tuple(xs[todo].T[:, :, None]), gathered, tol)
+            k = np.argmin(score, axis=-1)
+            pick = np.arange(len(k))
+            x[nodes[rows]] = np.stack([pj[pick, k] for pj in p], axis=-1)
+            hint[rows] = k
 
     def pullback(self, g: np.ndarray, hint, keep: np.ndarray | None = None) -> np.ndarray:
         """The gradient `g` ``(n, 3)`` at points projected with `hint` (`__call__`, with the same `keep`) taken
@@ -213,8 +278,8 @@ class NearProjector:
                 if len(nodes):
                     native.pullback(g, nodes, hint[kind], keep, cand, table, kind)
             return g
-        for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, c.surface_cand, TN),
-                                                          (c.edge_nodes, c.segments, c.edge_cand, SD))):
+        for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, self._cand[0], TN),
+                                                          (c.edge_nodes, c.segments, self._cand[1], SD))):
             rows = np.flatnonzero(hint[kind] >= 0) if keep is None else np.flatnonzero((hint[kind] >= 0)
                                                                                        & ~keep[nodes])
             if not len(rows):

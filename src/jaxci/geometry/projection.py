@@ -18,7 +18,9 @@ search to the node's own patch or curve stops a node from jumping across a thin 
   the largest such 2-ring: 16 quads = 64 triangles on a structured grid), or the segments of its own curve
   within its 2-ring (K_seg, 4 on a chain). Shorter lists are padded by repeating an entry. Both agree whenever
   the nearest point lies in the 2-ring, i.e. for moves of up to about one element. The host solvers' numpy
-  version of `project`, starting from each node's last cell, is `jaxci.geometry.near.NearProjector`.
+  version of `project`, starting from each node's last cell, is `jaxci.geometry.near.NearProjector`; its
+  candidates follow the node (the 2-ring of an anchor that moves with it: `jaxci.geometry.anchors`), so that
+  its nodes slide as far as the solver takes them.
 
 The nearest point of a triangle is its orthogonal projection if that falls inside (with a relative tolerance
 of 256 machine epsilons), else the nearest point of its sides. Inside projections win ties, up to rounding

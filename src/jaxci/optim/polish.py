@@ -55,6 +55,7 @@ import numpy as np
 
 from ..cells import element_blocks
 from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
+from ..geometry.near import anchored
 from ..geometry.projection import Constraints
 from ..runtime.phases import stepper
 from .host import HostObjective, lbfgs
@@ -144,6 +145,13 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
         return x, report
     e_sum = float(sum(np.sum(t - 1.0) for t in terms)) + rest.e_sum  # (not before: a temporary of every corner)
     del terms
+    # the sub-problems' candidate cells around the nodes' anchors at `x` (`jaxci.geometry.anchors`): the solver may
+    # have moved a boundary node beyond its own ring (not where every moving boundary node is inside its flat
+    # region: their projection is onto its plane)
+    d = x[np.asarray(par.flat_nodes)] - np.asarray(par.flat_origin, np.float64)
+    if not np.all(np.sum(d * d, axis=-1) < (0.999 * np.asarray(par.flat_radius, np.float64)) ** 2):
+        cons = anchored(cons, x)
+    del d
     free = np.zeros(len(x), bool)
     for nodes in (cons.interior_nodes, cons.surface_nodes, cons.edge_nodes):
         free[np.asarray(nodes)] = True
