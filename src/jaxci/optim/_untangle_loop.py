@@ -26,7 +26,7 @@ from ..metrics import elements as E
 from ..runtime._lazy import filter_jit, jax, jnp
 from ..runtime.transfer import program
 from ._params import MAX_REJECTED_UNCAPPED
-from .lbfgs import DECREASE, armijo, converged, curvature_ok
+from .lbfgs import DECREASE, armijo, calm_steps, converged, curvature_ok
 
 #: Corners one interior node moves (8 elements x 4 corners): the energy is a per-node sum (as F in
 #: `jaxci.optim.gradient`).
@@ -276,7 +276,7 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
         "v": v0, "f": zero, "g": jnp.zeros_like(v0), "d_acc": zero, "d": jnp.zeros_like(v0), "alpha": zero + 1,
         "S": jnp.zeros((history, n), dtype), "Y": jnp.zeros((history, n), dtype), "rho": jnp.zeros((history,), dtype),
         "head": i0, "n_mem": i0,
-        "k": i0, "steps": i0, "rejected": i0, "f_last": zero,
+        "k": i0, "steps": i0, "rejected": i0, "calm": i0, "f_last": zero,
         "y_best": v0, "f_best": zero, "d_best": zero,
         "eps": zero + 1, "e_start": zero, "rounds": i0, "dmin0": zero, "h_eps": nan, "h_dmin": nan, "h_e": nan,
     } if state is None else {**state, "done": false, "left": false}
@@ -302,9 +302,10 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
             Y = c["Y"].at[slot].set(jnp.where(upd, yv, c["Y"][slot]))
             rho = c["rho"].at[slot].set(jnp.where(upd, 1.0 / jnp.where(upd, inner, 1.0), c["rho"][slot]))
             head, n_mem = c["head"] + upd, jnp.minimum(c["n_mem"] + upd, history)
+            calm = jnp.where(first, 0, calm_steps(c["calm"], f_e, c["f"], rtol, jnp)).astype(c["calm"].dtype)
             stop = converged(jnp.max(jnp.abs(s), initial=0.0), jnp.max(jnp.abs(c["y_eval"]), initial=0.0), f_e,
-                             c["f"], rtol, atol, c["alpha"])
-            return {**c, "v": c["y_eval"], "f": f_e, "g": g_e, "d_acc": d_e, "alpha": jnp.ones((), dtype),
+                             c["f"], rtol, atol, c["alpha"], calm)
+            return {**c, "v": c["y_eval"], "f": f_e, "g": g_e, "d_acc": d_e, "alpha": jnp.ones((), dtype), "calm": calm,
                     "d": _direction(g_e, S, Y, rho, head, n_mem), "S": S, "Y": Y, "rho": rho, "head": head,
                     "n_mem": n_mem}, ~first & stop
 
@@ -340,7 +341,7 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
         return {**c, "h_eps": c["h_eps"].at[r].set(eps), "h_dmin": c["h_dmin"].at[r].set(dmin),
                 "h_e": c["h_e"].at[r].set(e), "eps": new_eps.astype(dtype), "rounds": r + 1,
                 "steps": c["steps"] + c["k"], "done": done, "left": left,
-                "first": jnp.array(True), "k": i0, "rejected": i0, "y_eval": c["y_best"],
+                "first": jnp.array(True), "k": i0, "rejected": i0, "calm": i0, "y_eval": c["y_best"],
                 "rho": jnp.zeros_like(c["rho"]), "head": i0, "n_mem": i0}
 
     def body(c):

@@ -35,7 +35,7 @@ from ..metrics.hexahedron import objective_terms_and_grad_np
 from ..runtime.memory import release_free_memory
 from ..runtime.phases import stepper
 from ._params import MAX_REJECTED_UNCAPPED
-from .lbfgs import DECREASE, armijo, cap_factor, converged, curvature_ok
+from .lbfgs import DECREASE, armijo, calm_steps, cap_factor, converged, curvature_ok
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
 #: Largest hexahedral mesh `jaxci.optim.gradient.minimise` solves in numpy with ``backend="auto"``: 100,000
@@ -412,7 +412,7 @@ def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int
 
     trial = d = capped(-g)
     slope = dot(g, trial)
-    alpha, rejected, steps, result = 1.0, 0, 0, "nonlinear_max_steps_reached"
+    alpha, rejected, steps, result, calm = 1.0, 0, 0, "nonlinear_max_steps_reached", 0
     stop = finished(f, k)
     tick = None if stage is None else stepper(stage)
     while not stop and steps < limit:
@@ -426,7 +426,8 @@ def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int
         if g_try is not None and armijo(v_try, value, alpha, slope):
             trial = d = None  # dead once a trial is accepted: its memory goes before the pair's temporaries come
             s = y_try - y
-            done_here = bool(converged(amax(s), amax(y_try), v_try, value, rtol, atol, alpha))
+            calm = int(calm_steps(calm, v_try, value, rtol))
+            done_here = bool(converged(amax(s), amax(y_try), v_try, value, rtol, atol, alpha, calm))
             s = mem.stored(s)  # a float16 memory's pair: its float64 temporaries one at a time
             mem.push(s, mem.stored(g_try - g))
             del s

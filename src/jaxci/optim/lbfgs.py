@@ -5,16 +5,17 @@
 (`jaxci.optim.host.lbfgs`, also the untangler's rounds on the host), the JAX engine's (`lbfgs_loop`, one device or
 sharded) and the compiled untangler's (`jaxci.optim._untangle_loop`). An iteration: the two-loop L-BFGS direction
 (initial inverse Hessian ``s.y / y.y`` I of the newest pair; a pair whose curvature is not clearly positive,
-`curvature_ok`, is not stored; the memory forgotten when the direction is not one of descent), each trial capped
-at ``max_move`` in the max norm (`cap_factor`), a backtracking Armijo search (`armijo`: slope `SLOPE`, the step
-times `DECREASE` on rejection, step 1 again after an accepted one), the Cauchy stop at accepted iterates
-(`converged`: the largest change of an unknown below ``atol + rtol`` times the largest unknown, AND the change of
-the objective below ``atol + rtol |f|``), the stop at ``F <= ftol`` or max kappa/3 <= 1 + ktol, `max_rejected`
-consecutive rejections and the step limit. Every objective evaluation is a step. (optimistix's Cauchy test takes
-the ratio per unknown; jaxci's unknowns start at 0 in units of the local edge length, where that ratio would ask
-every unknown, even one that barely moves, to settle to ``atol``.) Two copies of the loop stay, for their loop
-primitive and memory: the host's runs in Python with the C two-loop recursion and an optional coarse
-preconditioner; `lbfgs_loop` is one `jax.lax.while_loop` whose recursion runs on Gram matrices (below).
+`curvature_ok`, is not stored; the memory forgotten when the direction is not one of descent), each trial capped at
+``max_move`` in the max norm (`cap_factor`), a backtracking Armijo search (`armijo`: slope `SLOPE`, the step times
+`DECREASE` on rejection, step 1 again after an accepted one), the Cauchy stop at accepted iterates (`converged`: the
+largest change of an unknown below ``atol + rtol`` times the largest unknown, AND the change of the objective below
+``atol + rtol |f|``; or a change of the objective below ``rtol |f|`` at `SETTLED_RUN` accepted steps in a row, where
+the iterate drifts along a valley of F), the stop at ``F <= ftol`` or max kappa/3 <= 1 + ktol, `max_rejected`
+consecutive rejections and the step limit. Every objective evaluation is a step. (optimistix's Cauchy test takes the
+ratio per unknown; jaxci's unknowns start at 0 in units of the local edge length, where that ratio would ask every
+unknown, even one that barely moves, to settle to ``atol``.) Two copies of the loop stay, for their loop primitive
+and memory: the host's runs in Python with the C two-loop recursion and an optional coarse preconditioner;
+`lbfgs_loop` is one `jax.lax.while_loop` whose recursion runs on Gram matrices (below).
 
 **`lbfgs_loop`** runs the JAX engine's L-BFGS (`jaxci.optim.gradient.minimise`, ``"lbfgs"``): on one device
 (``mesh`` None) as one compiled program, or inside one `jax.shard_map` over the devices of a
@@ -50,6 +51,11 @@ DECREASE = 0.5
 #: An accepted step size at or below this (8 cuts of `DECREASE`) whose objective change is within the Cauchy
 #: test's stops the loop (`converged`).
 STUCK_STEP = DECREASE ** 8
+#: Accepted steps in a row whose objective changed by less than rtol of it (`calm_steps`) that stop
+#: the loop whatever their size (`converged`): the iterate drifts along a valley where F barely changes, as an O-grid
+#: cylinder's turns about its axis once its boundary nodes may slide on (`jaxci.geometry.anchors`): L-BFGS went on
+#: for 510 steps there, for 1.2e-5 of F (2026-11-30).
+SETTLED_RUN = 10
 
 #: Result codes of `lbfgs_loop`, as the host path names them (`jaxci.optim.host.lbfgs`).
 RESULTS = ("successful", "nonlinear_max_steps_reached", "nonfinite")
@@ -68,13 +74,22 @@ def armijo(v_try, value, alpha, slope):
     return v_try <= value + SLOPE * alpha * slope
 
 
-def converged(s_max, y_max, v_new, v_old, rtol, atol, alpha=1.0):
+def converged(s_max, y_max, v_new, v_old, rtol, atol, alpha=1.0, calm=0):
     """The Cauchy stop at an accepted iterate: the objective's change below ``atol + rtol |v_new|`` (`settled`),
     and the step's largest change of an unknown `s_max` below ``atol + rtol y_max`` (the largest unknown) or the
     step accepted at a size `alpha` of at most `STUCK_STEP` (the line search had to cut the model's step 8 times:
     the objective has a kink along it, as where boundary nodes cross the edges of the boundary's triangles, and
-    further steps would only be shorter)."""
-    return ((s_max < atol + rtol * y_max) | (alpha <= STUCK_STEP)) & settled(v_new, v_old, rtol, atol)
+    further steps would only be shorter); or `calm` (the accepted steps in a row whose objective changed by less
+    than ``rtol`` of it, this one included: `calm_steps`) at least `SETTLED_RUN`, whatever their size."""
+    return ((((s_max < atol + rtol * y_max) | (alpha <= STUCK_STEP)) & settled(v_new, v_old, rtol, atol))
+            | (calm >= SETTLED_RUN))
+
+
+def calm_steps(calm, v_new, v_old, rtol, xp=np):
+    """The accepted steps in a row whose objective changed by less than ``rtol |v_new|``, after one from `v_old` to
+    `v_new` (`calm` before it): `settled` without its absolute part, which near an objective of 0 (a mesh that
+    reaches the ideal) holds while the iterate still converges."""
+    return xp.where(abs(v_new - v_old) < rtol * abs(v_new), calm + 1, 0)
 
 
 def settled(v_new, v_old, rtol, atol):
@@ -234,13 +249,14 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, static: tupl
         mem = dict(W=jnp.zeros((2 * m, n_loc), dtype), SY=jnp.zeros((m, m), dtype), YY=jnp.zeros((m, m), dtype),
                    age=jnp.full((m,), -1, jnp.int32), count=jnp.int32(0))
         it = dict(y=y0, g=g, value=value, f=f, k=k, trial=trial, slope=jnp.dot(g, trial), alpha=jnp.ones((), dtype),
-                  rejected=jnp.int32(0), steps=jnp.int32(0), stop=~ok | finished(f, k),
+                  rejected=jnp.int32(0), calm=jnp.int32(0), steps=jnp.int32(0), stop=~ok | finished(f, k),
                   hf=hf, hk=hk, mem=mem)
 
         def accepted(it, y_try, v_try, g_try, f_try, k_try):
             mem = it["mem"]
             ds, dg = y_try - it["y"], g_try - it["g"]  # the new pair
-            done = converged(_amax(ds), _amax(y_try), v_try, it["value"], rtol, atol, it["alpha"])
+            calm = calm_steps(it["calm"], v_try, it["value"], rtol, jnp)
+            done = converged(_amax(ds), _amax(y_try), v_try, it["value"], rtol, atol, it["alpha"], calm)
             s_l, y_l, g_l = share(ds), share(dg), share(g_try)
             W = mem["W"]
             # every dot the update and the recursion need, over this device's share, in ONE all-reduce
@@ -271,7 +287,7 @@ def lbfgs_loop(objective, args, conn, weight, y0, consts, limit, *, static: tupl
             trial = capped(d)
             return dict(it, y=y_try, g=g_try, value=v_try, f=f_try, k=k_try, trial=trial,
                         slope=jnp.dot(g_try, trial), alpha=jnp.ones((), dtype), rejected=jnp.int32(0),
-                        stop=done | finished(f_try, k_try),
+                        calm=calm.astype(jnp.int32), stop=done | finished(f_try, k_try),
                         mem=dict(W=W, SY=SY, YY=YY, age=age, count=count))
 
         def rejected(it, *_):
