@@ -46,8 +46,9 @@ def test_rounds_lower_f_and_count_their_sweeps_and_steps(monkeypatch):
 
 
 def test_the_default_pipeline_escapes_on_the_host_only_where_asked():
-    """The default pipeline's parameters ask for `AUTO_ESCAPE` rounds on the host engine; `escape=0` turns the
-    stage off (no report), and a mesh L-BFGS smooths to the ideal has nothing to escape from."""
+    """The default pipeline's parameters carry `AUTO_ESCAPE` rounds on the host engine (none: the candidate cells
+    follow their nodes, `jaxci.geometry.anchors`); `escape=0` turns the stage off (no report), and a mesh L-BFGS
+    smooths to the ideal has nothing to escape from."""
     from jaxci.interface.methods import AUTO_ESCAPE
     from jaxci.mesh.generate import perturb_box
 

@@ -43,10 +43,13 @@ AUTO_PRESMOOTH_FROM = 100_001
 #: against 29.5 s in all (the 27k tet-to-hex sphere 6.4 against 11.2 s), the worst element lower on 7 meshes, the
 #: same on 8 and at most 0.27% higher on 4; 100 steps left pave3's worst element 0.75% higher.
 AUTO_NEWTON_AFTER = 200
-#: Escape rounds of the default pipeline on the host engine (hexahedral meshes: `jaxci.optim.escape`): Mesquite's
-#: graded cub_fru takes four (F 34.96 -> 5.70); on every other mesh of the real-mesh corpus the first sweep gains
-#: under 0.4% and none runs.
-AUTO_ESCAPE = 8
+#: Escape rounds of the default pipeline on the host engine (hexahedral meshes: `jaxci.optim.escape`): none. The
+#: one mesh they helped, Mesquite's graded cub_fru (four rounds, F 34.96 -> 5.70), was held by the boundary nodes'
+#: candidate rings; with candidates that follow their nodes (`jaxci.geometry.anchors`) the solver itself ends at
+#: F 4.3, and on every mesh of `scripts/bench_realmesh.py`'s corpus, the paved three and cub_fru the escape's first
+#: sweep gains under 1% (2026-11-30): it ran none, at the cost of that sweep (0.2-0.5 s at 25,000 hexahedra).
+#: ``escape=N`` (`jaxci.optim.gradient_params.GradientParams`) asks for them.
+AUTO_ESCAPE = 0
 
 #: F at or below which a mesh is already optimal: `smooth` returns it after this one evaluation.
 OPTIMAL_F = 1e-14

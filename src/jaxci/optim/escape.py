@@ -1,26 +1,22 @@
-"""The default pipeline's escape from a solver's poor minimum: local CI sweeps, then the solver again.
+"""An escape from a solver's poor minimum: local CI sweeps, then the solver again (``escape=N``; off by default).
 
-F is not convex, and on a strongly graded mesh a gradient solver can end far above what node-by-node moves reach
-from the same start: on Mesquite's cub_fru (10,752 hexahedra) L-BFGS and truncated Newton both stop at F 34.96
-(max kappa/3 51.0), where three sweeps of local CI lower F by 55% (local CI alone from the input ends at F 5.21,
-max kappa/3 14.3, in 27 s). The solver's end is a minimum for small moves only: a node moved by a good part of
-its edge length (a cohort's trial) crosses the barrier a near-flat corner makes.
+F is not convex, and a gradient solver can end far above what node-by-node moves reach from the same start: a
+minimum for small moves only. Mesquite's cub_fru (10,752 hexahedra) was the case: L-BFGS stopped at F 34.96 (max
+kappa/3 51.0), where three sweeps of local CI lowered F by 55%. Its cause was not F: each boundary node projected
+onto the cells around where it started, and the graded mesh's best shape has boundary nodes further away than that.
+Now the candidate cells follow their nodes (`jaxci.geometry.anchors`), and the solver alone ends there at F 4.37
+(`--method lbfgs`, max kappa/3 5.87, 2026-11-30), against the four escape rounds' 5.70. No mesh of the real-mesh
+corpus needs the escape any more, and the default pipeline asks for none (`jaxci.interface.methods.AUTO_ESCAPE`).
 
-So, after the solve (`escape`): local CI sweeps (`jaxci.optim.host_local.local_ci_np`: every node tries a cohort
-of moves in its free directions and keeps the best where its own elements get better: F never rises), at most
-`SWEEPS` (5), ending after the first that lowers F by less than `GAIN` (1%). Where the first does, the solver's
-minimum stands: on every other mesh of the real-mesh corpus the first sweep gains at most 0.4% (2026-11-30), and
-that sweep is the escape's whole cost (0.05 s at 2,000 hexahedra, 0.2-0.5 s at 25,000). Otherwise the solver
-again from the sweeps' end, its result kept where F is lower, up to `GradientParams.escape` rounds. On cub_fru,
-the default pipeline with the polish after it: F 5.70, max kappa/3 11.96 in about 4 s cold (four rounds), where it ends
-at max kappa/3 29.7 without them (``escape=0``; 2% and 3 sweeps: F 6.01, max kappa/3 14.4; 1% and 3 sweeps: 5.76
-and 12.9).
+`escape`: local CI sweeps (`jaxci.optim.host_local.local_ci_np`: every node tries a cohort of moves in its free
+directions and keeps the best where its own elements get better: F never rises), at most `SWEEPS` (5), ending
+after the first that lowers F by less than `GAIN` (1%). Where the first does, the solver's minimum stands, and that
+sweep is the escape's whole cost (0.05 s at 2,000 hexahedra, 0.2-0.5 s at 25,000). Otherwise the solver again from
+the sweeps' end, its result kept where F is lower, up to `GradientParams.escape` rounds.
 
-The host engine's sweeps on hexahedral meshes (the C kernels of `jaxci.native`): the default pipeline asks for it
-there (`jaxci.interface.methods.auto_pipeline`). Not on the JAX engine: its solve is float32, and the sweeps'
-float64 points, rounded to it, can invert a near-flat corner (cub_fru, 2026-11-30: the solve again started at an
-infinite F); its default pipeline presmooths (3 smart-Laplace sweeps before truncated Newton) and ends cub_fru's
-solve at F 5.83 without it (worst element 15.3 after the polish, in 24 s on a 2-core CPU).
+The host engine's sweeps on hexahedral meshes (the C kernels of `jaxci.native`). Not on the JAX engine: its solve
+is float32, and the sweeps' float64 points, rounded to it, can invert a near-flat corner (cub_fru, 2026-11-30: the
+solve again started at an infinite F).
 """
 
 from __future__ import annotations
