@@ -117,7 +117,7 @@ class GradientParams:
     - `cg_max`: ``solver="newton"``: the most CG products (gradient evaluations) per Newton iteration (default 20).
     - `escape`: L-BFGS on the host engine, hexahedral meshes: after the solve, up to this many rounds of local CI
       sweeps and the solver again where one sweep lowers F by 1% or more: the solver's minimum was one for small
-      moves only (`jaxci.optim.escape`; default 0: none; the default pipeline asks for `jaxci.interface.methods.
+      moves only (`jaxci.optim.escape`; default 0: none, as in the default pipeline, `jaxci.interface.methods.
       AUTO_ESCAPE`).
     - `polish`: with ``objective="mean"``: after the solve, the worst-element polish of
       `jaxci.optim.polish` (the worst element lowered level by level, moving only the nodes of the elements
