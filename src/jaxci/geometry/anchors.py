@@ -26,8 +26,8 @@ from ._closest import cell_corners
 
 #: A cell's corner and a node are the same point where their distance is at most this times the cell's size.
 MATCH = 1e-6
-#: Candidate pairs matched at once (bounds the temporaries: 3 float64 per pair and corner).
-CHUNK = 1 << 16
+#: Candidate pairs matched at once: the temporaries, about 20 float64 a pair, stay near 3 MB at any size.
+CHUNK = 1 << 14
 
 
 def anchor_tables(positions: np.ndarray, cand: np.ndarray, table: np.ndarray, kind: int) -> tuple:
@@ -37,31 +37,32 @@ def anchor_tables(positions: np.ndarray, cand: np.ndarray, table: np.ndarray, ki
     segments.
 
     - `inner` bool ``(R, K)``: candidate k of node r lies in a unit (face, segment) one of whose corners is node r.
-    - `ends` int64 ``(nc, 2)``: the node (row) at corner a and at corner b of each cell, -1 where none of the
+    - `ends` int32 ``(nc, 2)``: the node (row) at corner a and at corner b of each cell, -1 where none of the
       candidates' nodes is there.
     """
     R, K = len(positions), cand.shape[1]
-    cand = np.asarray(cand[:R], np.int64)
     nc = table.shape[1]
-    ends = np.full((nc, 2), -1, np.int64)
-    match = np.zeros((R, K), bool)
-    for lo in range(0, R, max(CHUNK // max(K, 1), 1)):
-        hi = min(R, lo + max(CHUNK // max(K, 1), 1))
+    n_units = (nc + 3) // 4 if kind == 0 else nc
+    ends = np.full((nc, 2), -1, np.int32)
+    inner = np.zeros((R, K), bool)
+    step = max(CHUNK // max(K, 1), 1)
+    for lo in range(0, R, step):  # a block of rows at a time: its temporaries a few MB at any size
+        hi = min(R, lo + step)
         cells = cand[lo:hi]
         p = positions[lo:hi].T[:, :, None]
         a, b, size2 = cell_corners(table, cells, kind)
         tol = MATCH * MATCH * size2
+        match = np.zeros(cells.shape, bool)
         for j, corner in enumerate((a, b)):
             hit = np.sum((corner - p) ** 2, axis=0) <= tol
             r, k = np.nonzero(hit)
             ends[cells[r, k], j] = lo + r
-            match[lo:hi] |= hit
-    unit = cand // 4 if kind == 0 else cand
-    n_units = (nc + 3) // 4 if kind == 0 else nc
-    key = np.arange(R, dtype=np.int64)[:, None] * n_units + unit
-    # a node at no corner of its candidates (its ring is not around it: a polish's sub-problem, whose nodes are
-    # where the solver left them) never moves
-    return np.isin(key, np.unique(key[match])) | ~match.any(axis=1, keepdims=True), ends
+            match |= hit
+        key = np.arange(hi - lo, dtype=np.int64)[:, None] * n_units + (cells // 4 if kind == 0 else cells)
+        # a node at no corner of its candidates (its ring is not around it: a polish's sub-problem, whose nodes
+        # are where the solver left them) never moves
+        inner[lo:hi] = np.isin(key, np.unique(key[match])) | ~match.any(axis=1, keepdims=True)
+    return inner, ends
 
 
 def moves(hint: np.ndarray, anchor: np.ndarray, cand: np.ndarray, inner: np.ndarray, ends: np.ndarray,
