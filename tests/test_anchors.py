@@ -94,10 +94,24 @@ def test_committed_steps_carry_the_anchor_along(use_c, monkeypatch):
 
 
 def test_nodes_at_their_own_cells_keep_their_own_rings():
-    """Where no node left its own cells, the constraints are used as they are: `anchored` returns them, no copy."""
+    """Where no node left its own cells, the constraints are used as they are: `anchored` returns them, no copy;
+    and a projector whose nodes stay on their own cells never makes the anchors' tables (0.56 s and 4 MB on the
+    surface of a 100^3 box)."""
     mesh = wavy_annulus(16, 3, 3)
     pr = build_problem(mesh, dtype=np.float64)
     assert anchored(pr.host_cons, np.array(mesh.points)) is pr.host_cons
+    proj = NearProjector(pr.cons)
+    x = np.array(mesh.points)
+    for _ in range(3):
+        x, hint = proj(x)
+        proj.commit(hint)
+    assert proj._anchors == [None, None]
+    p = np.array(mesh.points)  # one node a cell and a half along the wall: the tables are made, its anchor moves
+    node = int(pr.cons.surface_nodes[0])
+    r, th = np.hypot(p[node, 0], p[node, 1]), np.arctan2(p[node, 1], p[node, 0]) + 1.5 * 2 * np.pi / 16
+    x[node, :2] = r * np.cos(th), r * np.sin(th)
+    proj.commit(proj(x)[1])
+    assert proj._anchors[0] is not None and proj._anchors[0][0][0] != 0
 
 
 def test_lbfgs_slides_boundary_nodes_beyond_their_rings():

@@ -65,6 +65,20 @@ def anchor_tables(positions: np.ndarray, cand: np.ndarray, table: np.ndarray, ki
     return inner, ends
 
 
+def at_own_cells(positions: np.ndarray, cells: np.ndarray, table: np.ndarray, kind: int) -> np.ndarray:
+    """Whether each node at `positions` ``(R, 3)`` is a corner of the unit (face, segment) of its cell `cells`
+    ``(R,)``: True where a node's cell is one of its own, as `anchor_tables`' `inner` says, from the R cells alone
+    (no tables: a mesh whose boundary nodes never leave their own cells never builds them)."""
+    if kind == 0:
+        corners, _, size2 = cell_corners(table, (np.asarray(cells) // 4)[:, None] * 4 + np.arange(4), 0)
+        size2 = size2[:, 0]  # (the face's: its four triangles')
+    else:
+        a, b, size2 = cell_corners(table, cells, 1)
+        corners = np.stack([a, b], axis=-1)
+    d2 = np.sum((corners - positions.T[:, :, None]) ** 2, axis=0)
+    return (d2 <= (MATCH * MATCH * size2)[:, None]).any(axis=1)
+
+
 def moves(hint: np.ndarray, anchor: np.ndarray, cand: np.ndarray, inner: np.ndarray, ends: np.ndarray,
           kind: int, rows: np.ndarray | None = None) -> tuple:
     """The anchors to move: `hint` ``(R,)`` each node's candidate column (-1 unknown), `anchor` ``(R,)`` its

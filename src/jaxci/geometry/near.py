@@ -26,7 +26,7 @@ from ._closest import (
     segment_centres,
     triangle_centres,
 )
-from .anchors import anchor_tables, moves
+from .anchors import anchor_tables, at_own_cells, moves
 from .projection import Constraints
 
 #: Most anchor moves of a node with no remembered cell at its first projection (`NearProjector.__call__`): a ring
@@ -94,6 +94,7 @@ class NearProjector:
         #: per kind, ``(anchor rows, inner, ends, the constraints' columns)`` (`jaxci.geometry.anchors`), made at
         #: the first commit
         self._anchors = [None, None]
+        self._seen = [None, None]  # per kind, until the tables are made (`_follow`)
         # the candidate columns int32, as the constraints hold them (no copy: 11 MB at 216,000 hexahedra in int64);
         # each table cell-major, the transpose of the constraints' (no copy of a table in `CELL_ORDER`)
         self._native = None if not native.AVAILABLE else tuple(
@@ -129,7 +130,17 @@ class NearProjector:
         nodes = (self.c.surface_nodes, self.c.edge_nodes)[kind]
         if not len(nodes) or not (hint >= 0).any():
             return np.zeros(0, np.int64)
-        if self._anchors[kind] is None:
+        if self._anchors[kind] is None:  # no anchor moved yet: the tables only once a node leaves its own cells
+            look = np.flatnonzero(hint >= 0) if rows is None else rows[hint[rows] >= 0]
+            seen = self._seen[kind]  # each node's cell last found to be one of its own (-1: none yet)
+            if seen is not None:
+                look = look[hint[look] != seen[look]]
+            if at_own_cells(np.asarray(self.c.x_orig, np.float64)[nodes[look]], self._cand[kind][look, hint[look]],
+                            np.asarray((self.c.triangles, self.c.segments)[kind]), kind).all():
+                if seen is None:
+                    seen = self._seen[kind] = np.full(len(hint), -1, np.int64)
+                seen[look] = hint[look]
+                return np.zeros(0, np.int64)
             base = np.asarray(self._cand[kind])
             inner, ends = anchor_tables(np.asarray(self.c.x_orig, np.float64)[nodes], base,
                                         np.asarray((self.c.triangles, self.c.segments)[kind]), kind)
