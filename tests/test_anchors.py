@@ -146,3 +146,19 @@ def test_the_tables_take_little_memory_beyond_their_own():
         tracemalloc.stop()
     assert inner.any(axis=1).all() and not inner.all()  # each node's own faces, and the rest of its 2-ring
     assert peak < inner.nbytes + ends.nbytes + 6e6
+
+
+def test_a_projector_that_does_not_follow_keeps_the_constraints_rings():
+    """``follow=False`` (a polish round's sub-problem, whose candidates are already anchored): nodes moved 5 cells
+    along the wall stay on their own rings' rims, short of their points, and no anchor table is made."""
+    mesh = wavy_annulus(32, 3, 3)
+    pr = build_problem(mesh, dtype=np.float64)
+    p = np.array(mesh.points)
+    r, th = np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]) + 5 * 2 * np.pi / 32
+    x = np.stack([r * np.cos(th), r * np.sin(th), p[:, 2]], axis=1)
+    proj = NearProjector(pr.cons, follow=False)
+    y, hint = proj(x)
+    proj.commit(hint)
+    surf = np.asarray(pr.cons.surface_nodes)
+    assert np.abs(y[surf] - project_np(pr.host_cons, x)[surf]).max() > 0.05
+    assert proj._anchors == [None, None] and proj._cand[0] is proj.c.surface_cand

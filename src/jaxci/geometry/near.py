@@ -78,10 +78,13 @@ class NearProjector:
     at its first projection: the solvers slide boundary nodes as far as F takes them, not two cells at most.
     """
 
-    def __init__(self, constraints: Constraints):
+    def __init__(self, constraints: Constraints, follow: bool = True):
         from .. import native
 
         self.c = host_constraints(constraints)
+        #: whether the anchors move (`commit`, and the walk of a node with no remembered cell); False: every node
+        #: keeps the candidates of the constraints (a polish round's sub-problem, whose are already anchored)
+        self.follow = follow
         # candidate column per surface node, per edge node; -1: not known (search all its candidates)
         self.hint = tuple(np.full(int(n.shape[0]), -1, np.int64) for n in (self.c.surface_nodes, self.c.edge_nodes))
         #: per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search
@@ -120,7 +123,7 @@ class NearProjector:
         left its anchor's 1-ring (`jaxci.geometry.anchors`): `hint`'s columns of those nodes change, in place,
         to the same cells in their new rows."""
         self.hint = hint
-        for kind in range(2):
+        for kind in range(2 if self.follow else 0):
             self._follow(kind, hint[kind])
 
     def _follow(self, kind: int, hint: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
@@ -226,7 +229,7 @@ class NearProjector:
             hint = self.hint[kind].copy()
             active = np.arange(len(nodes)) if keep is None else np.flatnonzero(~keep[nodes])
             # a node with no remembered cell finds its anchor: from its own ring towards its point, one ring a step
-            fresh = active[hint[active] < 0]
+            fresh = active[hint[active] < 0] if self.follow else active[:0]
             start = x[nodes[fresh]] if len(fresh) else None
             self._search(kind, x, active, hint)
             for _ in range(WALK if len(fresh) else 0):

@@ -114,6 +114,8 @@ class HostObjective:
     #: keep each evaluation's node gradient before the projection's pullback (`hvp` needs it at the accepted
     #: iterate; `jaxci.optim.newton` sets it): a vector more, kept only where asked for
     keep_raw: bool = False
+    #: the default projector's `NearProjector.follow`: whether the boundary nodes' anchors move
+    follow_anchors: bool = True
 
     def __post_init__(self):
         par = self.par
@@ -143,7 +145,7 @@ class HostObjective:
         """The boundary projection (`projector`, else a new `NearProjector`), made on first use: a solve whose
         moving boundary nodes all stay inside their flat regions never projects (a box: its tables are 6 MB at
         216,000 hexahedra), nor does most of the worst-element polish's rounds on a part of planar faces."""
-        return self.projector or NearProjector(self.par.cons)
+        return self.projector or NearProjector(self.par.cons, follow=self.follow_anchors)
 
     def points(self, v: np.ndarray) -> np.ndarray:
         """Node coordinates ``(n, 3)`` of `v` (float64)."""
