@@ -13,9 +13,13 @@ holds the cell and all the cells around it. A node that stays within its own cel
 projection is then exactly the 2-ring's.
 
 The corners of the cells are found from the geometry alone (`anchor_tables`: a cell's corner is the node of its
-candidates at the same point), so that any `jaxci.geometry.projection.Constraints` (a polish's sub-problem's
-too) has them; a corner not found (e.g. a node that is not where the table's cell has its corner) never becomes
-an anchor.
+candidates at the same point), so that any `jaxci.geometry.projection.Constraints` has them; a corner not found
+(e.g. a node that is not where the table's cell has its corner) never becomes an anchor. The projector makes these
+tables only once a node's cell is not one of its own (`at_own_cells`, one cell a node, until then), so that a mesh
+whose boundary nodes stay near their starts never pays for them. A node with no remembered cell walks its anchor
+towards its point at its first projection (`NearProjector.__call__`): a projector made for points the solver left
+starts where they are. The worst-element polish anchors its candidates once, at its start
+(`jaxci.geometry.near.anchored`), and its rounds' projectors do not follow (``follow=False``).
 """
 
 from __future__ import annotations
