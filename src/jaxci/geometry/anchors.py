@@ -55,10 +55,9 @@ def anchor_tables(positions: np.ndarray, cand: np.ndarray, table: np.ndarray, ki
         cells = cand[lo:hi]
         p = positions[lo:hi].T[:, :, None]
         a, b, size2 = cell_corners(table, cells, kind)
-        tol = MATCH * MATCH * size2
         match = np.zeros(cells.shape, bool)
         for j, corner in enumerate((a, b)):
-            hit = np.sum((corner - p) ** 2, axis=0) <= tol
+            hit = _same_point(corner, p, size2)
             r, k = np.nonzero(hit)
             ends[cells[r, k], j] = lo + r
             match |= hit
@@ -79,8 +78,13 @@ def at_own_cells(positions: np.ndarray, cells: np.ndarray, table: np.ndarray, ki
     else:
         a, b, size2 = cell_corners(table, cells, 1)
         corners = np.stack([a, b], axis=-1)
-    d2 = np.sum((corners - positions.T[:, :, None]) ** 2, axis=0)
-    return (d2 <= (MATCH * MATCH * size2)[:, None]).any(axis=1)
+    return _same_point(corners, positions.T[:, :, None], size2[:, None]).any(axis=1)
+
+
+def _same_point(corner: np.ndarray, p: np.ndarray, size2: np.ndarray) -> np.ndarray:
+    """Whether the points `corner` and `p` (``(3, ...)``, broadcast) are one, within `MATCH` of the cells' sizes
+    (`size2` squared)."""
+    return np.sum((corner - p) ** 2, axis=0) <= MATCH * MATCH * size2
 
 
 def moves(hint: np.ndarray, anchor: np.ndarray, cand: np.ndarray, inner: np.ndarray, ends: np.ndarray,

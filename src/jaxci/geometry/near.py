@@ -113,10 +113,11 @@ class NearProjector:
         """Per kind, the candidate rows the numpy search reads (`candidate_rows`): every float64 row of every
         candidate of every boundary node, about 10 kB a node (203 MB on cube60_pert, a third of its run's peak),
         so they are built on first use, never where the C search runs."""
-        rows = _candidate_table_rows(self.c)
-        own = (self.c.surface_cand, self.c.edge_cand)
-        return tuple(r if r is None or self._cand[k] is own[k] else candidate_rows(
-            (self.c.triangles, self.c.segments)[k], self._cand[k][: len(r[0])]) for k, r in enumerate(rows))
+        c = self.c
+        if self._cand[0] is c.surface_cand and self._cand[1] is c.edge_cand:  # no anchor moved: the constraints'
+            return _candidate_table_rows(c)
+        return tuple(candidate_rows(table, cand[: len(nodes)]) if len(nodes) else None for nodes, cand, table in
+                     zip((c.surface_nodes, c.edge_nodes), self._cand, (c.triangles, c.segments), strict=True))
 
     def commit(self, hint) -> None:
         """Remember `hint` (from `__call__`) for the next projections, and move the anchor of each node whose cell
@@ -130,7 +131,7 @@ class NearProjector:
         """Move the anchors of the nodes of `kind` (of `rows`, default all) whose cell (`hint`, columns) left their
         anchor's 1-ring (`jaxci.geometry.anchors.moves`); their columns in `hint` become those of the same cells in
         the new rows, in place. **Returns** the rows moved."""
-        nodes = (self.c.surface_nodes, self.c.edge_nodes)[kind]
+        nodes, table = ((self.c.surface_nodes, self.c.triangles), (self.c.edge_nodes, self.c.segments))[kind]
         if not len(nodes) or not (hint >= 0).any():
             return np.zeros(0, np.int64)
         if self._anchors[kind] is None:  # no anchor moved yet: the tables only once a node leaves its own cells
@@ -138,15 +139,13 @@ class NearProjector:
             seen = self._seen[kind]  # each node's cell last found to be one of its own (-1: none yet)
             if seen is not None:
                 look = look[hint[look] != seen[look]]
-            if at_own_cells(np.asarray(self.c.x_orig, np.float64)[nodes[look]], self._cand[kind][look, hint[look]],
-                            np.asarray((self.c.triangles, self.c.segments)[kind]), kind).all():
+            if at_own_cells(self.c.x_orig[nodes[look]], self._cand[kind][look, hint[look]], table, kind).all():
                 if seen is None:
                     seen = self._seen[kind] = np.full(len(hint), -1, np.int64)
                 seen[look] = hint[look]
                 return np.zeros(0, np.int64)
             base = np.asarray(self._cand[kind])
-            inner, ends = anchor_tables(np.asarray(self.c.x_orig, np.float64)[nodes], base,
-                                        np.asarray((self.c.triangles, self.c.segments)[kind]), kind)
+            inner, ends = anchor_tables(self.c.x_orig[nodes], base, table, kind)
             self._anchors[kind] = (np.arange(len(nodes)), inner, ends, base)
         anchor, inner, ends, base = self._anchors[kind]
         rows, new, cells = moves(hint, anchor, self._cand[kind], inner, ends, kind, rows)

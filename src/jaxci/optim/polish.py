@@ -148,10 +148,8 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
     # the sub-problems' candidate cells around the nodes' anchors at `x` (`jaxci.geometry.anchors`): the solver may
     # have moved a boundary node beyond its own ring (not where every moving boundary node is inside its flat
     # region: their projection is onto its plane)
-    d = x[np.asarray(par.flat_nodes)] - np.asarray(par.flat_origin, np.float64)
-    if not np.all(np.sum(d * d, axis=-1) < (0.999 * np.asarray(par.flat_radius, np.float64)) ** 2):
+    if not par.reach_of(x) < 1.0:
         cons = anchored(cons, x)
-    del d
     free = np.zeros(len(x), bool)
     for nodes in (cons.interior_nodes, cons.surface_nodes, cons.edge_nodes):
         free[np.asarray(nodes)] = True
