@@ -273,3 +273,45 @@ def test_a_step_cut_eight_times_that_changes_nothing_ends_the_run(monkeypatch):
     old = smooth(mesh, method="lbfgs", dtype="float64", keep_worst=False)
     assert new.iterations < 0.8 * old.iterations, (new.iterations, old.iterations)
     assert new.after.objective <= old.after.objective * (1 + 1e-5) and new.after.inverted_elements == 0
+
+
+def _creeping(v, args, conn, weight, n_dev, platform):
+    """F = 1 + 1e-8 exp(-v0) + v1^2 for `lbfgs_loop`: every capped step along v0 lowers F by under 1e-8 of it, and
+    no step ever gets short (a valley of F, as an O-grid cylinder's turn about its axis)."""
+    import jax
+    import jax.numpy as jnp
+
+    f, g = jax.value_and_grad(lambda u: 1.0 + 1e-8 * jnp.exp(-u[0]) + u[1] ** 2)(v)
+    return f, g, f, 1.0 + f
+
+
+def test_a_run_of_calm_steps_ends_the_run_in_every_loop():
+    """`converged` with `calm_steps`: `SETTLED_RUN` accepted steps in a row that change F by less than rtol of it
+    end the run whatever their size, in the host loop and in `lbfgs_loop` alike (the same steps); without the
+    rule both went on to their step limit. The count is relative only: near F = 0 a change under atol is no calm
+    step."""
+    import jax.numpy as jnp
+
+    from jaxci.optim import lbfgs as rules
+
+    calm = 0
+    for _ in range(rules.SETTLED_RUN):
+        calm = int(rules.calm_steps(calm, 1.0, 1.0 + 1e-9, 1e-6))
+    assert calm == rules.SETTLED_RUN and rules.converged(1.0, 1.0, 1.0, 1.0 + 1e-9, 1e-6, 1e-6, 1.0, calm)
+    assert not rules.converged(1.0, 1.0, 1.0, 1.0 + 1e-9, 1e-6, 1e-6, 1.0, calm - 1)
+    assert int(rules.calm_steps(5, 1.0, 1.1, 1e-6)) == 0  # a real decrease starts the count again
+    assert int(rules.calm_steps(0, 1e-9, 2e-9, 1e-6)) == 0  # near 0: halving F is no calm step
+
+    def fun(v):
+        f = 1.0 + 1e-8 * np.exp(-v[0]) + v[1] ** 2
+        return f, np.array([-1e-8 * np.exp(-v[0]), 2.0 * v[1]]), f, 1.0 + f
+
+    y0, limit = np.zeros(2), 100
+    _, kh, rh, _, _ = host.lbfgs(fun, y0, limit=limit, max_rejected=20, rtol=1e-6, atol=1e-12, history=5, cap=0.5,
+                                 ftol=-np.inf)
+    from jaxci.optim.lbfgs import lbfgs_loop
+
+    _, k, code, _, _ = lbfgs_loop(_creeping, (), jnp.zeros((8, 1), jnp.int32), jnp.ones(1), jnp.asarray(y0),
+                                  jnp.asarray([-np.inf, 0.0, 1e-6, 1e-12, 0.5]), jnp.int32(limit), max_steps=limit,
+                                  history=5, max_rejected=20)
+    assert rh == result_name(code) == "successful" and kh == int(k) <= rules.SETTLED_RUN + 2, (kh, int(k))
