@@ -155,24 +155,19 @@ def read_mesh(path: str | os.PathLike | tuple, *, file_format: str | None = None
             )
         paths = [_as_path(p, "read_mesh") for p in path]
         for p in paths:
-            _check_input(p)
+            check_regular(p)  # a folder, a FIFO, a device, a name too long: said in words, nothing opened
         return read_ansys_listing(*paths)
     path = _as_path(path, "read_mesh")
-    _check_input(path)
+    check_regular(path)
     fmt = _format_of(path, file_format, _READERS)
     return _READERS[fmt](path)
 
 
-def _check_input(path: Path) -> None:
-    """A `MeshReadError` unless `path` is an existing regular file (a folder, a FIFO, a device, a name too long
-    for the file system: each said in words, and nothing opened)."""
-    check_regular(path)
-
-
-def _inputs(mesh: HexMesh) -> list[Path]:
-    """Every file `mesh` was read from: its `source` and its `HexMesh.input_files` (``*INCLUDE`` files, an XDMF
-    file's HDF5 data, ...), those that exist. A mesh with an XDMF source and no `input_files` (made by hand) also
-    counts the ``.h5`` file of the same name."""
+def input_paths(mesh: HexMesh) -> list[Path]:
+    """The files a write must never replace for `mesh`: every file it was read from, its `source` and its
+    `HexMesh.input_files` (the other files its reader opened: ``*INCLUDE`` files, an XDMF file's HDF5 data, ...),
+    those that exist. A mesh with an XDMF source and no `input_files` (made by hand) also counts the ``.h5`` file
+    of the same name."""
     if not mesh.source:
         return [Path(p) for p in mesh.input_files if os.path.lexists(p)]
     paths = [Path(mesh.source)] if os.path.lexists(mesh.source) else [Path(s) for s in mesh.source.split(" + ")]
@@ -180,12 +175,6 @@ def _inputs(mesh: HexMesh) -> list[Path]:
     if not mesh.input_files:
         paths += [p.with_suffix(".h5") for p in paths if p.suffix.lower() in (".xdmf", ".xmf")]
     return list(dict.fromkeys(p for p in paths if os.path.lexists(p)))
-
-
-def input_paths(mesh: HexMesh) -> list[Path]:
-    """The files a write must never replace for `mesh`: the file it was read from and every other file its reader
-    opened (`HexMesh.input_files`), those that exist."""
-    return _inputs(mesh)
 
 
 def _refuse_input(target: Path, inputs: list[Path]) -> None:
@@ -287,7 +276,7 @@ def write_mesh(mesh: HexMesh, path: str | os.PathLike, *, file_format: str | Non
             f"{path}: ANSYS NLIST/ELIST listings are read only; write an APDL input file (.mac) instead"
         )
     fmt = _format_of(path, file_format, _WRITERS)
-    inputs = _inputs(mesh)
+    inputs = input_paths(mesh)
     for target in (path, *companion_files(path, file_format=file_format)):
         _refuse_input(target, inputs)
         if overwrite is False and os.path.lexists(target):

@@ -102,7 +102,7 @@ def _is_keyword(body: str) -> bool:
     return s.startswith("*") and not s.startswith("**")
 
 
-def flatten(path: str, depth: int = 0, where: str = "") -> tuple[list[str], list[tuple[str, int]], list[str]]:
+def flatten(path: str, depth: int = 0) -> tuple[list[str], list[tuple[str, int]], list[str]]:
     """The lines of a deck with its ``*INCLUDE`` files inlined (line endings kept), where each came from, and the
     included files."""
     lines, origin, included = [], [], []
@@ -120,7 +120,7 @@ def flatten(path: str, depth: int = 0, where: str = "") -> tuple[list[str], list
             if not os.path.lexists(target):
                 raise MeshReadError(f"{at}: *INCLUDE file {name} not found (looked for {target})")
             check_regular(target, "Abaqus deck", shown=f"{at}: *INCLUDE file {name}")
-            sub, sub_origin, sub_inc = flatten(str(target), depth + 1, at)
+            sub, sub_origin, sub_inc = flatten(str(target), depth + 1)
             if sub and not sub[-1].endswith(("\n", "\r")):
                 sub[-1] += "\n"
             lines += sub
@@ -409,10 +409,9 @@ class Deck:
                     eids = members.get(("element", entry[1].upper()))
                     if eids is None:
                         raise MeshReadError(f"{self.path}: *NSET {s.name}, ELSET={entry[1]}: no such element set")
-                    rows = eorder[np.searchsorted(esorted, eids)]
-                    ids.append(np.unique(np.concatenate(
-                        [node_ids_of(self.blocks[block_of[r]], row_of[r]) for r in rows.tolist()] or [[]])
-                        .astype(np.int64)))
+                    rows = eorder[np.searchsorted(esorted, eids)].tolist()
+                    nodes = [np.array(self.blocks[block_of[r]].nodes[row_of[r]], np.int64) for r in rows]
+                    ids.append(np.unique(np.concatenate(nodes or [[]]).astype(np.int64)))
                     continue
                 ref = members.get((s.kind, entry.upper()))
                 if ref is None:
@@ -437,10 +436,6 @@ class Deck:
                 rows = eorder[pos[~missing]]
                 cell_sets[s.name] = [np.sort(row_of[rows[block_of[rows] == k]]) for k in range(len(self.blocks))]
         return point_sets, cell_sets
-
-
-def node_ids_of(block: _Block, row: int) -> np.ndarray:
-    return np.array(block.nodes[row], dtype=np.int64)
 
 
 def parse_deck(text_lines: list[str], origin: list[tuple[str, int]], path: str) -> tuple[Deck, dict]:

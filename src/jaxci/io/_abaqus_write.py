@@ -39,23 +39,16 @@ import re
 
 import numpy as np
 
-from ..errors import MeshWriteError
-from ..mesh import HexMesh, mirrored_block
+from ..mesh import HexMesh
 from ._abaqus import DEFAULT_NAMES, element_family, parse_deck, split_line
-from ._deck import first_duplicate, model_difference, reread_deck
+from ._deck import model_difference, refuse_bad_ids, reread_deck
 from ._losses import data_losses, deck_losses
-from ._meshio import write_text
+from ._meshio import file_cells, write_text
 
 #: Set names written as they are; others are written in double quotes (Abaqus's form for labels with spaces).
 _PLAIN_LABEL = re.compile(r"[A-Za-z][A-Za-z0-9_.\-]{0,79}")
 _QUOTABLE_LABEL = re.compile(r'[^",\r\n=*]{1,80}')
 _PER_LINE = 16
-
-
-def _file_cells(mesh: HexMesh) -> list:
-    if not mesh.hex_mirrored:
-        return list(mesh.cells)
-    return [mirrored_block(b) if b.type == "hexahedron" else b for b in mesh.cells]
 
 
 def _rows(values: list[int]) -> str:
@@ -125,7 +118,7 @@ def _fresh(mesh: HexMesh, path: str, id_types: dict[int, str]) -> tuple[str, lis
     id of the mesh's source deck (if any)."""
     lost = []
     node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
-    cells = _file_cells(mesh)
+    cells = file_cells(mesh)
     known = [np.asarray(b.ids, np.int64) for b in cells if b.ids is not None and len(b.ids)]
     next_id = int(max((ids.max() for ids in known), default=0)) + 1
     names = mesh.field_data.get("abaqus:element_types")
@@ -150,11 +143,7 @@ def _fresh(mesh: HexMesh, path: str, id_types: dict[int, str]) -> tuple[str, lis
             ids = np.asarray(blk.ids, np.int64)
         blocks.append((k, name, ids, data if mid is None else np.concatenate([data, mid], axis=1)))
     all_ids = np.concatenate([b[2] for b in blocks]) if blocks else np.zeros(0, np.int64)
-    for ids, what in ((node_ids, "node"), (all_ids, "element")):
-        if (dup := first_duplicate(ids)) is not None:
-            raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; Abaqus ids must be unique")
-        if len(ids) and ids.min() < 1:
-            raise MeshWriteError(f"{path}: {what} id {ids.min()} is not positive; Abaqus ids start at 1")
+    refuse_bad_ids(path, ((node_ids, "node"), (all_ids, "element")), "Abaqus")
 
     out = ["*HEADING", f"jaxci mesh: {mesh.n_nodes} nodes, {len(all_ids)} elements", "*NODE"]
     out += [f"{i}, {x!r}, {y!r}, {z!r}" for i, (x, y, z) in zip(node_ids.tolist(), mesh.points.tolist(), strict=True)]

@@ -35,9 +35,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..errors import MeshReadError, MeshWriteError
+from ..errors import MeshReadError
 from ..mesh import CellBlock, HexMesh
-from ._deck import first_duplicate
+from ._deck import element_ids, first_duplicate, refuse_bad_ids
 
 #: Names of the cell data that hold an ANSYS element's attributes, in ELIST column order.
 ATTRIBUTES = ("ansys:mat", "ansys:typ", "ansys:rel", "ansys:esy", "ansys:sec")
@@ -47,13 +47,9 @@ EXTRA_ATTRIBUTES = ("ansys:birth", "ansys:solid", "ansys:shape")
 #: Attribute values given to elements that have none (a mesh read from another format).
 DEFAULT_ATTRIBUTES = (1, 1, 1, 0, 1)
 
-#: Columns of a brick's I..P that make each jaxci cell type, and the number of distinct nodes it has.
-_FROM_BRICK = {
-    "hexahedron": ([0, 1, 2, 3, 4, 5, 6, 7], 8),
-    "wedge": ([0, 1, 2, 4, 5, 6], 6),
-    "pyramid": ([0, 1, 2, 3, 4], 5),
-    "tetra": ([0, 1, 2, 4], 4),
-}
+#: Columns of a brick's I..P that make each jaxci cell type.
+_FROM_BRICK = {"hexahedron": [0, 1, 2, 3, 4, 5, 6, 7], "wedge": [0, 1, 2, 4, 5, 6], "pyramid": [0, 1, 2, 3, 4],
+               "tetra": [0, 1, 2, 4]}
 #: For each jaxci cell type, the brick midside columns (0..11 = Q..B) that hold the cell's midside nodes in
 #: `jaxci.cells.EDGES` order, and the (column, what it must equal) pattern of the merged positions: a corner column
 #: 0..7 of I..P (or 0, no node) or ``("mid", c)``: the same node as midside column c.
@@ -158,14 +154,10 @@ def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = ()
     their midside nodes), ``ansys:*`` cell data, ``ansys:angles`` point data, ``ansys:et`` / ``ansys:keyopt``
     field data and the components as point and cell sets.
     """
-    if (dup := first_duplicate(b.node_ids)) is not None:
-        i, j = dup
-        raise MeshReadError(f"{b.where_node(j)}: node {b.node_ids[j]} listed twice (first at {b.where_node(i)})")
-    if (dup := first_duplicate(b.elem_ids)) is not None:
-        i, j = dup
-        raise MeshReadError(
-            f"{b.where_elem(j)}: element {b.elem_ids[j]} listed twice (first at {b.where_elem(i)})"
-        )
+    for ids, what, where in ((b.node_ids, "node", b.where_node), (b.elem_ids, "element", b.where_elem)):
+        if (dup := first_duplicate(ids)) is not None:
+            i, j = dup
+            raise MeshReadError(f"{where(j)}: {what} {ids[j]} listed twice (first at {where(i)})")
     order = np.argsort(b.node_ids)
     sorted_ids = b.node_ids[order]
     conn, missing = _lookup(sorted_ids, order, b.corners)  # (m, 8) 0-based node indices
@@ -197,9 +189,7 @@ def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = ()
         "pyramid": mn & no & op & (distinct == 5),
         "tetra": kl & mn & no & op & (distinct == 4),
     }
-    known = np.zeros(len(c), bool)
-    for mask in kind.values():
-        known |= mask
+    known = np.logical_or.reduce(list(kind.values()))
     if not known.all():
         k = int(np.flatnonzero(~known)[0])
         raise MeshReadError(
@@ -214,11 +204,10 @@ def to_hexmesh(b: Bricks, source: str, node_list: str, notes: Sequence[str] = ()
     for cell_type, mask in kind.items():
         if not mask.any():
             continue
-        cols, _ = _FROM_BRICK[cell_type]
         mid = None
         if mid_conn is not None and (b.midside[mask] != 0).any():
             mid = _cell_midside(b, mask, mid_conn, cell_type)
-        blocks.append(CellBlock(cell_type, c[mask][:, cols], b.elem_ids[mask], mid))
+        blocks.append(CellBlock(cell_type, c[mask][:, _FROM_BRICK[cell_type]], b.elem_ids[mask], mid))
         rows_of.append(np.flatnonzero(mask))
         for a, name in enumerate(ATTRIBUTES):
             cell_data[name].append(b.attrs[mask, a])
@@ -367,11 +356,10 @@ def _components(b: Bricks, order, sorted_ids, rows_of: list[np.ndarray], notes: 
 def element_routines(mesh: HexMesh, typ: np.ndarray, has_mid: np.ndarray) -> dict[int, int]:
     """ANSYS element routine of every element type number: the mesh's ``ansys:et`` records, else SOLID186 for a
     type with midside nodes and SOLID185 for the others."""
-    known = {}
+    out = {}
     et = mesh.field_data.get("ansys:et")
     if et is not None:
-        known = {int(t): int(r) for t, r in np.asarray(et, np.int64).reshape(-1, 2)}
-    out = dict(known)
+        out = {int(t): int(r) for t, r in np.asarray(et, np.int64).reshape(-1, 2)}
     for t in np.unique(typ).tolist():
         if t not in out:
             out[t] = 186 if has_mid[typ == t].any() else 185
@@ -392,21 +380,15 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
     node numbers in brick form (0 for none), `bricks.etypes` every element type's routine.
     """
     node_ids = np.arange(1, mesh.n_nodes + 1) if mesh.node_ids is None else np.asarray(mesh.node_ids, np.int64)
-    known_ids = [np.asarray(blk.ids) for blk in cells if blk.ids is not None and blk.type in TO_BRICK]
-    next_id = int(max((ids.max() for ids in known_ids if len(ids)), default=0)) + 1
-    corners, mids, elem_ids, attrs, extra, dropped = [], [], [], [], [], []
-    for i, blk in enumerate(cells):
-        if blk.type not in TO_BRICK:
-            dropped.append(f"{len(blk.data)} {blk.type}")
-            continue
+    kept = [(i, blk) for i, blk in enumerate(cells) if blk.type in TO_BRICK]
+    dropped = [f"{len(blk.data)} {blk.type}" for blk in cells if blk.type not in TO_BRICK]
+    numbers = element_ids([blk.ids for _, blk in kept], [len(blk.data) for _, blk in kept])
+    corners, mids, elem_ids, attrs, extra = [], [], [], [], []
+    for (i, blk), ids in zip(kept, numbers, strict=True):
         n = len(blk.data)
         corners.append(node_ids[blk.data[:, TO_BRICK[blk.type]]])
         mids.append(_brick_midside(blk, node_ids))
-        if blk.ids is None:
-            elem_ids.append(np.arange(next_id, next_id + n))
-            next_id += n
-        else:
-            elem_ids.append(np.asarray(blk.ids, np.int64))
+        elem_ids.append(np.asarray(ids, np.int64))
         cols = []
         for name, default in zip(ATTRIBUTES, DEFAULT_ATTRIBUTES, strict=True):
             values = mesh.cell_data[name][i] if name in mesh.cell_data else np.full(n, default)
@@ -414,7 +396,6 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
         attrs.append(np.stack(cols, axis=1))
         extra.append(np.stack([np.asarray(mesh.cell_data[name][i]).astype(np.int64) if name in mesh.cell_data
                                else np.zeros(n, np.int64) for name in EXTRA_ATTRIBUTES], axis=1))
-    empty8 = np.zeros((0, 8), np.int64)
     m = sum(map(len, elem_ids))
     angles = mesh.point_data.get("ansys:angles")
     b = Bricks(
@@ -422,7 +403,7 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
         points=mesh.points,
         elem_ids=np.concatenate(elem_ids) if elem_ids else np.zeros(0, np.int64),
         attrs=np.concatenate(attrs) if attrs else np.zeros((0, 5), np.int64),
-        corners=np.concatenate(corners) if corners else empty8,
+        corners=np.concatenate(corners) if corners else np.zeros((0, 8), np.int64),
         files=(where,),
         node_src=np.zeros((mesh.n_nodes, 2), np.int64),
         elem_src=np.zeros((m, 2), np.int64),
@@ -431,11 +412,7 @@ def from_hexmesh(mesh: HexMesh, cells: list[CellBlock], where: str) -> tuple[Bri
         extra=np.concatenate(extra) if extra else np.zeros((0, 3), np.int64),
         keyopts=mesh.field_data.get("ansys:keyopt"),
     )
-    for ids, what in ((b.node_ids, "node"), (b.elem_ids, "element")):
-        if (dup := first_duplicate(ids)) is not None:
-            raise MeshWriteError(f"{where}: {what} id {ids[dup[1]]} is used twice; ANSYS ids must be unique")
-        if len(ids) and ids.min() < 1:
-            raise MeshWriteError(f"{where}: {what} id {ids.min()} is not positive; ANSYS ids start at 1")
+    refuse_bad_ids(where, ((b.node_ids, "node"), (b.elem_ids, "element")), "ANSYS")
     routines = element_routines(mesh, b.attrs[:, 1], has_midside(b))
     return dataclasses.replace(b, etypes=np.array(sorted(routines.items()), np.int64).reshape(-1, 2)), dropped
 

@@ -33,7 +33,6 @@ from ._ansys import (
     expand_ranges,
     to_hexmesh,
 )
-from ._ansys_listing import read_text_lines
 from ._deck import MAX_ID, read_text
 
 _FORMAT_ITEM = re.compile(r"(\d*)([IEFGD])(\d+)(?:\.\d+)?(?:E\d+)?", re.IGNORECASE)
@@ -102,9 +101,8 @@ def _block_header(line: str, lineno: int, path: str) -> tuple[str, int | None]:
 class DeckReader:
     """One pass over the lines of an APDL file, collecting blocks and records with their line numbers."""
 
-    def __init__(self, path: str, lines: list[str] | None = None) -> None:
-        self.path = path
-        self.lines = read_text_lines(path, "APDL file") if lines is None else lines
+    def __init__(self, path: str, lines: list[str]) -> None:
+        self.path, self.lines = path, lines
         self.i = 0
         self.nodes, self.node_src, self.angles = [], [], []
         self.node_format: list[int] = []  # index into nblock_formats of each node's row
@@ -132,7 +130,7 @@ class DeckReader:
             elif name == "ET":
                 self.et(raw)
             elif name == "ETBLOCK":
-                self.etblock(raw)
+                self.etblock()
             elif name in ("KEYOPT", "KEYOP"):
                 self.keyopt(raw)
             elif name == "CMBLOCK":
@@ -163,7 +161,7 @@ class DeckReader:
             if tok and self._int(tok, lineno, f"KEYOPT({k})"):
                 self.keyopts.append((itype, k, self._int(tok, lineno, f"KEYOPT({k})")))
 
-    def etblock(self, raw: str) -> None:
+    def etblock(self) -> None:
         start = self.i
         self.next_line("ETBLOCK", start)  # format line
         while True:

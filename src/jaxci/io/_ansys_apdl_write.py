@@ -57,7 +57,7 @@ import warnings
 import numpy as np
 
 from ..errors import MeshWriteError
-from ..mesh import CellBlock, HexMesh, mirrored_block
+from ..mesh import CellBlock, HexMesh
 from ._ansys import (
     ATTRIBUTES,
     BRICK8,
@@ -74,21 +74,13 @@ from ._ansys import (
 from ._ansys_apdl import CMBLOCK_FORMAT, COMPONENT_NAME, EBLOCK_FORMAT, NBLOCK_FORMAT, DeckReader
 from ._deck import model_difference
 from ._losses import SOURCE_FIELDS, deck_losses
-from ._meshio import write_text
+from ._meshio import file_cells, write_text
 
 
 def _e21(x: float) -> str:
     """Fortran E21.13E3: `` 7.5000000000000E-001``."""
     mantissa, exponent = f"{x:.13E}".split("E")
     return f"{mantissa}E{int(exponent):+04d}".rjust(21)
-
-
-def _file_cells(mesh: HexMesh) -> list[CellBlock]:
-    """The cell blocks as the file holds them: hexahedra (and their midside nodes) mirrored back when
-    `HexMesh.hex_mirrored`."""
-    if not mesh.hex_mirrored:
-        return list(mesh.cells)
-    return [mirrored_block(b) if b.type == "hexahedron" else b for b in mesh.cells]
 
 
 def _compress(ids: np.ndarray) -> list[int]:
@@ -194,7 +186,7 @@ def write_apdl(mesh: HexMesh, path: str | os.PathLike) -> None:
 
 def _fresh(mesh: HexMesh, path: str) -> tuple[str, list[str]]:
     """The text of an APDL file written afresh, and what it leaves out."""
-    b, dropped = from_hexmesh(mesh, _file_cells(mesh), path)
+    b, dropped = from_hexmesh(mesh, file_cells(mesh), path)
     if len(b.elem_ids) == 0:
         raise MeshWriteError(f"{path}: the mesh has no cells that ANSYS bricks can hold")
     lost = [f"cells {', '.join(dropped)}"] if dropped else []

@@ -46,11 +46,6 @@ _ELEM_FIELDS = len(_ELEM_HEADER) + 8
 _DSYS = re.compile(r"\bDSYS\s*=\s*(-?\d+)")
 
 
-def read_text_lines(path: str | os.PathLike, what: str) -> list[str]:
-    """The lines of a text file, or a `MeshReadError` naming the file."""
-    return read_text(path, what).splitlines()
-
-
 def _int(tok: str, path, lineno: int, what: str) -> int:
     try:
         value = int(tok)
@@ -76,7 +71,7 @@ class _Rows:
         fi = len(self.files)
         self.files.append(path)
         section, width, cont_col = None, 0, 0
-        for lineno, raw in enumerate(read_text_lines(path, "ANSYS listing"), 1):
+        for lineno, raw in enumerate(read_text(path, "ANSYS listing").splitlines(), 1):
             raw = raw.expandtabs()
             toks = raw.split()
             if not toks:

@@ -92,14 +92,16 @@ def element_ids(ids: list, counts: list[int]) -> list[np.ndarray]:
     return out
 
 
-def refuse_bad_ids(path: str, arrays, fmt: str, maximum: int, held: str) -> None:
+def refuse_bad_ids(path: str, arrays, fmt: str, maximum: int | None = None, held: str = "") -> None:
     """`MeshWriteError` at the first id of ``(ids, what)`` in `arrays` (``what``: ``"node"``, ``"element"``, ...)
-    that is used twice (`fmt` names the format) or lies outside ``1..maximum`` (`held`: what cannot hold it, e.g.
-    ``"of the 8-character fields"``)."""
+    that is used twice (`fmt` names the format), is not positive, or, with a `maximum`, lies outside ``1..maximum``
+    (`held`: what cannot hold it, e.g. ``"of the 8-character fields"``)."""
     for ids, what in arrays:
         if (dup := first_duplicate(ids)) is not None:
             raise MeshWriteError(f"{path}: {what} id {ids[dup[1]]} is used twice; {fmt} ids must be unique")
-        if len(ids) and (ids.min() < 1 or ids.max() > maximum):
+        if maximum is None and len(ids) and ids.min() < 1:
+            raise MeshWriteError(f"{path}: {what} id {ids.min()} is not positive; {fmt} ids start at 1")
+        if maximum is not None and len(ids) and (ids.min() < 1 or ids.max() > maximum):
             bad = ids.min() if ids.min() < 1 else ids.max()
             raise MeshWriteError(f"{path}: {what} id {bad} is out of the range 1..{maximum} {held}")
 

@@ -66,17 +66,16 @@ SIDES = {
 }
 
 
-def classify_block(elem_type: str, nodes: int) -> tuple[str, str | None]:
-    """(jaxci / meshio cell type, or None when jaxci does not model it; ``"volume"`` or ``"other"``) of an Exodus
-    element type name and its node count."""
+def classify_block(elem_type: str, nodes: int) -> str | None:
+    """The jaxci / meshio cell type of an Exodus element type name and its node count, or None when jaxci does not
+    model it."""
     m = re.match(r"[A-Z]+", elem_type.strip().upper())
     family = m.group(0) if m else ""
     if family in VOLUME_FAMILIES:
         cell = VOLUME_FAMILIES[family]
         corners, full = NODE_COUNTS[cell]
-        ok = nodes in (corners, full) or (cell == "hexahedron" and nodes == 27)
-        return "volume", cell if ok else None
-    return "other", OTHER_FAMILIES.get(family, {}).get(nodes)
+        return cell if nodes in (corners, full) or (cell == "hexahedron" and nodes == 27) else None
+    return OTHER_FAMILIES.get(family, {}).get(nodes)
 
 
 def _names(ds, var: str, count: int, prefix: str, ids) -> list[str]:
@@ -182,8 +181,7 @@ class ExodusFile:
                 raise MeshReadError(f"{p}: element {row + 1} of block {bid} ({name}, {etype}) references node "
                                     f"{int(conn[row][bad[row]][0])}, but the file has nodes 1..{self.n} "
                                     f"({int(bad.any(axis=1).sum())} such elements)")
-            _, cell = classify_block(etype, conn.shape[1])
-            self.blocks.append((bid, name, etype, cell, conn - 1, offset))
+            self.blocks.append((bid, name, etype, classify_block(etype, conn.shape[1]), conn - 1, offset))
             offset += count
         self.n_elem = offset
         if "num_elem" in ds.dimensions and _dim(ds, "num_elem") != offset:

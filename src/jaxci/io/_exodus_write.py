@@ -30,7 +30,7 @@ from ..errors import JaxciError, MeshWriteError
 from ..mesh import HexMesh
 from ._deck import element_ids, model_difference, refuse_bad_ids
 from ._exodus import ExodusFile, read_exodus
-from ._losses import data_losses, deck_losses
+from ._losses import dropped_data
 from ._meshio import LossyWriteWarning, warn_lost
 from ._patran import named_blocks, serendipity_shift
 
@@ -95,7 +95,8 @@ def _chars(names: list[str], width: int) -> np.ndarray:
 
 
 def _plan(mesh: HexMesh, path: str) -> tuple[dict, list[str]]:
-    """Everything a fresh file holds, and what it leaves out (checked before anything is written)."""
+    """Everything a fresh file holds, and which cells and sets it leaves out (checked before anything is
+    written)."""
     blocks, lost = named_blocks(mesh, EXODUS_NAMES, "Exodus element type")
     ids = [b[2] for b in blocks]
     elem_ids = element_ids(ids, [len(b[1]) for b in blocks])
@@ -117,7 +118,6 @@ def _plan(mesh: HexMesh, path: str) -> tuple[dict, list[str]]:
     others = sorted(set(mesh.cell_sets) - named)
     if others:
         lost.append(f"cell sets {others} (only a set that is exactly one element block is kept, as its name)")
-    lost += data_losses(mesh)
     plan = {"blocks": blocks, "names": names, "node_ids": node_ids,
             "elem_ids": elem_ids if keep_elem_map else None}
     return plan, lost
@@ -193,6 +193,6 @@ def write_exodus(mesh: HexMesh, path: str | os.PathLike) -> None:
         lost.append(f"the results, QA and info records, attributes, maps and side sets of the source Exodus file "
                     f"{os.path.basename(src)} ({reason}, so it cannot be rewritten in place)")
     plan, more = _plan(mesh, path)
-    lost += more + [what for fmt, what in deck_losses(mesh, "exodus") if fmt != "exodus"]
+    lost += more + dropped_data(mesh, "exodus")
     warn_lost(path, "exodus", lost)
     _write_fresh(mesh, plan, path)

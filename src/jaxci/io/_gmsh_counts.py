@@ -141,7 +141,7 @@ def check_gmsh(path: Path) -> None:
             node_tags = np.sort(tags)
         else:
             _check_tags(tags, where, "element")
-            _check_references(tags, nodes, node_tags, where)
+            _check_references(nodes, node_tags, where)
 
 
 def _check_lines22(c: _Cursor, data: bytes, pos: int) -> None:
@@ -243,7 +243,7 @@ def _as_ints(c: _Cursor, tokens: list, what: str) -> np.ndarray:
         c.fail(f"{what} is not an integer of at most 64 bits")
 
 
-def _check_references(elem_tags: np.ndarray, nodes: list, node_tags: np.ndarray | None, where: str) -> None:
+def _check_references(nodes: list, node_tags: np.ndarray | None, where: str) -> None:
     """Every node an element lists is a node tag of $Nodes."""
     if node_tags is None:
         raise MeshReadError(f"{where}: corrupt or truncated Gmsh file: $Elements but no $Nodes section")

@@ -8,10 +8,10 @@ only ever read, never written (`jaxci.io.write_mesh` also refuses to write over 
 from __future__ import annotations
 
 from collections.abc import Callable
-from pathlib import Path
 
 from ..errors import MeshReadError
 from ._deck import read_text
+from ._paths import resolve_beside
 
 #: How deep includes may nest (a deeper chain is a cycle).
 MAX_DEPTH = 20
@@ -42,7 +42,7 @@ def flatten(path: str, find: Finder, what: str, depth: int = 0) -> tuple[list[st
         at = f"{path}, line {i + 1}"
         if depth >= MAX_DEPTH:
             raise MeshReadError(f"{at}: includes nested more than {MAX_DEPTH} deep (a cycle?)")
-        target = Path(name) if Path(name).is_absolute() else Path(path).parent / name
+        target = resolve_beside(name, path)
         if not target.is_file():
             raise MeshReadError(f"{at}: included file {name} not found (looked for {target})")
         sub, sub_origin, sub_inc = flatten(str(target), find, what, depth + 1)

@@ -48,8 +48,8 @@ def deck_losses(mesh: HexMesh, fmt: str) -> list[tuple[str, str]]:
     return out
 
 
-def _listed(names: list[str], most: int = 8) -> str:
-    return ", ".join(names[:most]) + (f", ... ({len(names)} in all)" if len(names) > most else "")
+def _listed(names: list[str]) -> str:
+    return ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
 
 
 def data_losses(mesh: HexMesh, own_cell_data: tuple = ()) -> list[str]:
@@ -66,8 +66,8 @@ def data_losses(mesh: HexMesh, own_cell_data: tuple = ()) -> list[str]:
 
 
 def dropped_data(mesh: HexMesh, fmt: str, own_cell_data: tuple = ()) -> list[str]:
-    """What a deck of format `fmt` written from `mesh` leaves out of it: its `data_losses`, and what other sources'
-    decks hold (`deck_losses`; the deck's own source is the writer's to report)."""
+    """What a file of format `fmt` written from `mesh` leaves out of it: its `data_losses`, and what other sources'
+    files hold (`deck_losses`; the file's own source is the writer's to report)."""
     return data_losses(mesh, own_cell_data) + [what for f, what in deck_losses(mesh, fmt) if f != fmt]
 
 

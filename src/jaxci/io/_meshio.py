@@ -47,7 +47,7 @@ import meshio
 import numpy as np
 
 from ..errors import JaxciError, MeshReadError, MeshWriteError
-from ..mesh import MIRROR_HEX, CellBlock, HexMesh
+from ..mesh import CellBlock, HexMesh, mirrored_block
 from ..mesh.convert import SET_PREFIX, meshio_fields
 from ._counts import check_vtk, check_vtu, check_xdmf, diagnose_vtk, read_vtu, vtu_header
 from ._gmsh_counts import check_gmsh
@@ -94,19 +94,6 @@ _WRITERS = {
     "gmsh22": lambda path, m: meshio.gmsh.write(path, m, "2.2", binary=True),
     "xdmf": meshio.xdmf.write,
 }
-
-#: What each format keeps: point/cell data (True, "float64" = integers become float64, False), sets ("data" =
-#: as ``set:NAME`` data, "physical" = cell sets only as Gmsh physical groups, True, False), field data.
-_KEEPS = {
-    "vtk": {"data": True, "sets": "data", "field_data": False},
-    "vtk51": {"data": True, "sets": "data", "field_data": False},
-    "vtu": {"data": True, "sets": "data", "field_data": False},
-    "xdmf": {"data": True, "sets": "data", "field_data": False},
-    "gmsh": {"data": "float64", "sets": "physical", "field_data": "physical"},
-    "gmsh22": {"data": "float64", "sets": "physical", "field_data": "physical"},
-}
-
-#: Field data that carry a source deck (its text and element type names), reported by `deck_losses`, not written.
 
 #: Messages meshio prints that say nothing to a jaxci user (jaxci chose ASCII legacy VTK on purpose).
 _MESHIO_NOISE = ("VTK ASCII files are only meant for debugging",)
@@ -188,7 +175,7 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
         if exc.errno is None:
             raise MeshReadError(f"{path}: corrupt or truncated {_TITLES[fmt]} file ({_describe(exc)})") from exc
         raise MeshReadError(f"{path}: cannot read ({exc.strerror})") from exc
-    except (*_READ_ERRORS, MemoryError) as exc:  # MemoryError: a corrupt header announcing billions of items
+    except _READ_ERRORS as exc:
         if isinstance(exc, JaxciError):
             raise
         why = _describe(exc)
@@ -204,16 +191,11 @@ def read_meshio(path: Path, fmt: str) -> HexMesh:
     elif fmt == "xdmf":
         check_xdmf(path, m)
     try:
-        return from_meshio(m, path, tuple(str(p) for p in data_files))
+        return HexMesh(**meshio_fields(m, path), input_files=tuple(str(p) for p in data_files))
     except JaxciError:
         raise
     except (ValueError, TypeError, IndexError) as exc:
         raise MeshReadError(f"{path}: inconsistent {_TITLES[fmt]} file ({_describe(exc)})") from exc
-
-
-def from_meshio(m: meshio.Mesh, path: Path, input_files: tuple[str, ...] = ()) -> HexMesh:
-    """A `meshio.Mesh` read from `path` (and `input_files`) as a `HexMesh` (`jaxci.mesh.convert.meshio_fields`)."""
-    return HexMesh(**meshio_fields(m, path), input_files=input_files)
 
 
 def xdmf_data_files(path: Path) -> list[Path]:
@@ -241,10 +223,11 @@ def xdmf_data_files(path: Path) -> list[Path]:
 
 # ---------------------------------------------------------------------------------------------------- writing
 def file_cells(mesh: HexMesh) -> list[CellBlock]:
-    """The cell blocks as the file should hold them: hexahedra mirrored back when `mesh.hex_mirrored`."""
+    """The cell blocks as the file should hold them: hexahedra (and their midside nodes) mirrored back when
+    `HexMesh.hex_mirrored`."""
     if not mesh.hex_mirrored:
         return list(mesh.cells)
-    return [CellBlock(b.type, b.data[:, MIRROR_HEX], b.ids) if b.type == "hexahedron" else b for b in mesh.cells]
+    return [mirrored_block(b) if b.type == "hexahedron" else b for b in mesh.cells]
 
 
 def write_meshio(mesh: HexMesh, path: Path, fmt: str) -> None:
@@ -277,71 +260,55 @@ def write_meshio(mesh: HexMesh, path: Path, fmt: str) -> None:
 
 
 def _to_meshio(mesh: HexMesh, fmt: str, path: Path) -> tuple[meshio.Mesh, list[str]]:
-    keeps = _KEEPS[fmt]
+    gmsh = fmt in ("gmsh", "gmsh22")  # VTK, VTU and XDMF keep every point and cell datum, and no field data
     cells = file_cells(mesh)
     point_data = {k: np.asarray(v) for k, v in mesh.point_data.items()}
     cell_data = {k: [np.asarray(a) for a in v] for k, v in mesh.cell_data.items()}
-    point_sets = {k: np.asarray(v) for k, v in mesh.point_sets.items()}
-    cell_sets = {k: [np.asarray(a) for a in v] for k, v in mesh.cell_sets.items()}
     field_data = {k: v for k, v in mesh.field_data.items() if k not in SOURCE_FIELDS}
     lost = [what for _, what in deck_losses(mesh, fmt)]
 
-    if keeps["sets"] == "data":
-        for name, idx in point_sets.items():
-            mask = np.zeros(mesh.n_nodes, np.int32)
-            mask[idx] = 1
-            point_data[SET_PREFIX + name] = mask
-        for name, per_block in cell_sets.items():
-            masks = [np.zeros(len(b.data), np.int32) for b in cells]
-            for mask, idx in zip(masks, per_block, strict=True):
-                mask[idx] = 1
-            cell_data[SET_PREFIX + name] = masks
-        point_sets, cell_sets = {}, {}
-    elif keeps["sets"] == "physical":
-        dropped = sorted(set(cell_sets) - set(field_data))
+    if gmsh:  # cell sets only as Gmsh physical groups
+        dropped = sorted(set(mesh.cell_sets) - set(field_data))
         if dropped:
             lost.append(f"cell sets {dropped} (only Gmsh physical groups are kept)")
-        if point_sets:
-            lost.append(f"point sets {sorted(point_sets)}")
-        point_sets, cell_sets = {}, {}
+        if mesh.point_sets:
+            lost.append(f"point sets {sorted(mesh.point_sets)}")
+    else:  # sets as 0/1 integer data named set:NAME
+        for name, idx in mesh.point_sets.items():
+            mask = np.zeros(mesh.n_nodes, np.int32)
+            mask[np.asarray(idx)] = 1
+            point_data[SET_PREFIX + name] = mask
+        for name, per_block in mesh.cell_sets.items():
+            masks = [np.zeros(len(b.data), np.int32) for b in cells]
+            for mask, idx in zip(masks, per_block, strict=True):
+                mask[np.asarray(idx)] = 1
+            cell_data[SET_PREFIX + name] = masks
 
     if fmt == "gmsh22" and len(cells) > 1:
         data = sorted(k for k in cell_data if k not in ("gmsh:physical", "gmsh:geometrical"))
         if data:  # meshio 5.3.5 splits Gmsh 2.2 ElementData wrongly over several blocks and cannot read it back
             lost.append(f"cell data {data} (Gmsh 2.2 element data of several cell blocks does not read back)")
             cell_data = {k: v for k, v in cell_data.items() if k not in data}
-    if not keeps["data"]:
-        lost += [f"{what} data {sorted(d)}" for what, d in (("point", point_data), ("cell", cell_data)) if d]
-        point_data, cell_data = {}, {}
-    elif keeps["data"] == "float64":
+    if gmsh:  # integer data read back as float64; field data only as physical names
         ints = [k for k, v in point_data.items() if k != "gmsh:dim_tags" and v.dtype.kind in "iub"]
         ints += [k for k, v in cell_data.items() if not k.startswith("gmsh:") and v[0].dtype.kind in "iub"]
         if ints:
             lost.append(f"the integer dtype of {sorted(ints)} (read back as float64)")
-
-    if keeps["field_data"] == "physical":
         bad = [k for k, v in field_data.items() if np.shape(v) != (2,) or np.asarray(v).dtype.kind not in "iu"]
         if bad:
             lost.append(f"field data {sorted(bad)} (only Gmsh physical names [tag, dim] are kept)")
         field_data = {k: np.asarray(v) for k, v in field_data.items() if k not in bad}
-    elif not keeps["field_data"] and field_data:
+    elif field_data:
         lost.append(f"field data {sorted(field_data)}")
         field_data = {}
 
     if mesh.node_ids is not None or any(b.ids is not None for b in cells):
         lost.append("node and element ids (nodes and elements are numbered from 1)")
 
-    if fmt in ("gmsh", "gmsh22"):
+    if gmsh:
         _add_gmsh_tags(cells, cell_data, point_data, mesh.n_nodes, fmt, path)
-    m = meshio.Mesh(
-        mesh.points,
-        [(b.type, b.data) for b in cells],
-        point_data=point_data,
-        cell_data=cell_data,
-        field_data=field_data,
-        point_sets=point_sets,
-        cell_sets=cell_sets,
-    )
+    m = meshio.Mesh(mesh.points, [(b.type, b.data) for b in cells], point_data=point_data, cell_data=cell_data,
+                    field_data=field_data)  # the sets are data or physical groups by now
     return m, lost
 
 

@@ -81,7 +81,7 @@ def is_continuation(line: str) -> bool:
     return text[0] in "+*," or not text[:8].strip()
 
 
-def line_fields(line: str, i: int, first: bool, large_card: bool) -> tuple[str, bool, list[tuple[str, tuple, int]]]:
+def line_fields(line: str, first: bool, large_card: bool) -> tuple[str, bool, list[tuple[str, tuple, int]]]:
     """(name or continuation mark, large field, [(text, spot, width)] of the data fields) of one line."""
     text = _content(line)
     if "," in text:
@@ -121,10 +121,10 @@ def cards(lines: list[str], where) -> list[Card]:
         if is_continuation(line):
             if not out:
                 raise MeshReadError(f"{where(i)}: a continuation line with no card before it")
-            _, _, fields = line_fields(line, i, False, large)
+            _, _, fields = line_fields(line, False, large)
             card = out[-1]
         else:
-            mark, large, fields = line_fields(line, i, True, False)
+            mark, large, fields = line_fields(line, True, False)
             card = Card(mark.rstrip("*").upper(), i)
             out.append(card)
         for tok, spot, width in fields:

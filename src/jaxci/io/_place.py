@@ -228,9 +228,9 @@ class Temporary:
         self.release()
 
 
-def temporary_prefix(name: str, pid: int | None = None) -> str:
-    """The start of the temporary names that process `pid` (default: this one) makes for an output `name`."""
-    return f"{TEMP_PREFIX}{os.getpid() if pid is None else pid}-{name[:_NAME_CHARS]}."
+def temporary_prefix(name: str) -> str:
+    """The start of the temporary names that this process makes for an output `name`."""
+    return f"{TEMP_PREFIX}{os.getpid()}-{name[:_NAME_CHARS]}."
 
 
 def make_temporary(folder: str | os.PathLike, name: str) -> Temporary:
