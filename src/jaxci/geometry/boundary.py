@@ -55,7 +55,6 @@ CORNER = 3
 CLASS_NAMES = ("interior", "surface", "edge", "corner")
 
 
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class NodeClasses:
     """The classification of the nodes that are not INTERIOR, in O(boundary) (`BoundaryInfo.classes`): every
@@ -173,7 +172,7 @@ def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.cross(p[faces[:, 2]] - p[faces[:, 0]], p[faces[:, 3]] - p[faces[:, 1]])
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
+def unit_rows(v: np.ndarray) -> np.ndarray:
     """Rows of `v` scaled to unit length (zero rows stay zero)."""
     norm = np.linalg.norm(v, axis=-1, keepdims=True)
     return np.divide(v, norm, out=np.zeros_like(v), where=norm > 0)
@@ -336,7 +335,7 @@ def _boundary_classes(topo: BoundaryTopology, bnodes: np.ndarray, faces: np.ndar
     last = max(len(topo.edge_face) - 1, 0)
     fa = topo.edge_face[ptr[:-1]]  # first and (if any) second boundary face of each edge
     fb = topo.edge_face[np.minimum(ptr[:-1] + 1, last)]
-    normal = _unit(face_normals(pts, faces))
+    normal = unit_rows(face_normals(pts, faces))
     cos_e = np.einsum("ij,ij->i", normal[fa], normal[fb])
     feature = ~manifold | (cos_e < cos_t)
     sets = face_set_signature(topo.faces, face_sets)
@@ -372,8 +371,8 @@ def _boundary_classes(topo: BoundaryTopology, bnodes: np.ndarray, faces: np.ndar
     two = np.flatnonzero(np.diff(hn) == 0)
     two = two[cls[hn[two]] == EDGE]  # the pairs (two[j], two[j] + 1) are the two feature edges of an EDGE node
     v = hn[two]
-    d_in = _unit(pts[v] - pts[ho[two]])
-    d_out = _unit(pts[ho[two + 1]] - pts[v])
+    d_in = unit_rows(pts[v] - pts[ho[two]])
+    d_out = unit_rows(pts[ho[two + 1]] - pts[v])
     sharp = np.einsum("ij,ij->i", d_in, d_out) < cos_t
     cls[v[sharp]] = CORNER
 

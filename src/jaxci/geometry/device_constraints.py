@@ -151,9 +151,7 @@ def device_constraints(points, info: BoundaryInfo, *, dtype=None) -> tuple[Const
         tables = boundary_tables(need, coords, faces, info.face_patch, fedges, info.edge_curve, surf,
                                  c.patch_id[of[SURFACE]], edge, c.curve_id[of[EDGE]], corner)
         group = np.where(of[SURFACE], c.patch_id, np.where(of[EDGE], c.curve_id, -1))
-        i32 = {k: np.asarray(v, dtype=np.int32) for k, v in (("nodes", c.nodes), ("node_class", c.node_class),
-                                                             ("group", group), ("surf", surf), ("edge", edge),
-                                                             ("corner", corner))}
+        i32 = dict(nodes=c.nodes, node_class=c.node_class, group=group, surf=surf, edge=edge, corner=corner)
         # the 4 triangles of each face are expanded on the device: their candidates (4 per candidate face: 15 MB
         # at 10^6 hexahedra, against 4 MB of faces) and patches
         if len(faces):

@@ -63,7 +63,7 @@ from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo
 
 if TYPE_CHECKING:
     from jaxtyping import Array, Float, Int
-from .tables import BoundaryTables, boundary_tables
+from .tables import boundary_tables
 
 
 @pytree_dataclass
@@ -136,7 +136,11 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     row = np.zeros(n, dtype=np.int32)
     row[surf] = np.arange(len(surf))
     row[edge] = np.arange(len(edge))
-    tables = host_tables(pts, info, surf, edge, nodes[CORNER])
+    # the tables from the coordinates of the boundary nodes (those of the faces, the feature edges, each class)
+    faces, fedges = info.topology.faces, info.feature_edges
+    need = sorted_unique(np.concatenate([faces.ravel(), fedges.ravel(), surf, edge, nodes[CORNER]]).astype(np.int64))
+    tables = boundary_tables(need, pts[need], faces, info.face_patch, fedges, info.edge_curve, surf,
+                             np.asarray(info.patch_id)[surf], edge, np.asarray(info.curve_id)[edge], nodes[CORNER])
 
     put = jax.device_put if device else (lambda a: a)
 
@@ -162,16 +166,6 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
 #: The fields of `Constraints` that `jaxci.geometry.tables.BoundaryTables` holds too.
 TABLE_FIELDS = ("surface_basis", "edge_tangent", "surface_cand", "edge_cand", "triangles", "triangle_patch",
                 "segments", "segment_curve")
-
-
-def host_tables(points: np.ndarray, info: BoundaryInfo, surf: np.ndarray, edge: np.ndarray,
-                corner: np.ndarray) -> BoundaryTables:
-    """`jaxci.geometry.tables.boundary_tables` of `info` with the coordinates taken from `points` ``(n_nodes,
-    3)`` (float64) at the boundary nodes; `surf`, `edge`, `corner` the sorted nodes of each class."""
-    faces, fedges = info.topology.faces, info.feature_edges
-    need = sorted_unique(np.concatenate([faces.ravel(), fedges.ravel(), surf, edge, corner]).astype(np.int64))
-    return boundary_tables(need, points[need], faces, info.face_patch, fedges, info.edge_curve, surf,
-                           np.asarray(info.patch_id)[surf], edge, np.asarray(info.curve_id)[edge], corner)
 
 
 # ---------------------------------------------------------------------------------------------------- JAX

@@ -20,7 +20,7 @@ import dataclasses
 import numpy as np
 
 from ._closest import SEG_ROWS, TRI_ROWS, segment_table, triangle_table
-from .boundary import face_normals
+from .boundary import face_normals, unit_rows
 from .topology import csr_gather, incidence, unique_per_row
 
 
@@ -88,7 +88,7 @@ def boundary_tables(nodes: np.ndarray, coords: np.ndarray, faces: np.ndarray, fa
     # surface node, except for a corner or edge node made a surface node by `jaxci.geometry.boundary.slide_on_surface`)
     normals = np.zeros((len(surf), 3))
     if len(faces_l) and len(surf):
-        normals = _unit_rows(_node_sums(faces_l, m, surf, face_normals(pts, faces_l), face_patch, group))
+        normals = unit_rows(_node_sums(faces_l, m, surf, face_normals(pts, faces_l), face_patch, group))
     if len(faces_l):
         tris, tri_patch = triangle_table(pts, faces_l), np.repeat(face_patch, 4)
     else:
@@ -164,19 +164,14 @@ def _node_sums(cells: np.ndarray, n_nodes: int, nodes: np.ndarray, values: np.nd
                     axis=1)
 
 
-def _unit_rows(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
-
-
 def _tangent_bases(normals: np.ndarray) -> np.ndarray:
     """Orthonormal tangent pairs (m, 2, 3) of unit normals (m, 3) (an arbitrary pair for a zero normal)."""
     m = len(normals)
     helper = np.zeros((m, 3))
     helper[np.arange(m), np.argmin(np.abs(normals), axis=1)] = 1.0
-    t1 = _unit_rows(helper - (helper * normals).sum(1, keepdims=True) * normals)
+    t1 = unit_rows(helper - (helper * normals).sum(1, keepdims=True) * normals)
     t2 = np.cross(normals, t1)
-    t2 = np.where(np.linalg.norm(t2, axis=1, keepdims=True) > 0, t2, _unit_rows(np.cross(t1, helper[:, ::-1])))
+    t2 = np.where(np.linalg.norm(t2, axis=1, keepdims=True) > 0, t2, unit_rows(np.cross(t1, helper[:, ::-1])))
     return np.stack([t1, t2], axis=1)
 
 
@@ -188,4 +183,4 @@ def _edge_tangents(points: np.ndarray, fedges: np.ndarray, edge: np.ndarray) -> 
     other = np.where(fedges[e, 0] == edge[owner], fedges[e, 1], fedges[e, 0])
     first = np.r_[True, owner[1:] != owner[:-1]]  # each EDGE node has exactly two feature edges
     prev, nxt = other[first], other[~first]
-    return _unit_rows(_unit_rows(points[edge] - points[prev]) + _unit_rows(points[nxt] - points[edge]))
+    return unit_rows(unit_rows(points[edge] - points[prev]) + unit_rows(points[nxt] - points[edge]))

@@ -164,12 +164,8 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryT
         nonmanifold[nonmanifold[:, 3] == nonmanifold[:, 2], 3] = -1
     nonmanifold.sort(axis=1)
     nonmanifold = nonmanifold[np.lexsort(nonmanifold.T[::-1])]  # in the order of their sorted nodes
-    if mixed:
-        face_type = np.array([FACE_CELL_TYPES.index(t) for t, _ in blocks], np.int8)[blk]
-        face_hex = np.where(face_type == 0, face_cell, -1)
-    else:
-        face_type = np.zeros(len(single), np.int8)
-        face_hex = face_cell
+    face_type = np.array([FACE_CELL_TYPES.index(t) for t, _ in blocks], np.int8)[blk]
+    face_hex = np.where(face_type == 0, face_cell, -1)
     return topology_from_faces(faces, face_hex, nonmanifold, int(n), face_type=face_type, face_cell=face_cell)
 
 
@@ -251,8 +247,7 @@ def _distinct_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarra
     """The distinct pairs ``(a[j], b[j])`` (non-negative int64), in lexicographic order: one sort of the int64
     keys ``a * (max b + 1) + b`` with repeats dropped."""
     width = max(int(b.max(initial=-1)) + 1, 1)
-    key = np.sort(a * width + b)
-    key = key[np.concatenate([[True], key[1:] != key[:-1]])] if len(key) else key
+    key = sorted_unique(a * width + b)
     return key // width, key % width
 
 

@@ -35,7 +35,6 @@ import numpy as np
 from ..cells import corner_determinants
 from ..errors import MeshError
 from .blocks import MIRROR_HEX as MIRROR_HEX
-from .blocks import MIRROR_HEX_EDGES as MIRROR_HEX_EDGES
 from .blocks import NODES_PER_CELL, CellBlock, block_label, int_array, mirrored_block
 from .coincident import COINCIDENT_TOLERANCE, coincident_groups, coincident_pairs
 from .coincident import close_pairs as close_pairs
@@ -168,9 +167,7 @@ class HexMesh:
         del det
         corners = None
         if unused is None:
-            used = np.zeros(n, bool)
-            for b in blocks:
-                used[b.data.ravel()] = True
+            used = _cell_nodes(blocks, n)
             corners = np.flatnonzero(used)  # the nodes of the cells (what `coincident_nodes` looks at)
             midside, _ = midside_table(blocks, used, where, self.node_label)
             used[midside] = True
@@ -254,10 +251,7 @@ class HexMesh:
         `COINCIDENT_TOLERANCE`), shape ``(k, 2)``; computed once per mesh."""
         cached = self.__dict__.get("_coincident")
         if cached is None:
-            used = np.zeros(self.n_nodes, bool)
-            for b in self.cells:
-                used[np.asarray(b.data).ravel()] = True
-            cached = coincident_pairs(self.points, np.flatnonzero(used))
+            cached = coincident_pairs(self.points, np.flatnonzero(_cell_nodes(self.cells, self.n_nodes)))
             self.__dict__["_coincident"] = cached
         return cached
 
@@ -290,10 +284,7 @@ class HexMesh:
         **Returns:** ``(nodes, ends)``: node indices of shape ``(m,)`` (each once, sorted) and the two corner nodes
         of each one's edge, shape ``(m, 2)``; empty for a linear mesh.
         """
-        used = np.zeros(self.n_nodes, bool)
-        for b in self.cells:
-            used[b.data.ravel()] = True
-        return midside_table(self.cells, used, "", self.node_label)
+        return midside_table(self.cells, _cell_nodes(self.cells, self.n_nodes), "", self.node_label)
 
     @property
     def other_cell_types(self) -> list[str]:
@@ -395,6 +386,15 @@ def _checked_unused(cells, n: int) -> int | None:
     return rec[2]
 
 
+def _cell_nodes(cells, n: int) -> np.ndarray:
+    """Which of the `n` nodes the cell blocks `cells` use (their `CellBlock.data`: not the midside nodes), bool
+    ``(n,)``."""
+    used = np.zeros(n, bool)
+    for b in cells:
+        used[np.asarray(b.data).ravel()] = True
+    return used
+
+
 def _rows_any(mask: np.ndarray) -> np.ndarray:
     """``mask.any(axis=1)`` of a boolean ``(m, 8)`` array, each row read as one 8-byte word (10x faster than
     numpy's reduction over a short axis)."""
@@ -457,10 +457,7 @@ def merge_coincident(mesh: HexMesh, tol: float = COINCIDENT_TOLERANCE) -> HexMes
     if tol == COINCIDENT_TOLERANCE:
         pairs = mesh.coincident_nodes()
     else:
-        used = np.zeros(mesh.n_nodes, bool)
-        for b in mesh.cells:
-            used[b.data.ravel()] = True
-        pairs = coincident_pairs(mesh.points, np.flatnonzero(used), tol)
+        pairs = coincident_pairs(mesh.points, np.flatnonzero(_cell_nodes(mesh.cells, mesh.n_nodes)), tol)
     if not len(pairs):
         return mesh
     n = mesh.n_nodes

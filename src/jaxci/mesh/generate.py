@@ -51,19 +51,9 @@ def grid_hexes(ni: int, nj: int, nk: int, periodic_j: bool = False) -> np.ndarra
 
     k, j, i = np.meshgrid(np.arange(nk), np.arange(nj), np.arange(ni), indexing="ij")
     i, j, k = i.ravel(), j.ravel(), k.ravel()
-    return np.stack(
-        [
-            nid(i, j, k),
-            nid(i + 1, j, k),
-            nid(i + 1, j + 1, k),
-            nid(i, j + 1, k),
-            nid(i, j, k + 1),
-            nid(i + 1, j, k + 1),
-            nid(i + 1, j + 1, k + 1),
-            nid(i, j + 1, k + 1),
-        ],
-        axis=1,
-    ).astype(np.int64)
+    # VTK order: the corners (i, j), (i+1, j), (i+1, j+1), (i, j+1) at k, then the same at k + 1
+    return np.stack([nid(i + a, j + b, k + c) for c in (0, 1) for a, b in ((0, 0), (1, 0), (1, 1), (0, 1))],
+                    axis=1).astype(np.int64)
 
 
 def box(
@@ -87,14 +77,10 @@ def box(
     size = _triple("box", "size", size, positive=True)
     origin = _triple("box", "origin", origin, positive=False)
     check_fits(generate_bytes(nx * ny * nz), f"box: a box of {nx} x {ny} x {nz} = {nx * ny * nz:_} hexahedra")
-    xs = origin[0] + np.linspace(0.0, size[0], nx + 1)
-    ys = origin[1] + np.linspace(0.0, size[1], ny + 1)
-    zs = origin[2] + np.linspace(0.0, size[2], nz + 1)
+    xs, ys, zs = (origin[d] + np.linspace(0.0, size[d], m + 1) for d, m in enumerate((nx, ny, nz)))
     z, y, x = np.meshgrid(zs, ys, xs, indexing="ij")
     points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-
-    hexes = grid_hexes(nx, ny, nz)
-    return hex_mesh(points, hexes)
+    return hex_mesh(points, grid_hexes(nx, ny, nz))
 
 
 def _counts(fn: str, nx, ny, nz) -> tuple[int, int, int]:

@@ -77,11 +77,9 @@ def bevelled_box(
     dirs = np.stack([-np.sin(angles), np.cos(angles)], axis=1)  # along each facet, from x=1 towards z=1
     seg = bevel / dirs[:, 1].sum()
     verts = np.array([1.0, 1.0 - bevel]) + seg * np.concatenate([[[0.0, 0.0]], np.cumsum(dirs, axis=0)])
-    fine = []  # polyline nodes from (1, 1-bevel) to (1-bevel, 1)
-    for a, b in zip(verts[:-1], verts[1:], strict=True):
-        t = np.linspace(0.0, 1.0, facet_cells + 1)[:-1, None]
-        fine.append(a + t * (b - a))
-    fine = np.concatenate(fine + [verts[-1:]])
+    t = np.linspace(0.0, 1.0, facet_cells + 1)[:-1, None]
+    # polyline nodes from (1, 1-bevel) to (1-bevel, 1)
+    fine = np.concatenate([a + t * (b - a) for a, b in zip(verts[:-1], verts[1:], strict=True)] + [verts[-1:]])
     m = n_facets * facet_cells // 2  # boundary nodes of each square side taken by the polyline
     straight = np.linspace(0.0, 1.0 - bevel, n - m + 1)
     right = np.concatenate([np.stack([np.ones(n - m), straight[:-1]], axis=1), fine[: m + 1]])  # x=1, z up
