@@ -57,20 +57,17 @@ def setup_jax() -> None:
     when_imported("jax", compile_cache.enable)
 
 
-def _runtime_line() -> str:
-    import jax
-
-    pages = "on" if TUNABLE in os.environ.get("GLIBC_TUNABLES", "") else "off"
-    return f"jax {jax.__version__}; huge pages for glibc allocations {pages} (jaxci.runtime.process)"
-
-
 class _Version(argparse.Action):
     """``--version``: the line is made when asked for (it imports JAX, which a run on the numpy path never does)."""
 
     def __call__(self, parser, namespace, values, option_string=None):
+        import jax
+
         from .. import __version__
 
-        print(f"jaxci {__version__} ({_runtime_line()})")
+        pages = "on" if TUNABLE in os.environ.get("GLIBC_TUNABLES", "") else "off"
+        print(f"jaxci {__version__} (jax {jax.__version__}; huge pages for glibc allocations {pages} "
+              f"(jaxci.runtime.process))")
         parser.exit(0)
 
 

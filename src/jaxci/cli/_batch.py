@@ -34,6 +34,7 @@ and the command exits 130 (143).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -209,33 +210,26 @@ def worker_environment(jobs: int) -> dict[str, str]:
     return env
 
 
-class _Environment:
+@contextlib.contextmanager
+def _environment(values: dict[str, str]):
     """Within the block, ``os.environ`` has what the workers start with (`values`), and SIGINT is ignored, so
     that a worker starting up inherits it ignored until `_start_worker` (a Ctrl-C then would print a traceback
     per worker). Both are put back at the end of the block."""
-
-    def __init__(self, values: dict[str, str]):
-        self.values = values
-
-    def __enter__(self):
-        self.old = {k: os.environ.get(k) for k in self.values}
-        os.environ.update(self.values)
-        self.handler = None
-        try:
-            self.handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
-        except ValueError:  # not the main thread
-            pass
-        return self
-
-    def __exit__(self, *exc):
-        if self.handler is not None:
-            signal.signal(signal.SIGINT, self.handler)
-        for k, v in self.old.items():
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    handler = None
+    with contextlib.suppress(ValueError):  # not the main thread
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
+        for k, v in old.items():
             if v is None:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
-        return False
 
 
 def _stop(pool, folder: Path) -> None:
@@ -284,7 +278,7 @@ def _run_pool(items, settings, jobs: int, folder: Path, debug: bool, done) -> No
                                              initargs=(begun_queue,)))
             pool, futures, lost = pools[-1], {}, []
             try:
-                with _Environment(worker_environment(jobs)):  # the workers start with the first files submitted
+                with _environment(worker_environment(jobs)):  # the workers start with the first files submitted
                     for index, src, out in items:
                         futures[pool.submit(_work, index, str(src), out, settings, debug)] = (index, src, out)
                 pending = set(futures)

@@ -30,9 +30,8 @@ def run(args) -> int:
     out.check_inputs(mesh)  # the files read through it too (includes, XDMF data), before any work
     info = classify_boundary(mesh, feature_angle=args.feature_angle)
     pd = dict(mesh.point_data)
-    pd["node_class"] = np.asarray(info.node_class, dtype=np.int32)
-    pd["patch_id"] = np.asarray(info.patch_id, dtype=np.int32)
-    pd["curve_id"] = np.asarray(info.curve_id, dtype=np.int32)
+    for key in ("node_class", "patch_id", "curve_id"):
+        pd[key] = np.asarray(getattr(info, key), dtype=np.int32)
     out.write(dataclasses.replace(mesh, point_data=pd, fix_orientation=False, notes=()))  # source, input_files kept
     counts = {f"{k}_nodes": v for k, v in info.counts.items()}
     if args.json:

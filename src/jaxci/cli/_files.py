@@ -57,8 +57,7 @@ class Output:
         """Refuse a target that is one of the files `mesh` was read from (`jaxci.io.input_paths`)."""
         from ..io import input_paths
 
-        inputs = input_paths(mesh)
-        _refuse_inputs(self.path, self.targets, inputs, mesh.source)
+        _refuse_inputs(self.path, self.targets, input_paths(mesh), mesh.source)
 
     def write(self, mesh) -> None:
         """Write `mesh` to `path` (`check_inputs` first), replacing only what was checked."""

@@ -120,12 +120,11 @@ class Display:
             self.close()
 
 
-def wanted(quiet: bool, stream=None) -> bool:
-    """Whether to draw the live line: not `quiet`, and `stream` (default stderr) is a terminal."""
-    stream = sys.stderr if stream is None else stream
+def wanted(quiet: bool) -> bool:
+    """Whether to draw the live line: not `quiet`, and stderr is a terminal."""
     if quiet:
         return False
     try:
-        return stream.isatty()
+        return sys.stderr.isatty()
     except (AttributeError, ValueError):
         return False

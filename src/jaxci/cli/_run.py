@@ -98,7 +98,7 @@ def run(args) -> int:
     try:
         with on_interrupt(emergency), ctx:
             res = run_experiment(exp, args.out, force=args.force, seeds=args.seeds, progress=update,
-                                 strict=getattr(args, "debug", False), on_start=abort.append)
+                                 strict=args.debug, on_start=abort.append)
     except KeyboardInterrupt as e:
         partial = e.args[0] if e.args else None
         if not isinstance(partial, ExperimentResult) and abort:  # the results were written as it returned?

@@ -89,10 +89,6 @@ class GenerateSpec(_Model):
             raise ValueError(f"amplitude: must be in [0, 10] (a fraction of the grid spacing), got {self.amplitude}")
         if self.seed is not None and not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed: must be an integer in [0, 2**32 - 1], got {self.seed}")
-        return self
-
-    @model_validator(mode="after")
-    def _one_kind(self):
         if (self.case is None) == (self.box is None):
             raise ValueError("give exactly one of 'case' (a paper cube) or 'box' ([nx, ny, nz])")
         extra = {"amplitude", "which", "size"} & self.model_fields_set
@@ -267,11 +263,11 @@ class Experiment:
     methods: tuple[ResolvedMethod, ...]
     seeds: tuple[int, ...]
 
-    def runs(self, seeds=None) -> list[tuple[ResolvedMesh, int, ResolvedMethod]]:
+    def runs(self) -> list[tuple[ResolvedMesh, int, ResolvedMethod]]:
         """Every (mesh, seed, method) in run order: mesh-major, then seed (one mesh build per seed), method."""
         out = []
         for m in self.meshes:
-            for s in self.seeds if seeds is None else seeds:
+            for s in self.seeds:
                 out.extend((m, s, meth) for meth in self.methods if meth.meshes is None or m.name in meth.meshes)
         return out
 
@@ -389,24 +385,17 @@ def load_config(path: str | os.PathLike) -> Experiment:
                 except JaxciError as e:
                     raise loc8.error(("mesh", i, "file"), str(e)) from None
             n_nodes = mesh.n_nodes
+            n_hexes = mesh.n_hexes + sum(len(b.data) for b in mesh.cells if b.type in EXTRA_TYPES)
             for j, s in enumerate(bnd.fixed_sets):
                 if s not in mesh.point_sets:
                     known = ", ".join(mesh.point_sets) or "none"
                     raise loc8.error((*blk, "fixed_sets", j), f"mesh {name!r} has no node set {s!r} (sets: {known})")
         else:
             g = spec.generate
-            if g.case is not None:
-                n_nodes = (PAPER_CASES[g.case].n + 1) ** 3
-            else:
-                n_nodes = math.prod(n + 1 for n in g.box)
+            dims = g.box if g.case is None else [PAPER_CASES[g.case].n] * 3  # elements per axis
+            n_nodes, n_hexes = math.prod(n + 1 for n in dims), math.prod(dims)
             if bnd.fixed_sets:
                 raise loc8.error((*blk, "fixed_sets"), f"generated mesh {name!r} has no node sets")
-        if mesh is not None:
-            n_hexes = mesh.n_hexes + sum(len(b.data) for b in mesh.cells if b.type in EXTRA_TYPES)
-        elif spec.generate.case is not None:
-            n_hexes = PAPER_CASES[spec.generate.case].n ** 3
-        else:
-            n_hexes = math.prod(spec.generate.box)
         trials = max([ci_trials(m.method, m.params) for m in cfg.methods if m.meshes is None or name in m.meshes],
                      default=16)
         check_fits(smooth_bytes(n_hexes, cfg.dtype, trials), f"mesh {name!r}: smoothing {n_hexes:_} elements in "

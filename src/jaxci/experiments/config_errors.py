@@ -76,11 +76,11 @@ def _model_at(root: type[BaseModel], loc) -> type[BaseModel] | None:
     for key in loc:
         if isinstance(key, int):
             continue
-        field = model.model_fields.get(key) if isinstance(model, type) and issubclass(model, BaseModel) else None
+        field = model.model_fields.get(key) if model is not None else None
         if field is None:
             return None
-        model = _inner_model(field.annotation)
-    return model if isinstance(model, type) and issubclass(model, BaseModel) else None
+        model = _inner_model(field.annotation)  # a pydantic model or None
+    return model
 
 
 def _inner_model(ann):

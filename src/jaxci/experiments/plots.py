@@ -103,7 +103,7 @@ def histogram_figure(path: Path, title: str, bars: list[tuple[str, list[int]]], 
     _save(fig, path)
 
 
-def surface_figure(path: Path, title: str, hexes, points_before, points_after, labels=("before", "after")) -> bool:
+def surface_figure(path: Path, title: str, hexes, points_before, points_after) -> bool:
     """Boundary quadrilaterals of a hex mesh before and after, coloured by element condition (log scale).
 
     **Returns:** False (and draws nothing) when the mesh has more than `MAX_SURFACE_FACES` boundary faces.
@@ -131,7 +131,7 @@ def surface_figure(path: Path, title: str, hexes, points_before, points_after, l
     fig = plt.figure(figsize=(11, 5))
     lo = np.minimum(np.min(points_before, axis=0), np.min(points_after, axis=0))
     hi = np.maximum(np.max(points_before, axis=0), np.max(points_after, axis=0))
-    for i, (pts, v, lab) in enumerate(zip((points_before, points_after), vals, labels, strict=True)):
+    for i, (pts, v, lab) in enumerate(zip((points_before, points_after), vals, ("before", "after"), strict=True)):
         ax = fig.add_subplot(1, 2, i + 1, projection="3d")
         worst = float(np.max(v)) if v.size else math.nan
         draw_surface(ax, pts, topo.faces, v, norm, cmap, (lo, hi), f"{lab}: max kappa/3 on the surface {worst:.4g}")

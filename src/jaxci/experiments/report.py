@@ -106,7 +106,7 @@ def build_summary(exp, records, *, partial: bool, total_runs: int, elapsed: floa
     from .. import __version__
     from ..interface.engine import accelerator, cpu_model
 
-    cfg = exp.config
+    cfg, acc = exp.config, accelerator()
     return {
         "partial": partial,
         "runs_done": len(records),
@@ -120,15 +120,13 @@ def build_summary(exp, records, *, partial: bool, total_runs: int, elapsed: floa
         "table1": table1_choice(exp),
         "versions": {"jaxci": __version__, "jax": importlib.metadata.version("jax"), "numpy": np.__version__,
                      "python": platform.python_version()},
-        "device": {"requested": cfg.device, "accelerator": _accelerator(accelerator()), "cpu": cpu_model()},
+        "device": {"requested": cfg.device,
+                   "accelerator": None if acc is None else {"platform": acc[0], "kind": acc[1]},
+                   "cpu": cpu_model()},
         "elapsed": elapsed,
         "runs": [r.to_dict() for r in records],
         "aggregates": aggregate(records),
     }
-
-
-def _accelerator(acc) -> dict | None:
-    return None if acc is None else {"platform": acc[0], "kind": acc[1]}
 
 
 def table1_choice(exp) -> dict:
@@ -197,10 +195,6 @@ def _f(v, fmt=".4f") -> str:
     return "-" if v is None else format(v, fmt)
 
 
-def _g(v) -> str:
-    return "-" if v is None else f"{v:.4g}"
-
-
 def _first(summary, mesh, label):
     """The record of the first seed of (mesh, label) that ran, or None."""
     seed0 = summary["seeds"][0]
@@ -266,10 +260,7 @@ def _table1(summary) -> list[str]:
         if lab not in staged and r is not None:
             head.append(f"ours {lab}")
             cols.append(_counts(r.get("after")))
-    out = [
-        f"## Table 1: corners per kappa/3 bin, mesh {mesh!r} (seed {summary['seeds'][0]})",
-        "",
-    ]
+    out = [f"## Table 1: corners per kappa/3 bin, mesh {mesh!r} (seed {summary['seeds'][0]})", ""]
     if stages:
         out += ["Stage mapping: the paper's stage 1 (roulette-wheel following) and stage 2 (everyone follows the "
                 "best, after stage 1) are the config's method entries named in report.table1. With global CI, "
@@ -297,13 +288,7 @@ def _table2(summary) -> list[str]:
         paper = PAPER_TABLE2.get(m["paper_case"] or "", (None, None))
         row = [m["name"], str(before["n_elements"]) if before else "-", _f(paper[0]), _f(paper[1]),
                _f(before["max_condition"] if before else None)]
-        for r in rs:
-            if r is None:
-                row.append("")
-            elif r["status"] != "ok":
-                row.append("failed")
-            else:
-                row.append(_f(r["after"]["max_condition"]))
+        row += ["" if r is None else "failed" if r["status"] != "ok" else _f(r["after"]["max_condition"]) for r in rs]
         out.append("| " + " | ".join(row) + " |")
     return out
 
@@ -326,7 +311,7 @@ def _table3(summary) -> list[str]:
         runs = f"{a['runs']}" + (f" ({a['failed']} failed)" if a["failed"] else "")
         out.append(
             f"| {a['mesh']} | {a['method']} | {runs} | {_f(a['worst_max_condition'])} | {_f(a['best_max_condition'])} "
-            f"| {_f(a['mean_max_condition'])} | {_g(a['std_objective'])} | {_g(a['mean_objective'])} | "
+            f"| {_f(a['mean_max_condition'])} | {_f(a['std_objective'], '.4g')} | {_f(a['mean_objective'], '.4g')} | "
             f"{_f(a['mean_before_max_condition'])} | {_f(a['median_wall_time'], '.2f')} | "
             f"{_f(a['mean_iterations'], '.1f')} |"
         )

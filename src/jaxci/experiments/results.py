@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import json
 import os
 import shutil
@@ -151,17 +152,13 @@ def stage(out: str | os.PathLike, key: str, force: bool, inputs=()) -> Staged:
         p = p.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        temporary = make_temporary(parent, _name(out))
+        temporary = make_temporary(parent, out.absolute().name or "results")
     except OSError as e:
         for c in created:
             with contextlib.suppress(OSError):
                 c.rmdir()
         raise ConfigError(f"{key}: cannot write {out} ({e.strerror or e}); nothing was written") from None
     return Staged(out, temporary, earlier, ident, ids)
-
-
-def _name(out: Path) -> str:
-    return out.absolute().name or "results"
 
 
 def _within(path: Path, folder: Path) -> bool:
@@ -202,13 +199,7 @@ def foreign_entries(folder: Path, limit: int = 4) -> list[str]:
             listed = None
     if listed is None:
         return sorted(p.name + "/" * (p.is_dir() and not p.is_symlink()) for p in folder.iterdir())[:limit]
-    found = []
-    for entry in _walk(folder):
-        if entry not in listed and entry != MARKER:
-            found.append(entry)
-            if len(found) >= limit:
-                break
-    return found
+    return list(itertools.islice((e for e in _walk(folder) if e not in listed and e != MARKER), limit))
 
 
 def _identities(paths) -> frozenset:

@@ -288,11 +288,11 @@ def _stack(pngs: list[bytes], title: str) -> bytes:
     images = [plt.imread(io.BytesIO(p)) for p in pngs]
     width = max(im.shape[1] for im in images)
     heights = [im.shape[0] for im in images]
+    total = sum(heights) + 40  # pixels: the images and the title's band
     dpi = 100
-    fig = plt.figure(figsize=(width / dpi, (sum(heights) + 40) / dpi), dpi=dpi)
-    fig.suptitle(title, fontsize=11, y=1 - 10 / (sum(heights) + 40))
-    top = 1 - 40 / (sum(heights) + 40)
-    total = sum(heights) + 40
+    fig = plt.figure(figsize=(width / dpi, total / dpi), dpi=dpi)
+    fig.suptitle(title, fontsize=11, y=1 - 10 / total)
+    top = 1 - 40 / total
     for im, h in zip(images, heights, strict=True):
         ax = fig.add_axes((0, top - h / total, im.shape[1] / width, h / total))
         ax.imshow(im)
