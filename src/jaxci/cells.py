@@ -12,8 +12,8 @@ of the boundary topology), the metrics (`jaxci.metrics`: corner kernels, objecti
 - The table of kernels: `KERNELS`, one `CellKernel` per type (corner rows, W^-1, barrier sub-tetrahedra): what
   every non-hexahedral function iterates over instead of branching on type names.
 - Corner algebra, for numpy and jax.numpy arrays alike: `corner_invariants` (det A, |A|_F^2, |adj A|_F^2),
-  `corner_determinants` (numpy float64, the hexahedra's det A_i alone), `pmean_weights` (the p-mean of corner
-  excesses and its weights).
+  `edge_lengths2` and `scaled_ratio` (the scaled Jacobian), `corner_determinants` (numpy float64, the
+  hexahedra's det A_i alone), `pmean_weights` (the p-mean of corner excesses and its weights).
 - The volume cells of a mesh: `element_blocks` (measured linear types), `volume_cells` (quadratic blocks by their
   corners), `fixed_nodes` (nodes of quadratic non-hexahedral cells, which never move).
 """
@@ -147,7 +147,6 @@ QUADRATIC_TYPES = {"hexahedron20": "hexahedron", "hexahedron27": "hexahedron", "
                    "pyramid13": "pyramid", "tetra10": "tetra"}
 
 
-
 # ---------------------------------------------------------------------------------------------- corner algebra
 def corner_invariants(ax, ay, az, bx, by, bz, cx, cy, cz):
     """det A, |A|_F^2 and |adj A|_F^2 of corner matrices given column by column (any common shape)."""
@@ -159,6 +158,16 @@ def corner_invariants(ax, ay, az, bx, by, bz, cx, cy, cz):
     fro2 = ax * ax + ay * ay + az * az + bx * bx + by * by + bz * bz + cx * cx + cy * cy + cz * cz
     adj2 = ux * ux + uy * uy + uz * uz + vx * vx + vy * vy + vz * vz + wx * wx + wy * wy + wz * wz
     return det, fro2, adj2
+
+
+def edge_lengths2(ax, ay, az, bx, by, bz, cx, cy, cz):
+    """|a|^2 |b|^2 |c|^2 of corner matrices given column by column (the scaled Jacobian's denominator, squared)."""
+    return (ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz) * (cx * cx + cy * cy + cz * cz)
+
+
+def scaled_ratio(xp, det, l2):
+    """det / sqrt(l2), the scaled Jacobian from det A and `edge_lengths2`; 0 where l2 == 0 (an edge of length 0)."""
+    return xp.where(l2 > 0, det / xp.sqrt(xp.where(l2 > 0, l2, 1.0)), 0.0)
 
 
 #: The C extension's interface version (its ``ABI``), raised whenever an argument of a kernel changes.

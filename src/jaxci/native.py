@@ -17,6 +17,7 @@ import os
 import numpy as np
 
 from .cells import KERNELS, ROTATE_TO_SLOT, load_c_kernels, pmean_weights
+from .runtime.process import schedulable_cpus
 
 _c = load_c_kernels()
 
@@ -36,7 +37,7 @@ def _threads() -> int:
     except ValueError:
         n = 0
     if n <= 0:
-        n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        n = schedulable_cpus()
     return max(1, min(n, 16))
 
 

@@ -32,8 +32,11 @@ import importlib.metadata
 import importlib.util
 import os
 
+from .. import native
 from ..errors import ConfigError
+from ..metrics import objective as mixed
 from ..runtime import compile_cache
+from ..runtime.process import schedulable_cpus
 
 #: The engines a user may ask for.
 ENGINES = ("auto", "host", "jax")
@@ -117,11 +120,9 @@ class Plan:
         import jax
 
         compile_cache.enable()
-
-        platform = _jax_platform(self.device)
         if _platform_name(jax.default_backend()) == self.device:
             return contextlib.nullcontext()
-        return jax.default_device(jax.local_devices(backend=platform)[0])
+        return jax.default_device(jax.local_devices(backend=_jax_platform(self.device))[0])
 
 
 def _jax_platform(device: str) -> str:
@@ -193,9 +194,6 @@ def host_limit(method: str, native: bool) -> int:
 def host_obstacle(mesh, method: str, params: dict, untangling: bool) -> str | None:
     """Why the host engine cannot run every stage of `method` with `params` on `mesh` (None: it can).
     `untangling`: the untangling stage runs first (inverted input, or ``untangle="always"``)."""
-    from .. import native
-    from ..metrics import objective as mixed
-
     extra = mixed.extra_blocks(mesh)
     if method not in HOST_METHODS:
         return f"method {method!r} has no host implementation (host: {', '.join(HOST_METHODS)})"
@@ -206,33 +204,32 @@ def host_obstacle(mesh, method: str, params: dict, untangling: bool) -> str | No
     if extra and local:
         what = "presmoothing" if method == "lbfgs" else method
         return f"{what} on the host is for hexahedral meshes; this one has {', '.join(extra)} cells"
-    if extra and method == "lbfgs":
-        if not native.AVAILABLE:
-            return "L-BFGS on a mixed mesh needs the C kernels on the host, and this install has none"
+    if extra and method == "lbfgs" and not native.AVAILABLE:
+        return "L-BFGS on a mixed mesh needs the C kernels on the host, and this install has none"
     if untangling and extra:
         return "the untangling stage of a mixed mesh runs on the JAX engine only"
     return None
 
 
 # --------------------------------------------------------------------------------------------- the decision
-def _check_choice(name: str, value, choices) -> str:
+def check_choice(name: str, value, choices) -> None:
+    """`ConfigError` naming `name` unless `value` is a string of `choices`."""
     if not isinstance(value, str) or value not in choices:
         raise ConfigError(f"{name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
-    return value
 
 
 def engine_request(engine: str, params: dict) -> tuple[str, dict]:
     """``(engine, params)``: the user's engine request with the stages' own ``backend`` parameters folded into
     it (``backend`` and ``untangle_backend``: ``"numpy"`` means the host engine, ``"jax"`` the JAX engine), and
     removed from `params`. `ConfigError` where they disagree with each other or with `engine`."""
-    _check_choice("engine", engine, ENGINES)
+    check_choice("engine", engine, ENGINES)
     params = dict(params)
     asked = {} if engine == "auto" else {"engine": engine}
     for key in ("backend", "untangle_backend"):
         if key not in params:
             continue
         value = params.pop(key)
-        _check_choice(key, value, ("auto", "numpy", "jax"))
+        check_choice(key, value, ("auto", "numpy", "jax"))
         if value != "auto":
             asked[key] = "host" if value == "numpy" else "jax"
     if len(set(asked.values())) > 1:
@@ -253,11 +250,8 @@ def resolve_plan(mesh, method: str, params: dict, *, engine: str = "auto", devic
 
     **Returns:** a `Plan`. Raises `ConfigError` for a request that cannot be honoured.
     """
-    from .. import native
-    from ..metrics import objective as mixed
-
-    _check_choice("engine", engine, ENGINES)
-    _check_choice("device", device, DEVICES)
+    check_choice("engine", engine, ENGINES)
+    check_choice("device", device, DEVICES)
     n_cells = mesh.n_hexes + sum(len(c) for c in mixed.extra_blocks(mesh).values())
     obstacle = host_obstacle(mesh, method, params, untangling)
     if devices is not None:
@@ -319,8 +313,6 @@ def no_accelerator_message(asked: str = "device 'gpu'") -> str:
 
 def host_plan(reason: str = "engine 'host' asked for") -> Plan:
     """The host engine's `Plan` (C kernels where built, else numpy's; float64 on the CPU)."""
-    from .. import native
-
     kernel = "C" if native.AVAILABLE else "numpy"
     notes = () if native.AVAILABLE else ("the C kernels of jaxci.native are not built (or JAXCI_NATIVE=0): numpy's "
                                          "kernels run on the host",)
@@ -335,9 +327,6 @@ def uses_ffi(method: str, params: dict) -> bool:
 
 
 def _jax_plan(method: str, params: dict, dtype: str, device: str, n_devices: int, reason: str) -> Plan:
-    from .. import native
-    from ..runtime.process import schedulable_cpus
-
     acc = accelerator()
     kind = cpu_model() if device == "cpu" else (acc[1] if acc else device)
     kernel, notes, threads = "XLA", [], None

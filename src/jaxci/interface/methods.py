@@ -65,12 +65,10 @@ class Problem:
     `jaxci.metrics.objective.CornerTable`), None for a hexahedral one; the colouring (`colour`) on first use;
     `devices`: None (one device) or the `jax.sharding.Mesh` the compiled methods shard the elements over;
     `plan`: the `jaxci.interface.engine.Plan` the methods run on (its engine: numpy arrays on the host engine, JAX
-    arrays
-    on the JAX engine); `tables`: where the mesh lives on the device (`jaxci.interface.device_run`), the boundary's
-    float64
-    tables on the host (`jaxci.geometry.tables.BoundaryTables`: the exact projection of the boundary nodes and the
-    worst-element polish's window read them) and `points64` its coordinates in float64 on the device (the
-    geometry the presmoothing's planes and the parametrisation are measured on), else None."""
+    arrays on the JAX engine); `tables`: where the mesh lives on the device (`jaxci.interface.device_run`), the
+    boundary's float64 tables on the host (`jaxci.geometry.tables.BoundaryTables`: the exact projection of the
+    boundary nodes and the worst-element polish's window read them) and `points64` its coordinates in float64 on
+    the device (the geometry the presmoothing's planes and the parametrisation are measured on), else None."""
 
     mesh: HexMesh
     info: BoundaryInfo

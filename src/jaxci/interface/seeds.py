@@ -1,10 +1,9 @@
 """Several seeds of one smoothing: `smooth_seeds` and `iter_smooth_seeds`, global CI's seeds as ONE program.
 
 `jaxci.smooth` is a generator underneath (`jaxci.interface.smooth.smooth_steps`): it validates, reports, untangles and
-sets
-up, then yields the method's run (`jaxci.interface.smooth.MethodRun`) and takes its output back for the checks. Here
-each seed's generator is taken to its method run in turn: global CI on the JAX engine (one device, a hexahedral mesh)
-waits there for the others, every other run goes on to its end at once. The waiting seeds whose parameters, plan,
+sets up, then yields the method's run (`jaxci.interface.smooth.MethodRun`) and takes its output back for the checks.
+Here each seed's generator is taken to its method run in turn: global CI on the JAX engine (one device, a hexahedral
+mesh) waits there for the others, every other run goes on to its end at once. The waiting seeds whose parameters, plan,
 connectivity and parametrisation shapes agree run as one batched program (`jaxci.optim.global_ci.
 global_ci_batched`: one compilation, one launch; each seed's mesh is the one it gets alone); any other runs alone.
 """
@@ -138,9 +137,8 @@ def _batchable(asked: dict) -> tuple[list, list]:
 
 def _run_batch(runs: dict, pars: list) -> dict:
     """Global CI of the `MethodRun` values of `runs` (index -> run; `pars` their parametrisations) as one batched
-    program; each run's clock gets
-    an equal share of the batch's time (and compilation) in its ``smooth`` phase. Returns index -> `run_method`'s
-    output, its resolved parameters with ``batched_seeds`` (how many ran together)."""
+    program; each run's clock gets an equal share of the batch's time (and compilation) in its ``smooth`` phase.
+    Returns index -> `run_method`'s output, its resolved parameters with ``batched_seeds`` (how many ran together)."""
     from ..optim.global_ci import global_ci_batched
     from ..runtime.phases import PhaseClock
 

@@ -31,12 +31,15 @@ import numpy as np
 from ..errors import ConfigError, InvertedMeshError, MeshError
 from ..geometry.boundary import BoundaryInfo, classify_boundary, fix_nodes
 from ..geometry.projection import n_free
-from ..mesh import HexMesh
+from ..mesh import HexMesh, as_hex_mesh, check_volume, from_unit, to_unit, unit_frame
+from ..mesh import merge_coincident as merge
+from ..mesh.generate import check_seed
 from ..metrics import objective as mixed
 from ..metrics.elements import objective_on_host
 from ..metrics.report import quality_report, worst_elements
 from ..runtime._lazy import enable_x64, jax
-from .engine import Plan
+from ..runtime.memory import check_fits, smooth_bytes
+from .engine import DEVICES, Plan, check_choice, engine_request, resolve_plan, stage_params
 from .invariants import enforce
 from .methods import (  # noqa: F401  (Problem, build_problem, method_params ... are also reached as jaxci.interface.smooth.X)
     AUTO_PRESMOOTH_FROM,
@@ -169,8 +172,6 @@ def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=
     """`smooth` as a generator: it yields one `MethodRun` (unless no method needs to run), receives its output
     and returns the `SmoothResult`; `_drive` runs one, `jaxci.interface.seeds.smooth_seeds` several at once. `seeds`:
     how many seeds of this mesh run together (the plan's batch rule: `jaxci.interface.engine.resolve_plan`)."""
-    from ..mesh import check_volume, from_unit, to_unit, unit_frame
-    from ..mesh import merge_coincident as merge
     from ..runtime.phases import PhaseClock
 
     clock = PhaseClock() if clock is None else clock
@@ -286,23 +287,17 @@ def _validate(mesh, method, seed, dtype, feature_angle, fixed_sets, untangle, pa
     description, else ""), the device mesh of a sharded run (`shard`, None) and its note, and the
     `jaxci.interface.engine.Plan` every stage follows (their ``backend`` parameters set from it:
     `jaxci.interface.engine.stage_params`)."""
-    from ..mesh import as_hex_mesh
-    from ..mesh.generate import check_seed
-    from ..runtime.memory import check_fits, smooth_bytes
-    from .engine import DEVICES, engine_request, resolve_plan, stage_params
-
     mesh = as_hex_mesh(mesh, "smooth")
     if not isinstance(method, str) or method not in METHODS:
         raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    _choice("dtype", dtype, tuple(_DTYPES))
+    check_choice("smooth: dtype", dtype, tuple(_DTYPES))
     engine, params = engine_request(engine, params)
-    if not isinstance(device, str) or device not in DEVICES:
-        raise ConfigError(f"smooth: device must be one of {', '.join(map(repr, DEVICES))}, got {device!r}")
+    check_choice("smooth: device", device, DEVICES)
     shard, params, shard_note = _sharding(method, devices, params, device)
     if shard is not None and mixed.has_extra(mesh):
         raise ConfigError("devices: only hexahedral meshes run sharded (this one has other cell types); leave "
                           "devices out")
-    _choice("untangle", untangle, ("auto", "always", "never", "partial"))
+    check_choice("smooth: untangle", untangle, ("auto", "always", "never", "partial"))
     seed = check_seed(seed)
     if isinstance(feature_angle, bool) or not isinstance(feature_angle, numbers.Real) or \
             not 0 < feature_angle < 180:
@@ -495,11 +490,6 @@ def _refuse_stuck(mesh: HexMesh, info: BoundaryInfo) -> None:
         f"--fix-boundary / --fixed-set; --untangle-boundary lets the boundary's own corners and edge nodes slide "
         f"on the surface) or repair the elements in the mesher"
     )
-
-
-def _choice(name: str, value, choices: tuple) -> None:
-    if not isinstance(value, str) or value not in choices:
-        raise ConfigError(f"smooth: {name} must be one of {', '.join(map(repr, choices))}, got {value!r}")
 
 
 def _fixed_nodes(mesh: HexMesh, fixed_nodes) -> np.ndarray:

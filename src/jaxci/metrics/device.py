@@ -4,16 +4,15 @@ A run on the JAX engine keeps the node coordinates ``points`` ``(n, 3)`` and the
 ``(8, N)`` (`jaxci.metrics.hexahedron.transposed`) on the device from upload to download. What the host
 functions measure over every corner (`jaxci.metrics.report.quality_report`, `worst_elements`, the validity and
 volume checks, the final checks of `jaxci.interface.invariants.enforce`) is measured there, by the jitted programs of
-this
-module (each an entry point timed by `jaxci.runtime.transfer.program`), and only their few figures come down, in one
-`jaxci.runtime.transfer.to_host` per call: O(1), or O(k) for the k worst elements, never O(mesh).
+this module (each an entry point timed by `jaxci.runtime.transfer.program`), and only their few figures come down,
+in one `jaxci.runtime.transfer.to_host` per call: O(1), or O(k) for the k worst elements, never O(mesh).
 
 - `quality_report_device`: the `QualityReport` of `quality_report` (measured in the unit frame, as there);
 - `worst_elements_device`: the list of `worst_elements` (a `jax.lax.top_k` of the cells' worst corners);
 - `inverted_hexes`: the count and first index of inverted hexahedra (`jaxci.metrics.objective.inverted_cells`);
 - `volume_moments`: the moment matrix `jaxci.mesh.check_volume` decides from;
-- `final_figures`: the figures `jaxci.interface.invariants.enforce_device` decides from (newly inverted cells, F or the
-  p-mean, the worst cells, `jaxci.metrics.guard.keep_worst`'s put-back as a device mask).
+- `final_figures`: the figures `jaxci.interface.invariants.enforce_device` decides from (newly inverted cells, F or
+  the p-mean, the worst cells, `jaxci.metrics.guard.keep_worst`'s put-back as a device mask).
 
 Every function here runs inside ``jax.enable_x64(True)`` and measures in float64 (coordinates of another dtype are
 converted on the device). The report's figures are `jaxci.metrics.report.figure_totals`, written once for numpy
@@ -29,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cells import ELEMENT_TYPES, corner_invariants, pmean_weights
+from ..cells import ELEMENT_TYPES, corner_invariants, edge_lengths2, pmean_weights, scaled_ratio
 from ..errors import UsageError
 from ..mesh import HexMesh
 from ..mesh.frame import box_frame
@@ -65,9 +64,7 @@ def _corners(points, conn):
     g = points.astype(jnp.float64)[conn]  # (8, N, 3): one gather of rows (on a CPU 2x faster than 24 of scalars)
     cols = corner_columns(g[..., 0], g[..., 1], g[..., 2])
     det, fro2, adj2 = corner_invariants(*cols)
-    la, lb, lc = (cols[i] ** 2 + cols[i + 1] ** 2 + cols[i + 2] ** 2 for i in (0, 3, 6))
-    l2 = la * lb * lc
-    sj = jnp.where(l2 > 0, det / jnp.sqrt(jnp.where(l2 > 0, l2, 1.0)), 0.0)
+    sj = scaled_ratio(jnp, det, edge_lengths2(*cols))
     return det, condition_from_invariants(det, fro2, adj2), sj, squared_condition_from_invariants(det, fro2, adj2)
 
 
@@ -77,12 +74,11 @@ def reduce_rows(fields: dict, axis: int) -> dict:
     apart make XLA:CPU form the corners once per reduction, or store their columns (measured at 10^6
     hexahedra on the shared 2-core CPU: the report's figures 2.9 s apart, 1.1 s as one reduction; the max kappa/3
     alone 0.56 s)."""
-    import math
 
     def identity(op, dtype):
         if op == "sum":
             return jnp.zeros((), dtype)
-        big = math.inf if jnp.issubdtype(dtype, jnp.floating) else jnp.iinfo(dtype).max
+        big = jnp.inf if jnp.issubdtype(dtype, jnp.floating) else jnp.iinfo(dtype).max
         return jnp.asarray(-big if op == "max" else big, dtype)
 
     combine = {"sum": jax.lax.add, "max": jax.lax.max, "min": jax.lax.min}
@@ -253,7 +249,6 @@ def volume_moments(points, conn) -> tuple[np.ndarray, int]:
 def _state(points, conn, power):
     """Of coordinates `points`: each cell inverted ``(N,)``, each cell's worst kappa/3 ``(N,)`` and the objective
     (F, or the p-mean of power `power`; ``inf`` if a corner is inverted)."""
-
     det, kappa3, _, term = _corners(points, conn)
     fields = {"inverted": ((det <= 0).astype(jnp.int32), "max"),
               "worst": (jnp.where(jnp.isnan(kappa3), jnp.inf, kappa3), "max")}

@@ -74,6 +74,7 @@ import math
 
 import numpy as np
 
+from .. import native
 from ..cells import (
     CORNERS,
     ELEMENT_TYPES,
@@ -83,11 +84,21 @@ from ..cells import (
     TARGETS,  # noqa: F401  (re-exported: the ideal corners this module's docstring refers to)
     corner_determinants,
     corner_invariants,
+    edge_lengths2,
     element_blocks,
     pmean_weights,
+    scaled_ratio,
 )
 from ..mesh import HexMesh
 from ..runtime._lazy import jax, jit, jnp
+from .hexahedron import (
+    as_points,
+    centre_scaled_jacobian,
+    corner_columns,
+    gather_corners,
+    pmean_objective,
+    squared_condition_from_invariants,
+)
 
 #: The inverse of the regular tetrahedron's corner matrix: the target of Verdict's aspect Frobenius
 #: (``wedge_condition``).
@@ -127,13 +138,8 @@ def _conn(cells, cell_type: str) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------- kernels
-# Written once for numpy (the per-cell measures: float64, no compilation) and jax.numpy (`mixed_objective`).
-def _nodes(xp, points, conn):
-    """Coordinates per local node: ``(X, Y, Z)``, each of shape ``(k, N)``."""
-    pt = points.T
-    return tuple(xp.stack([pt[d][conn[a]] for a in range(conn.shape[0])]) for d in range(3))
-
-
+# Written once for numpy (the per-cell measures: float64, no compilation) and jax.numpy (`mixed_objective`); the
+# coordinates per local node are `jaxci.metrics.hexahedron.gather_corners`'.
 def _columns(X, Y, Z, table):
     """The 9 entries (a_x, a_y, a_z, b_x, ..., c_z) of the corner matrices of `table`, each ``(n_corners, N)``."""
     base = np.asarray(table[:, 0])
@@ -156,45 +162,21 @@ def _times_inverse(cols, winv: np.ndarray):
     return tuple(out)
 
 
-def _invariants(cols):
-    """det, |M|_F^2 and |adj M|_F^2 of corner matrices given column by column (`jaxci.cells.corner_invariants`)."""
-    return corner_invariants(*cols)
-
-
-def _lengths2(cols):
-    """|a|^2 |b|^2 |c|^2 of corner matrices given column by column."""
-    a = cols[0] ** 2 + cols[1] ** 2 + cols[2] ** 2
-    b = cols[3] ** 2 + cols[4] ** 2 + cols[5] ** 2
-    c = cols[6] ** 2 + cols[7] ** 2 + cols[8] ** 2
-    return a * b * c
-
-
 def cell_corner_kernel(points, conn, cell_type: str):
     """det A_i, det T_i, |T|_F^2, |adj T|_F^2 (T = A W^-1) and |a|^2|b|^2|c|^2 per corner, each ``(N, n_corners)``
     (numpy float64; `points` ``(n, 3)`` float64, `conn` the transposed ``(k, N)`` connectivity)."""
     k = KERNELS[cell_type]
-    cols = _columns(*_nodes(np, points, conn), k.corners)
+    cols = _columns(*gather_corners(points, conn, np), k.corners)
     t_cols = _times_inverse(cols, k.winv)
-    det_t, fro2, adj2 = _invariants(t_cols)
-    det_a = det_t if t_cols is cols else _invariants(cols)[0]  # W = I (the hexahedron): T = A, computed once
-    return det_a.T, det_t.T, fro2.T, adj2.T, _lengths2(cols).T
+    det_t, fro2, adj2 = corner_invariants(*t_cols)
+    det_a = det_t if t_cols is cols else corner_invariants(*cols)[0]  # W = I (the hexahedron): T = A, computed once
+    return det_a.T, det_t.T, fro2.T, adj2.T, edge_lengths2(*cols).T
 
 
 def _kappa3(det, fro2, adj2):
     valid = det > 0
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(valid, np.sqrt(fro2 * adj2) / (3.0 * np.where(valid, det, 1.0)), np.inf)
-
-
-def _sq_kappa3(xp, det, fro2, adj2):
-    valid = det > 0
-    safe = xp.where(valid, det, 1.0)
-    return xp.where(valid, fro2 * adj2 / (9.0 * safe * safe), xp.inf)
-
-
-def _ratio(num, l2):
-    """num / sqrt(l2), 0 where l2 == 0 (an edge of length 0)."""
-    return np.where(l2 > 0, num / np.sqrt(np.where(l2 > 0, l2, 1.0)), 0.0)
 
 
 # ---------------------------------------------------------------------------------------------- per corner
@@ -232,8 +214,6 @@ def hex_corner_measures(points, hexes) -> tuple[np.ndarray, np.ndarray]:
     pass where `jaxci.native` is built (`jaxci.native.hex_corner_measures`; kappa/3 to a few ulp of numpy's;
     the cells of a corner whose squared kappa/3 overflows there, det below ~1e-154 of its edges' scale, are
     measured again by numpy), else the numpy kernel."""
-    from .. import native
-
     pts, hexes = _np_points(points), _cells(hexes, "hexahedron")
     if native.AVAILABLE:
         kappa3, sj = (a.T for a in native.hex_corner_measures(pts, hexes))
@@ -244,14 +224,14 @@ def hex_corner_measures(points, hexes) -> tuple[np.ndarray, np.ndarray]:
             kappa3[redo] = _kappa3(det, fro2, adj2)
         return kappa3, sj
     det, _, fro2, adj2, l2 = cell_corner_kernel(pts, np.ascontiguousarray(hexes.T), "hexahedron")
-    return _kappa3(det, fro2, adj2), _ratio(det, l2)
+    return _kappa3(det, fro2, adj2), scaled_ratio(np, det, l2)
 
 
 def corner_scaled_jacobian(points, cells, cell_type: str) -> np.ndarray:
     """det A_i / (|a_i| |b_i| |c_i|) per corner: float64, shape ``(N, n_corners)``, in [-1, 1] (0 for a zero-length
     edge)."""
     det, _, _, _, l2 = cell_corner_kernel(_np_points(points), _conn(cells, cell_type), cell_type)
-    return _ratio(det, l2)
+    return scaled_ratio(np, det, l2)
 
 
 # ---------------------------------------------------------------------------------------------- per element
@@ -293,8 +273,8 @@ def _inverted(points, cells, cell_type: str) -> np.ndarray:
 def _tet_parts(X, Y, Z):
     """det A_0 and the largest per-node product of the three edge lengths of tetrahedra (local nodes 0..3)."""
     cols = _columns(X, Y, Z, CORNERS["tetra"])
-    det = _invariants(cols)[0][0]
-    return det, np.sqrt(_lengths2(cols).max(axis=0))
+    det = corner_invariants(*cols)[0][0]
+    return det, np.sqrt(edge_lengths2(*cols).max(axis=0))
 
 
 def _barrier_inverted(points, conn, cell_type: str) -> np.ndarray:
@@ -303,7 +283,7 @@ def _barrier_inverted(points, conn, cell_type: str) -> np.ndarray:
     tets = KERNELS[cell_type].barrier
     if not len(tets):
         return np.zeros(conn.shape[1], bool)
-    X, Y, Z = _nodes(np, points, conn)
+    X, Y, Z = gather_corners(points, conn, np)
     return (np.stack([_tet_parts(X[t], Y[t], Z[t])[0] for t in tets], axis=1) <= 0).any(axis=1)
 
 
@@ -315,15 +295,12 @@ def _tet_scaled_jacobian(X, Y, Z) -> np.ndarray:
 
 def _hex_scaled_jacobian(points, conn, X, Y, Z) -> np.ndarray:
     det, *_, l2 = cell_corner_kernel(points, conn, "hexahedron")
-    corner = _ratio(det, l2).min(axis=1, initial=np.inf)
-    axes = [[(0, 1), (3, 2), (4, 5), (7, 6)], [(0, 3), (1, 2), (4, 7), (5, 6)], [(0, 4), (1, 5), (2, 6), (3, 7)]]
-    cols = tuple(sum(C[j] - C[i] for i, j in pairs) for pairs in axes for C in (X, Y, Z))
-    return np.minimum(corner, _ratio(_invariants(cols)[0], _lengths2(cols)))
+    return np.minimum(scaled_ratio(np, det, l2).min(axis=1, initial=np.inf), centre_scaled_jacobian(X, Y, Z, np))
 
 
 def _wedge_scaled_jacobian(points, conn, X, Y, Z) -> np.ndarray:
     cols = _columns(X, Y, Z, CORNERS["wedge"])
-    return (2.0 / math.sqrt(3.0)) * _ratio(_invariants(cols)[0], _lengths2(cols)).min(axis=0)
+    return (2.0 / math.sqrt(3.0)) * scaled_ratio(np, corner_invariants(*cols)[0], edge_lengths2(*cols)).min(axis=0)
 
 
 def _pyramid_scaled_jacobian(points, conn, X, Y, Z) -> np.ndarray:
@@ -350,12 +327,12 @@ def scaled_jacobian(points, cells, cell_type: str) -> np.ndarray:
     1; the pyramid's is 0 for an inverted pyramid, as in Verdict).
     """
     pts, conn = _np_points(points), _conn(cells, cell_type)
-    return _SCALED_JACOBIAN[cell_type](pts, conn, *_nodes(np, pts, conn))
+    return _SCALED_JACOBIAN[cell_type](pts, conn, *gather_corners(pts, conn, np))
 
 
 def _wedge_condition(points, conn) -> np.ndarray:
-    cols = _times_inverse(_columns(*_nodes(np, points, conn), CORNERS["wedge"]), _REGULAR_TET_INV)
-    det, fro2, _ = _invariants(cols)
+    cols = _times_inverse(_columns(*gather_corners(points, conn, np), CORNERS["wedge"]), _REGULAR_TET_INV)
+    det, fro2, _ = corner_invariants(*cols)
     with np.errstate(divide="ignore"):
         aspect = np.where(det != 0, fro2 / (3.0 * np.cbrt(det * det)), np.inf)
     return aspect.max(axis=0) / VERDICT_WEDGE_NORMALISER
@@ -393,17 +370,15 @@ def corner_terms_t(points, conn, cell_type: str):
     `jaxci.metrics.hexahedron`'s kernel, unchanged.
     """
     if cell_type == "hexahedron":
-        from .hexahedron import corner_columns, gather_corners
-
-        return _sq_kappa3(jnp, *corner_invariants(*corner_columns(*gather_corners(points, conn))))
-    return _sq_kappa3(jnp, *_invariants(normalised_corner_columns_t(points, conn, cell_type)))
+        return squared_condition_from_invariants(*corner_invariants(*corner_columns(*gather_corners(points, conn))))
+    return squared_condition_from_invariants(*corner_invariants(*normalised_corner_columns_t(points, conn, cell_type)))
 
 
 def normalised_corner_columns_t(points, conn, cell_type: str):
     """The 9 column entries of ``T_i = A_i W^-1`` per corner (JAX), each of shape ``(n_corners, N)``; `conn` is
     the transposed ``(k, N)`` connectivity. ``det T_i = det A_i / det W``: the same sign as det A_i."""
     k = KERNELS[cell_type]
-    return _times_inverse(_columns(*_nodes(jnp, points, conn), k.corners), k.winv)
+    return _times_inverse(_columns(*gather_corners(points, conn), k.corners), k.winv)
 
 
 def barrier_dets_t(points, conn, cell_type: str):
@@ -413,8 +388,8 @@ def barrier_dets_t(points, conn, cell_type: str):
     tets = KERNELS[cell_type].barrier
     if not len(tets):
         return None
-    X, Y, Z = _nodes(jnp, points, conn)
-    return jnp.stack([_invariants(_columns(X[t], Y[t], Z[t], CORNERS["tetra"][:1]))[0][0] for t in tets])
+    X, Y, Z = gather_corners(points, conn)
+    return jnp.stack([corner_invariants(*_columns(X[t], Y[t], Z[t], CORNERS["tetra"][:1]))[0][0] for t in tets])
 
 
 @jit
@@ -428,8 +403,6 @@ def _mixed_objective(points, conns: dict):
 
 def objective_on_host(mesh: HexMesh) -> bool:
     """Whether `mixed_objective` of one set of coordinates of `mesh` runs on the host (numpy / C, no JAX)."""
-    from .. import native
-
     blocks = element_blocks(mesh)
     return sum(len(c) for t, c in blocks.items() if t != "hexahedron" or not native.AVAILABLE) <= NUMPY_OBJECTIVE_MAX
 
@@ -447,8 +420,6 @@ def mixed_objective(points, mesh: HexMesh):
     **Returns:** a scalar, or shape ``(C,)``: >= 0, 0 only for a mesh of ideal cells; ``inf`` if any corner has
     det <= 0. On a mesh of hexahedra only it equals `jaxci.metrics.hexahedron.objective` (Eq. 3.1).
     """
-    from .. import native
-
     blocks = element_blocks(mesh)
     if np.ndim(points) == 2 and objective_on_host(mesh):
         # float64 on the host: no compilation (0.13 s of a small mesh's run) for a one-off evaluation; the
@@ -462,13 +433,11 @@ def mixed_objective(points, mesh: HexMesh):
                     return np.float64(np.inf)
                 total, count = total + excess, count + 8 * len(c)
                 continue
-            term = _sq_kappa3(np, *cell_corner_kernel(pts, _conn(c, t), t)[1:4])
+            term = squared_condition_from_invariants(*cell_corner_kernel(pts, _conn(c, t), t)[1:4], np)
             with np.errstate(invalid="ignore"):
                 total, count = total + float(np.sum(term - 1.0)), count + term.size
         return np.float64(total / count)
-    pts = jnp.asarray(points)
-    if not jnp.issubdtype(pts.dtype, jnp.floating):
-        pts = pts.astype(jnp.result_type(float))
+    pts = as_points(points)
     conns = {t: jnp.asarray(np.ascontiguousarray(c.T)) for t, c in blocks.items()}
     if pts.ndim == 3:
         return jax.lax.map(lambda p: _mixed_objective(p, conns), pts)
@@ -483,16 +452,14 @@ def checked_objective(mesh: HexMesh, power: float | None = None):
     (`jaxci.metrics.hexahedron.pmean_objective` on a hexahedral mesh: what ``objective="pmean"`` minimises)."""
     if power is None:
         return lambda x: float(mixed_objective(x, mesh))
-    from .hexahedron import pmean_objective
-
     blocks = element_blocks(mesh)
     if set(blocks) <= {"hexahedron"}:
         return lambda x: pmean_objective(x, mesh.hexes, power)
 
     def pmean(x):  # every type's corner terms (numpy float64), one p-mean over all of them
         pts = _np_points(x)
-        terms = np.concatenate([_sq_kappa3(np, *cell_corner_kernel(pts, _conn(c, t), t)[1:4]).ravel()
-                                for t, c in blocks.items()])
+        terms = np.concatenate([squared_condition_from_invariants(*cell_corner_kernel(pts, _conn(c, t), t)[1:4],
+                                                                  np).ravel() for t, c in blocks.items()])
         with np.errstate(invalid="ignore", over="ignore"):
             return float(pmean_weights(np, terms - 1.0, None, float(power))[0])
 
@@ -514,7 +481,7 @@ def corner_figures(points, cells, cell_type: str) -> dict[str, np.ndarray]:
     k3 = _kappa3(det, fro2, adj2)
     bad = (det_a <= 0).any(axis=1) | _barrier_inverted(pts, conn, cell_type)
     if cell_type == "hexahedron":  # the min corner scaled Jacobian: the hexahedra's report figure
-        sj = _ratio(det_a, l2).min(axis=1, initial=np.inf)
+        sj = scaled_ratio(np, det_a, l2).min(axis=1, initial=np.inf)
     else:
         sj = scaled_jacobian(pts, cells, cell_type)
     verdict = _VERDICT_CONDITION.get(cell_type)

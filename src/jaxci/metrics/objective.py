@@ -33,6 +33,13 @@ from ..geometry.topology import unique_edges
 from ..mesh import HexMesh
 from ..runtime._lazy import jax, jnp, pytree_dataclass
 from . import elements as E
+from .hexahedron import (
+    condition_from_invariants,
+    corner_columns,
+    gather_corners,
+    objective_t,
+    squared_condition_from_invariants,
+)
 
 
 # ---------------------------------------------------------------------------------------------- cell blocks
@@ -90,33 +97,21 @@ def extra_barrier(x, extra: ExtraCells):
     return out
 
 
-def mixed_mean(hex_terms, extra: ExtraCells, x):
-    """Mean of (kappa/3)^2 over the hexahedral corner terms `hex_terms` ``(8, N)`` and every corner of `extra`,
-    plus the pyramid barrier; the hexahedral mean itself when `extra` is empty."""
-    if not extra.types:
-        return jnp.mean(hex_terms)
-    terms = extra_terms(x, extra)
-    total = jnp.sum(hex_terms) + sum(jnp.sum(t) for t in terms)
-    return total / (hex_terms.size + sum(t.size for t in terms)) + extra_barrier(x, extra)
-
-
 def mixed_objective_t(x, conn, extra: ExtraCells):
     """F over every corner (`jaxci.metrics.elements.mixed_objective`) from `x` ``(n, 3)``, the transposed hexahedra
-    `conn` ``(8, N)`` and `extra`; exactly `jaxci.metrics.hexahedron.objective_t` when `extra` is empty."""
-    from .hexahedron import objective_t
-
+    `conn` ``(8, N)`` and `extra`, plus the pyramid barrier; exactly `jaxci.metrics.hexahedron.objective_t` when
+    `extra` is empty."""
     if not extra.types:
         return objective_t(x, conn)
-    from .hexahedron import corner_columns, gather_corners, squared_condition_from_invariants
-
     term = squared_condition_from_invariants(*corner_invariants(*corner_columns(*gather_corners(x, conn))))
-    return mixed_mean(jax.lax.optimization_barrier(term), extra, x) - 1.0
+    term = jax.lax.optimization_barrier(term)
+    terms = extra_terms(x, extra)
+    total = jnp.sum(term) + sum(jnp.sum(t) for t in terms)
+    return total / (term.size + sum(t.size for t in terms)) + extra_barrier(x, extra) - 1.0
 
 
 def mixed_max_condition(x, conn, extra: ExtraCells):
     """Max kappa/3 over every corner (``inf`` if any is inverted, or a pyramid sub-tetrahedron)."""
-    from .hexahedron import condition_from_invariants, corner_columns, gather_corners
-
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     k = jnp.max(jax.lax.optimization_barrier(condition_from_invariants(det, fro2, adj2)))
     if not extra.types:
@@ -133,8 +128,6 @@ def objective_and_max(x, conn, extra: ExtraCells, weight=None):
     both come from one pass over the corners: max kappa/3 is the square root of the largest term (kappa/3)^2."""
     if weight is None and extra.types:
         return mixed_objective_t(x, conn, extra), mixed_max_condition(x, conn, extra)
-    from .hexahedron import corner_columns, gather_corners, squared_condition_from_invariants
-
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
     term = jax.lax.optimization_barrier(squared_condition_from_invariants(det, fro2, adj2))
     if weight is None:  # as `jaxci.metrics.hexahedron.objective_t`
@@ -215,8 +208,6 @@ def local_extra_terms(x, v, nodes, winv, weight, mask, y):
     **Returns:** shape ``(M, S)``: the local sum, ``inf`` where a corner (or pyramid sub-tetrahedron) of a real
     row has det <= 0.
     """
-    from .hexahedron import squared_condition_from_invariants
-
     is_v = (nodes == v[:, None, None])[:, None]  # (M, 1, K, 4)
     P = [jnp.where(is_v, y[..., d][:, :, None, None], x[:, d][nodes][:, None]) for d in range(3)]  # (M, S, K, 4)
     a = [[P[d][..., j] - P[d][..., 0] for d in range(3)] for j in (1, 2, 3)]

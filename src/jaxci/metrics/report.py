@@ -13,10 +13,11 @@ import math
 
 import numpy as np
 
-from ..cells import ELEMENT_TYPES, element_blocks
+from ..cells import CORNERS, ELEMENT_TYPES, element_blocks
 from ..errors import MeshError
 from ..mesh import HexMesh, as_hex_mesh, to_unit, unit_frame
-from .elements import corner_figures, hex_corner_measures, summary
+from .elements import corner_condition, corner_figures, hex_corner_measures, summary
+from .objective import cell_label
 
 #: Bin edges of the paper's Table 1 histogram of corners over kappa/3.
 HISTOGRAM_EDGES = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 8.0, math.inf)
@@ -224,31 +225,22 @@ def _by_type(mesh: HexMesh, points, hexa: HexFigures) -> dict:
     """The `by_type` and `overall` fields of `quality_report`: the hexahedra's from `hexa` (accumulated above),
     `jaxci.metrics.elements.corner_figures` for the other types (measured at `points`; unused on a mesh of
     hexahedra only, whose blocks are then not concatenated)."""
-    by_type = {}
-    parts = []
+    by_type = {"hexahedron": hexa.summary()}
+    figs = []
     others = [t for t in ELEMENT_TYPES[1:] if any(b.type == t and len(b.data) for b in mesh.cells)]
     blocks = element_blocks(mesh) if others else {}
-    for t in ("hexahedron", *others):
-        if t == "hexahedron":
-            by_type[t] = hexa.summary()
-            parts.append(hexa)
-            continue
+    for t in others:
         f = corner_figures(points, blocks[t], t)
         ok = ~f["inverted"]
         by_type[t] = {**summary([f]), "verdict_condition": float(f["verdict_condition"][ok].max()) if ok.any()
                       else None}
-        parts.append(f)
-    return {"by_type": by_type, "overall": _overall(parts)}
+        figs.append(f)
+    return {"by_type": by_type, "overall": _overall(hexa, figs)}
 
 
-def _overall(parts: list) -> dict:
-    """`jaxci.metrics.elements.summary` over every cell: the hexahedra's accumulated figures (`HexFigures`) and
-    the other types' `corner_figures`."""
-    figs = [p for p in parts if isinstance(p, dict)]
-    hexa = [p for p in parts if isinstance(p, HexFigures)]
-    if not hexa:
-        return summary(figs)
-    h = hexa[0]
+def _overall(h: HexFigures, figs: list) -> dict:
+    """`jaxci.metrics.elements.summary` over every cell: the hexahedra's accumulated figures `h` and the other
+    types' `corner_figures` `figs`."""
     if not figs:
         s = h.summary()
         s.pop("verdict_condition")
@@ -296,8 +288,6 @@ def worst_elements(mesh: HexMesh, points, node_class=None, feature_edges=None, c
     cell's worst corner kappa/3, inf if inverted), "corner" (that corner's local node), "nodes" (the corner's
     node and its three edge neighbours, indices), "limits": [names of `LIMITS` that apply]}``.
     """
-    from .elements import corner_condition
-
     pts = np.asarray(points, np.float64)
     found = []
     for t, cells in element_blocks(mesh).items():
@@ -318,9 +308,6 @@ def listed_worst(mesh: HexMesh, found: list, classes, feature_edges, coincident)
     corner (the worst corner's row of `jaxci.cells.CORNERS`), cell (its nodes, ``(k,)``))``; `classes` None or,
     per row, the node classes of its cell's nodes (``(k,)``, aligned with the cell); `feature_edges` and
     `coincident` as `worst_elements` takes them (O(boundary), on the host)."""
-    from ..cells import CORNERS
-    from .objective import cell_label
-
     edges = set()
     if feature_edges is not None and len(feature_edges):
         fe = np.sort(np.asarray(feature_edges, np.int64), axis=1)

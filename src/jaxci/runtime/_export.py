@@ -319,7 +319,7 @@ def _compiled_here(lowered):
             reset_cache()  # and at the next one: as configured
 
 
-def _export(t: _Target, split: _Split, avals: tuple, platform: str, file: str, key: str) -> _Program:
+def _export(t: _Target, split: _Split, avals: tuple, file: str, key: str) -> _Program:
     """Trace, lower and compile the program of this call (its flat dynamic leaves in, its array leaves out), store
     its executable, and return it (what a later process runs)."""
     from jax.experimental.serialize_executable import serialize
@@ -376,7 +376,7 @@ def _prepare(t: _Target, split: _Split, avals: tuple, platform: str):
         if prog is not None:
             compile_cache.count("loaded")
             return prog
-        prog = _export(t, split, avals, platform, file, key)
+        prog = _export(t, split, avals, file, key)
         compile_cache.count("exported")
         return prog
     except Unkeyable as e:

@@ -5,7 +5,7 @@ which runs entirely in numpy and C (`jaxci.optim.host`, `jaxci.native`). The mod
 boundary, constraints, quality report, untangling set-up) also hold the JAX kernels of the compiled path, so they
 name JAX through this module:
 
-- `jax`, `jnp`, `eqx`: stand-ins for the modules that import them on the first attribute access (so a function
+- `jax`, `jnp`: stand-ins for the modules that import them on the first attribute access (so a function
   that uses ``jnp.where`` imports JAX when it runs, not when its module is imported);
 - `jit`, `filter_jit`: `jax.jit` / `equinox.filter_jit` built on the first call (or by the wrapper's
   ``built()``, which returns it);
@@ -41,12 +41,11 @@ class LazyModule:
 
 jax = LazyModule("jax")
 jnp = LazyModule("jax.numpy")
-eqx = LazyModule("equinox")
 
 
-def loaded(name: str = "jax") -> bool:
-    """Whether module `name` is imported (a function may then use it at no import cost)."""
-    return name in sys.modules
+def loaded() -> bool:
+    """Whether JAX is imported (a function may then use it at no import cost)."""
+    return "jax" in sys.modules
 
 
 def compute_platform() -> str:

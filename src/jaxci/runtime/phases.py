@@ -2,11 +2,10 @@
 
 `PhaseClock` times named phases (``with clock.phase("read"): ...``); JAX reports every compilation through
 `jax.monitoring` (tracing, lowering to MLIR, and the XLA backend compile or its persistent-cache load; jaxci
-adds its reading and writing of exported programs, `jaxci.runtime._export`), and a listener registered once per process
-adds those durations up (`jaxci.runtime.transfer.compile_totals`), so each phase also says how much of it was
-compilation
-(``compile_seconds``: the sum of `jaxci.runtime.transfer.COMPILE_KINDS`) and how many functions were compiled or loaded
-from the persistent compilation cache.
+adds its reading and writing of exported programs, `jaxci.runtime._export`), and a listener registered once per
+process adds those durations up (`jaxci.runtime.transfer.compile_totals`), so each phase also says how much of it
+was compilation (``compile_seconds``: the sum of `jaxci.runtime.transfer.COMPILE_KINDS`) and how many functions
+were compiled or loaded from the persistent compilation cache.
 
 Library code only records; whoever runs the clock (the command line) may pass ``on_event`` to hear of each
 phase as it starts and ends, and of the progress inside it: code deep inside a phase (a solver's loop) reports

@@ -126,15 +126,15 @@ def host_dtype(a, dtype=None) -> np.ndarray:
     return np.asarray(a, dtype=np.dtype(dtype))
 
 
-def to_device(a, dtype=None, device=None):
+def to_device(a, dtype=None):
     """`a` (a numpy array, a scalar, or a pytree of them) as device arrays of `dtype` (default: each its own,
-    canonicalised), on `device` (default: JAX's default device); the bytes are counted (``h2d_bytes``). The first
-    upload of a process sets up the compilation cache (`jaxci.runtime.compile_cache.enable`)."""
+    canonicalised), on JAX's default device; the bytes are counted (``h2d_bytes``). The first upload of a process
+    sets up the compilation cache (`jaxci.runtime.compile_cache.enable`)."""
     compile_cache.enable()
     if isinstance(a, (np.ndarray, np.generic, int, float, bool)) or dtype is not None:
-        out = jax.device_put(host_dtype(a, dtype), device)
+        out = jax.device_put(host_dtype(a, dtype))
     else:
-        out = jax.device_put(jax.tree_util.tree_map(lambda v: host_dtype(v), a), device)
+        out = jax.device_put(jax.tree_util.tree_map(host_dtype, a))
     _add("h2d_bytes", _nbytes(out))
     return out
 
