@@ -26,7 +26,7 @@ import numpy as np
 from ..runtime._lazy import is_jax_array, jit, jnp
 
 # the ladder itself (stage 0: the device programs of jaxci.geometry size their downloads by it too)
-from ..runtime.sizes import MIN_BUCKET, bucket  # noqa: F401
+from ..runtime.sizes import bucket
 
 # `to_device`: a numpy array as a device array of a dtype, converted on the host (no compilation), its bytes
 # counted; `device_dtype`: that array kept on the host (padded before it goes there, so that the device never
@@ -36,15 +36,15 @@ from ..runtime.transfer import program, to_device  # noqa: F401
 
 
 def _xp(a):
-    """The array module of `a`: `jax.numpy` for a JAX array (or a tracer inside a jitted function), else numpy."""
-    return jnp if is_jax_array(a) else np
+    """``(xp, a)``: `jax.numpy` and `a` for a JAX array (or a tracer inside a jitted function), else numpy and
+    ``np.asarray(a)``."""
+    return (jnp, a) if is_jax_array(a) else (np, np.asarray(a))
 
 
 def pad_rows(a, n: int, fill):
     """`a` with rows appended up to `n` rows: `fill` (a scalar or a row) in each new row (numpy, or jax.numpy
     for a JAX array)."""
-    xp = _xp(a)
-    a = a if xp is jnp else np.asarray(a)
+    xp, a = _xp(a)
     extra = n - a.shape[0]
     if extra <= 0:
         return a
@@ -55,8 +55,7 @@ def pad_rows(a, n: int, fill):
 def pad_cols(a, n: int):
     """`a` ``(r, c)`` with columns appended up to `n`: copies of its first column (zeros where it has none;
     numpy, or jax.numpy for a JAX array)."""
-    xp = _xp(a)
-    a = a if xp is jnp else np.asarray(a)
+    xp, a = _xp(a)
     extra = n - a.shape[1]
     if extra <= 0:
         return a
@@ -74,7 +73,7 @@ def pad_connectivity(conn, n_elements: int, dtype):
     """The transposed connectivity `conn` ``(8, N)`` padded to ``(8, n_elements)`` (padding elements repeat
     element 0) and the element weights ``(n_elements,)`` in `dtype` (1 real, 0 padding); numpy, or jax.numpy
     for a JAX array (under `jax.jit`)."""
-    xp = _xp(conn)
+    xp, conn = _xp(conn)
     n = conn.shape[1]
     c = pad_cols(conn, n_elements)
     if xp is np:

@@ -24,20 +24,14 @@ M1, M2 = 0x85EBCA6B, 0xC2B2AE35  # MurmurHash3's fmix32 multipliers
 
 def mix(h, v, xp):
     """The running hash word `h` after the counter `v` (uint32 arrays or scalars, broadcast)."""
-    if xp is np:  # numpy warns of the wrap-around on scalars; it is the arithmetic meant here
-        with np.errstate(over="ignore"):
-            return _mix(h, v, xp)
-    return _mix(h, v, xp)
-
-
-def _mix(h, v, xp):
     u32 = xp.uint32
-    h = xp.asarray(h, u32) ^ (xp.asarray(v, u32) * u32(GOLDEN))
-    h = h ^ (h >> u32(16))
-    h = h * u32(M1)
-    h = h ^ (h >> u32(13))
-    h = h * u32(M2)
-    return h ^ (h >> u32(16))
+    with np.errstate(over="ignore"):  # numpy warns of the wrap-around on scalars; it is the arithmetic meant here
+        h = xp.asarray(h, u32) ^ (xp.asarray(v, u32) * u32(GOLDEN))
+        h = h ^ (h >> u32(16))
+        h = h * u32(M1)
+        h = h ^ (h >> u32(13))
+        h = h * u32(M2)
+        return h ^ (h >> u32(16))
 
 
 def seed_words(seed: int) -> np.ndarray:

@@ -177,15 +177,11 @@ class ColourBatches:
     mask: np.ndarray
 
 
-def colour_batches(colour: np.ndarray, movable: np.ndarray, n_nodes: int, colours=None) -> ColourBatches:
-    """Group `movable` nodes (bool, shape ``(n_nodes,)``) by `colour` (int per node) into `ColourBatches`.
-
-    `colours` lists the colour values to make rows for (default: those of the movable nodes); M may be 0.
-    """
+def colour_batches(colour: np.ndarray, movable: np.ndarray, n_nodes: int, colours) -> ColourBatches:
+    """Group `movable` nodes (bool, shape ``(n_nodes,)``) by `colour` (int per node) into `ColourBatches`, a row
+    for each colour value of `colours`; M may be 0."""
     ids = np.flatnonzero(movable)
     cols = np.asarray(colour)[ids]
-    if colours is None:
-        colours = np.unique(cols)
     groups = [ids[cols == c] for c in colours] or [np.zeros(0, np.int64)]
     M = max((len(g) for g in groups), default=0)
     nodes = np.full((len(groups), M), n_nodes, dtype=np.int64)

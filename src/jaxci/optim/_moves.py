@@ -22,7 +22,7 @@ from ..geometry.projection import Constraints, project_nodes
 from ..metrics.objective import CornerTable, local_extra_length, local_extra_terms, node_corner_rows
 from ..runtime._lazy import jax, jnp, when_imported
 from ._buckets import bucket, device_dtype, pad_constraints, pad_rows, padded_connectivity, to_device
-from ._local import ColourBatches, NodeStars, chunked, colour_batches, local_length, local_terms, node_stars, star_nodes
+from ._local import NodeStars, chunked, colour_batches, local_length, local_terms, node_stars, star_nodes
 
 
 def node_rows(cons: Constraints) -> np.ndarray:
@@ -215,10 +215,7 @@ def coloured_stars(hexes: np.ndarray, cons: Constraints, colour: np.ndarray, fac
     colour = np.asarray(colour)
     stars: NodeStars = node_stars(hexes, n, incidences=True)
     colours = np.unique(colour[cls != CORNER]) if (cls != CORNER).any() else np.zeros(1, np.int64)
-    parts = []
-    for c in (INTERIOR, SURFACE, EDGE):
-        cb: ColourBatches = colour_batches(colour, cls == c, n, colours=colours)
-        parts.append(cb)
+    parts = [colour_batches(colour, cls == c, n, colours) for c in (INTERIOR, SURFACE, EDGE)]
     nodes = np.concatenate([p.nodes for p in parts], axis=1)
     mask = np.concatenate([p.mask for p in parts], axis=1)
     safe = np.minimum(nodes, n - 1)

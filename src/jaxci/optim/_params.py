@@ -96,14 +96,14 @@ def make_params(cls, params: Mapping, method: str, *, prefix: str = "", what: st
         raise ConfigError(f"{what}: {e}") from None
 
 
+#: Where a method runs (the `backend` parameter of L-BFGS, CI and the Laplacians): ``"auto"`` (on the host, numpy
+#: and C, up to a size; compiled above it), ``"jax"`` (compiled), ``"numpy"`` (on the host).
+BACKENDS = ("auto", "jax", "numpy")
+
 #: Consecutive rejected trials after which a solver whose steps are capped (`max_move`) stops (`jaxci.optim.lbfgs`,
 #: `jaxci.optim._solve.solve_loop`, `jaxci.optim.host.lbfgs`): the trial is then below 2^-20 of `max_move`; in float32
 #: that is F's rounding noise at the optimum (measured: 28 rejected trials ended every L-BFGS run at 30^3 after it had
 #: converged, each a full objective and gradient evaluation). Uncapped solvers (and LM, Gauss-Newton) get
 #: `MAX_REJECTED_UNCAPPED`: their first raw-gradient trial can be 2^35 times too long.
-#: Where a method runs (the `backend` parameter of L-BFGS, CI and the Laplacians): ``"auto"`` (on the host, numpy
-#: and C, up to a size; compiled above it), ``"jax"`` (compiled), ``"numpy"`` (on the host).
-BACKENDS = ("auto", "jax", "numpy")
-
 MAX_REJECTED = 20
 MAX_REJECTED_UNCAPPED = 64

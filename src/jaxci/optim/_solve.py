@@ -12,7 +12,7 @@ import optimistix as optx
 
 from ..errors import ConfigError
 from ..runtime.transfer import program, to_host
-from ._params import MAX_REJECTED, MAX_REJECTED_UNCAPPED  # noqa: F401  (re-exported)
+from ._params import MAX_REJECTED_UNCAPPED
 
 
 @program

@@ -173,26 +173,14 @@ def _extra_energy(x, extra, inv_lens, eps, theta):
 
 
 def energy_fn(v, args):
-    """The objective of the inner L-BFGS: ``(energy, (energy, min det J, min det J >= margin))`` at scaled free
-    coordinates `v`; ``args = (par, table, inv_len, eps, theta, margin, extra, inv_lens)`` (`hex_energy`,
-    `_extra_energy`)."""
-    par, table, inv_len, eps, theta, margin, extra, inv_lens = args
+    """The objective of the inner L-BFGS and min det J, ``(energy, min det J)``, at scaled free coordinates `v`;
+    ``args = (par, table, inv_len, eps, theta, extra, inv_lens)`` (`hex_energy`, `_extra_energy`)."""
+    par, table, inv_len, eps, theta, extra, inv_lens = args
     x = par.points(v)
     energy, dmin = hex_energy(x, table, inv_len, eps, theta)
     if extra.types:
         e2, d2 = _extra_energy(x, extra, inv_lens, eps, theta)
         energy, dmin = energy + e2, jnp.minimum(dmin, d2)
-    return energy, (energy, dmin, dmin >= margin)
-
-
-def _value_and_grad(v, args):
-    """Energy, min det J and the gradient with respect to `v` (one evaluation: the loop's only call site)."""
-    (energy, dmin), g = jax.value_and_grad(lambda y: _pair(y, args), has_aux=True)(v)
-    return energy, dmin, g
-
-
-def _pair(v, args):
-    energy, (_, dmin, _) = energy_fn(v, args)
     return energy, dmin
 
 
@@ -225,7 +213,7 @@ def _direction(g, S, Y, rho, head, n_mem):
 @program
 @filter_jit
 def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol, atol, state=None,
-                    flat_reach=FLAT_REACH, *, history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED):
+                    flat_reach=FLAT_REACH):
     """Every round of the untangling stage in one compiled loop of single energy-and-gradient evaluations.
 
     **Arguments:**
@@ -236,18 +224,16 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
       scalars. All traced: other values compile nothing.
     - `state`: None (start at `v0`), or the state a strict run returned (see below): the loop goes on from there.
     - `flat_reach`: a float scalar (traced), `FLAT_REACH` by default (see below).
-    - `history` (static): L-BFGS memory; `max_rejected` (static): a round ends after this many consecutive
-      steps that leave its iterate unchanged.
 
     One loop iteration is one evaluation of the energy and its gradient (one L-BFGS "step" as optimistix counts
     them: a line-search trial or an accepted point). The first evaluates `v0` for its min det J (eps of the
     first round: ``sqrt(1e-12 + 0.04 min(d_min, 0)^2)``) and is not counted. Each round is an L-BFGS with
-    jaxci's rules (`jaxci.optim.lbfgs`): a fresh memory; its first step evaluates the round's start and is
-    accepted; then a backtracking Armijo search (`armijo`, halving from step 1) along ``-H g``; pairs that pass
-    `curvature_ok` enter the memory; the round stops on the Cauchy test (`converged`), once every corner has det
-    J >= margin, after `max_rejected` unchanged steps, at a non-finite iterate or after `inner_steps` steps. Its
-    result is the iterate of lowest finite energy. Then eps follows `next_eps`; rounds go on while ``d_min <
-    margin`` and fewer than `max_rounds` have run.
+    jaxci's rules (`jaxci.optim.lbfgs`): a fresh memory of 10 pairs; its first step evaluates the round's start
+    and is accepted; then a backtracking Armijo search (`armijo`, halving from step 1) along ``-H g``; pairs that
+    pass `curvature_ok` enter the memory; the round stops on the Cauchy test (`converged`), once every corner has
+    det J >= margin, after `MAX_REJECTED_UNCAPPED` steps in a row that leave its iterate unchanged, at a
+    non-finite iterate or after `inner_steps` steps. Its result is the iterate of lowest finite energy. Then eps
+    follows `next_eps`; rounds go on while ``d_min < margin`` and fewer than `max_rounds` have run.
 
     With a strict parametrisation (`Parametrisation.strict`: no projection compiled) a trial with a boundary node
     outside its flat region has a NaN energy and is rejected like any trial that fails the Armijo test; a round
@@ -263,13 +249,11 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
     par, table, inv_len, extra, inv_lens = mesh_args
     dtype = v0.dtype
     n = v0.shape[0]
+    history = 10  # the L-BFGS memory (pairs), as the host's
     max_rounds = jnp.minimum(jnp.asarray(max_rounds, jnp.int32), HISTORY)
     inner_steps = jnp.asarray(inner_steps, jnp.int32)
     zero, i0, false = jnp.zeros((), dtype), jnp.int32(0), jnp.array(False)
     nan = jnp.full((HISTORY,), jnp.nan, dtype)
-
-    def args_at(eps):
-        return (par, table, inv_len, eps, theta, margin, extra, inv_lens)
 
     carry = {
         "probe": jnp.array(True), "done": false, "left": false, "first": false, "y_eval": v0,
@@ -324,7 +308,7 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
              "e_start": jnp.where(first, f_e, c["e_start"]), "first": false,
              "y_best": jnp.where(better, v, c["y_best"]), "f_best": jnp.where(better, f, c["f_best"]),
              "d_best": jnp.where(better, c["d_acc"], c["d_best"])}
-        end = (cauchy | ~finite_v | ((c["d_acc"] >= margin) & finite) | (unchanged >= max_rejected)
+        end = (cauchy | ~finite_v | ((c["d_acc"] >= margin) & finite) | (unchanged >= MAX_REJECTED_UNCAPPED)
                | (k >= inner_steps))
         return jax.lax.cond(end, end_round, lambda c: {**c, "y_eval": c["v"] + c["alpha"] * c["d"]}, c)
 
@@ -344,8 +328,9 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
                 "first": jnp.array(True), "k": i0, "rejected": i0, "calm": i0, "y_eval": c["y_best"],
                 "rho": jnp.zeros_like(c["rho"]), "head": i0, "n_mem": i0}
 
-    def body(c):
-        f_e, d_e, g_e = _value_and_grad(c["y_eval"], args_at(jnp.where(c["probe"], jnp.ones((), dtype), c["eps"])))
+    def body(c):  # the loop's one evaluation of the energy and its gradient
+        args = (par, table, inv_len, jnp.where(c["probe"], jnp.ones((), dtype), c["eps"]), theta, extra, inv_lens)
+        (f_e, d_e), g_e = jax.value_and_grad(lambda y: energy_fn(y, args), has_aux=True)(c["y_eval"])
         return jax.lax.cond(c["probe"], probed, stepped, c, f_e, d_e, g_e)
 
     return jax.lax.while_loop(lambda c: ~c["done"], body, carry)

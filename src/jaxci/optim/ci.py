@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry.projection import Constraints
+from ..geometry.projection import Constraints, project
 from ..metrics.objective import ExtraCells, no_extra, objective_and_max
 from ..runtime.transfer import program
 from . import _draws
@@ -67,14 +67,8 @@ from ._moves import (
 from .ci_params import (  # noqa: F401  (the parameters, re-exported: jaxci.optim.ci.CIParams is public)
     EXCESS_GROWTH,
     GLOBAL_DEFAULTS,
-    MAX_COHORT,
-    MAX_LOOP,
-    MAX_TRIALS,
-    MAX_WIDTH,
-    METHOD_DEFAULTS,
     PATTERN_FACTORS,
     CIParams,
-    ci_params,
     excess_within_bound,
     pattern_choice,
     sweep_done,
@@ -148,7 +142,6 @@ def _pattern_move(x, D, f, k, conn, cons: Constraints, extra: ExtraCells, weight
     """``(x, f, k)`` after the pattern move: the ``project(x + a D)`` over `PATTERN_FACTORS` that
     `pattern_choice` picks (all six evaluated at once; an inverted corner makes F infinite: never taken), else
     `x`, `f`, `k` unchanged. `weight`: as in `jaxci.metrics.objective.objective_and_max`."""
-    from ..geometry.projection import project
 
     def trial(a):
         y = project(cons, x + a * D)
@@ -176,8 +169,6 @@ def _take_if_better(x, f, k, y, fy, ky):
 def _anderson_move(x, f, k, starts, moves, valid, conn, cons: Constraints, extra: ExtraCells, weight=None):
     """``(x, f, k)`` after the Anderson step (`jaxci.optim._anderson.anderson_point` of the last sweeps' `starts`
     and `moves` ``(m, 3 n)``, `valid` of them real), projected, where it is `_better`."""
-    from ..geometry.projection import project
-
     y = project(cons, anderson_point(starts, moves, valid, jnp).reshape(x.shape))
     return _take_if_better(x, f, k, y, *objective_and_max(y, conn, extra, weight))
 
@@ -251,11 +242,11 @@ def _auto_chunk(cs: ColouredStars, p: CIParams, budget: int = 4_000_000) -> int:
     return int(max(1, min(p.cohort * p.variations, budget // max(1, M * K * 4))))
 
 
-def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams | None = None,
+def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParams,
              extra: ExtraCells | None = None, *, devices=None, stream: str = "native"):
     """Run batched local CI from `points` ``(n, 3)``; `conn` is the ``(8, N)`` transposed connectivity, `extra`
     the non-hexahedral cells (`jaxci.metrics.objective.extra_cells`; default none), whose corners `cs` must hold too
-    (`coloured_stars(..., table)`): F and the local objectives are then over every corner; `p` default `CIParams()`.
+    (`coloured_stars(..., table)`): F and the local objectives are then over every corner; `p` the `CIParams`.
 
     `devices` (keyword only): None (one device), or a `jax.sharding.Mesh` (hexahedral meshes): the problem is
     padded to its size class (`jaxci.optim._buckets`: nodes, elements with weight 0, colours and node slots), the
@@ -272,7 +263,6 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
     ``moved`` (nodes moved in the sweep).
     """
     extra = no_extra() if extra is None else extra
-    p = CIParams() if p is None else p
     static, traced = split_params(p, points.dtype)
     if devices is not None and not extra.types:
         from .sharding import place_problem
@@ -293,7 +283,7 @@ def local_ci(key, points, conn, cs: ColouredStars, cons: Constraints, p: CIParam
 
 # ------------------------------------------------------------------------------------------------ global CI
 def global_ci(key, par, conn, scale, p: CIParams, extra: ExtraCells | None = None, *, devices=None,
-              batch: int | None = None, stream: str = "native"):
+              stream: str = "native"):
     """Run the paper's global CI from ``par.x0`` (`jaxci.optim.global_ci`: one seed of the batched program).
 
     **Arguments:** `key` a `jax.random` key; `par` the unscaled `jaxci.optim.parametrisation.Parametrisation` of
@@ -302,9 +292,8 @@ def global_ci(key, par, conn, scale, p: CIParams, extra: ExtraCells | None = Non
     non-hexahedral cells (default none): the behaviour is then F over every corner. `devices` (keyword only):
     None (one device), or a `jax.sharding.Mesh`: the C t trial meshes of every learning attempt are split over
     its devices (each evaluates whole meshes: the candidates, not the elements, are sharded), everything else
-    replicated; the same numbers as on one device. `batch`: trial meshes evaluated at once
-    (`jaxci.optim.global_ci.candidate_batch` by default). `stream`: the random numbers', ``"native"`` or
-    ``"counter"`` (`jaxci.optim.global_ci.global_ci_batched`).
+    replicated; the same numbers as on one device. `stream`: the random numbers', ``"native"`` or ``"counter"``
+    (`jaxci.optim.global_ci.global_ci_batched`).
 
     **Returns:** ``(points, attempts, history)`` with history arrays ``objective`` and ``best`` (best behaviour
     F of the cohort), ``worst`` (worst behaviour), ``max_condition`` (of the best candidate), per learning
@@ -312,4 +301,4 @@ def global_ci(key, par, conn, scale, p: CIParams, extra: ExtraCells | None = Non
     """
     from .global_ci import global_ci_batched
 
-    return global_ci_batched([key], [par], conn, [scale], p, extra, devices=devices, batch=batch, stream=stream)[0]
+    return global_ci_batched([key], [par], conn, [scale], p, extra, devices=devices, stream=stream)[0]

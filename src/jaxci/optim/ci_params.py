@@ -1,7 +1,7 @@
 """The hyperparameters of Cohort Intelligence (`CIParams`) and their defaults per form, without JAX.
 
 `jaxci.optim.ci` (the compiled sweeps) and `jaxci.optim.host_local` (local CI on the host, which must not import
-JAX) both read them; `jaxci.optim.ci` re-exports every name.
+JAX) both read them; `jaxci.optim.ci` re-exports `CIParams`, `GLOBAL_DEFAULTS` and the pattern move's constants.
 """
 
 from __future__ import annotations
@@ -131,10 +131,9 @@ class CIParams:
         paper's, `GLOBAL_DEFAULTS` over the field defaults), with `params` (field names) over its defaults.
 
         The one source of CI defaults: `jaxci.interface.smooth.method_params` (hence `jaxci.smooth`, ``jaxci smooth``
-        and
-        ``jaxci run``) and `jaxci.experiments.config`'s up-front check build CI parameters here. Raises `ConfigError`
-        for another method or a bad value, `TypeError` for an unknown field (`jaxci.optim._params.make_params` names
-        it first)."""
+        and ``jaxci run``) and `jaxci.experiments.config`'s up-front check build CI parameters here. Raises
+        `ConfigError` for another method or a bad value, `TypeError` for an unknown field
+        (`jaxci.optim._params.make_params` names it first)."""
         if method not in METHOD_DEFAULTS:
             raise ConfigError(f"CI parameters: unknown CI method {method!r}; choose one of "
                               f"{', '.join(map(repr, METHOD_DEFAULTS))}")

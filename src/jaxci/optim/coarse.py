@@ -76,10 +76,6 @@ class CoarseSpace:
     coarse_inv: np.ndarray
     inv_diag: np.ndarray
 
-    @property
-    def n_coarse(self) -> int:
-        return int(self.coarse_inv.shape[0])
-
     def __call__(self, q: np.ndarray) -> np.ndarray:
         """``M q`` for a vector `q` ``(n,)`` (a new float64 array; in C where `jaxci.native` is built)."""
         if native.AVAILABLE:
@@ -92,7 +88,7 @@ class CoarseSpace:
 
     def padded(self, index: np.ndarray | None, n: int) -> CoarseSpace:
         """``M`` over a padded vector of `n` free coordinates whose real ones are at `index`
-        (`jaxci.optim._buckets.pad_parametrisation`; None: as is): a padding coordinate has no coarse move and a
+        (`jaxci.optim.parametrisation.pad_parametrisation`; None: as is): a padding coordinate has no coarse move and a
         unit diagonal, so ``M`` leaves it as it is."""
         if index is None:
             return self
@@ -145,8 +141,7 @@ def aggregates(points: np.ndarray, nodes_per_aggregate: int = NODES_PER_AGGREGAT
     return np.unique(key, return_inverse=True)[1].reshape(-1)
 
 
-def build_coarse(par: Parametrisation, cells: dict, *, nodes_per_aggregate: int = NODES_PER_AGGREGATE,
-                 max_aggregates: int = MAX_AGGREGATES, delta: float = DELTA) -> CoarseSpace:
+def build_coarse(par: Parametrisation, cells: dict, *, delta: float = DELTA) -> CoarseSpace:
     """The `CoarseSpace` of the free coordinates of `par` (numpy) on the mesh's cells: `cells` maps a linear
     cell type of `jaxci.cells.EDGES` to its connectivity ``(N, k)``."""
     x = np.asarray(par.x0, np.float64)
@@ -162,7 +157,7 @@ def build_coarse(par: Parametrisation, cells: dict, *, nodes_per_aggregate: int 
     degree = np.where(degree > 0, degree, degree.max(initial=1.0))  # a node of no cell: not a free one anyway
     inv_diag = 1.0 / (scale * scale * degree[node])
 
-    agg = aggregates(x, nodes_per_aggregate, max_aggregates)
+    agg = aggregates(x)
     m = 3 * (int(agg.max()) + 1)
     # each node's projector onto its free directions (I inside, the tangent plane or line on the boundary, 0 fixed)
     from ._moves import node_bases

@@ -16,6 +16,8 @@ in the run's dtype.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from ..cells import CORNER_NEIGHBOURS
@@ -86,9 +88,7 @@ def make_parametrisation_device(points, conn, faces: np.ndarray, feature_edges: 
         par, shortcut = _parametrisation(points, base, conn, inc if scaled else None, cons,
                                          to_device(radius, np.float64), to_device(rings[:ns, 3:6], np.float64),
                                          dtype=dtype)
-        return Parametrisation(cons=par.cons, x0=par.x0, scale=par.scale, flat_nodes=par.flat_nodes,
-                               flat_origin=par.flat_origin, flat_radius=par.flat_radius,
-                               shortcut=bool(to_host(shortcut)))
+        return dataclasses.replace(par, shortcut=bool(to_host(shortcut)))
 
 
 @program

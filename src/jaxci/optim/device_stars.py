@@ -29,7 +29,7 @@ import dataclasses
 import numpy as np
 
 from ..cells import CORNER_NEIGHBOURS
-from ..geometry.boundary import CORNER, SURFACE
+from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
 from ..geometry.device_colouring import (
     PALETTE,
     WORD,
@@ -84,9 +84,8 @@ class SweepData:
 
 
 def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=None, inc: Incidences | None = None,
-               lists: bool = False, split: bool = True, multiple: int = 1, plane_points=None,
-               palette: int = PALETTE, view: BoundaryView | None = None, planes: np.ndarray | None = None
-               ) -> SweepData:
+               lists: bool = False, split: bool = True, plane_points=None, view: BoundaryView | None = None,
+               planes: np.ndarray | None = None) -> SweepData:
     """Build the padded sweep data of a hexahedral mesh on the device.
 
     **Arguments:**
@@ -95,14 +94,12 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
       `Constraints` (device arrays, unpadded); `faces` ``(n_faces, 4)`` the boundary faces (host,
       ``BoundaryInfo.topology.faces``).
     - `colour`: ``(colour, n_colours)``, a device colouring (no two nodes of one colour in a hexahedron) and
-      its colour count; default the device's (`jaxci.geometry.device_colouring.colour_nodes_device`'s rounds,
-      with `palette`).
+      its colour count; default the device's (`jaxci.geometry.device_colouring.colour_nodes_device`'s rounds).
     - `inc`: the mesh's `Incidences` if at hand (default: built).
     - `lists`: the stars as relabelled node lists ``(C, M, K, 8)`` (8x the memory; the sweep gathers no
       relabelling) instead of incidences.
     - `split`: a colour over several rows where one row a colour pads a tenth or more of the slots
       (`slot_layout`; False: one row a colour, `coloured_stars`' layout).
-    - `multiple`: the padded element count a multiple of it.
     - `plane_points`: the coordinates the planar rings are tested on (device ``(n, 3)``; default
       ``cons.x_orig``, as `coloured_stars` does).
     - `view`, `planes`: the `boundary_view` of those coordinates and its `surface_planes`, if at hand (default:
@@ -126,7 +123,7 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
         bound = int(colour[1]) if given else WORD * n_words
         table_, col, nbr_table, degree, counts, stats = _prepare(
             conn, v, table, cons.node_class, colour[0] if given else None, width=width, n_colours=bound,
-            n_words=n_words, palette=int(palette))
+            n_words=n_words)
         counts, stats = to_host((counts, stats))  # the one small array of static sizes
         n_col, kn = (int(a) for a in stats)
         if n_col <= bound:
@@ -142,7 +139,7 @@ def sweep_data(points, conn, cons: Constraints, faces: np.ndarray, *, colour=Non
         points, conn, inc, col, cons, to_device(planes, cons.x_orig.dtype), nbr_table, degree,
         to_device(row_start, np.int32), rows=bucket(rows), blocks=blocks, width=bucket(width, 4),
         nbr_width=bucket(max(kn, 1), 4), n_pad=bucket(n + 1),
-        n_elements=bucket(int(conn.shape[1]), multiple=multiple), lists=bool(lists))
+        n_elements=bucket(int(conn.shape[1])), lists=bool(lists))
     cs = dataclasses.replace(cs, **no_extra_slots(cs.nodes.shape, cons.x_orig.dtype))
     return SweepData(x=x, conn=c, cs=cs, nbr=nbr, nmask=nmask, cons=cons_p, weight=w,
                      n_colours=to_device(np.int32(rows)), n_nodes=n, colours=len(row_start), inc=inc, view=view,
@@ -184,16 +181,15 @@ def slot_layout(counts: np.ndarray, split: bool = True) -> tuple[tuple[int, int,
 
 
 @program
-@jit(static_argnames=("width", "n_colours", "n_words", "palette"))
-def _prepare(conn, node_valence, table, node_class, colour, *, width: int, n_colours: int, n_words: int,
-             palette: int):
+@jit(static_argnames=("width", "n_colours", "n_words"))
+def _prepare(conn, node_valence, table, node_class, colour, *, width: int, n_colours: int, n_words: int):
     """The incidence table (`table` if given), the colours (`colour` if given, else the device's), the edge
     neighbours ``(n, 3K)`` and degrees, and the static sizes: the movable nodes per colour and class
     ``(n_colours, 3)`` (interior, surface, edge) and ``[colour count, most edge neighbours of a node]``."""
     inc = Incidences(table=incidence_table(conn, node_valence, width) if table is None else table,
                      valence=node_valence)
     if colour is None:
-        colour, count, _ = speculative_colouring(conn, inc, n_words, palette)
+        colour, count, _ = speculative_colouring(conn, inc, n_words, PALETTE)
     else:
         count = jnp.max(colour, initial=-1) + 1
     nbr, degree = _edge_neighbours(conn, inc)
@@ -308,8 +304,6 @@ def _build(points, conn, inc: Incidences, colour, cons: Constraints, planes, nbr
 def _bases(cons: Constraints, cls, row, mask):
     """The move bases ``(..., 3, 3)`` of nodes of classes `cls` at rows `row` of their class's tables
     (`jaxci.optim._moves.node_bases`, gathered for the slots), 0 where `mask` is False."""
-    from ..geometry.boundary import EDGE, INTERIOR
-
     dtype = cons.x_orig.dtype
     ns, ne = cons.surface_basis.shape[0], cons.edge_tangent.shape[0]
     zero = jnp.zeros(cls.shape + (3,), dtype)

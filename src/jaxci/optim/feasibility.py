@@ -23,20 +23,18 @@ from ..metrics import elements as E
 from .untangle import element_lengths
 
 
-def stuck_cells(mesh: HexMesh, info: BoundaryInfo, points=None) -> dict[str, np.ndarray]:
-    """Per cell type, the cells with an inverted corner whose four nodes are all fixed.
+def stuck_cells(mesh: HexMesh, info: BoundaryInfo) -> dict[str, np.ndarray]:
+    """Per cell type, the cells of `mesh` with an inverted corner whose four nodes are all fixed.
 
-    **Arguments:** `mesh`; `info` its `BoundaryInfo` (fixed nodes are class `CORNER`); `points` of shape
-    ``(n_nodes, 3)`` (default: the mesh's).
+    **Arguments:** `mesh`; `info` its `BoundaryInfo` (fixed nodes are class `CORNER`).
 
     **Returns:** type -> int64 array of cell indices within the type's blocks (`jaxci.cells.element_blocks`
     order), only types with some.
     """
-    points = mesh.points if points is None else points
     fixed = np.asarray(info.node_class) == CORNER
     out = {}
     for t, cells in element_blocks(mesh).items():
-        inverted = E.corner_determinant(points, cells, t) <= 0  # (N, n_corners)
+        inverted = E.corner_determinant(mesh.points, cells, t) <= 0  # (N, n_corners)
         some = np.flatnonzero(inverted.any(axis=1))  # only their corner nodes are gathered (55 MB at 216,000)
         frozen = fixed[cells[some][:, E.CORNERS[t]]].all(axis=2)  # (n_some, n_corners)
         bad = some[(inverted[some] & frozen).any(axis=1)]

@@ -209,7 +209,7 @@ def stackable(trees) -> bool:
 
 
 def global_ci_batched(keys, pars, conn, scales, p, extra: ExtraCells | None = None, *, devices=None,
-                      batch: int | None = None, stream: str = "native"):
+                      stream: str = "native"):
     """Run the paper's global CI for B seeds as one program (see the module docstring).
 
     **Arguments:**
@@ -222,7 +222,6 @@ def global_ci_batched(keys, pars, conn, scales, p, extra: ExtraCells | None = No
     - `p`: `jaxci.optim.ci_params.CIParams`.
     - `devices` (keyword only): None, or a `jax.sharding.Mesh` (one seed only): the ``C t`` trial meshes of
       every attempt split over its devices.
-    - `batch` (keyword only): trial meshes evaluated at once; default `candidate_batch` for the platform.
     - `stream` (keyword only): ``"native"`` (`jax.random` from each key) or ``"counter"`` (`jaxci.optim._draws`
       under each key's words: the numbers `jaxci.optim.host_global.global_ci_np` draws for the same seed).
 
@@ -231,12 +230,9 @@ def global_ci_batched(keys, pars, conn, scales, p, extra: ExtraCells | None = No
     extra = no_extra() if extra is None else extra
     if devices is not None and len(pars) != 1:
         raise ValueError("global CI sharded over devices runs one seed at a time")
-    if batch is None:
-        platform = next(iter(jnp.asarray(pars[0].x0).devices())).platform
-        batch = candidate_batch(platform, int(p.cohort) * int(p.variations) * len(pars))
-    par = pars[0] if len(pars) == 1 else stack(pars)
-    if len(pars) == 1:
-        par = jax.tree.map(lambda v: jnp.asarray(v)[None], par)
+    platform = next(iter(jnp.asarray(pars[0].x0).devices())).platform
+    batch = candidate_batch(platform, int(p.cohort) * int(p.variations) * len(pars))
+    par = jax.tree.map(lambda v: jnp.asarray(v)[None], pars[0]) if len(pars) == 1 else stack(pars)
     static, traced = split_params(p, pars[0].x0.dtype)
     scale = jnp.stack([jnp.asarray(sc, pars[0].x0.dtype) for sc in scales])
     x, a, hist = _global_ci_run(jnp.stack(list(keys)), par, conn, scale, static, traced, extra, devices, int(batch),

@@ -420,22 +420,6 @@ def _unpad(y, real: tuple, padded: tuple):
     return unpad_free(y, real, padded)
 
 
-def _method(name):
-    def run(par: Parametrisation, conn, p: GradientParams = DEFAULT_PARAMS):
-        return minimise(name, par, conn, p)
-
-    run.__name__ = name.replace("-", "_")
-    run.__doc__ = f"`minimise` with method ``{name!r}``."
-    return run
-
-
-bfgs = _method("bfgs")
-lbfgs = _method("lbfgs")
-cg = _method("cg")
-levenberg_marquardt = _method("lm")
-gauss_newton = _method("gauss-newton")
-
-
 def run_gradient(problem, method: str, params: dict):
     """`jaxci.smooth`'s entry: build `GradientParams` from `params` and the parametrisation of `problem`.
 
@@ -451,18 +435,17 @@ def run_gradient(problem, method: str, params: dict):
     project = None if problem.tables is None else problem.project_device
 
     if p.presmooth:
+        from .laplace import LaplaceParams, laplace_device, run_laplace
+
         sweep = {"max_sweeps": int(p.presmooth), "buckets": p.buckets}
         if problem.host:  # the host engine's sweeps, in numpy and C
             from .host_local import laplace_np
-            from .laplace import LaplaceParams
 
-            mesh = problem.mesh
-            xl, sweeps, pre, _ = laplace_np(problem.x0, mesh.hexes, problem.cons, problem.colour,
+            xl, sweeps, pre, _ = laplace_np(problem.x0, problem.mesh.hexes, problem.cons, problem.colour,
                                             problem.info.topology.faces,
                                             _p.make_params(LaplaceParams, sweep, "smart-laplace"), smart=True)
         elif problem.tables is not None:  # the mesh on the device: the sweeps' data built there
             from .device_stars import sweep_data
-            from .laplace import LaplaceParams, laplace_device
 
             view, planes = problem.boundary_planes
             data = sweep_data(problem.x0, problem.conn, problem.cons, problem.info.topology.faces, view=view,
@@ -470,8 +453,6 @@ def run_gradient(problem, method: str, params: dict):
             xl, sweeps, pre, _ = laplace_device(data, _p.make_params(LaplaceParams, sweep, "smart-laplace"),
                                                 smart=True)
         else:
-            from .laplace import run_laplace
-
             xl, sweeps, pre, _ = run_laplace(problem, "smart-laplace", sweep)
         # exactly on the boundary again (float64, the host's float64 constraints: the original boundary, not its
         # float32 rounding), so that the flat-region shortcut of the parametrisation holds; where the mesh lives on

@@ -462,8 +462,7 @@ def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int
 
 def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndarray, *, theta: float,
                        margin: float, max_rounds: int, inner_steps: int, rtol: float, atol: float,
-                       history: int = 10, max_rejected: int = MAX_REJECTED_UNCAPPED, deadline: float | None = None,
-                       progress: Callable | None = None):
+                       deadline: float | None = None, progress: Callable | None = None):
     """The untangling stage's eps rounds (`jaxci.optim._untangle_loop.untangle_rounds`) in numpy float64.
 
     Each round minimises the regularised Winslow energy at its eps with `lbfgs` (no cap, the round's Armijo
@@ -506,8 +505,8 @@ def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndar
     out_of_time = False
     while dmin < margin and rounds < max_rounds and not out_of_time:
         fun = objective(eps)
-        v, k, result, hf, hk = lbfgs(fun, v, limit=inner_steps, max_rejected=max_rejected, rtol=rtol, atol=atol,
-                                     history=history, cap=0.0, ftol=-np.inf, done=lambda f, d: d >= margin,
+        v, k, result, hf, hk = lbfgs(fun, v, limit=inner_steps, max_rejected=MAX_REJECTED_UNCAPPED, rtol=rtol,
+                                     atol=atol, history=10, cap=0.0, ftol=-np.inf, done=lambda f, d: d >= margin,
                                      deadline=deadline, stage=None)
         out_of_time = result == "time budget"
         steps += k + 1  # as the compiled loop counts: the round's first evaluation is a step

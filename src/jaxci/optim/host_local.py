@@ -50,10 +50,9 @@ from .laplace import LaplaceParams
 
 #: Largest hexahedral mesh on which ``engine="auto"`` runs the local methods on the host (with the C kernels;
 #: `jaxci.interface.engine.host_limit`). It was 100,000; a 60^3 box (216,000, amplitude 0.3) measured both ways
-#: (2026-11-26,
-#: dd22c91): local CI 79.8 s on the host (float64, ends at max kappa/3 1.00013) against 81.9 s compiled (float32, 9
-#: s of it compiling, stopped at 1.0003); smart Laplace 162 s (converged in 336 sweeps, 1.00000002) against 151 s
-#: (its 500-sweep cap, 1.0000029).
+#: (2026-11-26, dd22c91): local CI 79.8 s on the host (float64, ends at max kappa/3 1.00013) against 81.9 s compiled
+#: (float32, 9 s of it compiling, stopped at 1.0003); smart Laplace 162 s (converged in 336 sweeps, 1.00000002)
+#: against 151 s (its 500-sweep cap, 1.0000029).
 HOST_LOCAL_MAX = 250_000
 
 
@@ -313,7 +312,7 @@ class _Sweeper:
         return best[0], best[1]
 
 
-def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | None = None, seed: int = 0,
+def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams, seed: int = 0,
                 stream: str = "native", colours: list | None = None):
     """Local CI on the host from `points` ``(n, 3)`` of the hexahedra `hexes` ``(N, 8)``, `cons` the numpy
     float64 constraints, `colour` the node colouring, `faces` the boundary faces (for the planar shortcut);
@@ -323,7 +322,6 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
 
     **Returns:** ``(points, sweeps, history)`` as `jaxci.optim.ci.local_ci` (float64 points).
     """
-    p = CIParams() if p is None else p
     sw = _Sweeper(points, hexes, cons, colour, faces, p, seed, stream, colours)
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax], [0]
@@ -354,7 +352,7 @@ def local_ci_np(points, hexes, cons: Constraints, colour, faces, p: CIParams | N
                      "moved": np.asarray(hist_m, np.int32)}
 
 
-def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams | None = None, *,
+def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams, *,
                smart: bool = False, until_valid: bool = False):
     """The (smart) Laplacian on the host from `points` ``(n, 3)``; arguments as `local_ci_np`; `until_valid`:
     also stop after the first sweep that leaves no inverted corner (F finite: the untangling's first try,
@@ -363,7 +361,6 @@ def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams
     **Returns:** ``(points, sweeps, history, params)`` as `jaxci.optim.laplace.laplace` (float64 points; F and
     max kappa/3 are ``inf`` once the plain Laplacian has inverted a corner).
     """
-    p = LaplaceParams() if p is None else p
     # the neighbours first: their sort's temporaries (~380 B a hexahedron) are gone before the stars are built
     nbr, nmask = edge_neighbours(hexes, len(points))
     sw = _Sweeper(points, hexes, cons, colour, faces, p)

@@ -42,14 +42,7 @@ from ..runtime._lazy import jax, jit, jnp
 from ..runtime.transfer import program, to_host
 from . import _params as _p
 from ._buckets import bucket, device_dtype, to_device
-from ._local import (  # noqa: F401  (re-exported)
-    HEX_EDGES,
-    edge_neighbours,
-    gather_star,
-    laplace_trials,
-    longest_step,
-    star_coords,
-)
+from ._local import edge_neighbours, laplace_trials, longest_step, star_coords
 from ._moves import (
     ColouredStars,
     colour_slice,
@@ -100,8 +93,6 @@ class LaplaceParams:
             buckets=_p.boolean(L, "buckets", self.buckets),
             backend=_p.choice(L, "backend", self.backend, _p.BACKENDS),
         )
-
-
 
 
 def _colour_step(x, conn, cs_i, nbr_i, nmask_i, h_i, cons: Constraints, smart: bool, n_steps: int):
@@ -272,15 +263,12 @@ def run_laplace(problem, method: str, params: dict):
         raise ConfigError(f"unknown Laplace method {method!r}; choose one of {', '.join(METHODS)}")
     p = _p.make_params(LaplaceParams, params, method)
     mesh = problem.mesh
-    if has_extra(mesh):
-        cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces,
-                            corner_table(mesh))
-        nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes, edge_pairs(mesh))
-        extra = extra_cells(mesh)
-    else:  # padded (`laplace`): kept on the host until padded, so that the device never holds both forms
-        place = not padded(p, problem.devices)
-        cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces, place=place)
-        nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes, place=place)
-        extra = None
+    mixed = has_extra(mesh)
+    # padded (`laplace`, hexahedral meshes): kept on the host until padded, so the device never holds both forms
+    place = mixed or not padded(p, problem.devices)
+    cs = coloured_stars(mesh.hexes, problem.cons, problem.colour, problem.info.topology.faces,
+                        corner_table(mesh) if mixed else None, place=place)
+    nbr, nmask = coloured_neighbours(cs, mesh.hexes, mesh.n_nodes, edge_pairs(mesh) if mixed else None, place=place)
+    extra = extra_cells(mesh) if mixed else None
     return laplace(problem.x0, problem.conn, cs, nbr, nmask, problem.cons, p, smart=method == "smart-laplace",
                    extra=extra, devices=problem.devices)

@@ -9,9 +9,9 @@ An outer iteration at the iterate ``v`` (gradient ``g`` of the scaled objective 
 ``H d = -g`` approximately by preconditioned conjugate gradients (`pcg`) and searches along ``d`` as the host
 L-BFGS does (the trial capped at ``max_move`` in the max norm, the backtracking Armijo search of
 `jaxci.optim.lbfgs`, an inverted element is F = inf and so a rejected trial). ``H`` is never formed: each
-Hessian-vector product is a forward difference of the closed-form gradient (`hvp`: ``(g(v + h p) - g(v)) / h``,
-one gradient evaluation, the C kernel of `jaxci.native`; `jaxci.optim.host.HostObjective.hvp` holds the boundary
-nodes on the triangles of the iterate's projection, whose kinks a plain difference would pick up).
+Hessian-vector product is a forward difference of the closed-form gradient (`jaxci.optim.host.HostObjective.hvp`:
+``(g(v + h p) - g(v)) / h``, one gradient evaluation, the C kernel of `jaxci.native`, the boundary nodes held on the
+triangles of the iterate's projection, whose kinks a plain difference would pick up).
 
 - **Forcing term**: CG stops once ``|r| <= eta |g|`` with ``eta = min(ETA_MAX, sqrt(|g| / |g_0|))`` (Eisenstat-
   Walker's choice 2 in the ratio to the first gradient: the objective's scale is the mesh's), or after `cg_max`
@@ -118,25 +118,6 @@ def pcg(hvp: Callable, precond: Callable | None, g, tol: float, max_iter: int):
     return d, max_iter, "max_iter"
 
 
-def hvp(fun: Callable, y: np.ndarray, g: np.ndarray, p: np.ndarray, step: float = FD_STEP):
-    """``H p`` at the accepted iterate `y` (gradient `g`) by a forward difference of the gradient, one evaluation:
-    `fun`'s own ``fun.hvp(p, step)`` where it has one (`jaxci.optim.host.HostObjective.hvp`: the boundary's
-    projection linearised), else ``(grad(y + h p) - g) / h`` (the evaluation not accepted); None where the step
-    inverts an element."""
-    if hasattr(fun, "hvp"):
-        return fun.hvp(p, step)
-    size = amax(p)
-    if size == 0:
-        return np.zeros_like(p)
-    h = step / size
-    _, g_h, _, _ = fun(y + h * p)
-    if g_h is None:
-        return None
-    g_h -= g
-    g_h *= 1.0 / h
-    return g_h
-
-
 def newton_cg(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int, rtol: float, atol: float,
               cap: float, ftol: float, done: Callable | None = None, precond: Callable | None = None,
               cg_max: int = CG_MAX):
@@ -182,7 +163,7 @@ def newton_cg(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected:
         nonlocal steps, c
         if steps >= limit:
             return None
-        out = hvp(fun, y, g, p)
+        out = fun.hvp(p, FD_STEP)  # H p at the accepted iterate; None where the step inverts an element
         steps += 1
         record()
         if out is not None:

@@ -119,16 +119,6 @@ class Parametrisation:
         dist = xp.sqrt(xp.sum(d * d, axis=-1))
         return xp.max(xp.where(r > 0, dist / xp.where(r > 0, r, 1.0), xp.inf), initial=0.0)
 
-    def params(self, points):
-        """Scaled free coordinates of `points` ``(n, 3)``: ``B^T (points - x0) / scale`` (inverse of `lift`)."""
-        c = self.cons
-        d = points - self.x0
-        ui = d[c.interior_nodes].reshape(-1)
-        us = jnp.einsum("sd,skd->sk", d[c.surface_nodes], c.surface_basis.astype(d.dtype)).reshape(-1)
-        ue = jnp.sum(d[c.edge_nodes] * c.edge_tangent.astype(d.dtype), axis=-1)
-        scale = self.scale
-        return jnp.where(scale > 0, jnp.concatenate([ui, us, ue]) / jnp.where(scale > 0, scale, 1.0), 0.0)
-
 
 @program
 @jit(static_argnames=("dtype",))
@@ -266,16 +256,11 @@ def flat_surface_rings(points: np.ndarray, info: BoundaryInfo, cons: Constraints
     return rings
 
 
-def _flat_edge(points: np.ndarray, info: BoundaryInfo, edge_nodes: np.ndarray) -> np.ndarray:
-    """Per EDGE node, the half-length of the straight interval around it made by its two feature edges (0: none);
-    straightness is tested in the float64 geometry (the constraints' tangents may be float32). `points` are
-    indexed by node (any array with the rows of the nodes of `info.feature_edges`)."""
-    return flat_intervals(points, np.asarray(info.feature_edges), np.asarray(edge_nodes))
-
-
 def flat_intervals(points: np.ndarray, fe: np.ndarray, edge_nodes: np.ndarray) -> np.ndarray:
-    """`_flat_edge` for the feature edges `fe` ``(m, 2)`` (node pairs) and the nodes `edge_nodes` ``(ne,)``:
-    vectorised over the nodes (a node with other than two feature edges has none)."""
+    """Per EDGE node of `edge_nodes` ``(ne,)``, the half-length of the straight interval around it made by its two
+    feature edges of `fe` ``(m, 2)`` (node pairs; 0: none, as for a node with other than two), vectorised over the
+    nodes; straightness is tested in the float64 geometry (the constraints' tangents may be float32). `points` are
+    indexed by node (any array with the rows of the nodes of `fe`)."""
     out = np.zeros(len(edge_nodes))
     if not len(edge_nodes) or not len(fe):
         return out
@@ -374,7 +359,7 @@ def make_parametrisation(mesh, info: BoundaryInfo, cons: Constraints, x0=None, *
         scale = np.ones(n_free(c))
     rings = flat_surface_rings(pts, info, c)
     tangent = np.asarray(c.edge_tangent, dtype=np.float64)
-    r_edge = _flat_edge(pts, info, edge)
+    r_edge = flat_intervals(pts, np.asarray(info.feature_edges), edge)
     nodes = np.concatenate([surf, edge]).astype(np.int64)
     origin = pts[nodes]
     radius = np.concatenate([rings[:, 6], r_edge])

@@ -7,7 +7,7 @@ lets a few elements stay bad: on a tet-to-hex sphere L-BFGS on F leaves max kapp
 level, for the least F with every element below a level ``tau`` (a lexicographic goal: the worst element first,
 then the mean): each round sets ``tau = 1 + gamma (w - 1)`` below the current worst ``w`` and minimises, with
 the host L-BFGS (`jaxci.optim.host.lbfgs`, `ROUND_STEPS` steps) over the free nodes of the elements above ``tau``
-(and `RINGS` rings of nodes around them; every other node fixed, so only the cells around them change),
+(every other node fixed, so only the cells around them change),
 
     (sum_i e_i + MU sum_i max(0, e_i - e_tau)^2) / n_corners,   e_i = (kappa_i/3)^2 - 1,   e_tau = tau^2 - 1
 
@@ -67,8 +67,6 @@ from .weighted import CellCorners, penalty_kernel
 GAMMA_START, GAMMA_END = 0.8, 0.995
 #: Penalty weight of a corner excess above the level (relative to F's weight 1 per corner).
 MU = 1000.0
-#: Rings of nodes around the nodes of the elements above the level that move too.
-RINGS = 0
 #: Steps of one round's L-BFGS (a round need not converge: the next level starts from where it ended).
 ROUND_STEPS = 50
 #: Rounds at most.
@@ -176,9 +174,6 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
             report["stopped"] = "the nodes of the worst elements cannot move"
             report["limited"] = report["rounds"] == 0
             break
-        for _ in range(RINGS):
-            region |= _neighbours(blocks, region)
-            region &= free
         sub = _SubProblem(blocks, cons, layout, region, x)
         # (its candidates are the anchored ones of `cons`: the round's small moves keep them, and its nodes, where
         # the solver left them, are at no corner of their cells, so that a projector that follows would make
@@ -229,14 +224,6 @@ def _record(report: dict, f: float, w: float, mean: float, work: float):
     """A round's figures in the polish's report: F, the worst and the mean element, the work so far."""
     for key, v in (("objective", f), ("max_condition", w), ("element_mean", mean), ("work", work)):
         report[key].append(v)
-
-
-def _neighbours(blocks: dict, nodes: np.ndarray) -> np.ndarray:
-    """The nodes of every cell that has a node in `nodes` (boolean ``(n,)``)."""
-    out = np.zeros_like(nodes)
-    for c in blocks.values():
-        out[c[nodes[c].any(axis=1)].ravel()] = True
-    return out
 
 
 class _RoundObjective(HostObjective):
@@ -296,31 +283,34 @@ class _SubProblem:
         renum[self.nodes] = np.arange(len(self.nodes))
         self.blocks = {t: renum[blocks[t][i]] for t, i in self.cell_index.items()}
         self.n_cells = sum(len(i) for i in self.cell_index.values())
-        self.par = _sub_parametrisation(cons, layout, self.nodes, region, x)
+        # the nodes of `region` keep their class, free coordinates, scales and flat regions; the others are fixed
+        nodes = self.nodes
+        sub, groups = sub_constraints(x[nodes], np.asarray(cons.node_class)[nodes], region[nodes],
+                                      np.asarray(cons.group)[nodes], np.asarray(cons.row)[nodes], cons)
+        self.par = sub_parametrisation(sub, groups, x[nodes], layout.start[nodes], layout.flat_row[nodes],
+                                       lambda coords, rows: (layout.scale[coords], layout.flat_origin[rows],
+                                                             layout.flat_radius[rows]))
 
 
-def _sub_parametrisation(cons: Constraints, layout: _Layout, nodes: np.ndarray, region: np.ndarray,
-                         x: np.ndarray) -> Parametrisation:
-    """The `Parametrisation` of the compact sub-problem on `nodes`: the nodes of `region` keep their class, free
-    coordinates, scales and flat regions; the others are fixed at `x` (corners)."""
-    sub, groups = sub_constraints(x[nodes], np.asarray(cons.node_class)[nodes], region[nodes],
-                                  np.asarray(cons.group)[nodes], np.asarray(cons.row)[nodes], cons)
-    # free coordinates in the same layout: interior (3 each), surface (2), edge (1)
-    idx = [layout.start[nodes[groups[INTERIOR]]][:, None] + np.arange(3),
-           layout.start[nodes[groups[SURFACE]]][:, None] + np.arange(2),
-           layout.start[nodes[groups[EDGE]]][:, None]]
-    scale = layout.scale[np.concatenate([i.ravel() for i in idx])]
+def sub_parametrisation(sub: Constraints, groups: dict, xs: np.ndarray, start: np.ndarray, flat_row: np.ndarray,
+                        gather) -> Parametrisation:
+    """The numpy float64 `Parametrisation` of a compact sub-problem (`sub_constraints`' `sub` and `groups`, its
+    nodes at `xs`), its free coordinates in the same layout (interior 3 each, surface 2, edge 1): each node's
+    scales and flat region are the whole problem's, read by ``gather(coords, rows) -> (scale, origin, radius)``
+    at its first free coordinate `start` and its flat region's row `flat_row` (-1: none, radius 0)."""
+    coords = np.concatenate([(start[groups[INTERIOR]][:, None] + np.arange(3)).ravel(),
+                             (start[groups[SURFACE]][:, None] + np.arange(2)).ravel(), start[groups[EDGE]]])
     flat_nodes = np.concatenate([groups[SURFACE], groups[EDGE]])
-    rows = layout.flat_row[nodes[flat_nodes]]
-    radius = np.where(rows >= 0, layout.flat_radius[np.maximum(rows, 0)], 0.0)
-    origin = np.where(rows[:, None] >= 0, layout.flat_origin[np.maximum(rows, 0)], x[nodes[flat_nodes]])
+    rows = flat_row[flat_nodes]
+    scale, origin, radius = gather(coords, np.maximum(rows, 0))
+    radius = np.where(rows >= 0, radius, 0.0).astype(np.float64)
     return Parametrisation(
         cons=sub,
-        x0=np.ascontiguousarray(x[nodes], np.float64),
+        x0=np.ascontiguousarray(xs, np.float64),
         scale=np.ascontiguousarray(scale, np.float64),
         flat_nodes=flat_nodes.astype(np.int32),
-        flat_origin=np.ascontiguousarray(origin, np.float64),
-        flat_radius=np.ascontiguousarray(radius, np.float64),
+        flat_origin=np.ascontiguousarray(np.where(rows[:, None] >= 0, origin, xs[flat_nodes]), np.float64),
+        flat_radius=radius,
         shortcut=bool(len(flat_nodes)) and bool(np.all(radius > 0)),
     )
 

@@ -32,7 +32,7 @@ from ..runtime._lazy import jax, jit, jnp
 from ..runtime.transfer import program, to_device, to_host
 from ._buckets import bucket
 from .parametrisation import Parametrisation
-from .polish import Rest, sub_constraints
+from .polish import Rest, sub_constraints, sub_parametrisation
 
 #: Cells of the window at least (a mesh this small is its own window), and as a fraction of the mesh's cells.
 WINDOW_MIN = 8192
@@ -145,30 +145,19 @@ def window(x, conn, cons: Constraints, par: Parametrisation, tables: Constraints
     xs, cls, group, row, start, flat = (a[: len(nodes)] for a in to_host(
         _node_rows(x, cons, par, to_device(padded))))
     sub, groups = sub_constraints(xs, cls, moving, group, row, tables)
-    coords = np.concatenate([(start[groups[INTERIOR]][:, None] + np.arange(3)).ravel(),
-                             (start[groups[SURFACE]][:, None] + np.arange(2)).ravel(), start[groups[EDGE]]])
-    flat_nodes = np.concatenate([groups[SURFACE], groups[EDGE]])
-    f_rows = flat[flat_nodes]
 
     def pad(a):  # at least one row, to a bucket (one compiled gather per size class)
         a = np.asarray(a, np.int32)
         return np.concatenate([a, np.zeros(bucket(max(len(a), 1)) - len(a), np.int32)])
 
-    scale, origin, radius = to_host(_gather_rows(par, to_device(pad(coords)), to_device(pad(np.maximum(f_rows, 0)))))
-    f64 = np.float64
-    radius = np.where(f_rows >= 0, radius[: len(f_rows)], 0.0).astype(f64)
-    spar = Parametrisation(
-        cons=sub,
-        x0=np.ascontiguousarray(xs, f64),
-        scale=np.asarray(scale[: len(coords)], f64),
-        flat_nodes=flat_nodes.astype(np.int32),
-        flat_origin=np.where(f_rows[:, None] >= 0, origin[: len(f_rows)], xs[flat_nodes]).astype(f64),
-        flat_radius=radius,
-        shortcut=bool(len(flat_nodes)) and bool(np.all(radius > 0)),
-    )
+    def gather(coords, rows):  # on the device: O(window) down
+        scale, origin, radius = to_host(_gather_rows(par, to_device(pad(coords)), to_device(pad(rows))))
+        return scale[: len(coords)], origin[: len(rows)], radius[: len(rows)]
+
+    spar = sub_parametrisation(sub, groups, xs, start, flat, gather)
     rest = Rest(n_cells=int(n_out), n_corners=8 * int(n_out), e_sum=float(e_out), k_sum=float(k_sum),
                 k_max=float(k_max))
-    return Window({"hexahedron": local.reshape(cells.shape)}, nodes, np.asarray(xs, f64), sub, spar, rest)
+    return Window({"hexahedron": local.reshape(cells.shape)}, nodes, np.asarray(xs, np.float64), sub, spar, rest)
 
 
 @program

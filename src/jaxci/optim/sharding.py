@@ -39,9 +39,7 @@ from jax.sharding import PartitionSpec as P
 from .. import native
 from ..errors import ConfigError
 from ..metrics import native_grad
-from ..metrics.hexahedron import (
-    objective_terms_and_grad,
-)
+from ..metrics.hexahedron import objective_terms_and_grad
 
 AXIS = "d"
 
@@ -120,11 +118,9 @@ def resolve_devices(devices, platform: str | None = None) -> Mesh:
     have = jax.devices(platform) if platform else jax.devices()
     what = f"{len(have)} {have[0].platform} device{'s' if len(have) != 1 else ''}"
     exist = f"{what} {'exist' if len(have) != 1 else 'exists'}"
-    if isinstance(devices, str):
-        if devices != "all":
-            raise ConfigError(f"devices must be a positive integer, 'all' or a list of devices, got {devices!r}")
+    if isinstance(devices, str) and devices == "all":
         return device_mesh(have)
-    if isinstance(devices, bool) or not isinstance(devices, (int, np.integer, list, tuple)):
+    if isinstance(devices, (str, bool)) or not isinstance(devices, (int, np.integer, list, tuple)):
         raise ConfigError(f"devices must be a positive integer, 'all' or a list of devices, got {devices!r}")
     if not isinstance(devices, (list, tuple)):
         n = int(devices)
@@ -154,9 +150,8 @@ def sharded_params(method: str, params: dict, mesh: Mesh) -> tuple[dict, str]:
 
     L-BFGS, the Laplacians and the default pipeline (`HOST_METHODS`) get ``backend="jax"``: the compiled loop,
     never the numpy host path (one CPU, no devices), so that small and large meshes run the same sharded
-    program. `ConfigError` for a method
-    that does not run sharded and for ``backend="numpy"`` (`jaxci.smooth` refuses mixed meshes: the element
-    weights that padding needs are the hexahedra's).
+    program. `ConfigError` for a method that does not run sharded and for ``backend="numpy"`` (`jaxci.smooth`
+    refuses mixed meshes: the element weights that padding needs are the hexahedra's).
     """
     if method not in SHARDED_METHODS:
         raise ConfigError(f"devices is for the methods {', '.join(SHARDED_METHODS)}, not {method!r}")
@@ -173,8 +168,7 @@ def sharded_params(method: str, params: dict, mesh: Mesh) -> tuple[dict, str]:
                  "node data replicated")
     where = (f"sharded over {len(devs)} {devs[0].platform} devices: {what}" if len(devs) > 1
              else f"on 1 {devs[0].platform} device")
-    note = f"{where}; compiled JAX path{host}"
-    return params, note
+    return params, f"{where}; compiled JAX path{host}"
 
 
 def put(tree, sharding: NamedSharding):

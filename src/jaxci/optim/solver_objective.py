@@ -36,18 +36,6 @@ from .parametrisation import Parametrisation
 _CORNERS_PER_NODE = 32.0
 
 
-def _objective_closed(points, conn, weight, power=None, block=None, mesh=None, incidence=None):
-    """``(F, max kappa/3)`` from one closed-form kernel; F differentiable (the max has a zero tangent).
-    `weight`: None, or ``(N,)`` element weights (0: a padding element, `objective_terms_and_grad`); `power`
-    (static): None for F, p for the p-mean (`jaxci.metrics.hexahedron.pmean_objective`). A `jax.custom_jvp` built on
-    first use (importing this module imports no JAX). `block` (static): elements per block
-    (`jaxci.metrics.hexahedron.objective_terms_and_grad`; None: its default; 0: the whole mesh at once). `mesh`
-    (static): None, or the `jax.sharding.Mesh` that `conn` and `weight` are sharded over: F (not the p-mean) then
-    by `jaxci.optim.sharding.sharded_terms_and_grad`. `incidence`: the node incidences of `conn`
-    (`closed_incidence`; None: the gradient is scattered into the nodes)."""
-    return _objective_closed_jvp()(points, conn, weight, incidence, power, block, mesh)
-
-
 def closed_incidence(conn, n_nodes: int, weight=None, power=None):
     """The node incidences (`jaxci.metrics.incidence.node_incidence`, the platform's `default_form`) with which
     `_objective_closed` sums the XLA kernel's gradient of `conn` ``(8, N)`` over `n_nodes` nodes: built once per
@@ -72,7 +60,17 @@ def _terms_and_grad(points, conn, weight, incidence, power, block, mesh):
 
 
 @functools.cache
-def _objective_closed_jvp():
+def _objective_closed():
+    """``objective(points, conn, weight, incidence, power, block, mesh) -> (F, max kappa/3)`` from one closed-form
+    kernel; F differentiable (the max has a zero tangent). `weight`: None, or ``(N,)`` element weights (0: a
+    padding element, `objective_terms_and_grad`); `power` (static): None for F, p for the p-mean
+    (`jaxci.metrics.hexahedron.pmean_objective`). A `jax.custom_jvp` built on first use (importing this module
+    imports no JAX). `block` (static): elements per block (`jaxci.metrics.hexahedron.objective_terms_and_grad`;
+    None: its default; 0: the whole mesh at once). `mesh` (static): None, or the `jax.sharding.Mesh` that `conn`
+    and `weight` are sharded over: F (not the p-mean) then by `jaxci.optim.sharding.sharded_terms_and_grad`.
+    `incidence`: the node incidences of `conn` (`closed_incidence`; None: the gradient is scattered into the
+    nodes)."""
+
     @functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6))
     def objective(points, conn, weight, incidence, power=None, block=None, mesh=None):
         return _terms_and_grad(points, conn, weight, incidence, power, block, mesh)[:2]
@@ -95,7 +93,7 @@ def solver_objective(x, conn, closed: bool, extra=None, weight=None, power=None,
     if power is not None and extra is not None and extra.types:
         return mixed_pmean(x, conn, extra, power)
     if closed:  # one kernel for F, its gradient and the max
-        f, kmax = _objective_closed(x, conn, weight, power, block, mesh, incidence)
+        f, kmax = _objective_closed()(x, conn, weight, incidence, power, block, mesh)
     else:  # the hexahedra's F and max from one pass over their corners
         f, kmax = objective_and_max(x, conn, no_extra(), weight)
     if extra is not None and extra.types:
@@ -187,10 +185,9 @@ def _lsq_fn_excess(v, args):
     optimum)."""
     par, conn, s, stops, extra, _ = args
     x = par.points(v)
-    if extra is not None and extra.types:
-        det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
-        return _mixed_residuals(x, squared_condition_from_invariants(det, fro2, adj2), extra, s, stops, excess=True)
     det, fro2, adj2 = corner_invariants(*corner_columns(*gather_corners(x, conn)))
+    if extra is not None and extra.types:
+        return _mixed_residuals(x, squared_condition_from_invariants(det, fro2, adj2), extra, s, stops, excess=True)
     valid = det > 0
     sdet = jnp.where(valid, det, 1.0)
     # (kappa/3)^2 - 1 = (|A|^2 |adj A|^2 - 9 det^2) / (9 det^2) >= 0; clipped at a tiny floor so that the square

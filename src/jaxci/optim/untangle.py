@@ -53,7 +53,7 @@ from .. import native
 from ..cells import EDGES, corner_determinants, element_blocks
 from ..errors import InvertedMeshError
 from ..geometry.boundary import CORNER, BoundaryInfo
-from ..geometry.projection import Constraints, n_free
+from ..geometry.projection import Constraints, build_constraints, n_free
 from ..mesh import HexMesh
 from ..metrics import elements as E
 from ..metrics.objective import cell_label, extra_blocks, extra_cells, inverted_cells, no_extra
@@ -271,9 +271,8 @@ def _laplace_untangle(mesh: HexMesh, info: BoundaryInfo, cons: Constraints, p: U
     colour = colour_nodes(mesh.hexes, mesh.n_nodes).colour
     x, sweeps, hist, _ = laplace_np(mesh.points, mesh.hexes, cons, colour, info.topology.faces,
                                     LaplaceParams(max_sweeps=max_sweeps), until_valid=True)
-    if not np.isfinite(hist["objective"][-1]) or not _scaled_min_det(mesh, x, lens) >= p.margin:
-        return None, int(sweeps)
-    return x, int(sweeps)
+    ok = np.isfinite(hist["objective"][-1]) and _scaled_min_det(mesh, x, lens) >= p.margin
+    return (x if ok else None), int(sweeps)
 
 
 def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = UntangleParams(), *,
@@ -289,8 +288,6 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
     sentences for `SmoothResult.notes`, and whether plain Laplace sweeps untangled it (`UntangleParams.
     laplace_sweeps`: they also smoothed it, so the default pipeline's presmoothing is not needed).
     """
-    from ..geometry.projection import build_constraints
-
     where = f"{mesh.source}: " if mesh.source else ""
     # only the count of inverted corners is kept: the determinants (64 B a hexahedron) are not held through the stage
     n_corners0 = int((corner_determinants(mesh.points, mesh.hexes) <= 0).sum()) + sum(
@@ -318,12 +315,11 @@ def untangle_stage(mesh: HexMesh, info: BoundaryInfo, p: UntangleParams = Untang
         stuck = np.asarray(info.node_class)[nodes] == CORNER
         raise InvertedMeshError(
             f"{where}untangling failed{budget}: {_elements(rep['inverted_elements'])} inverted after {rep['rounds']} "
-            f"rounds "
-            f"({int(inv0.sum())} {'was' if int(inv0.sum()) == 1 else 'were'} in the input; {rep['steps']} L-BFGS "
-            f"steps; first: {cell_label(mesh, t0, bad[t0][0])}; {int(stuck.sum())} of their {len(nodes)} nodes are "
-            f"fixed corners of the boundary); the input is left unchanged (untangle='partial' / --untangle partial "
-            f"returns the mesh with what could be untangled; untangle_boundary=True / --untangle-boundary lets the "
-            f"boundary's corner and edge nodes of inverted elements slide on the surface)"
+            f"rounds ({int(inv0.sum())} {'was' if int(inv0.sum()) == 1 else 'were'} in the input; {rep['steps']} "
+            f"L-BFGS steps; first: {cell_label(mesh, t0, bad[t0][0])}; {int(stuck.sum())} of their {len(nodes)} nodes "
+            f"are fixed corners of the boundary); the input is left unchanged (untangle='partial' / --untangle "
+            f"partial returns the mesh with what could be untangled; untangle_boundary=True / --untangle-boundary "
+            f"lets the boundary's corner and edge nodes of inverted elements slide on the surface)"
         )
     if not inv0.any() and rep["rounds"] == 0:
         return x, [f"untangling: no inverted element and min det / L^3 = {rep['min_det'][0]:.3g} >= margin "

@@ -131,8 +131,8 @@ def _table_terms(x: np.ndarray, table: np.ndarray, winv: np.ndarray) -> np.ndarr
 def _table_grad(x: np.ndarray, table: np.ndarray, winv: np.ndarray, w: np.ndarray, g: np.ndarray) -> None:
     """``g += sum_i w_i d t_i / dx`` over the valid corners of `table` (the closed form of
     `jaxci.metrics.hexahedron._node_grads` on the columns of ``A W^-1``, taken back through ``W^-1``)."""
-    a, b, c = (np.asarray(m) for m in _table_columns(x, table, winv))
-    u, v, ww = (np.asarray(m) for m in (_cross(b, c), _cross(c, a), _cross(a, b)))
+    a, b, c = _table_columns(x, table, winv)
+    u, v, ww = _cross(b, c), _cross(c, a), _cross(a, b)
     det = np.einsum("dc,dc->c", a, u)
     fro2 = np.einsum("dc,dc->c", a, a) + np.einsum("dc,dc->c", b, b) + np.einsum("dc,dc->c", c, c)
     adj2 = np.einsum("dc,dc->c", u, u) + np.einsum("dc,dc->c", v, v) + np.einsum("dc,dc->c", ww, ww)
@@ -142,9 +142,9 @@ def _table_grad(x: np.ndarray, table: np.ndarray, winv: np.ndarray, w: np.ndarra
     w2 = np.where(valid, w * (2.0 / 9.0), 0.0)  # as the C kernel's weight: ga below is (9/2) w2 d t / da
     p, q = w2 * adj2 * idet2, w2 * fro2 * idet2
     r = p * fro2 * idet
-    ga = p * a + q * (np.asarray(_cross(v, c)) + np.asarray(_cross(b, ww))) - r * u
-    gb = p * b + q * (np.asarray(_cross(c, u)) + np.asarray(_cross(ww, a))) - r * v
-    gc = p * c + q * (np.asarray(_cross(u, b)) + np.asarray(_cross(a, v))) - r * ww
+    ga = p * a + q * (_cross(v, c) + _cross(b, ww)) - r * u
+    gb = p * b + q * (_cross(c, u) + _cross(ww, a)) - r * v
+    gc = p * c + q * (_cross(u, b) + _cross(a, v)) - r * ww
     n = len(g)
     for m in range(3):  # d / d (column m of A) = sum_c d / d (column c of J) W^-1[m, c]
         gm = ga * winv[m, 0] + gb * winv[m, 1] + gc * winv[m, 2]
@@ -211,8 +211,5 @@ def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float):
 
 def _split_like(flat: np.ndarray, parts: list[np.ndarray]) -> list[np.ndarray]:
     """`flat` cut into arrays of the shapes of `parts` (in order)."""
-    out, k = [], 0
-    for t in parts:
-        out.append(flat[k:k + t.size].reshape(t.shape))
-        k += t.size
-    return out
+    ends = np.cumsum([0] + [t.size for t in parts])
+    return [flat[a:b].reshape(t.shape) for a, b, t in zip(ends[:-1], ends[1:], parts, strict=True)]
