@@ -179,16 +179,16 @@ def cpu_model() -> str:
 
 
 # -------------------------------------------------------------------------------------- what the host can do
-def host_limit(method: str, native: bool) -> int:
+def host_limit(method: str, built: bool) -> int:
     """The most cells on which ``engine="auto"`` runs `method` on the host engine, on a CPU (the C kernels
-    built: `native`): L-BFGS `jaxci.optim.host.HOST_MAX`, the local methods and global CI
+    `built` or not): L-BFGS `jaxci.optim.host.HOST_MAX`, the local methods and global CI
     `jaxci.optim.host_local.HOST_LOCAL_MAX` (measured: docstrings there)."""
     from ..optim.host import HOST_MAX
     from ..optim.host_local import HOST_LOCAL_MAX
 
     if method == "lbfgs":
         return HOST_MAX
-    return HOST_LOCAL_MAX if native else 0
+    return HOST_LOCAL_MAX if built else 0
 
 
 def host_obstacle(mesh, method: str, params: dict, untangling: bool) -> str | None:
