@@ -107,3 +107,6 @@ BACKENDS = ("auto", "jax", "numpy")
 #: `MAX_REJECTED_UNCAPPED`: their first raw-gradient trial can be 2^35 times too long.
 MAX_REJECTED = 20
 MAX_REJECTED_UNCAPPED = 64
+#: The untangling rounds' L-BFGS memory (pairs), on both engines (`jaxci.optim.host.untangle_rounds_np`,
+#: `jaxci.optim._untangle_loop.untangle_rounds`).
+UNTANGLE_HISTORY = 10

@@ -25,7 +25,7 @@ from ..cells import CORNER_NEIGHBOURS
 from ..metrics import elements as E
 from ..runtime._lazy import filter_jit, jax, jnp
 from ..runtime.transfer import program
-from ._params import MAX_REJECTED_UNCAPPED
+from ._params import MAX_REJECTED_UNCAPPED, UNTANGLE_HISTORY
 from .lbfgs import DECREASE, armijo, calm_steps, converged, curvature_ok
 
 #: Corners one interior node moves (8 elements x 4 corners): the energy is a per-node sum (as F in
@@ -228,12 +228,13 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
     One loop iteration is one evaluation of the energy and its gradient (one L-BFGS "step" as optimistix counts
     them: a line-search trial or an accepted point). The first evaluates `v0` for its min det J (eps of the
     first round: ``sqrt(1e-12 + 0.04 min(d_min, 0)^2)``) and is not counted. Each round is an L-BFGS with
-    jaxci's rules (`jaxci.optim.lbfgs`): a fresh memory of 10 pairs; its first step evaluates the round's start
-    and is accepted; then a backtracking Armijo search (`armijo`, halving from step 1) along ``-H g``; pairs that
-    pass `curvature_ok` enter the memory; the round stops on the Cauchy test (`converged`), once every corner has
-    det J >= margin, after `MAX_REJECTED_UNCAPPED` steps in a row that leave its iterate unchanged, at a
-    non-finite iterate or after `inner_steps` steps. Its result is the iterate of lowest finite energy. Then eps
-    follows `next_eps`; rounds go on while ``d_min < margin`` and fewer than `max_rounds` have run.
+    jaxci's rules (`jaxci.optim.lbfgs`): a fresh memory of `UNTANGLE_HISTORY` pairs; its first step evaluates
+    the round's start and is accepted; then a backtracking Armijo search (`armijo`, halving from step 1) along
+    ``-H g``; pairs that pass `curvature_ok` enter the memory; the round stops on the Cauchy test (`converged`),
+    once every corner has det J >= margin, after `MAX_REJECTED_UNCAPPED` steps in a row that leave its iterate
+    unchanged, at a non-finite iterate or after `inner_steps` steps. Its result is the iterate of lowest finite
+    energy. Then eps follows `next_eps`; rounds go on while ``d_min < margin`` and fewer than `max_rounds` have
+    run.
 
     With a strict parametrisation (`Parametrisation.strict`: no projection compiled) a trial with a boundary node
     outside its flat region has a NaN energy and is rejected like any trial that fails the Armijo test; a round
@@ -249,7 +250,7 @@ def untangle_rounds(v0, mesh_args, theta, margin, max_rounds, inner_steps, rtol,
     par, table, inv_len, extra, inv_lens = mesh_args
     dtype = v0.dtype
     n = v0.shape[0]
-    history = 10  # the L-BFGS memory (pairs), as the host's
+    history = UNTANGLE_HISTORY
     max_rounds = jnp.minimum(jnp.asarray(max_rounds, jnp.int32), HISTORY)
     inner_steps = jnp.asarray(inner_steps, jnp.int32)
     zero, i0, false = jnp.zeros((), dtype), jnp.int32(0), jnp.array(False)

@@ -34,7 +34,7 @@ from ..geometry.near import NearProjector, host_constraints
 from ..metrics.hexahedron import objective_terms_and_grad_np
 from ..runtime.memory import release_free_memory
 from ..runtime.phases import stepper
-from ._params import MAX_REJECTED_UNCAPPED
+from ._params import MAX_REJECTED_UNCAPPED, UNTANGLE_HISTORY
 from .lbfgs import DECREASE, armijo, calm_steps, cap_factor, converged, curvature_ok
 from .parametrisation import Parametrisation, lift_points, lift_transpose_np
 
@@ -506,8 +506,8 @@ def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndar
     while dmin < margin and rounds < max_rounds and not out_of_time:
         fun = objective(eps)
         v, k, result, hf, hk = lbfgs(fun, v, limit=inner_steps, max_rejected=MAX_REJECTED_UNCAPPED, rtol=rtol,
-                                     atol=atol, history=10, cap=0.0, ftol=-np.inf, done=lambda f, d: d >= margin,
-                                     deadline=deadline, stage=None)
+                                     atol=atol, history=UNTANGLE_HISTORY, cap=0.0, ftol=-np.inf,
+                                     done=lambda f, d: d >= margin, deadline=deadline, stage=None)
         out_of_time = result == "time budget"
         steps += k + 1  # as the compiled loop counts: the round's first evaluation is a step
         rounds += 1
