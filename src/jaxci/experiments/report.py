@@ -288,7 +288,13 @@ def _table2(summary) -> list[str]:
         paper = PAPER_TABLE2.get(m["paper_case"] or "", (None, None))
         row = [m["name"], str(before["n_elements"]) if before else "-", _f(paper[0]), _f(paper[1]),
                _f(before["max_condition"] if before else None)]
-        row += ["" if r is None else "failed" if r["status"] != "ok" else _f(r["after"]["max_condition"]) for r in rs]
+        for r in rs:
+            if r is None:
+                row.append("")
+            elif r["status"] != "ok":
+                row.append("failed")
+            else:
+                row.append(_f(r["after"]["max_condition"]))
         out.append("| " + " | ".join(row) + " |")
     return out
 
