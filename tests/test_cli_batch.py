@@ -209,7 +209,8 @@ def test_a_worker_that_dies_fails_its_own_file_only(tmp_path):
     files = json.loads(out)["files"]
     codes = sorted(r["exit_code"] for r in files)
     codes_by_name = {os.path.basename(r["input"]): r["exit_code"] for r in files}
-    assert codes == [0, 0, 0, 0, 1] and "ended abruptly" in err.decode()
+    said = [(os.path.basename(r["input"]), r["exit_code"], r["error"]) for r in files]  # what failed, if it does
+    assert codes == [0, 0, 0, 0, 1] and "ended abruptly" in err.decode(), (said, err.decode()[-3000:])
     # no temporary file of the killed worker; its file's output absent, or complete where the worker had written
     # it before it was killed (under load that happens: the result was on its way back)
     names = set(os.listdir(out_dir))

@@ -264,7 +264,6 @@ def _run_pool(items, settings, jobs: int, folder: Path, debug: bool, done) -> No
     from ._interrupt import on_interrupt
 
     context = multiprocessing.get_context("spawn")
-    begun_queue, begun, procs = context.SimpleQueue(), {}, {}  # index -> pid of its worker; pid -> process
     pools = []
 
     def emergency():
@@ -274,6 +273,9 @@ def _run_pool(items, settings, jobs: int, folder: Path, debug: bool, done) -> No
 
     with on_interrupt(emergency):
         for attempt in range(RESTARTS + 1):
+            # all of it anew for each pool: a worker killed while it held the queue's lock would leave the next
+            # pool's workers waiting for it forever, and a pid seen before may be a new worker's
+            begun_queue, begun, procs = context.SimpleQueue(), {}, {}  # index -> pid of its worker; pid -> process
             pools.append(ProcessPoolExecutor(min(jobs, len(items)), mp_context=context, initializer=_start_worker,
                                              initargs=(begun_queue,)))
             pool, futures, lost = pools[-1], {}, []
