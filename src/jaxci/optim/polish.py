@@ -55,7 +55,7 @@ import numpy as np
 
 from ..cells import element_blocks
 from ..geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE
-from ..geometry.near import anchored
+from ..geometry.near import anchored, shared_tables
 from ..geometry.projection import Constraints
 from ..runtime.phases import stepper
 from .host import HostObjective, lbfgs
@@ -120,6 +120,12 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
     cells so far, after each round), ``stopped`` (why it ended) and ``limited`` (True where the worst element's
     nodes cannot move at all).
     """
+    with shared_tables():  # every round's projector on the mesh's boundary tables: their search data made once
+        return _polish(mesh, cons, par, x, p, blocks, rest)
+
+
+def _polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: PolishParams, blocks: dict | None,
+            rest: Rest | None):
     blocks = element_blocks(mesh) if blocks is None else blocks
     blocks = {t: np.asarray(c, np.int64) for t, c in blocks.items() if len(c)}
     rest = Rest() if rest is None else rest
