@@ -196,6 +196,23 @@ def test_random_moves_stay_on_the_curved_annulus(seed, amplitude):
         assert np.abs(project_np(c, out) - out).max() <= 1e-12 < 1e-3 * h
 
 
+def test_projectors_in_a_shared_tables_block_share_the_tables_search_data_and_project_the_same():
+    from jaxci.geometry.near import NearProjector, shared_tables
+
+    _, _, c, _ = setup("annulus")
+    x = moved("annulus", 7, 0.3)
+    alone = [NearProjector(c)(x) for _ in range(2)]
+    with shared_tables():
+        first, second = NearProjector(c), NearProjector(c)
+        shared = [first(x), second(x)]
+    for (xa, ha), (xb, hb) in zip(alone, shared, strict=True):
+        assert np.array_equal(xa, xb) and all(np.array_equal(a, b) for a, b in zip(ha, hb, strict=True))
+    assert first.spheres[0][0] is second.spheres[0][0]
+    if first._native is not None:  # the C search's cell-major copy of each table: one, not one per projector
+        assert all(a[2] is b[2] and a[3] is b[3] for a, b in zip(first._native, second._native, strict=True))
+    assert NearProjector(c).spheres[0][0] is not first.spheres[0][0]  # outside a block: made anew
+
+
 @pytest.mark.shared
 @pytest.mark.parametrize("name", sorted(MESQUITE_FIGURES))
 def test_jax_equals_numpy_on_mesquite_meshes(name):
