@@ -210,7 +210,8 @@ def test_a_worker_that_dies_fails_its_own_file_only(tmp_path):
     codes = sorted(r["exit_code"] for r in files)
     codes_by_name = {os.path.basename(r["input"]): r["exit_code"] for r in files}
     said = [(os.path.basename(r["input"]), r["exit_code"], r["error"]) for r in files]  # what failed, if it does
-    assert codes == [0, 0, 0, 0, 1] and "ended abruptly" in err.decode(), (said, err.decode()[-3000:])
+    err = err.decode()
+    assert codes == [0, 0, 0, 0, 1] and "ended abruptly (killed by SIGKILL" in err, (said, err[-3000:])
     # no temporary file of the killed worker; its file's output absent, or complete where the worker had written
     # it before it was killed (under load that happens: the result was on its way back)
     names = set(os.listdir(out_dir))
@@ -235,3 +236,12 @@ def test_bench_batch_times_the_batch_against_msqshape(tmp_path):
     if "msqshape" in doc["results"]:  # where ../shared/peers has it
         assert doc["results"]["msqshape"]["files"] == 3
     assert "| batch |" in (tmp_path / "bench.md").read_text()
+
+
+def test_a_dead_workers_file_says_how_the_worker_ended():
+    from jaxci.cli._batch import _ending
+
+    assert _ending(-signal.SIGKILL).startswith("killed by SIGKILL: ") and "memory" in _ending(-signal.SIGKILL)
+    assert _ending(-signal.SIGSEGV) == "killed by SIGSEGV: a crash in native code"
+    assert _ending(-signal.SIGHUP) == "killed by SIGHUP"
+    assert _ending(1) == "exit status 1" and _ending(-200) == "killed by signal 200"

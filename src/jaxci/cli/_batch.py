@@ -20,7 +20,8 @@ A file that fails (unreadable, inverted and not untangled, an output that exists
 not stop the others: its error line goes to stderr and its status to the table. Exit status: 0 if every file
 succeeded, else the largest per-file status (2 a user error, 3 elements left inverted, 1 an internal error). A
 worker process that dies (killed, a crash in native code) fails the file it was smoothing (status 1, a line
-saying so); the files no worker had begun run on a new pool.
+saying how the worker ended: the signal that killed it, or its exit status); the other files not done run on a new
+pool (`RESTARTS` times at most).
 
 The output is one table (a row per file: hexahedra, worst element max kappa/3 and mean kappa/3 before -> after,
 seconds, status) and a total line; ``--json`` prints one object instead: ``files`` (per file, the single form's
@@ -307,11 +308,29 @@ def _run_pool(items, settings, jobs: int, folder: Path, debug: bool, done) -> No
                 begun[index] = pid
             died = [item for item in lost if _died(procs.get(begun.get(item[0])))]
             items = [item for item in lost if item not in died]
-            for index, src, out in (died + items if attempt == RESTARTS else died):
+            for index, src, out in died:
                 done(index, _failed(src, out.path, 1, f"{src}: the worker process smoothing it ended abruptly "
-                                    f"(killed, or a crash in native code)"))
+                                    f"({_ending(procs[begun[index]].exitcode)})"))
+            if items and attempt == RESTARTS:
+                for index, src, out in items:
+                    done(index, _failed(src, out.path, 1, f"{src}: not smoothed: the worker processes ended "
+                                        f"abruptly {RESTARTS + 1} times, each time with other files"))
             if not items or attempt == RESTARTS:
                 return
+
+
+def _ending(code: int) -> str:
+    """How a worker ended (its exit code as `multiprocessing` gives it), for the error of the file it had begun."""
+    if code >= 0:
+        return f"exit status {code}"
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        return f"killed by signal {-code}"
+    if -code == signal.SIGKILL:
+        return "killed by SIGKILL: by a user, or by the kernel when memory ran out"
+    crash = -code in (signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT, signal.SIGILL, signal.SIGFPE)
+    return f"killed by {name}" + (": a crash in native code" if crash else "")
 
 
 def _died(proc) -> bool:
