@@ -90,8 +90,7 @@ class NearProjector:
         self.hint = tuple(np.full(int(n.shape[0]), -1, np.int64) for n in (self.c.surface_nodes, self.c.edge_nodes))
         # per kind, the table's search data (`_search_data`; made once for every projector of a `shared_tables`
         # block)
-        tri, seg = (_shared(table, lambda t=table, k=kind: _search_data(t, k)) for kind, table in
-                    enumerate((self.c.triangles, self.c.segments)))
+        tri, seg = (_shared(table, kind) for kind, table in enumerate((self.c.triangles, self.c.segments)))
         #: per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search
         self.spheres = (tri[0], seg[0])
         #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
@@ -330,14 +329,14 @@ def shared_tables():
         _SHARED.pop()
 
 
-def _shared(table, make):
-    """``make()``, or within a `shared_tables` block what it gave for `table` there before."""
+def _shared(table: np.ndarray, kind: int) -> tuple:
+    """`_search_data` of `table`, made once for it within a `shared_tables` block."""
     if not _SHARED:
-        return make()
-    hit = _SHARED[-1].get(id(table))
-    if hit is None or hit[0] is not table:
-        hit = _SHARED[-1][id(table)] = (table, make())  # (the table held: its id stays its own)
-    return hit[1]
+        return _search_data(table, kind)
+    cache = _SHARED[-1]
+    if id(table) not in cache:  # (the table is held beside its data: its id stays its own while the block lasts)
+        cache[id(table)] = (table, _search_data(table, kind))
+    return cache[id(table)][1]
 
 
 def _search_data(table: np.ndarray, kind: int) -> tuple:
