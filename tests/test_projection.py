@@ -213,6 +213,54 @@ def test_projectors_in_a_shared_tables_block_share_the_tables_search_data_and_pr
     assert NearProjector(c).spheres[0][0] is not first.spheres[0][0]  # outside a block: made anew
 
 
+@pytest.mark.parametrize("name", ["box", "bevel20", "annulus"])
+def test_host_constraints_make_their_triangle_table_on_first_read_with_the_eager_numbers(name):
+    from jaxci.geometry.projection import HostConstraints
+
+    mesh, info, eager, _ = setup(name)  # float64 on the device: every table made at once
+    host = build_constraints(mesh, info, dtype=np.float64, device=False)
+    assert isinstance(host, HostConstraints) and not host.has_triangles
+    for field in ("x_orig", "surface_cand", "edge_cand", "surface_basis", "segments"):
+        np.testing.assert_array_equal(getattr(host, field), np.asarray(getattr(eager, field)))
+    assert not host.has_triangles  # reading the other fields made nothing
+    np.testing.assert_array_equal(host.triangles, np.asarray(eager.triangles))
+    assert host.has_triangles and host.triangles.dtype == np.float64 and host.triangle_patch.dtype == np.int32
+    np.testing.assert_array_equal(host.triangle_patch, np.asarray(eager.triangle_patch))
+    with pytest.raises(AttributeError, match="no attribute 'surface_tables'"):
+        host.surface_tables  # noqa: B018 - any other missing name is still an AttributeError
+
+
+def test_a_host_projector_makes_the_triangle_table_at_its_first_search_only():
+    from jaxci.geometry.near import NearProjector
+
+    mesh, info, eager, _ = setup("box")
+    host = build_constraints(mesh, info, dtype=np.float64, device=False)
+    pr = NearProjector(host)
+    x = np.array(mesh.points, dtype=np.float64)
+    keep = np.zeros(len(x), bool)
+    keep[np.concatenate([host.surface_nodes, host.edge_nodes])] = True  # every boundary node left where it is
+    y, hint = pr(x, keep)
+    pr.commit(hint)
+    assert np.array_equal(y, x) and not host.has_triangles
+    trial = moved("box", 3, 0.2)
+    (a, ha), (b, hb) = pr(trial), NearProjector(eager)(trial)
+    assert host.has_triangles
+    assert np.array_equal(a, b) and all(np.array_equal(u, v) for u, v in zip(ha, hb, strict=True))
+
+
+def test_smoothing_a_box_on_the_host_never_makes_its_triangle_table(monkeypatch):
+    import jaxci.geometry.projection as projection
+    from jaxci import smooth
+
+    def refuse(*args):
+        raise AssertionError("the triangle table was made")
+
+    mesh = perturb_box(6, amplitude=0.3, seed=2)
+    monkeypatch.setattr(projection, "surface_triangles", refuse)
+    res = smooth(mesh, engine="host", dtype="float64")
+    assert res.after.max_condition < 1.0 + 1e-3 and res.after.inverted_corners == 0
+
+
 @pytest.mark.shared
 @pytest.mark.parametrize("name", sorted(MESQUITE_FIGURES))
 def test_jax_equals_numpy_on_mesquite_meshes(name):

@@ -28,7 +28,7 @@ from ._closest import (
     triangle_centres,
 )
 from .anchors import anchor_tables, at_own_cells, moves
-from .projection import Constraints
+from .projection import Constraints, HostConstraints
 
 #: Most anchor moves of a node with no remembered cell at its first projection (`NearProjector.__call__`): a ring
 #: or more each, towards its point.
@@ -80,20 +80,12 @@ class NearProjector:
     """
 
     def __init__(self, constraints: Constraints, follow: bool = True):
-        from .. import native
-
         self.c = host_constraints(constraints)
         #: whether the anchors move (`commit`, and the walk of a node with no remembered cell); False: every node
         #: keeps the candidates of the constraints (a polish round's sub-problem, whose are already anchored)
         self.follow = follow
         # candidate column per surface node, per edge node; -1: not known (search all its candidates)
         self.hint = tuple(np.full(int(n.shape[0]), -1, np.int64) for n in (self.c.surface_nodes, self.c.edge_nodes))
-        # per kind, the table's search data (`_search_data`; made once for every projector of a `shared_tables`
-        # block)
-        tri, seg = (_shared(table, kind) for kind, table in enumerate((self.c.triangles, self.c.segments)))
-        #: per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search
-        self.spheres = (tri[0], seg[0])
-        #: the C loop of `jaxci.native` (the same search, one pass per node): its int64 arrays, or None (numpy)
         self._tiled = {}  # `project_many`'s index arrays per (kind, number of meshes)
         #: per kind, the candidate columns each node projects with: its anchor's (`commit`); the constraints' own
         #: until an anchor moves
@@ -102,12 +94,34 @@ class NearProjector:
         #: the first commit
         self._anchors = [None, None]
         self._seen = [None, None]  # per kind, until the tables are made (`_follow`)
-        # the candidate columns int32, as the constraints hold them (no copy: 11 MB at 216,000 hexahedra in int64);
-        # each table cell-major, the transpose of the constraints' (no copy of a table in `CELL_ORDER`)
-        self._native = None if not native.AVAILABLE else tuple(
-            (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int32), *data[1:])
-            for nodes, cand, data in ((self.c.surface_nodes, self.c.surface_cand, tri),
-                                      (self.c.edge_nodes, self.c.edge_cand, seg)))
+
+    @functools.cached_property
+    def _data(self) -> tuple:
+        """Per kind, the table's search data (`_search_data`; made once for every projector of a `shared_tables`
+        block), on the first search: a projector whose nodes all stay inside flat parts of the boundary never
+        searches, and its constraints' triangle table is then never made (`jaxci.geometry.projection.
+        HostConstraints`)."""
+        return tuple(_shared(table, kind) for kind, table in enumerate((self.c.triangles, self.c.segments)))
+
+    @property
+    def spheres(self) -> tuple:
+        """Per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search."""
+        return self._data[0][0], self._data[1][0]
+
+    @functools.cached_property
+    def _native(self):
+        """The C search's arrays per kind (the same search as numpy's, one pass per node; `jaxci.native`):
+        ``(nodes int64, candidate columns int32, the table cell-major, its spheres)``, or None without the C
+        kernels. The candidate columns as the constraints hold them, int32 (no copy: 11 MB at 216,000 hexahedra
+        in int64), or the anchors' where one moved; each table the transpose of the constraints' (no copy of a
+        table in `CELL_ORDER`)."""
+        from .. import native
+
+        if not native.AVAILABLE:
+            return None
+        return tuple((np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int32), *data[1:])
+                     for nodes, cand, data in zip((self.c.surface_nodes, self.c.edge_nodes), self._cand, self._data,
+                                                  strict=True))
 
     @functools.cached_property
     def rows(self) -> tuple:
@@ -132,9 +146,10 @@ class NearProjector:
         """Move the anchors of the nodes of `kind` (of `rows`, default all) whose cell (`hint`, columns) left their
         anchor's 1-ring (`jaxci.geometry.anchors.moves`); their columns in `hint` become those of the same cells in
         the new rows, in place. **Returns** the rows moved."""
-        nodes, table = ((self.c.surface_nodes, self.c.triangles), (self.c.edge_nodes, self.c.segments))[kind]
+        nodes = (self.c.surface_nodes, self.c.edge_nodes)[kind]
         if not len(nodes) or not (hint >= 0).any():
             return np.zeros(0, np.int64)
+        table = self.c.triangles if kind == 0 else self.c.segments  # (read once a node has a cell: made then)
         if self._anchors[kind] is None:  # no anchor moved yet: the tables only once a node leaves its own cells
             look = np.flatnonzero(hint >= 0) if rows is None else rows[hint[rows] >= 0]
             seen = self._seen[kind]  # each node's cell last found to be one of its own (-1: none yet)
@@ -157,7 +172,7 @@ class NearProjector:
         self._cand[kind][rows] = base[new]
         anchor[rows] = new
         hint[rows] = np.argmax(base[new] == cells[:, None], axis=1)
-        if self._native is not None:  # the C search's arrays and `project_many`'s tiles follow
+        if self.__dict__.get("_native") is not None:  # the C search's arrays and `project_many`'s tiles follow
             tables = list(self._native)
             tables[kind] = (tables[kind][0], self._cand[kind], *tables[kind][2:])
             self._native = tuple(tables)
@@ -376,6 +391,8 @@ def _sphere(table, centre_radius):
 def host_constraints(c: Constraints) -> Constraints:
     """`c` as numpy with float64 geometry, cached on `c` (converted once per solve, not once per objective
     evaluation)."""
+    if isinstance(c, HostConstraints):  # numpy float64 already (and its triangle table not read here)
+        return c
     cached = getattr(c, "_host_cache", None)
     if cached is None:
         def conv(a):

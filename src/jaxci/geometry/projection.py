@@ -44,13 +44,14 @@ gathers, the fast form on XLA:CPU.
 # ruff: noqa: F722  (jaxtyping shape strings such as "n 3" are not forward references)
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..mesh import HexMesh
 from ..mesh.sorting import sorted_unique
-from ..runtime._lazy import filter_jit, jax, jnp, pytree_dataclass
+from ..runtime._lazy import filter_jit, jax, jnp, pytree_dataclass, when_imported
 from ._closest import (
     closest_on_segments,
     closest_on_triangles,
@@ -63,7 +64,7 @@ from .boundary import CORNER, EDGE, INTERIOR, SURFACE, BoundaryInfo
 
 if TYPE_CHECKING:
     from jaxtyping import Array, Float, Int
-from .tables import boundary_tables
+from .tables import boundary_tables, surface_triangles
 
 
 @pytree_dataclass
@@ -139,8 +140,10 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     # the tables from the coordinates of the boundary nodes (those of the faces, the feature edges, each class)
     faces, fedges = info.topology.faces, info.feature_edges
     need = sorted_unique(np.concatenate([faces.ravel(), fedges.ravel(), surf, edge, nodes[CORNER]]).astype(np.int64))
+    lazy = not device and np.dtype(dtype) == np.float64  # the triangle table on first use (`HostConstraints`)
     tables = boundary_tables(need, pts[need], faces, info.face_patch, fedges, info.edge_curve, surf,
-                             np.asarray(info.patch_id)[surf], edge, np.asarray(info.curve_id)[edge], nodes[CORNER])
+                             np.asarray(info.patch_id)[surf], edge, np.asarray(info.curve_id)[edge], nodes[CORNER],
+                             triangles=not lazy)
 
     put = jax.device_put if device else (lambda a: a)
 
@@ -150,7 +153,7 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
     def f(a):
         return put(np.asarray(a, dtype=np.dtype(dtype)))
 
-    return Constraints(
+    fields = dict(
         x_orig=f(pts),
         node_class=i32(cls),
         group=i32(group),
@@ -159,8 +162,55 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
         surface_nodes=i32(surf),
         edge_nodes=i32(edge),
         corner_nodes=i32(nodes[CORNER]),
-        **{k: (i32 if getattr(tables, k).dtype.kind in "iu" else f)(getattr(tables, k)) for k in TABLE_FIELDS},
+        **{k: (i32 if getattr(tables, k).dtype.kind in "iu" else f)(getattr(tables, k)) for k in TABLE_FIELDS
+           if getattr(tables, k) is not None},
     )
+    if not lazy:
+        return Constraints(**fields)
+    return HostConstraints.deferred(fields, faces, info.face_patch)
+
+
+class HostConstraints(Constraints):
+    """`Constraints` in numpy float64 (`build_constraints` with ``device=False`` and float64) whose triangle table
+    (`triangles`, `triangle_patch`) is made on first read: 19 float64 numbers a triangle, four triangles a boundary
+    face (12.5 MB of cube60_pert's 216,000 hexahedra), which only a projection of a surface node by a search reads,
+    and the host solvers search for no node inside a flat part of the boundary (`jaxci.optim.host.HostObjective`):
+    on a box, never. The table made is `jaxci.geometry.tables.surface_triangles` of ``x_orig`` and the boundary
+    faces, the same numbers `jaxci.geometry.tables.boundary_tables` gives. An instance made by
+    `dataclasses.replace` holds every field."""
+
+    @classmethod
+    def deferred(cls, fields: dict, faces: np.ndarray, face_patch: np.ndarray) -> HostConstraints:
+        """The constraints of `fields` (every field but the triangle table's two) whose table is made from the
+        boundary faces `faces` ``(n_faces, 4)`` (node indices) and their patches `face_patch` on first read."""
+        out = object.__new__(cls)
+        for k, v in fields.items():
+            object.__setattr__(out, k, v)
+        object.__setattr__(out, "_faces", (faces, face_patch))
+        return out
+
+    @property
+    def has_triangles(self) -> bool:
+        """Whether the triangle table is made (read, or given)."""
+        return "triangles" in self.__dict__
+
+    def __getattr__(self, name: str):  # only for attributes not set: the triangle table's, before it is made
+        faces = self.__dict__.get("_faces")
+        if name not in ("triangles", "triangle_patch") or faces is None:
+            raise AttributeError(f"'{type(self).__name__}' object has no attribute '{name}'")
+        tris, patch = surface_triangles(self.x_orig, *faces)
+        object.__setattr__(self, "triangles", np.asarray(tris, np.float64))
+        object.__setattr__(self, "triangle_patch", np.asarray(patch, np.int32))
+        del self.__dict__["_faces"]
+        return self.__dict__[name]
+
+
+def _register_host_constraints():
+    jax.tree_util.register_dataclass(HostConstraints, data_fields=[f.name for f in dataclasses.fields(Constraints)],
+                                     meta_fields=[])
+
+
+when_imported("jax", _register_host_constraints)
 
 
 #: The fields of `Constraints` that `jaxci.geometry.tables.BoundaryTables` holds too.

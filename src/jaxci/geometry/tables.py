@@ -58,7 +58,7 @@ class BoundaryTables:
 def boundary_tables(nodes: np.ndarray, coords: np.ndarray, faces: np.ndarray, face_patch: np.ndarray,
                     feature_edges: np.ndarray, edge_curve: np.ndarray, surface_nodes: np.ndarray,
                     surface_group: np.ndarray, edge_nodes: np.ndarray, edge_group: np.ndarray,
-                    corner_nodes: np.ndarray) -> BoundaryTables:
+                    corner_nodes: np.ndarray, triangles: bool = True) -> BoundaryTables:
     """The `BoundaryTables` of a classified boundary, from the coordinates of its nodes only.
 
     **Arguments:**
@@ -69,6 +69,8 @@ def boundary_tables(nodes: np.ndarray, coords: np.ndarray, faces: np.ndarray, fa
       (`jaxci.geometry.boundary.BoundaryInfo`); `feature_edges` ``(n_fe, 2)``, `edge_curve` ``(n_fe,)``.
     - `surface_nodes`, `edge_nodes`, `corner_nodes`: the sorted nodes of each class; `surface_group`,
       `edge_group`: the patch of each surface node, the curve of each edge node.
+    - `triangles`: False leaves the triangle table out (`triangles` and `triangle_patch` None; `surface_triangles`
+      makes them where a projection needs them: `jaxci.geometry.projection.HostConstraints`).
 
     **Returns:** a `BoundaryTables`; its arrays equal those `jaxci.geometry.projection.build_constraints` puts in
     `Constraints` (before the dtype).
@@ -89,12 +91,10 @@ def boundary_tables(nodes: np.ndarray, coords: np.ndarray, faces: np.ndarray, fa
     normals = np.zeros((len(surf), 3))
     if len(faces_l) and len(surf):
         normals = unit_rows(_node_sums(faces_l, m, surf, face_normals(pts, faces_l), face_patch, group))
-    if len(faces_l):
-        tris, tri_patch = triangle_table(pts, faces_l), np.repeat(face_patch, 4)
-    else:
-        tris, tri_patch = np.zeros((TRI_ROWS, 1)), np.full(1, -1)
+    tris, tri_patch = surface_triangles(pts, faces_l, face_patch) if triangles else (None, None)
     quad_cand = _ring_candidates(faces_l, m, surf, face_patch, group)
-    tri_cand = (4 * quad_cand[:, :, None] + np.arange(4)).reshape(len(quad_cand), -1)
+    # (in int32 throughout: an int64 temporary of every candidate was 20 MB at 216,000 hexahedra)
+    tri_cand = (4 * quad_cand[:, :, None] + np.arange(4, dtype=quad_cand.dtype)).reshape(len(quad_cand), -1)
     if len(fedges_l):
         segs, seg_curve = segment_table(pts, fedges_l), edge_curve
     else:
@@ -111,10 +111,20 @@ def boundary_tables(nodes: np.ndarray, coords: np.ndarray, faces: np.ndarray, fa
         surface_cand=tri_cand.astype(np.int32),
         edge_cand=_ring_candidates(fedges_l, m, edge, edge_curve, group),
         triangles=tris,
-        triangle_patch=np.asarray(tri_patch),
+        triangle_patch=tri_patch if tri_patch is None else np.asarray(tri_patch),
         segments=segs,
         segment_curve=np.asarray(seg_curve),
     )
+
+
+def surface_triangles(points: np.ndarray, faces: np.ndarray, face_patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(triangles, triangle_patch)`` of `BoundaryTables`: the packed triangle table of the boundary faces `faces`
+    ``(n_faces, 4)`` (indices into `points`, float64 ``(n, 3)``; `jaxci.geometry._closest.triangle_table`) and the
+    patch of each triangle (`face_patch` ``(n_faces,)``, each face's four times); one unused triangle of patch -1
+    where there is no face."""
+    if len(faces):
+        return triangle_table(points, faces), np.repeat(face_patch, 4)
+    return np.zeros((TRI_ROWS, 1)), np.full(1, -1)
 
 
 def _pad_rows(indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:

@@ -200,6 +200,9 @@ class HostObjective:
         gx_raw = gx
         if hint is not None:
             gx = self._project.pullback(gx, *hint)
+        hold_points = hint is not None or self.keep_raw
+        if not hold_points:  # gone before the lift's transpose makes its vector (5 MB at 216,000 hexahedra)
+            x = None
         gv = self._lift_t(gx)
         del gx  # the lift's transpose makes a new vector: the projected node gradient goes first (`hvp` keeps the raw)
         gv *= self.s  # in place: the same product as ``self.s * gv``, without a second vector
@@ -208,7 +211,6 @@ class HostObjective:
         # `jaxci.optim.newton` never write into an array they have passed here, and a caller of its own must not
         # either; the points only where projected (or for `hvp`), else `points_of` lifts `v` again: the accepted
         # iterate's points are another vector during every line search, and only its end reads them
-        hold_points = hint is not None or self.keep_raw
         self._last = (v, x if hold_points else None, out, hint, gx_raw if self.keep_raw else None)
         return out
 
