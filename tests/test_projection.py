@@ -208,8 +208,9 @@ def test_projectors_in_a_shared_tables_block_share_the_tables_search_data_and_pr
     for (xa, ha), (xb, hb) in zip(alone, shared, strict=True):
         assert np.array_equal(xa, xb) and all(np.array_equal(a, b) for a, b in zip(ha, hb, strict=True))
     assert first.spheres[0][0] is second.spheres[0][0]
-    if first._native is not None:  # the C search's cell-major copy of each table: one, not one per projector
-        assert all(a[2] is b[2] and a[3] is b[3] for a, b in zip(first._native, second._native, strict=True))
+    if first.native_tables is not None:  # the C search's cell-major copy of each table: one, not one per projector
+        assert all(a[1] is b[1] and a[2] is b[2] for a, b in zip(first.native_tables, second.native_tables,
+                                                                  strict=True))
     assert NearProjector(c).spheres[0][0] is not first.spheres[0][0]  # outside a block: made anew
 
 

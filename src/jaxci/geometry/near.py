@@ -94,34 +94,34 @@ class NearProjector:
         #: the first commit
         self._anchors = [None, None]
         self._seen = [None, None]  # per kind, until the tables are made (`_follow`)
+        self._data = [None, None]  # per kind, the table's search data (`_search_of`)
+        self._c = [None, None]  # per kind, the C search's arrays (`_c_arrays`)
 
-    @functools.cached_property
-    def _data(self) -> tuple:
-        """Per kind, the table's search data (`_search_data`; made once for every projector of a `shared_tables`
-        block), on the first search: a projector whose nodes all stay inside flat parts of the boundary never
-        searches, and its constraints' triangle table is then never made (`jaxci.geometry.projection.
-        HostConstraints`)."""
-        return tuple(_shared(table, kind) for kind, table in enumerate((self.c.triangles, self.c.segments)))
+    def _search_of(self, kind: int) -> tuple:
+        """The search data of `kind`'s table (0: triangles, 1: segments; `_search_data`, made once for every
+        projector of a `shared_tables` block), on the first search of a node of that kind: a projector whose
+        surface nodes all stay inside flat parts of the boundary never searches a triangle, and its constraints'
+        triangle table is then never made (`jaxci.geometry.projection.HostConstraints`)."""
+        if self._data[kind] is None:
+            self._data[kind] = _shared(self.c.triangles if kind == 0 else self.c.segments, kind)
+        return self._data[kind]
 
     @property
     def spheres(self) -> tuple:
         """Per kind, the bounding spheres of the cells (centres (nc, 3), radii (nc,)), for the numpy search."""
-        return self._data[0][0], self._data[1][0]
+        return self._search_of(0)[0], self._search_of(1)[0]
 
-    @functools.cached_property
-    def _native(self):
-        """The C search's arrays per kind (the same search as numpy's, one pass per node; `jaxci.native`):
-        ``(nodes int64, candidate columns int32, the table cell-major, its spheres)``, or None without the C
-        kernels. The candidate columns as the constraints hold them, int32 (no copy: 11 MB at 216,000 hexahedra
-        in int64), or the anchors' where one moved; each table the transpose of the constraints' (no copy of a
+    def _c_arrays(self, kind: int) -> tuple:
+        """The C search's arrays of `kind` (the same search as numpy's, one pass per node; `jaxci.native`, which
+        must be built): ``(nodes int64, candidate columns int32, the table cell-major, its spheres)``, made on
+        first use. The candidate columns as the constraints hold them, int32 (no copy: 11 MB at 216,000 hexahedra
+        in int64), or the anchors' where one moved; the table the transpose of the constraints' (no copy of a
         table in `CELL_ORDER`)."""
-        from .. import native
-
-        if not native.AVAILABLE:
-            return None
-        return tuple((np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(cand, np.int32), *data[1:])
-                     for nodes, cand, data in zip((self.c.surface_nodes, self.c.edge_nodes), self._cand, self._data,
-                                                  strict=True))
+        if self._c[kind] is None:
+            nodes = (self.c.surface_nodes, self.c.edge_nodes)[kind]
+            self._c[kind] = (np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(self._cand[kind], np.int32),
+                             *self._search_of(kind)[1:])
+        return self._c[kind]
 
     @functools.cached_property
     def rows(self) -> tuple:
@@ -172,10 +172,8 @@ class NearProjector:
         self._cand[kind][rows] = base[new]
         anchor[rows] = new
         hint[rows] = np.argmax(base[new] == cells[:, None], axis=1)
-        if self.__dict__.get("_native") is not None:  # the C search's arrays and `project_many`'s tiles follow
-            tables = list(self._native)
-            tables[kind] = (tables[kind][0], self._cand[kind], *tables[kind][2:])
-            self._native = tuple(tables)
+        if self._c[kind] is not None:  # the C search's arrays and `project_many`'s tiles follow
+            self._c[kind] = (self._c[kind][0], self._cand[kind], *self._c[kind][2:])
             self._tiled.clear()
         self.__dict__.pop("rows", None)  # (the numpy search's gathered rows: made again on use)
         return rows
@@ -191,7 +189,9 @@ class NearProjector:
         """Per kind (surface, edge), the ``(candidates, table, spheres)`` arrays of the C search (int64 / float64,
         contiguous), for a C kernel that projects points itself (`jaxci.native.ci_visit`); None without the C
         kernels."""
-        return None if self._native is None else tuple(t[1:] for t in self._native)
+        from .. import native
+
+        return tuple(self._c_arrays(kind)[1:] for kind in range(2)) if native.AVAILABLE else None
 
     def project_many(self, points: np.ndarray, keep: np.ndarray | None = None) -> None:
         """Project the boundary nodes of S meshes `points` (float64 ``(S, n, 3)``, in place) as `__call__` does,
@@ -202,9 +202,10 @@ class NearProjector:
 
         S, n = points.shape[:2]
         flat = points.reshape(-1, 3)
-        for kind, (nodes, cand, table, spheres) in enumerate(self._native):
+        for kind, nodes in enumerate((self.c.surface_nodes, self.c.edge_nodes)):
             if not len(nodes):
                 continue
+            nodes, cand, table, spheres = self._c_arrays(kind)
             key = (kind, S)
             if key not in self._tiled:
                 self._tiled[key] = ((np.arange(S)[:, None] * n + nodes[None]).ravel(), np.tile(cand, (S, 1)))
@@ -222,7 +223,7 @@ class NearProjector:
         moves of `jaxci.optim.host_local`. The C search only (`jaxci.native.AVAILABLE`)."""
         from .. import native
 
-        nodes, cand, table, spheres = self._native[kind]
+        nodes, cand, table, spheres = self._c_arrays(kind)
         idx = np.arange(len(rows), dtype=np.int64)
         native.near_project(points, idx, idx, hint, np.ascontiguousarray(cand[rows]), table, spheres, kind,
                             inside_tolerance(np.float64), segment_bump(np.float64))
@@ -264,10 +265,10 @@ class NearProjector:
         if not len(active):
             return
         tol = inside_tolerance(np.float64)
-        if self._native is not None:
-            from .. import native
+        from .. import native
 
-            nodes, cand, table, spheres = self._native[kind]
+        if native.AVAILABLE:
+            nodes, cand, table, spheres = self._c_arrays(kind)
             native.near_project(x, nodes, active, hint, cand, table, spheres, kind, tol, segment_bump(np.float64))
             return
         c, cand = self.c, self._cand[kind]
@@ -303,12 +304,13 @@ class NearProjector:
         back through the projection: on a surface node minus its component along its triangle's normal, on an
         edge node its component along its segment (the derivative of the projection onto a plane or a line);
         nodes of `keep` unchanged. A new array."""
-        c, g = self.c, np.array(g, dtype=np.float64)
-        if self._native is not None:
-            from .. import native
+        from .. import native
 
-            for kind, (nodes, cand, table, _) in enumerate(self._native):
-                if len(nodes):
+        c, g = self.c, np.array(g, dtype=np.float64)
+        if native.AVAILABLE:
+            for kind, nodes in enumerate((c.surface_nodes, c.edge_nodes)):
+                if len(nodes) and (hint[kind] >= 0).any():  # (a node with no cell is not pulled back)
+                    nodes, cand, table, _ = self._c_arrays(kind)
                     native.pullback(g, nodes, hint[kind], keep, cand, table, kind)
             return g
         for kind, (nodes, table, cand, row) in enumerate(((c.surface_nodes, c.triangles, self._cand[0], TN),

@@ -198,26 +198,40 @@ HEX_EDGES = np.array(
 )
 
 
-def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+#: Hexahedra per block of `edge_neighbours`' edge keys.
+EDGE_CHUNK = 1 << 16
+
+
+def _edge_keys(a: np.ndarray, b: np.ndarray, n, out: np.ndarray) -> None:
+    """``min(a, b) * n + max(a, b)`` of the edges' ends `a`, `b` (int64, `b` overwritten) into `out`."""
+    np.minimum(a, b, out=out)
+    np.maximum(a, b, out=b)
+    out *= n
+    out += b
+
+
+def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = None,
+                    dtype=np.int64) -> tuple[np.ndarray, np.ndarray]:
     """Nodes joined to each node by a hexahedron edge, each once, padded.
 
     **Arguments:** `hexes` of shape ``(N, 8)``; `n_nodes`; `edges`: optional node pairs ``(E, 2)`` of further
-    cell edges (a mixed mesh's `jaxci.metrics.objective.edge_pairs`), joined to the hexahedron edges.
+    cell edges (a mixed mesh's `jaxci.metrics.objective.edge_pairs`), joined to the hexahedron edges; `dtype`:
+    the integer type of `nbr` (int32 holds any node number below 2^31: half the bytes).
 
     **Returns:** ``(nbr, mask)`` of shape ``(n_nodes, K)`` (K the largest number of edge neighbours; padding
     repeats the node itself and is False in `mask`).
     """
     hexes = np.asarray(hexes, dtype=np.int64)
-    a, b = (np.take(hexes, HEX_EDGES[:, i], axis=1).ravel() for i in (0, 1))  # the 12 edges' ends, (12 N,)
-    if edges is not None:
-        e = np.asarray(edges, np.int64).reshape(-1, 2)
-        a, b = np.concatenate([a, e[:, 0]]), np.concatenate([b, e[:, 1]])
+    extra = np.zeros((0, 2), np.int64) if edges is None else np.asarray(edges, np.int64).reshape(-1, 2)
     n = np.int64(n_nodes)
-    und = np.minimum(a, b)  # each edge once: low * n + high (in place: fewer fresh 100 MB temporaries)
-    np.maximum(a, b, out=b)
-    und *= n
-    und += b
-    del a, b
+    # each edge once: low * n + high, the 12 edges of each hexahedron in order (then the extra edges), made block
+    # by block: the ends of every edge at once were two more arrays of the keys' size (41 MB at 216,000 hexahedra)
+    und = np.empty(12 * len(hexes) + len(extra), np.int64)
+    for lo in range(0, len(hexes), EDGE_CHUNK):
+        block = hexes[lo : lo + EDGE_CHUNK]
+        _edge_keys(np.take(block, HEX_EDGES[:, 0], axis=1).ravel(), np.take(block, HEX_EDGES[:, 1], axis=1).ravel(),
+                   n, und[12 * lo : 12 * (lo + len(block))])
+    _edge_keys(extra[:, 0].copy(), extra[:, 1].copy(), n, und[12 * len(hexes) :])
     und.sort()
     und = und[np.concatenate([[True], und[1:] != und[:-1]])] if len(und) else und
     lo, hi = np.divmod(und, n)
@@ -228,7 +242,7 @@ def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = 
     deg = np.bincount(src, minlength=n_nodes)
     K = max(int(deg.max(initial=0)), 1)
     mask = np.arange(K) < deg[:, None]  # a node's neighbours, in order, fill the first `deg` entries of its row
-    nbr = np.repeat(np.arange(n_nodes)[:, None], K, axis=1)
+    nbr = np.repeat(np.arange(n_nodes, dtype=dtype)[:, None], K, axis=1)
     nbr[mask] = dst
     return nbr, mask
 

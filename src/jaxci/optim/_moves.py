@@ -102,8 +102,8 @@ when_imported("jax", lambda: jax.tree_util.register_dataclass(
 
 
 #: Surface nodes per block of `planar_rings` (its per-face temporaries: ~5 kB a node; 300 MB at once on a 60^3
-#: box's 21,000 surface nodes).
-RING_CHUNK = 4096
+#: box's 21,000 surface nodes; 4096 a block were 20 MB of the untangling's peak there, 1024 are 5 MB).
+RING_CHUNK = 1024
 
 
 def _ring_normal(points, faces, ring, xp=np):

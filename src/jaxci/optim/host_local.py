@@ -194,11 +194,26 @@ class _Sweeper:
         self.stream, self.words = stream, _draws.seed_words(seed)
         self.colours = sweep_colours(hexes, cons, colour, faces) if colours is None else colours
         self.projector = NearProjector(cons)
-        self.projector.commit(self.projector(self.x)[1])  # every boundary node's cell at the start
+        # every boundary node's cell at the start, but for the surface nodes that are their own projection onto the
+        # plane of their planar ring, inside its disk: those are on the boundary, and their cell is found by their
+        # first search (none on a box: its triangle table is never made)
+        self.projector.commit(self.projector(self.x, self._on_their_planes())[1])
         self.width = np.zeros(len(self.x))
         if isinstance(p, CIParams):
             for col in self.colours:
                 self.width[col.nodes] = p.init_width * _local_length(self.x, self.hexes, col)
+
+    def _on_their_planes(self) -> np.ndarray:
+        """Per node ``(n,)``: a surface node at `x` inside 0.999 of the disk its planar ring covers and exactly its
+        own orthogonal projection onto its plane (`jaxci.optim._moves.onto_plane`), where the nearest point of
+        its patch is itself."""
+        out = np.zeros(len(self.x), bool)
+        for col in self.colours:
+            if col.b > col.a:
+                nodes = col.nodes[col.a : col.b]
+                foot, inside = onto_plane(np, self.x[nodes], col.surface_plane)
+                out[nodes] = inside & (foot == self.x[nodes]).all(axis=1)
+        return out
 
     def objective(self, x: np.ndarray) -> tuple[float, float]:
         """``(F, max kappa/3)`` at `x` (F infinite if a corner is inverted)."""
@@ -361,14 +376,15 @@ def laplace_np(points, hexes, cons: Constraints, colour, faces, p: LaplaceParams
     **Returns:** ``(points, sweeps, history, params)`` as `jaxci.optim.laplace.laplace` (float64 points; F and
     max kappa/3 are ``inf`` once the plain Laplacian has inverted a corner).
     """
-    # the neighbours first: their sort's temporaries (~380 B a hexahedron) are gone before the stars are built
-    nbr, nmask = edge_neighbours(hexes, len(points))
+    # the neighbours first: their sort's temporaries (~380 B a hexahedron) are gone before the stars are built;
+    # in int32 while the node numbers fit (half the bytes, and so the colours' rows taken from them)
+    it = np.int32 if len(points) < 2**31 else np.int64
+    nbr, nmask = edge_neighbours(hexes, len(points), dtype=it)
     sw = _Sweeper(points, hexes, cons, colour, faces, p)
     per_colour = []
-    it = np.int32 if len(points) < 2**31 else np.int64  # the colours' neighbour rows: half the bytes while they fit
     for col in sw.colours:
         h = _local_length(sw.x, sw.hexes, col)
-        per_colour.append((nbr[col.nodes].astype(it), nmask[col.nodes], np.where(h > 0, h, 1.0)))
+        per_colour.append((nbr[col.nodes], nmask[col.nodes], np.where(h > 0, h, 1.0)))
     del nbr, nmask  # every movable node's rows are in `per_colour` now
     f, kmax = sw.objective(sw.x)
     hist_f, hist_k, hist_m = [f], [kmax if np.isfinite(f) else np.inf], [0.0]

@@ -245,13 +245,15 @@ def flat_surface_rings(points: np.ndarray, info: BoundaryInfo, cons: Constraints
     its planar ring of boundary faces (radius 0: none; `jaxci.optim._moves.planar_rings`). Kept on
     `info` for these `points` (the untangling stage, the smoothing of one run and its escape's sweeps share it:
     0.1 s at 27,000 hexahedra)."""
-    from ._moves import planar_rings
+    from ._moves import surface_rings
 
     cached = getattr(info, "_flat_rings", None)
     if cached is not None and cached[0] is points:
         return cached[1]
-    # kept for the surface nodes only: the (n, 7) array of every node was 58 MB at 10^6 hexahedra
-    rings = planar_rings(points, info.topology.faces, cons)[np.asarray(cons.surface_nodes)]
+    # made for the surface nodes only (`planar_rings`' rows of them): the (n, 7) array of every node was 58 MB at
+    # 10^6 hexahedra, kept, and then 13 MB at 216,000 as a temporary
+    surf = np.asarray(cons.surface_nodes)
+    rings = surface_rings(points, info.topology.faces, surf, np.asarray(cons.surface_cand)[: len(surf)] // 4)
     object.__setattr__(info, "_flat_rings", (points, rings))  # a frozen dataclass; a cache is not a field
     return rings
 
@@ -293,27 +295,25 @@ def node_lengths(hexes: np.ndarray, points: np.ndarray) -> np.ndarray:
     `jaxci.optim._local.local_length` computes it for one node.
     """
     p = np.asarray(points, dtype=np.float64)
-    corners = np.ascontiguousarray(np.asarray(hexes).T)  # (8, N): each corner's nodes, contiguous for the scatters
-    n, m = len(p), corners.shape[1]
-    # the 12 edge lengths of every element (12 N floats, 96 MB at 10^6), each computed once, from the 8 corner
-    # positions of a block of elements gathered together (8 gathers instead of 24 of the two ends of every edge)
-    lengths = np.empty((_EDGE_ENDS.shape[1], m))
-    for s in range(0, m, _LENGTH_BLOCK):
-        at = p.take(corners[:, s : s + _LENGTH_BLOCK], axis=0)  # (8, b, 3)
-        for k, (i, j) in enumerate(_EDGE_ENDS.T):
-            d = at[j] - at[i]  # (b, 3) C-contiguous rows: einsum's rounding depends on the layout, not on b
-            lengths[k, s : s + _LENGTH_BLOCK] = np.sqrt(np.einsum("nd,nd->n", d, d))
+    hexes = np.asarray(hexes)
+    corners = hexes.T  # (8, N): each corner's nodes (a view)
+    n = len(p)
     # added in the order of one pass over every edge's first node, then every edge's second (np.add.at adds in
-    # order: the sums of one bincount over the concatenation, to the last bit)
-    total = np.zeros(n)
+    # order); each edge's lengths made for each pass (the same numbers twice: the 12 N lengths of every element
+    # kept, with a copy of the corners and the gathered coordinates of a block, were 46 MB at 216,000 hexahedra)
+    total, length = np.zeros(n), np.empty(corners.shape[1])
     for end in (0, 1):
-        for k, ends in enumerate(_EDGE_ENDS.T):
-            np.add.at(total, corners[ends[end]], lengths[k])
-    count = 3 * np.bincount(corners.ravel(), minlength=n)  # every corner is an end of 3 edges
+        for i, j in _EDGE_ENDS.T:
+            for s in range(0, len(length), _LENGTH_BLOCK):
+                d = p.take(corners[j, s : s + _LENGTH_BLOCK], axis=0)  # (b, 3) C-contiguous rows: einsum's
+                d -= p.take(corners[i, s : s + _LENGTH_BLOCK], axis=0)  # rounding depends on the layout, not b
+                np.sqrt(np.einsum("nd,nd->n", d, d), out=length[s : s + _LENGTH_BLOCK])
+            np.add.at(total, corners[(i, j)[end]], length)
+    count = 3 * np.bincount(hexes.ravel(), minlength=n)  # every corner is an end of 3 edges
     return np.divide(total, count, out=np.zeros(n), where=count > 0)
 
 
-#: Elements per block of `node_lengths`' corner gathers (8 x 3 floats each: 12 MB).
+#: Elements per block of `node_lengths`' gathers (2 x 3 floats each: 3 MB).
 _LENGTH_BLOCK = 1 << 16
 
 #: The 12 edges of a hexahedron (local nodes i < j joined by an edge), from `CORNER_NEIGHBOURS`.
