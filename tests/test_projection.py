@@ -231,6 +231,17 @@ def test_host_constraints_make_their_triangle_table_on_first_read_with_the_eager
         host.surface_tables  # noqa: B018 - any other missing name is still an AttributeError
 
 
+def test_an_exact_projection_on_host_constraints_does_not_keep_the_table_it_made():
+    mesh, info, eager, _ = setup("annulus")
+    host = build_constraints(mesh, info, dtype=np.float64, device=False)
+    x = moved("annulus", 5, 0.3)
+    np.testing.assert_array_equal(project_np(host, x), project_np(eager, x))
+    assert not host.has_triangles  # made for that search, and let go
+    table = host.triangles  # read by another: made again, the same numbers, and kept
+    np.testing.assert_array_equal(project_np(host, x), project_np(eager, x))
+    assert host.triangles is table
+
+
 def test_a_host_projector_makes_the_triangle_table_at_its_first_search_only():
     from jaxci.geometry.near import NearProjector
 

@@ -201,8 +201,14 @@ class HostConstraints(Constraints):
         tris, patch = surface_triangles(self.x_orig, *faces)
         object.__setattr__(self, "triangles", np.asarray(tris, np.float64))
         object.__setattr__(self, "triangle_patch", np.asarray(patch, np.int32))
-        del self.__dict__["_faces"]
         return self.__dict__[name]
+
+    def drop_triangles(self) -> None:
+        """Let the triangle table go where it was made here (it is made again, the same numbers, on the next
+        read): for a caller that read it for one search of its own (`project_np`)."""
+        if "_faces" in self.__dict__:
+            self.__dict__.pop("triangles", None)
+            self.__dict__.pop("triangle_patch", None)
 
 
 def _register_host_constraints():
@@ -350,11 +356,16 @@ def project_np(constraints: Constraints, points: np.ndarray) -> np.ndarray:
     **Returns:** a new float64 array of shape ``(n_nodes, 3)``.
     """
     c = constraints
+    # a triangle table made for this search alone is not kept (`HostConstraints`: the presmoothing's projection
+    # held it through the whole solve: 36 MB at 10^6 hexahedra)
+    made_here = isinstance(c, HostConstraints) and not c.has_triangles
     x = np.array(points, dtype=np.float64)
     group = np.asarray(c.group)
     surf, edge, corners = (np.asarray(a) for a in (c.surface_nodes, c.edge_nodes, c.corner_nodes))
     x[surf], x[edge] = project_on_groups(c, x[surf], group[surf], x[edge], group[edge])
     x[corners] = np.asarray(c.x_orig, dtype=np.float64)[corners]
+    if made_here:
+        c.drop_triangles()
     return x
 
 
