@@ -125,7 +125,8 @@ def build_constraints(mesh: HexMesh, info: BoundaryInfo, *, dtype=None, device: 
 
     **Returns:** a `Constraints`. Its per-node arrays are built here from the mesh's points (O(mesh); on the
     device, `jaxci.geometry.device_constraints.device_constraints` builds them there), its boundary tables by
-    `jaxci.geometry.tables.boundary_tables` from the boundary nodes' coordinates.
+    `jaxci.geometry.tables.boundary_tables` from the boundary nodes' coordinates. In numpy float64
+    (``device=False``) a `HostConstraints`, whose triangle table is made on first read.
     """
     dtype = jnp.result_type(float) if dtype is None else dtype
     pts = np.asarray(mesh.points, dtype=np.float64)
