@@ -12,8 +12,14 @@ jaxci package (`bench_realmesh.ensure_bytecode`; ``--no-bytecode``: as found): a
 at every start, as where ``PYTHONDONTWRITEBYTECODE`` is set and the sources were never compiled, needs about 0.15 s
 and a few MB more.
 
+With ``--stages`` (Linux), one more fresh process runs the same command in process and records the peak resident
+set of each of its phases (read, validate, report, untangle, setup, smooth, checks, write): the kernel's high-water
+mark at the end of each phase, reset there (``/proc/self/clear_refs``), so each figure is the peak from the end of
+the phase before to the end of this one. That process is not the one timed: a reset peak is not its whole run's.
+
     python scripts/bench_memory.py                                  # jaxci on cube60_pert
     python scripts/bench_memory.py --msqshape --out memory.json     # and msqshape -s beside it
+    python scripts/bench_memory.py --stages                         # and the peak of each phase
     python scripts/bench_memory.py --mesh part.vtk --jaxci-args=--fix-boundary
 """
 
@@ -70,6 +76,54 @@ def run_jaxci(mesh: Path, out: Path, extra: list[str]) -> dict:
     return row
 
 
+#: The ``--stages`` child: ``python -c STAGES_CHILD RECORDS jaxci-arguments...`` runs the jaxci command in process
+#: and writes one JSON line to RECORDS at the end of each phase (`jaxci.runtime.phases.listening`): the phase and the
+#: peak resident set since the last phase's end, in kB (VmHWM, then reset).
+STAGES_CHILD = """
+import json, runpy, sys
+from jaxci.runtime.phases import listening
+
+records = open(sys.argv[1], "w")
+
+
+def on_event(kind, name, record):
+    if kind != "end":
+        return
+    with open("/proc/self/status") as f:
+        peak = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+    records.write(json.dumps({"phase": name, "peak_kb": peak}) + "\\n")
+    records.flush()
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+
+
+sys.argv = ["jaxci", *sys.argv[2:]]
+with listening(on_event):
+    runpy.run_module("jaxci", run_name="__main__", alter_sys=True)
+"""
+
+
+def run_stages(mesh: Path, out: Path, extra: list[str], tmp: Path) -> dict:
+    """The peak resident set of each phase of `jaxci smooth` (`STAGES_CHILD`, in a fresh process with the
+    environment the jaxci command gives itself: `jaxci.runtime.process.hugepage_environment`): ``{phase: kB}`` (a
+    phase run twice: its larger peak)."""
+    from jaxci.runtime.process import hugepage_environment
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "src"), *filter(None, [env.get("PYTHONPATH")])])
+    env = hugepage_environment(env) or env
+    records = tmp / "stages.jsonl"
+    r = subprocess.run([sys.executable, "-c", STAGES_CHILD, str(records), "smooth", str(mesh), str(out), "--force",
+                        "-q", *extra], env=env, capture_output=True, text=True)
+    if r.returncode:
+        raise SystemExit(f"the --stages run failed ({r.returncode}): {r.stderr[-2000:]}")
+    peaks: dict[str, int] = {}
+    for line in records.read_text().splitlines():
+        rec = json.loads(line)
+        peaks[rec["phase"]] = max(peaks.get(rec["phase"], 0), rec["peak_kb"])
+    return peaks
+
+
 def run_msqshape(mesh: Path, out: Path, timeout: float) -> dict:
     """``msqshape -s`` (every skin vertex fixed) in a fresh process."""
     row = timed([str(MSQSHAPE), "-s", str(mesh), str(out)], timeout=timeout)
@@ -90,6 +144,7 @@ def main(argv=None) -> int:
     ap.add_argument("--msq-timeout", type=float, default=900.0, help="seconds (default 900)")
     ap.add_argument("--out", type=Path, help="write the JSON here")
     ap.add_argument("--no-bytecode", action="store_true", help="do not write jaxci's bytecode first")
+    ap.add_argument("--stages", action="store_true", help="also the peak memory of each phase (another process)")
     args = ap.parse_args(argv)
     import jaxci
 
@@ -103,6 +158,9 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="jaxci-bench-memory-") as tmp:
         rows["jaxci"] = run_jaxci(mesh, Path(tmp) / f"jaxci{mesh.suffix}", shlex.split(args.jaxci_args))
         hexes = rows["jaxci"].get("hexahedra")
+        if args.stages:
+            rows["jaxci"]["stages_kb"] = run_stages(mesh, Path(tmp) / f"stages{mesh.suffix}",
+                                                    shlex.split(args.jaxci_args), Path(tmp))
         if args.msqshape:
             if MSQSHAPE.exists():
                 rows["msqshape"] = run_msqshape(mesh, Path(tmp) / "msq.vtk", args.msq_timeout)
@@ -125,6 +183,8 @@ def main(argv=None) -> int:
             continue
         print(f"  {who:10} {row['peak_mb']:8.1f} {row['wall_s']:7.2f} {row['cpu_s']:7.2f} "
               f"{row.get('bytes_per_hex', 0):7d}  {row['status']}")
+        if "stages_kb" in row:
+            print("    peak MB by phase: " + ", ".join(f"{k} {v / 1024:.1f}" for k, v in row["stages_kb"].items()))
     if args.out:
         args.out.write_text(json.dumps(result, indent=1) + "\n")
         print(f"wrote {args.out}")
