@@ -189,8 +189,8 @@ def test_near_projector_in_c_is_the_numpy_one():
     mesh = read_mesh(str(MESQUITE / "pave3.e.vtk"))
     cons = build_constraints(mesh, classify_boundary(mesh), dtype=np.float64, device=False)
     fast, ref = NearProjector(cons), NearProjector(cons)
-    assert fast._native is not None
-    ref._native = None
+    assert fast.use_c
+    ref.use_c = False
     rng = np.random.default_rng(0)
     h = np.median(np.linalg.norm(mesh.points[mesh.hexes[:, 1]] - mesh.points[mesh.hexes[:, 0]], axis=1))
     for it in range(8):
@@ -280,7 +280,7 @@ def test_lift_its_transpose_and_the_pullback_in_c_are_numpys():
     np.testing.assert_array_equal(keep[nodes], d2 < r2)
 
     fast, ref = NearProjector(cons), NearProjector(cons)
-    ref._native = None
+    ref.use_c = False
     xp, hint = fast(x)
     for k in (None, keep):
         np.testing.assert_array_equal(fast.pullback(g, hint, k), ref.pullback(g, hint, k))
@@ -299,9 +299,9 @@ def test_face_spheres_change_nothing_in_the_search():
 
     mesh, cons = _pave3_constraints()
     fast, plain = NearProjector(cons), NearProjector(cons)
-    nodes, cand, table, spheres = plain._native[0]
+    nodes, cand, table, spheres = plain._c_arrays(0)
     assert table.shape[1] == 19 and len(spheres) == len(table) * 5 // 4  # (the C search's tables are cell-major)
-    plain._native = ((nodes, cand, table, spheres[: len(table)]),) + plain._native[1:]
+    plain._c[0] = (nodes, cand, table, spheres[: len(table)])
     rng = np.random.default_rng(1)
     h = np.median(np.linalg.norm(mesh.points[mesh.hexes[:, 1]] - mesh.points[mesh.hexes[:, 0]], axis=1))
     for it in range(6):

@@ -80,7 +80,11 @@ class NearProjector:
     """
 
     def __init__(self, constraints: Constraints, follow: bool = True):
+        from .. import native
+
         self.c = host_constraints(constraints)
+        #: whether the searches run in C (`jaxci.native`, where it is built; else numpy)
+        self.use_c = native.AVAILABLE
         #: whether the anchors move (`commit`, and the walk of a node with no remembered cell); False: every node
         #: keeps the candidates of the constraints (a polish round's sub-problem, whose are already anchored)
         self.follow = follow
@@ -189,9 +193,7 @@ class NearProjector:
         """Per kind (surface, edge), the ``(candidates, table, spheres)`` arrays of the C search (int64 / float64,
         contiguous), for a C kernel that projects points itself (`jaxci.native.ci_visit`); None without the C
         kernels."""
-        from .. import native
-
-        return tuple(self._c_arrays(kind)[1:] for kind in range(2)) if native.AVAILABLE else None
+        return tuple(self._c_arrays(kind)[1:] for kind in range(2)) if self.use_c else None
 
     def project_many(self, points: np.ndarray, keep: np.ndarray | None = None) -> None:
         """Project the boundary nodes of S meshes `points` (float64 ``(S, n, 3)``, in place) as `__call__` does,
@@ -265,9 +267,9 @@ class NearProjector:
         if not len(active):
             return
         tol = inside_tolerance(np.float64)
-        from .. import native
+        if self.use_c:
+            from .. import native
 
-        if native.AVAILABLE:
             nodes, cand, table, spheres = self._c_arrays(kind)
             native.near_project(x, nodes, active, hint, cand, table, spheres, kind, tol, segment_bump(np.float64))
             return
@@ -304,10 +306,10 @@ class NearProjector:
         back through the projection: on a surface node minus its component along its triangle's normal, on an
         edge node its component along its segment (the derivative of the projection onto a plane or a line);
         nodes of `keep` unchanged. A new array."""
-        from .. import native
-
         c, g = self.c, np.array(g, dtype=np.float64)
-        if native.AVAILABLE:
+        if self.use_c:
+            from .. import native
+
             for kind, nodes in enumerate((c.surface_nodes, c.edge_nodes)):
                 if len(nodes) and (hint[kind] >= 0).any():  # (a node with no cell is not pulled back)
                     nodes, cand, table, _ = self._c_arrays(kind)
