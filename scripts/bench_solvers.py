@@ -13,7 +13,8 @@ measures. Prints a table and writes JSON (`--out`).
         [--out docs/results/bench_solvers.json]
 
 `--meshes` takes corpus names (``python scripts/realmesh_corpus.py --list``; default: the ~25k gmsh meshes) or
-mesh file paths. A solver is ``lbfgs``, ``newton``, or ``newton:KEY=VALUE,...`` (extra `jaxci.smooth` keywords,
+mesh file paths. A solver is ``default`` (the default pipeline; ``default:KEY=VALUE,...`` with parameters), ``lbfgs``,
+``newton``, or ``newton:KEY=VALUE,...`` (extra `jaxci.smooth` keywords,
 JSON values: `GradientParams`, ``engine="jax"``), run as
 ``method="lbfgs"``; ``auto/`` before it runs the default pipeline with that solver (then the worst-element polish:
 its evaluations are in the count; "outer" is still the solver's: Newton iterations, or accepted steps).
@@ -45,9 +46,11 @@ LARGE = ("sphere_tet2hex-large", "bracket_tet2hex-large", "cylinder_ogrid-large"
 def solver_params(spec: str) -> tuple[str, dict]:
     """``(method, params)`` of a solver spec: ``lbfgs``, ``newton``, ``newton:cg_max=50`` (``method="lbfgs"``),
     ``auto/lbfgs``, ``auto/newton`` (the default pipeline, its L-BFGS stage with that solver: the polish after it),
-    ``default`` (the default pipeline as it is: ``method="auto"``, no parameter)."""
-    if spec == "default":
-        return "auto", {}
+    ``default`` (the default pipeline as it is: ``method="auto"``, no parameter), ``default:KEY=VALUE,...`` (the
+    default pipeline with those parameters only, e.g. ``default:polish_cell_power=32``)."""
+    if spec == "default" or spec.startswith("default:"):
+        return "auto", {k: json.loads(v) for k, _, v in (item.partition("=") for item in
+                                                          filter(None, spec.partition(":")[2].split(",")))}
     method, _, spec = spec.rpartition("/")
     name, _, extra = spec.partition(":")
     params = {"solver": name}

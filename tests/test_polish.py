@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxci import native
-from jaxci.cells import element_blocks
+from jaxci.cells import KERNELS, element_blocks
 from jaxci.errors import ConfigError
 from jaxci.geometry.boundary import classify_boundary
 from jaxci.geometry.projection import build_constraints
@@ -267,3 +267,58 @@ def test_the_fused_penalty_is_the_two_pass_one():
     flipped = x.copy()
     flipped[h[0, 6]] = x[h[0, 0]] - 0.5 * (x[h[0, 6]] - x[h[0, 0]])  # through its own element: inverted
     assert weighted.penalty_kernel({"hexahedron": h}, n_norm, level, mu)(flipped)[0] == np.inf
+
+
+def test_the_cell_measure_is_a_smooth_max_of_each_cells_terms(kernels):
+    """`weighted.cell_measure`: between the mean and the max of each cell's terms, nearer the max as the power
+    grows; the penalty kernel with it (every cell type, C and numpy) is each cell's share ``c (M - 1)`` plus the
+    penalty, and its gradient is exact."""
+    t = 1.0 + np.random.default_rng(2).random((8, 50)) ** 2
+    m1, _ = weighted.cell_measure(t, 1)
+    m5, d5 = weighted.cell_measure(t, 5)
+    assert np.all(t.mean(axis=0) <= m1) and np.all(m1 <= m5) and np.all(m5 <= t.max(axis=0))
+    h = 1e-7
+    bump = np.zeros_like(t)
+    bump[3, :] = h
+    fd = (weighted.cell_measure(t + bump, 5)[0] - weighted.cell_measure(t - bump, 5)[0]) / (2 * h)
+    np.testing.assert_allclose(8 * fd, d5[3], rtol=1e-6, atol=1e-7)  # c dM / dt_i = (t_i / M)^(P - 1)
+    mesh = all_types_box()
+    blocks = element_blocks(mesh)
+    x = np.array(mesh.points)
+    kernel = weighted.penalty_kernel(blocks, 100, 0.05, 50.0, 5)
+    cells = weighted.CellCorners(blocks)
+    parts = cells.terms(x)
+    assert cells.types[0] == "hexahedron"  # (so the parts are in the order of the types, C kernel or not)
+    corners = [KERNELS[t].n_corners for t in cells.types]
+    expect = sum(c * float((weighted.cell_measure(p.reshape(c, -1), 5)[0] - 1.0).sum())
+                 + 50.0 * float(np.sum(np.maximum(p - 1.0 - 0.05, 0.0) ** 2)) for p, c in zip(parts, corners,
+                                                                                            strict=True)) / 100
+    v, _, g = kernel(x)
+    assert v == pytest.approx(expect, rel=1e-12)
+    d = np.random.default_rng(0).normal(size=x.shape)
+    fd = (kernel(x + 1e-6 * d)[0] - kernel(x - 1e-6 * d)[0]) / 2e-6
+    assert fd == pytest.approx(float(np.sum(g * d)), rel=1e-6)
+
+
+@pytest.mark.skipif(not native.AVAILABLE, reason="the fused penalty is a C kernel")
+def test_the_fused_cell_measure_is_the_numpy_one(monkeypatch):
+    m = perturb_box(6, 5, 4, amplitude=0.35, seed=3)
+    h, x = np.asarray(m.hexes), np.asarray(m.points, np.float64)
+    fused = weighted.penalty_kernel({"hexahedron": h}, 1000, 0.3, 1000.0, 5)(x)
+    monkeypatch.setattr(native, "AVAILABLE", False)
+    plain = weighted.penalty_kernel({"hexahedron": h}, 1000, 0.3, 1000.0, 5)(x)
+    assert fused[0] == pytest.approx(plain[0], rel=1e-13) and fused[1] == pytest.approx(plain[1], rel=1e-14)
+    assert np.abs(fused[2] - plain[2]).max() <= 1e-12 * np.abs(plain[2]).max()
+
+
+def test_the_polish_with_the_cell_measure_keeps_its_guarantees():
+    """``polish_cell_power``: a power of two (else a ConfigError naming it); with 32 the polish still lowers the
+    worst element within its budget, as with F's sum."""
+    mesh = perturb_box(4, amplitude=0.3, seed=1)
+    plain = smooth(mesh, "lbfgs", fix_boundary=True)
+    cell = smooth(mesh, fix_boundary=True, polish_cell_power=32)
+    w0, m0 = element_stats(mesh, plain.mesh.points)
+    w1, m1 = element_stats(mesh, cell.mesh.points)
+    assert w1 < w0 - 0.2 and m1 <= m0 * 1.01 and cell.params["polish_cell_power"] == 32
+    with pytest.raises(ConfigError, match="polish_cell_power=3 must be a power of two"):
+        smooth(mesh, polish_cell_power=3)

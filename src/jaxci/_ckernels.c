@@ -256,7 +256,20 @@ typedef struct {
     double weight;
     double *S; /* the corners' scaled Jacobians det / (|a| |b| |c|) (8, N), or NULL */
     double level, mu; /* mu > 0: the polish's penalty (hex_condition's docstring) */
+    int cell_k; /* > 0: the polish's cell measure of power 2^cell_k in place of the corners' sum (the docstring) */
 } HexJob;
+
+/* x^(2^k) by k squarings (the same IEEE operations on every platform). */
+static inline __attribute__((always_inline)) double pow2k(double x, int k) {
+    for (int i = 0; i < k; i++) x *= x;
+    return x;
+}
+
+/* x^(2^-k) by k square roots. */
+static inline __attribute__((always_inline)) double root2k(double x, int k) {
+    for (int i = 0; i < k; i++) x = sqrt(x);
+    return x;
+}
 
 /* x86-64 with GCC: AVX-512 and AVX2 clones of the loops below beside the baseline one, picked at load time (the
  * eight corners of an element are the vector lanes: one AVX-512 vector). Every clone gives the same numbers bit
@@ -300,6 +313,7 @@ static void *hex_worker(void *arg) {
     const long long *H = j->H;
     double *T = j->T, *G = j->G, *S = j->S, weight = j->weight, sum = 0.0, tmax = 0.0, level = j->level,
            mu = j->mu;
+    int cell_k = j->cell_k;
     Py_ssize_t N = j->N;
     long long invalid = 0;
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
@@ -325,6 +339,22 @@ static void *hex_worker(void *arg) {
             q[i] = w2[i] * fro2[i] * idet2;
             r[i] = p[i] * fro2[i] * idet;
         }
+        double m = 0.0; /* the cell measure (cell_k > 0): M = t_max (mean_i (t_i / t_max)^P)^(1/P), P = 2^cell_k */
+        if (cell_k > 0) {
+            double top = 0.0, mean = 0.0;
+            for (int i = 0; i < 8; i++) top = term[i] > top ? term[i] : top;
+            for (int i = 0; i < 8; i++) mean += pow2k(term[i] / top, cell_k);
+            m = top * root2k(mean * 0.125, cell_k);
+            for (int i = 0; i < 8; i++) { /* d (8 M) / d t_i = (t_i / M)^(P - 1), in place of F's 1 */
+                if (!(det[i] > 0.0) || !G) continue;
+                double rel = term[i] / m, over = mu > 0.0 && term[i] - 1.0 > level ? term[i] - 1.0 - level : 0.0;
+                double idet = 1.0 / det[i], idet2 = idet * idet;
+                w2[i] = weight * (pow2k(rel, cell_k) / rel + 2.0 * mu * over);
+                p[i] = w2[i] * adj2[i] * idet2;
+                q[i] = w2[i] * fro2[i] * idet2;
+                r[i] = p[i] * fro2[i] * idet;
+            }
+        }
         if (S)
             for (int i = 0; i < 8; i++) {
                 /* jaxci.metrics.elements._ratio: det / sqrt(|a|^2 |b|^2 |c|^2), 0 for a zero-length edge */
@@ -341,7 +371,7 @@ static void *hex_worker(void *arg) {
                 continue;
             }
             double over = mu > 0.0 && term[i] - 1.0 > level ? term[i] - 1.0 - level : 0.0;
-            sum += term[i] - 1.0 + mu * over * over;
+            sum += (cell_k > 0 ? m - 1.0 : term[i] - 1.0) + mu * over * over;
             if (term[i] > tmax) tmax = term[i];
         }
         if (!G) continue;
@@ -377,7 +407,9 @@ static void *hex_worker(void *arg) {
  * inverted corners). With `sj`, each corner's scaled Jacobian det / (|a| |b| |c|) (0 where an edge has length 0).
  * With mu > 0 (the worst-element polish's penalty, jaxci.optim.weighted.penalty_kernel, in one pass): the sum is
  * of e + mu max(0, e - level)^2 (e = term - 1) and, without corner_weight, each corner's gradient is weighted by
- * 1 + 2 mu max(0, e - level).
+ * 1 + 2 mu max(0, e - level). With cell_k > 0 besides: each corner's e in the sum is the cell's M - 1 instead, M =
+ * t_max (mean_i (t_i / t_max)^P)^(1/P) over the cell's eight terms, P = 2^cell_k (a smooth max of them: 8 M is
+ * each cell's share, as 8 corners are in F's), and its gradient weight (t_i / M)^(P - 1) + 2 mu max(0, e - level).
  *
  * term = |A|^2 |adj A|^2 / (9 det^2) = (kappa/3)^2 per corner (inf where det <= 0, in `terms`). With `grad`, adds
  * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
@@ -421,10 +453,14 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
                                 {"terms", "d", 1, 1}, {"sj", "d", 1, 1}};
     PyObject *o[6] = {NULL, NULL, NULL, NULL, NULL, Py_None}, *ret = NULL;
     double weight, level = 0.0, mu = 0.0;
-    int nthreads = 1;
-    if (!PyArg_ParseTuple(args, "OOdOOO|iOdd", &o[0], &o[1], &weight, &o[2], &o[3], &o[4], &nthreads, &o[5], &level,
-                          &mu))
+    int nthreads = 1, cell_k = 0;
+    if (!PyArg_ParseTuple(args, "OOdOOO|iOddi", &o[0], &o[1], &weight, &o[2], &o[3], &o[4], &nthreads, &o[5], &level,
+                          &mu, &cell_k))
         return NULL;
+    if (cell_k < 0 || cell_k > 8) {
+        PyErr_SetString(PyExc_ValueError, "hex_condition: cell_k must be in [0, 8]");
+        return NULL;
+    }
     Buf B[6] = {{{0}}};
     if (acquire_args(B, o, spec, 6) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64;
@@ -440,7 +476,7 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
     int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
         jobs[t] = (HexJob){{0.0, 0.0, 0}, B[0].view.buf, B[3].view.buf, B[1].view.buf, B[4].view.buf, NULL, N,
-                           N * t / nt, N * (t + 1) / nt, weight, B[5].view.buf, level, mu};
+                           N * t / nt, N * (t + 1) / nt, weight, B[5].view.buf, level, mu, cell_k};
     Nodes nd = {B[1].view.buf, N, 8, 1, 8};
     if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[2].view.buf, 3 * n, offsetof(HexJob, G), &nd) < 0) goto done;
     ret = total_sums(jobs, sizeof(HexJob), nt);

@@ -175,16 +175,17 @@ def hex_corner_measures(points: np.ndarray, hexes: np.ndarray) -> tuple[np.ndarr
     return np.sqrt(terms, out=terms), sj
 
 
-def hex_penalty(points: np.ndarray, hexes: np.ndarray, level: float, mu: float, scale: float
+def hex_penalty(points: np.ndarray, hexes: np.ndarray, level: float, mu: float, scale: float, cell_k: int = 0
                 ) -> tuple[float, float, int, np.ndarray]:
     """The worst-element polish's penalised sum over the corners of `hexes` ``(N, 8)`` at `points` in one pass
     (`jaxci.optim.weighted.penalty_kernel`): ``(sum_i e_i + mu max(0, e_i - level)^2, max (kappa/3)^2, inverted
     corners, gradient)``, ``e_i = (kappa_i/3)^2 - 1``, the gradient ``(n, 3)`` that of the sum times `scale`
-    (over the valid corners)."""
+    (over the valid corners). `cell_k` > 0: each corner's ``e_i`` in the first sum is its cell's ``M - 1``, ``M``
+    the cell's smooth max of its terms of power ``2^cell_k`` (`jaxci.optim.weighted.cell_measure`)."""
     x = _f8(points)
     grad = np.zeros_like(x)
     s, tmax, bad = _c.hex_condition(x, _i8(hexes), 2.0 * float(scale) / 9.0, grad, None, None, THREADS, None,
-                                    float(level), float(mu))
+                                    float(level), float(mu), int(cell_k))
     return float(s), float(tmax), int(bad), grad
 
 

@@ -95,11 +95,14 @@ class PolishParams:
     may rise above the start's, as a fraction (default 0.01); `work`: the most kernel passes over cells, two per
     sub-problem step, checked before each round (None: no bound; `jaxci.optim.gradient.run_gradient` passes
     `GradientParams.polish_work` times the mesh's cells, 1000 by default, whatever the solver); `f_limit`: F
-    (over every corner) must stay at or below this (default: no limit)."""
+    (over every corner) must stay at or below this (default: no limit); `cell_k`: what a round keeps low besides
+    the penalty (`jaxci.optim.weighted.penalty_kernel`): 0 (default) F's share of its corners, k > 0 each cell's
+    smooth max of its corner terms of power 2^k (`GradientParams.polish_cell_power`)."""
 
     budget: float = 0.01
     work: float | None = None
     f_limit: float = float("inf")
+    cell_k: int = 0
 
 
 def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: PolishParams = PolishParams(),
@@ -185,7 +188,7 @@ def _polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Pol
         # the solver left them, are at no corner of their cells, so that a projector that follows would make
         # the anchors' tables at every round for nothing: 12% of acoustics_mesh3d's run)
         fun = _RoundObjective(sub.par, None, n_corners / 32.0,
-                              kernel=penalty_kernel(sub.blocks, n_corners, level * level - 1.0, MU),
+                              kernel=penalty_kernel(sub.blocks, n_corners, level * level - 1.0, MU, p.cell_k),
                               follow_anchors=False)
         y, steps, _, _, _ = lbfgs(fun, np.zeros(sub.par.n_free), limit=ROUND_STEPS, max_rejected=20, rtol=1e-6,
                                   atol=1e-6, history=10, cap=0.5, ftol=0.0)

@@ -174,20 +174,42 @@ def pmean_kernel(blocks: dict, power: float):
     return kernel
 
 
-def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float):
+def cell_measure(t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(M, dM)`` of the corner terms `t` ``(c, N)`` of N cells of c corners each: every cell's smooth max of its
+    terms ``M = t_max (mean_i (t_i / t_max)^P)^(1/P)``, ``P = 2^k`` (by squarings and square roots, as the C kernel
+    of `jaxci.native.hex_penalty` computes it), shape ``(N,)``, and ``c dM / dt_i = (t_i / M)^(P - 1)``, shape
+    ``(c, N)``. ``M`` lies between the mean and the max of the cell's terms, nearer the max as P grows."""
+    top = t.max(axis=0)
+    s = t / top
+    for _ in range(k):
+        s = s * s
+    m = s.sum(axis=0) * (1.0 / t.shape[0])
+    for _ in range(k):
+        m = np.sqrt(m)
+    m = top * m
+    rel = t / m
+    d = rel.copy()
+    for _ in range(k):
+        d = d * d
+    return m, d / rel
+
+
+def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float, cell_k: int = 0):
     """``kernel(x) -> (value, max kappa/3, gradient)`` of ``(sum_i e_i + weight * sum_i max(0, e_i - level)^2) /
     n_norm`` over the corners of the cells `blocks` (``e_i = t_i - 1``): F's share of these corners (`n_norm`: the
     corners of the whole mesh) with a quadratic penalty on every corner excess above `level` (the worst-element
-    polish, `jaxci.optim.polish`); ``inf`` if a corner is inverted. On hexahedra alone with the C kernels: terms and
-    gradient in one pass (`jaxci.native.hex_penalty`), where the general path makes two (a third of the polish's time
-    on a 25,000-hexahedron tet-to-hex bracket)."""
+    polish, `jaxci.optim.polish`); ``inf`` if a corner is inverted. `cell_k` > 0: each corner's ``e_i`` in the
+    first sum is its cell's ``M - 1`` instead (`cell_measure` of power ``2^cell_k``: a smooth max of the cell's
+    terms, so that the sum weighs each cell by its worst corners, as the mean element quality does). On hexahedra
+    alone with the C kernels: terms and gradient in one pass (`jaxci.native.hex_penalty`), where the general path
+    makes two (a third of the polish's time on a 25,000-hexahedron tet-to-hex bracket)."""
     cells = CellCorners(blocks)
     inv = 1.0 / max(int(n_norm), 1)
     if cells.hexes is not None and not cells.tables and not cells.barrier.shape[1]:  # hexahedra: one C pass
         hexes = cells.hexes
 
         def fused(x):
-            total, tmax, bad, g = native.hex_penalty(x, hexes, level, weight, inv)
+            total, tmax, bad, g = native.hex_penalty(x, hexes, level, weight, inv, cell_k)
             return (np.inf, np.inf, np.zeros_like(x)) if bad else (total * inv, float(np.sqrt(tmax)), g)
 
         return fused
@@ -197,16 +219,29 @@ def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float):
         if parts is None:
             return np.inf, np.inf, np.zeros_like(x)
         total, weights, tmax = 0.0, [], 1.0
-        for t in parts:
+        for t, c in zip(parts, _corners_per_cell(cells, parts), strict=True):
             e = t - 1.0
             over = np.maximum(e - level, 0.0)
             # einsum, not np.dot: BLAS's threads spin against other processes (`jaxci.optim.host.dot`)
-            total += float(e.sum()) + weight * float(np.einsum("i,i->", over.ravel(), over.ravel()))
-            weights.append(1.0 + 2.0 * weight * over)
+            penalty = weight * float(np.einsum("i,i->", over.ravel(), over.ravel()))
+            if cell_k:
+                m, d = cell_measure(t.reshape(c, -1), cell_k)
+                total += float(c * (m - 1.0).sum()) + penalty
+                weights.append(d.reshape(t.shape) + 2.0 * weight * over)
+            else:
+                total += float(e.sum()) + penalty
+                weights.append(1.0 + 2.0 * weight * over)
             tmax = max(tmax, float(t.max(initial=1.0)))
         return total * inv, float(np.sqrt(tmax)), cells.grad(x, weights, inv)
 
     return kernel
+
+
+def _corners_per_cell(cells: CellCorners, parts: list[np.ndarray]) -> list[int]:
+    """The corners of one cell of each part of `CellCorners.terms`: the hexahedra's ``(8, N)`` first (where the C
+    kernel runs), then each other type's flat ``(c N,)`` terms (corner j of cell e at ``j N + e``)."""
+    out = [8] if cells.hexes is not None else []
+    return out + [KERNELS[t].n_corners for t, _, _ in cells.tables]
 
 
 def _split_like(flat: np.ndarray, parts: list[np.ndarray]) -> list[np.ndarray]:
