@@ -219,7 +219,7 @@ def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float, cell_
         if parts is None:
             return np.inf, np.inf, np.zeros_like(x)
         total, weights, tmax = 0.0, [], 1.0
-        for t, c in zip(parts, _corners_per_cell(cells, parts), strict=True):
+        for t, c in zip(parts, _corners_per_cell(cells), strict=True):
             e = t - 1.0
             over = np.maximum(e - level, 0.0)
             # einsum, not np.dot: BLAS's threads spin against other processes (`jaxci.optim.host.dot`)
@@ -237,7 +237,7 @@ def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float, cell_
     return kernel
 
 
-def _corners_per_cell(cells: CellCorners, parts: list[np.ndarray]) -> list[int]:
+def _corners_per_cell(cells: CellCorners) -> list[int]:
     """The corners of one cell of each part of `CellCorners.terms`: the hexahedra's ``(8, N)`` first (where the C
     kernel runs), then each other type's flat ``(c N,)`` terms (corner j of cell e at ``j N + e``)."""
     out = [8] if cells.hexes is not None else []
