@@ -319,7 +319,7 @@ static void *hex_worker(void *arg) {
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
         const long long *h = H + 8 * e;
         double a[3][8], b[3][8], c[3][8], u[3][8], v[3][8], w[3][8];
-        double det[8], fro2[8], adj2[8], term[8], w2[8], p[8], q[8], r[8];
+        double det[8], fro2[8], adj2[8], idet[8], term[8], w2[8], p[8], q[8], r[8];
         hex_columns(P, h, 1.0, a, b, c);
         for (int i = 0; i < 8; i++) {
             cross_at(b, c, i, &u[0][i], 8); cross_at(c, a, i, &v[0][i], 8); cross_at(a, b, i, &w[0][i], 8);
@@ -330,30 +330,27 @@ static void *hex_worker(void *arg) {
                 fro2[i] += a[d][i] * a[d][i] + b[d][i] * b[d][i] + c[d][i] * c[d][i];
                 adj2[i] += u[d][i] * u[d][i] + v[d][i] * v[d][i] + w[d][i] * w[d][i];
             }
-            int ok = det[i] > 0.0;
-            double idet = 1.0 / (ok ? det[i] : 1.0), idet2 = idet * idet;
-            term[i] = ok ? fro2[i] * adj2[i] * idet2 * (1.0 / 9.0) : INFINITY;
-            double over = mu > 0.0 && ok && term[i] - 1.0 > level ? term[i] - 1.0 - level : 0.0;
-            w2[i] = ok && G ? (CW ? weight * CW[i * N + e] : weight * (1.0 + 2.0 * mu * over)) : 0.0;
-            p[i] = w2[i] * adj2[i] * idet2;
-            q[i] = w2[i] * fro2[i] * idet2;
-            r[i] = p[i] * fro2[i] * idet;
+            idet[i] = 1.0 / (det[i] > 0.0 ? det[i] : 1.0);
+            term[i] = det[i] > 0.0 ? fro2[i] * adj2[i] * (idet[i] * idet[i]) * (1.0 / 9.0) : INFINITY;
         }
-        double m = 0.0; /* the cell measure (cell_k > 0): M = t_max (mean_i (t_i / t_max)^P)^(1/P), P = 2^cell_k */
+        /* each corner's weight in the first sum: F's 1, or with the cell measure (cell_k > 0; M = t_max (mean_i
+         * (t_i / t_max)^P)^(1/P), P = 2^cell_k) d (8 M) / d t_i = (t_i / M)^(P - 1) */
+        double m = 0.0, one[8] = {1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0};
         if (cell_k > 0) {
             double top = 0.0, mean = 0.0;
             for (int i = 0; i < 8; i++) top = term[i] > top ? term[i] : top;
             for (int i = 0; i < 8; i++) mean += pow2k(term[i] / top, cell_k);
             m = top * root2k(mean * 0.125, cell_k);
-            for (int i = 0; i < 8; i++) { /* d (8 M) / d t_i = (t_i / M)^(P - 1), in place of F's 1 */
-                if (!(det[i] > 0.0) || !G) continue;
-                double rel = term[i] / m, over = mu > 0.0 && term[i] - 1.0 > level ? term[i] - 1.0 - level : 0.0;
-                double idet = 1.0 / det[i], idet2 = idet * idet;
-                w2[i] = weight * (pow2k(rel, cell_k) / rel + 2.0 * mu * over);
-                p[i] = w2[i] * adj2[i] * idet2;
-                q[i] = w2[i] * fro2[i] * idet2;
-                r[i] = p[i] * fro2[i] * idet;
-            }
+            for (int i = 0; i < 8; i++) one[i] = pow2k(term[i] / m, cell_k) / (term[i] / m);
+        }
+        for (int i = 0; i < 8; i++) {
+            int ok = det[i] > 0.0;
+            double idet2 = idet[i] * idet[i];
+            double over = mu > 0.0 && ok && term[i] - 1.0 > level ? term[i] - 1.0 - level : 0.0;
+            w2[i] = ok && G ? (CW ? weight * CW[i * N + e] : weight * (one[i] + 2.0 * mu * over)) : 0.0;
+            p[i] = w2[i] * adj2[i] * idet2;
+            q[i] = w2[i] * fro2[i] * idet2;
+            r[i] = p[i] * fro2[i] * idet[i];
         }
         if (S)
             for (int i = 0; i < 8; i++) {
