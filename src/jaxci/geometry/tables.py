@@ -111,7 +111,7 @@ def boundary_tables(nodes: np.ndarray, coords: np.ndarray, faces: np.ndarray, fa
         surface_cand=tri_cand.astype(np.int32),
         edge_cand=_ring_candidates(fedges_l, m, edge, edge_curve, group),
         triangles=tris,
-        triangle_patch=tri_patch if tri_patch is None else np.asarray(tri_patch),
+        triangle_patch=tri_patch,
         segments=segs,
         segment_curve=np.asarray(seg_curve),
     )

@@ -174,9 +174,15 @@ def planar_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np
     SURFACE nodes, or whose ring is not planar to 1e-12 relative.
     """
     out = np.zeros((len(points), 7))
-    surf = np.asarray(cons.surface_nodes)
-    out[surf] = surface_rings(points, faces, surf, np.asarray(cons.surface_cand)[: len(surf)] // 4)
+    out[np.asarray(cons.surface_nodes)] = surface_node_rings(points, faces, cons)
     return out
+
+
+def surface_node_rings(points: np.ndarray, faces: np.ndarray, cons: Constraints) -> np.ndarray:
+    """`planar_rings`' rows of the SURFACE nodes alone, in ``cons.surface_nodes`` order, shape ``(ns, 7)``: their
+    rings are their candidate triangles' faces (`Constraints.surface_cand` divided by 4)."""
+    surf = np.asarray(cons.surface_nodes)
+    return surface_rings(points, faces, surf, np.asarray(cons.surface_cand)[: len(surf)] // 4)
 
 
 def surface_rings(points, faces, surf, ring, xp=np):

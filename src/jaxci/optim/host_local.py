@@ -44,7 +44,7 @@ from ..runtime.phases import stepper
 from . import _draws
 from ._anderson import AndersonMemory
 from ._local import edge_neighbours, laplace_trials, longest_step, node_stars
-from ._moves import free_dims, node_bases, node_rows, onto_plane, surface_rings
+from ._moves import free_dims, node_bases, node_rows, onto_plane, surface_node_rings
 from .ci_params import PATTERN_FACTORS, CIParams, excess_within_bound, pattern_choice, sweep_done
 from .laplace import LaplaceParams
 
@@ -124,11 +124,9 @@ def sweep_colours(hexes, cons: Constraints, colour, faces, rings: np.ndarray | N
     colours = np.unique(colour[movable]) if movable.any() else np.zeros(1, np.int64)
     rows = node_rows(cons)
     dims = free_dims(cons)
-    surf = np.asarray(cons.surface_nodes)
     # the planar rings of the surface nodes alone, in the working dtype's rounding, as the compiled sweep's tables
     if rings is None:
-        rings = surface_rings(np.asarray(cons.x_orig, np.float64), faces, surf,
-                              np.asarray(cons.surface_cand)[: len(surf)] // 4)
+        rings = surface_node_rings(np.asarray(cons.x_orig, np.float64), faces, cons)
     rings = np.asarray(np.asarray(rings).astype(cons.x_orig.dtype), np.float64)
     by_class = [(c, np.flatnonzero(cls == c)) for c in (INTERIOR, SURFACE, EDGE)]
     inc_type = np.int32 if 8 * len(hexes) < 2**31 else np.int64  # the incidences: half the bytes while they fit

@@ -245,15 +245,14 @@ def flat_surface_rings(points: np.ndarray, info: BoundaryInfo, cons: Constraints
     its planar ring of boundary faces (radius 0: none; `jaxci.optim._moves.planar_rings`). Kept on
     `info` for these `points` (the untangling stage, the smoothing of one run and its escape's sweeps share it:
     0.1 s at 27,000 hexahedra)."""
-    from ._moves import surface_rings
+    from ._moves import surface_node_rings
 
     cached = getattr(info, "_flat_rings", None)
     if cached is not None and cached[0] is points:
         return cached[1]
     # made for the surface nodes only (`planar_rings`' rows of them): the (n, 7) array of every node was 58 MB at
     # 10^6 hexahedra, kept, and then 13 MB at 216,000 as a temporary
-    surf = np.asarray(cons.surface_nodes)
-    rings = surface_rings(points, info.topology.faces, surf, np.asarray(cons.surface_cand)[: len(surf)] // 4)
+    rings = surface_node_rings(points, info.topology.faces, cons)
     object.__setattr__(info, "_flat_rings", (points, rings))  # a frozen dataclass; a cache is not a field
     return rings
 
