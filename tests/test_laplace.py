@@ -34,6 +34,24 @@ def test_edge_neighbours_of_a_box():
     assert mask.sum(axis=1)[0] == 3  # a box corner
 
 
+def test_edge_neighbours_by_blocks_and_in_int32(monkeypatch):
+    """The edge keys made 5 hexahedra at a time, with extra edges, and the rows asked in int32: the same
+    neighbours in the same order as all at once in int64."""
+    import jaxci.optim._local as local
+
+    mesh = perturb_box(3, amplitude=0.2, seed=4)
+    hexes = np.asarray(mesh.hexes)[np.random.default_rng(1).permutation(len(mesh.hexes))]
+    extra = np.array([[0, 63], [5, 40]])
+    whole = edge_neighbours(hexes, mesh.n_nodes, extra)
+    assert whole[1][0].sum() == 4  # a box corner and its extra neighbour
+    monkeypatch.setattr(local, "EDGE_CHUNK", 5)
+    for dtype in (np.int64, np.int32):
+        nbr, mask = edge_neighbours(hexes, mesh.n_nodes, extra, dtype=dtype)
+        assert nbr.dtype == dtype
+        np.testing.assert_array_equal(nbr, whole[0])
+        np.testing.assert_array_equal(mask, whole[1])
+
+
 def test_plain_laplace_folds_a_concave_mesh_smart_laplace_does_not():
     mesh = v_notch()
     assert not (corner_determinants(mesh.points, mesh.hexes) <= 0).any()
