@@ -402,6 +402,42 @@ def test_an_iterate_keeps_its_points_only_where_it_projected(shape):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("shape", ["box", "annulus"])
+def test_lbfgs_trials_without_their_points_made_take_the_same_steps(shape):
+    """`lbfgs` evaluates a `HostObjective`'s trial ``d * alpha + y`` without making it (`HostObjective.step`) and
+    makes the accepted one in the direction's vector: the same iterates, histories and points as the same
+    objective called at each trial made (a plain function), on a box (nothing projected) and an annulus; a trial
+    at step 0 is the accepted iterate's evaluation itself, as a call at it is."""
+    from jaxci.optim.host import HostObjective
+
+    mesh = perturb_box(5, amplitude=0.3, seed=3) if shape == "box" else annulus(n_r=3, n_theta=16, n_z=2)
+    pb = build_problem(mesh, dtype=np.float64)
+    par = make_parametrisation(pb.mesh, pb.info, pb.cons, scaled=True)
+    conn = np.ascontiguousarray(pb.mesh.hexes.T)
+    kw = dict(limit=25, max_rejected=20, rtol=1e-9, atol=1e-9, history=4, cap=0.5, ftol=0.0, stage=None)
+    lazy, made = HostObjective(par, conn, 1.0), HostObjective(par, conn, 1.0)
+    steps = []
+    lazy_step = lazy.step
+    lazy.step = lambda y, d, alpha: steps.append(alpha) or lazy_step(y, d, alpha)
+
+    class Plain:  # `made` without `step`: every trial made before the call
+        par = made.par
+
+        def __call__(self, v):
+            return made(v)
+
+        def accept(self):
+            made.accept()
+
+    r1, r2 = lbfgs(lazy, None, **kw), lbfgs(Plain(), None, **kw)
+    assert r1[1] == r2[1] == len(steps) >= 20 and r1[2] == r2[2]
+    for a, b in zip((r1[0], r1[3], r1[4], lazy.points_of(lazy.best)), (r2[0], r2[3], r2[4], made.points_of(made.best)),
+                    strict=True):
+        np.testing.assert_array_equal(a, b)
+    y = lazy.best[0]
+    assert lazy_step(y, np.ones_like(y), 0.0) is lazy.best[2]
+
+
 def test_pytrees_are_registered_when_jax_comes_after_jaxci():
     """A process that imports jaxci first (no JAX) and JAX later: Constraints, Parametrisation, ExtraCells and
     ColouredStars (registered by `_moves`) are JAX pytrees once JAX is imported (`jaxci.runtime._lazy`), and a jitted

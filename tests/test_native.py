@@ -284,6 +284,18 @@ def test_lift_its_transpose_and_the_pullback_in_c_are_numpys():
     xp, hint = fast(x)
     for k in (None, keep):
         np.testing.assert_array_equal(fast.pullback(g, hint, k), ref.pullback(g, hint, k))
+    # a trial point d * alpha + v lifted without being made: numpy's numbers, and how many entries moved
+    d = rng.normal(size=m)
+    d[::5] = 0.0
+    for alpha in (1.0, 0.37, 1e-300, 0.0):
+        t = d * alpha
+        t += v
+        xs, moved = native.lift_step(x0, scale, v, d, alpha, lay)
+        np.testing.assert_array_equal(xs, native.lift(x0, scale, t, lay))
+        assert moved == int(np.sum(t != v))
+    assert moved == 0
+    with pytest.raises(ValueError, match="shapes disagree"):
+        native.lift_step(x0, scale, v, d[:-1], 1.0, lay)
     with pytest.raises(ValueError, match="shapes disagree"):
         native.lift(x0, scale[:-1], v[:-1], lay)
     with pytest.raises(IndexError, match="out of range"):

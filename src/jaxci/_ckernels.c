@@ -1906,41 +1906,58 @@ static int get_layout(Buf *B, Py_ssize_t n, Layout *L, const char *fn) {
 /* The layout's arguments in an Arg table (get_layout's B[0..4]). */
 #define LAYOUT_ARGS {"interior", "qlq"}, {"surface", "qlq"}, {"basis", "d"}, {"edge", "qlq"}, {"tangent", "d"}
 
-/* lift(x0 (n,3) f8, scale (m,) f8, v (m,) f8, interior, surface, basis, edge, tangent, x (n,3) f8 out) -> None:
- * x = x0 + B (scale * v). */
+/* lift(x0 (n,3) f8, scale (m,) f8, v (m,) f8, interior, surface, basis, edge, tangent, x (n,3) f8 out[, d (m,)
+ * f8, alpha]) -> int: x = x0 + B (scale * v); with d, of the trial point d * alpha + v instead (each entry the
+ * product, then the sum, as numpy's ``d * alpha`` then ``+= v``; no trial vector made), and returns how many of
+ * its entries differ from v's (0 without d). */
+static inline double trial_at(const double *V, const double *D, double alpha, Py_ssize_t i) {
+    return D ? D[i] * alpha + V[i] : V[i];
+}
+
 static PyObject *lift(PyObject *self, PyObject *args) {
-    PyObject *o[9], *ret = NULL;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8]))
+    PyObject *o[10] = {NULL}, *ret = NULL;
+    double alpha = 1.0;
+    o[9] = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOO|Od", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8],
+                          &o[9], &alpha))
         return NULL;
-    static const Arg spec[9] = {{"x0", "d"}, {"scale", "d"}, {"v", "d"}, LAYOUT_ARGS, {"x", "d", 1}};
-    Buf B[9] = {{{0}}};
+    static const Arg spec[10] = {{"x0", "d"}, {"scale", "d"}, {"v", "d"}, LAYOUT_ARGS, {"x", "d", 1},
+                                 {"d", "d", 0, 1}};
+    Buf B[10] = {{{0}}};
     Layout L;
-    if (acquire_args(B, o, spec, 9) < 0) goto done;
+    if (acquire_args(B, o, spec, 10) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8;
     if (get_layout(B + 3, n, &L, "lift") < 0) goto done;
-    if (B[8].view.len != B[0].view.len || B[2].view.len != B[1].view.len || m != 3 * L.ni + 2 * L.ns + L.ne) {
+    if (B[8].view.len != B[0].view.len || B[2].view.len != B[1].view.len || m != 3 * L.ni + 2 * L.ns + L.ne ||
+        (B[9].held && B[9].view.len != B[1].view.len)) {
         PyErr_SetString(PyExc_ValueError, "lift: shapes disagree");
         goto done;
     }
     const double *X0 = B[0].view.buf, *SC = B[1].view.buf, *V = B[2].view.buf;
+    const double *D = B[9].held ? B[9].view.buf : NULL;
     double *X = B[8].view.buf;
+    long long moved = 0;
+    if (D)
+        for (Py_ssize_t i = 0; i < m; i++) moved += trial_at(V, D, alpha, i) != V[i];
     memcpy(X, X0, (size_t)B[0].view.len);
     for (Py_ssize_t k = 0; k < L.ni; k++)
-        for (int d = 0; d < 3; d++) X[3 * L.I[k] + d] += SC[3 * k + d] * V[3 * k + d];
-    const double *SCs = SC + 3 * L.ni, *Vs = V + 3 * L.ni;
+        for (int d = 0; d < 3; d++) X[3 * L.I[k] + d] += SC[3 * k + d] * trial_at(V, D, alpha, 3 * k + d);
+    const Py_ssize_t os = 3 * L.ni, oe = os + 2 * L.ns;
+    const double *SCs = SC + os;
     for (Py_ssize_t k = 0; k < L.ns; k++) {
-        double u0 = SCs[2 * k] * Vs[2 * k], u1 = SCs[2 * k + 1] * Vs[2 * k + 1];
+        double u0 = SCs[2 * k] * trial_at(V, D, alpha, os + 2 * k);
+        double u1 = SCs[2 * k + 1] * trial_at(V, D, alpha, os + 2 * k + 1);
         const double *b = L.SB + 6 * k;
         for (int d = 0; d < 3; d++) X[3 * L.S[k] + d] += u0 * b[d] + u1 * b[3 + d];
     }
-    const double *SCe = SCs + 2 * L.ns, *Ve = Vs + 2 * L.ns;
+    const double *SCe = SC + oe;
     for (Py_ssize_t k = 0; k < L.ne; k++) {
-        double u = SCe[k] * Ve[k];
+        double u = SCe[k] * trial_at(V, D, alpha, oe + k);
         for (int d = 0; d < 3; d++) X[3 * L.E[k] + d] += u * L.ET[3 * k + d];
     }
-    ret = Py_NewRef(Py_None);
+    ret = PyLong_FromLongLong(moved);
 done:
-    release(B, 9);
+    release(B, 10);
     return ret;
 }
 

@@ -307,6 +307,16 @@ def lift(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, lay: tuple) -> np.nda
     return x
 
 
+def lift_step(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, d: np.ndarray, alpha: float, lay: tuple
+              ) -> tuple[np.ndarray, int]:
+    """`lift` of the trial point ``d * alpha + v`` (``(n_free,)`` float64 each) without making it: the same
+    numbers as ``t = d * alpha; t += v; lift(x0, scale, t, lay)``. Returns ``(x, moved)``, `moved` the number of
+    the trial point's entries that differ from `v`'s."""
+    x = np.empty_like(x0)
+    moved = _c.lift(x0, scale, _f8(v), *lay, x, _f8(d), float(alpha))
+    return x, int(moved)
+
+
 def lift_t(g: np.ndarray, scale: np.ndarray, lay: tuple) -> np.ndarray:
     """``scale * B^T g`` (`jaxci.optim.parametrisation.lift_transpose_np`): ``(n_free,)`` float64 from the
     gradient `g` ``(n, 3)`` with respect to the node coordinates."""

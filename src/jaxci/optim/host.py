@@ -157,10 +157,14 @@ class HostObjective:
         return entry[1] if entry[1] is not None else self._lift(self._x0, entry[0])
 
     def _points(self, v):
-        """``(x, (hint, keep))``: the coordinates, the projector's triangles and the nodes it left alone
-        (None: nothing projected). A moving boundary node inside its flat region is its own projection: only
-        the others are projected (on a bracket with 79% of its boundary nodes on planes, 4/5 of the work)."""
-        x = self._lift(self._x0, v)
+        """``(x, (hint, keep))``: the coordinates of `v`, the projector's triangles and the nodes it left alone
+        (None: nothing projected), `_placed`."""
+        return self._placed(self._lift(self._x0, v))
+
+    def _placed(self, x):
+        """``(x, (hint, keep))`` of lifted coordinates `x` (projected in place). A moving boundary node inside
+        its flat region is its own projection: only the others are projected (on a bracket with 79% of its
+        boundary nodes on planes, 4/5 of the work)."""
         if self._layout is not None:
             keep = np.zeros(x.shape[0], bool)
             if native.flat_keep(x, self._flat, self._origin, self._r2, keep) == 0 and self.par.shortcut:
@@ -192,7 +196,36 @@ class HostObjective:
         # a rejected trial's arrays (v, points, gradient: 16 MB at 216,000 hexahedra) go before this one's are made;
         # `accept` only ever takes the evaluation just made
         self._last = None
-        x, hint = self._points(v)
+        # `v` itself, not a copy (one vector less at every evaluation: 5 MB at 216,000 hexahedra): `lbfgs` and
+        # `jaxci.optim.newton` never write into an array they have passed here, and a caller of its own must not
+        # either
+        return self._evaluate(v, *self._points(v))
+
+    def step(self, y: np.ndarray, d: np.ndarray, alpha: float):
+        """`__call__` at the trial point ``d * alpha + y`` (its numbers, as numpy makes them) without making it:
+        one vector fewer while the kernel runs (5 MB at 216,000 hexahedra; `lbfgs`' trials). The evaluation
+        holds no point until `settle` gives it the one its caller made (`accept` needs it)."""
+        if self._layout is None:
+            t = d * alpha
+            t += y
+            return self(t)
+        self._last = None
+        x, moved = native.lift_step(self._x0, self._scale, y, d, alpha, self._layout)
+        best = self.best
+        if not moved and best is not None and np.array_equal(best[0], y) and (best[4] is not None
+                                                                               or not self.keep_raw):
+            self._last = best  # the trial point is the accepted iterate: `__call__`'s restart
+            return best[2]
+        return self._evaluate(None, *self._placed(x))
+
+    def settle(self, v: np.ndarray) -> None:
+        """The last evaluation (made by `step`) is at `v`, made by the caller with the same numbers."""
+        if self._last[0] is None:
+            self._last = (v,) + self._last[1:]
+
+    def _evaluate(self, v, x, hint):
+        """The objective at the lifted (and placed) `x` of `v` (`_placed`): ``(value, gradient, F, max kappa/3)``,
+        remembered as the last evaluation."""
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             f, kmax, gx = self.kernel(x)
         if not np.isfinite(f):
@@ -207,9 +240,7 @@ class HostObjective:
         del gx  # the lift's transpose makes a new vector: the projected node gradient goes first (`hvp` keeps the raw)
         gv *= self.s  # in place: the same product as ``self.s * gv``, without a second vector
         out = self.s * f, gv, f, kmax
-        # `v` itself, not a copy (one vector less at every evaluation: 5 MB at 216,000 hexahedra): `lbfgs` and
-        # `jaxci.optim.newton` never write into an array they have passed here, and a caller of its own must not
-        # either; the points only where projected (or for `hvp`), else `points_of` lifts `v` again: the accepted
+        # the points only where projected (or for `hvp`), else `points_of` lifts `v` again: the accepted
         # iterate's points are another vector during every line search, and only its end reads them
         self._last = (v, x if hold_points else None, out, hint, gx_raw if self.keep_raw else None)
         return out
@@ -402,6 +433,8 @@ def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int
     del y0
     value, g, f, k = fun(y)
     accept = getattr(fun, "accept", lambda: None)
+    # a `HostObjective` evaluates a trial without its point made (`HostObjective.step`); any other `fun` at it
+    step = getattr(fun, "step", None)
     hf, hk = [f], [k]
     if g is None:
         return y, 0, "nonfinite", np.asarray(hf), np.asarray(hk)
@@ -423,18 +456,31 @@ def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int
         if deadline is not None and time.perf_counter() > deadline:
             result = "time budget"
             break
-        y_try = trial * alpha
-        y_try += y
-        v_try, g_try, f_try, k_try = fun(y_try)
+        if step is not None:
+            v_try, g_try, f_try, k_try = step(y, trial, alpha)
+        else:
+            y_try = trial * alpha
+            y_try += y
+            v_try, g_try, f_try, k_try = fun(y_try)
         steps += 1
         if g_try is not None and armijo(v_try, value, alpha, slope):
+            if step is not None:
+                # the trial point made now, in the direction's own vector, and the pair in the old gradient's:
+                # four vectors at once here, and while the kernel ran (5 MB each at 216,000 hexahedra)
+                trial *= alpha
+                trial += y
+                y_try = trial
+                fun.settle(y_try)
+                y_pair = mem.stored(np.subtract(g_try, g, out=g))
+                s = np.subtract(y_try, y, out=None if y_pair[0] is g else g)
+            else:
+                y_pair, s = None, y_try - y
             trial = d = None  # dead once a trial is accepted: its memory goes before the pair's temporaries come
-            s = y_try - y
             calm = int(calm_steps(calm, v_try, value, rtol))
             done_here = bool(converged(amax(s), amax(y_try), v_try, value, rtol, atol, alpha, calm))
             s = mem.stored(s)  # a float16 memory's pair: its float64 temporaries one at a time
-            mem.push(s, mem.stored(g_try - g))
-            del s
+            mem.push(s, mem.stored(g_try - g) if y_pair is None else y_pair)
+            del s, y_pair
             y, value, g, f, k = y_try, v_try, g_try, f_try, k_try
             accept()
             alpha, rejected = 1.0, 0
