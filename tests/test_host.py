@@ -402,12 +402,16 @@ def test_an_iterate_keeps_its_points_only_where_it_projected(shape):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("lifted", [False, True])
 @pytest.mark.parametrize("shape", ["box", "annulus"])
-def test_lbfgs_trials_without_their_points_made_take_the_same_steps(shape):
+def test_lbfgs_trials_without_their_points_made_take_the_same_steps(shape, lifted, monkeypatch):
     """`lbfgs` evaluates a `HostObjective`'s trial ``d * alpha + y`` without making it (`HostObjective.step`) and
     makes the accepted one in the direction's vector: the same iterates, histories and points as the same
-    objective called at each trial made (a plain function), on a box (nothing projected) and an annulus; a trial
-    at step 0 is the accepted iterate's evaluation itself, as a call at it is."""
+    objective called at each trial made (a plain function), on a box (nothing projected) and an annulus, also
+    with F's kernel reading the points from the free coordinates (`host.LIFTED_FROM`: where every moving boundary
+    node may stay in its flat region, the box); a trial at step 0 is the accepted iterate's evaluation itself, as
+    a call at it is."""
+    from jaxci.optim import host
     from jaxci.optim.host import HostObjective
 
     mesh = perturb_box(5, amplitude=0.3, seed=3) if shape == "box" else annulus(n_r=3, n_theta=16, n_z=2)
@@ -429,6 +433,12 @@ def test_lbfgs_trials_without_their_points_made_take_the_same_steps(shape):
         def accept(self):
             made.accept()
 
+    if lifted:  # the points read where the kernel needs them, not lifted into an array (large meshes)
+        monkeypatch.setattr(host, "LIFTED_FROM", 0)
+        lazy = HostObjective(par, conn, 1.0)
+        lazy_step = lazy.step
+        lazy.step = lambda y, d, alpha: steps.append(alpha) or lazy_step(y, d, alpha)
+        assert (lazy._slots is not None) == par.shortcut
     r1, r2 = lbfgs(lazy, None, **kw), lbfgs(Plain(), None, **kw)
     assert r1[1] == r2[1] == len(steps) >= 20 and r1[2] == r2[2]
     for a, b in zip((r1[0], r1[3], r1[4], lazy.points_of(lazy.best)), (r2[0], r2[3], r2[4], made.points_of(made.best)),

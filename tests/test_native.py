@@ -296,6 +296,27 @@ def test_lift_its_transpose_and_the_pullback_in_c_are_numpys():
     assert moved == 0
     with pytest.raises(ValueError, match="shapes disagree"):
         native.lift_step(x0, scale, v, d[:-1], 1.0, lay)
+    # the same points read node by node (`lift_nodes`) and where F's kernel reads them (`hex_condition_lifted`)
+    slots = native.lift_slots(lay, len(x0))
+    hexes = np.ascontiguousarray(mesh.hexes, np.int64)
+    some = np.ascontiguousarray(rng.choice(len(x0), 50), np.int64)
+    for step in (None, (d, 0.37)):
+        dd, alpha = step or (None, 1.0)
+        xs, moved = native.lift_step(x0, scale, v, dd, alpha, lay) if step else (native.lift(x0, scale, v, lay), 0)
+        np.testing.assert_array_equal(native.lift_nodes(x0, scale, v, dd, alpha, slots, lay, some)[0], xs[some])
+        assert native.lift_nodes(x0, scale, v, dd, alpha, slots, lay, some)[1] == moved
+        for a, b in zip(native.hex_terms_and_grad_lifted(x0, scale, v, dd, alpha, slots, lay, hexes),
+                        native.hex_terms_and_grad(xs, hexes), strict=True):
+            np.testing.assert_array_equal(a, b)
+    bad = slots.copy()
+    bad[lay[0][0]] += 1  # not an interior node's first coordinate
+    with pytest.raises(IndexError, match="out of range"):
+        native.hex_terms_and_grad_lifted(x0, scale, v, d, 1.0, bad, lay, hexes)
+    # the transpose over the gradient's own buffer: the same numbers
+    gi = g.copy()
+    out = native.lift_t(gi, scale, lay, inplace=True)
+    assert np.shares_memory(out, gi)
+    np.testing.assert_array_equal(out, native.lift_t(g, scale, lay))
     with pytest.raises(ValueError, match="shapes disagree"):
         native.lift(x0, scale[:-1], v[:-1], lay)
     with pytest.raises(IndexError, match="out of range"):

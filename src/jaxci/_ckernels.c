@@ -257,6 +257,7 @@ typedef struct {
     double *S; /* the corners' scaled Jacobians det / (|a| |b| |c|) (8, N), or NULL */
     double level, mu; /* mu > 0: the polish's penalty (hex_condition's docstring) */
     int cell_k; /* > 0: the polish's cell measure of power 2^cell_k in place of the corners' sum (the docstring) */
+    const struct Lifted *L; /* non-NULL: the points are lifted from free coordinates as read (hex_condition_lifted) */
 } HexJob;
 
 /* x^(2^k) by k squarings (the same IEEE operations on every platform). */
@@ -295,6 +296,66 @@ static inline __attribute__((always_inline)) void hex_columns(const double *P, c
         }
 }
 
+/* The trial point's entry i, D[i] * alpha + V[i] (the product, then the sum: numpy's ``d * alpha`` then ``+= v``),
+ * or V[i] without D. */
+static inline __attribute__((always_inline)) double trial_at(const double *V, const double *D, double alpha,
+                                                            Py_ssize_t i) {
+    return D ? D[i] * alpha + V[i] : V[i];
+}
+
+/* Node coordinates lifted from free coordinates where they are read, x0 + B (scale * v) node by node (lift's
+ * numbers, bit for bit), with no (n, 3) array of them: slot[i] is node i's first free coordinate (-1: none, the
+ * node at x0), below os an interior node's three, below oe a surface node's two along its basis row (slot - os) / 2,
+ * else an edge node's one along its tangent row slot - oe. */
+typedef struct Lifted {
+    const double *X0, *SC, *V, *D, *SB, *ET;
+    const int *slot;
+    double alpha;
+    Py_ssize_t os, oe;
+} Lifted;
+
+static inline __attribute__((always_inline)) void lifted_xyz(const Lifted *L, long long i, double out[3]) {
+    const double *x0 = L->X0 + 3 * i;
+    Py_ssize_t s = L->slot[i];
+    if (__builtin_expect(s >= 0 && s < L->os, 1)) {  /* an interior node: most of them */
+        const double *sc = L->SC + s, *v = L->V + s;
+        if (L->D) {
+            const double *dd = L->D + s;
+            for (int d = 0; d < 3; d++) out[d] = x0[d] + sc[d] * (dd[d] * L->alpha + v[d]);
+        } else {
+            for (int d = 0; d < 3; d++) out[d] = x0[d] + sc[d] * v[d];
+        }
+    } else if (s < 0) {
+        for (int d = 0; d < 3; d++) out[d] = x0[d];
+    } else if (s < L->oe) {
+        double u0 = L->SC[s] * trial_at(L->V, L->D, L->alpha, s);
+        double u1 = L->SC[s + 1] * trial_at(L->V, L->D, L->alpha, s + 1);
+        const double *b = L->SB + 3 * (s - L->os);
+        for (int d = 0; d < 3; d++) out[d] = x0[d] + (u0 * b[d] + u1 * b[3 + d]);
+    } else {
+        double u = L->SC[s] * trial_at(L->V, L->D, L->alpha, s);
+        const double *t = L->ET + 3 * (s - L->oe);
+        for (int d = 0; d < 3; d++) out[d] = x0[d] + u * t[d];
+    }
+}
+
+/* hex_columns of lifted points (s = 1). */
+static inline __attribute__((always_inline)) void hex_columns_lifted(const Lifted *L, const long long *h,
+                                                                     double a[3][8], double b[3][8], double c[3][8]) {
+    double X[3][8];
+    for (int k = 0; k < 8; k++) {
+        double p[3];
+        lifted_xyz(L, h[k], p);
+        for (int d = 0; d < 3; d++) X[d][k] = p[d];
+    }
+    for (int d = 0; d < 3; d++)
+        for (int i = 0; i < 8; i++) {
+            a[d][i] = (X[d][NB[i][0]] - X[d][i]) * 1.0;
+            b[d][i] = (X[d][NB[i][1]] - X[d][i]) * 1.0;
+            c[d][i] = (X[d][NB[i][2]] - X[d][i]) * 1.0;
+        }
+}
+
 /* x cross y of corner i (hex_columns' layout): its coordinate d into out[d * stride]. */
 static inline __attribute__((always_inline)) void cross_at(double x[3][8], double y[3][8], int i, double *out,
                                                            int stride) {
@@ -320,7 +381,10 @@ static void *hex_worker(void *arg) {
         const long long *h = H + 8 * e;
         double a[3][8], b[3][8], c[3][8], u[3][8], v[3][8], w[3][8];
         double det[8], fro2[8], adj2[8], idet[8], term[8], w2[8], p[8], q[8], r[8];
-        hex_columns(P, h, 1.0, a, b, c);
+        if (j->L)
+            hex_columns_lifted(j->L, h, a, b, c);
+        else
+            hex_columns(P, h, 1.0, a, b, c);
         for (int i = 0; i < 8; i++) {
             cross_at(b, c, i, &u[0][i], 8); cross_at(c, a, i, &v[0][i], 8); cross_at(a, b, i, &w[0][i], 8);
             det[i] = a[0][i] * u[0][i] + a[1][i] * u[1][i] + a[2][i] * u[2][i];
@@ -1910,10 +1974,6 @@ static int get_layout(Buf *B, Py_ssize_t n, Layout *L, const char *fn) {
  * f8, alpha]) -> int: x = x0 + B (scale * v); with d, of the trial point d * alpha + v instead (each entry the
  * product, then the sum, as numpy's ``d * alpha`` then ``+= v``; no trial vector made), and returns how many of
  * its entries differ from v's (0 without d). */
-static inline double trial_at(const double *V, const double *D, double alpha, Py_ssize_t i) {
-    return D ? D[i] * alpha + V[i] : V[i];
-}
-
 static PyObject *lift(PyObject *self, PyObject *args) {
     PyObject *o[10] = {NULL}, *ret = NULL;
     double alpha = 1.0;
@@ -1969,6 +2029,7 @@ static PyObject *lift_t(PyObject *self, PyObject *args) {
     static const Arg spec[8] = {{"g", "d"}, {"scale", "d"}, LAYOUT_ARGS, {"out", "d", 1}};
     Buf B[8] = {{{0}}};
     Layout L;
+    double *tail = NULL; /* the boundary nodes' entries aside (in place) */
     if (acquire_args(B, o, spec, 8) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8;
     if (get_layout(B + 2, n, &L, "lift_t") < 0) goto done;
@@ -1978,9 +2039,25 @@ static PyObject *lift_t(PyObject *self, PyObject *args) {
     }
     const double *G = B[0].view.buf, *SC = B[1].view.buf;
     double *out = B[7].view.buf;
-    for (Py_ssize_t k = 0; k < L.ni; k++)
-        for (int d = 0; d < 3; d++) out[3 * k + d] = SC[3 * k + d] * G[3 * L.I[k] + d];
-    double *os = out + 3 * L.ni;
+    /* out over g's own buffer (its first m entries: `jaxci.native.lift_t` with inplace): the boundary nodes'
+     * entries first, aside, then the interior nodes' in ascending order, each written at or before the entry it
+     * reads (interior[k] >= k), then the boundary's after them */
+    int inplace = (const double *)out == G;
+    if (inplace) {
+        for (Py_ssize_t k = 1; k < L.ni; k++)
+            if (L.I[k] <= L.I[k - 1]) {
+                PyErr_SetString(PyExc_ValueError, "lift_t: in place needs the interior nodes in ascending order");
+                goto done;
+            }
+        if (!(tail = malloc((size_t)(2 * L.ns + L.ne + 1) * sizeof(double)))) {
+            PyErr_NoMemory();
+            goto done;
+        }
+    } else if ((const char *)out < (const char *)G + B[0].view.len && (const char *)G < (const char *)(out + m)) {
+        PyErr_SetString(PyExc_ValueError, "lift_t: out overlaps g other than at its start");
+        goto done;
+    }
+    double *os = inplace ? tail : out + 3 * L.ni;
     const double *SCs = SC + 3 * L.ni;
     for (Py_ssize_t k = 0; k < L.ns; k++) {
         const double *g = G + 3 * L.S[k], *b = L.SB + 6 * k;
@@ -1994,9 +2071,106 @@ static PyObject *lift_t(PyObject *self, PyObject *args) {
         const double *g = G + 3 * L.E[k], *t = L.ET + 3 * k;
         oe[k] = SCe[k] * (g[0] * t[0] + g[1] * t[1] + g[2] * t[2]);
     }
+    for (Py_ssize_t k = 0; k < L.ni; k++)
+        for (int d = 0; d < 3; d++) out[3 * k + d] = SC[3 * k + d] * G[3 * L.I[k] + d];
+    if (inplace) memcpy(out + 3 * L.ni, tail, (size_t)(2 * L.ns + L.ne) * sizeof(double));
     ret = Py_NewRef(Py_None);
 done:
+    free(tail);
     release(B, 8);
+    return ret;
+}
+
+/* The Lifted source of buffers B[0..5] (x0 (n,3) f8, scale (m,) f8, v (m,) f8, d (m,) f8 or None, slot (n,) i4,
+ * basis (ns,2,3) f8, tangent (ne,3) f8: B[6]) and alpha, every slot checked. */
+static int get_lifted(Buf *B, double alpha, Lifted *L, Py_ssize_t *n_out, const char *fn) {
+    Py_ssize_t n = B[0].view.len / 24, m = B[1].view.len / 8, ns = B[5].view.len / 48, ne = B[6].view.len / 24;
+    Py_ssize_t ni3 = m - 2 * ns - ne;
+    if (B[0].view.len != n * 24 || B[2].view.len != B[1].view.len || (B[3].held && B[3].view.len != B[1].view.len) ||
+        B[4].view.len != n * 4 || B[5].view.len != ns * 48 || B[6].view.len != ne * 24 || ni3 < 0 || ni3 % 3) {
+        PyErr_Format(PyExc_ValueError, "%s: shapes disagree", fn);
+        return -1;
+    }
+    *L = (Lifted){B[0].view.buf, B[1].view.buf, B[2].view.buf, B[3].held ? B[3].view.buf : NULL, B[5].view.buf,
+                  B[6].view.buf, B[4].view.buf, alpha, ni3, ni3 + 2 * ns};
+    for (Py_ssize_t i = 0; i < n; i++) {
+        Py_ssize_t t = L->slot[i];
+        if (!(t == -1 || (t >= 0 && t < L->os && t % 3 == 0) || (t >= L->os && t < L->oe && (t - L->os) % 2 == 0) ||
+              (t >= L->oe && t < m))) {
+            PyErr_Format(PyExc_IndexError, "%s: slot %zd of node %zd out of range", fn, t, i);
+            return -1;
+        }
+    }
+    *n_out = n;
+    return 0;
+}
+
+#define LIFTED_ARGS {"x0", "d"}, {"scale", "d"}, {"v", "d"}, {"d", "d", 0, 1}, {"slot", "i"}, {"basis", "d"}, \
+    {"tangent", "d"}
+
+/* lift_nodes(x0, scale, v, d or None, alpha, slot, basis, tangent, nodes (k,) i8, out (k,3) f8) -> int: out[j] =
+ * the lifted coordinates of node nodes[j] (of the trial point d * alpha + v with d: lift's numbers); returns how
+ * many entries of the trial point differ from v's (0 without d). */
+static PyObject *lift_nodes(PyObject *self, PyObject *args) {
+    PyObject *o[9], *ret = NULL;
+    double alpha;
+    if (!PyArg_ParseTuple(args, "OOOOdOOOOO", &o[0], &o[1], &o[2], &o[3], &alpha, &o[4], &o[5], &o[6], &o[7], &o[8]))
+        return NULL;
+    static const Arg spec[9] = {LIFTED_ARGS, {"nodes", "qlq"}, {"out", "d", 1}};
+    Buf B[9] = {{{0}}};
+    Lifted L;
+    Py_ssize_t n;
+    if (acquire_args(B, o, spec, 9) < 0 || get_lifted(B, alpha, &L, &n, "lift_nodes") < 0) goto done;
+    Py_ssize_t k = B[7].view.len / 8, m = B[1].view.len / 8;
+    if (B[8].view.len != k * 24) {
+        PyErr_SetString(PyExc_ValueError, "lift_nodes: shapes disagree");
+        goto done;
+    }
+    const long long *N = B[7].view.buf;
+    if (check_indices(N, k, n, "lift_nodes") < 0) goto done;
+    double *out = B[8].view.buf;
+    for (Py_ssize_t j = 0; j < k; j++) lifted_xyz(&L, N[j], out + 3 * j);
+    long long moved = 0;
+    if (L.D)
+        for (Py_ssize_t i = 0; i < m; i++) moved += trial_at(L.V, L.D, alpha, i) != L.V[i];
+    ret = PyLong_FromLongLong(moved);
+done:
+    release(B, 9);
+    return ret;
+}
+
+/* hex_condition_lifted(x0, scale, v, d or None, alpha, slot, basis, tangent, hexes (N,8) i8, weight, grad (n,3) f8,
+ * nthreads) -> hex_condition's (sum, max term, inverted corners) with its gradient, of the points lift (lift's
+ * trial point with d) would make, each read where a corner needs it: no (n, 3) array of them (5 MB at 216,000
+ * hexahedra, beside the gradient's, while the kernel runs). */
+static PyObject *hex_condition_lifted(PyObject *self, PyObject *args) {
+    PyObject *o[9], *ret = NULL;
+    double alpha, weight;
+    int nthreads = 1;
+    if (!PyArg_ParseTuple(args, "OOOOdOOOOdO|i", &o[0], &o[1], &o[2], &o[3], &alpha, &o[4], &o[5], &o[6], &o[7],
+                          &weight, &o[8], &nthreads))
+        return NULL;
+    static const Arg spec[9] = {LIFTED_ARGS, {"hexes", "qlq"}, {"grad", "d", 1}};
+    Buf B[9] = {{{0}}};
+    Lifted L;
+    Py_ssize_t n;
+    if (acquire_args(B, o, spec, 9) < 0 || get_lifted(B, alpha, &L, &n, "hex_condition_lifted") < 0) goto done;
+    Py_ssize_t N = B[7].view.len / 64;
+    if (B[7].view.len != N * 64 || B[8].view.len != n * 24) {
+        PyErr_SetString(PyExc_ValueError, "hex_condition_lifted: shapes disagree (hexes (N, 8), grad (n, 3))");
+        goto done;
+    }
+    if (check_indices(B[7].view.buf, 8 * N, n, "hex_condition_lifted") < 0) goto done;
+    HexJob jobs[MAX_THREADS];
+    int nt = threads_for(N, nthreads, MIN_PER_THREAD);
+    for (int t = 0; t < nt; t++)
+        jobs[t] = (HexJob){{0.0, 0.0, 0}, NULL, NULL, B[7].view.buf, NULL, NULL, N, N * t / nt, N * (t + 1) / nt,
+                           weight, NULL, 0.0, 0.0, 0, &L};
+    Nodes nd = {B[7].view.buf, N, 8, 1, 8};
+    if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[8].view.buf, 3 * n, offsetof(HexJob, G), &nd) < 0) goto done;
+    ret = total_sums(jobs, sizeof(HexJob), nt);
+done:
+    release(B, 9);
     return ret;
 }
 
@@ -2146,6 +2320,8 @@ static PyMethodDef methods[] = {
     {"local_sums", local_sums, METH_VARARGS, "local objective sums of trial positions of nodes in their stars"},
     {"ci_visit", ci_visit, METH_VARARGS, "one cohort run of local CI for every node of one colour"},
     {"lift", lift, METH_VARARGS, "node coordinates from scaled free coordinates"},
+    {"lift_nodes", lift_nodes, METH_VARARGS, "some nodes' coordinates from scaled free coordinates"},
+    {"hex_condition_lifted", hex_condition_lifted, METH_VARARGS, "hex_condition of points lifted as read"},
     {"lift_t", lift_t, METH_VARARGS, "a node gradient taken to the scaled free coordinates"},
     {"flat_keep", flat_keep, METH_VARARGS, "which boundary nodes lie inside their flat regions"},
     {"pullback", pullback, METH_VARARGS, "a node gradient through the projection onto planes or lines"},

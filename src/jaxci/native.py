@@ -317,12 +317,57 @@ def lift_step(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, d: np.ndarray, a
     return x, int(moved)
 
 
-def lift_t(g: np.ndarray, scale: np.ndarray, lay: tuple) -> np.ndarray:
+def lift_t(g: np.ndarray, scale: np.ndarray, lay: tuple, inplace: bool = False) -> np.ndarray:
     """``scale * B^T g`` (`jaxci.optim.parametrisation.lift_transpose_np`): ``(n_free,)`` float64 from the
-    gradient `g` ``(n, 3)`` with respect to the node coordinates."""
+    gradient `g` ``(n, 3)`` with respect to the node coordinates; `inplace` (g float64, contiguous, its interior
+    nodes in ascending order): written over g's first ``n_free`` entries and returned as a view of them, the same
+    numbers with no second vector (g is then spent)."""
+    if inplace:
+        out = g.reshape(-1)[: len(scale)]
+        _c.lift_t(g, scale, *lay, out)
+        return out
     out = np.empty_like(scale)
     _c.lift_t(_f8(g), scale, *lay, out)
     return out
+
+
+def lift_slots(lay: tuple, n: int) -> np.ndarray:
+    """Each node's first free coordinate in `lay`'s layout (3 per interior node, then 2 per surface node, then 1
+    per edge node; -1: none), int32 ``(n,)``: the lifted points' source of `hex_terms_and_grad_lifted` and
+    `lift_nodes`."""
+    inter, surf, _, edge, _ = lay
+    slot = np.full(n, -1, np.int32)
+    slot[inter] = 3 * np.arange(len(inter))
+    slot[surf] = 3 * len(inter) + 2 * np.arange(len(surf))
+    slot[edge] = 3 * len(inter) + 2 * len(surf) + np.arange(len(edge))
+    return slot
+
+
+def _lifted(x0, scale, v, d, alpha, slot, lay) -> tuple:
+    """`_c`'s lifted-source arguments."""
+    return x0, scale, _f8(v), None if d is None else _f8(d), float(alpha), slot, lay[2], lay[4]
+
+
+def lift_nodes(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, d: np.ndarray | None, alpha: float,
+               slot: np.ndarray, lay: tuple, nodes: np.ndarray) -> tuple[np.ndarray, int]:
+    """The coordinates ``(k, 3)`` of `nodes` (int64 ``(k,)``) that `lift` (`lift_step` with `d`) would give, and
+    the number of the trial point's entries that differ from `v`'s (0 without `d`); `slot` from `lift_slots`."""
+    out = np.empty((len(nodes), 3))
+    moved = _c.lift_nodes(*_lifted(x0, scale, v, d, alpha, slot, lay), nodes, out)
+    return out, int(moved)
+
+
+def hex_terms_and_grad_lifted(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, d: np.ndarray | None, alpha: float,
+                              slot: np.ndarray, lay: tuple, hexes: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """`hex_terms_and_grad` (F) of the points `lift` (`lift_step` with `d`) would give, each read from the free
+    coordinates where a corner needs it: the same numbers, without an ``(n, 3)`` array of the points (5 MB at
+    216,000 hexahedra while the kernel runs). `slot` from `lift_slots`, `hexes` int64 ``(N, 8)``."""
+    n_corners = 8 * hexes.shape[0]
+    grad = np.zeros_like(x0)
+    weight = 2.0 / (9.0 * n_corners) if n_corners else 0.0
+    s, tmax, bad = _c.hex_condition_lifted(*_lifted(x0, scale, v, d, alpha, slot, lay), hexes, weight, grad, THREADS)
+    f = np.inf if bad else (s / n_corners if n_corners else 0.0)
+    return f, (np.inf if bad else float(np.sqrt(tmax))), grad
 
 
 def flat_keep(x: np.ndarray, nodes: np.ndarray, origin: np.ndarray, r2: np.ndarray, keep: np.ndarray) -> int:

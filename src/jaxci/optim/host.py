@@ -78,6 +78,13 @@ UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 #: meshes is that sensitive; float32 against float64 pairs moved it by -0.85% to +0.16%), the mean element within
 #: 0.07%.
 HISTORY_F16_FROM = 250_000
+#: From this many unknowns a trial whose moving boundary nodes all stay inside their flat regions is evaluated
+#: from its free coordinates, each point lifted where a corner reads it (`HostObjective.step`): no array of the
+#: points beside the gradient's while F's kernel runs, at about 10% more time a kernel pass (each node lifted once
+#: per corner that reads it). Measured 2026-11-30 (AMD EPYC VM, `jaxci smooth` cold, two runs each, outputs
+#: byte-identical): cube60_pert 171.5 -> 166.5-167.5 MB, 5.3-5.6 s either way; the 10^6 box 572 -> 545 MB,
+#: 22.7 -> 23.3-24.1 s. Below it (where the float64 history is kept as well) the time counts for more.
+LIFTED_FROM = HISTORY_F16_FROM
 
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
@@ -133,8 +140,19 @@ class HostObjective:
                                                    np.asarray(self._cons.x_orig, np.float64)[corners]))
         #: the C form of the lift and its transpose (`jaxci.native.layout`), or None (numpy)
         self._layout = native.layout(self._cons) if native.AVAILABLE else None
+        #: the lifted points' source (`jaxci.native.lift_slots`) where the kernel reads them as it goes (F's C
+        #: kernel, `hex_objective_kernel`) and a trial with every node inside its flat region needs no array of
+        #: them (`step`); else None
+        self._slots = None
+        #: whether the lift's transpose may write over the node gradient (`jaxci.native.lift_t` in place)
+        self._t_inplace = False
         if self._layout is not None:
             self._flat = np.ascontiguousarray(self._flat, np.int64)
+            self._t_inplace = not self.keep_raw and bool(np.all(np.diff(self._layout[0]) > 0))
+            if (hasattr(self.kernel, "lifted") and self.par.shortcut and not self.keep_raw
+                    and len(self._scale) >= LIFTED_FROM):
+                self._slots = native.lift_slots(self._layout, len(self._x0))
+                self._flat_rows = np.arange(len(self._flat), dtype=np.int64)
         #: ``(v, points, output, hint, raw gradient)`` of the accepted iterate (`accept`): the projector remembers
         #: each node's last triangle, so the same `v` may land a node on a neighbouring triangle after other
         #: trials; a restart from the accepted iterate and the returned points (`points_of`) are this evaluation's
@@ -210,12 +228,24 @@ class HostObjective:
             t += y
             return self(t)
         self._last = None
-        x, moved = native.lift_step(self._x0, self._scale, y, d, alpha, self._layout)
+        if self._slots is not None:  # the flat regions' nodes first: where all stay inside, no array of the points
+            xs, moved = native.lift_nodes(self._x0, self._scale, y, d, alpha, self._slots, self._layout, self._flat)
+            inside = native.flat_keep(xs, self._flat_rows, self._origin, self._r2,
+                                      np.zeros(len(xs), bool)) == 0
+            x = None
+        else:
+            x, moved = native.lift_step(self._x0, self._scale, y, d, alpha, self._layout)
         best = self.best
         if not moved and best is not None and np.array_equal(best[0], y) and (best[4] is not None
                                                                                or not self.keep_raw):
             self._last = best  # the trial point is the accepted iterate: `__call__`'s restart
             return best[2]
+        if x is None and inside:
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                out = self.kernel.lifted(self._x0, self._scale, y, d, alpha, self._slots, self._layout)
+            return self._evaluate(None, None, None, out)
+        if x is None:
+            x, _ = native.lift_step(self._x0, self._scale, y, d, alpha, self._layout)
         return self._evaluate(None, *self._placed(x))
 
     def settle(self, v: np.ndarray) -> None:
@@ -223,11 +253,13 @@ class HostObjective:
         if self._last[0] is None:
             self._last = (v,) + self._last[1:]
 
-    def _evaluate(self, v, x, hint):
+    def _evaluate(self, v, x, hint, out=None):
         """The objective at the lifted (and placed) `x` of `v` (`_placed`): ``(value, gradient, F, max kappa/3)``,
-        remembered as the last evaluation."""
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            f, kmax, gx = self.kernel(x)
+        remembered as the last evaluation; `out`: the kernel's ``(f, k, grad)`` at it, made already."""
+        if out is None:
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                out = self.kernel(x)
+        f, kmax, gx = out
         if not np.isfinite(f):
             return np.inf, None, f, kmax
         gx_raw = gx
@@ -236,8 +268,8 @@ class HostObjective:
         hold_points = hint is not None or self.keep_raw
         if not hold_points:  # gone before the lift's transpose makes its vector (5 MB at 216,000 hexahedra)
             x = None
-        gv = self._lift_t(gx)
-        del gx  # the lift's transpose makes a new vector: the projected node gradient goes first (`hvp` keeps the raw)
+        gv = self._lift_t(gx, inplace=self._t_inplace and gx.dtype == np.float64 and gx.flags.c_contiguous)
+        del gx  # (where not in place: its new vector made, the projected node gradient goes; `hvp` keeps the raw)
         gv *= self.s  # in place: the same product as ``self.s * gv``, without a second vector
         out = self.s * f, gv, f, kmax
         # the points only where projected (or for `hvp`), else `points_of` lifts `v` again: the accepted
@@ -280,10 +312,11 @@ class HostObjective:
             return native.lift(x0, self._scale, v, self._layout)
         return lift_points(np, x0, self._scale, self._cons, v)
 
-    def _lift_t(self, gx: np.ndarray) -> np.ndarray:
-        """The transpose of `_lift`'s linear part: a node gradient ``(n, 3)`` as one of the free coordinates."""
+    def _lift_t(self, gx: np.ndarray, inplace: bool = False) -> np.ndarray:
+        """The transpose of `_lift`'s linear part: a node gradient ``(n, 3)`` as one of the free coordinates
+        (`inplace`: over `gx`'s own buffer, `jaxci.native.lift_t`, with the C layout)."""
         if self._layout is not None:
-            return native.lift_t(gx, self._scale, self._layout)
+            return native.lift_t(gx, self._scale, self._layout, inplace)
         return lift_transpose_np(self._scale, self._cons, gx)
 
 
@@ -293,7 +326,14 @@ def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callab
     the p-mean objective instead of F."""
     if native.AVAILABLE:
         hexes = np.ascontiguousarray(np.asarray(conn).T, dtype=np.int64)
-        return lambda x: native.hex_terms_and_grad(x, hexes, power)
+
+        def kernel(x):
+            return native.hex_terms_and_grad(x, hexes, power)
+
+        if power is None:  # F's kernel also reads points lifted as it goes (`HostObjective.step`)
+            kernel.lifted = lambda x0, scale, v, d, alpha, slots, lay: native.hex_terms_and_grad_lifted(
+                x0, scale, v, d, alpha, slots, lay, hexes)
+        return kernel
     return lambda x: objective_terms_and_grad_np(x, conn, power)
 
 
