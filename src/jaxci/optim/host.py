@@ -536,6 +536,7 @@ def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int
                 result, stop = "successful", True
             stop = stop or finished(f, k)
         else:
+            g_try = None  # a rejected trial's gradient goes before the next trial's is made (5 MB at 216,000 hexahedra)
             alpha *= DECREASE
             rejected += 1
             stop = rejected >= max_rejected
