@@ -308,3 +308,17 @@ def test_max_move_caps_every_trial_and_saves_line_search_trials(method):
     assert capped[2]["max_condition"][-1] < 1.001 and free[2]["max_condition"][-1] < 1.001
     rejected = [int((np.diff(h["objective"]) == 0).sum()) for h in (capped[2], free[2])]
     assert rejected[0] < rejected[1]
+
+
+def test_the_lbfgs_memory_is_halved_on_large_host_problems_only_where_not_given():
+    """`history_pairs`: 10 pairs by default, 5 on the host engine from `HISTORY_F16_FROM` unknowns (13 MB less at
+    216,000 hexahedra), the JAX engine's 10 at any size, and a given `history_length` as given everywhere."""
+    from jaxci.optim.gradient_params import history_pairs
+    from jaxci.optim.host import HISTORY_F16_FROM, LARGE_HISTORY
+
+    p = GradientParams()
+    assert p.history_length is None and LARGE_HISTORY == 5
+    assert history_pairs(p, HISTORY_F16_FROM - 1) == 10 and history_pairs(p, HISTORY_F16_FROM) == 5
+    assert history_pairs(p) == 10
+    given = GradientParams(history_length=10)
+    assert history_pairs(given, 10 * HISTORY_F16_FROM) == history_pairs(given) == 10

@@ -13,6 +13,7 @@ import optimistix as optx
 from ..errors import ConfigError
 from ..runtime.transfer import program, to_host
 from ._params import MAX_REJECTED_UNCAPPED
+from .gradient_params import history_pairs
 
 
 @program
@@ -104,7 +105,7 @@ def make_solver(method: str, p):
     if method == "bfgs":
         return _capped(optx.BFGS(rtol=p.rtol, atol=p.atol), p.max_move)
     if method == "lbfgs":
-        return _capped(optx.LBFGS(rtol=p.rtol, atol=p.atol, history_length=int(p.history_length)), p.max_move)
+        return _capped(optx.LBFGS(rtol=p.rtol, atol=p.atol, history_length=history_pairs(p)), p.max_move)
     if method == "cg":
         return _capped(optx.NonlinearCG(rtol=p.rtol, atol=p.atol, method=getattr(optx, p.cg_method)), p.max_move)
     if method == "lm":

@@ -95,6 +95,7 @@ from .gradient_params import (  # noqa: F401  (re-exported: the parameters and n
     METHODS,
     OBJECTIVES,
     GradientParams,
+    history_pairs,
 )
 from .host import HOST_MAX, HostObjective, runs_on_host
 from .host import lbfgs as host_lbfgs
@@ -326,7 +327,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             outer, newton_ran = outer + n_outer, True
         elif on_host:
             y, k, result, hf, hk = host_lbfgs(host_fn, y, limit=lbfgs_limit, max_rejected=_max_rejected(method, p),
-                                              rtol=p.rtol, atol=p.atol, history=int(p.history_length),
+                                              rtol=p.rtol, atol=p.atol, history=history_pairs(p, nf),
                                               cap=p.max_move, ftol=p.ftol,
                                               done=lambda f, k: k <= 1.0 + p.ktol, precond=precond,
                                               precond_after=max(after - steps, 0) if precond else 0)
@@ -337,7 +338,7 @@ def minimise(method: str, par: Parametrisation, conn, p: GradientParams = DEFAUL
             consts = np.asarray([p.ftol, 1.0 + p.ktol, p.rtol, p.atol, p.max_move or 0.0], dtype)
             scale = np.asarray(objective_scale(n_hex, extra), dtype)
             static = (float(p.p) if p.objective == "pmean" else None, p.gradient == "closed")
-            loop = functools.partial(lbfgs_loop, max_steps=int(p.max_steps), history=int(p.history_length),
+            loop = functools.partial(lbfgs_loop, max_steps=int(p.max_steps), history=history_pairs(p),
                                      max_rejected=_max_rejected(method, p))
             if p.solver == "newton" and not lbfgs_first:
                 from .newton import newton_loop

@@ -41,6 +41,8 @@ CG_METHODS = ("polak_ribiere", "fletcher_reeves", "hestenes_stiefel", "dai_yuan"
 #: Jacobian (8 N residuals x max_free, 8 bytes each: 10,000 free coordinates of a mesh of ~3,300 hexahedra is
 #: already 2 GB), smart-Laplace presmoothing sweeps.
 MAX_STEPS, MAX_HISTORY, MAX_FREE, MAX_PRESMOOTH = 1_000_000, 1000, 10_000, 100_000
+#: The L-BFGS memory where `GradientParams.history_length` is not given (`history_pairs`).
+DEFAULT_HISTORY = 10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,7 +60,8 @@ class GradientParams:
       figure (0: only at a numerically perfect mesh). On a perturbed 60^3 box after untangling, float32 L-BFGS
       reached max kappa/3 1.000001 at step 38 and then took 67 more steps down to 1.0000002 (F at its float32
       floor, 1.4e-8); float64 L-BFGS took 363 steps in all, F down to 2e-12.
-    - `history_length`: L-BFGS memory, default 10.
+    - `history_length`: L-BFGS memory, in pairs (default None: 10, and on the host engine 5 from
+      `jaxci.optim.host.HISTORY_F16_FROM` unknowns, `history_pairs`).
     - `cg_method`: beta formula of nonlinear CG, one of `CG_METHODS` (default ``"polak_ribiere"``).
     - `scaled`: unknowns in units of the local edge length (default True; False: raw coordinate displacements).
     - `restarts`: most restarts of the solver from its last iterate with a fresh state (default 3; see the module
@@ -140,7 +143,7 @@ class GradientParams:
     atol: float = 1e-6
     ftol: float = 0.0
     ktol: float = 1e-6
-    history_length: int = 10
+    history_length: int | None = None
     cg_method: str = "polak_ribiere"
     scaled: bool = True
     max_free: int = 1000
@@ -174,7 +177,8 @@ class GradientParams:
             atol=_p.real(L, "atol", self.atol, 0),
             ftol=_p.real(L, "ftol", self.ftol, 0),
             ktol=_p.real(L, "ktol", self.ktol, 0),
-            history_length=_p.integer(L, "history_length", self.history_length, 1, MAX_HISTORY),
+            history_length=(None if self.history_length is None
+                            else _p.integer(L, "history_length", self.history_length, 1, MAX_HISTORY)),
             cg_method=_p.choice(L, "cg_method", self.cg_method, CG_METHODS),
             scaled=_p.boolean(L, "scaled", self.scaled),
             max_free=_p.integer(L, "max_free", self.max_free, 1, MAX_FREE),
@@ -214,3 +218,14 @@ class GradientParams:
         if self.rtol + self.atol <= 0:
             raise ConfigError(f"gradient-method parameters rtol and atol must not both be 0, got rtol={self.rtol!r}, "
                               f"atol={self.atol!r}")
+
+
+def history_pairs(p: GradientParams, n_free: int | None = None) -> int:
+    """The L-BFGS memory of `p` (`GradientParams.history_length`) for a problem of `n_free` unknowns on the
+    host engine (None: on the JAX engine): as given, else 10, or `jaxci.optim.host.LARGE_HISTORY` pairs from
+    `jaxci.optim.host.HISTORY_F16_FROM` unknowns."""
+    if p.history_length is not None:
+        return int(p.history_length)
+    from .host import HISTORY_F16_FROM, LARGE_HISTORY
+
+    return LARGE_HISTORY if n_free is not None and n_free >= HISTORY_F16_FROM else DEFAULT_HISTORY

@@ -85,6 +85,15 @@ HISTORY_F16_FROM = 250_000
 #: byte-identical): cube60_pert 171.5 -> 166.5-167.5 MB, 5.3-5.6 s either way; the 10^6 box 572 -> 545 MB,
 #: 22.7 -> 23.3-24.1 s. Below it (where the float64 history is kept as well) the time counts for more.
 LIFTED_FROM = HISTORY_F16_FROM
+#: The L-BFGS memory from `HISTORY_F16_FROM` unknowns where none is given (`jaxci.optim.gradient_params.
+#: history_pairs`): 5 pairs instead of 10, 13 MB less at 216,000 hexahedra (cube60_pert) and 55 MB at 10^6.
+#: Measured 2026-11-30 (AMD EPYC VM, `jaxci smooth` cold, one run each, 10 against 5 pairs): the default pipeline
+#: on a tet-to-hex bracket of 93,792 hexahedra max kappa/3 1.9262 / 1.9253, mean 1.34708 / 1.34551, 22.3 / 23.0 s;
+#: a tet-to-hex sphere of 105,164 1.9304 / 1.9359, 1.33896 / 1.33966, 17.9 / 17.0 s; the 10^6 box 33 / 35 steps to
+#: max kappa/3 1.0000009 / 1.0000008, 23.4 / 21.7 s; `--method lbfgs` on the bracket F 0.80896 / 0.808958 in
+#: 796 / 747 steps, on the sphere F 0.786886 both, 743 / 784 steps. (Below it, on meshes of 7,000 to 25,000
+#: hexahedra, 6 pairs cost 18-26% more steps.)
+LARGE_HISTORY = 5
 
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
