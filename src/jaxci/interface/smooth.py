@@ -241,7 +241,7 @@ def smooth_steps(mesh, method="auto", *, seed=0, dtype="float32", feature_angle=
         points, res = joined.unjoin(unit, solve, points, res)
     moved = (points != unit.points).any(axis=1)
     real = np.array(mesh.points)
-    real[moved] = from_unit(points[moved], frame)
+    real[moved] = from_unit(points[moved], frame, inplace=True)  # (the gathered rows mapped where they are)
     return _finish(res, mesh.with_points(real), t0, auto, method, seed, plan, feature_angle, fix_boundary, shard,
                    notes, clock)
 

@@ -138,21 +138,18 @@ class HexMesh:
         mirrored = self.hex_mirrored
         _check_node_lists(self.face_sets, self.held_nodes, n, where)
         _check_range(pts, hexes, where, self.node_label)
-        det = corner_determinants(to_unit(pts, unit_frame(pts)), hexes)  # no overflow at 1e300, no underflow
-
-        if fix_orientation and (det < 0).all():  # every hexahedron left-handed
+        unit = to_unit(pts, unit_frame(pts))  # no overflow at 1e300, no underflow
+        all_left, scale = _determinant_extent(unit, hexes)  # (the largest |det|)
+        sign = 1.0
+        if fix_orientation and all_left:  # every hexahedron left-handed
             blocks = [_frozen_block(mirrored_block(b)) if b.type == "hexahedron" else b for b in blocks]
             mirrored = not mirrored
             msg = "every hexahedron was left-handed (all corner determinants < 0): node order mirrored to VTK's"
             notes.append(msg)
             warnings.warn(f"{where}{msg}", stacklevel=3)
-            det = -det
-        scale = float(np.maximum(det.max(), -det.min()))  # the largest |det|
-        if scale > 0:  # |det| <= 1e-14 scale, without |det|'s copy
-            degenerate = _rows_any((det <= 1e-14 * scale) & (det >= -1e-14 * scale))
-        else:
-            degenerate = np.ones(len(det), bool)
-        inverted = _rows_any(det <= 0)
+            sign = -1.0
+        degenerate, inverted, bad_corners = _determinant_flags(unit, hexes, scale, sign)
+        del unit
         self.__dict__["_inverted_hexes"] = int(inverted.sum())
         if degenerate.any():
             notes.append(
@@ -161,10 +158,9 @@ class HexMesh:
             )
         if inverted.any():
             notes.append(
-                f"{int(inverted.sum())} inverted hexahedra ({int((det <= 0).sum())} corners with det <= 0), "
+                f"{int(inverted.sum())} inverted hexahedra ({bad_corners} corners with det <= 0), "
                 f"first: element {self._hex_label(blocks, int(np.flatnonzero(inverted)[0]))}"
             )
-        del det
         corners = None
         if unused is None:
             used = _cell_nodes(blocks, n)
@@ -393,6 +389,44 @@ def _cell_nodes(cells, n: int) -> np.ndarray:
     for b in cells:
         used[np.asarray(b.data).ravel()] = True
     return used
+
+
+#: `HexMesh` measures the corner determinants of this many hexahedra at a time (every corner's at once: 14 MB and
+#: as much again of masks at 216,000 hexahedra, the peak of a run's last steps).
+DET_CHUNK = 16_384
+
+
+def _determinant_extent(unit: np.ndarray, hexes: np.ndarray) -> tuple[bool, float]:
+    """``(every corner determinant < 0, the largest |det|)`` of the hexahedra `hexes` at `unit` (``(True,
+    -inf)`` for none), a block of `DET_CHUNK` at a time."""
+    left, top = True, -np.inf
+    for lo in range(0, len(hexes), DET_CHUNK):
+        det = corner_determinants(unit, hexes[lo:lo + DET_CHUNK])
+        left = left and bool((det < 0).all())
+        top = max(top, float(np.maximum(det.max(), -det.min())))
+    return left, top
+
+
+def _determinant_flags(unit: np.ndarray, hexes: np.ndarray, scale: float, sign: float
+                       ) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(degenerate, inverted, corners)`` of the hexahedra: each one's flags (a corner with ``|det| <= 1e-14``
+    `scale`, every one where `scale` is 0; a corner with det <= 0) and the number of corners with det <= 0, of
+    the determinants times `sign` (-1: mirrored)."""
+    degenerate, inverted = np.empty(len(hexes), bool), np.empty(len(hexes), bool)
+    corners = 0
+    for lo in range(0, len(hexes), DET_CHUNK):
+        det = corner_determinants(unit, hexes[lo:lo + DET_CHUNK])
+        if sign < 0:
+            np.negative(det, out=det)
+        rows = slice(lo, lo + len(det))
+        if scale > 0:  # |det| <= 1e-14 scale, without |det|'s copy
+            degenerate[rows] = _rows_any((det <= 1e-14 * scale) & (det >= -1e-14 * scale))
+        else:
+            degenerate[rows] = True
+        bad = det <= 0
+        inverted[rows] = _rows_any(bad)
+        corners += int(bad.sum())
+    return degenerate, inverted, corners
 
 
 def _rows_any(mask: np.ndarray) -> np.ndarray:

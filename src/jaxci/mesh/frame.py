@@ -48,7 +48,11 @@ def to_unit(points: np.ndarray, frame: tuple[np.ndarray, float]) -> np.ndarray:
     return (np.asarray(points, dtype=np.float64) - centre) / scale
 
 
-def from_unit(points: np.ndarray, frame: tuple[np.ndarray, float]) -> np.ndarray:
-    """The inverse of `to_unit`."""
+def from_unit(points: np.ndarray, frame: tuple[np.ndarray, float], inplace: bool = False) -> np.ndarray:
+    """The inverse of `to_unit`; `inplace`: `points` (float64) itself mapped, no new array (the same numbers)."""
     centre, scale = frame
-    return np.asarray(points, dtype=np.float64) * scale + centre
+    if not inplace:
+        return np.asarray(points, dtype=np.float64) * scale + centre
+    points *= scale
+    points += centre
+    return points

@@ -238,8 +238,11 @@ def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = 
     key = np.concatenate([und, hi * n + lo])  # both directions, by (node, neighbour)
     del und, lo, hi
     key.sort()
-    src, dst = np.divmod(key, n)
-    deg = np.bincount(src, minlength=n_nodes)
+    # each node's degree block by block, then the neighbours in the keys' own array (no two more of its size)
+    deg = np.zeros(n_nodes, np.int64)
+    for lo in range(0, len(key), 12 * EDGE_CHUNK):
+        deg += np.bincount(key[lo : lo + 12 * EDGE_CHUNK] // n, minlength=n_nodes)
+    dst = np.remainder(key, n, out=key)
     K = max(int(deg.max(initial=0)), 1)
     mask = np.arange(K) < deg[:, None]  # a node's neighbours, in order, fill the first `deg` entries of its row
     nbr = np.repeat(np.arange(n_nodes, dtype=dtype)[:, None], K, axis=1)
