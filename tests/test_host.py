@@ -352,7 +352,7 @@ def test_lifted_points_skip_the_corner_reset_only_where_it_changes_nothing(use_c
             np.testing.assert_array_equal(fast(v)[1], ref(v)[1])
 
 
-def test_a_solve_inside_the_flat_regions_never_builds_the_projector():
+def test_a_solve_inside_the_flat_regions_never_builds_the_projector(monkeypatch):
     """`HostObjective` makes its boundary projector on first use: a box's moving boundary nodes stay inside their
     flat regions, so a short step never builds it (its search tables were 6 MB at 216,000 hexahedra); a step that
     carries the boundary nodes out of their regions does, and projects them back onto the box."""
@@ -367,6 +367,18 @@ def test_a_solve_inside_the_flat_regions_never_builds_the_projector():
     assert "_project" not in vars(fun)
     far = fun.points(100.0 * np.ones(par.n_free))
     assert "_project" in vars(fun)
+    # where F's kernel reads the lifted points itself (large meshes), the candidate triangles go until a search
+    # needs them, then come back the same
+    from jaxci.optim import host
+
+    cand = np.array(pb.host_cons.surface_cand)
+    monkeypatch.setattr(host, "LIFTED_FROM", 0)
+    lean = HostObjective(make_parametrisation(pb.mesh, pb.info, pb.host_cons, scaled=True),
+                         np.ascontiguousarray(pb.mesh.hexes.T), 1.0)
+    assert lean._slots is not None and "surface_cand" not in vars(lean._cons)
+    assert lean(v)[1] is not None and "surface_cand" not in vars(lean._cons)
+    np.testing.assert_array_equal(lean.points(100.0 * np.ones(par.n_free)), far)
+    np.testing.assert_array_equal(lean._cons.surface_cand, cand)
     bound = np.concatenate([np.asarray(pb.cons.surface_nodes), np.asarray(pb.cons.edge_nodes)])
     lo, hi = np.asarray(pb.mesh.points).min(axis=0), np.asarray(pb.mesh.points).max(axis=0)
     assert np.all(far[bound] >= lo - 1e-12) and np.all(far[bound] <= hi + 1e-12)

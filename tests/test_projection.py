@@ -437,3 +437,28 @@ def test_planar_rings_in_blocks_are_the_whole_computation(monkeypatch):
     assert ((whole[:, 6] == 0) & np.isin(np.arange(mesh.n_nodes), np.asarray(cons.surface_nodes))).any()
     monkeypatch.setattr(_moves, "RING_CHUNK", 7)
     np.testing.assert_array_equal(_moves.planar_rings(np.asarray(mesh.points), info.topology.faces, cons), whole)
+
+
+@pytest.mark.parametrize("name", ["l_block", "bevel20", "annulus", "pave3"])
+def test_dropped_candidates_come_back_the_same(name):
+    """`HostConstraints.drop_candidates` lets the surface nodes' candidate triangles go; the next read makes them
+    again from the boundary faces in the mesh's own numbering (`jaxci.geometry.tables.surface_candidates`): the
+    same numbers as the tables made in the boundary's numbering."""
+    from jaxci.geometry.projection import HostConstraints
+
+    if name == "pave3":
+        if not MESQUITE.exists():
+            pytest.skip(f"{MESQUITE} not found (../shared beside the repository)")
+        from jaxci.io import read_mesh
+
+        mesh = read_mesh(str(MESQUITE / "pave3.e.vtk"))
+        info = classify_boundary(mesh)
+    else:
+        mesh, info, _, _ = setup(name)
+    c = build_constraints(mesh, info, dtype=np.float64, device=False)
+    assert isinstance(c, HostConstraints)
+    cand = np.array(c.surface_cand)
+    c.drop_candidates()
+    assert "surface_cand" not in vars(c)
+    np.testing.assert_array_equal(c.surface_cand, cand)
+    assert c.surface_cand.dtype == np.int32

@@ -92,9 +92,7 @@ def boundary_tables(nodes: np.ndarray, coords: np.ndarray, faces: np.ndarray, fa
     if len(faces_l) and len(surf):
         normals = unit_rows(_node_sums(faces_l, m, surf, face_normals(pts, faces_l), face_patch, group))
     tris, tri_patch = surface_triangles(pts, faces_l, face_patch) if triangles else (None, None)
-    quad_cand = _ring_candidates(faces_l, m, surf, face_patch, group)
-    # (in int32 throughout: an int64 temporary of every candidate was 20 MB at 216,000 hexahedra)
-    tri_cand = (4 * quad_cand[:, :, None] + np.arange(4, dtype=quad_cand.dtype)).reshape(len(quad_cand), -1)
+    tri_cand = surface_candidates(faces_l, m, surf, face_patch, group)
     if len(fedges_l):
         segs, seg_curve = segment_table(pts, fedges_l), edge_curve
     else:
@@ -108,13 +106,25 @@ def boundary_tables(nodes: np.ndarray, coords: np.ndarray, faces: np.ndarray, fa
         corner_points=pts[local(corner_nodes)].reshape(-1, 3),
         surface_basis=_tangent_bases(normals),
         edge_tangent=_edge_tangents(pts, fedges_l, edge),
-        surface_cand=tri_cand.astype(np.int32),
+        surface_cand=tri_cand,
         edge_cand=_ring_candidates(fedges_l, m, edge, edge_curve, group),
         triangles=tris,
         triangle_patch=tri_patch,
         segments=segs,
         segment_curve=np.asarray(seg_curve),
     )
+
+
+def surface_candidates(faces: np.ndarray, n_nodes: int, surface_nodes: np.ndarray, face_patch: np.ndarray,
+                       group: np.ndarray) -> np.ndarray:
+    """`BoundaryTables.surface_cand`: each of `surface_nodes`' candidate triangles (the four of each face of its
+    own patch within its 2-ring of boundary faces), int32 ``(max(ns, 1), K)``; `faces` ``(n_faces, 4)`` of node
+    numbers below `n_nodes`, `face_patch` their patches, `group` ``(n_nodes,)`` each surface node's patch. The same
+    numbers in any numbering of the nodes that keeps their order."""
+    quad_cand = _ring_candidates(faces, n_nodes, surface_nodes, face_patch, group)
+    # (in int32 throughout: an int64 temporary of every candidate was 20 MB at 216,000 hexahedra)
+    out = (4 * quad_cand[:, :, None] + np.arange(4, dtype=quad_cand.dtype)).reshape(len(quad_cand), -1)
+    return out.astype(np.int32, copy=False)
 
 
 def surface_triangles(points: np.ndarray, faces: np.ndarray, face_patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -162,6 +162,10 @@ class HostObjective:
                     and len(self._scale) >= LIFTED_FROM):
                 self._slots = native.lift_slots(self._layout, len(self._x0))
                 self._flat_rows = np.arange(len(self._flat), dtype=np.int64)
+                # nor does it search for a node: the candidate triangles go until a search needs them again
+                # (`jaxci.geometry.projection.HostConstraints.drop_candidates`: made again, the same numbers)
+                if self.projector is None and hasattr(self._cons, "drop_candidates"):
+                    self._cons.drop_candidates()
         #: ``(v, points, output, hint, raw gradient)`` of the accepted iterate (`accept`): the projector remembers
         #: each node's last triangle, so the same `v` may land a node on a neighbouring triangle after other
         #: trials; a restart from the accepted iterate and the returned points (`points_of`) are this evaluation's
