@@ -1942,16 +1942,16 @@ done:
  * numpy's fancy indexing took ~1 ms of a 3 ms L-BFGS step on 2,000 hexahedra. The layout arrays: interior (ni,),
  * surface (ns,), basis (ns, 2, 3), edge (ne,), tangent (ne, 3). */
 typedef struct {
-    const long long *I, *S, *E;
+    const int *I, *S, *E; /* int32: the constraints' own arrays (an int64 copy was 1.7 MB at 216,000 hexahedra) */
     const double *SB, *ET;
     Py_ssize_t ni, ns, ne;
 } Layout;
 
 /* The layout from buffers B[0..4] (interior, surface, basis, edge, tangent), its indices checked against n. */
 static int get_layout(Buf *B, Py_ssize_t n, Layout *L, const char *fn) {
-    L->ni = B[0].view.len / 8;
-    L->ns = B[1].view.len / 8;
-    L->ne = B[3].view.len / 8;
+    L->ni = B[0].view.len / 4;
+    L->ns = B[1].view.len / 4;
+    L->ne = B[3].view.len / 4;
     if (B[2].view.len != L->ns * 48 || B[4].view.len != L->ne * 24) {
         PyErr_Format(PyExc_ValueError, "%s: layout shapes disagree", fn);
         return -1;
@@ -1961,14 +1961,14 @@ static int get_layout(Buf *B, Py_ssize_t n, Layout *L, const char *fn) {
     L->SB = B[2].view.buf;
     L->E = B[3].view.buf;
     L->ET = B[4].view.buf;
-    if (check_indices(L->I, L->ni, n, fn) < 0 || check_indices(L->S, L->ns, n, fn) < 0 ||
-        check_indices(L->E, L->ne, n, fn) < 0)
+    if (check_indices_of(L->I, 4, L->ni, n, fn) < 0 || check_indices_of(L->S, 4, L->ns, n, fn) < 0 ||
+        check_indices_of(L->E, 4, L->ne, n, fn) < 0)
         return -1;
     return 0;
 }
 
 /* The layout's arguments in an Arg table (get_layout's B[0..4]). */
-#define LAYOUT_ARGS {"interior", "qlq"}, {"surface", "qlq"}, {"basis", "d"}, {"edge", "qlq"}, {"tangent", "d"}
+#define LAYOUT_ARGS {"interior", "i"}, {"surface", "i"}, {"basis", "d"}, {"edge", "i"}, {"tangent", "d"}
 
 /* lift(x0 (n,3) f8, scale (m,) f8, v (m,) f8, interior, surface, basis, edge, tangent, x (n,3) f8 out[, d (m,)
  * f8, alpha]) -> int: x = x0 + B (scale * v); with d, of the trial point d * alpha + v instead (each entry the

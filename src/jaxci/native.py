@@ -49,6 +49,10 @@ def _f8(a) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64)
 
 
+def _i4(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int32)
+
+
 def _i8(a) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.int64)
 
@@ -294,8 +298,8 @@ def ci_visit(x: np.ndarray, width: np.ndarray, nodes, hexes, inc, count, basis, 
 def layout(cons) -> tuple:
     """The free-coordinate layout of constraints `cons` (`jaxci.geometry.projection.Constraints`) as the C
     functions below take it: ``(interior (ni,), surface (ns,), basis (ns, 2, 3), edge (ne,), tangent (ne, 3))``,
-    int64 / float64, contiguous (build it once per solve)."""
-    return (_i8(cons.interior_nodes), _i8(cons.surface_nodes), _f8(cons.surface_basis), _i8(cons.edge_nodes),
+    int32 / float64, contiguous (the constraints' own arrays where they are so; build it once per solve)."""
+    return (_i4(cons.interior_nodes), _i4(cons.surface_nodes), _f8(cons.surface_basis), _i4(cons.edge_nodes),
             _f8(cons.edge_tangent))
 
 
