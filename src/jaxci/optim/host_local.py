@@ -140,7 +140,8 @@ def sweep_colours(hexes, cons: Constraints, colour, faces, rings: np.ndarray | N
         srow, erow = rows[0][nodes[a:b]], rows[1][nodes[b:]]
         bound = nodes[a:]
         out.append(_Colour(
-            nodes=nodes, inc=stars.star[nodes].astype(inc_type), count=stars.mask[nodes].sum(axis=1).astype(np.int64),
+            nodes=nodes, inc=stars.star[nodes].astype(inc_type, copy=False),
+            count=stars.mask[nodes].sum(axis=1).astype(np.int64),
             bound_basis=np.asarray(node_bases(cons, bound, rows), np.float64),
             bound_free=(np.arange(3)[None] < dims[bound][:, None]).astype(np.float64), surface_plane=rings[srow],
             a=a, b=b, srow=srow, erow=erow, index=i))
