@@ -303,10 +303,40 @@ static inline __attribute__((always_inline)) double trial_at(const double *V, co
     return D ? D[i] * alpha + V[i] : V[i];
 }
 
-/* Node coordinates lifted from free coordinates where they are read, x0 + B (scale * v) node by node (lift's
- * numbers, bit for bit), with no (n, 3) array of them: slot[i] is node i's first free coordinate (-1: none, the
- * node at x0), below os an interior node's three, below oe a surface node's two along its basis row (slot - os) / 2,
- * else an edge node's one along its tangent row slot - oe. */
+/* One node's coordinates x0 + B (scale * v) (lift's numbers, bit for bit: the product, then the sum), its first
+ * free coordinate s: an interior node's three, a surface node's two along its basis rows b (2, 3), an edge node's
+ * one along its tangent t; of the trial point D * alpha + V with D. */
+static inline __attribute__((always_inline)) void lift_interior_at(const double *x0, const double *SC,
+                                                                  const double *V, const double *D, double alpha,
+                                                                  Py_ssize_t s, double *out) {
+    for (int d = 0; d < 3; d++) out[d] = x0[d] + SC[s + d] * trial_at(V, D, alpha, s + d);
+}
+
+static inline __attribute__((always_inline)) void lift_surface_at(const double *x0, const double *SC, const double *V,
+                                                                 const double *D, double alpha, Py_ssize_t s,
+                                                                 const double *b, double *out) {
+    double u0 = SC[s] * trial_at(V, D, alpha, s), u1 = SC[s + 1] * trial_at(V, D, alpha, s + 1);
+    for (int d = 0; d < 3; d++) out[d] = x0[d] + (u0 * b[d] + u1 * b[3 + d]);
+}
+
+static inline __attribute__((always_inline)) void lift_edge_at(const double *x0, const double *SC, const double *V,
+                                                              const double *D, double alpha, Py_ssize_t s,
+                                                              const double *t, double *out) {
+    double u = SC[s] * trial_at(V, D, alpha, s);
+    for (int d = 0; d < 3; d++) out[d] = x0[d] + u * t[d];
+}
+
+/* How many entries of the trial point D * alpha + V differ from V's (0 without D). */
+static long long trial_moved(const double *V, const double *D, double alpha, Py_ssize_t m) {
+    long long moved = 0;
+    if (D)
+        for (Py_ssize_t i = 0; i < m; i++) moved += trial_at(V, D, alpha, i) != V[i];
+    return moved;
+}
+
+/* Node coordinates lifted from free coordinates where they are read, node by node (the helpers above), with no
+ * (n, 3) array of them: slot[i] is node i's first free coordinate (-1: none, the node at x0), below os an interior
+ * node's, below oe a surface node's (basis row (slot - os) / 2), else an edge node's (tangent row slot - oe). */
 typedef struct Lifted {
     const double *X0, *SC, *V, *D, *SB, *ET;
     const int *slot;
@@ -317,26 +347,14 @@ typedef struct Lifted {
 static inline __attribute__((always_inline)) void lifted_xyz(const Lifted *L, long long i, double out[3]) {
     const double *x0 = L->X0 + 3 * i;
     Py_ssize_t s = L->slot[i];
-    if (__builtin_expect(s >= 0 && s < L->os, 1)) {  /* an interior node: most of them */
-        const double *sc = L->SC + s, *v = L->V + s;
-        if (L->D) {
-            const double *dd = L->D + s;
-            for (int d = 0; d < 3; d++) out[d] = x0[d] + sc[d] * (dd[d] * L->alpha + v[d]);
-        } else {
-            for (int d = 0; d < 3; d++) out[d] = x0[d] + sc[d] * v[d];
-        }
-    } else if (s < 0) {
+    if (__builtin_expect(s >= 0 && s < L->os, 1))  /* an interior node: most of them */
+        lift_interior_at(x0, L->SC, L->V, L->D, L->alpha, s, out);
+    else if (s < 0)
         for (int d = 0; d < 3; d++) out[d] = x0[d];
-    } else if (s < L->oe) {
-        double u0 = L->SC[s] * trial_at(L->V, L->D, L->alpha, s);
-        double u1 = L->SC[s + 1] * trial_at(L->V, L->D, L->alpha, s + 1);
-        const double *b = L->SB + 3 * (s - L->os);
-        for (int d = 0; d < 3; d++) out[d] = x0[d] + (u0 * b[d] + u1 * b[3 + d]);
-    } else {
-        double u = L->SC[s] * trial_at(L->V, L->D, L->alpha, s);
-        const double *t = L->ET + 3 * (s - L->oe);
-        for (int d = 0; d < 3; d++) out[d] = x0[d] + u * t[d];
-    }
+    else if (s < L->oe)
+        lift_surface_at(x0, L->SC, L->V, L->D, L->alpha, s, L->SB + 3 * (s - L->os), out);
+    else
+        lift_edge_at(x0, L->SC, L->V, L->D, L->alpha, s, L->ET + 3 * (s - L->oe), out);
 }
 
 /* hex_columns of lifted points (s = 1). */
@@ -1996,26 +2014,15 @@ static PyObject *lift(PyObject *self, PyObject *args) {
     const double *X0 = B[0].view.buf, *SC = B[1].view.buf, *V = B[2].view.buf;
     const double *D = B[9].held ? B[9].view.buf : NULL;
     double *X = B[8].view.buf;
-    long long moved = 0;
-    if (D)
-        for (Py_ssize_t i = 0; i < m; i++) moved += trial_at(V, D, alpha, i) != V[i];
-    memcpy(X, X0, (size_t)B[0].view.len);
-    for (Py_ssize_t k = 0; k < L.ni; k++)
-        for (int d = 0; d < 3; d++) X[3 * L.I[k] + d] += SC[3 * k + d] * trial_at(V, D, alpha, 3 * k + d);
+    memcpy(X, X0, (size_t)B[0].view.len);  /* the fixed nodes' */
     const Py_ssize_t os = 3 * L.ni, oe = os + 2 * L.ns;
-    const double *SCs = SC + os;
-    for (Py_ssize_t k = 0; k < L.ns; k++) {
-        double u0 = SCs[2 * k] * trial_at(V, D, alpha, os + 2 * k);
-        double u1 = SCs[2 * k + 1] * trial_at(V, D, alpha, os + 2 * k + 1);
-        const double *b = L.SB + 6 * k;
-        for (int d = 0; d < 3; d++) X[3 * L.S[k] + d] += u0 * b[d] + u1 * b[3 + d];
-    }
-    const double *SCe = SC + oe;
-    for (Py_ssize_t k = 0; k < L.ne; k++) {
-        double u = SCe[k] * trial_at(V, D, alpha, oe + k);
-        for (int d = 0; d < 3; d++) X[3 * L.E[k] + d] += u * L.ET[3 * k + d];
-    }
-    ret = PyLong_FromLongLong(moved);
+    for (Py_ssize_t k = 0; k < L.ni; k++)
+        lift_interior_at(X0 + 3 * L.I[k], SC, V, D, alpha, 3 * k, X + 3 * L.I[k]);
+    for (Py_ssize_t k = 0; k < L.ns; k++)
+        lift_surface_at(X0 + 3 * L.S[k], SC, V, D, alpha, os + 2 * k, L.SB + 6 * k, X + 3 * L.S[k]);
+    for (Py_ssize_t k = 0; k < L.ne; k++)
+        lift_edge_at(X0 + 3 * L.E[k], SC, V, D, alpha, oe + k, L.ET + 3 * k, X + 3 * L.E[k]);
+    ret = PyLong_FromLongLong(trial_moved(V, D, alpha, m));
 done:
     release(B, 10);
     return ret;
@@ -2130,10 +2137,7 @@ static PyObject *lift_nodes(PyObject *self, PyObject *args) {
     if (check_indices(N, k, n, "lift_nodes") < 0) goto done;
     double *out = B[8].view.buf;
     for (Py_ssize_t j = 0; j < k; j++) lifted_xyz(&L, N[j], out + 3 * j);
-    long long moved = 0;
-    if (L.D)
-        for (Py_ssize_t i = 0; i < m; i++) moved += trial_at(L.V, L.D, alpha, i) != L.V[i];
-    ret = PyLong_FromLongLong(moved);
+    ret = PyLong_FromLongLong(trial_moved(L.V, L.D, alpha, m));
 done:
     release(B, 9);
     return ret;

@@ -80,10 +80,11 @@ UNTANGLE_HOST_MAX = HOST_MAX if native.AVAILABLE else 60_000
 HISTORY_F16_FROM = 250_000
 #: From this many unknowns a trial whose moving boundary nodes all stay inside their flat regions is evaluated
 #: from its free coordinates, each point lifted where a corner reads it (`HostObjective.step`): no array of the
-#: points beside the gradient's while F's kernel runs, at about 10% more time a kernel pass (each node lifted once
-#: per corner that reads it). Measured 2026-11-30 (AMD EPYC VM, `jaxci smooth` cold, two runs each, outputs
-#: byte-identical): cube60_pert 171.5 -> 166.5-167.5 MB, 5.3-5.6 s either way; the 10^6 box 572 -> 545 MB,
-#: 22.7 -> 23.3-24.1 s. Below it (where the float64 history is kept as well) the time counts for more.
+#: points beside the gradient's while F's kernel runs (each node is lifted once per corner that reads it, and the
+#: candidate triangles go until a search needs them). Measured 2026-11-30 (AMD EPYC VM, outputs byte-identical):
+#: cube60_pert 171.5 -> 166.5-167.5 MB and the 10^6 box 572 -> 545 MB (`jaxci smooth` cold, two runs each); a
+#: trial's evaluation on a perturbed 40^3 box 4.8-5.0 ms either way (four runs each, in process, commit 9ef7fd1
+#: and the lift's helpers shared with the kernel's). Below it the memory is small, and the path stays the plain one.
 LIFTED_FROM = HISTORY_F16_FROM
 #: The L-BFGS memory from `HISTORY_F16_FROM` unknowns where none is given (`jaxci.optim.gradient_params.
 #: history_pairs`): 5 pairs instead of 10, 13 MB less at 216,000 hexahedra (cube60_pert) and 55 MB at 10^6.
