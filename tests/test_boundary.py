@@ -16,7 +16,7 @@ from jaxci.errors import MeshError
 from jaxci.geometry.boundary import CORNER, EDGE, INTERIOR, SURFACE, classify_boundary, face_normals
 from jaxci.geometry.topology import HEX_FACES, boundary_topology, colour_nodes, node_adjacency
 from jaxci.mesh import CellBlock, HexMesh, hex_mesh
-from jaxci.mesh.generate import box
+from jaxci.mesh.generate import box, perturb_box
 from jaxci.mesh.shapes import annulus, bevelled_box, l_block
 
 
@@ -78,6 +78,30 @@ def test_boundary_faces_of_a_box_are_outward(n):
         for f in topo.edge_face[topo.edge_face_ptr[e] : topo.edge_face_ptr[e + 1]]:
             assert e in topo.face_edges[f]
             assert set(topo.edges[e]) <= set(topo.faces[f])
+
+
+@pytest.mark.parametrize("chunk", [1, 5])
+def test_boundary_faces_found_in_blocks_are_the_same(monkeypatch, chunk):
+    """`boundary_topology` makes its face keys `KEY_CHUNK` cells at a time and `group_pairs` compares them in
+    blocks (`jaxci.mesh.sorting._firsts`): the same topology as in one block, on a perturbed box and on a mixed mesh
+    (wedges and tetrahedra beside the hexahedra: triangle faces)."""
+    import jaxci.geometry.topology as T
+    from jaxci.mesh import sorting
+
+    mesh = perturb_box(3, amplitude=0.2, seed=2)
+    n = mesh.n_nodes
+    wedges = np.array([[n, n + 1, n + 2, n + 3, n + 4, n + 5]])
+    tets = np.array([[n + 3, n + 4, n + 5, n + 6]])
+    firsts = sorting._firsts
+    for others, n_nodes in ((None, n), ({"wedge": wedges, "tetra": tets}, n + 7)):
+        monkeypatch.setattr(T, "KEY_CHUNK", 10**9)
+        whole = boundary_topology(mesh.hexes, n_nodes, others)
+        monkeypatch.setattr(T, "KEY_CHUNK", chunk)
+        monkeypatch.setattr(sorting, "_firsts", lambda k1, k2, order, chunk=chunk: firsts(k1, k2, order, chunk))
+        parts = boundary_topology(mesh.hexes, n_nodes, others)
+        monkeypatch.setattr(sorting, "_firsts", firsts)
+        for f in ("faces", "face_hex", "edges", "face_edges", "edge_face_ptr", "edge_face", "face_type", "face_cell"):
+            np.testing.assert_array_equal(getattr(parts, f), getattr(whole, f), err_msg=f)
 
 
 def test_node_adjacency_matches_brute_force():

@@ -87,6 +87,35 @@ def test_some_left_handed_are_inverted_not_reordered():
     assert any("1 inverted hexahedra" in n for n in m.notes)
 
 
+@pytest.mark.parametrize("chunk", [1, 7])
+def test_corner_checks_in_blocks_say_what_one_block_says(monkeypatch, chunk):
+    """`HexMesh` measures its corner determinants `DET_CHUNK` hexahedra at a time: the same notes (inverted,
+    degenerate, mirrored), the same count of inverted hexahedra and the same node order as in one block, on a box
+    with inverted and degenerate elements (7 does not divide its 27) and on one whose hexahedra are all
+    left-handed."""
+    import jaxci.mesh as M
+
+    mesh = perturb_box(3, amplitude=0.3, seed=1)
+    pts = mesh.points.copy()
+    pts[mesh.hexes[13, 6]] = pts[mesh.hexes[13, 0]]  # inverted corners around one interior node
+    flat = unit_cube()
+    flat[4:, 2] = 0.0
+    cases = [(pts, mesh.hexes), (box(2, 2, 1).points, box(2, 2, 1).hexes[:, MIRROR_HEX]),
+             (np.concatenate([pts, flat]), np.concatenate([mesh.hexes, len(pts) + np.arange(8)[None]]))]
+    for p, h in cases:
+        made = []
+        for c in (10**9, chunk):
+            monkeypatch.setattr(M, "DET_CHUNK", c)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                made.append(hex_mesh(p, h))
+        a, b = made
+        assert a.notes == b.notes and a.hex_mirrored == b.hex_mirrored
+        assert a.__dict__["_inverted_hexes"] == b.__dict__["_inverted_hexes"]
+        np.testing.assert_array_equal(a.hexes, b.hexes)
+    assert any("inverted" in n for n in made[1].notes) and any("degenerate" in n for n in made[1].notes)
+
+
 def test_with_points_keeps_everything_but_coordinates():
     m = jaxci.paper_case("cube27", seed=0)
     moved = m.with_points(m.points + 0.0)

@@ -197,7 +197,8 @@ def test_unknown_metric():
 @pytest.mark.parametrize("chunk", [1, 7, 64])
 def test_report_in_blocks_equals_one_block(monkeypatch, chunk):
     """`quality_report` adds up its figures block by block (`REPORT_CHUNK`; 7 and 64 do not divide 125): the
-    same report as one block, with inverted corners and a mixed mesh (a wedge added) too."""
+    same report as one block, with inverted corners and a mixed mesh (a wedge added) too; and `worst_elements`,
+    which finds each cell's worst corner in the same blocks, the same list."""
     import meshio
 
     from jaxci.metrics import report as R
@@ -210,8 +211,10 @@ def test_report_in_blocks_equals_one_block(monkeypatch, chunk):
     for m, pts in ((mesh, None), (mesh, bad), (mixed, None)):
         monkeypatch.setattr(R, "REPORT_CHUNK", 10**9)
         whole = quality_report(m, pts).to_dict()
+        listed = R.worst_elements(m, m.points if pts is None else pts)
         monkeypatch.setattr(R, "REPORT_CHUNK", chunk)
         blocks = quality_report(m, pts).to_dict()
+        assert R.worst_elements(m, m.points if pts is None else pts) == listed  # (also in blocks)
         assert blocks.keys() == whole.keys()
         for k, v in whole.items():
             if isinstance(v, float):

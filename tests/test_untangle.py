@@ -232,3 +232,21 @@ def test_untangle_boundary_from_the_command_line(tmp_path):
     assert not (tmp_path / "a.vtu").exists()
     assert main(["smooth", str(tmp_path / "in.vtu"), str(tmp_path / "b.vtu"), "--untangle-boundary"]) == 0
     assert read_mesh(str(tmp_path / "b.vtu")).n_hexes == 4
+
+
+@pytest.mark.parametrize("chunk", [1, 7])
+def test_the_scaled_min_det_in_blocks_is_one_blocks(monkeypatch, chunk):
+    """The untangling's min det / L^3 (`_scaled_min_det`) is measured `MIN_DET_CHUNK` hexahedra at a time: the same
+    number as in one block (7 does not divide the 64 hexahedra), on a box with an interior node moved through its
+    cell."""
+    from jaxci.optim import untangle as U
+
+    mesh = perturb_box(4, amplitude=0.3, seed=5)
+    lens = U._safe_lengths(U.element_lengths(mesh.points, mesh.hexes))
+    x = np.array(mesh.points, np.float64)
+    x[mesh.hexes[21, 6]] = x[mesh.hexes[21, 0]] - 0.05  # through its cell: inverted corners
+    assert (corner_determinants(x, mesh.hexes) <= 0).any()
+    monkeypatch.setattr(U, "MIN_DET_CHUNK", 10**9)
+    whole = U._scaled_min_det(mesh, x, lens)
+    monkeypatch.setattr(U, "MIN_DET_CHUNK", chunk)
+    assert U._scaled_min_det(mesh, x, lens) == whole < 0
