@@ -2112,8 +2112,14 @@ static int get_lifted(Buf *B, double alpha, Lifted *L, Py_ssize_t *n_out, const 
     return 0;
 }
 
-#define LIFTED_ARGS {"x0", "d"}, {"scale", "d"}, {"v", "d"}, {"d", "d", 0, 1}, {"slot", "i"}, {"basis", "d"}, \
-    {"tangent", "d"}
+/* The arguments o[0..8] of an entry point on lifted points (x0, scale, v, d or None, slot, basis, tangent, then the
+ * two of `tail`) acquired into B[0..8], and their Lifted source: 0, else -1 with the exception set. */
+static int lifted_call(PyObject **o, Buf *B, const Arg *tail, double alpha, Lifted *L, Py_ssize_t *n,
+                       const char *fn) {
+    const Arg spec[9] = {{"x0", "d"}, {"scale", "d"}, {"v", "d"}, {"d", "d", 0, 1}, {"slot", "i"}, {"basis", "d"},
+                         {"tangent", "d"}, tail[0], tail[1]};
+    return acquire_args(B, o, spec, 9) < 0 || get_lifted(B, alpha, L, n, fn) < 0 ? -1 : 0;
+}
 
 /* lift_nodes(x0, scale, v, d or None, alpha, slot, basis, tangent, nodes (k,) i8, out (k,3) f8) -> int: out[j] =
  * the lifted coordinates of node nodes[j] (of the trial point d * alpha + v with d: lift's numbers); returns how
@@ -2123,11 +2129,11 @@ static PyObject *lift_nodes(PyObject *self, PyObject *args) {
     double alpha;
     if (!PyArg_ParseTuple(args, "OOOOdOOOOO", &o[0], &o[1], &o[2], &o[3], &alpha, &o[4], &o[5], &o[6], &o[7], &o[8]))
         return NULL;
-    static const Arg spec[9] = {LIFTED_ARGS, {"nodes", "qlq"}, {"out", "d", 1}};
+    static const Arg tail[2] = {{"nodes", "qlq"}, {"out", "d", 1}};
     Buf B[9] = {{{0}}};
     Lifted L;
     Py_ssize_t n;
-    if (acquire_args(B, o, spec, 9) < 0 || get_lifted(B, alpha, &L, &n, "lift_nodes") < 0) goto done;
+    if (lifted_call(o, B, tail, alpha, &L, &n, "lift_nodes") < 0) goto done;
     Py_ssize_t k = B[7].view.len / 8, m = B[1].view.len / 8;
     if (B[8].view.len != k * 24) {
         PyErr_SetString(PyExc_ValueError, "lift_nodes: shapes disagree");
@@ -2154,11 +2160,11 @@ static PyObject *hex_condition_lifted(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OOOOdOOOOdO|i", &o[0], &o[1], &o[2], &o[3], &alpha, &o[4], &o[5], &o[6], &o[7],
                           &weight, &o[8], &nthreads))
         return NULL;
-    static const Arg spec[9] = {LIFTED_ARGS, {"hexes", "qlq"}, {"grad", "d", 1}};
+    static const Arg tail[2] = {{"hexes", "qlq"}, {"grad", "d", 1}};
     Buf B[9] = {{{0}}};
     Lifted L;
     Py_ssize_t n;
-    if (acquire_args(B, o, spec, 9) < 0 || get_lifted(B, alpha, &L, &n, "hex_condition_lifted") < 0) goto done;
+    if (lifted_call(o, B, tail, alpha, &L, &n, "hex_condition_lifted") < 0) goto done;
     Py_ssize_t N = B[7].view.len / 64;
     if (B[7].view.len != N * 64 || B[8].view.len != n * 24) {
         PyErr_SetString(PyExc_ValueError, "hex_condition_lifted: shapes disagree (hexes (N, 8), grad (n, 3))");
