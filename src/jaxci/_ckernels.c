@@ -281,19 +281,26 @@ static inline __attribute__((always_inline)) double root2k(double x, int k) {
 #define VECTOR_CLONES
 #endif
 
-/* The columns a, b, c of the eight corners of the hexahedron of nodes h (into the points P), times s: the corners
- * side by side (structure of arrays: a[d][i] is coordinate d of corner i's column a), as the loops below take them. */
-static inline __attribute__((always_inline)) void hex_columns(const double *P, const long long *h, double s,
-                                                              double a[3][8], double b[3][8], double c[3][8]) {
-    double X[3][8];
-    for (int k = 0; k < 8; k++)
-        for (int d = 0; d < 3; d++) X[d][k] = P[3 * h[k] + d];
+/* The columns a, b, c of the eight corners of a hexahedron whose node coordinates are X (X[d][k]: coordinate d of
+ * local node k), times s: the corners side by side (structure of arrays: a[d][i] is coordinate d of corner i's
+ * column a), as the loops below take them. */
+static inline __attribute__((always_inline)) void columns_of(double X[3][8], double s, double a[3][8],
+                                                             double b[3][8], double c[3][8]) {
     for (int d = 0; d < 3; d++)
         for (int i = 0; i < 8; i++) {
             a[d][i] = (X[d][NB[i][0]] - X[d][i]) * s;
             b[d][i] = (X[d][NB[i][1]] - X[d][i]) * s;
             c[d][i] = (X[d][NB[i][2]] - X[d][i]) * s;
         }
+}
+
+/* columns_of the hexahedron of nodes h, their coordinates read from the points P. */
+static inline __attribute__((always_inline)) void hex_columns(const double *P, const long long *h, double s,
+                                                              double a[3][8], double b[3][8], double c[3][8]) {
+    double X[3][8];
+    for (int k = 0; k < 8; k++)
+        for (int d = 0; d < 3; d++) X[d][k] = P[3 * h[k] + d];
+    columns_of(X, s, a, b, c);
 }
 
 /* The trial point's entry i, D[i] * alpha + V[i] (the product, then the sum: numpy's ``d * alpha`` then ``+= v``),
@@ -366,12 +373,7 @@ static inline __attribute__((always_inline)) void hex_columns_lifted(const Lifte
         lifted_xyz(L, h[k], p);
         for (int d = 0; d < 3; d++) X[d][k] = p[d];
     }
-    for (int d = 0; d < 3; d++)
-        for (int i = 0; i < 8; i++) {
-            a[d][i] = (X[d][NB[i][0]] - X[d][i]) * 1.0;
-            b[d][i] = (X[d][NB[i][1]] - X[d][i]) * 1.0;
-            c[d][i] = (X[d][NB[i][2]] - X[d][i]) * 1.0;
-        }
+    columns_of(X, 1.0, a, b, c);
 }
 
 /* x cross y of corner i (hex_columns' layout): its coordinate d into out[d * stride]. */

@@ -69,13 +69,10 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
     and the gradient ``(n, 3)`` float64.
     """
     x, h = _f8(points), _i8(hexes)
-    n_corners = 8 * h.shape[0]
-    grad = np.zeros_like(x)
-    weight = 2.0 / (9.0 * n_corners) if n_corners else 0.0
     if power is None:
-        s, tmax, bad = _c.hex_condition(x, h, weight, grad, None, None, THREADS)
-        f = np.inf if bad else (s / n_corners if n_corners else 0.0)
-        return f, (np.inf if bad else float(np.sqrt(tmax))), grad
+        return _mean_terms_and_grad(x, h.shape[0], lambda w, g: _c.hex_condition(x, h, w, g, None, None, THREADS))
+    grad = np.zeros_like(x)
+    weight = _f_weight(h.shape[0])
     terms = np.empty((8, h.shape[0]))
     _c.hex_condition(x, h, 0.0, None, None, terms, THREADS)
     m, c = pmean_weights(np, terms - 1.0, None, float(power))
@@ -306,18 +303,16 @@ def layout(cons) -> tuple:
 def lift(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, lay: tuple) -> np.ndarray:
     """``x0 + B (scale * v)`` (`jaxci.optim.parametrisation.lift_points` with numpy): a new float64 ``(n, 3)``;
     `lay` from `layout`, `x0` float64 ``(n, 3)``, `scale` and `v` ``(n_free,)``."""
-    x = np.empty_like(x0)
-    _c.lift(x0, scale, _f8(v), *lay, x)
-    return x
+    return lift_step(x0, scale, v, None, 1.0, lay)[0]
 
 
-def lift_step(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, d: np.ndarray, alpha: float, lay: tuple
+def lift_step(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, d: np.ndarray | None, alpha: float, lay: tuple
               ) -> tuple[np.ndarray, int]:
     """`lift` of the trial point ``d * alpha + v`` (``(n_free,)`` float64 each) without making it: the same
     numbers as ``t = d * alpha; t += v; lift(x0, scale, t, lay)``. Returns ``(x, moved)``, `moved` the number of
-    the trial point's entries that differ from `v`'s."""
+    the trial point's entries that differ from `v`'s (`v` itself, and 0, without `d`)."""
     x = np.empty_like(x0)
-    moved = _c.lift(x0, scale, _f8(v), *lay, x, _f8(d), float(alpha))
+    moved = _c.lift(x0, scale, _f8(v), *lay, x, None if d is None else _f8(d), float(alpha))
     return x, int(moved)
 
 
@@ -366,10 +361,23 @@ def hex_terms_and_grad_lifted(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, 
     """`hex_terms_and_grad` (F) of the points `lift` (`lift_step` with `d`) would give, each read from the free
     coordinates where a corner needs it: the same numbers, without an ``(n, 3)`` array of the points (5 MB at
     216,000 hexahedra while the kernel runs). `slot` from `lift_slots`, `hexes` int64 ``(N, 8)``."""
-    n_corners = 8 * hexes.shape[0]
-    grad = np.zeros_like(x0)
-    weight = 2.0 / (9.0 * n_corners) if n_corners else 0.0
-    s, tmax, bad = _c.hex_condition_lifted(*_lifted(x0, scale, v, d, alpha, slot, lay), hexes, weight, grad, THREADS)
+    args = _lifted(x0, scale, v, d, alpha, slot, lay)
+    return _mean_terms_and_grad(x0, hexes.shape[0],
+                                lambda w, g: _c.hex_condition_lifted(*args, hexes, w, g, THREADS))
+
+
+def _f_weight(n_hex: int) -> float:
+    """The C passes' gradient weight that makes the sum of the corners' term gradients F's: ``2 / (9 * 8 N)``."""
+    return 2.0 / (9.0 * (8 * n_hex)) if n_hex else 0.0
+
+
+def _mean_terms_and_grad(x: np.ndarray, n_hex: int, run) -> tuple[float, float, np.ndarray]:
+    """F, max kappa/3 and dF/dx of `n_hex` hexahedra from ``(sum of (term - 1), max term, inverted corners) =
+    run(weight, grad)``, a C pass that adds ``weight`` (`_f_weight`) times every corner's term gradient into
+    `grad` (zeros like `x`)."""
+    n_corners = 8 * n_hex
+    grad = np.zeros_like(x)
+    s, tmax, bad = run(_f_weight(n_hex), grad)
     f = np.inf if bad else (s / n_corners if n_corners else 0.0)
     return f, (np.inf if bad else float(np.sqrt(tmax))), grad
 

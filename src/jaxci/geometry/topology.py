@@ -44,11 +44,11 @@ HEX_FACES = np.array(
 )
 
 
-#: The faces of every linear volume cell type (local node indices, outward for a valid cell, triangles padded by
-#: repeating their last node), shape ``(n_faces, 4)``; the types' node orders are `jaxci.metrics.elements`'.
 #: `boundary_topology` makes its face keys this many cells at a time.
 KEY_CHUNK = 16_384
 
+#: The faces of every linear volume cell type (local node indices, outward for a valid cell, triangles padded by
+#: repeating their last node), shape ``(n_faces, 4)``; the types' node orders are `jaxci.metrics.elements`'.
 CELL_FACES = {
     "hexahedron": HEX_FACES,
     "wedge": np.array([[0, 2, 1, 1], [3, 4, 5, 5], [0, 1, 4, 3], [1, 2, 5, 4], [2, 0, 3, 5]], dtype=np.int64),
