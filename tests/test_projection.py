@@ -439,6 +439,22 @@ def test_planar_rings_in_blocks_are_the_whole_computation(monkeypatch):
     np.testing.assert_array_equal(_moves.planar_rings(np.asarray(mesh.points), info.topology.faces, cons), whole)
 
 
+@pytest.mark.parametrize("name", ["l_block", "annulus"])
+def test_candidates_in_blocks_are_one_blocks(monkeypatch, name):
+    """`jaxci.geometry.tables._ring_candidates` makes its rows `RING_BLOCK` nodes at a time: the same rows, the same
+    padding, as every node at once."""
+    from jaxci.geometry import tables
+
+    mesh, info, _, _ = setup(name)
+    whole = build_constraints(mesh, info, dtype=np.float64, device=False)
+    ref = (np.array(whole.surface_cand), np.array(whole.edge_cand))
+    monkeypatch.setattr(tables, "RING_BLOCK", 5)
+    blocks = build_constraints(mesh, info, dtype=np.float64, device=False)
+    np.testing.assert_array_equal(blocks.surface_cand, ref[0])
+    np.testing.assert_array_equal(blocks.edge_cand, ref[1])
+    assert len(ref[0]) > 5 and len(ref[1]) > 5
+
+
 @pytest.mark.parametrize("name", ["l_block", "bevel20", "annulus", "pave3"])
 def test_dropped_candidates_come_back_the_same(name):
     """`HostConstraints.drop_candidates` lets the surface nodes' candidate triangles go; the next read makes them
