@@ -55,6 +55,31 @@ def test_local_sums_equal_the_local_terms_of_the_compiled_sweep(monkeypatch):
     assert np.array_equal(runs[0], runs[1]) and np.isfinite(runs[0]).any()
 
 
+@pytest.mark.parametrize("block", [1, 7, 1 << 14])
+def test_stars_in_blocks_and_of_some_rows_are_the_whole_stars(monkeypatch, block):
+    """`node_stars` sorts the incidences `STAR_BLOCK` elements at a time: the same stars as one sort of every
+    incidence (each node's elements in order); with `rows`, the rows of the whole stars for those nodes, in that
+    order (`sweep_colours`' colours, made without the whole stars)."""
+    from jaxci.optim import _local
+    from jaxci.optim._local import node_stars
+
+    mesh = perturb_box(6, amplitude=0.3, seed=2)
+    hexes, n = mesh.hexes, mesh.n_nodes
+    valence = np.bincount(hexes.ravel(), minlength=n)
+    mask = np.arange(valence.max()) < valence[:, None]
+    ref = np.zeros(mask.shape, np.int64)
+    ref[mask] = np.argsort(hexes.ravel(), kind="stable")  # every incidence at once, grouped by node
+    monkeypatch.setattr(_local, "STAR_BLOCK", block)
+    whole = node_stars(hexes, n, incidences=True)
+    np.testing.assert_array_equal(whole.star, ref)
+    np.testing.assert_array_equal(whole.mask, mask)
+    rows = np.random.default_rng(0).permutation(n)[: n // 3]
+    some = node_stars(hexes, n, incidences=True, rows=rows)
+    np.testing.assert_array_equal(some.star, ref[rows])
+    np.testing.assert_array_equal(some.mask, mask[rows])
+    np.testing.assert_array_equal(node_stars(hexes, n).star, node_stars(hexes.astype(np.int64), n).star)
+
+
 @pytest.mark.shared
 def test_star_incidences_are_the_relabelled_node_lists():
     """The host sweeps' stars are incidences (8 e + s, 8x less memory): `star_nodes` turns them into exactly the

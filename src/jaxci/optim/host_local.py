@@ -119,29 +119,34 @@ def sweep_colours(hexes, cons: Constraints, colour, faces, rings: np.ndarray | N
     cls = np.asarray(cons.node_class)
     n = len(cls)
     colour = np.asarray(colour)
-    stars = node_stars(hexes, n, incidences=True)
     movable = cls != CORNER
     colours = np.unique(colour[movable]) if movable.any() else np.zeros(1, np.int64)
+    by_class = [(c, np.flatnonzero(cls == c)) for c in (INTERIOR, SURFACE, EDGE)]
+    parts = [[ids[colour[ids] == c] for _, ids in by_class] for c in colours]
+    # the stars of the colours' nodes, colour after colour (each colour's rows a view of them), first: their sort's
+    # temporaries (20 MB on cube60_pert) go before the rest is made; the stars of every node and the colours' copies
+    # of their rows were 14 MB at once there
+    stars = node_stars(hexes, n, incidences=True, rows=np.concatenate([np.concatenate(p) for p in parts]))
     rows = node_rows(cons)
     dims = free_dims(cons)
     # the planar rings of the surface nodes alone, in the working dtype's rounding, as the compiled sweep's tables
     if rings is None:
         rings = surface_node_rings(np.asarray(cons.x_orig, np.float64), faces, cons)
     rings = np.asarray(np.asarray(rings).astype(cons.x_orig.dtype), np.float64)
-    by_class = [(c, np.flatnonzero(cls == c)) for c in (INTERIOR, SURFACE, EDGE)]
     inc_type = np.int32 if 8 * len(hexes) < 2**31 else np.int64  # the incidences: half the bytes while they fit
-    out = []
-    for i, c in enumerate(colours):
-        parts = [ids[colour[ids] == c] for _, ids in by_class]
-        nodes = np.concatenate(parts).astype(np.int64)
+    star = stars.star.astype(inc_type, copy=False)
+    out, lo = [], 0
+    for i, part in enumerate(parts):
+        nodes = np.concatenate(part).astype(np.int64)
         if not len(nodes):
             continue
-        a, b = len(parts[0]), len(parts[0]) + len(parts[1])
+        sl = slice(lo, lo + len(nodes))
+        lo += len(nodes)
+        a, b = len(part[0]), len(part[0]) + len(part[1])
         srow, erow = rows[0][nodes[a:b]], rows[1][nodes[b:]]
         bound = nodes[a:]
         out.append(_Colour(
-            nodes=nodes, inc=stars.star[nodes].astype(inc_type, copy=False),
-            count=stars.mask[nodes].sum(axis=1).astype(np.int64),
+            nodes=nodes, inc=star[sl], count=stars.mask[sl].sum(axis=1).astype(np.int64),
             bound_basis=np.asarray(node_bases(cons, bound, rows), np.float64),
             bound_free=(np.arange(3)[None] < dims[bound][:, None]).astype(np.float64), surface_plane=rings[srow],
             a=a, b=b, srow=srow, erow=erow, index=i))
