@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -122,6 +123,35 @@ def test_with_points_keeps_everything_but_coordinates():
     assert moved.cells[0].data is not None and np.array_equal(moved.hexes, m.hexes)
     with pytest.raises(MeshError, match="shape"):
         m.with_points(m.points[:-1])
+
+
+def test_connectivity_is_int32_and_its_keys_do_not_overflow():
+    """The mesh keeps every cell block in int32 (`CONN_DTYPE`), whatever the input's integer type; the C kernels
+    take it as it is and refuse what does not fit. Past 46,341 nodes ``low * n + high`` overflows int32: the
+    topology, the edge neighbours, the stars and the classification are the same from int32 as from int64 there."""
+    from jaxci import native
+    from jaxci.geometry.boundary import classify_boundary
+    from jaxci.geometry.topology import boundary_topology
+    from jaxci.mesh import CONN_DTYPE
+    from jaxci.optim._local import edge_neighbours, node_stars
+
+    m = perturb_box(37, amplitude=0.2, seed=1)  # 54,872 nodes
+    assert m.n_nodes ** 2 > 2**31 and m.hexes.dtype == CONN_DTYPE == np.int32
+    assert all(b.data.dtype == np.int32 for b in m.cells)
+    assert hex_mesh(m.points, m.hexes.astype(np.uint64)).hexes.dtype == np.int32
+    h32, h64 = m.hexes, m.hexes.astype(np.int64)
+    t32, t64 = boundary_topology(h32, m.n_nodes), boundary_topology(h64, m.n_nodes)
+    assert all(np.array_equal(getattr(t32, f), getattr(t64, f)) for f in ("faces", "face_hex", "edges", "face_edges"))
+    for a, b in zip(edge_neighbours(h32, m.n_nodes), edge_neighbours(h64, m.n_nodes), strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(node_stars(h32, m.n_nodes, True).star, node_stars(h64, m.n_nodes, True).star)
+    i32 = classify_boundary(m)
+    i64 = classify_boundary(dataclasses.replace(m, cells=(CellBlock("hexahedron", h64),)))
+    np.testing.assert_array_equal(i32.node_class, i64.node_class)
+    np.testing.assert_array_equal(i32.feature_edges, i64.feature_edges)
+    assert native.hex_objective(m.points, h64) == native.hex_objective(m.points, h32)
+    with pytest.raises(ValueError, match="int32"):
+        native.as_conn(np.array([[0, 2**31]]))
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5])

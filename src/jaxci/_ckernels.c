@@ -91,6 +91,14 @@ static int check_indices(const long long *I, Py_ssize_t count, Py_ssize_t n, con
     return check_indices_of(I, 8, count, n, fn);
 }
 
+/* The node numbers of a connectivity (hexahedra, cells) as every kernel takes them: int32, as jaxci.mesh keeps
+ * them (half the bytes of int64: 6.6 MB at 216,000 hexahedra; a mesh has fewer than 2^31 nodes). */
+typedef int32_t conn_t;
+
+static int check_conn(const conn_t *I, Py_ssize_t count, Py_ssize_t n, const char *fn) {
+    return check_indices_of(I, 4, count, n, fn);
+}
+
 /* What the condition workers add up: sum of (term - 1), max term, inverted corners (first in their jobs). */
 typedef struct {
     double sum, tmax;
@@ -175,9 +183,9 @@ static int threads_for(Py_ssize_t n, int nthreads, Py_ssize_t min_per) {
 /* The nodes of the items (elements, corners) of a call: item i's k-th node is I[i * istride + k * kstride],
  * k < width; `items` of them, split among the threads as the jobs are (items * t / nt). */
 typedef struct {
-    const long long *I;
+    const void *I; /* conn_t, or long long where `wide` */
     Py_ssize_t items, istride, kstride;
-    int width;
+    int width, wide;
 } Nodes;
 
 /* [*lo, *hi): the range of the node numbers of items [a, b) of `nd` (empty: 0, 0). */
@@ -185,7 +193,8 @@ static void node_span(const Nodes *nd, Py_ssize_t a, Py_ssize_t b, Py_ssize_t *l
     long long mn = LLONG_MAX, mx = -1;
     for (Py_ssize_t i = a; i < b; i++)
         for (int k = 0; k < nd->width; k++) {
-            long long v = nd->I[i * nd->istride + k * nd->kstride];
+            Py_ssize_t at = i * nd->istride + k * nd->kstride;
+            long long v = nd->wide ? ((const long long *)nd->I)[at] : ((const conn_t *)nd->I)[at];
             mn = v < mn ? v : mn;
             mx = v > mx ? v : mx;
         }
@@ -250,7 +259,7 @@ static int run_jobs(void *jobs, size_t size, int nt, void *(*worker)(void *), do
 typedef struct {
     Sums s;
     const double *P, *CW;
-    const long long *H;
+    const conn_t *H;
     double *T, *G;
     Py_ssize_t N, lo, hi;
     double weight;
@@ -295,7 +304,7 @@ static inline __attribute__((always_inline)) void columns_of(double X[3][8], dou
 }
 
 /* columns_of the hexahedron of nodes h, their coordinates read from the points P. */
-static inline __attribute__((always_inline)) void hex_columns(const double *P, const long long *h, double s,
+static inline __attribute__((always_inline)) void hex_columns(const double *P, const conn_t *h, double s,
                                                               double a[3][8], double b[3][8], double c[3][8]) {
     double X[3][8];
     for (int k = 0; k < 8; k++)
@@ -365,7 +374,7 @@ static inline __attribute__((always_inline)) void lifted_xyz(const Lifted *L, lo
 }
 
 /* hex_columns of lifted points (s = 1). */
-static inline __attribute__((always_inline)) void hex_columns_lifted(const Lifted *L, const long long *h,
+static inline __attribute__((always_inline)) void hex_columns_lifted(const Lifted *L, const conn_t *h,
                                                                      double a[3][8], double b[3][8], double c[3][8]) {
     double X[3][8];
     for (int k = 0; k < 8; k++) {
@@ -391,14 +400,14 @@ VECTOR_CLONES
 static void *hex_worker(void *arg) {
     HexJob *j = arg;
     const double *P = j->P, *CW = j->CW;
-    const long long *H = j->H;
+    const conn_t *H = j->H;
     double *T = j->T, *G = j->G, *S = j->S, weight = j->weight, sum = 0.0, tmax = 0.0, level = j->level,
            mu = j->mu;
     int cell_k = j->cell_k;
     Py_ssize_t N = j->N;
     long long invalid = 0;
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
-        const long long *h = H + 8 * e;
+        const conn_t *h = H + 8 * e;
         double a[3][8], b[3][8], c[3][8], u[3][8], v[3][8], w[3][8];
         double det[8], fro2[8], adj2[8], idet[8], term[8], w2[8], p[8], q[8], r[8];
         if (j->L)
@@ -483,7 +492,7 @@ static void *hex_worker(void *arg) {
     return NULL;
 }
 
-/* hex_condition(points (n, 3) f8, hexes (N, 8) i8, weight, grad (n, 3) f8 or None, corner_weight (8, N) f8 or
+/* hex_condition(points (n, 3) f8, hexes (N, 8) i4, weight, grad (n, 3) f8 or None, corner_weight (8, N) f8 or
  * None, terms (8, N) f8 or None[, nthreads[, sj (8, N) f8 or None[, level, mu]]]) -> (sum of (term - 1), max term,
  * inverted corners). With `sj`, each corner's scaled Jacobian det / (|a| |b| |c|) (0 where an edge has length 0).
  * With mu > 0 (the worst-element polish's penalty, jaxci.optim.weighted.penalty_kernel, in one pass): the sum is
@@ -495,22 +504,22 @@ static void *hex_worker(void *arg) {
  * term = |A|^2 |adj A|^2 / (9 det^2) = (kappa/3)^2 per corner (inf where det <= 0, in `terms`). With `grad`, adds
  * weight * corner_weight[i, e] * (9/2) d term / d x of every valid corner to it: weight = 2 / (9 * 8N) gives the
  * gradient of F (w2 of jaxci.metrics.hexahedron._terms_and_grad), corner_weight the p-mean's (e_i / M_p)^(p - 1). */
-/* hex_determinants(points (n, 3) f8, hexes (N, 8) i8, out (N, 8) f8) -> None: det A_i of every corner of every
+/* hex_determinants(points (n, 3) f8, hexes (N, 8) i4, out (N, 8) f8) -> None: det A_i of every corner of every
  * hexahedron, with the arithmetic of jaxci.cells.corner_determinants' numpy loop (the same numbers, bit for bit:
  * the same differences, products and sums in the same order; C99 does not contract them into FMAs). */
 static PyObject *hex_determinants(PyObject *self, PyObject *args) {
-    static const Arg spec[3] = {{"points", "d"}, {"hexes", "qlq"}, {"out", "d", 1}};
+    static const Arg spec[3] = {{"points", "d"}, {"hexes", "i"}, {"out", "d", 1}};
     PyObject *o[3], *ret = NULL;
     if (!PyArg_ParseTuple(args, "OOO", &o[0], &o[1], &o[2])) return NULL;
     Buf B[3] = {{{0}}};
     if (acquire_args(B, o, spec, 3) < 0) goto done;
-    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64;
-    if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || B[2].view.len != N * 64) {
+    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 32;
+    if (B[0].view.len != n * 24 || B[1].view.len != N * 32 || B[2].view.len != N * 64) {
         PyErr_SetString(PyExc_ValueError, "hex_determinants: shapes disagree (points (n, 3), hexes (N, 8), out (N, 8))");
         goto done;
     }
-    const long long *H = B[1].view.buf;
-    if (check_indices(H, 8 * N, n, "hex_determinants") < 0) goto done;
+    const conn_t *H = B[1].view.buf;
+    if (check_conn(H, 8 * N, n, "hex_determinants") < 0) goto done;
     const double *P = B[0].view.buf;
     double *D = B[2].view.buf;
     Py_BEGIN_ALLOW_THREADS
@@ -530,7 +539,7 @@ done:
 }
 
 static PyObject *hex_condition(PyObject *self, PyObject *args) {
-    static const Arg spec[6] = {{"points", "d"}, {"hexes", "qlq"}, {"grad", "d", 1, 1}, {"corner_weight", "d", 0, 1},
+    static const Arg spec[6] = {{"points", "d"}, {"hexes", "i"}, {"grad", "d", 1, 1}, {"corner_weight", "d", 0, 1},
                                 {"terms", "d", 1, 1}, {"sj", "d", 1, 1}};
     PyObject *o[6] = {NULL, NULL, NULL, NULL, NULL, Py_None}, *ret = NULL;
     double weight, level = 0.0, mu = 0.0;
@@ -544,21 +553,21 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
     }
     Buf B[6] = {{{0}}};
     if (acquire_args(B, o, spec, 6) < 0) goto done;
-    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64;
-    if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || (B[2].held && B[2].view.len != B[0].view.len) ||
+    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 32;
+    if (B[0].view.len != n * 24 || B[1].view.len != N * 32 || (B[2].held && B[2].view.len != B[0].view.len) ||
         (B[3].held && B[3].view.len != N * 64) || (B[4].held && B[4].view.len != N * 64) ||
         (B[5].held && B[5].view.len != N * 64)) {
         PyErr_SetString(PyExc_ValueError, "hex_condition: shapes disagree (points (n, 3), hexes (N, 8), grad (n, 3), "
                                           "corner_weight, terms and sj (8, N))");
         goto done;
     }
-    if (check_indices(B[1].view.buf, 8 * N, n, "hex_condition") < 0) goto done;
+    if (check_conn(B[1].view.buf, 8 * N, n, "hex_condition") < 0) goto done;
     HexJob jobs[MAX_THREADS];
     int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
         jobs[t] = (HexJob){{0.0, 0.0, 0}, B[0].view.buf, B[3].view.buf, B[1].view.buf, B[4].view.buf, NULL, N,
                            N * t / nt, N * (t + 1) / nt, weight, B[5].view.buf, level, mu, cell_k};
-    Nodes nd = {B[1].view.buf, N, 8, 1, 8};
+    Nodes nd = {B[1].view.buf, N, 8, 1, 8, 0};
     if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[2].view.buf, 3 * n, offsetof(HexJob, G), &nd) < 0) goto done;
     ret = total_sums(jobs, sizeof(HexJob), nt);
 done:
@@ -611,15 +620,15 @@ static void *ffi_worker(void *arg) {
     FfiJob *j = arg;
     const XffiBuffer *C = j->C, *W = j->W;
     Py_ssize_t N = C->dims[1];
-    long long H[8 * FFI_CHUNK];
+    conn_t H[8 * FFI_CHUNK];
     Sums s = {0.0, 0.0, 0};
     for (Py_ssize_t e0 = j->lo; e0 < j->hi; e0 += FFI_CHUNK) {
         Py_ssize_t e1 = e0 + FFI_CHUNK < j->hi ? e0 + FFI_CHUNK : j->hi, real = 0;
         for (Py_ssize_t e = e0; e < e1; e++) {
             if (!(ffi_get(W, e) > 0.0)) continue;
             for (int m = 0; m < 8; m++)
-                H[8 * real + m] = C->dtype == XLA_FFI_DataType_S64 ? ((const int64_t *)C->data)[m * N + e]
-                                                : (long long)((const int32_t *)C->data)[m * N + e];
+                H[8 * real + m] = C->dtype == XLA_FFI_DataType_S64 ? (conn_t)((const int64_t *)C->data)[m * N + e]
+                                                                   : ((const int32_t *)C->data)[m * N + e];
             real++;
         }
         HexJob h = {{0.0, 0.0, 0}, j->P, NULL, H, NULL, j->G, real, 0, real, j->weight, NULL};
@@ -776,7 +785,7 @@ static PyObject *corner_condition(PyObject *self, PyObject *args) {
     for (int t = 0; t < nt; t++)
         jobs[t] = (CornerJob){{0.0, 0.0, 0}, B[0].view.buf, B[2].view.buf, B[1].view.buf, B[4].view.buf, NULL, C,
                               C * t / nt, C * (t + 1) / nt, weight};
-    Nodes nd = {B[1].view.buf, C, 1, C, 4};
+    Nodes nd = {B[1].view.buf, C, 1, C, 4, 1};
     if (run_jobs(jobs, sizeof(CornerJob), nt, corner_worker, B[3].view.buf, 3 * n, offsetof(CornerJob, G), &nd) < 0)
         goto done;
     ret = total_sums(jobs, sizeof(CornerJob), nt);
@@ -787,7 +796,7 @@ done:
 
 typedef struct {
     const double *P, *IL;
-    const long long *H;
+    const conn_t *H;
     double *G;
     Py_ssize_t lo, hi;
     double eps, theta, energy, dmin;
@@ -799,10 +808,10 @@ VECTOR_CLONES
 static void *untangle_worker(void *arg) {
     UntangleJob *j = arg;
     const double *P = j->P, *IL = j->IL;
-    const long long *H = j->H;
+    const conn_t *H = j->H;
     double *G = j->G, theta = j->theta, eps2 = j->eps * j->eps, energy = 0.0, dmin = INFINITY;
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
-        const long long *h = H + 8 * e;
+        const conn_t *h = H + 8 * e;
         double s_ = IL[e], a[3][8], b[3][8], c[3][8], u[3][8];
         double det[8], fro2[8], sq[8], ich[8], c23[8], shape[8], volume[8];
         hex_columns(P, h, s_, a, b, c);
@@ -849,12 +858,12 @@ static void *untangle_worker(void *arg) {
     return NULL;
 }
 
-/* untangle_energy(points (n, 3) f8, hexes (N, 8) i8, inv_len (N,) f8, eps, theta, grad (n, 3) f8 or None)
+/* untangle_energy(points (n, 3) f8, hexes (N, 8) i4, inv_len (N,) f8, eps, theta, grad (n, 3) f8 or None)
  * -> (sum of the corner energies, min det J): the regularised Winslow energy of
  * jaxci.optim._untangle_loop.hex_kernel over the hexahedra's corners, each element's columns scaled by its
  * inv_len (before the division by 32); with `grad`, d(sum)/dx is ADDED to it. */
 static PyObject *untangle_energy(PyObject *self, PyObject *args) {
-    static const Arg spec[4] = {{"points", "d"}, {"hexes", "qlq"}, {"inv_len", "d"}, {"grad", "d", 1, 1}};
+    static const Arg spec[4] = {{"points", "d"}, {"hexes", "i"}, {"inv_len", "d"}, {"grad", "d", 1, 1}};
     PyObject *o[4], *ret = NULL;
     double eps, theta;
     int nthreads = 1;
@@ -862,18 +871,18 @@ static PyObject *untangle_energy(PyObject *self, PyObject *args) {
     Buf B[4] = {{{0}}};
     if (acquire_args(B, o, spec, 4) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, N = B[2].view.len / 8;
-    if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || (B[3].held && B[3].view.len != B[0].view.len)) {
+    if (B[0].view.len != n * 24 || B[1].view.len != N * 32 || (B[3].held && B[3].view.len != B[0].view.len)) {
         PyErr_SetString(PyExc_ValueError, "untangle_energy: shapes disagree (points (n, 3), hexes (N, 8), inv_len "
                                           "(N,), grad (n, 3))");
         goto done;
     }
-    if (check_indices(B[1].view.buf, 8 * N, n, "untangle_energy") < 0) goto done;
+    if (check_conn(B[1].view.buf, 8 * N, n, "untangle_energy") < 0) goto done;
     UntangleJob jobs[MAX_THREADS];
     int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
         jobs[t] = (UntangleJob){B[0].view.buf, B[2].view.buf, B[1].view.buf, NULL, N * t / nt, N * (t + 1) / nt,
                                 eps, theta, 0.0, INFINITY};
-    Nodes nd = {B[1].view.buf, N, 8, 1, 8};
+    Nodes nd = {B[1].view.buf, N, 8, 1, 8, 0};
     if (run_jobs(jobs, sizeof(UntangleJob), nt, untangle_worker, B[3].view.buf, 3 * n, offsetof(UntangleJob, G),
                  &nd) < 0)
         goto done;
@@ -1404,7 +1413,7 @@ done:
  * that element's local node s (jaxci.optim._local.node_stars); rot (8,8) is jaxci.cells.ROTATE_TO_SLOT, which
  * relabels the element so that the node is its local node 0 (8x less memory than the relabelled node lists; the
  * nodes are read through it as each element is set up).
- * local_sums(points (n,3) f8, hexes (N,8) i8, rot (8,8) i8, inc (M,K) i8, count (M,) i8, trials (M,S,3) f8,
+ * local_sums(points (n,3) f8, hexes (N,8) i4, rot (8,8) i8, inc (M,K) i8, count (M,) i8, trials (M,S,3) f8,
  * out (M,S) f8[, nthreads]) -> None: for node slot m with its first count[m] star elements and the node at
  * trials[m, s], out[m, s] = the sum of (kappa/3)^2 over the four corners of each element whose matrix holds slot 0
  * (AFFECTED_CORNERS of jaxci.optim._local), inf if one has det <= 0: jaxci.optim._local.local_terms, one pass.
@@ -1419,14 +1428,15 @@ typedef struct {
 } Elem;
 
 /* The nodes e[0..7] of incidence `inc` (8 x element + local node), relabelled by `rot` so that the node is 0. */
-static inline void star_nodes(const long long *HEX, const long long *ROT, long long inc, long long *e) {
-    const long long *h = HEX + 8 * (inc / 8), *r = ROT + 8 * (inc % 8);
+static inline void star_nodes(const conn_t *HEX, const long long *ROT, long long inc, long long *e) {
+    const conn_t *h = HEX + 8 * (inc / 8);
+    const long long *r = ROT + 8 * (inc % 8);
     for (int j = 0; j < 8; j++) e[j] = h[r[j]];
 }
 
 /* 0 if rot (8,8) holds local nodes, every count[m] is in [0, K] and every incidence inc[m, k < count[m]] names an
  * element of hexes (N,8) whose nodes are in [0, n); else -1 with an IndexError naming the function. */
-static int check_stars(const long long *HEX, Py_ssize_t N, Py_ssize_t n, const long long *ROT, const long long *INC,
+static int check_stars(const conn_t *HEX, Py_ssize_t N, Py_ssize_t n, const long long *ROT, const long long *INC,
                        const long long *CNT, Py_ssize_t M, Py_ssize_t K, const char *fn) {
     for (int k = 0; k < 64; k++)
         if (ROT[k] < 0 || ROT[k] > 7) {
@@ -1444,13 +1454,13 @@ static int check_stars(const long long *HEX, Py_ssize_t N, Py_ssize_t n, const l
                 PyErr_Format(PyExc_IndexError, "%s: incidence %lld out of range [0, %zd)", fn, i, 8 * N);
                 return -1;
             }
-            if (check_indices(HEX + 8 * (i / 8), 8, n, fn) < 0) return -1;
+            if (check_conn(HEX + 8 * (i / 8), 8, n, fn) < 0) return -1;
         }
     }
     return 0;
 }
 
-static void elem_setup(const double *X, const long long *HEX, const long long *ROT, long long inc, Elem *E) {
+static void elem_setup(const double *X, const conn_t *HEX, const long long *ROT, long long inc, Elem *E) {
     long long e[8];
     star_nodes(HEX, ROT, inc, e);
     const double *P1 = X + 3 * e[1], *P2 = X + 3 * e[2], *P3 = X + 3 * e[3], *P4 = X + 3 * e[4],
@@ -1585,7 +1595,8 @@ static void poly_sums(const double *restrict P, Py_ssize_t NP, const double *res
 /* One thread's node slots [lo, hi) of local_sums, with its own work buffers (failed: none could be had). */
 typedef struct {
     const double *X, *TR;
-    const long long *HEX, *ROT, *INC, *CNT;
+    const conn_t *HEX;
+    const long long *ROT, *INC, *CNT;
     double *OUT;
     Py_ssize_t K, S, lo, hi;
     int failed;
@@ -1623,22 +1634,23 @@ static void *local_sums_worker(void *arg) {
 }
 
 static PyObject *local_sums(PyObject *self, PyObject *args) {
-    static const Arg spec[7] = {{"points", "d"}, {"hexes", "qlq"}, {"rot", "qlq"}, {"inc", "qlq"}, {"count", "qlq"},
+    static const Arg spec[7] = {{"points", "d"}, {"hexes", "i"}, {"rot", "qlq"}, {"inc", "qlq"}, {"count", "qlq"},
                                 {"trials", "d"}, {"out", "d", 1}};
     PyObject *o[7], *ret = NULL;
     int nthreads = 1;
     if (!PyArg_ParseTuple(args, "OOOOOOO|i", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &nthreads)) return NULL;
     Buf B[7] = {{{0}}};
     if (acquire_args(B, o, spec, 7) < 0) goto done;
-    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 64, M = B[4].view.len / 8,
+    Py_ssize_t n = B[0].view.len / 24, N = B[1].view.len / 32, M = B[4].view.len / 8,
                S = M ? B[6].view.len / 8 / M : 0, K = M ? B[3].view.len / 8 / M : 0;
-    if (B[0].view.len != n * 24 || B[1].view.len != N * 64 || B[2].view.len != 512 || B[3].view.len != M * K * 8 ||
+    if (B[0].view.len != n * 24 || B[1].view.len != N * 32 || B[2].view.len != 512 || B[3].view.len != M * K * 8 ||
         B[5].view.len != M * S * 24 || B[6].view.len != M * S * 8) {
         PyErr_SetString(PyExc_ValueError, "local_sums: shapes disagree (points (n, 3), hexes (N, 8), rot (8, 8), "
                                           "inc (M, K), count (M,), trials (M, S, 3), out (M, S))");
         goto done;
     }
-    const long long *HEX = B[1].view.buf, *ROT = B[2].view.buf, *INC = B[3].view.buf, *CNT = B[4].view.buf;
+    const conn_t *HEX = B[1].view.buf;
+    const long long *ROT = B[2].view.buf, *INC = B[3].view.buf, *CNT = B[4].view.buf;
     if (check_stars(HEX, N, n, ROT, INC, CNT, M, K, "local_sums") < 0) goto done;
     /* the node slots split into fixed ranges, each slot's sums computed alone: the same numbers on any count */
     int nt = threads_for(M, nthreads, 256);
@@ -1720,7 +1732,9 @@ typedef struct {
 typedef struct {
     double *X, *WIDTH;
     const double *BASIS, *FREE, *PLANE;
-    const long long *NODES, *HEX, *ROT, *INC, *CNT, *ROW, *KIND;
+    const long long *NODES;
+    const conn_t *HEX;
+    const long long *ROT, *INC, *CNT, *ROW, *KIND;
     Cells *cells;
     Py_ssize_t K, lo, hi;
     int C, t, T, n_roulette;
@@ -1735,7 +1749,8 @@ static void *ci_worker(void *arg) {
     CiJob *J = arg;
     double *X = J->X, *WIDTH = J->WIDTH;
     const double *BASIS = J->BASIS, *FREE = J->FREE, *PLANE = J->PLANE;
-    const long long *HEX = J->HEX, *ROT = J->ROT, *INC = J->INC, *CNT = J->CNT, *ROW = J->ROW, *KIND = J->KIND, *NODES = J->NODES;
+    const conn_t *HEX = J->HEX;
+    const long long *ROT = J->ROT, *INC = J->INC, *CNT = J->CNT, *ROW = J->ROW, *KIND = J->KIND, *NODES = J->NODES;
     Cells *cells = J->cells;
     Py_ssize_t K = J->K;
     int C = J->C, t = J->t, T = J->T, n_roulette = J->n_roulette;
@@ -1892,11 +1907,11 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
                                  {"basis", "d"}, {"free", "d"}, {"plane", "d"}, {"row", "qlq"}, {"kind", "qlq"},
                                  {"hint_s", "qlq", 1}, {"hint_e", "qlq", 1}, {"cand_s", "i"}, {"table_s", "d"},
                                  {"spheres_s", "d"}, {"cand_e", "i"}, {"table_e", "d"}, {"spheres_e", "d"},
-                                 {"hexes", "qlq"}, {"rot", "qlq"}};
+                                 {"hexes", "i"}, {"rot", "qlq"}};
     Buf B[20] = {{{0}}};
     if (acquire_args(B, o, spec, 20) < 0) goto done;
     Py_ssize_t n = B[0].view.len / 24, M = B[2].view.len / 8, K = M ? B[3].view.len / 8 / M : 0,
-               N = B[18].view.len / 64;
+               N = B[18].view.len / 32;
     Cells cells[2];
     for (int k = 0; k < 2; k++) {
         Buf *c = &B[12 + 3 * k];
@@ -1917,12 +1932,13 @@ static PyObject *ci_visit(PyObject *self, PyObject *args) {
     }
     if (B[0].view.len != n * 24 || B[1].view.len != n * 8 || B[3].view.len != M * K * 8 || B[4].view.len != M * 8 ||
         B[5].view.len != M * 72 || B[6].view.len != M * 24 || B[7].view.len != M * 56 || B[8].view.len != M * 8 ||
-        B[9].view.len != M * 8 || B[18].view.len != N * 64 || B[19].view.len != 512 || C < 1 || t < 1 || T < 0) {
+        B[9].view.len != M * 8 || B[18].view.len != N * 32 || B[19].view.len != 512 || C < 1 || t < 1 || T < 0) {
         PyErr_SetString(PyExc_ValueError, "ci_visit: shapes disagree");
         goto done;
     }
     const long long *NODES = B[2].view.buf, *INC = B[3].view.buf, *CNT = B[4].view.buf, *ROW = B[8].view.buf,
-                    *KIND = B[9].view.buf, *HEX = B[18].view.buf, *ROT = B[19].view.buf;
+                    *KIND = B[9].view.buf, *ROT = B[19].view.buf;
+    const conn_t *HEX = B[18].view.buf;
     if (check_indices(NODES, M, n, "ci_visit") < 0 || check_stars(HEX, N, n, ROT, INC, CNT, M, K, "ci_visit") < 0)
         goto done;
     for (Py_ssize_t m = 0; m < M; m++) {
@@ -2151,7 +2167,7 @@ done:
     return ret;
 }
 
-/* hex_condition_lifted(x0, scale, v, d or None, alpha, slot, basis, tangent, hexes (N,8) i8, weight, grad (n,3) f8,
+/* hex_condition_lifted(x0, scale, v, d or None, alpha, slot, basis, tangent, hexes (N,8) i4, weight, grad (n,3) f8,
  * nthreads) -> hex_condition's (sum, max term, inverted corners) with its gradient, of the points lift (lift's
  * trial point with d) would make, each read where a corner needs it: no (n, 3) array of them (5 MB at 216,000
  * hexahedra, beside the gradient's, while the kernel runs). */
@@ -2162,23 +2178,23 @@ static PyObject *hex_condition_lifted(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OOOOdOOOOdO|i", &o[0], &o[1], &o[2], &o[3], &alpha, &o[4], &o[5], &o[6], &o[7],
                           &weight, &o[8], &nthreads))
         return NULL;
-    static const Arg tail[2] = {{"hexes", "qlq"}, {"grad", "d", 1}};
+    static const Arg tail[2] = {{"hexes", "i"}, {"grad", "d", 1}};
     Buf B[9] = {{{0}}};
     Lifted L;
     Py_ssize_t n;
     if (lifted_call(o, B, tail, alpha, &L, &n, "hex_condition_lifted") < 0) goto done;
-    Py_ssize_t N = B[7].view.len / 64;
-    if (B[7].view.len != N * 64 || B[8].view.len != n * 24) {
+    Py_ssize_t N = B[7].view.len / 32;
+    if (B[7].view.len != N * 32 || B[8].view.len != n * 24) {
         PyErr_SetString(PyExc_ValueError, "hex_condition_lifted: shapes disagree (hexes (N, 8), grad (n, 3))");
         goto done;
     }
-    if (check_indices(B[7].view.buf, 8 * N, n, "hex_condition_lifted") < 0) goto done;
+    if (check_conn(B[7].view.buf, 8 * N, n, "hex_condition_lifted") < 0) goto done;
     HexJob jobs[MAX_THREADS];
     int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
         jobs[t] = (HexJob){{0.0, 0.0, 0}, NULL, NULL, B[7].view.buf, NULL, NULL, N, N * t / nt, N * (t + 1) / nt,
                            weight, NULL, 0.0, 0.0, 0, &L};
-    Nodes nd = {B[7].view.buf, N, 8, 1, 8};
+    Nodes nd = {B[7].view.buf, N, 8, 1, 8, 0};
     if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[8].view.buf, 3 * n, offsetof(HexJob, G), &nd) < 0) goto done;
     ret = total_sums(jobs, sizeof(HexJob), nt);
 done:
@@ -2265,27 +2281,28 @@ done:
 }
 
 /* ------------------------------------------------------------------------------------------ colouring
- * greedy_colour(cells (N,k) i8, n, colour (n,) i8) -> None: the first-fit colouring of the nodes in index order
+ * greedy_colour(cells (N,k) i4, n, colour (n,) i8) -> None: the first-fit colouring of the nodes in index order
  * (jaxci.geometry.topology.colour_nodes): node v takes the smallest colour that no lower-numbered node sharing a
  * cell with it has. The same colours as the numpy rounds (Jones-Plassmann with the index as priority), one pass. */
 static PyObject *greedy_colour(PyObject *self, PyObject *args) {
-    static const Arg spec[2] = {{"cells", "qlq"}, {"colour", "qlq", 1}};
+    static const Arg spec[2] = {{"cells", "i"}, {"colour", "qlq", 1}};
     PyObject *o[2], *ret = NULL;
     Py_ssize_t n, k;
     if (!PyArg_ParseTuple(args, "OnnO", &o[0], &n, &k, &o[1])) return NULL;
     Buf B[2] = {{{0}}};
-    long long *start = NULL, *inc = NULL, *mark = NULL;
+    long long *start = NULL, *mark = NULL;
+    int32_t *inc = NULL; /* the cells around each node (fewer than 2^31 cells) */
     if (acquire_args(B, o, spec, 2) < 0) goto done;
-    Py_ssize_t N = k > 0 ? B[0].view.len / 8 / k : 0;
-    if (k < 1 || n < 0 || B[0].view.len != N * k * 8 || B[1].view.len != n * 8) {
+    Py_ssize_t N = k > 0 ? B[0].view.len / 4 / k : 0;
+    if (k < 1 || n < 0 || B[0].view.len != N * k * 4 || B[1].view.len != n * 8 || N >= INT32_MAX) {
         PyErr_SetString(PyExc_ValueError, "greedy_colour: shapes disagree (cells (N, k), colour (n,))");
         goto done;
     }
-    const long long *CELL = B[0].view.buf;
+    const conn_t *CELL = B[0].view.buf;
     long long *COL = B[1].view.buf;
-    if (check_indices(CELL, N * k, n, "greedy_colour") < 0) goto done;
+    if (check_conn(CELL, N * k, n, "greedy_colour") < 0) goto done;
     start = calloc((size_t)n + 1, sizeof(long long));
-    inc = malloc(sizeof(long long) * (size_t)(N * k > 0 ? N * k : 1));
+    inc = malloc(sizeof(int32_t) * (size_t)(N * k > 0 ? N * k : 1));
     mark = malloc(sizeof(long long) * (size_t)(n + 1));
     if (!start || !inc || !mark) {
         PyErr_NoMemory();
@@ -2294,13 +2311,13 @@ static PyObject *greedy_colour(PyObject *self, PyObject *args) {
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t i = 0; i < N * k; i++) start[CELL[i] + 1]++;
     for (Py_ssize_t v = 0; v < n; v++) start[v + 1] += start[v];
-    for (Py_ssize_t i = 0; i < N * k; i++) inc[start[CELL[i]]++] = i / k; /* start[v] becomes v's end */
+    for (Py_ssize_t i = 0; i < N * k; i++) inc[start[CELL[i]]++] = (int32_t)(i / k); /* start[v] becomes v's end */
     for (Py_ssize_t v = n; v > 0; v--) start[v] = start[v - 1];
     start[0] = 0;
     for (Py_ssize_t c = 0; c <= n; c++) mark[c] = -1;
     for (Py_ssize_t v = 0; v < n; v++) {
         for (long long j = start[v]; j < start[v + 1]; j++) {
-            const long long *cell = CELL + inc[j] * k;
+            const conn_t *cell = CELL + (Py_ssize_t)inc[j] * k;
             for (Py_ssize_t q = 0; q < k; q++)
                 if (cell[q] < v) mark[COL[cell[q]]] = v;
         }

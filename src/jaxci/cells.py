@@ -207,7 +207,7 @@ def corner_determinants(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
     c = load_c_kernels()
     if c is not None and h.ndim == 2 and h.shape[1] == 8 and p.ndim == 2 and p.shape[1] == 3:
         out = np.empty((h.shape[0], 8))
-        c.hex_determinants(np.ascontiguousarray(p), np.ascontiguousarray(h, dtype=np.int64), out)
+        c.hex_determinants(np.ascontiguousarray(p), np.ascontiguousarray(h, dtype=np.int32), out)
         return out
     X, Y, Z = (np.ascontiguousarray(p[:, d][h.T]) for d in range(3))  # (8, N) each: one row per local node
     out = np.empty((h.shape[0], 8))

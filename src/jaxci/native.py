@@ -7,7 +7,8 @@ loop over the elements, a corner's quantities in registers (measured 2026-11-24,
 built at install time (`setup.py`, optional: without a C compiler the install succeeds and `AVAILABLE` is False,
 so the numpy kernels run); ``JAXCI_NATIVE=0`` turns it off (for comparisons).
 
-Arrays: float64 C-contiguous coordinates ``(n, 3)``; node indices int64.
+Arrays: float64 C-contiguous coordinates ``(n, 3)``; a connectivity (hexahedra, cells) int32 (`as_conn`: as
+`jaxci.mesh.HexMesh` keeps it), other node indices int64.
 """
 
 from __future__ import annotations
@@ -57,6 +58,15 @@ def _i8(a) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.int64)
 
 
+def as_conn(a) -> np.ndarray:
+    """A connectivity as the C kernels take it: int32, C-contiguous (no copy where it is one already, as
+    `jaxci.mesh.HexMesh.hexes` is); a wider array is checked to fit first."""
+    a = np.asarray(a)
+    if a.dtype != np.int32 and a.size and (a.max() > np.iinfo(np.int32).max or a.min() < 0):
+        raise ValueError(f"node numbers up to {int(a.max())} do not fit the C kernels' int32 connectivity")
+    return np.ascontiguousarray(a, dtype=np.int32)
+
+
 def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | None = None
                        ) -> tuple[float, float, np.ndarray]:
     """``(F, max kappa/3, dF/dx)`` of the hexahedra, as `jaxci.metrics.hexahedron.objective_terms_and_grad_np`.
@@ -68,7 +78,7 @@ def hex_terms_and_grad(points: np.ndarray, hexes: np.ndarray, power: float | Non
     **Returns:** F (``inf`` if a corner has det <= 0: the gradient then leaves those corners out), max kappa/3,
     and the gradient ``(n, 3)`` float64.
     """
-    x, h = _f8(points), _i8(hexes)
+    x, h = _f8(points), as_conn(hexes)
     if power is None:
         return _mean_terms_and_grad(x, h.shape[0], lambda w, g: _c.hex_condition(x, h, w, g, None, None, THREADS))
     grad = np.zeros_like(x)
@@ -116,7 +126,7 @@ class MixedKernel:
     """
 
     def __init__(self, blocks: dict):
-        self.hexes = _i8(blocks.get("hexahedron", np.zeros((0, 8))))
+        self.hexes = as_conn(blocks.get("hexahedron", np.zeros((0, 8))))
         extra = {t: np.asarray(c, dtype=np.int64) for t, c in blocks.items() if t != "hexahedron" and len(c)}
         #: per type, its corners as a flat corner table with its W^-1 (objective terms)
         self.extra = [(corner_table(c, KERNELS[t].corners), _f8(KERNELS[t].winv)) for t, c in extra.items()]
@@ -147,7 +157,7 @@ _EYE = np.eye(3)
 def hex_sums(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float, int]:
     """``(sum of (kappa/3)^2 - 1 over the valid corners, max (kappa/3)^2, inverted corners)`` of the hexahedra
     `hexes` ``(N, 8)`` at `points` ``(n, 3)``: one pass, no gradient."""
-    return _c.hex_condition(_f8(points), _i8(hexes), 0.0, None, None, None, THREADS)
+    return _c.hex_condition(_f8(points), as_conn(hexes), 0.0, None, None, None, THREADS)
 
 
 def hex_objective(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float]:
@@ -160,7 +170,7 @@ def hex_objective(points: np.ndarray, hexes: np.ndarray) -> tuple[float, float]:
 def hex_corner_terms(points: np.ndarray, hexes: np.ndarray) -> tuple[np.ndarray, int]:
     """``(terms, inverted)``: (kappa/3)^2 of every corner of `hexes` ``(N, 8)`` as ``(8, N)`` float64 (corner i
     of hexahedron e at ``[i, e]``; ``inf`` where det <= 0) and the number of such corners."""
-    h = _i8(hexes)
+    h = as_conn(hexes)
     terms = np.empty((8, h.shape[0]))
     bad = _c.hex_condition(_f8(points), h, 0.0, None, None, terms, THREADS)[2]
     return terms, int(bad)
@@ -170,7 +180,7 @@ def hex_corner_measures(points: np.ndarray, hexes: np.ndarray) -> tuple[np.ndarr
     """``(kappa3, sj)``: every corner's kappa/3 (``inf`` where det <= 0) and scaled Jacobian det / (|a| |b| |c|)
     (0 where an edge has length 0) of `hexes` ``(N, 8)``, each float64 ``(8, N)`` (corner i of hexahedron e at
     ``[i, e]``): `jaxci.metrics.elements`' per-corner measures in one threaded pass."""
-    h = _i8(hexes)
+    h = as_conn(hexes)
     terms, sj = np.empty((8, h.shape[0])), np.empty((8, h.shape[0]))
     _c.hex_condition(_f8(points), h, 0.0, None, None, terms, THREADS, sj)
     return np.sqrt(terms, out=terms), sj
@@ -185,7 +195,7 @@ def hex_penalty(points: np.ndarray, hexes: np.ndarray, level: float, mu: float, 
     the cell's smooth max of its terms of power ``2^cell_k`` (`jaxci.optim.weighted.cell_measure`)."""
     x = _f8(points)
     grad = np.zeros_like(x)
-    s, tmax, bad = _c.hex_condition(x, _i8(hexes), 2.0 * float(scale) / 9.0, grad, None, None, THREADS, None,
+    s, tmax, bad = _c.hex_condition(x, as_conn(hexes), 2.0 * float(scale) / 9.0, grad, None, None, THREADS, None,
                                     float(level), float(mu), int(cell_k))
     return float(s), float(tmax), int(bad), grad
 
@@ -194,7 +204,7 @@ def hex_weighted_grad(points: np.ndarray, hexes: np.ndarray, corner_weight: np.n
                       grad: np.ndarray) -> None:
     """``grad += scale * sum_i corner_weight[i] d (kappa_i/3)^2 / dx`` over the valid corners of `hexes`
     ``(N, 8)``, `corner_weight` ``(8, N)`` (`hex_corner_terms`' layout), in place on `grad` float64 ``(n, 3)``."""
-    _c.hex_condition(_f8(points), _i8(hexes), 2.0 * float(scale) / 9.0, grad, _f8(corner_weight), None, THREADS)
+    _c.hex_condition(_f8(points), as_conn(hexes), 2.0 * float(scale) / 9.0, grad, _f8(corner_weight), None, THREADS)
 
 
 def table_corner_terms(points: np.ndarray, table: np.ndarray, winv: np.ndarray) -> tuple[np.ndarray, int]:
@@ -254,7 +264,7 @@ def untangle_energy(points: np.ndarray, hexes: np.ndarray, inv_len: np.ndarray, 
     elements, their eight corners side by side: half the time of a pass over the corner table."""
     x = _f8(points)
     g = np.zeros_like(x) if grad else None
-    e, dmin = _c.untangle_energy(x, _i8(hexes), _f8(inv_len), float(eps), float(theta), g, THREADS)
+    e, dmin = _c.untangle_energy(x, as_conn(hexes), _f8(inv_len), float(eps), float(theta), g, THREADS)
     if g is not None:
         g *= 1.0 / per_node
     return e / per_node, dmin, g
@@ -268,7 +278,7 @@ def local_sums(points: np.ndarray, hexes: np.ndarray, inc: np.ndarray, count: np
     corner has det <= 0. `THREADS` threads, each over its own node slots (the same numbers on any count)."""
     trials = _f8(trials)
     out = np.empty(trials.shape[:2])
-    _c.local_sums(_f8(points), _i8(hexes), _ROTATE, _i8(inc), _i8(count), trials, out, THREADS)
+    _c.local_sums(_f8(points), as_conn(hexes), _ROTATE, _i8(inc), _i8(count), trials, out, THREADS)
     return out
 
 
@@ -286,7 +296,7 @@ def ci_visit(x: np.ndarray, width: np.ndarray, nodes, hexes, inc, count, basis, 
     at the sweep and colour). Returns the number of nodes moved."""
     (cs, ts, ss), (ce, te, se) = tables
     return _c.ci_visit(x, width, nodes, _i8(inc), count, basis, free, plane, row, kind, hints[0], hints[1], cs, ts,
-                       ss, ce, te, se, _i8(hexes), _ROTATE, int(p.cohort), int(p.variations), int(p.attempts),
+                       ss, ce, te, se, as_conn(hexes), _ROTATE, int(p.cohort), int(p.variations), int(p.attempts),
                        int(round(p.stage_switch * p.attempts)), float(p.reduction), float(p.delta),
                        float(p.init_width), float(p.min_width), float(tol), float(bump), int(seed), THREADS,
                        int(counter))
@@ -360,10 +370,10 @@ def hex_terms_and_grad_lifted(x0: np.ndarray, scale: np.ndarray, v: np.ndarray, 
                               slot: np.ndarray, lay: tuple, hexes: np.ndarray) -> tuple[float, float, np.ndarray]:
     """`hex_terms_and_grad` (F) of the points `lift` (`lift_step` with `d`) would give, each read from the free
     coordinates where a corner needs it: the same numbers, without an ``(n, 3)`` array of the points (5 MB at
-    216,000 hexahedra while the kernel runs). `slot` from `lift_slots`, `hexes` int64 ``(N, 8)``."""
+    216,000 hexahedra while the kernel runs). `slot` from `lift_slots`, `hexes` ``(N, 8)``."""
     args = _lifted(x0, scale, v, d, alpha, slot, lay)
     return _mean_terms_and_grad(x0, hexes.shape[0],
-                                lambda w, g: _c.hex_condition_lifted(*args, hexes, w, g, THREADS))
+                                lambda w, g: _c.hex_condition_lifted(*args, as_conn(hexes), w, g, THREADS))
 
 
 def _f_weight(n_hex: int) -> float:
@@ -399,7 +409,7 @@ def pullback(g: np.ndarray, nodes: np.ndarray, hint: np.ndarray, keep: np.ndarra
 def greedy_colour(cells: np.ndarray, n: int) -> np.ndarray:
     """The first-fit colouring of nodes ``0 .. n-1`` in index order through the cells `cells` ``(N, k)``
     (`jaxci.geometry.topology.colour_nodes`' colours, in one C pass): int32 ``(n,)``."""
-    cells = _i8(cells)
+    cells = as_conn(cells)
     out = np.empty(int(n), np.int64)
     _c.greedy_colour(cells, int(n), int(cells.shape[1]), out)
     return out.astype(np.int32)

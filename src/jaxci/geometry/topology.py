@@ -127,7 +127,7 @@ def boundary_topology(hexes: np.ndarray, n_nodes: int, others=None) -> BoundaryT
 
     **Returns:** a `BoundaryTopology`.
     """
-    hexes = np.asarray(hexes, dtype=np.int64)
+    hexes = np.asarray(hexes)  # (int32: the keys are made in int64, n's type)
     n = np.int64(max(int(n_nodes), 1))
     blocks = [("hexahedron", hexes)]
     for t, cells in (others or {}).items():

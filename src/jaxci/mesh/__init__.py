@@ -47,6 +47,11 @@ from .midside import check_midside, midside_table, place_midside
 #: across such a range float64 keeps no digits of an element's shape (a stray node, or mixed units).
 MAX_COORDINATE_RANGE = 1e12
 
+#: The type of a mesh's connectivity (every `CellBlock`'s data once `HexMesh` has checked it): int32, half the
+#: bytes of int64 (6.6 MB of cube60_pert's 216,000 hexahedra, held through every phase of a run); the C kernels take
+#: it as it is. A key made of two node numbers (``low * n + high``) is made in int64.
+CONN_DTYPE = np.int32
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class HexMesh:
@@ -183,13 +188,15 @@ class HexMesh:
         _CHECKED_CELLS[blocks[0]] = (n, tuple(weakref.ref(b) for b in blocks), unused)
 
     def _checked_blocks(self, n: int, where: str) -> list[CellBlock]:
-        """The cell blocks as int64 `CellBlock`s, checked: shapes, node indices in ``[0, n)``, ids, midside nodes
-        (`check_midside`) and at least one hexahedron; `MeshError` naming the block and element otherwise."""
+        """The cell blocks as `CONN_DTYPE` (int32) `CellBlock`s, checked: shapes, node indices in ``[0, n)``, ids,
+        midside nodes (`check_midside`) and at least one hexahedron; `MeshError` naming the block and element
+        otherwise."""
+        if n > np.iinfo(CONN_DTYPE).max:
+            raise MeshError(f"{where}{n} nodes: jaxci numbers nodes in int32, up to {np.iinfo(CONN_DTYPE).max}")
         blocks = []
         for bi, blk in enumerate(self.cells):
             raw = np.asarray(blk.data)
-            data = int_array(raw, f"{where}cell block {bi} ({blk.type})")
-            data = _frozen(data, ours=data is not raw and data.base is None)
+            data = int_array(raw, f"{where}cell block {bi} ({blk.type})", dtype=None)
             width = NODES_PER_CELL.get(blk.type)
             if data.ndim != 2 or (width is not None and data.shape[1] != width):
                 raise MeshError(
@@ -204,6 +211,8 @@ class HexMesh:
                         f"{where}{blk.type} element {self.block_label(blk, row)} references node index {val}, "
                         f"out of range [0, {n})"
                     )
+            data = data.astype(CONN_DTYPE, copy=False)  # (in range: below n)
+            data = _frozen(data, ours=data is not raw and data.base is None)
             ids = None if blk.ids is None else np.asarray(blk.ids)
             if ids is not None and ids.shape != (data.shape[0],):
                 raise MeshError(f"{where}cell block {bi}: {ids.shape[0]} ids for {data.shape[0]} cells")

@@ -74,13 +74,13 @@ def mirrored_block(b: CellBlock) -> CellBlock:
     return CellBlock(b.type, np.asarray(b.data)[:, MIRROR_HEX], b.ids, mid)
 
 
-def int_array(a, name: str) -> np.ndarray:
-    """`a` as an int64 array of node indices (floats holding whole numbers accepted); `MeshError` naming `name`
-    otherwise."""
+def int_array(a, name: str, dtype=np.int64) -> np.ndarray:
+    """`a` as an array of node indices of `dtype` (None: an integer array as it is; floats holding whole numbers
+    accepted, as int64); `MeshError` naming `name` otherwise."""
     arr = np.asarray(a)
     if arr.dtype.kind not in "iu":
         if arr.dtype.kind == "f" and np.all(np.isfinite(arr)) and np.all(arr == np.round(arr)):
             arr = arr.astype(np.int64)
         else:
             raise MeshError(f"{name}: connectivity must be integer node indices, got dtype {arr.dtype}")
-    return arr.astype(np.int64, copy=False)
+    return arr if dtype is None else arr.astype(dtype, copy=False)

@@ -266,7 +266,7 @@ def inverted(points, cells, cell_type: str) -> np.ndarray:
 def _inverted(points, cells, cell_type: str) -> np.ndarray:
     pts, conn = _np_points(points), _conn(cells, cell_type)
     if cell_type == "hexahedron":  # the determinants alone (2.5x faster than the full kernel at 10^5 cells)
-        return (corner_determinants(pts, np.asarray(cells, dtype=np.int64)) <= 0).any(axis=1)
+        return (corner_determinants(pts, cells) <= 0).any(axis=1)
     return (cell_corner_kernel(pts, conn, cell_type)[0] <= 0).any(axis=1) | _barrier_inverted(pts, conn, cell_type)
 
 

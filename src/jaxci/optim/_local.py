@@ -227,7 +227,7 @@ EDGE_CHUNK = 1 << 16
 
 
 def _edge_keys(a: np.ndarray, b: np.ndarray, n, out: np.ndarray) -> None:
-    """``min(a, b) * n + max(a, b)`` of the edges' ends `a`, `b` (int64, `b` overwritten) into `out`."""
+    """``min(a, b) * n + max(a, b)`` of the edges' ends `a`, `b` (`b` overwritten) into `out` (int64, as `n`)."""
     np.minimum(a, b, out=out)
     np.maximum(a, b, out=b)
     out *= n
@@ -245,7 +245,7 @@ def edge_neighbours(hexes: np.ndarray, n_nodes: int, edges: np.ndarray | None = 
     **Returns:** ``(nbr, mask)`` of shape ``(n_nodes, K)`` (K the largest number of edge neighbours; padding
     repeats the node itself and is False in `mask`).
     """
-    hexes = np.asarray(hexes, dtype=np.int64)
+    hexes = np.asarray(hexes)  # (int32: the keys are made in int64, block by block)
     extra = np.zeros((0, 2), np.int64) if edges is None else np.asarray(edges, np.int64).reshape(-1, 2)
     n = np.int64(n_nodes)
     # each edge once: low * n + high, the 12 edges of each hexahedron in order (then the extra edges), made block

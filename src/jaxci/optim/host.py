@@ -339,7 +339,7 @@ def hex_objective_kernel(conn: np.ndarray, power: float | None = None) -> Callab
     loop of `jaxci.native` where it is built, else `jaxci.metrics.hexahedron.objective_terms_and_grad_np`; `power` p:
     the p-mean objective instead of F."""
     if native.AVAILABLE:
-        hexes = np.ascontiguousarray(np.asarray(conn).T, dtype=np.int64)
+        hexes = native.as_conn(np.asarray(conn).T)
 
         def kernel(x):
             return native.hex_terms_and_grad(x, hexes, power)
@@ -585,7 +585,7 @@ def untangle_rounds_np(par: Parametrisation, hexes: np.ndarray, inv_len: np.ndar
 
     projector = NearProjector(par.cons)
     if native.AVAILABLE:
-        hexes, inv_len = np.ascontiguousarray(hexes, dtype=np.int64), np.ascontiguousarray(inv_len, np.float64)
+        hexes, inv_len = native.as_conn(hexes), np.ascontiguousarray(inv_len, np.float64)
     else:
         table, inv_corner = corner_table(hexes), np.tile(inv_len, 8)
 

@@ -41,7 +41,7 @@ def global_ci_np(points, hexes, cons: Constraints, scale, p: CIParams, seed: int
     """
     hc = host_constraints(cons)
     x0 = np.array(points, dtype=np.float64)
-    hexes = np.ascontiguousarray(hexes, dtype=np.int64)
+    hexes = native.as_conn(hexes)
     scale = np.asarray(scale, np.float64)
     projector = NearProjector(cons)
     projector.commit(projector(x0)[1])  # every boundary node's cell at the start: the searches start there

@@ -192,7 +192,7 @@ class _Sweeper:
     def __init__(self, points, hexes, cons: Constraints, colour, faces, p, seed: int = 0, stream: str = "native",
                  colours: list[_Colour] | None = None):
         self.x = np.array(points, dtype=np.float64)
-        self.hexes = np.ascontiguousarray(hexes, dtype=np.int64)
+        self.hexes = native.as_conn(hexes)
         self.p = p
         self.rng = np.random.default_rng(seed)
         self.stream, self.words = stream, _draws.seed_words(seed)

@@ -130,7 +130,7 @@ def polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Poli
 def _polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: PolishParams, blocks: dict | None,
             rest: Rest | None):
     blocks = element_blocks(mesh) if blocks is None else blocks
-    blocks = {t: np.asarray(c, np.int64) for t, c in blocks.items() if len(c)}
+    blocks = {t: np.asarray(c) for t, c in blocks.items() if len(c)}  # (the mesh's int32: no copy)
     rest = Rest() if rest is None else rest
     x = np.array(x, dtype=np.float64)
     cells = CellCorners(blocks)

@@ -45,7 +45,7 @@ class CellCorners:
         self.types = [t for t, c in blocks.items() if len(c)]
         self.counts = {t: len(blocks[t]) for t in self.types}
         c_hex = native.AVAILABLE and "hexahedron" in self.types
-        self.hexes = np.ascontiguousarray(blocks["hexahedron"], np.int64) if c_hex else None
+        self.hexes = native.as_conn(blocks["hexahedron"]) if c_hex else None
         #: per non-C type: (type, flat corner table (4, C), W^-1)
         self.tables = [(t, _corner_table(blocks[t], CORNERS[t]), np.asarray(KERNELS[t].winv, np.float64))
                        for t in self.types if not (c_hex and t == "hexahedron")]
