@@ -202,17 +202,6 @@ static void node_span(const Nodes *nd, Py_ssize_t a, Py_ssize_t b, Py_ssize_t *l
     *hi = mx < 0 ? 0 : (Py_ssize_t)mx + 1;
 }
 
-/* Where a job adds node i's gradient: at G + 3 i (its own buffer, based so; NULL: no gradient), or, for the nodes
- * [dlo, dhi) that no other job touches, at D + 3 i (the output itself: run_jobs_nogil). */
-typedef struct {
-    double *G, *D;
-    Py_ssize_t dlo, dhi;
-} Grad;
-
-static inline __attribute__((always_inline)) double *grad_at(const Grad *g, long long i) {
-    return (i >= g->dlo && i < g->dhi ? g->D : g->G) + 3 * i;
-}
-
 /* Run worker(jobs[t]) for t < nt (job t of `size` bytes; its gradient pointer at byte `goff`), the first in
  * this thread; no Python call (the XLA FFI handler below runs it on XLA's threads, without the GIL). `G` (length
  * `len` = 3 x nodes, or NULL): job 0 adds into it directly, the others into zeroed buffers added to it afterwards,
@@ -223,43 +212,21 @@ static int run_jobs_nogil(void *jobs, size_t size, int nt, void *(*worker)(void 
                           size_t goff, const Nodes *nd) {
     char *base = jobs;
     double *bufs[MAX_THREADS] = {0};
-    Py_ssize_t span[MAX_THREADS][2] = {{0, 0}}, own[MAX_THREADS][2] = {{0, 0}};
+    Py_ssize_t span[MAX_THREADS][2] = {{0, 0}};
     if (G) {
-        *(Grad *)(base + goff) = (Grad){G, NULL, 0, 0};
-        for (int t = 0; t < nt; t++) {
-            span[t][1] = len / 3;
-            if (nd) node_span(nd, nd->items * t / nt, nd->items * (t + 1) / nt, &span[t][0], &span[t][1]);
-        }
+        *(double **)(base + goff) = G;
         for (int t = 1; t < nt; t++) {
-            Py_ssize_t lo = span[t][0], hi = span[t][1], x = lo, y = hi;
-            /* the nodes of job t that no other job touches, where the output holds +0.0 (as np.zeros makes it): added
-             * there directly, the same sums in the same order as from a zeroed buffer (+0.0 + a is a); only a
-             * buffer of the rest (cube60_pert on 2 threads: 2.7 MB -> 0.2 MB) */
-            for (int s = 0; s < nt; s++) {
-                if (s == t) continue;
-                if (span[s][0] <= x && span[s][1] > x) x = span[s][1];
-                if (span[s][0] < y && span[s][1] >= y) y = span[s][0];
-            }
-            for (int s = 0; s < nt && x < y; s++)
-                if (s != t && span[s][0] < y && span[s][1] > x) x = y; /* another job inside: none direct */
-            for (Py_ssize_t k = 3 * x; k < 3 * y; k++)
-                if (G[k] != 0.0 || signbit(G[k])) {
-                    x = y;
-                    break;
-                }
-            if (x >= y) x = y = hi; /* none: the whole span buffered */
-            own[t][0] = x;
-            own[t][1] = y;
-            Py_ssize_t top = y == hi ? x : hi; /* the buffer ends where the direct part does, if that is the top */
-            bufs[t] = calloc((size_t)(3 * (top - lo)) + 1, sizeof(double));
+            Py_ssize_t lo = 0, hi = len / 3;
+            if (nd) node_span(nd, nd->items * t / nt, nd->items * (t + 1) / nt, &lo, &hi);
+            span[t][0] = 3 * lo;
+            span[t][1] = 3 * hi;
+            bufs[t] = calloc((size_t)(3 * (hi - lo)) + 1, sizeof(double));
             if (!bufs[t]) {
                 for (int k = 1; k < t; k++) free(bufs[k]);
                 return -1;
             }
-            span[t][1] = top;
             /* the job writes node i's gradient at G[3 i + d]: its buffer's start stands for node lo */
-            *(Grad *)(base + t * size + goff) = (Grad){
-                (double *)((uintptr_t)bufs[t] - (uintptr_t)(3 * lo) * sizeof(double)), G, x, y};
+            *(double **)(base + t * size + goff) = (double *)((uintptr_t)bufs[t] - (uintptr_t)(3 * lo) * sizeof(double));
         }
     }
     pthread_t tid[MAX_THREADS];
@@ -272,9 +239,7 @@ static int run_jobs_nogil(void *jobs, size_t size, int nt, void *(*worker)(void 
     }
     if (G)
         for (int t = 1; t < nt; t++) {
-            Py_ssize_t lo = span[t][0];
-            for (Py_ssize_t k = 3 * lo; k < 3 * span[t][1]; k++)
-                if (k < 3 * own[t][0] || k >= 3 * own[t][1]) G[k] += bufs[t][k - 3 * lo];
+            for (Py_ssize_t k = span[t][0]; k < span[t][1]; k++) G[k] += bufs[t][k - span[t][0]];
             free(bufs[t]);
         }
     return 0;
@@ -295,8 +260,7 @@ typedef struct {
     Sums s;
     const double *P, *CW;
     const conn_t *H;
-    double *T;
-    Grad G;
+    double *T, *G;
     Py_ssize_t N, lo, hi;
     double weight;
     double *S; /* the corners' scaled Jacobians det / (|a| |b| |c|) (8, N), or NULL */
@@ -437,7 +401,7 @@ static void *hex_worker(void *arg) {
     HexJob *j = arg;
     const double *P = j->P, *CW = j->CW;
     const conn_t *H = j->H;
-    double *T = j->T, *G = j->G.G, *S = j->S, weight = j->weight, sum = 0.0, tmax = 0.0, level = j->level,
+    double *T = j->T, *G = j->G, *S = j->S, weight = j->weight, sum = 0.0, tmax = 0.0, level = j->level,
            mu = j->mu;
     int cell_k = j->cell_k;
     Py_ssize_t N = j->N;
@@ -521,10 +485,8 @@ static void *hex_worker(void *arg) {
                 g[NB[i][2]][d] += gc[d][i];
                 g[i][d] -= ga[d][i] + gb[d][i] + gc[d][i];
             }
-        for (int k = 0; k < 8; k++) {
-            double *gk = grad_at(&j->G, h[k]);
-            for (int d = 0; d < 3; d++) gk[d] += g[k][d];
-        }
+        for (int k = 0; k < 8; k++)
+            for (int d = 0; d < 3; d++) G[3 * h[k] + d] += g[k][d];
     }
     j->s = (Sums){sum, tmax, invalid};
     return NULL;
@@ -603,7 +565,7 @@ static PyObject *hex_condition(PyObject *self, PyObject *args) {
     HexJob jobs[MAX_THREADS];
     int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
-        jobs[t] = (HexJob){{0.0, 0.0, 0}, B[0].view.buf, B[3].view.buf, B[1].view.buf, B[4].view.buf, {0}, N,
+        jobs[t] = (HexJob){{0.0, 0.0, 0}, B[0].view.buf, B[3].view.buf, B[1].view.buf, B[4].view.buf, NULL, N,
                            N * t / nt, N * (t + 1) / nt, weight, B[5].view.buf, level, mu, cell_k};
     Nodes nd = {B[1].view.buf, N, 8, 1, 8, 0};
     if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[2].view.buf, 3 * n, offsetof(HexJob, G), &nd) < 0) goto done;
@@ -648,7 +610,7 @@ typedef struct {
     Sums s;
     const XffiBuffer *C, *W;
     const double *P;
-    Grad G;
+    double *G;
     Py_ssize_t lo, hi;
     double weight;
 } FfiJob;
@@ -724,7 +686,7 @@ static XLA_FFI_Error *ffi_hex_terms_and_grad(XLA_FFI_CallFrame *cf) {
     FfiJob jobs[MAX_THREADS];
     int nt = threads_for(N, (int)ffi_get(Q, 1), MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
-        jobs[t] = (FfiJob){{0.0, 0.0, 0}, C, W, P, {0}, N * t / nt, N * (t + 1) / nt, weight};
+        jobs[t] = (FfiJob){{0.0, 0.0, 0}, C, W, P, NULL, N * t / nt, N * (t + 1) / nt, weight};
     int rc = run_jobs_nogil(jobs, sizeof(FfiJob), nt, ffi_worker, grad, 3 * n, offsetof(FfiJob, G), NULL);
     Sums s = add_sums(jobs, sizeof(FfiJob), nt);
     if (rc == 0) {
@@ -757,8 +719,7 @@ typedef struct {
     Sums s;
     const double *P, *WI;
     const long long *T;
-    double *TE;
-    Grad G;
+    double *TE, *G;
     Py_ssize_t C, lo, hi;
     double weight;
 } CornerJob;
@@ -768,7 +729,7 @@ static void *corner_worker(void *arg) {
     CornerJob *j = arg;
     const double *P = j->P, *WI = j->WI;
     const long long *T = j->T;
-    double *TE = j->TE, w2 = j->G.G ? j->weight : 0.0, sum = 0.0, tmax = 0.0;
+    double *TE = j->TE, *G = j->G, w2 = G ? j->weight : 0.0, sum = 0.0, tmax = 0.0;
     Py_ssize_t C = j->C;
     long long invalid = 0;
     for (Py_ssize_t k = j->lo; k < j->hi; k++) {
@@ -790,8 +751,8 @@ static void *corner_worker(void *arg) {
         for (int m = 0; m < 3; m++)  /* d/d(column m of A) = sum_c d/d(column c of J) W^-1[m][c] */
             for (int d = 0; d < 3; d++) {
                 double gm = g[0][d] * WI[3 * m] + g[1][d] * WI[3 * m + 1] + g[2][d] * WI[3 * m + 2];
-                grad_at(&j->G, i[m + 1])[d] += gm;
-                grad_at(&j->G, i[0])[d] -= gm;
+                G[3 * i[m + 1] + d] += gm;
+                G[3 * i[0] + d] -= gm;
             }
     }
     j->s = (Sums){sum, tmax, invalid};
@@ -822,7 +783,7 @@ static PyObject *corner_condition(PyObject *self, PyObject *args) {
     CornerJob jobs[MAX_THREADS];
     int nt = threads_for(C / 8, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
-        jobs[t] = (CornerJob){{0.0, 0.0, 0}, B[0].view.buf, B[2].view.buf, B[1].view.buf, B[4].view.buf, {0}, C,
+        jobs[t] = (CornerJob){{0.0, 0.0, 0}, B[0].view.buf, B[2].view.buf, B[1].view.buf, B[4].view.buf, NULL, C,
                               C * t / nt, C * (t + 1) / nt, weight};
     Nodes nd = {B[1].view.buf, C, 1, C, 4, 1};
     if (run_jobs(jobs, sizeof(CornerJob), nt, corner_worker, B[3].view.buf, 3 * n, offsetof(CornerJob, G), &nd) < 0)
@@ -836,7 +797,7 @@ done:
 typedef struct {
     const double *P, *IL;
     const conn_t *H;
-    Grad G;
+    double *G;
     Py_ssize_t lo, hi;
     double eps, theta, energy, dmin;
 } UntangleJob;
@@ -848,7 +809,7 @@ static void *untangle_worker(void *arg) {
     UntangleJob *j = arg;
     const double *P = j->P, *IL = j->IL;
     const conn_t *H = j->H;
-    double *G = j->G.G, theta = j->theta, eps2 = j->eps * j->eps, energy = 0.0, dmin = INFINITY;
+    double *G = j->G, theta = j->theta, eps2 = j->eps * j->eps, energy = 0.0, dmin = INFINITY;
     for (Py_ssize_t e = j->lo; e < j->hi; e++) {
         const conn_t *h = H + 8 * e;
         double s_ = IL[e], a[3][8], b[3][8], c[3][8], u[3][8];
@@ -889,10 +850,8 @@ static void *untangle_worker(void *arg) {
                 g[NB[i][2]][d] += gc;
             }
         }
-        for (int k = 0; k < 8; k++) {
-            double *gk = grad_at(&j->G, h[k]);
-            for (int d = 0; d < 3; d++) gk[d] += g[k][d];
-        }
+        for (int k = 0; k < 8; k++)
+            for (int d = 0; d < 3; d++) G[3 * h[k] + d] += g[k][d];
     }
     j->energy = energy;
     j->dmin = dmin;
@@ -921,7 +880,7 @@ static PyObject *untangle_energy(PyObject *self, PyObject *args) {
     UntangleJob jobs[MAX_THREADS];
     int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
-        jobs[t] = (UntangleJob){B[0].view.buf, B[2].view.buf, B[1].view.buf, {0}, N * t / nt, N * (t + 1) / nt,
+        jobs[t] = (UntangleJob){B[0].view.buf, B[2].view.buf, B[1].view.buf, NULL, N * t / nt, N * (t + 1) / nt,
                                 eps, theta, 0.0, INFINITY};
     Nodes nd = {B[1].view.buf, N, 8, 1, 8, 0};
     if (run_jobs(jobs, sizeof(UntangleJob), nt, untangle_worker, B[3].view.buf, 3 * n, offsetof(UntangleJob, G),
@@ -2233,7 +2192,7 @@ static PyObject *hex_condition_lifted(PyObject *self, PyObject *args) {
     HexJob jobs[MAX_THREADS];
     int nt = threads_for(N, nthreads, MIN_PER_THREAD);
     for (int t = 0; t < nt; t++)
-        jobs[t] = (HexJob){{0.0, 0.0, 0}, NULL, NULL, B[7].view.buf, NULL, {0}, N, N * t / nt, N * (t + 1) / nt,
+        jobs[t] = (HexJob){{0.0, 0.0, 0}, NULL, NULL, B[7].view.buf, NULL, NULL, N, N * t / nt, N * (t + 1) / nt,
                            weight, NULL, 0.0, 0.0, 0, &L};
     Nodes nd = {B[7].view.buf, N, 8, 1, 8, 0};
     if (run_jobs(jobs, sizeof(HexJob), nt, hex_worker, B[8].view.buf, 3 * n, offsetof(HexJob, G), &nd) < 0) goto done;
