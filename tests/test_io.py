@@ -96,6 +96,22 @@ def test_round_trip(tmp_path, case):
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name] + (["m.h5"] if case == "xdmf" else []))
 
 
+def test_connectivity_is_read_into_int32_and_written_as_int32(tmp_path):
+    """A VTU whose connectivity is Int64 is read into the mesh's int32 blocks (the same node numbers); a VTU
+    written holds Int32 connectivity (as the README says), and reads back the same cells."""
+    mesh = perturb_box(3, amplitude=0.2, seed=2)
+    src = tmp_path / "in.vtu"
+    meshio.write(str(src), meshio.Mesh(mesh.points, [("hexahedron", mesh.hexes.astype(np.int64))]))
+    assert re.search(r'type="Int64" Name="connectivity"', src.read_text(errors="replace"))
+    got = read_mesh(str(src))
+    assert all(b.data.dtype == np.int32 for b in got.cells)
+    np.testing.assert_array_equal(got.hexes, mesh.hexes)
+    out = tmp_path / "out.vtu"
+    write_mesh(got, str(out))
+    assert re.search(r'type="Int32" Name="connectivity"', out.read_text(errors="replace"))
+    np.testing.assert_array_equal(read_mesh(str(out)).hexes, mesh.hexes)
+
+
 @pytest.mark.parametrize("file_format", ["gmsh", "gmsh22"])
 def test_gmsh_physical_groups_kept(tmp_path, file_format):
     base = box(2)
