@@ -2294,8 +2294,12 @@ static PyObject *greedy_colour(PyObject *self, PyObject *args) {
     int32_t *inc = NULL; /* the cells around each node (fewer than 2^31 cells) */
     if (acquire_args(B, o, spec, 2) < 0) goto done;
     Py_ssize_t N = k > 0 ? B[0].view.len / 4 / k : 0;
-    if (k < 1 || n < 0 || B[0].view.len != N * k * 4 || B[1].view.len != n * 8 || N >= INT32_MAX) {
+    if (k < 1 || n < 0 || B[0].view.len != N * k * 4 || B[1].view.len != n * 8) {
         PyErr_SetString(PyExc_ValueError, "greedy_colour: shapes disagree (cells (N, k), colour (n,))");
+        goto done;
+    }
+    if (N >= INT32_MAX) {
+        PyErr_SetString(PyExc_ValueError, "greedy_colour: 2^31 - 1 cells or more (its incidences are int32)");
         goto done;
     }
     const conn_t *CELL = B[0].view.buf;

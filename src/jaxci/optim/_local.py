@@ -72,9 +72,10 @@ def node_stars(hexes: np.ndarray, n_nodes: int, incidences: bool = False, rows: 
         first = np.searchsorted(key, 0)  # the incidences of no row sort first (-1)
         order, key = order[first:], key[first:]
         run = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]])) if len(key) else np.zeros(0, np.intp)
-        col = np.arange(len(key)) - np.repeat(run, np.diff(np.append(run, len(key))))  # the entry's place in its run
+        size = np.diff(np.append(run, len(key)))  # each run's length: a row's incidences in this block
+        col = np.arange(len(key)) - np.repeat(run, size)  # the entry's place in its run
         inc[key, fill[key] + col] = order + 8 * lo
-        fill[key[run]] += np.diff(np.append(run, len(key))).astype(it)
+        fill[key[run]] += size.astype(it)
     if incidences:
         return NodeStars(star=inc, mask=mask, valence=valence)
     hexes = hexes.astype(it, copy=False)

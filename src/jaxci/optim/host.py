@@ -242,11 +242,11 @@ class HostObjective:
             t += y
             return self(t)
         self._last = None
+        x = inside = None
         if self._slots is not None:  # the flat regions' nodes first: where all stay inside, no array of the points
             xs, moved = native.lift_nodes(self._x0, self._scale, y, d, alpha, self._slots, self._layout, self._flat)
             inside = native.flat_keep(xs, self._flat_rows, self._origin, self._r2,
                                       np.zeros(len(xs), bool)) == 0
-            x = None
         else:
             x, moved = native.lift_step(self._x0, self._scale, y, d, alpha, self._layout)
         best = self.best
@@ -254,11 +254,10 @@ class HostObjective:
                                                                                or not self.keep_raw):
             self._last = best  # the trial point is the accepted iterate: `__call__`'s restart
             return best[2]
-        if x is None and inside:
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                out = self.kernel.lifted(self._x0, self._scale, y, d, alpha, self._slots, self._layout)
-            return self._evaluate(None, None, None, out)
-        if x is None:
+        if inside:
+            return self._evaluate(None, None, None, lambda: self.kernel.lifted(self._x0, self._scale, y, d, alpha,
+                                                                                self._slots, self._layout))
+        if x is None:  # a node left its flat region: the points made, placed on the boundary
             x, _ = native.lift_step(self._x0, self._scale, y, d, alpha, self._layout)
         return self._evaluate(None, *self._placed(x))
 
@@ -267,13 +266,12 @@ class HostObjective:
         if self._last[0] is None:
             self._last = (v,) + self._last[1:]
 
-    def _evaluate(self, v, x, hint, out=None):
+    def _evaluate(self, v, x, hint, run=None):
         """The objective at the lifted (and placed) `x` of `v` (`_placed`): ``(value, gradient, F, max kappa/3)``,
-        remembered as the last evaluation; `out`: the kernel's ``(f, k, grad)`` at it, made already."""
-        if out is None:
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                out = self.kernel(x)
-        f, kmax, gx = out
+        remembered as the last evaluation; `run` (default: the kernel at `x`): the call that makes the kernel's
+        ``(f, k, grad)`` there (`step`'s lifted kernel, with no `x`)."""
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            f, kmax, gx = self.kernel(x) if run is None else run()
         if not np.isfinite(f):
             return np.inf, None, f, kmax
         gx_raw = gx
