@@ -6,7 +6,8 @@ one after the other, each as its own process:
 
 - ``jaxci smooth IN OUT --json [--method M]`` (``python -m jaxci``, `--jaxci-cmd` to change), per `--method`
   (``default``: no ``--method`` flag, jaxci's default; ``pmean4``: ``--method lbfgs --objective pmean --param
-  p=4``; any other name: ``--method NAME``, e.g. ``lbfgs`` plain L-BFGS, ``ci`` local CI):
+  p=4``; any other name: ``--method NAME``, e.g. ``lbfgs`` plain L-BFGS, ``ci`` local CI; ``NAME:PARAM=VALUE`` adds
+  ``--param PARAM=VALUE``, e.g. ``default:polish_work=400``):
 
   - ``cold``: with an EMPTY persistent compile cache (``JAXCI_CACHE_DIR`` a fresh folder): a first use;
   - ``warm``: again with that cache (the same mesh smoothed before);
@@ -86,6 +87,24 @@ MOVED_REL = 1e-9
 #: `--method` names that stand for more than ``--method NAME``: ``default`` (no flag: jaxci's default pipeline)
 #: and ``pmean4`` (L-BFGS on the p-mean, p = 4).
 VARIANTS = {"default": [], "pmean4": ["--method", "lbfgs", "--objective", "pmean", "--param", "p=4"]}
+
+
+def method_flags(method: str) -> list[str]:
+    """The ``jaxci smooth`` flags of a `--method` entry ``NAME[:PARAM=VALUE[,PARAM=VALUE...]]``: NAME's (a
+    `VARIANTS` name, else ``--method NAME``), then ``--param PARAM=VALUE`` for each, e.g.
+    ``default:polish_budget=0.02`` the default pipeline with ``--param polish_budget=0.02``."""
+    name, _, params = method.partition(":")
+    flags = list(VARIANTS.get(name, ["--method", name]))
+    for p in filter(None, params.split(",")):
+        if "=" not in p:
+            raise SystemExit(f"bench_realmesh: --method {method!r}: {p!r} is not PARAM=VALUE")
+        flags += ["--param", p]
+    return flags
+
+
+def method_slug(method: str) -> str:
+    """`method` as a file name's part (its ``:``, ``=`` and ``,`` as ``_``)."""
+    return method.replace(":", "_").replace("=", "_").replace(",", "_")
 
 #: What the default pipeline is held to (`--targets`): its worst element within `worst` of the best of the p-mean
 #: (p = 4), local CI and msqshape -s; its mean element within `mean` of the better of plain L-BFGS and msqshape
@@ -194,7 +213,7 @@ def last_json(text: str) -> dict | None:
 def run_jaxci(args, inp: Path, out: Path, method: str, cache: Path) -> dict:
     """One ``jaxci smooth`` run with `cache` as its compile cache; what ``--json`` said folded in."""
     cmd = [*shlex.split(args.jaxci_cmd), "smooth", str(inp), str(out), "--json", "--force"]
-    cmd += VARIANTS.get(method, ["--method", method])
+    cmd += method_flags(method)
     cmd += shlex.split(args.jaxci_args)
     env = dict(os.environ, JAXCI_CACHE_DIR=str(cache))
     r = run_child(cmd, env=env, timeout=args.timeout)
@@ -386,13 +405,13 @@ def bench_mesh(args, info: dict, ctx: dict, caches: Path) -> None:
     d: Path = ctx["dir"]
     info["jaxci"] = {}
     for method in args.method:
-        cache = caches / f"{info['name']}__{method}"
+        cache = caches / f"{info['name']}__{method_slug(method)}"
         if cache.exists():
             shutil.rmtree(cache)
         cache.mkdir(parents=True)
         runs = {}
         for run in ("cold",) if args.cold_only else ("cold", "warm"):
-            out = d / f"jaxci_{method}_{run}.vtk"
+            out = d / f"jaxci_{method_slug(method)}_{run}.vtk"
             r = run_jaxci(args, ctx["path"], out, method, cache)
             if r["ok"]:
                 r.update(measure_output(out, ctx["pts"], ctx["skin"], ctx["diag"], ctx["box"]))
@@ -441,12 +460,12 @@ def bench_warm_other(args, rows: list[dict], ctxs: dict, caches: Path) -> None:
                                                  f"{info['hexes']} hexes (closest: {partner['name']}, "
                                                  f"{partner['hexes']})"}
                 continue
-            cache = caches / f"{info['name']}__{method}__from__{partner['name']}"
+            cache = caches / f"{info['name']}__{method_slug(method)}__from__{partner['name']}"
             if cache.exists():
                 shutil.rmtree(cache)
-            shutil.copytree(caches / f"{partner['name']}__{method}", cache)
+            shutil.copytree(caches / f"{partner['name']}__{method_slug(method)}", cache)
             ctx = ctxs[info["name"]]
-            out = ctx["dir"] / f"jaxci_{method}_warm_other.vtk"
+            out = ctx["dir"] / f"jaxci_{method_slug(method)}_warm_other.vtk"
             r = run_jaxci(args, ctx["path"], out, method, cache)
             if r["ok"]:
                 r.update(measure_output(out, ctx["pts"], ctx["skin"], ctx["diag"], ctx["box"]))
@@ -620,7 +639,9 @@ def main(argv=None) -> int:
     ap.add_argument("--meshes", nargs="+", help="corpus names, sources, gmsh shapes or mesh files (default: the "
                                                 "corpus less the optional cube60_pert)")
     ap.add_argument("--method", nargs="+", default=["default"],
-                    help="jaxci methods; 'default' = no --method flag (default: %(default)s)")
+                    help="jaxci methods; 'default' = no --method flag, 'pmean4' the p-mean (p = 4); "
+                         "NAME:PARAM=VALUE[,PARAM=VALUE] adds --param PARAM=VALUE, e.g. "
+                         "default:polish_budget=0.02 (default: %(default)s)")
     ap.add_argument("--jaxci-cmd", default=f"{shlex.quote(sys.executable)} -m jaxci",
                     help="the jaxci command (default: this Python's -m jaxci; or 'jaxci')")
     ap.add_argument("--jaxci-args", default="", help="more flags for every jaxci smooth run, e.g. '--dtype float64'")

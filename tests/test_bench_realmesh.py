@@ -137,3 +137,18 @@ def test_targets_of_the_default_pipeline():
     assert t["mean"]["bound"] == pytest.approx(1.30 * 1.01)  # msqshape's mean is the better one left
     table = bench.targets_table([info])
     assert "NO" in table and "failed" in table and "targets met: worst 0/1" in table
+
+
+def test_method_flags_of_a_parameterised_method():
+    """A `--method` entry NAME:PARAM=VALUE[,...] runs NAME's flags and one --param per pair; its file-name part
+    keeps no ':' or '='; a pair without '=' is refused by name."""
+    assert bench.method_flags("default") == []
+    assert bench.method_flags("lbfgs") == ["--method", "lbfgs"]
+    assert bench.method_flags("default:polish_budget=0.02") == ["--param", "polish_budget=0.02"]
+    assert bench.method_flags("pmean4:polish=true,ktol=1e-3") == [
+        "--method", "lbfgs", "--objective", "pmean", "--param", "p=4", "--param", "polish=true",
+        "--param", "ktol=1e-3"]
+    slug = bench.method_slug("default:polish_work=400,polish_budget=0.02")
+    assert slug == "default_polish_work_400_polish_budget_0.02"
+    with pytest.raises(SystemExit, match="'polish' is not PARAM=VALUE"):
+        bench.method_flags("default:polish")
