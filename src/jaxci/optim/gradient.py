@@ -514,7 +514,7 @@ def _polish(problem, par: Parametrisation, x, steps: int, hist: dict, p: Gradien
     blocks = element_blocks(mesh)
     n_cells = sum(len(c) for c in blocks.values())
     pp = PolishParams(budget=p.polish_budget, work=p.polish_work * n_cells if p.polish_work > 0 else None,
-                      cell_k=int(p.polish_cell_power).bit_length() - 1)
+                      cell_k=int(p.polish_cell_power).bit_length() - 1, mean_steps=p.polish_mean_steps)
     if problem.tables is not None:  # the mesh on the device: the polish on a window of its worst cells
         from ..geometry.device_constraints import as_float64
         from .polish_window import put_back, window
