@@ -264,7 +264,7 @@ def _mean_phase(blocks: dict, cons: Constraints, layout: _Layout, free: np.ndarr
     """The polish's mean phase: `steps` steps of the host L-BFGS over every free node on the sum of each cell's
     smooth max of its corner terms (`MEAN_K`), the measure the mean element quality takes. F, which the solver
     minimised, is not that measure: its optimum leaves the mean element above what the nodes can reach (the small
-    tet-to-hex sphere of the real-mesh corpus: 1.566 -> 1.510 in 50 steps). The rounds' budget stays the
+    tet-to-hex sphere of the real-mesh corpus: 1.566 -> 1.514 in 25 steps). The rounds' budget stays the
     polish's start's, so that what this phase takes off the mean is room for the worst element.
 
     Kept where the mean element falls, the worst element does not rise and F stays within `f_limit` (the last
