@@ -35,18 +35,21 @@ def smoothed():
     return mesh, x
 
 
-def test_a_whole_mesh_window_polishes_as_the_host(smoothed):
+@pytest.mark.parametrize("mean_steps", [0, 25])
+def test_a_whole_mesh_window_polishes_as_the_host(smoothed, mean_steps):
+    """The window of every cell polishes as the host does, its mean phase (`PolishParams.mean_steps`) included."""
     mesh, x = smoothed
     host, hpar, cons, par = _setup(mesh, x)
-    y_host, rep_host = polish(mesh, host, hpar, x)
-    assert rep_host["kept"] >= 1
+    y_host, rep_host = polish(mesh, host, hpar, x, PolishParams(mean_steps=mean_steps))
+    assert rep_host["kept"] >= 1 and (rep_host["mean_phase"] is None) == (mean_steps == 0)
     with jax.enable_x64(True), jax.transfer_guard("disallow"):
         xd, conn = to_device(x), to_device(np.ascontiguousarray(mesh.hexes.T, np.int32))
         win = window(xd, conn, cons, par, host, k=mesh.n_hexes)
         assert win.rest == Rest() and len(win.nodes) == mesh.n_nodes
-        y, rep = polish(None, win.cons, win.par, win.x, PolishParams(), win.blocks, win.rest)
+        y, rep = polish(None, win.cons, win.par, win.x, PolishParams(mean_steps=mean_steps), win.blocks, win.rest)
         out = to_host(put_back(xd, win, y))
     assert rep["worst"] == rep_host["worst"] and rep["kept"] == rep_host["kept"]
+    assert rep["mean_phase"] == rep_host["mean_phase"]
     np.testing.assert_allclose(out, y_host, rtol=0, atol=1e-12)
 
 
@@ -84,16 +87,17 @@ def test_a_small_window_moves_only_its_worst_cells_nodes(smoothed):
 
 def test_a_window_of_a_mesh_without_flat_regions_polishes_as_the_host():
     """The boundary held fixed: the run has no flat region (nothing to gather its rows from), and the window's
-    polish is the host's (it failed to compile a gather from no rows)."""
+    polish, its mean phase included, is the host's (it failed to compile a gather from no rows)."""
     mesh = bevelled_box(6)
     x = np.array(smooth(mesh, "lbfgs", engine="host", fix_boundary=True).mesh.points)
     host, hpar, cons, par = _setup(mesh, x, fix_boundary=True)
     assert par.flat_origin.shape[0] == 0
-    y_host, rep_host = polish(mesh, host, hpar, x)
+    y_host, rep_host = polish(mesh, host, hpar, x, PolishParams(mean_steps=25))
     with jax.enable_x64(True), jax.transfer_guard("disallow"):
         xd, conn = to_device(x), to_device(np.ascontiguousarray(mesh.hexes.T, np.int32))
         win = window(xd, conn, cons, par, host, k=mesh.n_hexes)
-        y, rep = polish(None, win.cons, win.par, win.x, PolishParams(), win.blocks, win.rest)
+        y, rep = polish(None, win.cons, win.par, win.x, PolishParams(mean_steps=25), win.blocks, win.rest)
         out = to_host(put_back(xd, win, y))
     assert rep["worst"] == rep_host["worst"] and rep["kept"] == rep_host["kept"]
+    assert rep["mean_phase"] == rep_host["mean_phase"]
     np.testing.assert_allclose(out, y_host, rtol=0, atol=1e-12)
