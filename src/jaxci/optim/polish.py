@@ -186,12 +186,38 @@ def _polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Pol
         free[np.asarray(nodes)] = True
     layout = _Layout(cons, par, free)
     gamma, w, mean, work = GAMMA_START, w0, mean0, 0.0
-    if p.mean_steps > 0:
-        phase = _mean_phase(blocks, cons, layout, free, x, cells, p.mean_steps, n_corners, figures,
-                            lambda new: np.concatenate([new[t] for t in order]), (w0, mean0, rest.e_sum), p.f_limit)
-        report["mean_phase"] = phase.pop("report")
-        if phase:  # kept: the rounds start from there, the budget still the start's mean
-            x, worst, k, w, mean, e_sum = (phase[key] for key in ("x", "worst", "k", "w", "mean", "e_sum"))
+    f_cap = p.f_limit * n_corners * (1.0 - 1e-9)
+
+    def keep_first(sub: _SubProblem, candidates: list, ok) -> int | None:
+        """The first of `candidates` (points of `sub`'s nodes) whose worst and mean element pass ``ok(w_new,
+        mean_new)`` and whose F stays within `PolishParams.f_limit`, made the polish's points (its figures with
+        it; only the cells of `sub` are measured again); its index, or None."""
+        nonlocal k, w, mean, e_sum
+        sub_cells = CellCorners(sub.blocks)  # for the start and each candidate
+        old_e = sum(np.sum(a - 1.0) for a in sub_cells.terms_all(x[sub.nodes]))
+        for i, y_pts in enumerate(candidates):
+            new_terms = sub_cells.terms_all(y_pts)
+            new_worst = sub_cells.cell_worst(y_pts, new_terms)
+            k_new = k.copy()
+            for t, idx in sub.cell_index.items():
+                k_new[offsets[t] + idx] = new_worst[t]
+            w_new, mean_new = figures(k_new)
+            e_new = e_sum + float(sum(np.sum(a - 1.0) for a in new_terms) - old_e)
+            if ok(w_new, mean_new) and e_new <= f_cap:
+                x[sub.nodes] = y_pts
+                k, w, mean, e_sum = k_new, w_new, mean_new, e_new
+                for t, idx in sub.cell_index.items():
+                    worst[t][idx] = new_worst[t]
+                return i
+        return None
+
+    if p.mean_steps > 0:  # the mean phase: where kept, the rounds start from there, their budget the start's mean
+        sub = _SubProblem(blocks, cons, layout, free, x)
+        fun, done = _mean_phase(sub, n_corners, p.mean_steps)
+        kept = keep_first(sub, fun.candidates(), lambda w_new, mean_new: mean_new < mean0 and w_new <= w0)
+        report["mean_phase"] = {"steps": done, "work": 2.0 * done * sub.n_cells, "kept": kept is not None,
+                                "worst": [w0, w], "mean": [mean0, mean]}
+        del sub, fun  # (the whole mesh's sub-problem, before the rounds make theirs)
     tick = stepper("worst-element polish", "round")
     while True:
         if report["rounds"] >= MAX_ROUNDS:
@@ -230,26 +256,10 @@ def _polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Pol
             gamma = gamma ** 0.5
             _record(report, e_sum / n_corners, w, mean, work)
             continue
-        sub_cells = CellCorners(sub.blocks)  # the round's cells, for its start and each candidate
-        old_e = sum(np.sum(a - 1.0) for a in sub_cells.terms_all(x[sub.nodes]))
-        took = None
-        for i, y_pts in enumerate(candidates):
-            new_terms = sub_cells.terms_all(y_pts)
-            new_worst = sub_cells.cell_worst(y_pts, new_terms)
-            k_new = k.copy()
-            for t, idx in sub.cell_index.items():
-                k_new[offsets[t] + idx] = new_worst[t]
-            w_new, mean_new = figures(k_new)
-            e_new = e_sum + float(sum(np.sum(a - 1.0) for a in new_terms) - old_e)
-            if (w_new < w * (1.0 - 1e-4) and mean_new <= mean0 * (1.0 + p.budget)
-                    and e_new <= p.f_limit * n_corners * (1.0 - 1e-9)):
-                x[sub.nodes] = y_pts
-                k, w, mean, e_sum = k_new, w_new, mean_new, e_new
-                for t, idx in sub.cell_index.items():
-                    worst[t][idx] = new_worst[t]
-                report["kept"] += 1
-                took = i
-                break
+        took = keep_first(sub, candidates, lambda w_new, mean_new: (w_new < w * (1.0 - 1e-4)
+                                                                    and mean_new <= mean0 * (1.0 + p.budget)))
+        if took is not None:
+            report["kept"] += 1
         if took != 0:  # the last iterate no better, or too dear: a smaller step (after the lowest, or nothing, kept)
             gamma = gamma ** 0.5
         _record(report, e_sum / n_corners, w, mean, work)
@@ -259,41 +269,20 @@ def _polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Pol
     return x, report
 
 
-def _mean_phase(blocks: dict, cons: Constraints, layout: _Layout, free: np.ndarray, x: np.ndarray,
-                cells: CellCorners, steps: int, n_corners: int, figures, joined, start: tuple, f_limit: float) -> dict:
-    """The polish's mean phase: `steps` steps of the host L-BFGS over every free node on the sum of each cell's
-    smooth max of its corner terms (`MEAN_K`), the measure the mean element quality takes. F, which the solver
-    minimised, is not that measure: its optimum leaves the mean element above what the nodes can reach (the small
-    tet-to-hex sphere of the real-mesh corpus: 1.566 -> 1.514 in 25 steps). The rounds' budget stays the
+def _mean_phase(sub: _SubProblem, n_corners: int, steps: int) -> tuple[_RoundObjective, int]:
+    """The polish's mean phase on `sub` (every free node's cells): `steps` steps of the host L-BFGS on the sum of
+    each cell's smooth max of its corner terms (`MEAN_K`), the measure the mean element quality takes. F, which the
+    solver minimised, is not that measure: its optimum leaves the mean element above what the nodes can reach (the
+    small tet-to-hex sphere of the real-mesh corpus: 1.566 -> 1.514 in 25 steps). The rounds' budget stays the
     polish's start's, so that what this phase takes off the mean is room for the worst element.
 
-    Kept where the mean element falls, the worst element does not rise and F stays within `f_limit` (the last
-    accepted iterate, else the one of the lowest worst corner): then ``{"x", "worst", "k", "w", "mean", "e_sum",
-    "report"}`` (the points, each type's cells' worst, those joined in the polish's order, the worst and the mean
-    cell, F's sum of corner excesses, the phase's report), else ``{"report"}`` alone. `figures(k)`: the whole
-    mesh's worst and mean cell of the cells' worst `k`; `joined(worst)`: each type's cells' worst joined in the
-    polish's order; `start`: ``(worst, mean, e_rest)`` at `x`, ``e_rest`` the sum of the corner excesses of the
-    cells the polish does not see (`Rest.e_sum`)."""
-    w, mean, e_rest = start
-    sub = _SubProblem(blocks, cons, layout, free, x)
+    **Returns:** ``(objective, steps)``: the `_RoundObjective` whose ``candidates()`` the polish keeps the first of
+    where the mean element falls, the worst does not rise and F stays within its limit, and the steps taken."""
     fun = _RoundObjective(sub.par, None, n_corners / 32.0,
                           kernel=penalty_kernel(sub.blocks, n_corners, np.inf, 0.0, MEAN_K), follow_anchors=False)
     _, done, _, _, _ = lbfgs(fun, np.zeros(sub.par.n_free), limit=steps, max_rejected=20, rtol=1e-9, atol=1e-9,
                              history=10, cap=0.5, ftol=0.0)
-    report = {"steps": int(done), "work": 2.0 * float(done) * sub.n_cells, "kept": False, "worst": [w, w],
-              "mean": [mean, mean]}
-    for pts in fun.candidates():
-        y = x.copy()
-        y[sub.nodes] = pts
-        terms = cells.terms_all(y)
-        worst = cells.cell_worst(y, terms)
-        k = joined(worst)
-        w_new, mean_new = figures(k)
-        e_new = float(sum(np.sum(t - 1.0) for t in terms)) + e_rest
-        if mean_new < mean and w_new <= w and e_new <= f_limit * n_corners * (1.0 - 1e-9):
-            report.update(kept=True, worst=[w, w_new], mean=[mean, mean_new])
-            return {"x": y, "worst": worst, "k": k, "w": w_new, "mean": mean_new, "e_sum": e_new, "report": report}
-    return {"report": report}
+    return fun, int(done)
 
 
 def _record(report: dict, f: float, w: float, mean: float, work: float):
