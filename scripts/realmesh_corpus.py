@@ -17,6 +17,7 @@ Four sources, each mesh a `Entry` (name, path, where it came from, what it is):
   - ``sphere_tet2hex``: a unit ball, tetrahedra split into 4 hexahedra each (``Mesh.SubdivisionAlgorithm=2``):
     a poor unstructured all-hex mesh;
   - ``bracket_tet2hex``: an L-bracket (base plate and upright) with three bolt holes, split the same way;
+  - ``torus_tet2hex``: a torus (radii 1 and 0.35), split the same way: doubly curved, its inner wall concave;
   - ``cylinder_ogrid``: a cylinder (radius 1, height 2), transfinite O-grid of 5 blocks (centre square and four
     curved blocks) recombined and extruded in layers: structured, curved boundary;
   - ``annulus_quad``: a thick tube (radii 0.5 and 1), unstructured quadrilaterals (Blossom full-quad
@@ -66,7 +67,8 @@ MESQUITE_FILES = {
     "pave3": "pave3.e.vtk",
 }
 CDB_FILES = {"cdb-HexBeam": "HexBeam.cdb", "cdb-academic_rotor": "academic_rotor.cdb", "cdb-sector": "sector.cdb"}
-GMSH_SHAPES = ("sphere_tet2hex", "bracket_tet2hex", "cylinder_ogrid", "annulus_quad", "plate_holes_quad")
+GMSH_SHAPES = ("sphere_tet2hex", "bracket_tet2hex", "torus_tet2hex", "cylinder_ogrid", "annulus_quad",
+               "plate_holes_quad")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -317,6 +319,10 @@ def _bracket(occ) -> None:
     occ.cut(solid, [(3, t) for t in holes])
 
 
+def _torus(occ) -> None:
+    occ.addTorus(0, 0, 0, 1.0, 0.35)
+
+
 def _quads(build: Callable, h: float) -> tuple[np.ndarray, np.ndarray]:
     """Unstructured all-quad mesh of the OCC surface `build(occ)` makes (frontal-Delaunay for quads, Blossom
     full-quad recombination), size `h`: ``(points (n, 2), quads (m, 4))`` counter-clockwise."""
@@ -411,7 +417,7 @@ def _ogrid(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: shape -> (make(h) -> (points, hexes), h giving about 5,000 hexes, exponent of hexes in 1/h)
-_TET2HEX = {"sphere_tet2hex": (_sphere, 0.25), "bracket_tet2hex": (_bracket, 0.36)}
+_TET2HEX = {"sphere_tet2hex": (_sphere, 0.25), "bracket_tet2hex": (_bracket, 0.36), "torus_tet2hex": (_torus, 0.2)}
 
 
 def make_gmsh(shape: str, target: int) -> tuple[np.ndarray, np.ndarray]:

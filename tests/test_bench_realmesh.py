@@ -152,3 +152,28 @@ def test_method_flags_of_a_parameterised_method():
     assert slug == "default_polish_work_400_polish_budget_0.02"
     with pytest.raises(SystemExit, match="'polish' is not PARAM=VALUE"):
         bench.method_flags("default:polish")
+
+
+@pytest.mark.parametrize("shape", sorted(corpus._TET2HEX))
+def test_tet_to_hex_shapes_are_valid_meshes_of_their_solid(shape):
+    """Each tet-to-hex shape of the corpus at its small size: about the hexahedra asked for, none inverted, and its
+    nodes on or inside its solid (the torus: around the tube's centre circle, none near the axis)."""
+    if not corpus.have_gmsh():
+        pytest.skip("the gmsh wheel is not installed (pip install gmsh): the corpus's made meshes need it")
+    from jaxci.mesh import hex_mesh
+
+    target = corpus.SIZES["small"]
+    pts, hexes = corpus.make_gmsh(shape, target)
+    assert 0.75 * target <= len(hexes) <= 1.33 * target  # (the generator refines its size until within these)
+    mesh = hex_mesh(pts, hexes)
+    assert mesh.n_hexes == len(hexes) and np.unique(hexes).size == len(pts)  # compact: every node used
+    from jaxci.metrics.report import quality_report
+
+    assert quality_report(mesh).inverted_elements == 0
+    tol = 1e-9
+    if shape == "torus_tet2hex":
+        ring = np.hypot(pts[:, 0], pts[:, 1])
+        assert np.max(np.hypot(ring - 1.0, pts[:, 2])) <= 0.35 + tol
+        assert ring.min() >= 0.65 - tol
+    elif shape == "sphere_tet2hex":
+        assert np.max(np.linalg.norm(pts, axis=1)) <= 1.0 + tol
