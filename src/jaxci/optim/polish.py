@@ -344,8 +344,10 @@ class _SubProblem:
         for t, i in self.cell_index.items():
             used[blocks[t][i].ravel()] = True
         self.nodes = np.flatnonzero(used)
-        renum = np.full(len(region), -1, np.int64)
-        renum[self.nodes] = np.arange(len(self.nodes))
+        # int32, as the kernels take a connectivity (`jaxci.native.as_conn`): an int64 one was copied by each of
+        # the round's `CellCorners` (its penalty kernel's and its candidates' measure)
+        renum = np.full(len(region), -1, np.int32)
+        renum[self.nodes] = np.arange(len(self.nodes), dtype=np.int32)
         self.blocks = {t: renum[blocks[t][i]] for t, i in self.cell_index.items()}
         self.n_cells = sum(len(i) for i in self.cell_index.values())
         # the nodes of `region` keep their class, free coordinates, scales and flat regions; the others are fixed
