@@ -29,6 +29,10 @@ a package does: with ``PYTHONDONTWRITEBYTECODE`` set (as on the machines of docs
 would ever write it, and every run would compile jaxci's sources anew (about 0.1 s of each start-up here), which
 no installed copy does (``--no-bytecode``: leave it as it is; the JSON's ``settings.bytecode`` says which).
 
+``--repeats N`` makes every jaxci method's cold run N times, each with an empty cache, the methods alternated
+(`cold_repeats`): the wall times in the tables and the targets are then each method's median, and the JSON keeps
+every run's (``wall_runs``). One run's ratio moves by 0.2-0.3 on a shared 2-core machine.
+
 Per run it records the wall time, the child's CPU time (user + system) and peak RSS (``os.wait4``), exit status,
 the end of stderr, and for jaxci what ``--json`` says (iterations, its own wall time, notes, and a ``phases`` or
 ``timings`` dict where the command reports one). Every output is then measured here by the same code
@@ -45,7 +49,7 @@ L-BFGS and msqshape -s; its cold wall at most 2x plain L-BFGS's (1.5x on cube60_
 
     python scripts/bench_realmesh.py [--meshes cube9_pert pave3 sphere_tet2hex ...] [--method default lbfgs]
         [--sizes small large] [--timeout 900] [--skip-msq] [--msq-modes domain free skin] [--no-warm-other]
-        [--cold-only] [--targets]
+        [--cold-only] [--targets] [--repeats 3]
         [--corpus-dir ~/.cache/jaxci/realmesh] [--out docs/results/bench_realmesh.json]
 
 `--meshes` takes corpus names (``python scripts/realmesh_corpus.py --list``), a source (``mesquite``, ``peers``,
@@ -401,14 +405,19 @@ def prepare(entry, work: Path) -> tuple[dict, dict]:
 
 
 # ------------------------------------------------------------------------------------------------ the run
+def _fresh(cache: Path) -> Path:
+    """`cache` as an empty folder (a cold run's compilation cache)."""
+    if cache.exists():
+        shutil.rmtree(cache)
+    cache.mkdir(parents=True)
+    return cache
+
+
 def bench_mesh(args, info: dict, ctx: dict, caches: Path) -> None:
     d: Path = ctx["dir"]
     info["jaxci"] = {}
     for method in args.method:
-        cache = caches / f"{info['name']}__{method_slug(method)}"
-        if cache.exists():
-            shutil.rmtree(cache)
-        cache.mkdir(parents=True)
+        cache = _fresh(caches / f"{info['name']}__{method_slug(method)}")
         runs = {}
         for run in ("cold",) if args.cold_only else ("cold", "warm"):
             out = d / f"jaxci_{method_slug(method)}_{run}.vtk"
@@ -420,6 +429,7 @@ def bench_mesh(args, info: dict, ctx: dict, caches: Path) -> None:
             if not r["ok"]:
                 break
         info["jaxci"][method] = runs
+    cold_repeats(args, info, ctx, caches)
     info["msqshape"] = {}
     if args.skip_msq:
         return
@@ -440,6 +450,36 @@ def bench_mesh(args, info: dict, ctx: dict, caches: Path) -> None:
             r.update(measure_output(out, ctx["msq_pts"], ctx["msq_skin"], ctx["diag"], ctx["msq_box"]))
         info["msqshape"][mode] = r
         _say(info["name"], f"msqshape {mode}", r)
+
+
+def cold_repeats(args, info: dict, ctx: dict, caches: Path) -> None:
+    """With ``--repeats N`` (N > 1): N - 1 more cold runs of every method, each with an empty cache, the methods
+    alternated (repeat k runs each method once, in `--method`'s order), so that the runs of one repeat are seconds
+    apart and a ratio of medians is taken over the same spells of the machine. Each method's ``cold`` record keeps
+    its first run's figures (its output measured), and gets ``wall_runs`` (every run's wall seconds, the first
+    first), ``wall_first_s`` (the first's) and ``wall_s`` := their median, which the tables and the targets read.
+    A method whose first run failed is not repeated; a failed repeat is left out of the median and counted in
+    ``failed_repeats``."""
+    if args.repeats <= 1:
+        return
+    walls = {m: [info["jaxci"][m]["cold"]["wall_s"]] for m in args.method
+             if (info["jaxci"][m].get("cold") or {}).get("ok")}
+    failed = dict.fromkeys(walls, 0)
+    for k in range(1, args.repeats):
+        for method in walls:
+            cache = _fresh(caches / f"{info['name']}__{method_slug(method)}")
+            out = ctx["dir"] / f"jaxci_{method_slug(method)}_cold_{k + 1}.vtk"
+            r = run_jaxci(args, ctx["path"], out, method, cache)
+            _say(info["name"], f"jaxci {method} cold, repeat {k + 1}", r)
+            if r["ok"]:
+                walls[method].append(r["wall_s"])
+            else:
+                failed[method] += 1
+            if out.exists():
+                out.unlink()
+    for method, w in walls.items():
+        cold = info["jaxci"][method]["cold"]
+        cold.update(wall_runs=w, wall_first_s=w[0], wall_s=float(np.median(w)), failed_repeats=failed[method])
 
 
 def bench_warm_other(args, rows: list[dict], ctxs: dict, caches: Path) -> None:
@@ -654,6 +694,9 @@ def main(argv=None) -> int:
                     help="the default pipeline's targets: cold runs of default, lbfgs, pmean4 and ci and msqshape "
                          "-s, then per mesh the targets and whether each holds (implies --cold-only, "
                          "--no-warm-other)")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="cold runs of each jaxci method per mesh, the methods alternated; wall times are their "
+                         "median (default %(default)s)")
     ap.add_argument("--no-warm-other", action="store_true",
                     help="skip the run warm from another mesh's compile cache")
     ap.add_argument("--similar", type=float, default=3.0,
@@ -668,6 +711,8 @@ def main(argv=None) -> int:
                     help="do not write jaxci's bytecode first (then, with PYTHONDONTWRITEBYTECODE set, every run "
                          "compiles its sources)")
     args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error(f"--repeats {args.repeats}: must be 1 or more")
     if args.targets:
         args.method = list(dict.fromkeys([*TARGET_METHODS, *(m for m in args.method if m != "default")]))
         args.msq_modes = list(TARGET_MSQ)
@@ -690,9 +735,12 @@ def main(argv=None) -> int:
                settings=dict(methods=args.method, jaxci_cmd=args.jaxci_cmd, jaxci_args=args.jaxci_args,
                              timeout_s=args.timeout, msq_modes=[] if args.skip_msq else args.msq_modes,
                              warm_other=not args.no_warm_other, similar=args.similar, sizes=args.sizes,
+                             repeats=args.repeats,
                              moved_rel=MOVED_REL, bytecode=bytecode,
                              pythondontwritebytecode=os.environ.get("PYTHONDONTWRITEBYTECODE")),
-               notes=["timings from one run each on this machine; CPU = user + system of the child (os.wait4), "
+               notes=[("timings from one run each on this machine" if args.repeats == 1 else
+                       f"jaxci's cold wall times the median of {args.repeats} runs, the methods alternated "
+                       "(wall_runs: each; msqshape one run)") + "; CPU = user + system of the child (os.wait4), "
                       "peak_rss_mb = its ru_maxrss", "quality measured by jaxci.quality_report (float64) on "
                       "every output file, msqshape's included"],
                meshes=[])

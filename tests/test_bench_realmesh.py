@@ -177,3 +177,36 @@ def test_tet_to_hex_shapes_are_valid_meshes_of_their_solid(shape):
         assert ring.min() >= 0.65 - tol
     elif shape == "sphere_tet2hex":
         assert np.max(np.linalg.norm(pts, axis=1)) <= 1.0 + tol
+
+
+def test_cold_repeats_alternate_the_methods_and_take_the_median(tmp_path, monkeypatch):
+    """``--repeats 3``: two more cold runs of each method, the methods alternated, each with an empty cache; the
+    cold record's wall is the median of its runs, its first run's figures kept; a failed repeat is counted and left
+    out; a method whose first run failed is not repeated."""
+    calls = []
+    walls = {"default": iter([9.0, 2.0]), "lbfgs": iter([1.0, 5.0])}
+
+    def fake_run(args, inp, out, method, cache):
+        assert cache.is_dir() and not any(cache.iterdir())  # a fresh cache each time
+        (cache / "entry").write_text("x")
+        calls.append(method)
+        w = next(walls[method])
+        return {"ok": w < 8.0, "rc": 0 if w < 8.0 else 1, "wall_s": w}
+
+    monkeypatch.setattr(bench, "run_jaxci", fake_run)
+    monkeypatch.setattr(bench, "_say", lambda *a: None)
+    info = {"name": "m", "jaxci": {"default": {"cold": {"ok": True, "wall_s": 3.0, "after": {"worst_element": 1.5}}},
+                                   "lbfgs": {"cold": {"ok": True, "wall_s": 2.0}},
+                                   "ci": {"cold": {"ok": False, "wall_s": 1.0}}}}
+    args = type("A", (), {"repeats": 3, "method": ["default", "lbfgs", "ci"]})()
+    bench.cold_repeats(args, info, {"dir": tmp_path, "path": tmp_path / "in.vtk"}, tmp_path / "caches")
+    assert calls == ["default", "lbfgs", "default", "lbfgs"]  # alternated; ci (failed first) not repeated
+    d, lb = info["jaxci"]["default"]["cold"], info["jaxci"]["lbfgs"]["cold"]
+    assert d["wall_runs"] == [3.0, 2.0] and d["failed_repeats"] == 1 and d["wall_s"] == 2.5
+    assert d["wall_first_s"] == 3.0 and d["after"] == {"worst_element": 1.5}
+    assert lb["wall_runs"] == [2.0, 1.0, 5.0] and lb["wall_s"] == 2.0 and lb["failed_repeats"] == 0
+    assert "wall_runs" not in info["jaxci"]["ci"]["cold"]
+    args.repeats = 1  # one run: nothing more
+    calls.clear()
+    bench.cold_repeats(args, info, {"dir": tmp_path, "path": tmp_path / "in.vtk"}, tmp_path / "caches")
+    assert calls == []
