@@ -243,11 +243,7 @@ def _polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Pol
         # (its candidates are the anchored ones of `cons`: the round's small moves keep them, and its nodes, where
         # the solver left them, are at no corner of their cells, so that a projector that follows would make
         # the anchors' tables at every round for nothing: 12% of acoustics_mesh3d's run)
-        fun = _RoundObjective(sub.par, None, n_corners / 32.0,
-                              kernel=penalty_kernel(sub.blocks, n_corners, level * level - 1.0, MU, p.cell_k),
-                              follow_anchors=False)
-        y, steps, _, _, _ = lbfgs(fun, np.zeros(sub.par.n_free), limit=ROUND_STEPS, max_rejected=20, rtol=1e-6,
-                                  atol=1e-6, history=10, cap=0.5, ftol=0.0)
+        fun, steps = _solve(sub, n_corners, level * level - 1.0, MU, p.cell_k, ROUND_STEPS, 1e-6)
         report["rounds"] += 1
         report["steps"] += int(steps)
         work += 2.0 * float(steps) * sub.n_cells  # two passes a step (the terms, then the weighted gradient)
@@ -278,9 +274,18 @@ def _mean_phase(sub: _SubProblem, n_corners: int, steps: int) -> tuple[_RoundObj
 
     **Returns:** ``(objective, steps)``: the `_RoundObjective` whose ``candidates()`` the polish keeps the first of
     where the mean element falls, the worst does not rise and F stays within its limit, and the steps taken."""
+    return _solve(sub, n_corners, np.inf, 0.0, MEAN_K, steps, 1e-9)
+
+
+def _solve(sub: _SubProblem, n_corners: int, level: float, mu: float, cell_k: int, steps: int,
+           tol: float) -> tuple[_RoundObjective, int]:
+    """Up to `steps` steps of the host L-BFGS (its Cauchy stop at `tol`) from `sub`'s start on
+    `jaxci.optim.weighted.penalty_kernel`'s objective (`level`, `mu`, `cell_k`): a round's solve, or the mean
+    phase's (no level, no penalty). **Returns** ``(objective, steps taken)``: the `_RoundObjective`, whose
+    ``candidates()`` the polish measures."""
     fun = _RoundObjective(sub.par, None, n_corners / 32.0,
-                          kernel=penalty_kernel(sub.blocks, n_corners, np.inf, 0.0, MEAN_K), follow_anchors=False)
-    _, done, _, _, _ = lbfgs(fun, np.zeros(sub.par.n_free), limit=steps, max_rejected=20, rtol=1e-9, atol=1e-9,
+                          kernel=penalty_kernel(sub.blocks, n_corners, level, mu, cell_k), follow_anchors=False)
+    _, done, _, _, _ = lbfgs(fun, np.zeros(sub.par.n_free), limit=steps, max_rejected=20, rtol=tol, atol=tol,
                              history=10, cap=0.5, ftol=0.0)
     return fun, int(done)
 
