@@ -18,7 +18,7 @@ def _ffi_include() -> list[str]:
 
 
 _include = _ffi_include()
-setup(ext_modules=[Extension("jaxci._ckernels", ["src/jaxci/_ckernels.c"], optional=True,
+setup(ext_modules=[Extension("jaxci._ckernels", ["src/jaxci/_ckernels.c", "src/jaxci/_pool.c"], optional=True,
                              include_dirs=_include, define_macros=[("JAXCI_XLA_FFI", "1")] if _include else [],
                              extra_compile_args=["-O3", "-std=c99", "-fno-trapping-math", "-pthread"],
                              extra_link_args=["-pthread"])])

@@ -123,7 +123,7 @@ def test_threads_give_the_single_threaded_result(threads, shuffled):
     from jaxci import _ckernels as c
     from jaxci.cells import CORNERS
 
-    m = perturb_box(24, amplitude=0.2, seed=0)  # 13,824 hexahedra: 3 threads of >= 4096 elements
+    m = perturb_box(24, amplitude=0.2, seed=0)  # 13,824 hexahedra: 3 threads of >= 512 elements
     x = np.ascontiguousarray(m.points, np.float64)
     h = np.ascontiguousarray(m.hexes, np.int32)
     if shuffled:
@@ -146,6 +146,72 @@ def test_threads_give_the_single_threaded_result(threads, shuffled):
     assert r2[0] == pytest.approx(r1[0], rel=1e-13) and r2[1:] == r1[1:]
     np.testing.assert_allclose(c2, c1, rtol=1e-12, atol=1e-14 * np.abs(c1).max())
     np.testing.assert_allclose(c1 - 1.0, g1, rtol=1e-9, atol=1e-12 * np.abs(g1).max())  # the hexahedra's gradient
+
+
+def _pool_case():
+    m = perturb_box(12, amplitude=0.2, seed=3)  # 1,728 hexahedra: up to 3 threads of >= 512 elements
+    return np.ascontiguousarray(m.points, np.float64), np.ascontiguousarray(m.hexes, np.int32)
+
+
+def _gradient(x, h, threads):
+    g = np.zeros_like(x)
+    s, t, bad = native._c.hex_condition(x, h, 1.0, g, None, None, threads)
+    return s, t, bad, g
+
+
+def test_kept_threads_give_each_calls_result_whatever_the_calls_before():
+    """The kernels' threads are kept between calls (`_pool.c`): calls on 3, 2, 1, 3, 2 ... threads in a row, a
+    call's workers left out of it and taking part in the next, give each call the result of that thread count
+    made afresh (the same ranges: the same numbers, bit for bit), and its buffers hold nothing of the last call."""
+    x, h = _pool_case()
+    half = np.ascontiguousarray(h[: len(h) // 2])
+    want = {(k, n): _gradient(x, a, n) for k, a in (("all", h), ("half", half)) for n in (1, 2, 3)}
+    for i in range(60):
+        k, a = (("all", h), ("half", half))[i % 2]
+        n = (3, 2, 1, 3, 2)[i % 5]
+        s, t, bad, g = _gradient(x, a, n)
+        assert (s, t, bad) == want[k, n][:3]
+        np.testing.assert_array_equal(g, want[k, n][3])
+    assert want["all", 3][0] == pytest.approx(want["all", 1][0], rel=1e-13)
+
+
+def test_kernels_called_from_two_threads_at_once_each_get_their_own_result():
+    """One caller at a time has the kept threads; a call made while another holds them (Python threads with
+    the GIL released, or XLA's) makes its own: both results right."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    x, h = _pool_case()
+    want = _gradient(x, h, 2)
+    with ThreadPoolExecutor(4) as ex:
+        got = list(ex.map(lambda _: _gradient(x, h, 2), range(200)))
+    for s, t, bad, g in got:
+        assert (s, t, bad) == want[:3]
+        np.testing.assert_array_equal(g, want[3])
+
+
+def _child_gradient(queue):
+    x, h = _pool_case()
+    queue.put(_gradient(x, h, 2)[0])
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork() on this platform")
+def test_a_forked_child_runs_the_kernels_on_threads_of_its_own():
+    """After fork() the child has none of the parent's kept threads: its first call on two threads makes its own
+    (a child that waited on the parent's would hang; the test would time out)."""
+    import multiprocessing
+
+    x, h = _pool_case()
+    want = _gradient(x, h, 2)[0]  # the parent's threads exist now
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_child_gradient, args=(queue,))
+    child.start()
+    child.join(60)
+    alive = child.is_alive()
+    if alive:
+        child.kill()
+    assert not alive and child.exitcode == 0
+    assert queue.get(timeout=5) == want
 
 
 def test_mixed_kernel_is_the_gradient_of_the_mixed_objective():

@@ -162,15 +162,15 @@ static inline int corner_term(const double *a, const double *b, const double *c,
     return 1;
 }
 
-/* Up to MAX_THREADS POSIX threads per call, each over its own range of elements with its own gradient buffer
- * (summed into the caller's at the end: no two threads write one node). A call over fewer than
- * MIN_PER_THREAD elements per thread uses fewer threads (creating a thread costs ~50 us). 1024 was tried (2026-11-26, e3b18b6):
- * a 2070-hex mesh's gradient alone took 0.35 ms on two threads against 0.45 on one, but its whole L-BFGS run
- * 1.2-1.3 against 0.9-1.1 ms a step (three alternated runs). 2048 against 4096 (2026-11-30, 2 threads): the
- * polish's penalty pass over 8,000 cells 0.88 against 1.57 ms; the 24k cylinder O-grid's default run (its
- * polish rounds hold 1,200-9,000 cells) 2.05-2.13 against 2.36-2.43 s cold, three alternated runs each. */
+/* Up to MAX_THREADS threads per call (kept between calls: _pool.c), each over its own range of elements with its
+ * own gradient buffer (summed into the caller's at the end: no two threads write one node). A call over fewer
+ * than MIN_PER_THREAD elements per thread uses fewer threads. With the threads kept, a call's second thread
+ * costs ~15-25 us (2026-12-01, 2-core AMD EPYC VM, the polish's penalty pass over the first N hexahedra of a
+ * tet-to-hex sphere, medians of 300 calls, two threads against one): N = 512 68 against 75 us, 1,024 118
+ * against 158, 2,048 177 against 298, 4,096 406 against 602; hence 512. (Made for each call, a thread cost
+ * ~300 us there: 4,096 hexahedra 624 us on two threads against 615 on one, and the bound was 2048.) */
 #define MAX_THREADS 16
-#define MIN_PER_THREAD 2048
+#define MIN_PER_THREAD 512
 
 /* Threads for a call over n items: nthreads within [1, MAX_THREADS], fewer where a thread would get fewer than
  * min_per items (MIN_PER_THREAD elements for the element kernels; the node kernels set their own). */
@@ -202,8 +202,15 @@ static void node_span(const Nodes *nd, Py_ssize_t a, Py_ssize_t b, Py_ssize_t *l
     *hi = mx < 0 ? 0 : (Py_ssize_t)mx + 1;
 }
 
+/* The worker threads kept between calls (_pool.c). */
+int pool_begin(int nt);
+double *pool_buffer(int t, size_t len);
+void pool_run(int nt, void *(*fn)(void *), char *base, size_t size, double *const *zero, const size_t *zlen);
+void pool_end(void);
+
 /* Run worker(jobs[t]) for t < nt (job t of `size` bytes; its gradient pointer at byte `goff`), the first in
- * this thread; no Python call (the XLA FFI handler below runs it on XLA's threads, without the GIL). `G` (length
+ * this thread, the others on the pool's threads (_pool.c; where another caller holds it, on threads made for
+ * this call); no Python call (the XLA FFI handler below runs it on XLA's threads, without the GIL). `G` (length
  * `len` = 3 x nodes, or NULL): job 0 adds into it directly, the others into zeroed buffers added to it afterwards,
  * each over the range of the nodes of its items where `nd` gives them (else every node): a mesh numbered along
  * its elements gives each thread about 1/nt of the nodes (cube60_pert on 16 threads: 277 -> 206 MB resident), the
@@ -211,8 +218,11 @@ static void node_span(const Nodes *nd, Py_ssize_t a, Py_ssize_t b, Py_ssize_t *l
 static int run_jobs_nogil(void *jobs, size_t size, int nt, void *(*worker)(void *), double *G, Py_ssize_t len,
                           size_t goff, const Nodes *nd) {
     char *base = jobs;
-    double *bufs[MAX_THREADS] = {0};
+    double *bufs[MAX_THREADS] = {0}, *zero[MAX_THREADS] = {0};
+    size_t zlen[MAX_THREADS] = {0};
+    int owned[MAX_THREADS] = {0}; /* a buffer of this call's own (else the pool's, zeroed by its worker) */
     Py_ssize_t span[MAX_THREADS][2] = {{0, 0}};
+    int pooled = nt > 1 && pool_begin(nt);
     if (G) {
         *(double **)(base + goff) = G;
         for (int t = 1; t < nt; t++) {
@@ -220,28 +230,43 @@ static int run_jobs_nogil(void *jobs, size_t size, int nt, void *(*worker)(void 
             if (nd) node_span(nd, nd->items * t / nt, nd->items * (t + 1) / nt, &lo, &hi);
             span[t][0] = 3 * lo;
             span[t][1] = 3 * hi;
-            bufs[t] = calloc((size_t)(3 * (hi - lo)) + 1, sizeof(double));
+            size_t n = (size_t)(3 * (hi - lo));
+            bufs[t] = pooled ? pool_buffer(t, n) : NULL;
+            if (bufs[t]) {
+                zero[t] = bufs[t];
+                zlen[t] = n;
+            } else {
+                bufs[t] = calloc(n + 1, sizeof(double));
+                owned[t] = 1;
+            }
             if (!bufs[t]) {
-                for (int k = 1; k < t; k++) free(bufs[k]);
+                for (int k = 1; k < t; k++)
+                    if (owned[k]) free(bufs[k]);
+                if (pooled) pool_end();
                 return -1;
             }
             /* the job writes node i's gradient at G[3 i + d]: its buffer's start stands for node lo */
             *(double **)(base + t * size + goff) = (double *)((uintptr_t)bufs[t] - (uintptr_t)(3 * lo) * sizeof(double));
         }
     }
-    pthread_t tid[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
-    for (int t = 1; t < nt; t++) started[t] = pthread_create(&tid[t], NULL, worker, base + t * size) == 0;
-    worker(base);
-    for (int t = 1; t < nt; t++) {
-        if (started[t]) pthread_join(tid[t], NULL);
-        else worker(base + t * size);  /* no thread to be had: this thread does that part too */
+    if (pooled) {
+        pool_run(nt, worker, base, size, zero, zlen);
+    } else {
+        pthread_t tid[MAX_THREADS];
+        int started[MAX_THREADS] = {0};
+        for (int t = 1; t < nt; t++) started[t] = pthread_create(&tid[t], NULL, worker, base + t * size) == 0;
+        worker(base);
+        for (int t = 1; t < nt; t++) {
+            if (started[t]) pthread_join(tid[t], NULL);
+            else worker(base + t * size);  /* no thread to be had: this thread does that part too */
+        }
     }
     if (G)
         for (int t = 1; t < nt; t++) {
             for (Py_ssize_t k = span[t][0]; k < span[t][1]; k++) G[k] += bufs[t][k - span[t][0]];
-            free(bufs[t]);
+            if (owned[t]) free(bufs[t]);
         }
+    if (pooled) pool_end();
     return 0;
 }
 

@@ -31,8 +31,8 @@ _ROTATE = np.ascontiguousarray(ROTATE_TO_SLOT, np.int64)
 
 def _threads() -> int:
     """Threads per kernel call: ``JAXCI_THREADS``, else the CPUs this process may run on (at most 16). A call
-    over fewer than 4096 elements per thread uses fewer (`jaxci._ckernels`); results are deterministic for a
-    given number of threads (fixed ranges, fixed order of the sums)."""
+    over fewer than 512 elements per thread uses fewer (`jaxci._ckernels`, whose threads are kept between
+    calls); results are deterministic for a given number of threads (fixed ranges, fixed order of the sums)."""
     try:
         n = int(os.environ.get("JAXCI_THREADS", "0"))
     except ValueError:

@@ -13,7 +13,7 @@ it is done, the largest first; with one job they run in this process. A worker r
 work (`_smooth_file.smooth_file`, with the same `_smooth_file.Settings`), so every per-file guarantee holds: the
 output's format is the input's, it is written atomically, only what its check saw is replaced, the input is never
 modified. Each worker's C kernels run on ``cores // jobs`` threads (``JAXCI_THREADS``; XLA's pool: ``NPROC``)
-unless the environment sets them (`worker_environment`): a mesh over 4096 hexahedra per thread (`jaxci.native`) can
+unless the environment sets them (`worker_environment`): a mesh over 512 hexahedra per thread (`jaxci.native`) can
 then differ from the single form's in the last bits, as the single form run with that ``JAXCI_THREADS`` does.
 
 A file that fails (unreadable, inverted and not untangled, an output that exists without ``--force``, ...) does
