@@ -245,3 +245,29 @@ def test_a_dead_workers_file_says_how_the_worker_ended():
     assert _ending(-signal.SIGSEGV) == "killed by SIGSEGV: a crash in native code"
     assert _ending(-signal.SIGHUP) == "killed by SIGHUP"
     assert _ending(1) == "exit status 1" and _ending(-200) == "killed by signal 200"
+
+
+def test_a_file_tried_again_may_replace_only_the_output_its_own_worker_wrote(tmp_path):
+    """A pool that breaks (another worker died) after a worker wrote its file but before its record came back
+    tries that file again: the new run may replace the output that worker wrote (the identities it said), and
+    nothing else: not a file put there since, not a file that was there before the batch."""
+    from jaxci.cli._batch import _ours
+    from jaxci.cli._files import check_output
+    from jaxci.errors import MeshWriteError
+    from jaxci.io._place import identity
+
+    mesh = perturb_box(3, amplitude=0.1, seed=0)
+    out = check_output(tmp_path / "m.vtk", force=False)
+    item = (0, "in.vtk", out)
+    assert _ours(item, None) is item
+    out.write(mesh)  # the first worker's write
+    wrote = [identity(t) for t in out.targets]
+    again = _ours(item, wrote)[2]
+    again.write(mesh)  # the new run replaces it
+    assert read_mesh(tmp_path / "m.vtk").points.shape == mesh.points.shape
+    # a file put in its place since (another identity): not replaced
+    os.remove(tmp_path / "m.vtk")
+    (tmp_path / "m.vtk").write_text("the user's")
+    with pytest.raises(MeshWriteError, match="appeared"):
+        _ours(item, wrote)[2].write(mesh)
+    assert (tmp_path / "m.vtk").read_text() == "the user's"

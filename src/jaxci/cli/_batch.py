@@ -181,12 +181,17 @@ def _work(index: int, src: str, out, settings, debug: bool) -> dict:  # pragma: 
     """File `index` in a worker (said first: `_run_pool` fails it if the worker dies), under the command's signal
     guard (`_interrupt.guard`): an interrupt removes the write's temporary files and ends the worker (the command
     is stopping it)."""
+    from ..io._place import identity
     from . import _interrupt
 
     _BEGUN.put((index, os.getpid()))
     with _interrupt.guard() as guard:
         try:
-            return smooth_one(src, out, settings, debug)
+            rec = smooth_one(src, out, settings, debug)
+            # what it wrote, said before its record goes back: where the pool breaks before the record arrives (another
+            # worker died), the file is tried again on a new pool, which may then replace this output, and only it
+            _BEGUN.put((index, [identity(t) for t in out.targets]))
+            return rec
         except KeyboardInterrupt:
             signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the pool sends one more when another worker ends
             guard.claim_exit()
@@ -303,11 +308,15 @@ def _run_pool(items, settings, jobs: int, folder: Path, debug: bool, done) -> No
             finally:
                 pool.shutdown(wait=True, cancel_futures=True)
                 remove_stale(folder)  # what a worker that died left (a live process's files are not touched)
+            written = {}  # index -> identities of the targets its worker wrote
             while not begun_queue.empty():
-                index, pid = begun_queue.get()
-                begun[index] = pid
+                index, what = begun_queue.get()
+                if isinstance(what, list):
+                    written[index] = what
+                else:
+                    begun[index] = what
             died = [item for item in lost if _died(procs.get(begun.get(item[0])))]
-            items = [item for item in lost if item not in died]
+            items = [_ours(item, written.get(item[0])) for item in lost if item not in died]
             for index, src, out in died:
                 done(index, _failed(src, out.path, 1, f"{src}: the worker process smoothing it ended abruptly "
                                     f"({_ending(procs[begun[index]].exitcode)})"))
@@ -331,6 +340,25 @@ def _ending(code: int) -> str:
         return "killed by SIGKILL: by a user, or by the kernel when memory ran out"
     crash = -code in (signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT, signal.SIGILL, signal.SIGFPE)
     return f"killed by {name}" + (": a crash in native code" if crash else "")
+
+
+def _ours(item, wrote: list | None):
+    """A file to try again after its pool broke: ``(index, input, Output)`` with, where its worker had written it
+    (`wrote`: the identities of the Output's targets then) and they are still those files, each of them allowed
+    to be replaced (the worker wrote its output, and the pool broke before its record came back: the new run
+    writes it again, where the check before it would otherwise find a file that appeared while it ran)."""
+    import dataclasses
+
+    from ..io._place import identity
+
+    index, src, out = item
+    if not wrote:
+        return item
+    allowed = dict(out.allowed)
+    for target, was in zip(out.targets, wrote, strict=False):
+        if was is not None and identity(target) == was:
+            allowed[os.path.abspath(target)] = was
+    return index, src, dataclasses.replace(out, allowed=allowed)
 
 
 def _died(proc) -> bool:
