@@ -8,6 +8,8 @@ per candidate with 1-D gathers. See `jaxci.geometry.projection` for the method.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 
@@ -28,11 +30,13 @@ def _where3(xp, c, u, v):
     return (xp.where(c, u[0], v[0]), xp.where(c, u[1], v[1]), xp.where(c, u[2], v[2]))
 
 
+@functools.cache
 def inside_tolerance(dtype) -> float:
-    """Relative tolerance of the inside tests."""
+    """Relative tolerance of the inside tests (cached: the projection asks for it twice a solver step)."""
     return 256.0 * float(np.finfo(np.dtype(dtype)).eps)
 
 
+@functools.cache
 def segment_bump(dtype) -> float:
     """Score penalty of a segment point, times the squared size of its cell: an inside projection onto a
     triangle (or segment) wins unless the other point is nearer by more than rounding noise."""

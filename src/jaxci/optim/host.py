@@ -95,6 +95,10 @@ LIFTED_FROM = HISTORY_F16_FROM
 #: 796 / 747 steps, on the sphere F 0.786886 both, 743 / 784 steps. (Below it, on meshes of 7,000 to 25,000
 #: hexahedra, 6 pairs cost 18-26% more steps.)
 LARGE_HISTORY = 5
+#: From this many unknowns `lbfgs` gives the C heap's free pages back before its memory fills
+#: (`jaxci.runtime.memory.release_free_memory`: 85 MB at 10^6 hexahedra); below it there is little to give back,
+#: and the worst-element polish starts a solve every round (0.2 ms each on a part of 2,000 hexahedra).
+TRIM_FROM = 100_000
 
 
 def runs_on_host(backend: str, n_hex: int, limit: int, mixed: bool = False) -> bool:
@@ -479,9 +483,10 @@ def lbfgs(fun: Callable, y0: np.ndarray | None, *, limit: int, max_rejected: int
     def finished(f, k):
         return f <= ftol or (done is not None and bool(done(f, k)))
 
-    release_free_memory()  # the set-up's freed temporaries (presmoothing, parametrisation) before the memory fills
     # never written into (each step makes a new iterate): no copy
     y = np.zeros(fun.par.n_free) if y0 is None else np.asarray(y0, dtype=np.float64)
+    if len(y) >= TRIM_FROM:  # the set-up's freed temporaries (presmoothing, parametrisation) before the memory fills
+        release_free_memory()
     del y0
     value, g, f, k = fun(y)
     accept = getattr(fun, "accept", lambda: None)
