@@ -348,11 +348,11 @@ def test_the_mean_phase_lowers_the_mean_element_before_the_rounds():
 
 
 def test_the_default_polish_has_a_mean_phase():
-    """The default pipeline's polish runs its mean phase (`polish_mean_steps`, 25); 0 turns it off; a negative
+    """The default pipeline's polish runs its mean phase (`polish_mean_steps`, 100); 0 turns it off; a negative
     count is refused by name."""
     mesh = perturb_box(4, amplitude=0.3, seed=1)
     auto = smooth(mesh, fix_boundary=True)
-    assert auto.params["polish_mean_steps"] == 25 and auto.history["polish"]["mean_phase"]["steps"] >= 1
+    assert auto.params["polish_mean_steps"] == 100 and auto.history["polish"]["mean_phase"]["steps"] >= 1
     off = smooth(mesh, fix_boundary=True, polish_mean_steps=0)
     assert off.history["polish"]["mean_phase"] is None
     with pytest.raises(ConfigError, match="polish_mean_steps"):

@@ -32,7 +32,7 @@ MAX_CG = 10_000
 POLISH_WORK, MAX_POLISH_WORK = 1000.0, 1e6
 #: The polish's mean phase: L-BFGS steps on the mean element's measure before its rounds
 #: (`GradientParams.polish_mean_steps`; 0: none; chosen by measurement, `jaxci.optim.polish`).
-POLISH_MEAN_STEPS = 25
+POLISH_MEAN_STEPS = 100
 #: Most escape rounds (`GradientParams.escape`).
 MAX_ESCAPE = 100
 
@@ -142,7 +142,7 @@ class GradientParams:
     - `polish_mean_steps`: the polish's mean phase, before its rounds: this many L-BFGS steps over every free node
       on the sum of each cell's smooth max of its corner terms (P = 32), the measure the mean element quality
       takes, kept where the mean element falls and the worst does not rise; the rounds' budget stays the start's,
-      so what the phase takes off the mean is room for the worst element (`jaxci.optim.polish`). Default 25
+      so what the phase takes off the mean is room for the worst element (`jaxci.optim.polish`). Default 100
       (`POLISH_MEAN_STEPS`); 0: none. Its passes over the cells are not in `polish_work`'s bound.
     """
 

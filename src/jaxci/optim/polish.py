@@ -24,19 +24,23 @@ corpus (2026-11-29, in process), the worst element equal or lower on every one (
 1.2103, the small sphere 1.9898 -> 1.9874, the small bracket 2.1567 -> 2.1508), the work within 3% or less.
 
 Before its rounds, the polish lowers the mean element quality itself (its mean phase, `PolishParams.mean_steps`,
-`GradientParams.polish_mean_steps`, 25 steps in the default pipeline; `_mean_phase`): the host L-BFGS over every
+`GradientParams.polish_mean_steps`, 100 steps in the default pipeline; `_mean_phase`): the host L-BFGS over every
 free node on the sum of each cell's smooth max of its corner terms (power 32, `MEAN_K`), the measure the mean
 element quality takes, which F is not: at F's optimum the mean element is above what the nodes can reach (the
 small tet-to-hex sphere of the real-mesh corpus 1.566 -> 1.514 in 25 steps, pave3 1.215 -> 1.203). It is kept
 where the mean element fell and the worst did not rise; the rounds' budget stays the polish's start's, so what it
 took off the mean is room for the worst element. The mean budget is what ends the rounds on most meshes (on pave3
 every round not kept was over it; 2026-11-30), and the room moves the worst element down: measured cold on the 24
-meshes of the real-mesh comparison (docs/results/bench_realmesh.md), the worst element lower on 15 (pave3 1.9408
--> 1.8791, the small tet-to-hex sphere 1.9914 -> 1.9288, the 25,000-hexahedron bracket 2.1793 -> 2.1172), the
-same on 8, higher on one (the 25,000-hexahedron annulus 1.1945 -> 1.2047, within the spread that rounding alone
-gives these runs: 1.1905 by `jaxci.smooth` in a Python process, whose numpy calls BLAS with more threads), every
-mean within its bar; 15 steps left pave3 at 1.9355 and 50 raised the worst element on three of 12 meshes measured
-in process.
+meshes of the real-mesh comparison (docs/results/bench_realmesh.md), 25 steps against none: the worst element
+lower on 15 (pave3 1.9408 -> 1.8791, the small tet-to-hex sphere 1.9914 -> 1.9288, the 25,000-hexahedron bracket
+2.1793 -> 2.1172), the same on 8, higher on one (the 25,000-hexahedron annulus 1.1945 -> 1.2047, within the spread
+that rounding alone gives these runs), every mean within its bar. 100 steps against 25 (2026-12-01, in process,
+23 meshes: the 14 of `jaxci.optim.polish`'s measurements and pave2, pave_cyl, the small plate, the small torus,
+the 7,504 torus, the 15,152 and 26,744 spheres, the 24k plate and the 25k annulus): the worst element lower on 17
+(pave3 1.8779 -> 1.8356, the 25k bracket 2.1204 -> 2.0914, cub_fru 3.3432 -> 3.3084, the 25k annulus 1.2049 ->
+1.1937, the 16,984 torus 1.8096 -> 1.7949, pave_cyl 1.2926 -> 1.2830), the same on 2 (the rotor and the 25k
+cylinder, whose phase is not kept), higher on 4 by 0.02-0.12%, for about 10% more time (200 passes over every
+cell); 50 steps raised it on 8 of the 23 (up to +0.73%), 200 on 2 of 14 and were slower.
 
 The polish ends when the steps become negligible (``gamma > GAMMA_END``), the worst element is within
 `MIN_EXCESS` of an ideal one, no node of it can move, or its work (kernel passes over cells) reaches
