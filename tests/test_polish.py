@@ -334,13 +334,16 @@ def test_the_mean_phase_lowers_the_mean_element_before_the_rounds():
     w0, m0 = element_stats(mesh, x)
     y, rep = polish(mesh, cons, par, x, PolishParams(mean_steps=25))
     phase = rep["mean_phase"]
-    assert phase["kept"] and phase["steps"] == 25 and phase["work"] > 0
+    assert phase["kept"] and 1 <= phase["steps"] <= 25 and phase["work"] > 0
     assert phase["mean"][0] == pytest.approx(m0, rel=1e-12) and phase["mean"][1] < m0
     assert phase["worst"][1] <= phase["worst"][0] == pytest.approx(w0, rel=1e-12)
     w1, m1 = element_stats(mesh, y)
     assert w1 == pytest.approx(rep["worst"][1], rel=1e-12) and w1 < w0 and m1 <= m0 * 1.01
     _, plain = polish(mesh, cons, par, x, PolishParams())
     assert plain["mean_phase"] is None
+    # the phase ends where it stalls (`MEAN_RTOL`), not after all its steps
+    _, long = polish(mesh, cons, par, x, PolishParams(mean_steps=1000))
+    assert long["mean_phase"]["steps"] < 200
     f0 = float(mixed_objective(x, mesh))
     y1, rep1 = polish(mesh, cons, par, x, PolishParams(f_limit=f0, mean_steps=25))
     y0, _ = polish(mesh, cons, par, x, PolishParams(f_limit=f0))
