@@ -35,8 +35,8 @@ meshes of the real-mesh comparison (docs/results/bench_realmesh.md), 25 steps ag
 lower on 15 (pave3 1.9408 -> 1.8791, the small tet-to-hex sphere 1.9914 -> 1.9288, the 25,000-hexahedron bracket
 2.1793 -> 2.1172), the same on 8, higher on one (the 25,000-hexahedron annulus 1.1945 -> 1.2047, within the spread
 that rounding alone gives these runs), every mean within its bar. 100 steps against 25 (2026-12-01, in process,
-23 meshes: the 14 of `jaxci.optim.polish`'s measurements and pave2, pave_cyl, the small plate, the small torus,
-the 7,504 torus, the 15,152 and 26,744 spheres, the 24k plate and the 25k annulus): the worst element lower on 17
+23 meshes: Mesquite's pave1, pave2, pave3, pave_cyl and cub_fru, SfePy's matrix_fiber and acoustics, the ANSYS
+rotor and 15 gmsh meshes of the real-mesh corpus, 1,610 to 26,744 hexahedra): the worst element lower on 17
 (pave3 1.8779 -> 1.8356, the 25k bracket 2.1204 -> 2.0914, cub_fru 3.3432 -> 3.3084, the 25k annulus 1.2049 ->
 1.1937, the 16,984 torus 1.8096 -> 1.7949, pave_cyl 1.2926 -> 1.2830), the same on 2 (the rotor and the 25k
 cylinder, whose phase is not kept), higher on 4 by 0.02-0.12%, for about 10% more time (200 passes over every
