@@ -259,9 +259,10 @@ def test_a_file_tried_again_may_replace_only_the_output_its_own_worker_wrote(tmp
     mesh = perturb_box(3, amplitude=0.1, seed=0)
     out = check_output(tmp_path / "m.vtk", force=False)
     item = (0, "in.vtk", out)
-    assert _ours(item, None) is item
+    assert _ours(item, None) is item and out.written is None  # a run that wrote nothing says nothing
     out.write(mesh)  # the first worker's write
-    wrote = [identity(t) for t in out.targets]
+    wrote = list(out.written)
+    assert wrote == [identity(t) for t in out.targets]
     again = _ours(item, wrote)[2]
     again.write(mesh)  # the new run replaces it
     assert read_mesh(tmp_path / "m.vtk").points.shape == mesh.points.shape

@@ -181,16 +181,17 @@ def _work(index: int, src: str, out, settings, debug: bool) -> dict:  # pragma: 
     """File `index` in a worker (said first: `_run_pool` fails it if the worker dies), under the command's signal
     guard (`_interrupt.guard`): an interrupt removes the write's temporary files and ends the worker (the command
     is stopping it)."""
-    from ..io._place import identity
     from . import _interrupt
 
     _BEGUN.put((index, os.getpid()))
     with _interrupt.guard() as guard:
         try:
             rec = smooth_one(src, out, settings, debug)
-            # what it wrote, said before its record goes back: where the pool breaks before the record arrives (another
-            # worker died), the file is tried again on a new pool, which may then replace this output, and only it
-            _BEGUN.put((index, [identity(t) for t in out.targets]))
+            # what it wrote (nothing where it wrote nothing), said before its record goes back: where the pool
+            # breaks before the record arrives (another worker died), the file is tried again on a new pool, which
+            # may then replace this output, and only it
+            if out.written is not None:
+                _BEGUN.put((index, list(out.written)))
             return rec
         except KeyboardInterrupt:
             signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the pool sends one more when another worker ends

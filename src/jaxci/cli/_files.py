@@ -47,11 +47,13 @@ def _stat(path: Path, follow: bool = True) -> os.stat_result | None:
 @dataclasses.dataclass
 class Output:
     """A checked output: its `path`, the files written with it (`targets`: the path and its companions) and, per
-    target (absolute path), the identity of the file ``--force`` may replace there (None: no file may be)."""
+    target (absolute path), the identity of the file ``--force`` may replace there (None: no file may be);
+    `written`: the identities of the targets just after `write` wrote them (None before it has)."""
 
     path: Path
     targets: tuple[Path, ...]
     allowed: dict[str, tuple[int, int, int] | None]
+    written: tuple | None = None
 
     def check_inputs(self, mesh) -> None:
         """Refuse a target that is one of the files `mesh` was read from (`jaxci.io.input_paths`)."""
@@ -65,8 +67,11 @@ class Output:
         from ._interrupt import completed, removing_temporaries
 
         self.check_inputs(mesh)
+        from ..io._place import identity
+
         with removing_temporaries(self.path):
             write_mesh(mesh, self.path, overwrite=self.allowed)
+        self.written = tuple(identity(t) for t in self.targets)
         completed(f"wrote {self.path} (complete)")
 
 
