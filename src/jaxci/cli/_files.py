@@ -64,11 +64,10 @@ class Output:
     def write(self, mesh) -> None:
         """Write `mesh` to `path` (`check_inputs` first), replacing only what was checked."""
         from ..io import write_mesh
+        from ..io._place import identity
         from ._interrupt import completed, removing_temporaries
 
         self.check_inputs(mesh)
-        from ..io._place import identity
-
         with removing_temporaries(self.path):
             write_mesh(mesh, self.path, overwrite=self.allowed)
         self.written = tuple(identity(t) for t in self.targets)
