@@ -17,6 +17,7 @@ from jaxci.mesh import CellBlock, HexMesh
 from jaxci.mesh.generate import perturb_box
 from jaxci.metrics.elements import checked_objective, mixed_objective
 from jaxci.metrics.guard import cell_worst
+from jaxci.optim import polish as polish_module
 from jaxci.optim import weighted
 from jaxci.optim.gradient_params import GradientParams
 from jaxci.optim.parametrisation import make_parametrisation
@@ -348,6 +349,27 @@ def test_the_mean_phase_lowers_the_mean_element_before_the_rounds():
     y1, rep1 = polish(mesh, cons, par, x, PolishParams(f_limit=f0, mean_steps=25))
     y0, _ = polish(mesh, cons, par, x, PolishParams(f_limit=f0))
     assert not rep1["mean_phase"]["kept"] and np.array_equal(y1, y0)
+
+
+def test_the_mean_phase_ends_where_its_mean_has_not_fallen(monkeypatch):
+    """`MEAN_CHECK`: after that many accepted steps the mean phase goes on only where the mean element has fallen
+    below the start's. Where it has, the check changes nothing (the same points, bit for bit); where it has not
+    (checked at the start itself, where it cannot have), the phase ends there, is not kept, and the polish is the
+    one without a phase."""
+    mesh = perturb_box(4, amplitude=0.3, seed=1)
+    x = np.array(smooth(mesh, "lbfgs", fix_boundary=True).mesh.points)
+    cons, par = polish_setup(mesh, x, fixed=np.flatnonzero(np.abs(mesh.points - 0.5).max(axis=1) > 0.49))
+    monkeypatch.setattr(polish_module, "MEAN_CHECK", 10**9)
+    y_free, free = polish(mesh, cons, par, x, PolishParams(mean_steps=25))
+    assert free["mean_phase"]["kept"] and free["mean_phase"]["steps"] > 3
+    monkeypatch.setattr(polish_module, "MEAN_CHECK", 3)
+    y3, rep3 = polish(mesh, cons, par, x, PolishParams(mean_steps=25))
+    assert rep3["mean_phase"]["steps"] == free["mean_phase"]["steps"] and np.array_equal(y3, y_free)
+    monkeypatch.setattr(polish_module, "MEAN_CHECK", 0)
+    y0, rep0 = polish(mesh, cons, par, x, PolishParams(mean_steps=25))
+    assert rep0["mean_phase"]["steps"] == 0 and not rep0["mean_phase"]["kept"]
+    y_none, _ = polish(mesh, cons, par, x, PolishParams())
+    assert np.array_equal(y0, y_none)
 
 
 def test_the_default_polish_has_a_mean_phase():
