@@ -79,6 +79,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import realmesh_corpus as corpus  # noqa: E402
+from bench_stamp import stamp  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 MSQSHAPE = corpus.PEERS / "msqshape"
@@ -729,6 +730,7 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     caches = work / "caches"
     doc = dict(benchmark="realmesh", created=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+               **stamp(),
                host=dict(platform=platform.platform(), cpu_count=os.cpu_count(), python=platform.python_version(),
                          jax=jax.__version__, jaxci=getattr(jaxci, "__version__", None)),
                msqshape=str(MSQSHAPE) if MSQSHAPE.exists() else None,

@@ -78,6 +78,7 @@ def test_bench_realmesh_end_to_end(tmp_path):
     assert "wrote" in p.stdout
     doc = json.loads(out.read_text())
     assert doc["benchmark"] == "realmesh" and doc["settings"]["methods"] == ["default"]
+    assert doc["command"].startswith("bench_realmesh.py --meshes") and doc["date"] and "commit" in doc
     (m,) = doc["meshes"]
     assert 100 <= m["hexes"] <= 1000 and m["nodes"] > m["hexes"] / 2 and m["skin_nodes"] > 0
     b = m["before"]
