@@ -105,9 +105,9 @@ MEAN_RTOL = 1e-5
 #: on a mesh whose mean F's optimum already holds the phase is not kept, and its steps over every cell were time
 #: for nothing (the 24,225-hexahedron O-grid cylinder: 54 steps, 31% of its polish's work; after 15 its mean was
 #: 0.01% above the start's). Measured (2026-12-01, in process) on the 23 meshes of the docstring's measurement:
-#: the worst and the mean element unchanged on every one, the O-grid cylinder's polish 0.81 -> 0.57 s; checked
-#: after 9 steps instead, the 1,500-hexahedron O-grid cylinder's phase (whose mean fell by 0.03% in its 51 steps)
-#: ended too, its worst element 1.2536 -> 1.2597.
+#: the worst and the mean element unchanged on every one, the O-grid cylinder's polish 0.95-1.03 -> 0.61-0.79 s
+#: (three runs of each, alternated); checked after 9 steps instead, the 1,610-hexahedron O-grid cylinder's phase
+#: (whose mean fell by 0.03% in its 51 steps) ended too, its worst element 1.2536 -> 1.2597.
 MEAN_CHECK = 15
 
 
