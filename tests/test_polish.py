@@ -70,6 +70,10 @@ def test_weighted_kernels_are_F_and_their_gradients_are_exact(kernels):
         fd = (kernel(x + h * d)[0] - kernel(x - h * d)[0]) / (2 * h)
         assert fd == pytest.approx(float(np.sum(g * d)), rel=1e-6)
         assert kmax == pytest.approx(element_stats(mesh, x)[0], rel=1e-12)
+    # the caller's CellCorners of the same blocks (the polish's sub-problem's): the same numbers, bit for bit
+    given = weighted.penalty_kernel(blocks, 100, 0.05, 50.0, cells=cells)(x)
+    made = weighted.penalty_kernel(blocks, 100, 0.05, 50.0)(x)
+    assert given[:2] == made[:2] and np.array_equal(given[2], made[2])
     assert weighted.pmean_kernel(blocks, 4.0)(x)[0] == pytest.approx(checked_objective(mesh, 4.0)(x), rel=1e-12)
     worst = cells.cell_worst(x)
     ref = cell_worst(mesh, x)

@@ -211,11 +211,10 @@ def _polish(mesh, cons: Constraints, par: Parametrisation, x: np.ndarray, p: Pol
         mean_new)`` and whose F stays within `PolishParams.f_limit`, made the polish's points (its figures with
         it; only the cells of `sub` are measured again); its index, or None."""
         nonlocal k, w, mean, e_sum
-        sub_cells = CellCorners(sub.blocks)  # for the start and each candidate
-        old_e = sum(np.sum(a - 1.0) for a in sub_cells.terms_all(x[sub.nodes]))
+        old_e = sum(np.sum(a - 1.0) for a in sub.cells.terms_all(x[sub.nodes]))
         for i, y_pts in enumerate(candidates):
-            new_terms = sub_cells.terms_all(y_pts)
-            new_worst = sub_cells.cell_worst(y_pts, new_terms)
+            new_terms = sub.cells.terms_all(y_pts)
+            new_worst = sub.cells.cell_worst(y_pts, new_terms)
             k_new = k.copy()
             for t, idx in sub.cell_index.items():
                 k_new[offsets[t] + idx] = new_worst[t]
@@ -293,10 +292,8 @@ def _mean_phase(sub: _SubProblem, n_corners: int, steps: int) -> tuple[_RoundObj
 
     **Returns:** ``(objective, steps)``: the `_RoundObjective` whose ``candidates()`` the polish keeps the first of
     where the mean element falls, the worst does not rise and F stays within its limit, and the steps taken."""
-    cells = CellCorners(sub.blocks)
-
     def cell_sum(pts):  # the sum of the cells' worst corner kappa/3: n_cells times their mean element
-        return float(sum(np.sum(a) for a in cells.cell_worst(pts).values()))
+        return float(sum(np.sum(a) for a in sub.cells.cell_worst(pts).values()))
 
     start = cell_sum(sub.par.x0)
 
@@ -320,7 +317,8 @@ def _solve(sub: _SubProblem, n_corners: int, level: float, mu: float, cell_k: in
     (`jaxci.optim.host.lbfgs`), which may read the objective's accepted iterate. **Returns** ``(objective, steps
     taken)``: the `_RoundObjective`, whose ``candidates()`` the polish measures."""
     fun = _RoundObjective(sub.par, None, n_corners / 32.0,
-                          kernel=penalty_kernel(sub.blocks, n_corners, level, mu, cell_k), follow_anchors=False)
+                          kernel=penalty_kernel(sub.blocks, n_corners, level, mu, cell_k, sub.cells),
+                          follow_anchors=False)
     _, done, _, _, _ = lbfgs(fun, np.zeros(sub.par.n_free), limit=steps, max_rejected=20, rtol=tol, atol=tol,
                              history=10, cap=0.5, ftol=0.0, done=None if stop is None else stop(fun))
     return fun, int(done)
@@ -385,12 +383,14 @@ class _SubProblem:
         for t, i in self.cell_index.items():
             used[blocks[t][i].ravel()] = True
         self.nodes = np.flatnonzero(used)
-        # int32, as the kernels take a connectivity (`jaxci.native.as_conn`): an int64 one was copied by each of
-        # the round's `CellCorners` (its penalty kernel's and its candidates' measure)
+        # int32, as the kernels take a connectivity (`jaxci.native.as_conn`): an int64 one would be copied by
+        # `cells`
         renum = np.full(len(region), -1, np.int32)
         renum[self.nodes] = np.arange(len(self.nodes), dtype=np.int32)
         self.blocks = {t: renum[blocks[t][i]] for t, i in self.cell_index.items()}
         self.n_cells = sum(len(i) for i in self.cell_index.values())
+        #: the corners of `blocks`, made once: for the round's penalty kernel, `keep_first` and the mean phase's check
+        self.cells = CellCorners(self.blocks)
         # the nodes of `region` keep their class, free coordinates, scales and flat regions; the others are fixed
         nodes = self.nodes
         sub, groups = sub_constraints(x[nodes], np.asarray(cons.node_class)[nodes], region[nodes],

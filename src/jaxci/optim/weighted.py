@@ -194,7 +194,8 @@ def cell_measure(t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     return m, d / rel
 
 
-def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float, cell_k: int = 0):
+def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float, cell_k: int = 0,
+                   cells: CellCorners | None = None):
     """``kernel(x) -> (value, max kappa/3, gradient)`` of ``(sum_i e_i + weight * sum_i max(0, e_i - level)^2) /
     n_norm`` over the corners of the cells `blocks` (``e_i = t_i - 1``): F's share of these corners (`n_norm`: the
     corners of the whole mesh) with a quadratic penalty on every corner excess above `level` (the worst-element
@@ -202,8 +203,9 @@ def penalty_kernel(blocks: dict, n_norm: int, level: float, weight: float, cell_
     first sum is its cell's ``M - 1`` instead (`cell_measure` of power ``2^cell_k``: a smooth max of the cell's
     terms, so that the sum weighs each cell by its worst corners, as the mean element quality does). On hexahedra
     alone with the C kernels: terms and gradient in one pass (`jaxci.native.hex_penalty`), where the general path
-    makes two (a third of the polish's time on a 25,000-hexahedron tet-to-hex bracket)."""
-    cells = CellCorners(blocks)
+    makes two (a third of the polish's time on a 25,000-hexahedron tet-to-hex bracket). `cells`: the
+    `CellCorners` of `blocks` where the caller has them (else made here)."""
+    cells = CellCorners(blocks) if cells is None else cells
     inv = 1.0 / max(int(n_norm), 1)
     if cells.hexes is not None and not cells.tables and not cells.barrier.shape[1]:  # hexahedra: one C pass
         hexes = cells.hexes
